@@ -1,0 +1,32 @@
+# Two commands on a fresh clone: `make synthesize` and `make test`.
+SCENARIO ?= quadrotor_hill
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+
+.PHONY: synthesize test bench demos lint clean
+
+$(STAMP): pyproject.toml
+	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e '.[test]'
+	@touch $(STAMP)
+
+synthesize: $(STAMP)
+	$(PY) -m pipeline synthesize $(SCENARIO)
+
+test: $(STAMP)
+	$(PY) -m pytest -q
+
+bench: $(STAMP)
+	$(PY) -m bench
+
+demos: $(STAMP)
+	$(PY) -m pipeline demos $(SCENARIO)
+
+lint: $(STAMP)
+	$(PY) -m ruff check pipeline stages tests bench
+
+clean:
+	rm -rf $(VENV) reports/*/ .pytest_cache build *.egg-info

@@ -1,0 +1,122 @@
+"""Continuous-time dynamics ``xdot = f(x, u)`` from symbolic expressions, with exact Jacobians.
+
+Shapes: ``x (..., n)``, ``u (..., m)``; leading axes broadcast against each other.
+``f -> (..., n)``, ``f_x -> (..., n, n)``, ``f_u -> (..., n, m)``. The Jacobians are derived
+symbolically with sympy, so they are exact; their structural sparsity patterns (entries that
+are identically zero) drive the pruned sensitivity system of the paper's Remark 3.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+import sympy
+
+FloatArray = npt.NDArray[np.float64]
+BoolArray = npt.NDArray[np.bool_]
+
+
+def _vectorised(
+    entries: Sequence[sympy.Expr], args: Sequence[sympy.Symbol], n_state: int
+) -> Callable[[FloatArray, FloatArray], FloatArray]:
+    """NumPy function ``(x (..., n), u (..., m)) -> (..., len(entries))`` of the expressions."""
+    compiled = sympy.lambdify(list(args), list(entries), modules="numpy", cse=True)
+
+    def evaluate(x: FloatArray, u: FloatArray) -> FloatArray:
+        x = np.asarray(x, dtype=np.float64)
+        u = np.asarray(u, dtype=np.float64)
+        batch = np.broadcast_shapes(x.shape[:-1], u.shape[:-1])
+        values = compiled(*np.moveaxis(x, -1, 0), *np.moveaxis(u, -1, 0))
+        out = np.empty((*batch, len(entries)))
+        for i, value in enumerate(values):
+            out[..., i] = value
+        return out
+
+    del n_state
+    return evaluate
+
+
+@dataclass(frozen=True, eq=False)
+class Dynamics:
+    """``xdot = f(x, u)`` with named states and inputs; parameters already substituted.
+
+    Attributes:
+      state_names: (n,) names; input_names: (m,) names.
+      expressions: (n,) sympy expressions of ``f``.
+      jacobian_x: sympy (n, n) matrix ``df/dx``; jacobian_u: sympy (n, m) matrix ``df/du``.
+      sparsity_x: (n, n) bool, True where ``df/dx`` is not identically zero; sparsity_u: (n, m).
+    """
+
+    state_names: tuple[str, ...]
+    input_names: tuple[str, ...]
+    expressions: tuple[sympy.Expr, ...]
+    state_symbols: tuple[sympy.Symbol, ...]
+    input_symbols: tuple[sympy.Symbol, ...]
+    jacobian_x: sympy.Matrix = field(repr=False)
+    jacobian_u: sympy.Matrix = field(repr=False)
+    sparsity_x: BoolArray = field(repr=False)
+    sparsity_u: BoolArray = field(repr=False)
+    _f: Callable[[FloatArray, FloatArray], FloatArray] = field(repr=False)
+    _f_x: Callable[[FloatArray, FloatArray], FloatArray] = field(repr=False)
+    _f_u: Callable[[FloatArray, FloatArray], FloatArray] = field(repr=False)
+
+    @classmethod
+    def from_expressions(
+        cls,
+        state_symbols: Sequence[sympy.Symbol],
+        input_symbols: Sequence[sympy.Symbol],
+        expressions: Sequence[sympy.Expr],
+    ) -> Dynamics:
+        """Build from sympy expressions (one per state) in the given state and input symbols."""
+        xs, us = tuple(state_symbols), tuple(input_symbols)
+        n, m = len(xs), len(us)
+        f = sympy.Matrix(list(expressions))
+        jac_x = f.jacobian(sympy.Matrix(xs))
+        jac_u = f.jacobian(sympy.Matrix(us))
+        args = (*xs, *us)
+        return cls(
+            state_names=tuple(s.name for s in xs),
+            input_names=tuple(s.name for s in us),
+            expressions=tuple(f),
+            state_symbols=xs,
+            input_symbols=us,
+            jacobian_x=jac_x,
+            jacobian_u=jac_u,
+            sparsity_x=np.array([[entry != 0 for entry in row] for row in jac_x.tolist()]),
+            sparsity_u=np.array([[entry != 0 for entry in row] for row in jac_u.tolist()]).reshape(
+                n, m
+            ),
+            _f=_vectorised(list(f), args, n),
+            _f_x=_vectorised(list(jac_x), args, n),
+            _f_u=_vectorised(list(jac_u), args, n),
+        )
+
+    @property
+    def n(self) -> int:
+        return len(self.state_names)
+
+    @property
+    def m(self) -> int:
+        return len(self.input_names)
+
+    def f(self, x: FloatArray, u: FloatArray) -> FloatArray:
+        """Vector field: ``x (..., n)``, ``u (..., m)`` -> ``(..., n)``."""
+        return self._f(x, u)
+
+    def f_x(self, x: FloatArray, u: FloatArray) -> FloatArray:
+        """State Jacobian ``df/dx``: -> ``(..., n, n)``."""
+        out = self._f_x(x, u)
+        return out.reshape(*out.shape[:-1], self.n, self.n)
+
+    def f_u(self, x: FloatArray, u: FloatArray) -> FloatArray:
+        """Input Jacobian ``df/du``: -> ``(..., n, m)``."""
+        out = self._f_u(x, u)
+        return out.reshape(*out.shape[:-1], self.n, self.m)
+
+    def depends_on(self) -> tuple[str, ...]:
+        """Names of the states and inputs that the Jacobians depend on (the certified region)."""
+        free = set().union(*(e.free_symbols for e in (*self.jacobian_x, *self.jacobian_u)))
+        return tuple(s.name for s in (*self.state_symbols, *self.input_symbols) if s in free)
