@@ -5,7 +5,8 @@ field path (or CSV row), what was found and what was expected:
 1. YAML syntax (line and column);
 2. the schema (``pipeline.schema``: types, missing and extra keys, ordered bounds, ``Ts > 0``);
 3. cross-field rules here: names that must match, symbols in the dynamics, valid polygons,
-   Init and Goal clear of Unsafe, demo files, and each demo's flight (never in Unsafe, ends in Goal).
+   Init and Goal clear of Unsafe, demo files, and each demo's flight (avoids Unsafe, ends in
+   Goal).
 """
 
 from __future__ import annotations
@@ -94,7 +95,7 @@ class Scenario:
         return np.asarray(xs)[..., list(self.position_index)]
 
     def in_goal(self, x: FloatArray) -> np.ndarray:
-        """True where the state ``(..., n)`` lies in Goal (polygon and extra bounds). -> ``(...)``."""
+        """True where a state ``(..., n)`` is in Goal (polygon and extra bounds). -> ``(...)``."""
         inside = geometry.contains(self.goal, self.positions(x))
         for name, (lower, upper) in self.goal_bounds.items():
             value = np.asarray(x)[..., self.state_names.index(name)]
@@ -378,7 +379,8 @@ def check_demo_flight(scenario: Scenario, demo: Demo) -> None:
             k = hits[0]
             X, Y = positions[k]
             raise ScenarioError(
-                f"demo '{demo.name}' enters Unsafe set '{name}' at t = {trajectory.dense_ts[k]:.2f} s,"
+                f"demo '{demo.name}' enters Unsafe set '{name}'"
+                f" at t = {trajectory.dense_ts[k]:.2f} s,"
                 f" position ({X:.3f}, {Y:.3f})",
                 file=demo.file,
                 expected="a flight that never touches Unsafe",
