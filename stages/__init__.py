@@ -1,0 +1,2 @@
+"""The pipeline's stages, one module each; every stage is a function from typed inputs to a
+frozen ``*Result``. Only ``pipeline.orchestrator`` imports them and wires them in order."""
