@@ -1,0 +1,248 @@
+"""Stage ``optimize``: make every nominal trajectory as fast as possible while keeping its radius.
+
+For one demo with ``N_demo`` samples (paper §IV-A, Remark 4): the feasibility test of a horizon
+``N'`` is ``min_u J(u) == 0`` for the penalty cost whose Unsafe sets are bloated by ``d + eps_d``,
+Goal shrunk by ``d + eps_g``, inputs shrunk by ``eps_i`` plus the feedback's margin at the
+required radius, and operating region shrunk by the tube's extent. The smallest feasible ``N'``
+is found by bisection between an infeasible ``lo`` (0) and a feasible ``hi`` (``N_demo``, once
+the demo itself is made feasible); each try is seeded from the nearest feasible solution,
+truncated (the paper) or time-compressed to ``N'`` samples. The result is re-verified in
+continuous time independently of the cost (``pipeline.verify``).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.descent import DescentResult, IterationLog, gradient_descent, lbfgs
+from pipeline.dynamics import FloatArray
+from pipeline.scenario import Scenario, load_scenario
+from pipeline.verify import Verification, verify_nominal
+
+METHODS = ("gd", "lbfgs")
+SEED_MODES = ("compress", "truncate")
+
+
+@dataclass(frozen=True)
+class ConstraintMargins:
+    """The tube's footprint at the required radius, from the feedback stage.
+
+    Attributes:
+      input_margin: (m,) how much the tube's feedback may add to ``u_ref``, per input.
+      region_margin: state/input name -> how far the tube extends along it.
+    """
+
+    input_margin: FloatArray
+    region_margin: Mapping[str, float]
+
+
+@dataclass(frozen=True)
+class OptimizeOptions:
+    method: str = "gd"
+    seed_mode: str = "compress"
+    eps_d: float = 0.05
+    eps_g: float = 0.05
+    eps_i: float = 0.0
+    max_iterations: int = 300
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise ValueError(f"method must be one of {METHODS}, got {self.method!r}")
+        if self.seed_mode not in SEED_MODES:
+            raise ValueError(f"seed_mode must be one of {SEED_MODES}, got {self.seed_mode!r}")
+
+
+@dataclass(frozen=True)
+class BisectionTry:
+    """One horizon tried: ``N`` samples, whether ``J`` reached 0, and at what effort."""
+
+    N: int
+    feasible: bool
+    iterations: int
+    cost: float
+    seconds: float
+
+
+@dataclass(frozen=True)
+class TrajectoryOptimization:
+    """The optimisation of one demo.
+
+    Attributes:
+      x0: (n,) its start; u: (N, m) the fastest feasible input found (the demo's if none).
+      tries: every horizon tried, in order; feasible_inputs: the feasible ``(N_i, m)`` inputs
+      met on the way (the paper's Fig. 2 intermediate trajectories); log: iteration log of the
+      final horizon's descent.
+    """
+
+    demo: str
+    x0: FloatArray
+    N_demo: int
+    N: int
+    u: FloatArray
+    Ts: float
+    tries: tuple[BisectionTry, ...]
+    feasible_inputs: tuple[FloatArray, ...] = field(repr=False)
+    log: IterationLog = field(repr=False)
+    verification: Verification | None
+    seconds: float
+    success: bool
+    message: str
+
+    @property
+    def speedup(self) -> float:
+        """Fraction of the demo's duration saved: ``1 - N / N_demo``."""
+        return 1.0 - self.N / self.N_demo
+
+
+@dataclass(frozen=True)
+class OptimizeResult:
+    trajectories: tuple[TrajectoryOptimization, ...]
+    options: OptimizeOptions
+    success: bool
+    message: str
+
+
+def reseed(u: FloatArray, N: int, mode: str) -> FloatArray:
+    """A seed of ``N`` samples from a feasible input ``u (N_u, m)``: its first ``N`` samples
+    (``truncate``, the paper's Remark 4) or the same input played faster (``compress``)."""
+    if mode == "truncate":
+        return np.array(u[:N]) if N <= len(u) else np.vstack([u, np.repeat(u[-1:], N - len(u), 0)])
+    if mode == "compress":
+        source = (np.arange(len(u)) + 0.5) / len(u)
+        target = (np.arange(N) + 0.5) / N
+        return np.stack([np.interp(target, source, column) for column in u.T], axis=-1)
+    raise ValueError(f"seed mode must be one of {SEED_MODES}, got {mode!r}")
+
+
+def _minimise(problem: object, u0: FloatArray, options: OptimizeOptions) -> DescentResult:
+    if options.method == "gd":
+        return gradient_descent(problem, u0, max_iterations=options.max_iterations)  # type: ignore[arg-type]
+    if options.method == "lbfgs":
+        return lbfgs(problem, u0, max_iterations=options.max_iterations)  # type: ignore[arg-type]
+    raise ValueError(f"method must be one of {METHODS}, got {options.method!r}")
+
+
+def optimize_demo(
+    scenario: Scenario, demo: int, margins: ConstraintMargins, options: OptimizeOptions
+) -> TrajectoryOptimization:
+    """Minimum-time bisection (Remark 4) for demo number ``demo``."""
+    start = time.perf_counter()
+    problem = scenario.problem(
+        demo=demo,
+        input_margin=margins.input_margin,
+        region_margin=dict(margins.region_margin),
+        eps_d=options.eps_d,
+        eps_g=options.eps_g,
+        eps_i=options.eps_i,
+    )
+    name, N_demo = scenario.demos[demo].name, problem.N
+    tries: list[BisectionTry] = []
+    feasible_inputs: list[FloatArray] = []
+
+    def attempt(N: int, seed: FloatArray) -> DescentResult:
+        t0 = time.perf_counter()
+        outcome = _minimise(problem.with_horizon(N, seed), seed, options)
+        tries.append(
+            BisectionTry(
+                N, outcome.feasible, outcome.iterations, outcome.cost, time.perf_counter() - t0
+            )
+        )
+        if outcome.feasible:
+            feasible_inputs.append(outcome.u)
+        return outcome
+
+    first = attempt(N_demo, problem.u_seed)
+    if not first.feasible:
+        return TrajectoryOptimization(
+            name,
+            problem.x0,
+            N_demo,
+            N_demo,
+            problem.u_seed,
+            scenario.Ts,
+            tuple(tries),
+            (),
+            first.log,
+            None,
+            time.perf_counter() - start,
+            False,
+            f"demo '{name}' could not be made feasible at its own length ({first.message}); "
+            "record a demonstration with more clearance",
+        )
+    lo, hi, best, best_log = 0, N_demo, first.u, first.log
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        outcome = attempt(mid, reseed(best, mid, options.seed_mode))
+        if outcome.feasible:
+            hi, best, best_log = mid, outcome.u, outcome.log
+        else:
+            lo = mid
+    verification = verify_nominal(
+        scenario,
+        problem.x0,
+        best,
+        input_lower=problem.input_lower,
+        input_upper=problem.input_upper,
+        region=problem.region,
+    )
+    success = verification.passed
+    message = (
+        f"{N_demo} -> {hi} samples ({1 - hi / N_demo:.0%} faster), {verification.message}"
+        if success
+        else f"optimized trajectory failed verification: {verification.message}"
+    )
+    return TrajectoryOptimization(
+        name,
+        problem.x0,
+        N_demo,
+        hi,
+        best,
+        scenario.Ts,
+        tuple(tries),
+        tuple(feasible_inputs),
+        best_log,
+        verification,
+        time.perf_counter() - start,
+        success,
+        message,
+    )
+
+
+def _optimize_in_worker(
+    path: Path, demo: int, margins: ConstraintMargins, options: OptimizeOptions
+) -> TrajectoryOptimization:
+    return optimize_demo(load_scenario(path, check_demos=False), demo, margins, options)
+
+
+def optimize(
+    scenario: Scenario,
+    margins: ConstraintMargins,
+    options: OptimizeOptions,
+    demos: Sequence[int] | None = None,
+    jobs: int = 1,
+) -> OptimizeResult:
+    """Optimise the given demos (default all), in ``jobs`` processes; the result does not depend
+    on ``jobs`` (every demo's computation is deterministic and independent)."""
+    indices = list(range(len(scenario.demos))) if demos is None else list(demos)
+    if jobs <= 1 or len(indices) <= 1:
+        results = [optimize_demo(scenario, i, margins, options) for i in indices]
+    else:
+        with ProcessPoolExecutor(max_workers=jobs) as pool:
+            futures = [
+                pool.submit(_optimize_in_worker, scenario.path, i, margins, options)
+                for i in indices
+            ]
+            results = [future.result() for future in futures]
+    failed = [r for r in results if not r.success]
+    message = (
+        f"all {len(results)} trajectories optimized and verified"
+        if not failed
+        else "; ".join(r.message for r in failed)
+    )
+    return OptimizeResult(tuple(results), options, not failed, message)
