@@ -84,7 +84,7 @@ class Controller:
         return np.sqrt(np.einsum("...i,ij,...j->...", e, self.P, e)) / radii
 
     def select(self, x0: np.ndarray) -> np.ndarray:
-        """Choose the trajectory for each initial state ``x0 (..., n)``; returns indices ``(...)``."""
+        """Choose the trajectory for each initial state ``x0 (..., n)``; -> indices ``(...)``."""
         index = np.argmin(self._ratios(np.asarray(x0, dtype=np.float64)), axis=-1)
         self._selected = index
         return index
