@@ -89,6 +89,10 @@ class Controller:
         self._selected = index
         return index
 
+    def follow(self, index: np.ndarray) -> None:
+        """Track trajectories ``index (...)`` without selecting (e.g. to test one trajectory)."""
+        self._selected = np.asarray(index)
+
     def reference(self, t: float, index: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """``(u_ref (..., m), x_ref (..., n))`` of the selected trajectories at time ``t``."""
         index = self._require_selection() if index is None else np.asarray(index)

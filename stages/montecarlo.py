@@ -1,0 +1,241 @@
+"""Stage ``montecarlo``: closed-loop validation of the emitted controller from sampled starts.
+
+Initial states are drawn i.i.d. uniformly from Init (one ``SeedSequence`` child stream per
+chunk, so results do not depend on how chunks are scheduled), the closed loop is simulated with
+the controller read back from ``controller.json``, and each run is checked in continuous time
+(dense grid plus the motion bound between grid points): never in Unsafe, ends in Goal, no input
+clipping, error inside the predicted tube ``||e(t)||_P <= e^{-lambda t} ||e(0)||_P``. A
+non-finite state is a failure. The failure probability gets an exact one-sided 95% Clopper-Pearson
+upper bound (``scipy.stats.binomtest``), valid because the samples are i.i.d.
+
+A falsification search (Init's corners, a Sobol set, then a local search) is reported
+separately: it is evidence, not a bound.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy.optimize import minimize
+from scipy.stats import binomtest, qmc
+
+from pipeline import geometry
+from pipeline.closed_loop import simulate_closed_loop
+from pipeline.controller import Controller, load
+from pipeline.dynamics import FloatArray
+from pipeline.scenario import Scenario
+
+FAILURE_KINDS = ("unsafe", "goal", "clipping", "tube", "non_finite", "uncovered")
+TUBE_TOLERANCE = 1e-6
+
+
+@dataclass(frozen=True)
+class RunChecks:
+    """Per-run margins for a batch ``(B,)``; a run fails when any margin is negative."""
+
+    clearance: FloatArray
+    goal_margin: FloatArray
+    input_slack: FloatArray
+    tube_tightness: FloatArray
+    finite: np.ndarray
+    covered: np.ndarray
+
+    def margin(self) -> FloatArray:
+        """The smallest safety margin of each run (negative: a failure), for falsification."""
+        tube = 1.0 - self.tube_tightness
+        worst = np.minimum.reduce([self.clearance, self.goal_margin, self.input_slack, tube])
+        return np.where(self.finite & self.covered, worst, -np.inf)
+
+    def failures(self) -> dict[str, np.ndarray]:
+        """Failure masks ``(B,)`` by kind."""
+        ok = self.finite
+        return {
+            "unsafe": ok & (self.clearance <= 0),
+            "goal": ok & (self.goal_margin < 0),
+            "clipping": ok & (self.input_slack < 0),
+            "tube": ok & (self.tube_tightness > 1 + TUBE_TOLERANCE),
+            "non_finite": ~ok,
+            "uncovered": ~self.covered,
+        }
+
+
+@dataclass(frozen=True)
+class Falsification:
+    """The worst initial state found by search and its margin (evidence, not a bound)."""
+
+    worst_x0: FloatArray
+    worst_margin: float
+    evaluations: int
+
+
+@dataclass(frozen=True)
+class MonteCarloResult:
+    samples: int
+    seed: int
+    failures: dict[str, int]
+    failed_x0: FloatArray = field(repr=False)
+    min_clearance: float
+    min_goal_margin: float
+    max_tube_tightness: float
+    failure_bound: float
+    clearance: FloatArray = field(repr=False)
+    tube_tightness: FloatArray = field(repr=False)
+    paths: tuple[FloatArray, ...] = field(repr=False)
+    falsification: Falsification
+    success: bool
+    message: str
+
+
+def check_runs(
+    scenario: Scenario, controller: Controller, x0: FloatArray, substeps: int = 4
+) -> tuple[RunChecks, list[FloatArray]]:
+    """Simulate the closed loop from ``x0 (B, n)`` and measure every run's margins.
+
+    Returns the checks and, per reference trajectory used, the runs' positions ``(b, K+1, 2)``.
+    """
+    B = len(x0)
+    checks = {name: np.empty(B) for name in ("clearance", "goal_margin", "input_slack", "tube")}
+    finite = np.ones(B, dtype=bool)
+    covered = controller.coverage_ratio(x0) < 1.0
+    index = controller.select(x0)
+    paths = []
+    P = controller.P
+    for i in np.unique(index):
+        rows = np.flatnonzero(index == i)
+        run = simulate_closed_loop(scenario.dynamics, controller, x0[rows], int(i), substeps)
+        xs = run.xs
+        finite[rows] = np.all(np.isfinite(xs), axis=(1, 2))
+        positions = scenario.positions(np.nan_to_num(xs, nan=1e9, posinf=1e9, neginf=-1e9))
+        step = np.linalg.norm(np.diff(positions, axis=1), axis=-1).max(axis=1)  # (b,)
+        # between grid points a run is within (step / 2) of a grid point (RK4 substeps are short)
+        distances = np.min(
+            [geometry.distance(positions, u) for u in scenario.unsafe.values()], axis=0
+        )
+        checks["clearance"][rows] = distances.min(axis=1) - step / 2
+        inside = scenario.in_goal(xs[:, -1])
+        to_edge = geometry.boundary_distance(positions[:, -1], scenario.goal)
+        checks["goal_margin"][rows] = np.where(inside, to_edge, -to_edge)
+        raw = run.unclipped
+        slack = np.minimum(raw - controller.lower, controller.upper - raw)
+        checks["input_slack"][rows] = slack.min(axis=(1, 2, 3))
+        e = xs - run.x_ref
+        norm = np.sqrt(np.einsum("btj,jk,btk->bt", e, P, e))
+        decayed = norm * np.exp(controller.rate * run.ts)
+        checks["tube"][rows] = np.max(decayed / np.maximum(norm[:, :1], 1e-12), axis=1)
+        paths.append(positions)
+    result = RunChecks(
+        checks["clearance"],
+        checks["goal_margin"],
+        checks["input_slack"],
+        checks["tube"],
+        finite,
+        covered,
+    )
+    return result, paths
+
+
+def _uniform_init(scenario: Scenario, rng: np.random.Generator, count: int) -> FloatArray:
+    lo, hi = scenario.init_lower, scenario.init_upper
+    return lo + (hi - lo) * rng.random((count, len(lo)))
+
+
+def falsify(
+    scenario: Scenario,
+    controller: Controller,
+    sobol_points: int = 64,
+    local_searches: int = 2,
+    seed: int = 0,
+) -> Falsification:
+    """Corners of Init, a scrambled Sobol set, then Nelder-Mead from the worst starts."""
+    lo, hi = scenario.init_lower, scenario.init_upper
+    free = np.flatnonzero(hi > lo)
+    corners = (
+        np.array(np.meshgrid(*[[lo[i], hi[i]] for i in free], indexing="ij"))
+        .reshape(len(free), -1)
+        .T
+    )
+    sobol = qmc.Sobol(len(free), scramble=True, seed=seed).random(sobol_points)
+    candidates = np.vstack([corners, qmc.scale(sobol, lo[free], hi[free])])
+
+    def full(z: FloatArray) -> FloatArray:
+        x = np.tile(lo, (len(z), 1))
+        x[:, free] = np.clip(z, lo[free], hi[free])
+        return x
+
+    margins = check_runs(scenario, controller, full(candidates))[0].margin()
+    evaluations = len(candidates)
+    best_z, best = candidates[np.argmin(margins)], float(np.min(margins))
+    for start in candidates[np.argsort(margins)[:local_searches]]:
+        outcome = minimize(
+            lambda z: float(check_runs(scenario, controller, full(z[None]))[0].margin()[0]),
+            start,
+            method="Nelder-Mead",
+            bounds=list(zip(lo[free], hi[free], strict=True)),
+            options={"maxfev": 40, "xatol": 1e-3, "fatol": 1e-4},
+        )
+        evaluations += int(outcome.nfev)
+        if outcome.fun < best:
+            best_z, best = outcome.x, float(outcome.fun)
+    return Falsification(full(best_z[None])[0], best, evaluations)
+
+
+def validate_closed_loop(
+    scenario: Scenario,
+    controller_path: Path,
+    samples: int = 10_000,
+    seed: int = 0,
+    chunk: int = 2_500,
+    drawn_paths: int = 60,
+) -> MonteCarloResult:
+    """Monte Carlo validation of ``controller.json`` (read back from disk, as emitted)."""
+    controller = load(controller_path)
+    chunks = [chunk] * (samples // chunk) + ([samples % chunk] if samples % chunk else [])
+    streams = np.random.SeedSequence(seed).spawn(len(chunks))
+    parts, failed, paths = [], [], []
+    for size, stream in zip(chunks, streams, strict=True):
+        x0 = _uniform_init(scenario, np.random.default_rng(stream), size)
+        checks, chunk_paths = check_runs(scenario, controller, x0)
+        parts.append(checks)
+        masks = checks.failures()
+        failed.append(x0[np.any(list(masks.values()), axis=0)])
+        for group in chunk_paths:  # a few runs per reference trajectory, thinned in time
+            if len(paths) < drawn_paths:
+                paths.extend(group[:2, :: max(1, group.shape[1] // 200)])
+    merged = {
+        f: np.concatenate([getattr(p, f) for p in parts]) for f in RunChecks.__dataclass_fields__
+    }
+    checks = RunChecks(**merged)
+    counts = {kind: int(mask.sum()) for kind, mask in checks.failures().items()}
+    failing = int(np.any(list(checks.failures().values()), axis=0).sum())
+    bound = float(binomtest(failing, samples, alternative="less").proportion_ci(0.95).high)
+    falsification = falsify(scenario, controller, seed=seed)
+    success = failing == 0
+    message = (
+        (
+            f"{samples} closed-loop runs, 0 failures; failure probability <= {bound:.2e} "
+            "(95% Clopper-Pearson)"
+        )
+        if success
+        else (
+            f"{failing} of {samples} closed-loop runs failed: "
+            + ", ".join(f"{k} {v}" for k, v in counts.items() if v)
+        )
+    )
+    return MonteCarloResult(
+        samples=samples,
+        seed=seed,
+        failures=counts,
+        failed_x0=np.vstack(failed),
+        min_clearance=float(checks.clearance.min()),
+        min_goal_margin=float(checks.goal_margin.min()),
+        max_tube_tightness=float(checks.tube_tightness.max()),
+        failure_bound=bound,
+        clearance=checks.clearance,
+        tube_tightness=checks.tube_tightness,
+        paths=tuple(paths[:drawn_paths]),
+        falsification=falsification,
+        success=success,
+        message=message,
+    )
