@@ -1,0 +1,74 @@
+"""Atomic writes and stage-result artifacts."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from pipeline.artifacts import atomic_save, atomic_write_text, inputs_key, load_result, save_result
+
+
+@dataclass(frozen=True)
+class Inner:
+    values: np.ndarray
+    label: str
+
+
+@dataclass(frozen=True)
+class Outer:
+    items: tuple[Inner, ...]
+    table: dict[str, float]
+    small: np.ndarray
+    flag: bool
+
+
+def _result() -> Outer:
+    big = np.random.default_rng(0).normal(size=(300, 6))
+    return Outer((Inner(big, "a"), Inner(big[:2], "b")), {"x": 1.5, "y": np.inf}, np.eye(2), True)
+
+
+def test_round_trip_keeps_types_and_values(tmp_path):
+    original = _result()
+    save_result(tmp_path / "stage", "key1", original)
+    loaded = load_result(tmp_path / "stage", "key1")
+    assert isinstance(loaded, Outer) and isinstance(loaded.items, tuple)
+    np.testing.assert_array_equal(loaded.items[0].values, original.items[0].values)
+    np.testing.assert_array_equal(loaded.small, original.small)
+    assert loaded.table == original.table and loaded.flag is True
+
+
+def test_another_key_is_a_miss(tmp_path):
+    save_result(tmp_path / "stage", "key1", _result())
+    assert load_result(tmp_path / "stage", "key2") is None
+    assert load_result(tmp_path / "missing", "key1") is None
+
+
+def test_half_written_pair_is_a_miss(tmp_path):
+    save_result(tmp_path / "stage", "old", _result())
+    # an interrupted save of a new result: the arrays were replaced, the JSON was not
+    np.savez(tmp_path / "stage.npz", __key__=np.array("new"))
+    assert load_result(tmp_path / "stage", "old") is None
+    assert load_result(tmp_path / "stage", "new") is None
+
+
+def test_failed_write_keeps_the_previous_file(tmp_path):
+    target = tmp_path / "report.txt"
+    atomic_write_text(target, "good")
+
+    def broken(path):
+        path.write_text("half")
+        raise RuntimeError("disk full")
+
+    with pytest.raises(RuntimeError):
+        atomic_save(target, broken)
+    assert target.read_text() == "good"
+    assert [p.name for p in tmp_path.iterdir()] == ["report.txt"]
+
+
+def test_inputs_key_depends_on_every_part():
+    a = np.arange(3.0)
+    assert inputs_key("s", a, {"k": 1}) == inputs_key("s", a.copy(), {"k": 1})
+    assert inputs_key("s", a, {"k": 1}) != inputs_key("s", a + 1e-12, {"k": 1})
+    assert inputs_key("s", a, {"k": 1}) != inputs_key("s", a, {"k": 2})
