@@ -11,6 +11,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 from matplotlib.axes import Axes  # noqa: E402
 from matplotlib.patches import Rectangle  # noqa: E402
+from shapely.geometry import box  # noqa: E402
 from shapely.geometry.base import BaseGeometry  # noqa: E402
 
 from pipeline import geometry  # noqa: E402
@@ -58,6 +59,12 @@ def draw_scenario(ax: Axes, scenario: Scenario) -> None:
     # Frame Init and Goal with a margin; Unsafe sets are clipped to that frame.
     frame = geometry.polygon([(lo[i], lo[j]), (hi[i], lo[j]), (hi[i], hi[j]), (lo[i], hi[j])])
     xmin, ymin, xmax, ymax = frame.union(scenario.goal).buffer(4.0).bounds
+    for region in scenario.unsafe.values():  # show at least 1 m of every set beside the frame
+        strip = region.intersection(box(xmin, -1e9, xmax, 1e9))
+        if not strip.is_empty:
+            low, high = strip.bounds[1], strip.bounds[3]
+            ymax = max(ymax, low + 1.0) if low >= ymax - 1.0 else ymax
+            ymin = min(ymin, high - 1.0) if high <= ymin + 1.0 else ymin
     ax.set_xlim(xmin, xmax)
     ax.set_ylim(ymin, ymax)
     ax.set_aspect("equal")
@@ -101,6 +108,6 @@ def save_scenario_figure(
     draw_scenario(ax, scenario)
     draw_paths(ax, scenario, paths, labels, marker_every=marker_every, lw=1.2)
     ax.set_title(title)
-    ax.legend(loc="upper right", fontsize=7, ncols=2)
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=7)
     atomic_save(path, lambda p: fig.savefig(p, dpi=130), suffix=".png")
     plt.close(fig)
