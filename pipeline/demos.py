@@ -8,7 +8,7 @@ Format (``#`` lines are comments and are kept as the file's header)::
     0.1,10.2,-0.5
 
 Row ``k`` holds ``u[k]`` on ``[k Ts, (k+1) Ts)``; ``t`` must equal ``k Ts``, so the flight lasts
-``N Ts`` with ``N`` the number of rows.
+``N Ts`` with ``N`` the number of rows. With input bounds given, every input must lie within them.
 """
 
 from __future__ import annotations
@@ -27,6 +27,7 @@ from pipeline.dynamics import FloatArray
 from pipeline.errors import ScenarioError
 
 TIME_TOLERANCE = 1e-6
+BOUND_TOLERANCE = 1e-9
 
 
 @dataclass(frozen=True)
@@ -43,13 +44,20 @@ class Demo:
         return int(self.us.shape[0])
 
 
-def read_demo_csv(path: Path, input_names: Sequence[str], Ts: float) -> FloatArray:
-    """Read a demo CSV into inputs ``(N, m)``, with an error naming the row for any mistake."""
+def read_demo_csv(
+    path: Path, input_names: Sequence[str], Ts: float, bounds: FloatArray | None = None
+) -> FloatArray:
+    """Read a demo CSV into inputs ``(N, m)``, with an error naming the row for any mistake.
+
+    Args:
+      bounds: optional (m, 2) input bounds ``[lower, upper]``; a value outside is an error.
+    """
     try:
-        lines = path.read_text().splitlines()
-    except OSError as error:
+        lines = path.read_text(encoding="utf-8").splitlines()
+    except (OSError, UnicodeDecodeError) as error:
+        reason = error.strerror if isinstance(error, OSError) else "not UTF-8 text"
         raise ScenarioError(
-            f"cannot read demo file ({error.strerror})", file=path, expected="a readable CSV"
+            f"cannot read demo file ({reason})", file=path, expected="a readable CSV"
         ) from None
     expected_header = ["t", *input_names]
     rows: list[list[float]] = []
@@ -93,6 +101,16 @@ def read_demo_csv(path: Path, input_names: Sequence[str], Ts: float) -> FloatArr
                     found=value,
                     expected="a finite number",
                 )
+        if bounds is not None:
+            for name, value, (lower, upper) in zip(input_names, values[1:], bounds, strict=True):
+                if not lower - BOUND_TOLERANCE <= value <= upper + BOUND_TOLERANCE:
+                    raise ScenarioError(
+                        f"input '{name}' outside its bounds",
+                        file=path,
+                        field=where,
+                        found=value,
+                        expected=f"a value in [{lower:g}, {upper:g}] (input_bounds.{name})",
+                    )
         k = len(rows)
         if abs(values[0] - k * Ts) > TIME_TOLERANCE:
             raise ScenarioError(
@@ -119,5 +137,5 @@ def write_demo_csv(
         buffer.write(f"# {line}\n")
     buffer.write(",".join(["t", *input_names]) + "\n")
     for k, u in enumerate(np.asarray(us)):
-        buffer.write(",".join([f"{k * Ts:.6g}", *(f"{value:.6f}" for value in u)]) + "\n")
+        buffer.write(",".join([f"{k * Ts:.10g}", *(f"{value:.6f}" for value in u)]) + "\n")
     atomic_write_text(path, buffer.getvalue())

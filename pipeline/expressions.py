@@ -2,13 +2,15 @@
 
 The text is parsed with Python's ``ast`` module and translated node by node: numbers, declared
 names, ``+ - * / **``, unary minus, and calls of a fixed list of functions. Anything else
-(attributes, subscripts, lambdas, strings, unknown names) is refused, so no user text is ever
-evaluated as Python.
+(attributes, subscripts, lambdas, strings, unknown names, keyword arguments) is refused, so no
+user text is ever evaluated as Python. Powers of two numbers are computed in floating point, so a
+text such as ``10**10**10`` cannot make sympy build a huge exact integer.
 """
 
 from __future__ import annotations
 
 import ast
+import math
 from collections.abc import Mapping
 
 import sympy
@@ -25,14 +27,16 @@ ALLOWED_FUNCTIONS: Mapping[str, object] = {
     "atan2": sympy.atan2,
     "abs": sympy.Abs,
 }
+ARITY: Mapping[str, int] = {name: 2 if name == "atan2" else 1 for name in ALLOWED_FUNCTIONS}
 ALLOWED_CONSTANTS: Mapping[str, sympy.Expr] = {"pi": sympy.pi}
+MAX_LENGTH = 10_000
 
 _BINARY = {
     ast.Add: lambda a, b: a + b,
     ast.Sub: lambda a, b: a - b,
     ast.Mult: lambda a, b: a * b,
     ast.Div: lambda a, b: a / b,
-    ast.Pow: lambda a, b: a**b,
+    ast.Pow: lambda a, b: _power(a, b),
 }
 
 
@@ -42,17 +46,40 @@ class ExpressionError(ValueError):
 
 def parse_expression(text: str, symbols: Mapping[str, sympy.Symbol]) -> sympy.Expr:
     """Translate ``text`` into a sympy expression over ``symbols`` (name -> Symbol)."""
+    text = str(text).strip()
+    if len(text) > MAX_LENGTH:
+        raise ExpressionError(f"expression is {len(text)} characters long (at most {MAX_LENGTH})")
     try:
-        tree = ast.parse(str(text).strip(), mode="eval")
+        tree = ast.parse(text, mode="eval")
+        return _translate(tree.body, symbols)
     except SyntaxError as error:
         raise ExpressionError(f"not a valid expression ({error.msg})") from None
-    return _translate(tree.body, symbols)
+    except (RecursionError, MemoryError):
+        raise ExpressionError("expression is nested too deeply") from None
+
+
+def _power(base: sympy.Expr, exponent: sympy.Expr) -> sympy.Expr:
+    """``base**exponent``; between two numbers (``pi`` too): in float64, and it must be finite."""
+    if not (base.is_number and exponent.is_number):
+        return base**exponent
+    try:
+        a, b = float(base), float(exponent)
+        value = a**b
+    except TypeError:  # a complex operand
+        raise ExpressionError(f"({base})**({exponent}) is not a finite real number") from None
+    except (OverflowError, ZeroDivisionError):
+        value = math.inf
+    if not isinstance(value, float) or not math.isfinite(value):
+        raise ExpressionError(f"({a:g})**({b:g}) is not a finite real number")
+    return sympy.Float(value)
 
 
 def _translate(node: ast.AST, symbols: Mapping[str, sympy.Symbol]) -> sympy.Expr:
     if isinstance(node, ast.Constant) and isinstance(node.value, (int, float)):
         if isinstance(node.value, bool):
             raise ExpressionError(f"boolean {node.value} is not allowed")
+        if not math.isfinite(node.value):
+            raise ExpressionError(f"number '{ast.unparse(node)}' is not finite")
         return (
             sympy.Float(node.value) if isinstance(node.value, float) else sympy.Integer(node.value)
         )
@@ -74,6 +101,12 @@ def _translate(node: ast.AST, symbols: Mapping[str, sympy.Symbol]) -> sympy.Expr
         if node.func.id not in ALLOWED_FUNCTIONS:
             allowed = ", ".join(ALLOWED_FUNCTIONS)
             raise ExpressionError(f"unknown function '{node.func.id}' (allowed: {allowed})")
+        arity = ARITY[node.func.id]
+        if len(node.args) != arity:
+            raise ExpressionError(
+                f"'{ast.unparse(node)}': {node.func.id} takes {arity} argument"
+                f"{'s' if arity > 1 else ''}, got {len(node.args)}"
+            )
         args = [_translate(arg, symbols) for arg in node.args]
         return ALLOWED_FUNCTIONS[node.func.id](*args)  # type: ignore[operator]
     raise ExpressionError(

@@ -2,15 +2,16 @@
 
 Validation happens in three layers, each ending in one ``ScenarioError`` that names the file, the
 field path (or CSV row), what was found and what was expected:
-1. YAML syntax (line and column);
+1. YAML syntax (line and column; a key repeated in one mapping is refused too);
 2. the schema (``pipeline.schema``: types, missing and extra keys, ordered bounds, ``Ts > 0``);
 3. cross-field rules here: names that must match, symbols in the dynamics, valid polygons,
-   Init and Goal clear of Unsafe, demo files, and each demo's flight (avoids Unsafe, ends in
-   Goal).
+   Init and Goal clear of Unsafe, demo files (inputs within bounds), and each demo's flight
+   (avoids Unsafe, ends in Goal).
 """
 
 from __future__ import annotations
 
+import keyword
 import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -22,7 +23,7 @@ import pydantic
 import shapely
 import sympy
 import yaml
-from shapely.geometry import Polygon, box
+from shapely.geometry import MultiPoint, Polygon
 from shapely.validation import explain_validity
 
 from pipeline import geometry
@@ -30,7 +31,12 @@ from pipeline.artifacts import file_hash
 from pipeline.demos import Demo, read_demo_csv
 from pipeline.dynamics import Dynamics, FloatArray
 from pipeline.errors import ScenarioError
-from pipeline.expressions import ExpressionError, parse_expression
+from pipeline.expressions import (
+    ALLOWED_CONSTANTS,
+    ALLOWED_FUNCTIONS,
+    ExpressionError,
+    parse_expression,
+)
 from pipeline.schema import FeedbackSpec, ScenarioSpec
 from pipeline.simulate import simulate
 
@@ -144,9 +150,34 @@ def load_scenario(name_or_path: str | Path, check_demos: bool = True) -> Scenari
     return scenario
 
 
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """``yaml.SafeLoader`` that refuses a key repeated in one mapping (PyYAML keeps the last)."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict:  # type: ignore[override]
+        first_line: dict[object, int] = {}
+        for key_node, _ in node.value:
+            if not isinstance(key_node, yaml.ScalarNode) or key_node.tag.endswith(":merge"):
+                continue
+            key = self.construct_object(key_node)
+            if key in first_line:
+                raise yaml.constructor.ConstructorError(
+                    problem=f"duplicate key '{key}' (first at line {first_line[key]})",
+                    problem_mark=key_node.start_mark,
+                )
+            first_line[key] = key_node.start_mark.line + 1
+        return super().construct_mapping(node, deep=deep)
+
+
 def _parse_spec(path: Path) -> ScenarioSpec:
     try:
-        data = yaml.safe_load(path.read_text())
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as error:
+        reason = error.strerror if isinstance(error, OSError) else "not UTF-8 text"
+        raise ScenarioError(
+            f"cannot read scenario file ({reason})", file=path, expected="a readable YAML file"
+        ) from None
+    try:
+        data = yaml.load(text, Loader=_UniqueKeyLoader)  # a SafeLoader subclass
     except yaml.MarkedYAMLError as error:
         mark = error.problem_mark
         where = f"line {mark.line + 1}, column {mark.column + 1}" if mark else "unknown place"
@@ -186,7 +217,7 @@ def _schema_error(path: Path, error: pydantic.ValidationError) -> ScenarioError:
             field=location,
             expected="only the fields of the scenario schema",
         )
-    message = first["msg"].removeprefix("Value error, ")
+    message = first["msg"].removeprefix("Value error, ").removeprefix("Input should be ")
     return ScenarioError(
         f"invalid value{suffix}",
         file=path,
@@ -241,6 +272,26 @@ def _build(path: Path, spec: ScenarioSpec) -> Scenario:
             field="states/inputs/parameters",
             expected="distinct names",
         )
+    reserved = [
+        name
+        for name in names
+        if name in ALLOWED_FUNCTIONS or name in ALLOWED_CONSTANTS or keyword.iskeyword(name)
+    ]
+    if reserved:
+        raise ScenarioError(
+            f"name '{reserved[0]}' is reserved (a function, constant or Python keyword)",
+            file=path,
+            field="states/inputs/parameters",
+            expected="another name",
+        )
+    if spec.position[0] == spec.position[1]:
+        raise ScenarioError(
+            "the same state twice",
+            file=path,
+            field="position",
+            found=list(spec.position),
+            expected="two different states",
+        )
     _require_names(path, "dynamics", list(spec.dynamics), states)
     _require_names(path, "input_bounds", list(spec.input_bounds), inputs)
     _require_names(path, "init", list(spec.init), states)
@@ -269,19 +320,18 @@ def _build(path: Path, spec: ScenarioSpec) -> Scenario:
     position_index = (states.index(spec.position[0]), states.index(spec.position[1]))
     init_lower = np.array([spec.init[s][0] for s in states])
     init_upper = np.array([spec.init[s][1] for s in states])
-    init_box = box(
-        init_lower[position_index[0]],
-        init_lower[position_index[1]],
-        init_upper[position_index[0]],
-        init_upper[position_index[1]],
-    )
+    # The Init box projected on position; a point or a segment when an interval is degenerate.
+    corners = [init_lower[list(position_index)], init_upper[list(position_index)]]
+    init_box = MultiPoint(corners).envelope
     for name, region in unsafe.items():
         for label, other in [("init", init_box), ("goal.polygon", goal)]:
             if shapely.intersects(region, other):
+                X, Y = shapely.intersection(region, other).representative_point().coords[0]
                 raise ScenarioError(
-                    f"overlaps Unsafe set '{name}'",
+                    f"overlaps Unsafe set '{name}' (for example at position ({X:g}, {Y:g}))",
                     file=path,
                     field=label,
+                    found=shapely.to_wkt(other, rounding_precision=6),
                     expected=f"a set disjoint from unsafe.{name}",
                 )
     Ts = float(spec.sampling_time)
@@ -325,7 +375,16 @@ def _build_dynamics(path: Path, spec: ScenarioSpec) -> Dynamics:
             raise ScenarioError(
                 str(error), file=path, field=f"dynamics.{name}", found=spec.dynamics[name]
             ) from None
-        expressions.append(sympy.sympify(expression.subs(values)))
+        expression = sympy.sympify(expression.subs(values))
+        if expression.has(sympy.zoo, sympy.oo, -sympy.oo, sympy.nan, sympy.I):
+            raise ScenarioError(
+                f"not a finite real expression after substituting the parameters ({expression})",
+                file=path,
+                field=f"dynamics.{name}",
+                found=spec.dynamics[name],
+                expected="no division by zero and no complex values",
+            )
+        expressions.append(expression)
     return Dynamics.from_expressions(state_symbols, input_symbols, expressions)
 
 
@@ -359,13 +418,15 @@ def _load_demo(
             expected=f"a value in [{init_lower[i]:g}, {init_upper[i]:g}]",
         )
     demo_path = path.parent / entry.file
-    us = read_demo_csv(demo_path, dynamics.input_names, Ts)
+    bounds = np.array([spec.input_bounds[name] for name in dynamics.input_names])
+    us = read_demo_csv(demo_path, dynamics.input_names, Ts, bounds=bounds)
     return Demo(name=Path(entry.file).stem, file=demo_path, x0=x0, us=us)
 
 
 def check_demo_flight(scenario: Scenario, demo: Demo) -> None:
     """Simulate ``demo`` and raise if it enters Unsafe or ends outside Goal (saying where/when)."""
-    trajectory = simulate(scenario.dynamics, demo.x0, demo.us, scenario.Ts)
+    with np.errstate(over="ignore", invalid="ignore"):
+        trajectory = simulate(scenario.dynamics, demo.x0, demo.us, scenario.Ts)
     if not np.all(np.isfinite(trajectory.dense_xs)):
         k = int(np.argmax(~np.all(np.isfinite(trajectory.dense_xs), axis=-1)))
         raise ScenarioError(

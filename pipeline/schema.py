@@ -8,7 +8,15 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, PositiveFloat
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    PositiveFloat,
+    WithJsonSchema,
+)
 
 
 def _ordered(interval: tuple[float, float]) -> tuple[float, float]:
@@ -18,8 +26,21 @@ def _ordered(interval: tuple[float, float]) -> tuple[float, float]:
     return interval
 
 
+def _number_as_text(value: object) -> object:
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        return str(value)
+    return value
+
+
 Interval = Annotated[tuple[float, float], AfterValidator(_ordered)]
 Vertex = tuple[float, float]
+Name = Annotated[str, Field(pattern=r"^[A-Za-z_][A-Za-z0-9_]*$")]
+# A dynamics expression: text in the grammar of ``pipeline.expressions``; a bare number is accepted.
+Expression = Annotated[
+    str,
+    BeforeValidator(_number_as_text),
+    WithJsonSchema({"anyOf": [{"type": "string"}, {"type": "number"}]}),
+]
 
 
 class _Strict(BaseModel):
@@ -57,14 +78,16 @@ class ScenarioSpec(_Strict):
 
     name: str = Field(pattern=r"^[A-Za-z0-9_\-]+$")
     description: str = ""
-    states: list[str] = Field(min_length=1, description="state names, in order")
-    inputs: list[str] = Field(min_length=1, description="input names, in order")
-    parameters: dict[str, float] = Field(default_factory=dict)
-    dynamics: dict[str, str] = Field(description="time derivative of every state, as text")
+    states: list[Name] = Field(min_length=1, description="state names, in order")
+    inputs: list[Name] = Field(min_length=1, description="input names, in order")
+    parameters: dict[Name, float] = Field(default_factory=dict)
+    dynamics: dict[str, Expression] = Field(description="time derivative of every state, as text")
     position: tuple[str, str] = Field(description="the two states that Unsafe and Goal are over")
     sampling_time: PositiveFloat = Field(description="Ts: inputs are held for Ts seconds")
     input_bounds: dict[str, Interval]
-    unsafe: dict[str, list[Vertex]] = Field(description="named Unsafe polygons over position")
+    unsafe: dict[str, Annotated[list[Vertex], Field(min_length=3)]] = Field(
+        description="named Unsafe polygons over position"
+    )
     goal: GoalSpec
     init: dict[str, Interval] = Field(description="Init box over every state")
     clearance: PositiveFloat = Field(description="required distance d from Unsafe (m)")

@@ -1,0 +1,73 @@
+"""Simulation speed, measured side by side in one run.
+
+(a) One flight (the first shipped demo, else a 100-sample hover input): fixed-step RK4
+    (``pipeline.simulate.simulate``) against ``solve_ivp`` (``simulate_reference``).
+(b) 10,000 initial states simulated as one batch against 100 simulated one at a time, per state.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from bench.timing import best_time
+from pipeline.scenario import load_scenario
+from pipeline.simulate import DEFAULT_SUBSTEPS, simulate, simulate_reference
+
+BATCH = 10_000
+ONE_AT_A_TIME = 100
+
+
+def _flight(scenario) -> tuple[str, np.ndarray, np.ndarray]:
+    """(label, x0 (n,), us (N, m)): the first demo, else 100 samples of hover."""
+    if scenario.demos:
+        demo = scenario.demos[0]
+        return f"demo {demo.name}", demo.x0, demo.us
+    x0 = 0.5 * (scenario.init_lower + scenario.init_upper)
+    u = np.array(scenario.feedback.reference_input, dtype=np.float64)
+    return "hover (no demos)", x0, np.tile(u, (100, 1))
+
+
+def run() -> None:
+    scenario = load_scenario("quadrotor_hill", check_demos=False)
+    D, Ts = scenario.dynamics, scenario.Ts
+    label, x0, us = _flight(scenario)
+    N = us.shape[0]
+
+    rk4 = best_time(lambda: simulate(D, x0, us, Ts), repeat=5)
+    reference = best_time(lambda: simulate_reference(D, x0, us, Ts), repeat=3)
+
+    rng = np.random.default_rng(0)
+    x0s = rng.uniform(scenario.init_lower, scenario.init_upper, (BATCH, scenario.n))
+    batched = best_time(lambda: simulate(D, x0s, us, Ts), repeat=3) / BATCH
+    single = (
+        best_time(lambda: [simulate(D, x, us, Ts) for x in x0s[:ONE_AT_A_TIME]], repeat=2)
+        / ONE_AT_A_TIME
+    )
+
+    print(
+        f"quadrotor_hill, {label}: N = {N} samples of Ts = {Ts:g} s, RK4 substeps = "
+        f"{DEFAULT_SUBSTEPS}; best of repeated runs"
+    )
+    rows = [
+        ("(a) one flight", "RK4 (simulate)", rk4, "solve_ivp DOP853 (reference)", reference),
+        (
+            "(b) per initial state",
+            f"batch of {BATCH:,}",
+            batched,
+            f"{ONE_AT_A_TIME} one at a time",
+            single,
+        ),
+    ]
+    print(
+        f"{'measurement':<22} {'fast path':<16} {'time':>10}   {'slow path':<29} "
+        f"{'time':>10}   {'speed-up':>8}"
+    )
+    for name, fast_label, fast, slow_label, slow in rows:
+        print(
+            f"{name:<22} {fast_label:<16} {_ms(fast):>10}   {slow_label:<29} {_ms(slow):>10}"
+            f"   {slow / fast:>7.1f}x"
+        )
+
+
+def _ms(seconds: float) -> str:
+    return f"{seconds * 1e3:.3f} ms"

@@ -1,0 +1,135 @@
+"""Simulation: fixed-step RK4 against ``solve_ivp``, batching, and the observed order of RK4.
+
+Inputs are held on ``[k Ts, (k+1) Ts)``. RK4's global error is ``C h^4``, so halving the step
+``h = Ts / substeps`` divides the error by 16: the observed order ``log2(e_h / e_{h/2})`` is ~4.
+"""
+
+from __future__ import annotations
+
+from functools import cache
+
+import numpy as np
+import pytest
+
+from pipeline import ScenarioError, load_scenario
+from pipeline.simulate import simulate, simulate_reference
+
+
+@cache
+def quadrotor():
+    return load_scenario("quadrotor_hill", check_demos=False)
+
+
+def hover_inputs(N: int, Ts: float, amplitude: float = 1.0) -> np.ndarray:
+    """Hover-ish held inputs ``(N, 2)``: thrust ``9.81 + 0.5 a sin``, pitch accel. ``0.3 a sin``."""
+    t = Ts * np.arange(N)
+    return np.stack(
+        [9.81 + amplitude * 0.5 * np.sin(0.7 * t), amplitude * 0.3 * np.sin(1.3 * t + 0.2)], -1
+    )
+
+
+X0 = np.array([2.0, 2.5, 0.0, 0.0, 0.0, 0.0])
+
+
+def test_rk4_agrees_with_solve_ivp_on_a_10_s_flight() -> None:
+    scenario = quadrotor()
+    us = hover_inputs(100, scenario.Ts)
+    trajectory = simulate(scenario.dynamics, X0, us, scenario.Ts)
+    reference = simulate_reference(scenario.dynamics, X0, us, scenario.Ts)
+    assert trajectory.duration == pytest.approx(10.0)
+    assert reference.shape == trajectory.xs.shape == (101, 6)
+    np.testing.assert_allclose(trajectory.xs, reference, rtol=0, atol=1e-6)
+    # The flight actually moves (the test is not comparing two constants).
+    assert np.ptp(trajectory.xs[:, 2]) > 0.05 and np.ptp(trajectory.xs[:, 0]) > 0.5
+
+
+def _shipped_demos() -> list:
+    try:
+        return list(quadrotor().demos)
+    except ScenarioError:  # reported by test_scenario.py::test_shipped_scenarios_load_...
+        return []
+
+
+@pytest.mark.parametrize(
+    "index", [pytest.param(k, id=demo.name) for k, demo in enumerate(_shipped_demos())] or [None]
+)
+def test_rk4_agrees_with_solve_ivp_on_the_demos(index: int | None) -> None:
+    if index is None:
+        pytest.skip("no demos shipped in scenarios/quadrotor_hill/demos")
+    scenario = quadrotor()
+    demo = scenario.demos[index]
+    trajectory = simulate(scenario.dynamics, demo.x0, demo.us, scenario.Ts)
+    reference = simulate_reference(scenario.dynamics, demo.x0, demo.us, scenario.Ts)
+    np.testing.assert_allclose(trajectory.xs, reference, rtol=0, atol=1e-6)
+
+
+def test_batched_equals_one_at_a_time() -> None:
+    scenario = quadrotor()
+    rng = np.random.default_rng(0)
+    B, N = 7, 30
+    x0 = X0 + rng.uniform(-0.5, 0.5, (B, 6))
+    us = hover_inputs(N, scenario.Ts) + rng.uniform(-1.0, 1.0, (B, N, 2))
+    batched = simulate(scenario.dynamics, x0, us, scenario.Ts)
+    assert batched.xs.shape == (B, N + 1, 6)
+    assert batched.us.shape == (B, N, 2)
+    for b in range(B):
+        single = simulate(scenario.dynamics, x0[b], us[b], scenario.Ts)
+        np.testing.assert_allclose(batched.xs[b], single.xs, rtol=1e-14, atol=1e-14)
+        np.testing.assert_allclose(batched.dense_xs[b], single.dense_xs, rtol=1e-14, atol=1e-14)
+
+
+def test_broadcasting_initial_states_and_inputs() -> None:
+    scenario = quadrotor()
+    N = 5
+    us = hover_inputs(N, scenario.Ts)
+    many_x0 = np.tile(X0, (4, 1)) + np.arange(4)[:, None] * 0.1
+    # Many initial states, one input sequence.
+    trajectory = simulate(scenario.dynamics, many_x0, us, scenario.Ts)
+    assert trajectory.xs.shape == (4, N + 1, 6)
+    np.testing.assert_allclose(
+        trajectory.xs[2], simulate(scenario.dynamics, many_x0[2], us, scenario.Ts).xs, atol=1e-14
+    )
+    # One initial state, many input sequences; and a (2, 3) grid of both.
+    assert simulate(scenario.dynamics, X0, np.stack([us] * 3), scenario.Ts).xs.shape == (3, 6, 6)
+    grid = simulate(scenario.dynamics, many_x0[:2, None], np.stack([us] * 3), scenario.Ts)
+    assert grid.xs.shape == (2, 3, N + 1, 6)
+
+
+def test_trajectory_grids() -> None:
+    scenario = quadrotor()
+    N, s = 8, 5
+    trajectory = simulate(scenario.dynamics, X0, hover_inputs(N, scenario.Ts), scenario.Ts, s)
+    np.testing.assert_allclose(trajectory.ts, scenario.Ts * np.arange(N + 1))
+    np.testing.assert_allclose(trajectory.dense_ts, scenario.Ts / s * np.arange(N * s + 1))
+    np.testing.assert_array_equal(trajectory.xs, trajectory.dense_xs[::s])
+    np.testing.assert_array_equal(trajectory.xs[0], X0)
+    np.testing.assert_array_equal(trajectory.final_state, trajectory.xs[-1])
+    with pytest.raises(ValueError, match="substeps must be >= 1"):
+        simulate(scenario.dynamics, X0, hover_inputs(N, scenario.Ts), scenario.Ts, 0)
+
+
+def test_hover_at_rest_with_held_inputs_is_exact() -> None:
+    """u = (m g, 0) with no relative wind: vX = wX drifts at constant speed, nothing else moves."""
+    scenario = quadrotor()
+    x0 = np.array([2.0, 2.5, 0.0, -0.5, 0.0, 0.0])
+    us = np.tile([9.81, 0.0], (20, 1))
+    trajectory = simulate(scenario.dynamics, x0, us, scenario.Ts)
+    expected = x0 + np.outer(trajectory.ts, [-0.5, 0, 0, 0, 0, 0])
+    np.testing.assert_allclose(trajectory.xs, expected, atol=1e-12)
+
+
+def test_rk4_observed_order_is_four() -> None:
+    """Halving the RK4 step divides the error (against a tight ``solve_ivp``) by ~16."""
+    scenario = quadrotor()
+    Ts, N = 0.5, 8  # long steps, so the errors sit far above the reference's tolerance
+    us = hover_inputs(N, Ts, amplitude=6.0)
+    x0 = np.array([2.0, 2.5, 0.1, 0.5, -0.3, 0.2])
+    reference = simulate_reference(scenario.dynamics, x0, us, Ts, rtol=1e-13, atol=1e-13)
+    errors = np.array(
+        [
+            np.abs(simulate(scenario.dynamics, x0, us, Ts, substeps=s).xs - reference).max()
+            for s in (2, 4, 8, 16)
+        ]
+    )
+    orders = np.log2(errors[:-1] / errors[1:])
+    assert np.all((orders > 3.5) & (orders < 4.5)), f"errors {errors}, observed orders {orders}"
