@@ -1,0 +1,382 @@
+"""Stage ``feedback``: the robustness feedback ``u = u_ref(t) + K (x - x_ref(t))`` and its
+contraction certificate.
+
+Certificate: ``P > 0`` and a rate ``lambda > 0`` with, for every vertex ``[A_i B_i]`` of a polytope
+that soundly contains ``[f_x f_u]`` over the operating region (``pipeline.hull``),
+
+    (A_i + B_i K)^T P + P (A_i + B_i K) + 2 lambda P <= -eps P.                         (C)
+
+For two closed-loop solutions with the same reference input, ``e = x - x_ref`` obeys
+``de/dt = Abar e`` with ``Abar = int_0^1 [f_x + f_u K](x_ref + s e, u_ref + s K e) ds``; when both
+stay in the (convex) region, ``Abar`` lies in the hull, so ``d/dt e^T P e <= -2 lambda e^T P e``
+and ``||e(t)||_P <= exp(-lambda t) ||e(0)||_P``. The certificate is accepted only after the
+largest generalised eigenvalue of (C)'s left side against ``P`` is checked negative at every
+vertex with numpy, independently of the solver.
+
+Design. ``C`` (2, n) selects the position, ``S`` the non-degenerate directions of Init. The scale of
+``P`` is fixed by ``C P^-1 C^T <= I`` (position extent <= 1 per unit radius), and we minimise
+
+    t + w d^2 (sum_j g_j / h_j^2 + sum_i (P^-1)_ii / h_i^2)
+    subject to (C),  S^T P S <= t I,  K_j P^-1 K_j^T <= g_j,
+
+i.e. a large Init slice per unit of position extent (its semi-axes at radius ``r_d`` are at
+least ``d / sqrt(t)``) plus the squared fractions of each input range ``h_j`` and each
+operating-region state range ``h_i`` that the tube uses at radius ``r_d ~ d`` (half-widths).
+``gain="lqr"``: ``K`` from LQR at the scenario's reference point, the LMIs linear in ``P``.
+``gain="joint"``: ``Q = P^-1``, ``Y = K Q`` (all of the above is linear in ``Q, Y`` by Schur
+complements). ``gain="auto"`` solves both and keeps the certified design with the lower
+objective.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+
+import control
+import cvxpy as cp
+import numpy as np
+
+from pipeline.dynamics import FloatArray
+from pipeline.hull import DEFAULT_SEGMENTS, HullError, jacobian_hull
+from pipeline.scenario import Scenario
+
+GAINS = ("auto", "lqr", "joint")
+EPS = 1e-3
+MIN_EIGENVALUE = 1e-6
+
+
+@dataclass(frozen=True)
+class FeedbackResult:
+    """The certified feedback and the tube's footprint per unit P-norm radius.
+
+    Attributes:
+      K: (m, n) gain of ``u = u_ref + K (x - x_ref)``; None if no gain could be designed.
+      P: (n, n) contraction metric; None unless ``success``.
+      rate: lambda (1/s): ``||e(t)||_P <= exp(-lambda t) ||e(0)||_P`` inside ``region``.
+      vertices: (V, n, n+m) the Jacobian hull's vertices ``[A_i B_i]``.
+      solver_status: cvxpy status of the chosen design (or of each try on failure).
+      input_margin_per_radius: (m,) ``||K_j P^-1/2||``: ``|K_j e| <= r`` times this.
+      state_extent_per_radius: (n,) ``sqrt((P^-1)_ii)``: ``|e_i| <= r`` times this.
+      position_shape: (2, 2) ``C P^-1 C^T``: the position projection of the unit ball.
+      region: name -> (lower, upper) box of states/inputs where the certificate holds.
+      gain: "lqr" or "joint", the design that was kept.
+      certified_margin: largest eigenvalue of ``P^-1/2 (A_cl^T P + P A_cl + 2 lambda P) P^-1/2``
+        over the vertices (< 0 for a certificate).
+      objective: the design objective's value.
+      hull: how each block of the Jacobian hull was enclosed.
+    """
+
+    K: FloatArray | None
+    P: FloatArray | None
+    rate: float
+    vertices: FloatArray = field(repr=False)
+    solver_status: str
+    input_margin_per_radius: FloatArray
+    state_extent_per_radius: FloatArray
+    position_shape: FloatArray
+    region: Mapping[str, tuple[float, float]]
+    state_names: tuple[str, ...]
+    input_names: tuple[str, ...]
+    success: bool
+    message: str
+    gain: str = ""
+    certified_margin: float = float("nan")
+    objective: float = float("nan")
+    hull: tuple[str, ...] = ()
+
+    def _require(self) -> None:
+        if not self.success:
+            raise ValueError(f"the feedback was not certified: {self.message}")
+
+    def required_radius(self, clearance: float) -> float:
+        """``r_d = d / sqrt(lambda_max(C P^-1 C^T))``: the largest P-norm radius whose position
+        projection fits in a disk of radius ``d = clearance``."""
+        self._require()
+        return float(clearance / np.sqrt(np.linalg.eigvalsh(self.position_shape)[-1]))
+
+    def position_extent(self, radius: float) -> float:
+        """Radius of the smallest disk holding the position projection of the ``radius`` ball."""
+        self._require()
+        return float(radius * np.sqrt(np.linalg.eigvalsh(self.position_shape)[-1]))
+
+    def input_margin(self, radius: float) -> FloatArray:
+        """(m,) the largest ``|K_j e|`` over ``||e||_P <= radius``."""
+        self._require()
+        return radius * self.input_margin_per_radius
+
+    def state_extent(self, radius: float) -> FloatArray:
+        """(n,) the largest ``|e_i|`` over ``||e||_P <= radius``."""
+        self._require()
+        return radius * self.state_extent_per_radius
+
+    def region_extent(self, radius: float) -> dict[str, float]:
+        """Name -> how far the tube of P-radius ``radius`` reaches along each operating-region
+        state or input (shrink the region by this to keep the tube inside)."""
+        extent = dict(zip(self.state_names, self.state_extent(radius), strict=True))
+        extent |= dict(zip(self.input_names, self.input_margin(radius), strict=True))
+        return {name: float(extent[name]) for name in self.region}
+
+    def slice_semi_axes(self, radius: float, index: tuple[int, ...]) -> FloatArray:
+        """Semi-axes (len(index),), largest first, of the ball's slice along the states
+        ``index`` (e.g. Init's free directions): ``{s : ||S s||_P <= radius}``."""
+        self._require()
+        assert self.P is not None
+        index = list(index)
+        return radius / np.sqrt(np.linalg.eigvalsh(self.P[np.ix_(index, index)]))
+
+
+@dataclass(frozen=True)
+class _Design:
+    K: FloatArray
+    P: FloatArray
+    status: str
+    objective: float
+
+
+def _position_matrix(scenario: Scenario) -> FloatArray:
+    C = np.zeros((2, scenario.n))
+    C[0, scenario.position_index[0]] = C[1, scenario.position_index[1]] = 1.0
+    return C
+
+
+def _slice_matrix(scenario: Scenario) -> FloatArray:
+    """S (n, D): Init's non-degenerate directions (the position if Init is a point)."""
+    free = np.flatnonzero(scenario.init_upper > scenario.init_lower)
+    if free.size == 0:
+        return _position_matrix(scenario).T
+    return np.eye(scenario.n)[:, free]
+
+
+def _half_widths(scenario: Scenario) -> tuple[dict[int, float], dict[int, float]]:
+    """Half-widths of the allowed ranges: inputs (bounds within the region), region states."""
+    region = scenario.operating_region
+    inputs = {}
+    for j, name in enumerate(scenario.input_names):
+        lower, upper = scenario.input_lower[j], scenario.input_upper[j]
+        if name in region:
+            lower, upper = max(lower, region[name][0]), min(upper, region[name][1])
+        if upper > lower:
+            inputs[j] = (upper - lower) / 2
+    states = {
+        i: (region[name][1] - region[name][0]) / 2
+        for i, name in enumerate(scenario.state_names)
+        if name in region and region[name][1] > region[name][0]
+    }
+    return inputs, states
+
+
+def _scalar(x: cp.Expression) -> cp.Expression:
+    return cp.reshape(x, (1, 1), order="C")
+
+
+def _sym(M: cp.Expression) -> cp.Expression:
+    return (M + M.T) / 2
+
+
+def _solve_lqr_design(
+    scenario: Scenario, K: FloatArray, A: FloatArray, B: FloatArray, rate: float, weight: float
+) -> _Design | str:
+    """(C) and the objective, linear in ``P`` for the fixed gain ``K (m, n)``; vertices
+    ``A (V, n, n)``, ``B (V, n, m)``."""
+    n = scenario.n
+    C, S = _position_matrix(scenario), _slice_matrix(scenario)
+    h_u, h_x = _half_widths(scenario)
+    d2 = scenario.clearance**2
+    P = cp.Variable((n, n), symmetric=True)
+    t = cp.Variable()
+    constraints = [P >> MIN_EIGENVALUE * np.eye(n)]
+    for Ai, Bi in zip(A, B, strict=True):
+        Acl = Ai + Bi @ K
+        constraints.append(_sym(Acl.T @ P + P @ Acl + (2 * rate + EPS) * P) << 0)  # (C)
+    constraints.append(cp.bmat([[P, C.T], [C, np.eye(2)]]) >> 0)  # C P^-1 C^T <= I
+    constraints.append(_sym(S.T @ P @ S) << t * np.eye(S.shape[1]))
+    penalty = 0.0
+    for j, h in h_u.items():
+        g = cp.Variable()
+        constraints.append(cp.bmat([[P, K[j : j + 1].T], [K[j : j + 1], _scalar(g)]]) >> 0)
+        penalty = penalty + g / h**2
+    for i, h in h_x.items():
+        g = cp.Variable()
+        e = np.eye(n)[:, i : i + 1]
+        constraints.append(cp.bmat([[P, e], [e.T, _scalar(g)]]) >> 0)
+        penalty = penalty + g / h**2
+    problem = cp.Problem(cp.Minimize(t + weight * d2 * penalty), constraints)
+    return _solve(problem, lambda: (K, P.value))
+
+
+def _solve_joint_design(
+    scenario: Scenario, A: FloatArray, B: FloatArray, rate: float, weight: float
+) -> _Design | str:
+    """(C) times ``Q = P^-1`` on both sides, with ``Y = K Q``: linear in ``Q, Y``."""
+    n, m = scenario.n, scenario.m
+    C, S = _position_matrix(scenario), _slice_matrix(scenario)
+    h_u, h_x = _half_widths(scenario)
+    d2 = scenario.clearance**2
+    Q = cp.Variable((n, n), symmetric=True)
+    Y = cp.Variable((m, n))
+    t = cp.Variable()
+    constraints = [Q >> MIN_EIGENVALUE * np.eye(n)]
+    for Ai, Bi in zip(A, B, strict=True):
+        M = Ai @ Q + Q @ Ai.T + Bi @ Y + Y.T @ Bi.T + (2 * rate + EPS) * Q  # (C) times Q both sides
+        constraints.append(_sym(M) << 0)
+    constraints.append(_sym(C @ Q @ C.T) << np.eye(2))
+    D = S.shape[1]
+    constraints.append(cp.bmat([[t * np.eye(D), S.T], [S, Q]]) >> 0)  # S^T Q^-1 S <= t I
+    penalty = 0.0
+    for j, h in h_u.items():
+        g = cp.Variable()
+        constraints.append(cp.bmat([[_scalar(g), Y[j : j + 1]], [Y[j : j + 1].T, Q]]) >> 0)
+        penalty = penalty + g / h**2
+    for i, h in h_x.items():
+        penalty = penalty + Q[i, i] / h**2
+    problem = cp.Problem(cp.Minimize(t + weight * d2 * penalty), constraints)
+
+    def design() -> tuple[FloatArray, FloatArray]:
+        Qv = (Q.value + Q.value.T) / 2
+        return Y.value @ np.linalg.inv(Qv), np.linalg.inv(Qv)
+
+    return _solve(problem, design)
+
+
+def _solve(
+    problem: cp.Problem, design: Callable[[], tuple[FloatArray, FloatArray]]
+) -> _Design | str:
+    try:
+        with warnings.catch_warnings():  # stages print nothing; the status says it all
+            warnings.simplefilter("ignore")
+            problem.solve(solver=cp.CLARABEL)
+    except cp.SolverError as error:
+        return f"solver error ({error})"
+    if problem.status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE):
+        return problem.status
+    try:
+        K, P = design()
+    except (TypeError, np.linalg.LinAlgError):  # no value, or a singular Q
+        return f"{problem.status} but no usable solution"
+    if not (np.all(np.isfinite(K)) and np.all(np.isfinite(P))):
+        return f"{problem.status} but non-finite K or P"
+    return _Design(np.asarray(K), (P + P.T) / 2, problem.status, float(problem.value))
+
+
+def certificate_margin(P: FloatArray, K: FloatArray, vertices: FloatArray, rate: float) -> float:
+    """Largest eigenvalue of ``L^-1 (A_cl^T P + P A_cl + 2 rate P) L^-T`` (``P = L L^T``) over
+    the vertices (V, n, n+m); negative means (C) holds with ``eps = 0``."""
+    n = P.shape[0]
+    L_inv = np.linalg.inv(np.linalg.cholesky(P))
+    Acl = vertices[:, :, :n] + vertices[:, :, n:] @ K
+    M = np.swapaxes(Acl, 1, 2) @ P + P @ Acl + 2 * rate * P
+    M = L_inv @ M @ L_inv.T
+    return float(np.linalg.eigvalsh((M + np.swapaxes(M, 1, 2)) / 2).max())
+
+
+def lqr_gain(scenario: Scenario) -> FloatArray:
+    """(m, n) LQR gain at the scenario's reference point, in the sign of ``u = u_ref + K e``."""
+    spec = scenario.feedback
+    x, u = np.array(spec.reference_state), np.array(spec.reference_input)
+    A, B = scenario.dynamics.f_x(x, u), scenario.dynamics.f_u(x, u)
+    K, _, _ = control.lqr(A, B, np.diag(spec.state_weights), np.diag(spec.input_weights))
+    return -np.asarray(K, dtype=np.float64)
+
+
+def design_feedback(
+    scenario: Scenario,
+    *,
+    gain: str = "auto",
+    rate: float | None = None,
+    segments: int = DEFAULT_SEGMENTS,
+    margin_weight: float = 10.0,
+) -> FeedbackResult:
+    """Design ``K`` and certify the contraction metric ``P`` at ``rate`` (default: the
+    scenario's ``feedback.rate``) over ``scenario.operating_region``; see the module docstring.
+
+    A failed design returns ``success=False`` with a message naming the region and rate tried.
+    """
+    if gain not in GAINS:
+        raise ValueError(f"gain must be one of {GAINS}, got {gain!r}")
+    rate = float(scenario.feedback.rate if rate is None else rate)
+    n, m = scenario.n, scenario.m
+    region = dict(scenario.operating_region)
+    where = ", ".join(f"{k} in [{lo:g}, {hi:g}]" for k, (lo, hi) in region.items()) or "everywhere"
+    nan_n, nan_m = np.full(n, np.nan), np.full(m, np.nan)
+
+    def failed(message: str, K=None, vertices=None, status="", hull=()):
+        vertices = np.zeros((0, n, n + m)) if vertices is None else vertices
+        return FeedbackResult(
+            K, None, rate, vertices, status, nan_m, nan_n, np.full((2, 2), np.nan), region,
+            scenario.state_names, scenario.input_names, False, message, hull=hull,
+        )  # fmt: skip
+
+    try:
+        hull = jacobian_hull(scenario.dynamics, region, segments)
+    except HullError as error:
+        return failed(f"feedback: {error}")
+    A, B = hull.A, hull.B
+    tries: dict[str, _Design | str] = {}
+    K_lqr = None
+    if gain in ("auto", "lqr"):
+        try:
+            K_lqr = lqr_gain(scenario)
+            tries["lqr"] = _solve_lqr_design(scenario, K_lqr, A, B, rate, margin_weight)
+        except (ValueError, np.linalg.LinAlgError, control.ControlArgument) as error:
+            tries["lqr"] = f"LQR failed ({error})"
+    if gain in ("auto", "joint"):
+        tries["joint"] = _solve_joint_design(scenario, A, B, rate, margin_weight)
+
+    certified: dict[str, tuple[_Design, float]] = {}
+    notes = []
+    for name, design in tries.items():
+        if isinstance(design, str):
+            notes.append(f"{name}: {design}")
+            continue
+        try:
+            margin = certificate_margin(design.P, design.K, hull.vertices, rate)
+        except np.linalg.LinAlgError:
+            notes.append(f"{name}: P is not positive definite")
+            continue
+        if margin < 0:
+            certified[name] = (design, margin)
+        else:
+            notes.append(f"{name}: solver returned a P that fails the check (margin {margin:.2e})")
+    status = "; ".join(f"{k}: {v if isinstance(v, str) else v.status}" for k, v in tries.items())
+    if not certified:
+        return failed(
+            f"feedback: no contraction certificate at rate {rate:g} 1/s over {where} "
+            f"({'; '.join(notes)}); try a smaller feedback.rate or operating_region",
+            K=K_lqr,
+            vertices=hull.vertices,
+            status=status,
+            hull=hull.blocks,
+        )
+    name = min(certified, key=lambda k: certified[k][0].objective)
+    design, margin = certified[name]
+    P_inv = np.linalg.inv(design.P)
+    C = _position_matrix(scenario)
+    K = design.K
+    others = "".join(
+        f"; {k} objective {v[0].objective:.4g}" for k, v in certified.items() if k != name
+    )
+    return FeedbackResult(
+        K=K,
+        P=design.P,
+        rate=rate,
+        vertices=hull.vertices,
+        solver_status=design.status,
+        input_margin_per_radius=np.sqrt(np.einsum("ji,ik,jk->j", K, P_inv, K)),
+        state_extent_per_radius=np.sqrt(np.diag(P_inv)),
+        position_shape=C @ P_inv @ C.T,
+        region=region,
+        state_names=scenario.state_names,
+        input_names=scenario.input_names,
+        success=True,
+        message=(
+            f"certified rate {rate:g} 1/s over {where} with the {name} gain "
+            f"({len(hull.vertices)} hull vertices, margin {margin:.2e}, "
+            f"objective {design.objective:.4g}{others})"
+        ),
+        gain=name,
+        certified_margin=margin,
+        objective=design.objective,
+        hull=hull.blocks,
+    )

@@ -1,0 +1,54 @@
+"""Shared fixtures for the stage tests: a planar double integrator scenario in ``tmp_path``."""
+
+from __future__ import annotations
+
+import textwrap
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+
+from pipeline.scenario import Scenario, load_scenario
+
+# States [X, Y, vX, vY], inputs [aX, aY]. Unsafe "wall" is the half-plane Y <= 0 (as a large
+# rectangle), Goal a large box above it, Init [0, 1] x [2, 3] at rest.
+DOUBLE_INTEGRATOR = """\
+name: double_integrator
+states: [X, Y, vX, vY]
+inputs: [aX, aY]
+dynamics: {X: vX, Y: vY, vX: aX, vY: aY}
+position: [X, Y]
+sampling_time: 0.1
+input_bounds: {aX: [-100.0, 100.0], aY: [-100.0, 100.0]}
+unsafe:
+  wall: [[-1000, -1000], [1000, -1000], [1000, 0], [-1000, 0]]
+goal:
+  polygon: %(goal)s
+init: {X: [0.0, 1.0], Y: [2.0, 3.0], vX: [0.0, 0.0], vY: [0.0, 0.0]}
+clearance: 0.5
+operating_region: %(region)s
+feedback:
+  reference_state: [0, 0, 0, 0]
+  reference_input: [0, 0]
+  state_weights: [1, 1, 1, 1]
+  input_weights: [1, 1]
+  rate: %(rate)s
+"""
+
+
+@pytest.fixture
+def double_integrator(tmp_path: Path) -> Callable[..., Scenario]:
+    """Factory: ``double_integrator(goal=..., region=..., rate=...)`` -> a loaded Scenario."""
+
+    def make(
+        goal: str = "[[-900, 1], [900, 1], [900, 900], [-900, 900]]",
+        region: str = "{aX: [-100.0, 100.0]}",
+        rate: float = 0.5,
+    ) -> Scenario:
+        path = tmp_path / "double_integrator" / "scenario.yaml"
+        path.parent.mkdir(exist_ok=True)
+        text = DOUBLE_INTEGRATOR % {"goal": goal, "region": region, "rate": rate}
+        path.write_text(textwrap.dedent(text))
+        return load_scenario(path, check_demos=False)
+
+    return make

@@ -1,0 +1,127 @@
+"""Stage ``coverage``: known covered and uncovered configurations, 2-D and 3-D Init inside a
+higher-dimensional state, and the lookup table's soundness."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from shapely.geometry import Point, box
+from shapely.ops import unary_union
+
+from stages.coverage import cover_init
+
+
+def init(lower, upper, names=None):
+    names = names or tuple(f"x{i}" for i in range(len(lower)))
+    return SimpleNamespace(
+        init_lower=np.array(lower, float), init_upper=np.array(upper, float), state_names=names
+    )
+
+
+METRIC = SimpleNamespace(P=np.eye(2))
+
+
+def test_one_ball_covers_a_rectangle():
+    result = cover_init(init([0, 0], [2, 1]), METRIC, [[1.0, 0.5]], [np.hypot(1, 0.5)])
+    assert result.covered and result.success and result.covered_fraction == 1.0
+    assert result.assignment.tolist() == [0] and result.depth == 0
+    assert len(result.uncovered_boxes) == 0 and result.largest_gap() is None
+
+
+def test_two_balls_with_corners_missing():
+    """Balls of radius 0.6 about (0.5, 0.5) and (1.5, 0.5) miss the rectangle's corners."""
+    centers, radii = np.array([[0.5, 0.5], [1.5, 0.5]]), np.array([0.6, 0.6])
+    result = cover_init(init([0, 0], [2, 1]), METRIC, centers, radii, max_depth=7)
+    assert not result.covered and not result.success
+    exact = unary_union([Point(c).buffer(0.6, 256) for c in centers]).intersection(box(0, 0, 2, 1))
+    assert result.covered_fraction <= exact.area / 2 + 1e-9
+    assert result.covered_fraction >= exact.area / 2 - 0.02
+    gaps = result.uncovered_boxes
+    corner_in_gap = (gaps[:, 0] <= 0).all(axis=1) & (gaps[:, 1] >= 0).all(axis=1)
+    assert corner_in_gap.any()  # the corner (0, 0) is reported uncovered
+    assert "not covered" in result.message
+
+
+def test_ellipsoidal_balls_enough_and_too_small():
+    """Two P-balls whose vertex test passes once split into halves, then one ball shrunk."""
+    P = np.array([[1.0, 0.2], [0.2, 2.0]])
+    centers = np.array([[0.5, 0.5], [1.5, 0.5]])
+    half_square = np.array([[dx, dy] for dx in (-0.5, 0.5) for dy in (-0.5, 0.5)])
+    needed = np.sqrt(np.einsum("vi,ij,vj->v", half_square, P, half_square).max()) * (1 + 1e-9)
+    covered = cover_init(init([0, 0], [2, 1]), SimpleNamespace(P=P), centers, [needed] * 2)
+    assert covered.covered and covered.depth == 1
+    assert sorted(set(covered.assignment.tolist())) == [0, 1]
+    short = cover_init(init([0, 0], [2, 1]), SimpleNamespace(P=P), centers, [needed, 0.9 * needed])
+    assert not short.covered
+    assert np.all(short.uncovered_boxes[:, 0, 0] >= 1.0 - 1e-12)  # gaps only on ball 1's side
+
+
+def three_d_case():
+    """Init [0,1]^3 in (x0, x2, x4) of a 5-state system; x1 = 0.3 and x3 = -1 fixed."""
+    lower, upper = [0, 0.3, 0, -1, 0], [1, 0.3, 1, -1, 1]
+    rng = np.random.default_rng(0)
+    M = rng.normal(size=(5, 5))
+    P = M @ M.T + 5 * np.eye(5)
+    octants = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+    centers = np.zeros((8, 5))
+    centers[:, [0, 2, 4]] = 0.25 + 0.5 * octants
+    centers[:, 1], centers[:, 3] = 0.3, -1.0
+    corners = np.array([[i, j, k] for i in (-1, 1) for j in (-1, 1) for k in (-1, 1)]) * 0.25
+    e = np.zeros((8, 5))
+    e[:, [0, 2, 4]] = corners
+    needed = np.sqrt(np.einsum("vi,ij,vj->v", e, P, e).max())
+    return init(lower, upper), SimpleNamespace(P=P), centers, np.full(8, needed * (1 + 1e-9))
+
+
+def test_three_d_init_covered_by_eight_octant_balls():
+    scenario, metric, centers, radii = three_d_case()
+    result = cover_init(scenario, metric, centers, radii)
+    assert result.covered and result.free == (0, 2, 4) and result.covered_fraction == 1.0
+    assert len(set(result.assignment.tolist())) == 8
+    np.testing.assert_array_equal(result.boxes[:, :, 1], 0.3)  # fixed states stay fixed
+
+
+def test_three_d_init_with_one_ball_too_small():
+    scenario, metric, centers, radii = three_d_case()
+    radii[7] *= 0.8  # the octant at (1, 1, 1)
+    result = cover_init(scenario, metric, centers, radii, max_depth=5)
+    assert not result.covered and 0.8 < result.covered_fraction < 1.0
+    gap = result.largest_gap()
+    assert np.all(gap[[0, 2, 4]] > 0.5)  # the gap is in that octant
+    assert "x0 in [" in result.message
+
+
+def test_point_init():
+    scenario = init([1.0, 2.0], [1.0, 2.0])
+    assert cover_init(scenario, METRIC, [[1.0, 2.5]], [0.6]).covered
+    assert not cover_init(scenario, METRIC, [[1.0, 2.5]], [0.4]).covered
+
+
+def test_bad_shapes():
+    with pytest.raises(ValueError, match="2 centers but 1 radii"):
+        cover_init(init([0, 0], [1, 1]), METRIC, [[0, 0], [1, 1]], [1.0])
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 10_000))
+def test_lookup_table_is_sound(seed):
+    """Every point of a covered box lies in the ball the table assigns to it."""
+    rng = np.random.default_rng(seed)
+    M = rng.normal(size=(2, 2))
+    P = M @ M.T + 0.5 * np.eye(2)
+    centers = rng.uniform(0, 1, size=(5, 2))
+    radii = rng.uniform(0.2, 1.0, size=5)
+    result = cover_init(init([0, 0], [1, 1]), SimpleNamespace(P=P), centers, radii, max_depth=5)
+    x = rng.uniform(0, 1, size=(500, 2))
+    ball = result.lookup(x)
+    hit = ball >= 0
+    e = x[hit] - centers[ball[hit]]
+    assert np.all(np.einsum("bi,ij,bj->b", e, P, e) <= radii[ball[hit]] ** 2 + 1e-12)
+    # The covered boxes' volume is the reported fraction; uncovered points are not in a box.
+    volume = np.prod(result.boxes[:, 1] - result.boxes[:, 0], axis=1).sum()
+    assert volume == pytest.approx(result.covered_fraction)
+    assert abs(hit.mean() - result.covered_fraction) < 0.1  # 500 samples
