@@ -55,7 +55,7 @@ class RadiusResult:
       radius: largest P-norm radius ``r`` of a safe tube (0 if the nominal itself fails).
       position_clearance: radius of the smallest disk holding the position projection of the
         radius-``r`` ball (the clearance ``d`` for which ``r = r_d``).
-      binding: the constraint that sets ``r``, e.g. "unsafe 'hill'", "goal", "input 'u1' upper".
+      binding: the constraint that sets ``r``, e.g. "unsafe 'NAME'", "goal", "input 'NAME' upper".
       binding_time: when it binds (s); the start of the grid interval.
       limits: constraint -> the largest radius it allows on its own.
       nominal_clearance: lower bound on the nominal position's distance to Unsafe over [0, T].
