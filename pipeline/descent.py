@@ -150,12 +150,15 @@ def lbfgs(
     *,
     max_iterations: int = 400,
     gradient_method: str = "adjoint",
+    box: bool = True,
 ) -> DescentResult:
-    """L-BFGS-B on the same cost and exact gradient; input bounds as box bounds."""
+    """L-BFGS-B on the same cost and exact gradient; input bounds as box bounds when ``box``
+    (without, the input penalty alone keeps the inputs in bounds)."""
     start = time.perf_counter()
     shape = np.shape(u0)
-    lower = np.broadcast_to(problem.input_lower, shape).ravel()
-    upper = np.broadcast_to(problem.input_upper, shape).ravel()
+    unbounded = np.full(shape, np.inf)
+    lower = np.broadcast_to(problem.input_lower, shape).ravel() if box else -unbounded.ravel()
+    upper = np.broadcast_to(problem.input_upper, shape).ravel() if box else unbounded.ravel()
     u0 = np.clip(np.asarray(u0, dtype=np.float64).ravel(), lower, upper)
     seed_cost = problem.cost(np.asarray(u0).reshape(shape))
     rows: list[tuple[int, float, float, bool, float]] = [(0, seed_cost, np.nan, True, 0.0)]

@@ -235,8 +235,12 @@ def forward_kernel(x0, U, h, s, P, X, Y, J_x, J_u):
 
 
 @njit(cache=True)
-def adjoint_sweep(U, h, s, Y, J_x, q):
-    """Backward sweep of the discrete RK4 adjoint (see ``pipeline.adjoint``); adds into q."""
+def adjoint_sweep(U, h, s, Y, J_x, q, G):
+    """Backward sweep of the discrete RK4 adjoint (see ``pipeline.adjoint``); adds into q.
+
+    ``G (m, n)``: sampled feedback ``u[k] = v[k] + G (x(k Ts) - z[k])`` (zeros: open loop). Once
+    ``q[k] = dJ/du[k]`` is complete, ``dJ/dx(k Ts)`` gains ``G^T q[k]``; ``q`` is then
+    ``dJ/dv``."""
     n = J_x.shape[1]
     m = U.shape[1]
     lam = J_x[J_x.shape[0] - 1].copy()
@@ -274,6 +278,10 @@ def adjoint_sweep(U, h, s, Y, J_x, q):
             q[k, j] += gu[j]
         for j in range(n):
             lam[j] = lam_next[j] + lam_y[j]
+        if i % s == 0:  # u[k] = v[k] + G (x_i - z[k]): chain dJ/du[k] into dJ/dx_i
+            for j in range(n):
+                for r in range(m):
+                    lam[j] += G[r, j] * q[k, r]
 
 
 @njit(cache=True)
@@ -288,7 +296,48 @@ def adjoint_kernel(x0, U, h, s, P, q):
     if math.isnan(J):
         q[:] = np.nan
         return np.inf
-    adjoint_sweep(U, h, s, Y, J_x, q)
+    adjoint_sweep(U, h, s, Y, J_x, q, np.zeros((U.shape[1], n)))
+    return J
+
+
+@njit(cache=True)
+def feedback_inputs(x0, V, Z, G, h, s, U):
+    """Held inputs of the sampled feedback ``U[k] = V[k] + G (x(k Ts) - Z[k])`` into ``U (N, m)``;
+    returns False if a state is not finite."""
+    n = x0.size
+    K = np.empty((4, n))
+    Y = np.empty((4, n))
+    x = x0.copy()
+    x_next = np.empty(n)
+    for k in range(V.shape[0]):
+        for r in range(V.shape[1]):
+            U[k, r] = V[k, r]
+            for j in range(n):
+                U[k, r] += G[r, j] * (x[j] - Z[k, j])
+        for _ in range(s):
+            rk4_step(x, U[k], h, K, Y, x_next)
+            x, x_next = x_next, x
+        if not all_finite(x):
+            return False
+    return True
+
+
+@njit(cache=True)
+def feedback_adjoint_kernel(x0, V, Z, G, h, s, P, U, q):
+    """``J(U(V))`` and ``q = dJ/dV`` under the sampled feedback (``U`` receives the inputs)."""
+    n = x0.size
+    if not feedback_inputs(x0, V, Z, G, h, s, U):
+        q[:] = np.nan
+        return np.inf
+    Ns = U.shape[0] * s
+    X = np.empty((Ns + 1, n))
+    Y = np.empty((Ns, 4, n))
+    J_x = np.empty((Ns + 1, n))
+    J = forward_kernel(x0, U, h, s, P, X, Y, J_x, q)
+    if math.isnan(J):
+        q[:] = np.nan
+        return np.inf
+    adjoint_sweep(U, h, s, Y, J_x, q, G)
     return J
 
 

@@ -12,21 +12,26 @@ continuous time independently of the cost (``pipeline.verify``).
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from pipeline.descent import DescentResult, IterationLog, gradient_descent, lbfgs
 from pipeline.dynamics import FloatArray
+from pipeline.problem import Problem
 from pipeline.scenario import Scenario, load_scenario
+from pipeline.shooting import StabilisedProblem
 from pipeline.verify import Verification, verify_nominal
 
 METHODS = ("gd", "lbfgs")
 SEED_MODES = ("compress", "truncate")
+PARAMETERIZATIONS = ("feedback", "open_loop")
 
 
 @dataclass(frozen=True)
@@ -36,19 +41,23 @@ class ConstraintMargins:
     Attributes:
       input_margin: (m,) how much the tube's feedback may add to ``u_ref``, per input.
       region_margin: state/input name -> how far the tube extends along it.
+      gain: (m, n) the feedback gain, which also stabilises the shooting (``pipeline.shooting``).
     """
 
     input_margin: FloatArray
     region_margin: Mapping[str, float]
+    gain: FloatArray
 
 
 @dataclass(frozen=True)
 class OptimizeOptions:
     method: str = "gd"
-    seed_mode: str = "compress"
+    seed_mode: str = "truncate"
+    parameterization: str = "feedback"
     eps_d: float = 0.05
     eps_g: float = 0.05
     eps_i: float = 0.0
+    eps_r: float = 0.01  # operating-region states: room for motion between penalty points
     max_iterations: int = 300
 
     def __post_init__(self) -> None:
@@ -56,6 +65,11 @@ class OptimizeOptions:
             raise ValueError(f"method must be one of {METHODS}, got {self.method!r}")
         if self.seed_mode not in SEED_MODES:
             raise ValueError(f"seed_mode must be one of {SEED_MODES}, got {self.seed_mode!r}")
+        if self.parameterization not in PARAMETERIZATIONS:
+            raise ValueError(
+                f"parameterization must be one of {PARAMETERIZATIONS}, "
+                f"got {self.parameterization!r}"
+            )
 
 
 @dataclass(frozen=True)
@@ -120,12 +134,33 @@ def reseed(u: FloatArray, N: int, mode: str) -> FloatArray:
     raise ValueError(f"seed mode must be one of {SEED_MODES}, got {mode!r}")
 
 
-def _minimise(problem: object, u0: FloatArray, options: OptimizeOptions) -> DescentResult:
+def _minimise(
+    problem: Problem, seed: FloatArray, gain: FloatArray, options: OptimizeOptions
+) -> tuple[DescentResult, FloatArray]:
+    """Minimise ``J`` from ``seed (N, m)``; returns the outcome and its nominal input ``(N, m)``.
+
+    With ``parameterization="feedback"`` the descent runs over ``v`` of ``pipeline.shooting``
+    (the same cost, better conditioned); ``"open_loop"`` is the paper's literal ``u``.
+    """
+    if options.parameterization == "feedback":
+        target: Any = StabilisedProblem.around(problem, gain, seed)
+    elif options.parameterization == "open_loop":
+        target = problem
+    else:
+        raise ValueError(f"parameterization must be one of {PARAMETERIZATIONS}")
     if options.method == "gd":
-        return gradient_descent(problem, u0, max_iterations=options.max_iterations)  # type: ignore[arg-type]
-    if options.method == "lbfgs":
-        return lbfgs(problem, u0, max_iterations=options.max_iterations)  # type: ignore[arg-type]
-    raise ValueError(f"method must be one of {METHODS}, got {options.method!r}")
+        outcome = gradient_descent(target, seed, max_iterations=options.max_iterations)
+    elif options.method == "lbfgs":
+        outcome = lbfgs(
+            target,
+            seed,
+            max_iterations=options.max_iterations,
+            box=options.parameterization == "open_loop",
+        )
+    else:
+        raise ValueError(f"method must be one of {METHODS}, got {options.method!r}")
+    u = target.inputs(outcome.u) if options.parameterization == "feedback" else outcome.u
+    return outcome, u
 
 
 def optimize_demo(
@@ -136,7 +171,10 @@ def optimize_demo(
     problem = scenario.problem(
         demo=demo,
         input_margin=margins.input_margin,
-        region_margin=dict(margins.region_margin),
+        region_margin={
+            name: extent + (options.eps_r if name in scenario.state_names else 0.0)
+            for name, extent in margins.region_margin.items()
+        },
         eps_d=options.eps_d,
         eps_g=options.eps_g,
         eps_i=options.eps_i,
@@ -147,15 +185,15 @@ def optimize_demo(
 
     def attempt(N: int, seed: FloatArray) -> DescentResult:
         t0 = time.perf_counter()
-        outcome = _minimise(problem.with_horizon(N, seed), seed, options)
+        outcome, u = _minimise(problem.with_horizon(N, seed), seed, margins.gain, options)
         tries.append(
             BisectionTry(
                 N, outcome.feasible, outcome.iterations, outcome.cost, time.perf_counter() - t0
             )
         )
         if outcome.feasible:
-            feasible_inputs.append(outcome.u)
-        return outcome
+            feasible_inputs.append(u)
+        return dataclasses.replace(outcome, u=u)
 
     first = attempt(N_demo, problem.u_seed)
     if not first.feasible:
@@ -189,7 +227,13 @@ def optimize_demo(
         best,
         input_lower=problem.input_lower,
         input_upper=problem.input_upper,
-        region=problem.region,
+        region={
+            name: (
+                lower + margins.region_margin.get(name, 0.0),
+                upper - margins.region_margin.get(name, 0.0),
+            )
+            for name, (lower, upper) in scenario.operating_region.items()
+        },
     )
     success = verification.passed
     message = (
