@@ -11,9 +11,18 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from pipeline.controller import ControllerFormatError
 from pipeline.errors import UserError
 
-REPORTS_ROOT = Path(__file__).resolve().parents[1] / "reports"
+
+def _positive(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, found {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, found {value}")
+    return value
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -23,6 +32,20 @@ def _parser() -> argparse.ArgumentParser:
     synthesize = commands.add_parser("synthesize", help="run the synthesis pipeline on a scenario")
     synthesize.add_argument("scenario", help="scenario name (scenarios/NAME) or path to its YAML")
     synthesize.add_argument("--out", type=Path, default=None, help="output folder (reports/NAME)")
+    synthesize.add_argument(
+        "--method",
+        choices=("gd", "lbfgs"),
+        default="gd",
+        help="optimizer: the paper's gradient descent (default) or L-BFGS-B",
+    )
+    synthesize.add_argument(
+        "--samples",
+        type=_positive,
+        default=10_000,
+        help="Monte Carlo closed-loop runs (default 10000)",
+    )
+    synthesize.add_argument("--jobs", type=_positive, default=1, help="worker processes")
+    synthesize.add_argument("--force", action="store_true", help="rerun every stage")
     verbosity = synthesize.add_mutually_exclusive_group()
     verbosity.add_argument("-v", "--verbose", action="store_true", help="print iteration logs")
     verbosity.add_argument("-q", "--quiet", action="store_true", help="print only the verdict")
@@ -38,9 +61,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     try:
         return _run(args)
-    except UserError as error:
+    except (UserError, ControllerFormatError) as error:
         print(f"error: {error}", file=sys.stderr)
         return error.exit_code
+    except BrokenPipeError:
+        return 0
     except KeyboardInterrupt:
         print("interrupted: finished artifacts are kept; re-run to resume", file=sys.stderr)
         return 130
@@ -48,9 +73,17 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def _run(args: argparse.Namespace) -> int:
     if args.command == "synthesize":
-        from pipeline.orchestrator import synthesize
+        from pipeline.orchestrator import RunOptions, synthesize
 
-        return synthesize(args.scenario, out=args.out, verbose=args.verbose, quiet=args.quiet)
+        options = RunOptions(
+            method=args.method,
+            samples=args.samples,
+            jobs=args.jobs,
+            force=args.force,
+            verbose=args.verbose,
+            quiet=args.quiet,
+        )
+        return synthesize(args.scenario, out=args.out, options=options)
     if args.command == "demos":
         from pipeline.pilot import regenerate_demos
 

@@ -1,84 +1,204 @@
-"""The orchestrator: wires the stages in order and writes their artifacts under ``reports/NAME``.
+"""The orchestrator: wires the stages in order and keeps their artifacts under ``reports/NAME``.
 
-It holds no numerics of its own; each stage is a function from typed inputs to a typed result.
+    load -> feedback -> radius(demos) -> coverage(demos) -> optimize -> radius(optimized)
+         -> coverage(optimized) -> controller -> montecarlo -> report
+
+It holds no numerics: each stage is a function from typed inputs to a frozen result, stored by
+``pipeline.runner.StageRunner`` with a hash of its inputs so that unchanged stages are reused.
 """
 
 from __future__ import annotations
 
+import sys
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
-from pipeline import geometry
-from pipeline.cli import REPORTS_ROOT
-from pipeline.plotting import save_scenario_figure
+import numpy as np
+
+from pipeline.artifacts import atomic_write_json, file_hash, inputs_key
+from pipeline.runner import StageRunner
 from pipeline.scenario import Scenario, load_scenario
-from pipeline.simulate import simulate
+from pipeline.simulate import Trajectory, simulate
+from pipeline.summary import print_summary, summarise
+from pipeline.verify import VERIFY_SUBSTEPS
+from stages.controller import emit_controller
+from stages.coverage import CoverageResult, cover_init
+from stages.feedback import FeedbackResult, design_feedback
+from stages.montecarlo import validate_closed_loop
+from stages.optimize import ConstraintMargins, OptimizeOptions, OptimizeResult, optimize
+from stages.radius import RadiusResult, robustness_radius
+from stages.report import write_reports
+
+REPORTS_ROOT = Path(__file__).resolve().parents[1] / "reports"
+MONTE_CARLO_SEED = 20261122
 
 
-def demo_table(scenario: Scenario) -> list[dict[str, object]]:
-    """Per-demo facts: start, duration, minimum clearance to each Unsafe set, end in Goal."""
-    rows = []
-    for demo in scenario.demos:
-        trajectory = simulate(scenario.dynamics, demo.x0, demo.us, scenario.Ts)
-        positions = scenario.positions(trajectory.dense_xs)
-        clearance = {
-            name: float(geometry.distance(positions, region).min())
-            for name, region in scenario.unsafe.items()
-        }
-        rows.append(
-            {
-                "demo": demo.name,
-                "start": scenario.positions(demo.x0).tolist(),
-                "duration": trajectory.duration,
-                "clearance": clearance,
-                "ends_in_goal": bool(scenario.in_goal(trajectory.final_state)),
-                "trajectory": trajectory,
-            }
-        )
-    return rows
+@dataclass(frozen=True)
+class RunOptions:
+    """Command-line choices of ``synthesize``."""
+
+    method: str = "gd"
+    samples: int = 10_000
+    jobs: int = 1
+    force: bool = False
+    verbose: bool = False
+    quiet: bool = False
+    seed: int = MONTE_CARLO_SEED
 
 
-def _print_demo_table(scenario: Scenario, rows: list[dict[str, object]]) -> None:
-    names = list(scenario.unsafe)
-    header = (
-        f"{'demo':<10} {'start':>14} {'T (s)':>6} "
-        + " ".join(f"{'clear ' + n:>14}" for n in names)
-        + "  in Goal"
+def _trajectories(
+    scenario: Scenario, starts: Sequence[np.ndarray], inputs: Sequence[np.ndarray]
+) -> list[Trajectory]:
+    return [
+        simulate(scenario.dynamics, x0, us, scenario.Ts, substeps=VERIFY_SUBSTEPS)
+        for x0, us in zip(starts, inputs, strict=True)
+    ]
+
+
+def _radii(
+    scenario: Scenario, feedback: FeedbackResult, trajectories: Sequence[Trajectory]
+) -> tuple[RadiusResult, ...]:
+    return tuple(robustness_radius(scenario, feedback, tr) for tr in trajectories)
+
+
+def _coverage(
+    scenario: Scenario,
+    feedback: FeedbackResult,
+    starts: Sequence[np.ndarray],
+    radii: Sequence[RadiusResult],
+) -> CoverageResult:
+    return cover_init(
+        scenario, feedback, np.array(starts), np.array([max(r.radius, 0.0) for r in radii])
     )
-    print(header)
-    print("-" * len(header))
-    for row in rows:
-        start = "({:.2f}, {:.2f})".format(*row["start"])
-        clear = " ".join(f"{row['clearance'][n]:>14.3f}" for n in names)
-        print(
-            f"{row['demo']:<10} {start:>14} {row['duration']:>6.1f} {clear}  "
-            f"{'yes' if row['ends_in_goal'] else 'NO'}"
-        )
-    print(f"required clearance d = {scenario.clearance:g}")
 
 
 def synthesize(
-    scenario_name: str, out: Path | None = None, verbose: bool = False, quiet: bool = False
+    scenario_name: str | Path, out: Path | None = None, options: RunOptions | None = None
 ) -> int:
-    """Run the pipeline on a scenario; returns the process exit code."""
+    """Run every stage on a scenario; returns the exit code (0 certified and validated, 1 not)."""
+    options = options or RunOptions()
+    started = time.perf_counter()
     scenario = load_scenario(scenario_name)
     out = Path(out) if out is not None else REPORTS_ROOT / scenario.name
-    rows = demo_table(scenario)
-    if not quiet:
-        print(
-            f"scenario {scenario.name}: {len(scenario.demos)} demos, all valid "
-            f"(never in Unsafe, end in Goal)"
-        )
-        _print_demo_table(scenario, rows)
-    figure = out / "scenario.png"
-    save_scenario_figure(
-        figure,
-        scenario,
-        [r["trajectory"].dense_xs for r in rows],
-        [r["demo"] for r in rows],
-        title=f"{scenario.name}: demonstrations",
-        marker_every=int(round(1.0 / scenario.Ts)) * 4,
+    say = (lambda _text: None) if options.quiet else print
+    runner = StageRunner(out, force=options.force, log=say)
+    base = inputs_key(scenario.source_hash, [file_hash(d.file) for d in scenario.demos])
+    demo_starts = [d.x0 for d in scenario.demos]
+    demo_inputs = [d.us for d in scenario.demos]
+    say(
+        f"scenario {scenario.name}: {len(scenario.demos)} demos, all valid "
+        "(never in Unsafe, end in Goal)"
     )
-    if not quiet:
-        print(f"wrote {figure}")
-    del verbose
-    return 0
+
+    feedback = runner.run(
+        "feedback", inputs_key(base, "feedback/1"), lambda: design_feedback(scenario)
+    )
+    if not feedback.success:
+        print(f"not certified: the feedback could not be certified: {feedback.message}")
+        return 1
+    tube = inputs_key(base, feedback.K, feedback.P, feedback.rate)
+    demo_trajectories = _trajectories(scenario, demo_starts, demo_inputs)
+    demo_radii = runner.run(
+        "radius_demos",
+        inputs_key(tube, "radius/2"),
+        lambda: _radii(scenario, feedback, demo_trajectories),
+    )
+    demo_coverage = runner.run(
+        "coverage_demos",
+        inputs_key(tube, "coverage/1"),
+        lambda: _coverage(scenario, feedback, demo_starts, demo_radii),
+    )
+
+    r_d = feedback.required_radius(scenario.clearance)
+    margins = ConstraintMargins(feedback.input_margin(r_d), feedback.region_extent(r_d), feedback.K)
+    optimize_options = OptimizeOptions(method=options.method)
+    optimized: OptimizeResult = runner.run(
+        "optimize",
+        inputs_key(tube, "optimize/1", repr(optimize_options)),
+        lambda: optimize(scenario, margins, optimize_options, jobs=options.jobs),
+    )
+    if options.verbose:
+        _print_optimization_logs(optimized)
+    # a demo whose optimisation failed keeps its own (valid) nominal trajectory
+    final_inputs = [
+        t.u if t.success else d.us
+        for t, d in zip(optimized.trajectories, scenario.demos, strict=True)
+    ]
+    final_trajectories = _trajectories(scenario, demo_starts, final_inputs)
+    final_key = inputs_key(tube, *final_inputs)
+    final_radii = runner.run(
+        "radius_optimized",
+        inputs_key(final_key, "radius/2"),
+        lambda: _radii(scenario, feedback, final_trajectories),
+    )
+    final_coverage = runner.run(
+        "coverage_optimized",
+        inputs_key(final_key, "coverage/1"),
+        lambda: _coverage(scenario, feedback, demo_starts, final_radii),
+    )
+
+    usable = [i for i, r in enumerate(final_radii) if r.radius > 0]
+    controller_path = out / "controller.json"
+    controller = runner.run(
+        "controller",
+        inputs_key(final_key, [final_radii[i].radius for i in usable]),
+        lambda: emit_controller(
+            scenario,
+            feedback.K,
+            feedback.P,
+            feedback.rate,
+            [demo_starts[i] for i in usable],
+            [final_inputs[i] for i in usable],
+            [final_radii[i].radius for i in usable],
+            controller_path,
+        ),
+        rerun=not controller_path.is_file(),
+    )
+    montecarlo = runner.run(
+        "montecarlo",
+        inputs_key(file_hash(controller_path), options.samples, options.seed, "mc/1"),
+        lambda: validate_closed_loop(
+            scenario, controller_path, samples=options.samples, seed=options.seed, jobs=options.jobs
+        ),
+    )
+
+    summary = summarise(
+        scenario,
+        feedback,
+        demo_trajectories,
+        demo_radii,
+        demo_coverage,
+        optimized,
+        final_trajectories,
+        final_radii,
+        final_coverage,
+        controller,
+        montecarlo,
+        runner.timings(),
+        time.perf_counter() - started,
+        command=sys.argv,
+    )
+    atomic_write_json(out / "summary.json", summary)
+    runner.run(
+        "report",
+        inputs_key(summary, "report/1"),
+        lambda: write_reports(scenario, out),
+        rerun=not (out / "report.html").is_file(),
+    )
+    if not options.quiet:
+        print_summary(summary)
+    return 0 if summary["verdict"]["certified"] and summary["verdict"]["validated"] else 1
+
+
+def _print_optimization_logs(optimized: OptimizeResult) -> None:
+    for trajectory in optimized.trajectories:
+        print(f"\n{trajectory.demo}: bisection tries (N', feasible, iterations, final J)")
+        for attempt in trajectory.tries:
+            print(
+                f"  N'={attempt.N:4d}  {'feasible  ' if attempt.feasible else 'infeasible'}"
+                f"  {attempt.iterations:4d}  {attempt.cost:.3e}"
+            )
+        print(f"{trajectory.demo}: descent log at N' = {trajectory.N}")
+        print(trajectory.log.table())

@@ -35,9 +35,10 @@ class StageRunner:
     log: Callable[[str], None] = print
     records: list[StageRecord] = field(default_factory=list)
 
-    def run(self, name: str, key: str, compute: Callable[[], T]) -> T:
+    def run(self, name: str, key: str, compute: Callable[[], T], rerun: bool = False) -> T:
+        """``compute()``'s result, or the stored one when its key matches (``rerun`` forces)."""
         stem = self.out / "artifacts" / name
-        if not self.force:
+        if not (self.force or rerun):
             stored: Any = load_result(stem, key)
             if stored is not None:
                 self.records.append(StageRecord(name, key, 0.0, True))

@@ -20,7 +20,7 @@ from pipeline.dynamics import FloatArray
 from pipeline.scenario import Scenario
 from pipeline.simulate import simulate
 
-REFERENCE_SUBSTEPS = 10
+REFERENCE_SUBSTEPS = 20
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,234 @@
+"""The run's summary: headline numbers, the verdict and the kind of every claim (``summary.json``).
+
+Claims carry their kind: *certified* (LMI and tube bounds, re-checked independently),
+*statistically validated* (Monte Carlo with its bound), *falsification-searched* (worst case
+found by search, no bound).
+"""
+
+from __future__ import annotations
+
+import platform
+from collections.abc import Mapping, Sequence
+from importlib import metadata
+from typing import Any
+
+import numpy as np
+
+from pipeline.simulate import Trajectory
+
+KEY_PACKAGES = (
+    "numpy",
+    "scipy",
+    "shapely",
+    "cvxpy",
+    "clarabel",
+    "control",
+    "sympy",
+    "numba",
+    "matplotlib",
+)
+
+
+def _versions() -> dict[str, str]:
+    versions = {"python": platform.python_version()}
+    for name in ("safety-synthesis", *KEY_PACKAGES):
+        try:
+            versions[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            versions[name] = "not installed"
+    return versions
+
+
+def summarise(
+    scenario: Any,
+    feedback: Any,
+    demo_trajectories: Sequence[Trajectory],
+    demo_radii: Sequence[Any],
+    demo_coverage: Any,
+    optimized: Any,
+    final_trajectories: Sequence[Trajectory],
+    final_radii: Sequence[Any],
+    final_coverage: Any,
+    controller: Any,
+    montecarlo: Any,
+    timings: Mapping[str, float],
+    total_seconds: float,
+    command: Sequence[str],
+) -> dict[str, Any]:
+    """Collect the stage results into one JSON-able document."""
+    r_d = feedback.required_radius(scenario.clearance)
+    demos = []
+    for i, demo in enumerate(scenario.demos):
+        opt = optimized.trajectories[i]
+        before, after = demo_trajectories[i].duration, final_trajectories[i].duration
+        demos.append(
+            {
+                "demo": demo.name,
+                "start": demo.x0.tolist(),
+                "T_demo": before,
+                "T_optimized": after,
+                "faster_percent": 100 * (1 - after / before),
+                "optimized": bool(opt.success),
+                "message": opt.message,
+                "iterations": int(sum(t.iterations for t in opt.tries)),
+                "bisection_tries": len(opt.tries),
+                "seconds": opt.seconds,
+                "clearance_before": demo_radii[i].nominal_clearance,
+                "clearance_after": final_radii[i].nominal_clearance,
+                "radius_before": demo_radii[i].radius,
+                "radius_after": final_radii[i].radius,
+                "binding_before": demo_radii[i].binding,
+                "binding_after": final_radii[i].binding,
+            }
+        )
+    T_before = np.array([d["T_demo"] for d in demos])
+    T_after = np.array([d["T_optimized"] for d in demos])
+    reasons = []
+    if not final_coverage.covered:
+        gap = final_coverage.largest_gap()
+        where = (
+            ""
+            if gap is None
+            else (f"; record a new demonstration from {np.round(gap, 3).tolist()}")
+        )
+        reasons.append(f"coverage gap: {final_coverage.message}{where}")
+    failed = [d["demo"] for d in demos if not d["optimized"]]
+    if failed:
+        reasons.append(f"not optimized (kept as flown): {', '.join(failed)}")
+    if any(r.radius <= 0 for r in final_radii):
+        reasons.append("a nominal trajectory has no robustness radius")
+    if not montecarlo.success:
+        reasons.append(f"Monte Carlo failure: {montecarlo.message}")
+    certified = bool(
+        feedback.success and final_coverage.covered and all(r.radius > 0 for r in final_radii)
+    )
+    falsification = montecarlo.falsification
+    return {
+        "scenario": scenario.name,
+        "verdict": {
+            "certified": certified,
+            "validated": bool(montecarlo.success),
+            "text": (
+                "certified and validated"
+                if certified and montecarlo.success
+                else "not certified: " + "; ".join(reasons)
+                if not certified
+                else "certified but not validated: " + "; ".join(reasons)
+            ),
+            "reasons": reasons,
+        },
+        "claims": [
+            {
+                "claim": f"contraction at rate {feedback.rate:g} over the operating region",
+                "kind": "certified",
+                "how": f"LMI ({feedback.gain} gain) solved by Clarabel, eigenvalues re-checked at "
+                f"all {len(feedback.vertices)} vertices of a sound Jacobian hull "
+                f"(margin {feedback.certified_margin:.2e})",
+            },
+            {
+                "claim": "every start in Init lies in a tube that avoids Unsafe and ends in Goal",
+                "kind": "certified" if certified else "not established",
+                "how": "robustness radii on a dense grid with a bound between grid points; "
+                f"Init covered by box subdivision ({final_coverage.message})",
+            },
+            {
+                "claim": f"failure probability <= {montecarlo.failure_bound:.2e}",
+                "kind": "statistically validated",
+                "how": f"{montecarlo.samples} i.i.d. closed-loop runs from controller.json, "
+                "one-sided 95% Clopper-Pearson bound",
+            },
+            {
+                "claim": f"worst safety margin found {falsification.worst_margin:.3f}",
+                "kind": "falsification-searched",
+                "how": f"Init corners, Sobol points and Nelder-Mead ({falsification.evaluations} "
+                "closed-loop runs); evidence, not a bound",
+            },
+        ],
+        "headline": {
+            "T_demo_mean": float(T_before.mean()),
+            "T_optimized_mean": float(T_after.mean()),
+            "faster_percent_mean": float(100 * np.mean(1 - T_after / T_before)),
+            "min_clearance_before": float(min(d["clearance_before"] for d in demos)),
+            "min_clearance_after": float(min(d["clearance_after"] for d in demos)),
+            "required_clearance": scenario.clearance,
+            "coverage_before": demo_coverage.covered_fraction,
+            "coverage_after": final_coverage.covered_fraction,
+            "covered_before": bool(demo_coverage.covered),
+            "covered_after": bool(final_coverage.covered),
+            "montecarlo_samples": montecarlo.samples,
+            "montecarlo_failures": int(sum(montecarlo.failures.values())),
+            "failure_bound_95": montecarlo.failure_bound,
+        },
+        "feedback": {
+            "gain": feedback.gain,
+            "K": np.asarray(feedback.K).tolist(),
+            "P_eigenvalues": np.linalg.eigvalsh(feedback.P).tolist(),
+            "rate": feedback.rate,
+            "region": {k: list(v) for k, v in feedback.region.items()},
+            "required_radius": r_d,
+            "input_margin_at_r_d": feedback.input_margin(r_d).tolist(),
+            "region_extent_at_r_d": feedback.region_extent(r_d),
+            "vertices": len(feedback.vertices),
+            "message": feedback.message,
+        },
+        "demos": demos,
+        "montecarlo": {
+            "samples": montecarlo.samples,
+            "seed": montecarlo.seed,
+            "failures": montecarlo.failures,
+            "failure_bound_95": montecarlo.failure_bound,
+            "min_clearance": montecarlo.min_clearance,
+            "min_goal_margin": montecarlo.min_goal_margin,
+            "max_tube_tightness": montecarlo.max_tube_tightness,
+            "falsification": {
+                "worst_x0": falsification.worst_x0.tolist(),
+                "worst_margin": falsification.worst_margin,
+                "evaluations": falsification.evaluations,
+            },
+            "message": montecarlo.message,
+        },
+        "controller": {
+            "path": str(controller.path),
+            "trajectories": controller.trajectories,
+            "interpolation_error_P": controller.interpolation_error,
+        },
+        "timings": dict(timings),
+        "total_seconds": total_seconds,
+        "reproducibility": {
+            "versions": _versions(),
+            "scenario_sha256": scenario.source_hash,
+            "montecarlo_seed": montecarlo.seed,
+            "command": list(command),
+        },
+    }
+
+
+def print_summary(summary: Mapping[str, Any]) -> None:
+    """The end-of-run table."""
+    print(
+        f"\n{'demo':<9} {'T demo':>7} {'T opt':>6} {'faster':>7} {'clear before':>13}"
+        f" {'clear after':>12} {'r before':>9} {'r after':>8}"
+    )
+    for d in summary["demos"]:
+        mark = "" if d["optimized"] else "  (kept as flown)"
+        print(
+            f"{d['demo']:<9} {d['T_demo']:>6.1f}s {d['T_optimized']:>5.1f}s "
+            f"{d['faster_percent']:>6.0f}% {d['clearance_before']:>13.3f} "
+            f"{d['clearance_after']:>12.3f} {d['radius_before']:>9.3f} "
+            f"{d['radius_after']:>8.3f}{mark}"
+        )
+    h, mc = summary["headline"], summary["montecarlo"]
+    print(
+        f"\nmean duration {h['T_demo_mean']:.1f} s -> {h['T_optimized_mean']:.1f} s "
+        f"({h['faster_percent_mean']:.0f}% faster); min clearance "
+        f"{h['min_clearance_before']:.2f} -> {h['min_clearance_after']:.2f} m "
+        f"(required {h['required_clearance']:g})"
+    )
+    print(f"Init coverage: {h['coverage_before']:.1%} -> {h['coverage_after']:.1%}")
+    print(
+        f"Monte Carlo: {mc['samples']} runs, {h['montecarlo_failures']} failures, "
+        f"failure probability <= {mc['failure_bound_95']:.2e} (95%)"
+    )
+    for claim in summary["claims"]:
+        print(f"  [{claim['kind']}] {claim['claim']}")
+    print(f"\nverdict: {summary['verdict']['text']}")
