@@ -137,6 +137,15 @@ def save_result(stem: Path, key: str, result: Any) -> None:
     )
 
 
+def read_result(stem: Path) -> Any:
+    """The stored result of ``stem`` whatever its key (for reports); raises if missing/broken."""
+    document = json.loads(stem.with_suffix(".json").read_text())
+    result = load_result(stem, document["key"])
+    if result is None:
+        raise FileNotFoundError(f"{stem}: artifact missing or incomplete; re-run synthesize")
+    return result
+
+
 def load_result(stem: Path, key: str) -> Any | None:
     """The stored result of ``stem`` if both files exist and carry ``key``; else ``None``."""
     json_path, npz_path = stem.with_suffix(".json"), stem.with_suffix(".npz")
