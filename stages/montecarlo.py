@@ -46,9 +46,10 @@ class RunChecks:
     covered: np.ndarray
 
     def margin(self) -> FloatArray:
-        """The smallest safety margin of each run (negative: a failure), for falsification."""
-        tube = 1.0 - self.tube_tightness
-        worst = np.minimum.reduce([self.clearance, self.goal_margin, self.input_slack, tube])
+        """The smallest safety margin of each run (negative: unsafe, misses Goal or clips the
+        input), for falsification. The tube check is a failure kind but not a margin: its
+        ratio is 1 at ``t = 0`` by definition."""
+        worst = np.minimum.reduce([self.clearance, self.goal_margin, self.input_slack])
         return np.where(self.finite & self.covered, worst, -np.inf)
 
     def failures(self) -> dict[str, np.ndarray]:
@@ -149,9 +150,10 @@ def _uniform_init(scenario: Scenario, rng: np.random.Generator, count: int) -> F
 def falsify(
     scenario: Scenario,
     controller: Controller,
-    sobol_points: int = 64,
+    sobol_points: int = 128,
     local_searches: int = 2,
     seed: int = 0,
+    evaluations_per_search: int = 25,
 ) -> Falsification:
     """Corners of Init, a scrambled Sobol set, then Nelder-Mead from the worst starts."""
     lo, hi = scenario.init_lower, scenario.init_upper
@@ -178,7 +180,7 @@ def falsify(
             start,
             method="Nelder-Mead",
             bounds=list(zip(lo[free], hi[free], strict=True)),
-            options={"maxfev": 40, "xatol": 1e-3, "fatol": 1e-4},
+            options={"maxfev": evaluations_per_search, "xatol": 1e-3, "fatol": 1e-4},
         )
         evaluations += int(outcome.nfev)
         if outcome.fun < best:
