@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -134,6 +134,19 @@ def reseed(u: FloatArray, N: int, mode: str) -> FloatArray:
     raise ValueError(f"seed mode must be one of {SEED_MODES}, got {mode!r}")
 
 
+def smallest_feasible(feasible: Callable[[int], bool], lo: int, hi: int) -> int:
+    """Bisection on the horizon (Remark 4): the smallest ``N`` in ``(lo, hi]`` with
+    ``feasible(N)``, given ``lo`` infeasible and ``hi`` feasible and feasibility monotone in
+    ``N``. Each call of ``feasible`` is one optimisation; there are ``ceil(log2(hi - lo))``."""
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        if feasible(mid):
+            hi = mid
+        else:
+            lo = mid
+    return hi
+
+
 def _minimise(
     problem: Problem, seed: FloatArray, gain: FloatArray, options: OptimizeOptions
 ) -> tuple[DescentResult, FloatArray]:
@@ -213,14 +226,16 @@ def optimize_demo(
             f"demo '{name}' could not be made feasible at its own length ({first.message}); "
             "record a demonstration with more clearance",
         )
-    lo, hi, best, best_log = 0, N_demo, first.u, first.log
-    while hi - lo > 1:
-        mid = (lo + hi) // 2
-        outcome = attempt(mid, reseed(best, mid, options.seed_mode))
+    nearest = {"u": first.u, "log": first.log}  # the shortest feasible solution so far
+
+    def feasible(N: int) -> bool:
+        outcome = attempt(N, reseed(nearest["u"], N, options.seed_mode))
         if outcome.feasible:
-            hi, best, best_log = mid, outcome.u, outcome.log
-        else:
-            lo = mid
+            nearest.update(u=outcome.u, log=outcome.log)
+        return outcome.feasible
+
+    hi = smallest_feasible(feasible, 0, N_demo)
+    best, best_log = nearest["u"], nearest["log"]
     verification = verify_nominal(
         scenario,
         problem.x0,

@@ -1,0 +1,114 @@
+"""Stage optimize: bisection, seeds, verified results, parallel equals serial."""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from pipeline import load_scenario
+from stages.feedback import design_feedback
+from stages.optimize import (
+    ConstraintMargins,
+    OptimizeOptions,
+    optimize,
+    optimize_demo,
+    reseed,
+    smallest_feasible,
+)
+
+
+@functools.cache
+def _quadrotor():
+    scenario = load_scenario("quadrotor_hill", check_demos=False)
+    feedback = design_feedback(scenario)
+    r_d = feedback.required_radius(scenario.clearance)
+    margins = ConstraintMargins(feedback.input_margin(r_d), feedback.region_extent(r_d), feedback.K)
+    return scenario, margins
+
+
+@given(st.integers(1, 200), st.integers(0, 200))
+def test_bisection_finds_what_a_linear_scan_finds(hi, threshold):
+    threshold = min(threshold, hi)  # feasible from ``threshold`` on; ``hi`` is feasible
+    calls = []
+
+    def feasible(N):
+        calls.append(N)
+        return N >= threshold
+
+    scan = next(N for N in range(1, hi + 1) if feasible(N))
+    calls.clear()
+    assert smallest_feasible(feasible, 0, hi) == scan
+    assert len(calls) <= max(1, int(np.ceil(np.log2(hi))))
+
+
+def test_seeds_keep_the_start_or_the_whole_input():
+    u = np.arange(20.0).reshape(10, 2)
+    np.testing.assert_array_equal(reseed(u, 4, "truncate"), u[:4])
+    compressed = reseed(u, 5, "compress")
+    assert compressed.shape == (5, 2)
+    assert compressed[0, 0] == pytest.approx(1.0) and compressed[-1, 0] == pytest.approx(17.0)
+    with pytest.raises(ValueError, match="seed mode"):
+        reseed(u, 4, "stretch")
+
+
+def test_options_refuse_unknown_choices():
+    with pytest.raises(ValueError, match="method"):
+        OptimizeOptions(method="newton")
+    with pytest.raises(ValueError, match="parameterization"):
+        OptimizeOptions(parameterization="closed")
+
+
+@pytest.mark.parametrize("method", ["gd", "lbfgs"])
+def test_the_closest_demo_becomes_faster_and_verified(method):
+    scenario, margins = _quadrotor()
+    demo = 3  # passes 0.54 m from the hill: infeasible for d = 1 as flown
+    result = optimize_demo(scenario, demo, margins, OptimizeOptions(method=method))
+    assert result.success, result.message
+    assert result.N < result.N_demo
+    assert result.verification.passed
+    assert min(result.verification.clearance.values()) >= scenario.clearance
+    # the bisection ended next to an infeasible try (or at 1 sample)
+    tried = {t.N: t.feasible for t in result.tries}
+    assert tried[result.N] and (result.N == 1 or tried.get(result.N - 1) is False)
+    # every intermediate feasible input really has zero cost
+    problem = scenario.problem(
+        demo=demo,
+        input_margin=margins.input_margin,
+        region_margin={
+            k: v + (0.01 if k in scenario.state_names else 0.0)
+            for k, v in margins.region_margin.items()
+        },
+    )
+    for u in result.feasible_inputs:
+        assert problem.with_horizon(len(u), u).cost(u) == 0.0
+
+
+def test_gradient_descent_log_is_monotone():
+    scenario, margins = _quadrotor()
+    result = optimize_demo(scenario, 7, margins, OptimizeOptions())
+    assert np.all(np.diff(result.log.cost) <= 0)
+    assert result.log.accepted[0]
+
+
+def test_open_loop_descent_is_the_papers_literal_method():
+    scenario, margins = _quadrotor()
+    result = optimize_demo(
+        scenario, 0, margins, OptimizeOptions(parameterization="open_loop", max_iterations=50)
+    )
+    # demo_01 already satisfies the margins: the paper's method keeps it feasible, never worse
+    assert result.tries[0].feasible and result.N <= result.N_demo
+
+
+def test_parallel_equals_serial():
+    scenario, margins = _quadrotor()
+    options = OptimizeOptions()
+    serial = optimize(scenario, margins, options, demos=[1, 4], jobs=1)
+    parallel = optimize(scenario, margins, options, demos=[1, 4], jobs=2)
+    for a, b in zip(serial.trajectories, parallel.trajectories, strict=True):
+        assert a.N == b.N
+        np.testing.assert_array_equal(a.u, b.u)
+        assert [t.N for t in a.tries] == [t.N for t in b.tries]
