@@ -1,0 +1,215 @@
+"""The whole pipeline on quadrotor_hill, then closed-loop safety from sampled initial states.
+
+This is the CI safety check: the controller is read back from ``controller.json`` exactly as
+emitted, and the closed loop is checked here with its own code (positions on the dense RK4 grid
+against the Unsafe polygons, the final state against Goal, the raw input against its bounds).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import shapely
+
+from pipeline import load_scenario
+from pipeline.closed_loop import simulate_closed_loop
+from pipeline.controller import load
+from stages.montecarlo import check_runs, validate_closed_loop
+
+ROOT = Path(__file__).resolve().parents[1]
+CI_SAMPLES = 1000
+CI_SEED = 987654321  # not the pipeline's Monte Carlo seed
+
+
+def _closed_loop_failures(scenario, controller, x0):
+    """Count runs that touch Unsafe, end outside Goal or need clipping (independent check)."""
+    index = controller.select(x0)
+    failures = np.zeros(len(x0), dtype=bool)
+    for i in np.unique(index):
+        rows = np.flatnonzero(index == i)
+        run = simulate_closed_loop(scenario.dynamics, controller, x0[rows], int(i))
+        positions = scenario.positions(run.xs)
+        for region in scenario.unsafe.values():
+            hit = shapely.intersects_xy(region, positions[..., 0], positions[..., 1])
+            failures[rows] |= hit.any(axis=1)
+        end = positions[:, -1]
+        failures[rows] |= ~shapely.intersects_xy(scenario.goal, end[:, 0], end[:, 1])
+        raw = run.unclipped
+        failures[rows] |= ((raw < controller.lower) | (raw > controller.upper)).any(axis=(1, 2, 3))
+        failures[rows] |= ~np.isfinite(run.xs).all(axis=(1, 2))
+    return int(failures.sum())
+
+
+def test_synthesis_certifies_and_validates(synthesized):
+    code, out = synthesized
+    summary = json.loads((out / "summary.json").read_text())
+    assert code == 0, summary["verdict"]
+    assert summary["verdict"]["certified"] and summary["verdict"]["validated"]
+    headline = summary["headline"]
+    assert headline["faster_percent_mean"] > 0
+    assert headline["min_clearance_after"] >= headline["required_clearance"]
+    assert headline["covered_after"]
+    assert headline["montecarlo_failures"] == 0
+    assert {c["kind"] for c in summary["claims"]} >= {
+        "certified",
+        "statistically validated",
+        "falsification-searched",
+    }
+
+
+def test_ci_closed_loop_safety_from_sampled_initial_states(synthesized):
+    _, out = synthesized
+    scenario = load_scenario("quadrotor_hill", check_demos=False)
+    controller = load(out / "controller.json")
+    rng = np.random.default_rng(CI_SEED)
+    x0 = scenario.init_lower + (scenario.init_upper - scenario.init_lower) * rng.random(
+        (CI_SAMPLES, scenario.n)
+    )
+    assert np.all(controller.coverage_ratio(x0) < 1.0)
+    assert _closed_loop_failures(scenario, controller, x0) == 0
+
+
+def _write_modified(out, tmp_path, change):
+    document = json.loads((out / "controller.json").read_text())
+    change(document)
+    path = tmp_path / "controller.json"
+    path.write_text(json.dumps(document))
+    return path
+
+
+def test_a_destabilising_gain_is_caught(synthesized, tmp_path):
+    _, out = synthesized
+    scenario = load_scenario("quadrotor_hill", check_demos=False)
+
+    def flip(document):
+        document["feedback"]["K"] = (-3.0 * np.array(document["feedback"]["K"])).tolist()
+
+    broken = _write_modified(out, tmp_path, flip)
+    result = validate_closed_loop(scenario, broken, samples=200, seed=1)
+    assert not result.success and sum(result.failures.values()) > 0
+    x0 = scenario.init_lower + (scenario.init_upper - scenario.init_lower) * 0.3
+    assert _closed_loop_failures(scenario, load(broken), x0[None]) == 1
+
+
+def _ball_boundary(controller, trajectory, scale, count, seed):
+    """``count`` states on ``||x - x0_i||_P = scale * radius_i`` (all state directions)."""
+    reference = controller.trajectories[trajectory]
+    directions = np.random.default_rng(seed).normal(size=(count, controller.n))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    root = np.linalg.cholesky(np.linalg.inv(controller.P))  # maps the unit ball to ||.||_P <= 1
+    return reference.x0 + scale * reference.radius * directions @ root.T
+
+
+def test_the_claimed_tubes_hold_on_their_whole_initial_balls(synthesized):
+    _, out = synthesized
+    scenario = load_scenario("quadrotor_hill", check_demos=False)
+    controller = load(out / "controller.json")
+    for trajectory in range(len(controller.trajectories)):
+        x0 = _ball_boundary(controller, trajectory, 0.99, 40, seed=trajectory)
+        checks, _ = check_runs(scenario, controller, x0)
+        assert not any(mask.any() for mask in checks.failures().values()), trajectory
+
+
+def test_an_inflated_radius_is_caught(synthesized, tmp_path):
+    _, out = synthesized
+    scenario = load_scenario("quadrotor_hill", check_demos=False)
+
+    def inflate(document):
+        for item in document["trajectories"]:
+            item["radius"] *= 3.0
+
+    broken = load(_write_modified(out, tmp_path, inflate))
+    x0 = np.vstack(
+        [_ball_boundary(broken, i, 0.99, 40, seed=i) for i in range(len(broken.trajectories))]
+    )
+    checks, _ = check_runs(scenario, broken, x0)
+    failures = checks.failures()
+    assert failures["unsafe"].sum() + failures["goal"].sum() + failures["clipping"].sum() > 0
+
+
+def test_a_rerun_reuses_every_stage(synthesized, capsys):
+    from pipeline.orchestrator import RunOptions, synthesize
+
+    _, out = synthesized
+    code = synthesize("quadrotor_hill", out=out, options=RunOptions(samples=1000))
+    printed = capsys.readouterr().out
+    assert code == 0
+    for stage in ("feedback", "optimize", "controller", "montecarlo"):
+        assert f"[{stage}] unchanged inputs: reusing" in printed
+
+
+def _start(out, *extra):
+    return subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "pipeline",
+            "synthesize",
+            "quadrotor_hill",
+            "--out",
+            str(out),
+            "--samples",
+            "1000",
+            *extra,
+        ],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
+
+
+def _kill_when(process, marker, timeout=300):
+    deadline = time.monotonic() + timeout
+    lines = []
+    for line in process.stdout:
+        lines.append(line)
+        if marker in line:
+            process.send_signal(signal.SIGKILL)
+            process.wait()
+            return lines
+        if time.monotonic() > deadline:
+            break
+    process.kill()
+    pytest.fail(f"never saw {marker!r}: {''.join(lines)[-2000:]}")
+
+
+def test_a_killed_run_keeps_the_last_good_output_and_resumes(synthesized, tmp_path):
+    _, good = synthesized
+    out = tmp_path / "run"
+    subprocess.run(["cp", "-r", str(good), str(out)], check=True)
+    before = {p.name: p.read_bytes() for p in [out / "controller.json", out / "summary.json"]}
+    # --force reruns every stage; kill it while it computes the Monte Carlo stage
+    _kill_when(_start(out, "--force"), "[montecarlo] running")
+    for name, content in before.items():  # same inputs, so the rewritten files are identical
+        assert (out / name).read_bytes() == content, name
+    load(out / "controller.json")
+    assert not list(out.rglob("*.tmp"))
+    resumed = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pipeline",
+            "synthesize",
+            "quadrotor_hill",
+            "--out",
+            str(out),
+            "--samples",
+            "1000",
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+    )
+    assert resumed.returncode == 0, resumed.stdout + resumed.stderr
+    assert "[controller] unchanged inputs: reusing" in resumed.stdout
+    assert "[montecarlo] unchanged inputs: reusing" in resumed.stdout
