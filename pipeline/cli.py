@@ -46,6 +46,11 @@ def _parser() -> argparse.ArgumentParser:
     )
     synthesize.add_argument("--jobs", type=_positive, default=1, help="worker processes")
     synthesize.add_argument("--force", action="store_true", help="rerun every stage")
+    synthesize.add_argument(
+        "--stress",
+        action="store_true",
+        help="also run the stress test (wind, noise; not certified)",
+    )
     verbosity = synthesize.add_mutually_exclusive_group()
     verbosity.add_argument("-v", "--verbose", action="store_true", help="print iteration logs")
     verbosity.add_argument("-q", "--quiet", action="store_true", help="print only the verdict")
@@ -80,6 +85,7 @@ def _run(args: argparse.Namespace) -> int:
             samples=args.samples,
             jobs=args.jobs,
             force=args.force,
+            stress=args.stress,
             verbose=args.verbose,
             quiet=args.quiet,
         )

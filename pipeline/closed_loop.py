@@ -39,10 +39,12 @@ def simulate_closed_loop(
     trajectory: int,
     substeps: int = 4,
     disturbance: FloatArray | None = None,
+    noise: FloatArray | None = None,
 ) -> ClosedLoopRun:
     """Run the batch ``x0 (B, n)`` around trajectory number ``trajectory`` until its end ``T``.
 
-    ``disturbance (B, n)``, if given, is added to ``xdot`` (stress tests only).
+    Stress tests only: ``disturbance (B, n)`` is added to ``xdot``; ``noise (B, K, n)`` is added
+    to the state the controller measures on RK4 step ``j`` (``K = N * substeps``).
     """
     x = np.array(x0, dtype=np.float64)
     B = x.shape[0]
@@ -57,7 +59,7 @@ def simulate_closed_loop(
     extra = 0.0 if disturbance is None else disturbance
 
     def field(t: float, state: FloatArray, j: int, stage: int) -> FloatArray:
-        raw = controller.unclipped(t, state)
+        raw = controller.unclipped(t, state if noise is None else state + noise[:, j])
         unclipped[:, j, stage] = raw
         return dynamics.f(state, np.clip(raw, controller.lower, controller.upper)) + extra
 

@@ -18,10 +18,11 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.artifacts import atomic_write_json, file_hash, inputs_key
+from pipeline.progress import progress_bar
 from pipeline.runner import StageRunner
 from pipeline.scenario import Scenario, load_scenario
 from pipeline.simulate import Trajectory, simulate
-from pipeline.summary import print_summary, summarise
+from pipeline.summary import print_summary, stress_summary, summarise
 from pipeline.verify import VERIFY_SUBSTEPS
 from stages.controller import emit_controller
 from stages.coverage import CoverageResult, cover_init
@@ -30,6 +31,7 @@ from stages.montecarlo import validate_closed_loop
 from stages.optimize import ConstraintMargins, OptimizeOptions, OptimizeResult, optimize
 from stages.radius import RadiusResult, robustness_radius
 from stages.report import write_reports
+from stages.stress import stress_test
 
 REPORTS_ROOT = Path(__file__).resolve().parents[1] / "reports"
 MONTE_CARLO_SEED = 20261122
@@ -45,6 +47,7 @@ class RunOptions:
     force: bool = False
     verbose: bool = False
     quiet: bool = False
+    stress: bool = False
     seed: int = MONTE_CARLO_SEED
 
 
@@ -114,11 +117,14 @@ def synthesize(
     r_d = feedback.required_radius(scenario.clearance)
     margins = ConstraintMargins(feedback.input_margin(r_d), feedback.region_extent(r_d), feedback.K)
     optimize_options = OptimizeOptions(method=options.method)
-    optimized: OptimizeResult = runner.run(
-        "optimize",
-        inputs_key(tube, "optimize/1", repr(optimize_options)),
-        lambda: optimize(scenario, margins, optimize_options, jobs=options.jobs),
-    )
+    with progress_bar(len(scenario.demos), "demos optimized", options.quiet) as advance:
+        optimized: OptimizeResult = runner.run(
+            "optimize",
+            inputs_key(tube, "optimize/1", repr(optimize_options)),
+            lambda: optimize(
+                scenario, margins, optimize_options, jobs=options.jobs, progress=advance
+            ),
+        )
     if options.verbose:
         _print_optimization_logs(optimized)
     # a demo whose optimisation failed keeps its own (valid) nominal trajectory
@@ -156,13 +162,26 @@ def synthesize(
         ),
         rerun=not controller_path.is_file(),
     )
-    montecarlo = runner.run(
-        "montecarlo",
-        inputs_key(file_hash(controller_path), options.samples, options.seed, "mc/1"),
-        lambda: validate_closed_loop(
-            scenario, controller_path, samples=options.samples, seed=options.seed, jobs=options.jobs
-        ),
-    )
+    with progress_bar(options.samples, "closed-loop runs", options.quiet) as advance:
+        montecarlo = runner.run(
+            "montecarlo",
+            inputs_key(file_hash(controller_path), options.samples, options.seed, "mc/1"),
+            lambda: validate_closed_loop(
+                scenario,
+                controller_path,
+                samples=options.samples,
+                seed=options.seed,
+                jobs=options.jobs,
+                progress=advance,
+            ),
+        )
+    stress = None
+    if options.stress:
+        stress = runner.run(
+            "stress",
+            inputs_key(file_hash(controller_path), options.seed, "stress/1"),
+            lambda: stress_test(scenario, controller_path, seed=options.seed),
+        )
 
     summary = summarise(
         scenario,
@@ -180,6 +199,8 @@ def synthesize(
         time.perf_counter() - started,
         command=sys.argv,
     )
+    if stress is not None:
+        summary["stress"] = stress_summary(stress)
     atomic_write_json(out / "summary.json", summary)
     runner.run(
         "report",

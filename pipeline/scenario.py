@@ -297,6 +297,17 @@ def _build(path: Path, spec: ScenarioSpec) -> Scenario:
     _require_names(path, "init", list(spec.init), states)
     _require_names(path, "position", list(spec.position), states, exact=False)
     _require_names(path, "goal.bounds", list(spec.goal.bounds), states, exact=False)
+    if spec.stress is not None:
+        _require_names(
+            path, "stress.disturbance", list(spec.stress.disturbance), states, exact=False
+        )
+        _require_names(
+            path,
+            "stress.measurement_noise",
+            list(spec.stress.measurement_noise),
+            states,
+            exact=False,
+        )
     _require_names(
         path, "operating_region", list(spec.operating_region), states + inputs, exact=False
     )

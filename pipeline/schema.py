@@ -66,6 +66,19 @@ class FeedbackSpec(_Strict):
     rate: PositiveFloat = Field(description="contraction rate lambda to certify (1/s)")
 
 
+class StressSpec(_Strict):
+    """Perturbations for the stress test (``--stress``), never part of the certificate."""
+
+    disturbance: dict[str, PositiveFloat] = Field(
+        default_factory=dict,
+        description="bound on a constant term added to the named state's derivative, drawn "
+        "uniformly per run (e.g. wind)",
+    )
+    measurement_noise: dict[str, PositiveFloat] = Field(
+        default_factory=dict, description="standard deviation of noise on the measured state"
+    )
+
+
 class DemoSpec(_Strict):
     """One demonstration: a CSV of held inputs and the initial state it was flown from."""
 
@@ -95,6 +108,7 @@ class ScenarioSpec(_Strict):
         description="box over the states and inputs the Jacobian depends on"
     )
     feedback: FeedbackSpec
+    stress: StressSpec | None = Field(default=None, description="optional stress-test settings")
     demos: list[DemoSpec] = Field(default_factory=list)
 
 

@@ -231,4 +231,26 @@ def print_summary(summary: Mapping[str, Any]) -> None:
     )
     for claim in summary["claims"]:
         print(f"  [{claim['kind']}] {claim['claim']}")
+    if "stress" in summary:
+        print(f"  [stress test, not certified] {summary['stress']['message']}")
     print(f"\nverdict: {summary['verdict']['text']}")
+
+
+def stress_summary(stress: Any) -> dict[str, Any]:
+    """The stress test's numbers (reported separately; never part of the certificate)."""
+
+    def run(r: Any) -> dict[str, Any]:
+        return {
+            "samples": r.samples,
+            "failures": r.failures,
+            "failed_fraction": r.failed_fraction,
+            "min_clearance": r.min_clearance,
+            "min_goal_margin": r.min_goal_margin,
+        }
+
+    return {
+        "kind": "stress test (not part of the certificate)",
+        "message": stress.message,
+        "with_feedback": run(stress.with_feedback),
+        "without_feedback": run(stress.without_feedback),
+    }

@@ -93,11 +93,19 @@ class MonteCarloResult:
 
 
 def check_runs(
-    scenario: Scenario, controller: Controller, x0: FloatArray, substeps: int = 4
+    scenario: Scenario,
+    controller: Controller,
+    x0: FloatArray,
+    substeps: int = 4,
+    disturbance: FloatArray | None = None,
+    noise_std: FloatArray | None = None,
+    rng: np.random.Generator | None = None,
 ) -> tuple[RunChecks, list[FloatArray]]:
     """Simulate the closed loop from ``x0 (B, n)`` and measure every run's margins.
 
-    Returns the checks and, per reference trajectory used, the runs' positions ``(b, K+1, 2)``.
+    ``disturbance (B, n)`` and measurement noise of standard deviation ``noise_std (n,)`` (drawn
+    from ``rng``) are for stress tests only. Returns the checks and, per reference trajectory
+    used, the runs' positions ``(b, K+1, 2)``.
     """
     B = len(x0)
     checks = {name: np.empty(B) for name in ("clearance", "goal_margin", "input_slack", "tube")}
@@ -108,7 +116,20 @@ def check_runs(
     P = controller.P
     for i in np.unique(index):
         rows = np.flatnonzero(index == i)
-        run = simulate_closed_loop(scenario.dynamics, controller, x0[rows], int(i), substeps)
+        steps = len(controller.trajectories[int(i)].u_ref) * substeps
+        noise = None
+        if noise_std is not None:
+            generator = rng if rng is not None else np.random.default_rng(0)
+            noise = generator.normal(size=(len(rows), steps, len(x0[0]))) * noise_std
+        run = simulate_closed_loop(
+            scenario.dynamics,
+            controller,
+            x0[rows],
+            int(i),
+            substeps,
+            disturbance=None if disturbance is None else disturbance[rows],
+            noise=noise,
+        )
         xs = run.xs
         finite[rows] = np.all(np.isfinite(xs), axis=(1, 2))
         positions = scenario.positions(np.nan_to_num(xs, nan=1e9, posinf=1e9, neginf=-1e9))

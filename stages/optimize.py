@@ -285,18 +285,26 @@ def optimize(
     options: OptimizeOptions,
     demos: Sequence[int] | None = None,
     jobs: int = 1,
+    progress: Callable[[int], None] | None = None,
 ) -> OptimizeResult:
     """Optimise the given demos (default all), in ``jobs`` processes; the result does not depend
     on ``jobs`` (every demo's computation is deterministic and independent)."""
     indices = list(range(len(scenario.demos))) if demos is None else list(demos)
+    advance = progress or (lambda _count: None)
     if jobs <= 1 or len(indices) <= 1:
-        results = [optimize_demo(scenario, i, margins, options) for i in indices]
+        results = []
+        for i in indices:
+            results.append(optimize_demo(scenario, i, margins, options))
+            advance(1)
     else:
         with ProcessPoolExecutor(max_workers=jobs) as pool:
             futures = [
                 pool.submit(_optimize_in_worker, scenario.path, i, margins, options)
                 for i in indices
             ]
+            for future in futures:
+                future.result()
+                advance(1)
             results = [future.result() for future in futures]
     failed = [r for r in results if not r.success]
     message = (
