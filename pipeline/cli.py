@@ -45,6 +45,11 @@ def _parser() -> argparse.ArgumentParser:
         help="Monte Carlo closed-loop runs (default 10000)",
     )
     synthesize.add_argument("--jobs", type=_positive, default=1, help="worker processes")
+    synthesize.add_argument(
+        "--executor",
+        default=None,
+        help="where parallel work runs: local (default), dask-local, or dask://HOST:PORT",
+    )
     synthesize.add_argument("--force", action="store_true", help="rerun every stage")
     synthesize.add_argument(
         "--stress",
@@ -58,7 +63,17 @@ def _parser() -> argparse.ArgumentParser:
     demos = commands.add_parser("demos", help="regenerate a scenario's synthetic demonstrations")
     demos.add_argument("scenario")
 
+    report = commands.add_parser(
+        "report", help="rebuild report.html and report.pdf from a finished run's artifacts"
+    )
+    report.add_argument("scenario", help="scenario name (scenarios/NAME) or path to its YAML")
+    report.add_argument("--out", type=Path, default=None, help="the run's folder (reports/NAME)")
+
     commands.add_parser("schema", help="print the scenario file's JSON Schema")
+
+    from pipeline.recorder.commands import add_commands
+
+    add_commands(commands)  # record, replay
     return parser
 
 
@@ -84,6 +99,7 @@ def _run(args: argparse.Namespace) -> int:
             method=args.method,
             samples=args.samples,
             jobs=args.jobs,
+            executor=args.executor,
             force=args.force,
             stress=args.stress,
             verbose=args.verbose,
@@ -95,9 +111,22 @@ def _run(args: argparse.Namespace) -> int:
 
         regenerate_demos(args.scenario)
         return 0
+    if args.command == "report":
+        from pipeline.orchestrator import REPORTS_ROOT
+        from pipeline.scenario import load_scenario
+        from stages.report import write_reports
+
+        scenario = load_scenario(args.scenario)
+        result = write_reports(scenario, args.out or REPORTS_ROOT / scenario.name)
+        print(f"{result.message}:\n  {result.html}\n  {result.pdf}")
+        return 0
     if args.command == "schema":
         from pipeline.schema import json_schema
 
         print(json.dumps(json_schema(), indent=2))
         return 0
+    if args.command in ("record", "replay"):
+        from pipeline.recorder.commands import run
+
+        return run(args)
     raise AssertionError(f"unhandled command {args.command!r}")

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.artifacts import atomic_write_json, file_hash, inputs_key
+from pipeline.executor import Executor, make_executor
 from pipeline.progress import progress_bar
 from pipeline.runner import StageRunner
 from pipeline.scenario import Scenario, load_scenario
@@ -44,6 +45,7 @@ class RunOptions:
     method: str = "gd"
     samples: int = 10_000
     jobs: int = 1
+    executor: str | None = None
     force: bool = False
     verbose: bool = False
     quiet: bool = False
@@ -82,6 +84,16 @@ def synthesize(
 ) -> int:
     """Run every stage on a scenario; returns the exit code (0 certified and validated, 1 not)."""
     options = options or RunOptions()
+    executor = make_executor(options.executor, options.jobs)
+    try:
+        return _synthesize(scenario_name, out, options, executor)
+    finally:
+        executor.close()
+
+
+def _synthesize(
+    scenario_name: str | Path, out: Path | None, options: RunOptions, executor: Executor
+) -> int:
     started = time.perf_counter()
     scenario = load_scenario(scenario_name)
     out = Path(out) if out is not None else REPORTS_ROOT / scenario.name
@@ -122,7 +134,7 @@ def synthesize(
             "optimize",
             inputs_key(tube, "optimize/1", repr(optimize_options)),
             lambda: optimize(
-                scenario, margins, optimize_options, jobs=options.jobs, progress=advance
+                scenario, margins, optimize_options, executor=executor, progress=advance
             ),
         )
     if options.verbose:
@@ -171,7 +183,7 @@ def synthesize(
                 controller_path,
                 samples=options.samples,
                 seed=options.seed,
-                jobs=options.jobs,
+                executor=executor,
                 progress=advance,
             ),
         )

@@ -11,6 +11,7 @@ field path (or CSV row), what was found and what was expected:
 
 from __future__ import annotations
 
+import functools
 import keyword
 import os
 from collections.abc import Mapping, Sequence
@@ -166,6 +167,14 @@ class _UniqueKeyLoader(yaml.SafeLoader):
                 )
             first_line[key] = key_node.start_mark.line + 1
         return super().construct_mapping(node, deep=deep)
+
+
+@functools.cache
+def load_scenario_cached(path: Path, source_hash: str) -> Scenario:
+    """``load_scenario(path, check_demos=False)`` once per process and file content (for workers
+    of an executor; ``source_hash`` keys the cache so that an edited file is reloaded)."""
+    del source_hash
+    return load_scenario(path, check_demos=False)
 
 
 def _parse_spec(path: Path) -> ScenarioSpec:

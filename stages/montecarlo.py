@@ -16,7 +16,6 @@ separately: it is evidence, not a bound.
 from __future__ import annotations
 
 from collections.abc import Callable
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -28,7 +27,8 @@ from pipeline import geometry
 from pipeline.closed_loop import simulate_closed_loop
 from pipeline.controller import Controller, load
 from pipeline.dynamics import FloatArray
-from pipeline.scenario import Scenario, load_scenario
+from pipeline.executor import Executor, SerialExecutor
+from pipeline.scenario import Scenario, load_scenario_cached
 
 FAILURE_KINDS = ("unsafe", "goal", "clipping", "tube", "non_finite", "uncovered")
 TUBE_TOLERANCE = 1e-6
@@ -220,10 +220,10 @@ def _run_chunk(
 
 
 def _run_chunk_in_worker(
-    scenario_path: Path, controller_path: Path, size: int, stream: np.random.SeedSequence
+    task: tuple[Path, str, Path, int, np.random.SeedSequence],
 ) -> tuple[RunChecks, FloatArray, list[FloatArray]]:
-    scenario = load_scenario(scenario_path, check_demos=False)
-    return _run_chunk(scenario, controller_path, size, stream)
+    path, source_hash, controller_path, size, stream = task
+    return _run_chunk(load_scenario_cached(path, source_hash), controller_path, size, stream)
 
 
 def validate_closed_loop(
@@ -233,34 +233,27 @@ def validate_closed_loop(
     seed: int = 0,
     chunk: int = 2_500,
     drawn_paths: int = 60,
-    jobs: int = 1,
+    executor: Executor | None = None,
     progress: Callable[[int], None] | None = None,
 ) -> MonteCarloResult:
     """Monte Carlo validation of ``controller.json`` (read back from disk, as emitted).
 
     Chunk ``i`` draws from ``SeedSequence(seed).spawn(chunks)[i]``, so the result is the same
-    for any ``jobs``; ``progress(runs)`` is called as chunks finish.
+    for any executor and worker count; ``progress(runs)`` is called as chunks finish.
     """
     controller = load(controller_path)
     chunks = [chunk] * (samples // chunk) + ([samples % chunk] if samples % chunk else [])
     streams = np.random.SeedSequence(seed).spawn(len(chunks))
-    if jobs <= 1 or len(chunks) <= 1:
-        outcomes = []
-        for size, stream in zip(chunks, streams, strict=True):
-            outcomes.append(_run_chunk(scenario, controller_path, size, stream))
-            if progress:
-                progress(size)
-    else:
-        with ProcessPoolExecutor(max_workers=jobs) as pool:
-            futures = [
-                pool.submit(_run_chunk_in_worker, scenario.path, controller_path, size, stream)
-                for size, stream in zip(chunks, streams, strict=True)
-            ]
-            for future, size in zip(futures, chunks, strict=True):
-                future.result()
-                if progress:
-                    progress(size)
-            outcomes = [future.result() for future in futures]
+    tasks = [
+        (scenario.path, scenario.source_hash, Path(controller_path), size, stream)
+        for size, stream in zip(chunks, streams, strict=True)
+    ]
+    executor = executor or SerialExecutor()
+    outcomes = executor.map(
+        _run_chunk_in_worker,
+        tasks,
+        done=None if progress is None else lambda i: progress(chunks[i]),
+    )
     parts = [o[0] for o in outcomes]
     failed = [o[1] for o in outcomes]
     paths = [path for o in outcomes for group in o[2] for path in group][:drawn_paths]

@@ -15,7 +15,6 @@ from __future__ import annotations
 import dataclasses
 import time
 from collections.abc import Callable, Mapping, Sequence
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -24,8 +23,9 @@ import numpy as np
 
 from pipeline.descent import DescentResult, IterationLog, gradient_descent, lbfgs
 from pipeline.dynamics import FloatArray
+from pipeline.executor import Executor, SerialExecutor
 from pipeline.problem import Problem
-from pipeline.scenario import Scenario, load_scenario
+from pipeline.scenario import Scenario, load_scenario_cached
 from pipeline.shooting import StabilisedProblem
 from pipeline.verify import Verification, verify_nominal
 
@@ -274,9 +274,10 @@ def optimize_demo(
 
 
 def _optimize_in_worker(
-    path: Path, demo: int, margins: ConstraintMargins, options: OptimizeOptions
+    task: tuple[Path, str, int, ConstraintMargins, OptimizeOptions],
 ) -> TrajectoryOptimization:
-    return optimize_demo(load_scenario(path, check_demos=False), demo, margins, options)
+    path, source_hash, demo, margins, options = task
+    return optimize_demo(load_scenario_cached(path, source_hash), demo, margins, options)
 
 
 def optimize(
@@ -284,28 +285,17 @@ def optimize(
     margins: ConstraintMargins,
     options: OptimizeOptions,
     demos: Sequence[int] | None = None,
-    jobs: int = 1,
+    executor: Executor | None = None,
     progress: Callable[[int], None] | None = None,
 ) -> OptimizeResult:
-    """Optimise the given demos (default all), in ``jobs`` processes; the result does not depend
-    on ``jobs`` (every demo's computation is deterministic and independent)."""
+    """Optimise the given demos (default all) on ``executor`` (default: here, in order); the
+    result does not depend on the executor (every demo's computation is deterministic)."""
     indices = list(range(len(scenario.demos))) if demos is None else list(demos)
-    advance = progress or (lambda _count: None)
-    if jobs <= 1 or len(indices) <= 1:
-        results = []
-        for i in indices:
-            results.append(optimize_demo(scenario, i, margins, options))
-            advance(1)
-    else:
-        with ProcessPoolExecutor(max_workers=jobs) as pool:
-            futures = [
-                pool.submit(_optimize_in_worker, scenario.path, i, margins, options)
-                for i in indices
-            ]
-            for future in futures:
-                future.result()
-                advance(1)
-            results = [future.result() for future in futures]
+    tasks = [(scenario.path, scenario.source_hash, i, margins, options) for i in indices]
+    executor = executor or SerialExecutor()
+    results = executor.map(
+        _optimize_in_worker, tasks, done=None if progress is None else lambda _i: progress(1)
+    )
     failed = [r for r in results if not r.success]
     message = (
         f"all {len(results)} trajectories optimized and verified"

@@ -10,6 +10,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from pipeline import load_scenario
+from pipeline.executor import ProcessExecutor
 from stages.feedback import design_feedback
 from stages.optimize import (
     ConstraintMargins,
@@ -106,8 +107,12 @@ def test_open_loop_descent_is_the_papers_literal_method():
 def test_parallel_equals_serial():
     scenario, margins = _quadrotor()
     options = OptimizeOptions()
-    serial = optimize(scenario, margins, options, demos=[1, 4], jobs=1)
-    parallel = optimize(scenario, margins, options, demos=[1, 4], jobs=2)
+    serial = optimize(scenario, margins, options, demos=[1, 4])
+    pool = ProcessExecutor(2)
+    try:
+        parallel = optimize(scenario, margins, options, demos=[1, 4], executor=pool)
+    finally:
+        pool.close()
     for a, b in zip(serial.trajectories, parallel.trajectories, strict=True):
         assert a.N == b.N
         np.testing.assert_array_equal(a.u, b.u)

@@ -1,0 +1,111 @@
+"""Executors: identical results on any of them, retries, and failures reported by chunk."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline import load_scenario
+from pipeline.artifacts import read_result
+from pipeline.errors import UserError
+from pipeline.executor import ChunkFailed, ProcessExecutor, SerialExecutor, make_executor
+from stages.montecarlo import validate_closed_loop
+from stages.optimize import ConstraintMargins, OptimizeOptions, optimize
+
+
+def _square(x):
+    return x * x
+
+
+def _always_fails(x):
+    raise ValueError(f"bad chunk {x}")
+
+
+def _fails_once(path_and_value):
+    """Fails the first time it sees a value (a marker file records it), then succeeds."""
+    folder, value = path_and_value
+    marker = Path(folder) / f"seen_{value}"
+    if not marker.exists():
+        marker.write_text("x")
+        raise RuntimeError("transient")
+    return value
+
+
+def _dies_once(path_and_value):
+    folder, value = path_and_value
+    marker = Path(folder) / f"died_{value}"
+    if value == 2 and not marker.exists():
+        marker.write_text("x")
+        os._exit(1)  # the worker process dies
+    return value
+
+
+@pytest.fixture(scope="module", params=["serial", "processes"])
+def executor(request):
+    made = SerialExecutor() if request.param == "serial" else ProcessExecutor(2)
+    yield made
+    made.close()
+
+
+def test_results_keep_the_order_of_the_items(executor):
+    assert executor.map(_square, [3, 1, 2]) == [9, 1, 4]
+
+
+def test_a_chunk_that_fails_once_is_retried(executor, tmp_path):
+    items = [(str(tmp_path), v) for v in range(4)]
+    assert executor.map(_fails_once, items) == [0, 1, 2, 3]
+
+
+def test_a_chunk_that_keeps_failing_is_reported_with_its_id(executor):
+    with pytest.raises(ChunkFailed, match="chunk 0 failed twice") as error:
+        executor.map(_always_fails, [7, 8])
+    assert error.value.chunk == 0
+
+
+def test_a_dead_worker_is_replaced_and_its_chunk_retried(tmp_path):
+    pool = ProcessExecutor(2)
+    try:
+        assert pool.map(_dies_once, [(str(tmp_path), v) for v in range(4)]) == [0, 1, 2, 3]
+    finally:
+        pool.close()
+
+
+def test_unknown_executor_is_a_user_error():
+    with pytest.raises(UserError, match="unknown executor 'spark'"):
+        make_executor("spark", 2)
+
+
+def test_monte_carlo_and_optimization_are_identical_on_every_executor(synthesized):
+    _, out = synthesized
+    scenario = load_scenario("quadrotor_hill", check_demos=False)
+    feedback = read_result(out / "artifacts" / "feedback")
+    r_d = feedback.required_radius(scenario.clearance)
+    margins = ConstraintMargins(feedback.input_margin(r_d), feedback.region_extent(r_d), feedback.K)
+    runs, optimized = {}, {}
+    for name in ("local", "processes", "dask-local"):
+        if name == "dask-local":
+            pytest.importorskip("dask.distributed")
+        made = make_executor(
+            None if name == "local" else ("local" if name == "processes" else name),
+            1 if name == "local" else 2,
+        )
+        try:
+            runs[name] = validate_closed_loop(
+                scenario, out / "controller.json", samples=300, seed=5, chunk=100, executor=made
+            )
+            optimized[name] = optimize(
+                scenario, margins, OptimizeOptions(), demos=[1, 6], executor=made
+            )
+        finally:
+            made.close()
+    reference = runs["local"]
+    for name, result in runs.items():
+        assert result.failures == reference.failures, name
+        np.testing.assert_array_equal(result.clearance, reference.clearance)
+        np.testing.assert_array_equal(result.tube_tightness, reference.tube_tightness)
+        assert result.failure_bound == reference.failure_bound
+        for a, b in zip(optimized[name].trajectories, optimized["local"].trajectories, strict=True):
+            np.testing.assert_array_equal(a.u, b.u)
