@@ -5,7 +5,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: synthesize test bench demos lint clean
+.PHONY: synthesize test bench demos record lint clean
 
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -24,6 +24,9 @@ bench: $(STAMP)
 
 demos: $(STAMP)
 	$(PY) -m pipeline demos $(SCENARIO)
+
+record: $(STAMP)
+	$(PY) -m pipeline record $(SCENARIO)
 
 lint: $(STAMP)
 	$(PY) -m ruff check pipeline stages tests bench
