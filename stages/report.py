@@ -1,15 +1,23 @@
 """Stage ``report``: ``report.html`` and ``report.pdf`` from the saved artifacts (no recomputation).
 
-Reads ``summary.json`` and ``artifacts/*`` under the output folder.
+Reads ``summary.json`` and ``artifacts/*`` under the output folder (``pipeline.reporting.data``),
+builds the eight sections once (``pipeline.reporting.sections``) and writes them twice: one
+self-contained HTML page (Jinja2 template, inline SVG figures) and a paginated PDF (matplotlib's
+``PdfPages``, at least one page per section). Both files are written atomically.
 """
 
 from __future__ import annotations
 
-import json
+import time
 from dataclasses import dataclass
+from importlib import metadata
 from pathlib import Path
 
-from pipeline.artifacts import atomic_write_text
+from pipeline.artifacts import atomic_save, atomic_write_text
+from pipeline.reporting.data import load_report_data
+from pipeline.reporting.html import render_html
+from pipeline.reporting.pdf import write_pdf
+from pipeline.reporting.sections import build_sections
 from pipeline.scenario import Scenario
 
 
@@ -21,19 +29,41 @@ class ReportResult:
     message: str
 
 
+def _version() -> str:
+    try:
+        return metadata.version("safety-synthesis")
+    except metadata.PackageNotFoundError:
+        return "(not installed)"
+
+
 def write_reports(scenario: Scenario, out: Path) -> ReportResult:
-    """Write ``out/report.html`` (and ``out/report.pdf``) from ``out/summary.json``."""
-    summary = json.loads((out / "summary.json").read_text())
-    rows = "".join(
-        f"<tr><td>{d['demo']}</td><td>{d['T_demo']:.1f}</td><td>{d['T_optimized']:.1f}</td>"
-        f"<td>{d['faster_percent']:.0f}%</td></tr>"
-        for d in summary["demos"]
-    )
-    html = (
-        f"<!doctype html><html><head><meta charset='utf-8'><title>{scenario.name}</title>"
-        f"</head><body><h1>{scenario.name}</h1><p>{summary['verdict']['text']}</p>"
-        f"<table><tr><th>demo</th><th>T demo</th><th>T opt</th><th>faster</th></tr>{rows}"
-        "</table></body></html>"
+    """Write ``out/report.html`` and ``out/report.pdf`` from ``out/summary.json`` and
+    ``out/artifacts``; a missing input raises ``UserError`` naming the file."""
+    start = time.perf_counter()
+    out = Path(out)
+    data = load_report_data(scenario, out)
+    sections = build_sections(data)
+    verdict = data.summary["verdict"]["text"]
+    title = f"Safety controller synthesis report: {scenario.name}"
+    html = render_html(
+        title,
+        f"Verdict: {verdict}. Winn & Julius, Optimization of Human Generated Trajectories for "
+        "Safety Controller Synthesis.",
+        sections,
+        {"version": _version(), "out": str(out), "scenario": scenario.name},
     )
     atomic_write_text(out / "report.html", html)
-    return ReportResult(out / "report.html", None, True, "HTML report written")
+    pages: list[int] = []
+    atomic_save(
+        out / "report.pdf",
+        lambda path: pages.append(write_pdf(path, title, sections)),
+        suffix=".pdf",
+    )
+    seconds = time.perf_counter() - start
+    return ReportResult(
+        out / "report.html",
+        out / "report.pdf",
+        True,
+        f"report.html ({len(html) // 1024} KiB) and report.pdf ({pages[0]} pages) written "
+        f"in {seconds:.1f} s",
+    )

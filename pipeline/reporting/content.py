@@ -1,0 +1,134 @@
+"""The report's content, independent of its format: sections made of blocks.
+
+Both writers (``reporting.html``, ``reporting.pdf``) render the same ``Section`` list, so the two
+formats cannot drift apart. Numbers are formatted here, once.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import ClassVar
+
+from matplotlib.figure import Figure as MplFigure
+from matplotlib.figure import SubFigure
+
+FigureLike = MplFigure | SubFigure
+
+
+@dataclass(frozen=True)
+class Paragraph:
+    text: str
+    tone: str = ""  # "" or "note"
+    kind: ClassVar[str] = "paragraph"
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """The run's verdict; ``passed`` when certified and validated."""
+
+    passed: bool
+    text: str
+    reasons: tuple[str, ...] = ()
+    kind: ClassVar[str] = "verdict"
+
+
+@dataclass(frozen=True)
+class Headline:
+    """One headline number: ``label``, formatted ``value``, and what it compares to."""
+
+    label: str
+    value: str
+    note: str
+
+
+@dataclass(frozen=True)
+class Headlines:
+    items: tuple[Headline, ...]
+    kind: ClassVar[str] = "headlines"
+
+
+@dataclass(frozen=True)
+class Table:
+    """A table of preformatted cells; ``numeric[c]`` right-aligns column ``c``; the cells of
+    column ``badges`` (if any) are claim kinds, drawn as coloured labels."""
+
+    header: tuple[str, ...]
+    rows: tuple[tuple[str, ...], ...]
+    caption: str = ""
+    numeric: tuple[bool, ...] = ()
+    badges: int | None = None
+    kind: ClassVar[str] = "table"
+
+    def __post_init__(self) -> None:
+        for row in self.rows:
+            if len(row) != len(self.header):
+                raise ValueError(f"table row {row} has {len(row)} cells, header {self.header}")
+
+    def right(self, column: int) -> bool:
+        return column < len(self.numeric) and self.numeric[column]
+
+
+@dataclass(frozen=True)
+class Figure:
+    """A figure drawn by ``draw(fig)`` into a matplotlib figure or subfigure of ``size``
+    (width, height) inches; the same drawing serves the HTML (SVG) and the PDF page."""
+
+    key: str
+    caption: str
+    draw: Callable[[FigureLike], None]
+    size: tuple[float, float] = (10.0, 5.0)
+    kind: ClassVar[str] = "figure"
+
+
+Block = Paragraph | Verdict | Headlines | Table | Figure
+
+
+@dataclass(frozen=True)
+class Section:
+    key: str
+    number: int
+    title: str
+    blocks: tuple[Block, ...]
+
+    @property
+    def heading(self) -> str:
+        return f"{self.number}. {self.title}"
+
+
+# --- Formatting, shared by both writers and by the tests. -------------------------------------
+
+
+def number(value: float | None, digits: int = 3) -> str:
+    """``value`` with ``digits`` significant digits; "n/a" for None, "inf" for infinities."""
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "n/a"
+    if math.isinf(value):
+        return "inf" if value > 0 else "-inf"
+    return f"{value:.{digits}g}"
+
+
+def fixed(value: float, decimals: int = 2) -> str:
+    return f"{value:.{decimals}f}"
+
+
+def percent(fraction: float, decimals: int = 1) -> str:
+    """``fraction`` (0..1) as a percentage."""
+    return f"{fraction:.{decimals}%}"
+
+
+def seconds(value: float) -> str:
+    return f"{value:.1f} s"
+
+
+def scientific(value: float) -> str:
+    return f"{value:.2e}"
+
+
+def vector(values: Sequence[float], digits: int = 3) -> str:
+    return "[" + ", ".join(number(float(v), digits) for v in values) + "]"
+
+
+def check(flag: bool) -> str:
+    return "yes" if flag else "no"

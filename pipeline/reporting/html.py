@@ -1,0 +1,81 @@
+"""The report as one self-contained HTML file: a Jinja2 template, figures inlined as SVG.
+
+No network access is needed to read it: no scripts, no stylesheets or fonts from elsewhere; the
+SVGs' raster parts (dense paths) are embedded as base64 PNG data. Element ids inside each SVG are
+prefixed with the figure's key, so several inlined SVGs never share an id.
+"""
+
+from __future__ import annotations
+
+import io
+import re
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+import jinja2  # noqa: E402
+import matplotlib.pyplot as plt  # noqa: E402
+
+from pipeline.plotting import STYLE  # noqa: E402
+from pipeline.reporting.content import Figure, Section  # noqa: E402
+
+TEMPLATES = Path(__file__).resolve().parent / "templates"
+BADGES = {
+    "certified": "certified",
+    "statistically validated": "validated",
+    "falsification-searched": "searched",
+}
+
+
+def figure_svg(figure: Figure) -> str:
+    """The figure drawn at its size as an inline ``<svg>`` element (no XML prolog, scalable)."""
+    with plt.rc_context({**STYLE, "svg.hashsalt": figure.key}):
+        fig = plt.figure(figsize=figure.size, layout="constrained")
+        try:
+            figure.draw(fig)
+            buffer = io.StringIO()
+            fig.savefig(buffer, format="svg", metadata={"Date": None})
+        finally:
+            plt.close(fig)
+    return _inline(buffer.getvalue(), figure.key)
+
+
+def _inline(svg: str, key: str) -> str:
+    svg = svg[svg.index("<svg") :]
+    svg = re.sub(r"<metadata>.*?</metadata>", "", svg, flags=re.S)
+    svg = re.sub(r'\bid="([^"]+)"', rf'id="{key}-\1"', svg)
+    svg = re.sub(r"url\(#([^)]+)\)", rf"url(#{key}-\1)", svg)
+    svg = re.sub(r'href="#([^"]+)"', rf'href="#{key}-\1"', svg)
+    # drop the fixed size on the root element: CSS scales it with its viewBox
+    head, rest = svg.split(">", 1)
+    head = re.sub(r'\s(width|height)="[^"]*"', "", head)
+    return f'{head} role="img" preserveAspectRatio="xMidYMid meet">{rest}'
+
+
+def _badge(kind: str) -> str:
+    return BADGES.get(kind, "missing")
+
+
+def render_html(
+    title: str, subtitle: str, sections: Sequence[Section], context: Mapping[str, Any]
+) -> str:
+    """The page: ``sections`` in order, each figure inlined, plus ``context`` for the header."""
+    environment = jinja2.Environment(
+        loader=jinja2.FileSystemLoader(TEMPLATES),
+        autoescape=True,
+        undefined=jinja2.StrictUndefined,
+        trim_blocks=True,
+        lstrip_blocks=True,
+    )
+    environment.filters["badge"] = _badge
+    svgs = {
+        block.key: figure_svg(block)  # trusted: drawn here, inserted with |safe
+        for section in sections
+        for block in section.blocks
+        if isinstance(block, Figure)
+    }
+    template = environment.get_template("report.html.j2")
+    return template.render(title=title, subtitle=subtitle, sections=sections, svgs=svgs, **context)

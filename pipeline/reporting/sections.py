@@ -1,0 +1,253 @@
+"""The report's eight sections, built from ``ReportData`` (summary.json plus the stage results).
+
+1 Summary, 2 Scenario, 3 Optimization, 4 Feedback, 5 Coverage, 6 Monte Carlo, 7 Inputs,
+8 Reproducibility (3-7 in ``stage_sections``). The paper's reference numbers (Winn & Julius,
+§IV-B) are quoted beside ours.
+"""
+
+from __future__ import annotations
+
+import shlex
+from collections.abc import Sequence
+from functools import partial
+from typing import Any
+
+import numpy as np
+
+from pipeline.artifacts import file_hash
+from pipeline.reporting import figures, stage_sections
+from pipeline.reporting.content import (
+    Figure,
+    Headline,
+    Headlines,
+    Paragraph,
+    Section,
+    Table,
+    Verdict,
+    fixed,
+    percent,
+    scientific,
+    seconds,
+)
+from pipeline.reporting.data import ReportData
+
+PAPER_FASTER_PERCENT = 42  # §IV-B: "The optimal trajectory is 42% faster"
+PAPER_DEMO_CLEARANCE = 0.22  # §IV-B: the human demo's buffer to Unsafe, against d = 1.0
+TITLES = (
+    ("summary", "Summary"),
+    ("scenario", "Scenario and trajectories"),
+    ("optimization", "Optimization"),
+    ("feedback", "Feedback and contraction certificate"),
+    ("coverage", "Coverage of Init"),
+    ("montecarlo", "Monte Carlo validation"),
+    ("inputs", "Inputs"),
+    ("reproducibility", "Reproducibility"),
+)
+
+
+def headline_items(summary: dict[str, Any]) -> tuple[Headline, ...]:
+    """The headline numbers of ``summary.json``, formatted as the report shows them."""
+    h = summary["headline"]
+    stages = summary["timings"]
+    reused = sum(1 for v in stages.values() if v == 0.0)
+    return (
+        Headline(
+            "Faster (mean over demos)",
+            f"{h['faster_percent_mean']:.0f}%",
+            f"terminal time {seconds(h['T_demo_mean'])} → {seconds(h['T_optimized_mean'])}; "
+            f"the paper: {PAPER_FASTER_PERCENT}%",
+        ),
+        Headline(
+            "Min clearance to Unsafe",
+            f"{fixed(h['min_clearance_before'])} → {fixed(h['min_clearance_after'])} m",
+            f"demos → optimized; required d = {h['required_clearance']:g} m; "
+            f"the paper's demo: {PAPER_DEMO_CLEARANCE}",
+        ),
+        Headline(
+            "Init coverage",
+            f"{percent(h['coverage_before'])} → {percent(h['coverage_after'])}",
+            "certified covered after optimization"
+            if h["covered_after"]
+            else "NOT fully covered after optimization",
+        ),
+        Headline(
+            "Monte Carlo failures",
+            f"{h['montecarlo_failures']} / {h['montecarlo_samples']}",
+            f"failure probability ≤ {scientific(h['failure_bound_95'])} (95% one-sided)",
+        ),
+        Headline(
+            "Wall time",
+            seconds(summary["total_seconds"]),
+            "all stages of this run" + (f"; {reused} reused from the cache" if reused else ""),
+        ),
+    )
+
+
+def _summary(data: ReportData) -> tuple:
+    s, summary = data.scenario, data.summary
+    verdict = summary["verdict"]
+    n = len(s.demos)
+    demos = tuple(
+        (
+            d["demo"],
+            "("
+            + ", ".join(f"{v:.2f}" for v in np.asarray(d["start"])[list(s.position_index)])
+            + ")",
+            fixed(d["T_demo"], 1),
+            fixed(d["T_optimized"], 1),
+            f"{d['faster_percent']:.0f}%",
+            fixed(d["clearance_before"], 3),
+            fixed(d["clearance_after"], 3),
+            fixed(d["radius_before"], 3),
+            fixed(d["radius_after"], 3),
+            "yes" if d["optimized"] else "no (kept as flown)",
+        )
+        for d in summary["demos"]
+    )
+    timings = [
+        (stage, fixed(t, 2), "reused" if t == 0.0 else "")
+        for stage, t in summary["timings"].items()
+    ]
+    timings.append(("total (incl. loading and summary)", fixed(summary["total_seconds"], 2), ""))
+    return (
+        Paragraph(
+            f"Scenario {s.name}: {s.spec.description or 'no description'} {n} demonstrations, "
+            f"sampling time Ts = {s.Ts:g} s, required clearance d = {s.clearance:g} m. Each "
+            "demonstration is made as fast as possible without losing its robustness radius "
+            "(Winn & Julius, Remark 4), then the feedback controller built from the optimized "
+            "trajectories is certified and validated by simulation."
+        ),
+        Verdict(
+            bool(verdict["certified"] and verdict["validated"]),
+            verdict["text"],
+            tuple(verdict["reasons"]),
+        ),
+        Headlines(headline_items(summary)),
+        Table(
+            ("claim", "kind", "how it was established"),
+            tuple((c["claim"], c["kind"], c["how"]) for c in summary["claims"]),
+            "Claims: certified (proof, re-checked), statistically validated (sampling with a "
+            "bound), falsification-searched (search, no bound)",
+            badges=1,
+        ),
+        Table(
+            (
+                "demo",
+                "start (X, Y)",
+                "T demo (s)",
+                "T opt (s)",
+                "faster",
+                "clearance before (m)",
+                "clearance after (m)",
+                "radius before",
+                "radius after",
+                "optimized",
+            ),
+            demos,
+            "Per demonstration",
+            numeric=(False, False, *([True] * 7), False),
+        ),
+        Table(
+            ("stage", "wall time (s)", ""),
+            tuple(timings),
+            "Wall time per stage (0: result reused from a previous run with the same inputs)",
+            numeric=(False, True, False),
+        ),
+    )
+
+
+def _scenario(data: ReportData) -> tuple:
+    s = data.scenario
+    index = figures.bisection_demo(data)
+    opt = data.optimize.trajectories[index]
+    before = data.summary["demos"][index]["clearance_before"]
+    free = ", ".join(
+        f"{name} in [{lo:g}, {hi:g}]"
+        for name, lo, hi in zip(s.state_names, s.init_lower, s.init_upper, strict=True)
+        if hi > lo
+    )
+    return (
+        Paragraph(
+            f"Unsafe: {', '.join(s.unsafe)} (grey; dotted: bloated by d). Goal: green; ModGoal: "
+            f"Goal shrunk by d (dashed), where the optimized trajectories must end. Init: {free} "
+            "(other states fixed)."
+        ),
+        Figure(
+            "overview",
+            "All demonstrations (blue) and their optimized trajectories (orange). Markers are "
+            f"{figures.MARKER_PERIOD:g} s apart, so their spacing shows the speed. The orange "
+            "ellipses are the position projection of each optimized trajectory's robustness tube "
+            f"{{x : ||x - x_ref(t)||_P <= r e^(-λt)}}: outlined at the start, shaded every "
+            f"{figures.TUBE_PERIOD:g} s along the path.",
+            partial(figures.draw_overview, data=data),
+            (10.0, 5.4),
+        ),
+        Figure(
+            "bisection",
+            f"As in the paper's Fig. 2, for {opt.demo} (flown closest to Unsafe: "
+            f"{before:.2f} m): the demonstration, the bisection's intermediate feasible "
+            f"trajectories (purple, darker = shorter horizon) and the optimal one "
+            f"({opt.N_demo} → {opt.N} samples). Circles about the initial point: the tubes "
+            f"(robustness bounds) of the demonstration and of the optimal trajectory. Markers "
+            f"every {figures.TUBE_PERIOD:g} s.",
+            partial(figures.draw_bisection, data=data, index=index),
+            (10.0, 4.0),
+        ),
+    )
+
+
+def _reproducibility(data: ReportData) -> tuple:
+    summary = data.summary
+    repro = summary["reproducibility"]
+    command = list(repro["command"])
+    if command and command[0].endswith("__main__.py"):
+        command = ["python", "-m", "pipeline", *command[1:]]
+    versions = tuple((name, version) for name, version in repro["versions"].items())
+    return (
+        Table(
+            ("item", "value"),
+            (
+                ("command line", shlex.join(command)),
+                ("scenario file", str(data.scenario.path)),
+                ("scenario sha256", repro["scenario_sha256"]),
+                ("controller.json sha256", file_hash(data.controller_path)),
+                ("Monte Carlo seed", str(repro["montecarlo_seed"])),
+                ("output folder", str(data.out)),
+            ),
+            "Run",
+        ),
+        Table(("package", "version"), versions, "Versions"),
+        Table(
+            ("stage", "artifact input key"),
+            tuple(data.keys.items()),
+            "Artifacts (artifacts/<stage>.json + .npz; a stage re-runs only when its key changes)",
+        ),
+        Paragraph(
+            f"Rebuild this report from the saved artifacts: python -m pipeline report "
+            f"{data.scenario.name} --out {data.out}",
+            "note",
+        ),
+    )
+
+
+def build_sections(data: ReportData) -> list[Section]:
+    """The report's sections, in order."""
+    builders = (
+        _summary,
+        _scenario,
+        stage_sections.optimization,
+        stage_sections.feedback,
+        stage_sections.coverage,
+        stage_sections.montecarlo,
+        stage_sections.inputs,
+        _reproducibility,
+    )
+    return [
+        Section(key, number + 1, title, tuple(build(data)))
+        for number, ((key, title), build) in enumerate(zip(TITLES, builders, strict=True))
+    ]
+
+
+def section_headings() -> Sequence[str]:
+    """``"N. Title"`` of every section, for tests and navigation."""
+    return [f"{n + 1}. {title}" for n, (_, title) in enumerate(TITLES)]

@@ -1,0 +1,337 @@
+"""Report sections 3-7, one per stage: optimization, feedback, coverage, Monte Carlo, inputs.
+
+Each builder reads ``ReportData`` and returns its section's blocks; ``sections`` orders them.
+"""
+
+from __future__ import annotations
+
+from functools import partial
+from typing import Any
+
+import numpy as np
+
+from pipeline.controller import load
+from pipeline.reporting import figures
+from pipeline.reporting.content import (
+    Figure,
+    Paragraph,
+    Table,
+    check,
+    fixed,
+    number,
+    percent,
+    scientific,
+    vector,
+)
+from pipeline.reporting.data import ReportData
+
+
+def optimization(data: ReportData) -> tuple:
+    options = data.optimize.options
+    method = "gradient descent (§III-B, eq. (38))" if options.method == "gd" else "L-BFGS-B"
+    rows = []
+    for opt in data.optimize.trajectories:
+        tries = ", ".join(f"{t.N}{'✓' if t.feasible else '✗'}" for t in opt.tries)
+        rows.append(
+            (
+                opt.demo,
+                f"{opt.N_demo} → {opt.N}",
+                tries,
+                str(sum(t.iterations for t in opt.tries)),
+                fixed(opt.seconds, 2),
+                opt.message,
+            )
+        )
+    checks = []
+    for opt in data.optimize.trajectories:
+        v = opt.verification
+        if v is None:
+            checks.append((opt.demo, "not verified", "", "", "", "no"))
+            continue
+        clearance = ", ".join(f"{k} {fixed(x, 3)}" for k, x in v.clearance.items())
+        checks.append(
+            (
+                opt.demo,
+                clearance,
+                fixed(v.goal_margin, 3),
+                fixed(v.input_margin, 3),
+                fixed(v.region_margin, 4),
+                check(not v.failures),
+            )
+        )
+    return (
+        Paragraph(
+            f"Method: {method} on the penalty cost J (eqs. (40)-(42)); {options.parameterization} "
+            f"parameterization; at most {options.max_iterations} iterations per horizon; Unsafe "
+            f"bloated by d + {options.eps_d:g}, Goal shrunk by d + {options.eps_g:g}. A horizon N' "
+            "is feasible when J reaches 0; the shortest feasible N' is found by bisection "
+            f"(Remark 4), each try seeded by {options.seed_mode} of the best feasible input."
+        ),
+        Figure(
+            "optimization",
+            "Left: J over the descent at the final horizon (log scale; a triangle on the bottom "
+            "axis marks J = 0, i.e. feasible). Middle: the step size λ (grows by α after an "
+            "accepted step, shrinks by β after a rejected one). Right: the horizons tried by the "
+            "bisection (circle: feasible, cross: infeasible).",
+            partial(figures.draw_optimization, data=data),
+            (10.0, 3.9),
+        ),
+        Table(
+            (
+                "demo",
+                "samples",
+                "bisection tries (N', ✓ feasible)",
+                "iterations",
+                "time (s)",
+                "result",
+            ),
+            tuple(rows),
+            "Bisection per demo",
+            numeric=(False, True, False, True, True, False),
+        ),
+        Table(
+            (
+                "demo",
+                "clearance to Unsafe (m)",
+                "goal margin (m)",
+                "input margin",
+                "region margin",
+                "passed",
+            ),
+            tuple(checks),
+            "Continuous-time verification of each optimized trajectory (lower bounds over [0, T])",
+            numeric=(False, False, True, True, True, False),
+        ),
+    )
+
+
+def feedback(data: ReportData) -> tuple:
+    s, fb, summary = data.scenario, data.feedback, data.summary["feedback"]
+    K = np.asarray(fb.K)
+    eig = np.asarray(summary["P_eigenvalues"])
+    r_d = summary["required_radius"]
+    region_rows = []
+    for name, (lower, upper) in fb.region.items():
+        extent = summary["region_extent_at_r_d"].get(name, 0.0)
+        region_rows.append((name, number(lower), number(upper), number(extent)))
+    input_rows = tuple(
+        (name, number(lo), number(hi), number(margin))
+        for name, lo, hi, margin in zip(
+            s.input_names, s.input_lower, s.input_upper, summary["input_margin_at_r_d"], strict=True
+        )
+    )
+    quantities = (
+        ("contraction rate λ", f"{fb.rate:g} 1/s"),
+        ("gain design", f"{fb.gain} (solver status: {fb.solver_status})"),
+        ("P eigenvalues", vector(eig, 4)),
+        ("P condition number", number(float(eig[-1] / eig[0]), 4)),
+        ("required radius r_d (position extent d)", number(r_d, 4)),
+        ("position extent per unit P-radius", number(fb.position_extent(1.0), 4)),
+        ("Jacobian hull", f"{len(fb.vertices)} vertices; " + "; ".join(fb.hull)),
+        ("certified margin (max generalised eigenvalue, < 0)", scientific(fb.certified_margin)),
+        ("design objective", number(fb.objective, 4)),
+    )
+    return (
+        Paragraph(
+            "The controller is u = u_ref(t) + K (x - x_ref(t)). The certificate: P > 0 with "
+            "(A_i + B_i K)^T P + P (A_i + B_i K) + 2λP < 0 at every vertex of a polytope that "
+            "soundly contains the Jacobians [f_x f_u] over the operating region, so "
+            "||x(t) - x_ref(t)||_P <= e^(-λt) ||x(0) - x_ref(0)||_P while the tube stays in the "
+            f"region. Design: {fb.message}."
+        ),
+        Table(
+            ("K", *s.state_names),
+            tuple(
+                (
+                    name,
+                    *(number(float(v), 4) if abs(v) > 1e-9 * np.abs(K).max() else "0" for v in row),
+                )
+                for name, row in zip(s.input_names, K, strict=True)
+            ),
+            "Feedback gain K (inputs × states)",
+            numeric=(False, *([True] * s.n)),
+        ),
+        Table(("quantity", "value"), quantities, "Certificate"),
+        Table(
+            ("variable", "lower", "upper", "tube extent at r_d"),
+            tuple(region_rows),
+            "Operating region (where the certificate holds) and the margin the tube needs",
+            numeric=(False, True, True, True),
+        ),
+        Table(
+            ("input", "lower bound", "upper bound", "max |K_j e| at r_d"),
+            input_rows,
+            "Input margins: the feedback's share of each input at the required radius",
+            numeric=(False, True, True, True),
+        ),
+    )
+
+
+def coverage(data: ReportData) -> tuple:
+    rows = []
+    for name, c in (
+        ("demonstrations", data.coverage_demos),
+        ("optimized", data.coverage_optimized),
+    ):
+        rows.append(
+            (
+                name,
+                check(c.covered),
+                percent(c.covered_fraction),
+                str(len(c.boxes)),
+                str(len(c.uncovered_boxes)),
+                str(c.depth),
+                c.message,
+            )
+        )
+    radii = tuple(
+        (
+            d.name,
+            fixed(before.radius, 3),
+            before.binding,
+            fixed(after.radius, 3),
+            after.binding,
+        )
+        for d, before, after in zip(
+            data.scenario.demos, data.radius_demos, data.radius_optimized, strict=True
+        )
+    )
+    return (
+        Paragraph(
+            "Init must lie in the union of the balls ||x - x0_i||_P <= r_i around the starts of "
+            "the nominal trajectories (r_i: robustness radius). Certified by subdividing Init into "
+            "boxes until each box's vertices lie in one ball; boxes left are reported uncovered."
+        ),
+        Figure(
+            "coverage",
+            "Init (black) over its free states with the slices of the balls at each start: "
+            "before (demonstrations, blue) and after optimization (orange). Grey: boxes certified "
+            "covered; red: boxes not certified covered.",
+            partial(figures.draw_coverage, data=data),
+            (10.0, 4.6),
+        ),
+        Table(
+            ("trajectories", "covered", "fraction", "boxes", "uncovered", "depth", "message"),
+            tuple(rows),
+            "Coverage certificate",
+            numeric=(False, False, True, True, True, True, False),
+        ),
+        Table(
+            ("demo", "radius before", "bound by", "radius after", "bound by"),
+            radii,
+            "Robustness radii (P-norm) and the constraint that sets each",
+            numeric=(False, True, False, True, False),
+        ),
+    )
+
+
+def _stress(stress: Any) -> tuple:
+    """The stress test's table (``summary["stress"]``), if the run made one."""
+    if not isinstance(stress, dict):
+        return (
+            Paragraph(
+                "Stress test (perturbed closed loop): not run (synthesize --stress).", "note"
+            ),
+        )
+    runs = [stress.get("with_feedback"), stress.get("without_feedback")]
+    if not all(isinstance(r, dict) for r in runs):
+        rows = tuple((str(k), str(v)) for k, v in stress.items())
+        return (Table(("quantity", "value"), rows, "Stress test"),)
+
+    def failures(run: dict[str, Any]) -> str:
+        counts = {k: v for k, v in run.get("failures", {}).items() if v}
+        return ", ".join(f"{k} {v}" for k, v in counts.items()) or "none"
+
+    kind = stress.get("kind", "not part of the certificate")
+    rows = (
+        ("runs", *(str(r.get("samples", "")) for r in runs)),
+        ("failed", *(percent(r.get("failed_fraction", float("nan"))) for r in runs)),
+        ("failures by kind", *(failures(r) for r in runs)),
+        (
+            "minimum clearance to Unsafe (m)",
+            *(fixed(r.get("min_clearance", float("nan")), 3) for r in runs),
+        ),
+        (
+            "minimum goal margin (m)",
+            *(fixed(r.get("min_goal_margin", float("nan")), 3) for r in runs),
+        ),
+    )
+    return (
+        Paragraph(f"Stress test ({kind}): {stress.get('message', '')}."),
+        Table(
+            ("", "with the feedback", "without (K = 0)"),
+            rows,
+            "Stress test: disturbance and measurement noise from the scenario's stress settings",
+            numeric=(False, True, True),
+        ),
+    )
+
+
+def montecarlo(data: ReportData) -> tuple:
+    mc = data.montecarlo
+    f = mc.falsification
+    stress_blocks = _stress(data.summary.get("stress"))
+    return (
+        Paragraph(
+            f"{mc.samples} initial states drawn i.i.d. uniformly from Init (seed {mc.seed}); each "
+            "closed loop simulated with the controller read back from controller.json and checked "
+            "in continuous time: never in Unsafe, ends in Goal, no input clipping, error inside "
+            f"the predicted tube. {mc.message}."
+        ),
+        Figure(
+            "montecarlo",
+            f"Top: {len(mc.paths)} of the {mc.samples} closed-loop runs (teal); failed starts as "
+            "red crosses, the falsification search's worst start as a red star. Bottom: the "
+            "distributions of each run's minimum clearance to Unsafe and of its tube tightness "
+            "(1 = on the tube's boundary); failures in red beyond the dashed threshold.",
+            partial(figures.draw_montecarlo, data=data),
+            (10.0, 7.2),
+        ),
+        Table(
+            ("failure kind", "runs"),
+            tuple((kind, str(count)) for kind, count in mc.failures.items()),
+            "Failures by kind",
+            numeric=(False, True),
+        ),
+        Table(
+            ("quantity", "value"),
+            (
+                (
+                    "failure probability, one-sided 95% Clopper-Pearson bound",
+                    scientific(mc.failure_bound),
+                ),
+                ("minimum clearance to Unsafe (m)", fixed(mc.min_clearance, 3)),
+                ("minimum goal margin (m)", fixed(mc.min_goal_margin, 3)),
+                ("maximum tube tightness", fixed(mc.max_tube_tightness, 4)),
+                ("falsification: worst margin found", number(f.worst_margin, 4)),
+                ("falsification: worst start", vector(f.worst_x0, 4)),
+                ("falsification: closed-loop runs", str(f.evaluations)),
+            ),
+            "Margins",
+        ),
+        *stress_blocks,
+    )
+
+
+def inputs(data: ReportData) -> tuple:
+    s = data.scenario
+    index, starts = figures.inputs_trajectory(data)
+    x0 = load(data.controller_path).trajectories[index].x0
+    demo = next((d.name for d in s.demos if np.allclose(d.x0, x0)), "no demonstration")
+    return (
+        Paragraph(
+            f"Reference trajectory {index + 1} of controller.json (from {demo}): the one the "
+            f"controller selects for the falsification's worst start {vector(starts[0], 3)}. "
+            "Closed-loop inputs are the controller's output before clipping, simulated here from "
+            "controller.json."
+        ),
+        Figure(
+            "inputs",
+            "The optimized reference input u_ref (orange, held for Ts), the demonstration's input "
+            "as flown (blue), and the closed-loop input from the worst start (teal) and from "
+            "Init's corners assigned to this trajectory (thin teal), against the input bounds "
+            "(dashed) and the operating region (dotted).",
+            partial(figures.draw_inputs, data=data),
+            (10.0, 2.0 + 2.0 * s.m),
+        ),
+    )

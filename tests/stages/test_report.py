@@ -1,0 +1,227 @@
+"""The report stage: built from the artifacts of one small run of quadrotor_hill.
+
+The HTML parses, is self-contained and holds the headline numbers of summary.json; the PDF has a
+page for every section; a missing input is a clear error; headless Chromium renders the page.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+from html.parser import HTMLParser
+from pathlib import Path
+
+import matplotlib.image
+import numpy as np
+import pytest
+from pypdf import PdfReader
+
+from pipeline.cli import main
+from pipeline.errors import UserError
+from pipeline.orchestrator import RunOptions, synthesize
+from pipeline.reporting.sections import headline_items, section_headings
+from pipeline.scenario import Scenario, load_scenario
+from stages.report import write_reports
+
+CHROMIUM = Path("/usr/bin/chromium")
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Scenario, Path]:
+    """A finished run (300 Monte Carlo samples); its report written by the orchestrator."""
+    out = tmp_path_factory.mktemp("report") / "quadrotor_hill"
+    synthesize("quadrotor_hill", out=out, options=RunOptions(samples=300, quiet=True))
+    return load_scenario("quadrotor_hill"), out
+
+
+class _Page(HTMLParser):
+    """Collects tags, their attributes, the open/close balance and the visible text."""
+
+    VOID = {"meta", "br", "img", "input", "link", "hr", "path", "use", "rect", "stop"}
+
+    def __init__(self) -> None:
+        super().__init__(convert_charrefs=True)
+        self.tags: list[tuple[str, dict[str, str | None]]] = []
+        self.open: list[str] = []
+        self.text: list[str] = []
+
+    def handle_starttag(self, tag: str, attrs: list[tuple[str, str | None]]) -> None:
+        self.tags.append((tag, dict(attrs)))
+        if tag not in self.VOID:
+            self.open.append(tag)
+
+    def handle_startendtag(self, tag: str, attrs: list[tuple[str, str | None]]) -> None:
+        self.tags.append((tag, dict(attrs)))
+
+    def handle_endtag(self, tag: str) -> None:
+        if tag in self.VOID:
+            return
+        assert self.open and self.open[-1] == tag, f"</{tag}> closes <{self.open[-1:]}>"
+        self.open.pop()
+
+    def handle_data(self, data: str) -> None:
+        self.text.append(data)
+
+
+def _parse(html: str) -> _Page:
+    page = _Page()
+    page.feed(html)
+    page.close()
+    return page
+
+
+def test_html_parses_and_needs_no_network(run: tuple[Scenario, Path]) -> None:
+    html = (run[1] / "report.html").read_text()
+    page = _parse(html)
+    assert page.open == [], f"unclosed elements {page.open}"
+    names = [tag for tag, _ in page.tags]
+    assert "script" not in names and "iframe" not in names
+    assert names.count("svg") == 6  # every figure inlined
+    for tag, attrs in page.tags:
+        for name in ("src", "href", "xlink:href", "action", "srcset"):
+            value = (attrs.get(name) or "").strip().lower()
+            assert not value.startswith(("http:", "https:", "//", "ftp:")), (tag, name, value)
+        if tag == "link":
+            assert attrs.get("rel") != "stylesheet", attrs
+    assert "@import" not in html and "url(http" not in html
+    ids = [attrs["id"] for _, attrs in page.tags if attrs.get("id")]
+    assert len(ids) == len(set(ids)), "inlined SVGs share element ids"
+    for _, attrs in page.tags:
+        href = attrs.get("href") or attrs.get("xlink:href") or ""
+        if href.startswith("#"):
+            assert href[1:] in ids, f"dangling reference {href}"
+
+
+def test_html_holds_the_headline_numbers_of_summary_json(run: tuple[Scenario, Path]) -> None:
+    out = run[1]
+    summary = json.loads((out / "summary.json").read_text())
+    text = " ".join(" ".join(_parse((out / "report.html").read_text()).text).split())
+    h = summary["headline"]
+    expected = [
+        summary["verdict"]["text"],
+        f"{h['faster_percent_mean']:.0f}%",
+        f"terminal time {h['T_demo_mean']:.1f} s → {h['T_optimized_mean']:.1f} s",
+        "the paper: 42%",
+        f"{h['min_clearance_before']:.2f} → {h['min_clearance_after']:.2f} m",
+        "the paper's demo: 0.22",
+        f"{h['coverage_before']:.1%} → {h['coverage_after']:.1%}",
+        f"{h['montecarlo_failures']} / {h['montecarlo_samples']}",
+        f"≤ {h['failure_bound_95']:.2e}",
+        *section_headings(),
+    ]
+    for item in headline_items(summary):
+        expected += [item.label, item.value, item.note]
+    for claim in summary["claims"]:
+        expected += [claim["claim"], claim["kind"], claim["how"]]
+    for demo in summary["demos"]:
+        start = ", ".join(f"{v:.2f}" for v in demo["start"][:2])  # X, Y
+        expected.append(
+            f"{demo['demo']} ({start}) {demo['T_demo']:.1f} {demo['T_optimized']:.1f} "
+            f"{demo['faster_percent']:.0f}% {demo['clearance_before']:.3f}"
+        )
+    expected += [str(v) for v in summary["reproducibility"]["versions"].values()]
+    expected.append(summary["reproducibility"]["scenario_sha256"])
+    missing = [e for e in expected if e not in text]
+    assert not missing, f"not in report.html: {missing}"
+
+
+def test_pdf_has_a_page_for_every_section_in_order(run: tuple[Scenario, Path]) -> None:
+    reader = PdfReader(run[1] / "report.pdf")
+    texts = [page.extract_text() for page in reader.pages]
+    lines = [{line.strip() for line in text.splitlines()} for text in texts]
+    starts = []
+    for heading in section_headings():  # a section's first page; later ones say "(continued)"
+        pages = [k for k, page in enumerate(lines) if heading in page]
+        assert pages, f"no PDF page has the heading {heading!r}"
+        starts.append(pages[0])
+    assert starts == sorted(starts) and len(set(starts)) == len(starts)
+    assert len(reader.pages) >= len(section_headings())
+    summary = json.loads((run[1] / "summary.json").read_text())
+    assert f"{summary['headline']['faster_percent_mean']:.0f}%" in texts[0]
+
+
+def test_missing_artifact_is_a_clear_error(run: tuple[Scenario, Path], tmp_path: Path) -> None:
+    scenario, out = run
+    copy = tmp_path / "copy"
+    shutil.copytree(out, copy)
+    (copy / "artifacts" / "optimize.json").unlink()
+    with pytest.raises(UserError, match=r"optimize\.json: artifact of stage 'optimize' not found"):
+        write_reports(scenario, copy)
+    assert not (copy / "report.pdf").exists() or (copy / "report.pdf").stat().st_size > 0
+
+
+def test_cli_rebuilds_the_report_from_saved_artifacts(
+    run: tuple[Scenario, Path], capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = run[1]
+    stages = sorted((out / "artifacts").glob("*.npz"))
+    before = {p.name: p.stat().st_mtime_ns for p in stages}
+    reports = {p: p.stat().st_mtime_ns for p in (out / "report.html", out / "report.pdf")}
+    assert main(["report", "quadrotor_hill", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert str(out / "report.html") in printed and str(out / "report.pdf") in printed
+    assert {p.name: p.stat().st_mtime_ns for p in stages} == before  # nothing recomputed
+    assert all(p.stat().st_mtime_ns > t for p, t in reports.items())  # both rewritten
+    assert not list(out.glob(".report.*"))  # no temporary files left by the atomic writes
+
+
+def test_cli_report_of_a_missing_run_is_one_clear_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["report", "quadrotor_hill", "--out", str(tmp_path / "empty")]) == 2
+    error = capsys.readouterr().err
+    assert error.startswith("error: ") and "summary.json not found" in error
+    assert "python -m pipeline synthesize quadrotor_hill" in error
+    assert error.count("\n") == 1  # one line, no traceback
+
+
+def _chromium(*arguments: str, profile: Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [
+            str(CHROMIUM),
+            "--headless",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--disable-quic",
+            "--no-first-run",
+            "--disable-background-networking",
+            "--disable-component-update",
+            "--disable-sync",
+            "--enable-logging=stderr",
+            "--v=0",
+            f"--user-data-dir={profile}",
+            *arguments,
+        ],
+        capture_output=True,
+        text=True,
+        timeout=180,
+        check=False,
+    )
+
+
+@pytest.mark.chromium
+@pytest.mark.skipif(not CHROMIUM.exists(), reason="needs /usr/bin/chromium")
+def test_chromium_renders_the_report(run: tuple[Scenario, Path], tmp_path: Path) -> None:
+    url = (run[1] / "report.html").resolve().as_uri()
+    profile = tmp_path / "profile"
+    shot = tmp_path / "first_screen.png"
+    first = _chromium(f"--screenshot={shot}", "--window-size=1280,2000", url, profile=profile)
+    assert shot.is_file(), first.stderr[-2000:]
+    pixels = matplotlib.image.imread(shot)[..., :3]  # (H, W, 3) in [0, 1]
+    assert pixels.shape[:2] == (2000, 1280)
+    ink = np.any(pixels < 0.9, axis=-1)
+    assert ink.mean() > 0.03 and pixels.std() > 0.05, "the first screen is blank"
+    for line in first.stderr.splitlines():
+        assert "CONSOLE" not in line and "Failed to load resource" not in line, line
+
+    # the whole page: tall enough to hold all sections, its DOM complete after loading
+    tall = tmp_path / "page.png"
+    _chromium(f"--screenshot={tall}", "--window-size=1280,16000", url, profile=profile)
+    rows = np.flatnonzero(np.any(matplotlib.image.imread(tall)[..., :3] < 0.9, axis=(1, 2)))
+    assert rows.max() > 6000, f"page content ends at {rows.max()} px"
+    dom = _chromium("--dump-dom", url, profile=profile)
+    assert dom.returncode == 0, dom.stderr[-2000:]
+    assert dom.stdout.count("<svg") == 6 and dom.stdout.rstrip().endswith("</html>")
+    for key in ("summary", "scenario", "optimization", "feedback", "coverage", "reproducibility"):
+        assert f'id="{key}"' in dom.stdout
