@@ -119,7 +119,16 @@ def draw_scenario(
         visible = region.intersection(view)
         if not visible.is_empty:
             where = visible.representative_point()
-            ax.annotate(name, (where.x, where.y), color="white", ha="center", va="center", zorder=2)
+            ax.annotate(
+                name,
+                (where.x, where.y),
+                color="0.1",
+                fontsize=8,
+                ha="center",
+                va="center",
+                zorder=6,
+                bbox={"boxstyle": "round,pad=0.15", "fc": "white", "ec": "none", "alpha": 0.75},
+            )
     _fill(ax, scenario.goal, color=GOAL, alpha=0.22, lw=0, zorder=1, label=goal_label)
     _outline(
         ax,

@@ -13,6 +13,7 @@ from matplotlib import colormaps
 from matplotlib.axes import Axes
 from matplotlib.lines import Line2D
 from matplotlib.patches import Patch, Rectangle
+from matplotlib.ticker import MaxNLocator
 
 from pipeline.closed_loop import simulate_closed_loop
 from pipeline.controller import load
@@ -33,6 +34,7 @@ from pipeline.plotting import (
 )
 from pipeline.reporting.content import FigureLike
 from pipeline.reporting.data import ReportData
+from pipeline.scenario import Scenario
 from pipeline.simulate import Trajectory, simulate
 
 TUBE_PERIOD = 0.5  # s between the tube ellipses drawn along a path
@@ -185,6 +187,11 @@ def _box(ax: Axes, lower: FloatArray, upper: FloatArray, **style: object) -> Non
     ax.add_patch(Rectangle(lower, *(np.asarray(upper) - lower), **style))
 
 
+def _state_label(scenario: Scenario, index: int) -> str:
+    name = scenario.state_names[index]
+    return f"{name} (m)" if index in scenario.position_index else name
+
+
 def draw_coverage(fig: FigureLike, data: ReportData) -> None:
     """Init over its free states with the tube slices at the starts, before and after."""
     s = data.scenario
@@ -221,8 +228,8 @@ def draw_coverage(fig: FigureLike, data: ReportData) -> None:
         ax.set_xlim(lo[0] - pad, hi[0] + pad)
         ax.set_ylim(lo[1] - pad, hi[1] + pad)
         ax.set_aspect("equal")
-        ax.set_xlabel(f"{s.state_names[pair[0]]} (m)")
-        ax.set_ylabel(f"{s.state_names[pair[1]]} (m)")
+        ax.set_xlabel(_state_label(s, pair[0]))
+        ax.set_ylabel(_state_label(s, pair[1]))
     handles = [
         Rectangle((0, 0), 1, 1, fill=False, edgecolor=INIT, lw=1.4, label="Init"),
         Patch(facecolor=DEMO, alpha=0.3, edgecolor=DEMO, label="tube slice, demonstrations"),
@@ -292,6 +299,7 @@ def _histogram(
     if reference is not None:
         ax.axvline(reference[0], color="0.3", lw=0.9, ls=":", label=reference[1])
     ax.set(xlabel=xlabel, ylabel="runs (log scale)" if log else "runs")
+    ax.xaxis.set_major_locator(MaxNLocator(6))
     if log:
         ax.set_yscale("log")
     ax.legend(loc="best", frameon=False)

@@ -184,6 +184,11 @@ def coverage(data: ReportData) -> tuple:
                 c.message,
             )
         )
+    s = data.scenario
+    free = [s.state_names[i] for i in data.coverage_demos.free]
+    shown = " and ".join(free[:2]) if free else "its single point"
+    through = f" (through the start's {', '.join(free[2:])})" if len(free) > 2 else ""
+    projected = f" (projected along {', '.join(free[2:])})" if len(free) > 2 else ""
     radii = tuple(
         (
             d.name,
@@ -204,9 +209,9 @@ def coverage(data: ReportData) -> tuple:
         ),
         Figure(
             "coverage",
-            "Init (black) over its free states with the slices of the balls at each start: "
+            f"Init (black) over {shown} with the slices of the balls at each start{through}: "
             "before (demonstrations, blue) and after optimization (orange). Grey: boxes certified "
-            "covered; red: boxes not certified covered.",
+            f"covered; red: boxes not certified covered{projected}.",
             partial(figures.draw_coverage, data=data),
             (10.0, 4.6),
         ),
