@@ -60,17 +60,22 @@ def _width(text: str, size: float, bold: bool = False) -> float:
 
 
 def _wrap(text: str, size: float, width: float, bold: bool = False) -> list[str]:
-    """Greedy word wrap of ``text`` to ``width`` inches (explicit newlines kept)."""
+    """Greedy word wrap of ``text`` to ``width`` inches (explicit newlines kept); a line's width
+    is the sum of its words' and spaces' widths (kerning across words ignored, 2% slack)."""
+    space = _width("x x", size, bold) - 2 * _width("x", size, bold)
     lines: list[str] = []
     for paragraph in text.split("\n"):
-        line = ""
+        if _width(paragraph, size, bold) <= width:
+            lines.append(paragraph)
+            continue
+        line, used = "", 0.0
         for word in paragraph.split(" "):
-            candidate = f"{line} {word}" if line else word
-            if line and _width(candidate, size, bold) > width:
+            w = _width(word, size, bold)
+            if line and 1.02 * (used + space + w) > width:
                 lines.append(line)
-                line = word
+                line, used = word, w
             else:
-                line = candidate
+                line, used = (f"{line} {word}", used + space + w) if line else (word, w)
         lines.append(line)
     return lines
 
