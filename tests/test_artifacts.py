@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -72,3 +73,12 @@ def test_inputs_key_depends_on_every_part():
     assert inputs_key("s", a, {"k": 1}) == inputs_key("s", a.copy(), {"k": 1})
     assert inputs_key("s", a, {"k": 1}) != inputs_key("s", a + 1e-12, {"k": 1})
     assert inputs_key("s", a, {"k": 1}) != inputs_key("s", a, {"k": 2})
+
+
+def test_written_files_get_ordinary_permissions(tmp_path):
+    umask = os.umask(0o022)
+    try:
+        atomic_write_text(tmp_path / "report.html", "x")
+    finally:
+        os.umask(umask)
+    assert (tmp_path / "report.html").stat().st_mode & 0o777 == 0o644
