@@ -1,0 +1,148 @@
+"""Monte Carlo throughput: closed-loop rollouts per second, measured side by side in one run.
+
+The controller is ``reports/quadrotor_hill/controller.json`` (copied to a temporary folder so
+that a concurrent ``make synthesize`` cannot change it mid-run); if it is missing, the pipeline
+is run into a temporary folder first (``--samples 1000``).
+
+(a) Batched: ``stages.montecarlo.check_runs`` on 10,000 initial states drawn uniformly from Init:
+    RK4 (4 substeps per Ts) on the whole batch around each selected trajectory, with every
+    continuous-time check (clearance, goal, clipping, tube).
+(b) One at a time: ``select(x0)`` then ``xdot = f(x, controller(t, x))`` by ``solve_ivp``
+    (DOP853, rtol = atol = 1e-8), one sample interval per call since ``u_ref`` jumps at the
+    sample times, for 20 of the same initial states; only the clearance is checked.
+(c) ``validate_closed_loop`` on 10,000 samples (4 chunks) with 1 and 2 worker processes
+    (``make_executor(None, jobs)``; the 2-worker time includes spawning the pool). Its
+    falsification search runs in the parent either way, so it is timed on its own too, and the
+    speed-up of the sampled part is reported without it.
+Target (issue 6): (a) at least 50x the rollouts per second of (b).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from scipy.integrate import solve_ivp
+
+from pipeline import geometry
+from pipeline.controller import Controller, load
+from pipeline.executor import make_executor
+from pipeline.orchestrator import REPORTS_ROOT, RunOptions, synthesize
+from pipeline.scenario import Scenario, load_scenario
+from stages.montecarlo import check_runs, falsify, validate_closed_loop
+
+SCENARIO = "quadrotor_hill"
+BATCH = 10_000
+ONE_AT_A_TIME = 20
+SEED = 0
+
+
+def _controller_file(folder: Path) -> tuple[Path, str]:
+    """A private copy of the controller and where it came from (synthesized if missing)."""
+    shipped = REPORTS_ROOT / SCENARIO / "controller.json"
+    target = folder / "controller.json"
+    if shipped.is_file():
+        shutil.copyfile(shipped, target)
+        return target, str(shipped.relative_to(REPORTS_ROOT.parent))
+    print(f"{shipped} is missing: synthesizing {SCENARIO} into a temporary folder (1000 samples)")
+    code = synthesize(SCENARIO, folder / "out", RunOptions(samples=1000, quiet=True))
+    generated = folder / "out" / "controller.json"
+    if not generated.is_file():
+        raise RuntimeError(f"synthesize {SCENARIO} exited with {code} and wrote no controller")
+    shutil.copyfile(generated, target)
+    return target, f"freshly synthesized (exit code {code})"
+
+
+def rollout_solve_ivp(
+    scenario: Scenario, controller: Controller, x0: np.ndarray, rtol: float = 1e-8
+) -> float:
+    """One closed-loop run from ``x0 (n,)`` by ``solve_ivp``; returns its smallest clearance."""
+    index = int(controller.select(x0))
+    N = len(controller.trajectories[index].u_ref)
+    Ts = controller.Ts
+    x, points = np.array(x0, dtype=np.float64), [np.asarray(x0)[None]]
+
+    def field(t: float, state: np.ndarray) -> np.ndarray:
+        return scenario.dynamics.f(state, controller(t, state))
+
+    for k in range(N):  # u_ref is piecewise constant: integrate each sample interval on its own
+        end = (k + 1) * Ts - 1e-9  # the left limit, as pipeline.closed_loop does
+        solution = solve_ivp(field, (k * Ts, end), x, method="DOP853", rtol=rtol, atol=rtol)
+        if not solution.success:
+            raise RuntimeError(f"solve_ivp failed on interval {k}: {solution.message}")
+        x = solution.y[:, -1]
+        points.append(solution.y.T[1:])
+    positions = scenario.positions(np.concatenate(points))
+    return float(
+        min(geometry.distance(positions, unsafe).min() for unsafe in scenario.unsafe.values())
+    )
+
+
+def run() -> None:
+    scenario = load_scenario(SCENARIO, check_demos=False)
+    with tempfile.TemporaryDirectory(prefix="bench_montecarlo_") as tmp:
+        path, source = _controller_file(Path(tmp))
+        controller = load(path)
+        rng = np.random.default_rng(SEED)
+        lo, hi = scenario.init_lower, scenario.init_upper
+        x0 = lo + (hi - lo) * rng.random((BATCH, scenario.n))
+        lengths = [len(tr.u_ref) for tr in controller.trajectories]
+        print(
+            f"{SCENARIO}, controller {source}: {len(lengths)} trajectories of "
+            f"{min(lengths)}-{max(lengths)} samples (Ts = {controller.Ts:g} s);"
+            f" {os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f}"
+        )
+
+        check_runs(scenario, controller, x0[:50])  # warm-up
+        start = time.perf_counter()
+        checks, _ = check_runs(scenario, controller, x0)
+        batched = time.perf_counter() - start
+        failed = int(np.any(list(checks.failures().values()), axis=0).sum())
+
+        start = time.perf_counter()
+        clearance = [rollout_solve_ivp(scenario, controller, x) for x in x0[:ONE_AT_A_TIME]]
+        single = time.perf_counter() - start
+        excess = np.array(clearance) - checks.clearance[:ONE_AT_A_TIME]
+        rate_batched, rate_single = BATCH / batched, ONE_AT_A_TIME / single
+        print(
+            f"(a) batched check_runs, {BATCH:,} rollouts: {batched:7.2f} s ="
+            f" {rate_batched:9.1f} rollouts/s ({failed} failed checks)"
+        )
+        print(
+            f"(b) solve_ivp DOP853 rtol 1e-8, {ONE_AT_A_TIME} one at a time: {single:7.2f} s ="
+            f" {rate_single:9.2f} rollouts/s"
+            f" (its clearance minus (a)'s bound: {excess.min():.3f}..{excess.max():.3f} m)"
+        )
+        ratio = rate_batched / rate_single
+        print(
+            f"  [{'met' if ratio >= 50 else 'MISSED'}] batched >= 50x one-at-a-time: {ratio:.0f}x"
+        )
+
+        start = time.perf_counter()
+        falsify(scenario, controller, seed=SEED)
+        search = time.perf_counter() - start
+        seconds = {}
+        for jobs in (1, 2):
+            executor = make_executor(None, jobs)
+            start = time.perf_counter()
+            try:
+                result = validate_closed_loop(
+                    scenario, path, samples=BATCH, seed=SEED, executor=executor
+                )
+            finally:
+                executor.close()
+            seconds[jobs] = time.perf_counter() - start
+            print(
+                f"(c) validate_closed_loop, {BATCH:,} samples, jobs={jobs}: {seconds[jobs]:6.2f} s"
+                f" ({result.message})"
+            )
+        sampled = [max(seconds[j] - search, 1e-9) for j in (1, 2)]
+        print(
+            f"  speed-up with 2 workers: {seconds[1] / seconds[2]:.2f}x overall;"
+            f" {sampled[0] / sampled[1]:.2f}x without the serial falsification search"
+            f" ({search:.2f} s, timed alone)"
+        )
