@@ -112,12 +112,9 @@ def _run(args: argparse.Namespace) -> int:
         regenerate_demos(args.scenario)
         return 0
     if args.command == "report":
-        from pipeline.orchestrator import REPORTS_ROOT
-        from pipeline.scenario import load_scenario
-        from stages.report import write_reports
+        from pipeline.orchestrator import rebuild_reports
 
-        scenario = load_scenario(args.scenario)
-        result = write_reports(scenario, args.out or REPORTS_ROOT / scenario.name)
+        result = rebuild_reports(args.scenario, args.out)
         print(f"{result.message}:\n  {result.html}\n  {result.pdf}")
         return 0
     if args.command == "schema":

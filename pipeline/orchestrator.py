@@ -31,7 +31,7 @@ from stages.feedback import FeedbackResult, design_feedback
 from stages.montecarlo import validate_closed_loop
 from stages.optimize import ConstraintMargins, OptimizeOptions, OptimizeResult, optimize
 from stages.radius import RadiusResult, robustness_radius
-from stages.report import write_reports
+from stages.report import ReportResult, write_reports
 from stages.stress import stress_test
 
 REPORTS_ROOT = Path(__file__).resolve().parents[1] / "reports"
@@ -223,6 +223,13 @@ def _synthesize(
     if not options.quiet:
         print_summary(summary)
     return 0 if summary["verdict"]["certified"] and summary["verdict"]["validated"] else 1
+
+
+def rebuild_reports(scenario_name: str | Path, out: Path | None = None) -> ReportResult:
+    """The report stage alone, from a finished run's saved artifacts (``python -m pipeline
+    report``)."""
+    scenario = load_scenario(scenario_name)
+    return write_reports(scenario, Path(out) if out is not None else REPORTS_ROOT / scenario.name)
 
 
 def _print_optimization_logs(optimized: OptimizeResult) -> None:
