@@ -156,7 +156,8 @@ def cover_init(
     fraction = covered_volume / total_volume if total_volume > 0 else float(not len(gaps))
     covered = len(gaps) == 0
     if covered:
-        message = f"Init is covered by {len(np.unique(np.concatenate(assignment)))} balls"
+        used = len(np.unique(np.concatenate(assignment)))
+        message = f"Init is covered by {used} ball{'s' if used > 1 else ''}"
     else:
         names = [scenario.state_names[i] for i in free_index]
         widths = gaps[:, 1, free_index] - gaps[:, 0, free_index]
