@@ -44,6 +44,12 @@ def _parser() -> argparse.ArgumentParser:
         default=10_000,
         help="Monte Carlo closed-loop runs (default 10000)",
     )
+    synthesize.add_argument(
+        "--search",
+        choices=("continuation", "bisection"),
+        default="continuation",
+        help="how the final time is shortened (bisection: the paper's Remark 4)",
+    )
     synthesize.add_argument("--jobs", type=_positive, default=1, help="worker processes")
     synthesize.add_argument(
         "--executor",
@@ -97,6 +103,7 @@ def _run(args: argparse.Namespace) -> int:
 
         options = RunOptions(
             method=args.method,
+            search=args.search,
             samples=args.samples,
             jobs=args.jobs,
             executor=args.executor,

@@ -43,6 +43,7 @@ class RunOptions:
     """Command-line choices of ``synthesize``."""
 
     method: str = "gd"
+    search: str = "continuation"
     samples: int = 10_000
     jobs: int = 1
     executor: str | None = None
@@ -128,7 +129,7 @@ def _synthesize(
 
     r_d = feedback.required_radius(scenario.clearance)
     margins = ConstraintMargins(feedback.input_margin(r_d), feedback.region_extent(r_d), feedback.K)
-    optimize_options = OptimizeOptions(method=options.method)
+    optimize_options = OptimizeOptions(method=options.method, search=options.search)
     with progress_bar(len(scenario.demos), "demos optimized", options.quiet) as advance:
         optimized: OptimizeResult = runner.run(
             "optimize",

@@ -3,11 +3,14 @@
 For one demo with ``N_demo`` samples (paper §IV-A, Remark 4): the feasibility test of a horizon
 ``N'`` is ``min_u J(u) == 0`` for the penalty cost whose Unsafe sets are bloated by ``d + eps_d``,
 Goal shrunk by ``d + eps_g``, inputs shrunk by ``eps_i`` plus the feedback's margin at the
-required radius, and operating region shrunk by the tube's extent. The smallest feasible ``N'``
-is found by bisection between an infeasible ``lo`` (0) and a feasible ``hi`` (``N_demo``, once
-the demo itself is made feasible); each try is seeded from the nearest feasible solution,
-truncated (the paper) or time-compressed to ``N'`` samples. The result is re-verified in
-continuous time independently of the cost (``pipeline.verify``).
+required radius, and operating region shrunk by the tube's extent. Once the demo itself is made
+feasible at ``N_demo``, a short feasible ``N'`` is searched by bisection between 0 and ``N_demo``
+(the paper's Remark 4, ``search="bisection"``) or by continuation, shortening the last feasible
+horizon by a tenth at a time (the default: feasibility is not monotone in ``N'`` for a local
+optimiser, and small steps keep each seed near a solution). Each try is seeded from the
+nearest feasible solution, time-compressed (default) or truncated (the paper) to ``N'``
+samples. The result is re-verified in continuous time independently of the cost
+(``pipeline.verify``).
 """
 
 from __future__ import annotations
@@ -32,6 +35,7 @@ from pipeline.verify import Verification, verify_nominal
 METHODS = ("gd", "lbfgs")
 SEED_MODES = ("compress", "truncate")
 PARAMETERIZATIONS = ("feedback", "open_loop")
+SEARCHES = ("continuation", "bisection")
 
 
 @dataclass(frozen=True)
@@ -52,8 +56,10 @@ class ConstraintMargins:
 @dataclass(frozen=True)
 class OptimizeOptions:
     method: str = "gd"
-    seed_mode: str = "truncate"
+    seed_mode: str = "compress"
     parameterization: str = "feedback"
+    search: str = "continuation"
+    step_fraction: float = 0.1  # continuation: shorten by this fraction of the horizon
     eps_d: float = 0.05
     eps_g: float = 0.05
     eps_i: float = 0.0
@@ -65,6 +71,8 @@ class OptimizeOptions:
             raise ValueError(f"method must be one of {METHODS}, got {self.method!r}")
         if self.seed_mode not in SEED_MODES:
             raise ValueError(f"seed_mode must be one of {SEED_MODES}, got {self.seed_mode!r}")
+        if self.search not in SEARCHES:
+            raise ValueError(f"search must be one of {SEARCHES}, got {self.search!r}")
         if self.parameterization not in PARAMETERIZATIONS:
             raise ValueError(
                 f"parameterization must be one of {PARAMETERIZATIONS}, "
@@ -145,6 +153,23 @@ def smallest_feasible(feasible: Callable[[int], bool], lo: int, hi: int) -> int:
         else:
             lo = mid
     return hi
+
+
+def shortest_by_continuation(feasible: Callable[[int], bool], N: int, fraction: float) -> int:
+    """Shorten a feasible horizon ``N`` step by step: try ``N - step`` (``step`` a ``fraction``
+    of ``N``), keep it when feasible, halve the step when not, stop below one sample.
+
+    Each try is warm-started from the last feasible solution, which stays close to it; measured
+    on quadrotor_hill this finds 13% shorter flights than the bisection's long jumps, whose
+    seeds are far from any solution (see the README)."""
+    step = max(1, int(fraction * N))
+    while step >= 1:
+        if N - step >= 1 and feasible(N - step):
+            N -= step
+            step = max(1, int(fraction * N))
+        else:
+            step //= 2
+    return N
 
 
 def _minimise(
@@ -234,7 +259,12 @@ def optimize_demo(
             nearest.update(u=outcome.u, log=outcome.log)
         return outcome.feasible
 
-    hi = smallest_feasible(feasible, 0, N_demo)
+    if options.search == "bisection":
+        hi = smallest_feasible(feasible, 0, N_demo)
+    elif options.search == "continuation":
+        hi = shortest_by_continuation(feasible, N_demo, options.step_fraction)
+    else:
+        raise ValueError(f"search must be one of {SEARCHES}, got {options.search!r}")
     best, best_log = nearest["u"], nearest["log"]
     verification = verify_nominal(
         scenario,

@@ -18,6 +18,7 @@ from stages.optimize import (
     optimize,
     optimize_demo,
     reseed,
+    shortest_by_continuation,
     smallest_feasible,
 )
 
@@ -46,6 +47,12 @@ def test_bisection_finds_what_a_linear_scan_finds(hi, threshold):
     assert len(calls) <= max(1, int(np.ceil(np.log2(hi))))
 
 
+@given(st.integers(1, 200), st.integers(1, 200))
+def test_continuation_finds_what_a_linear_scan_finds(start, threshold):
+    threshold = min(threshold, start)
+    assert shortest_by_continuation(lambda N: N >= threshold, start, 0.1) == threshold
+
+
 def test_seeds_keep_the_start_or_the_whole_input():
     u = np.arange(20.0).reshape(10, 2)
     np.testing.assert_array_equal(reseed(u, 4, "truncate"), u[:4])
@@ -63,16 +70,18 @@ def test_options_refuse_unknown_choices():
         OptimizeOptions(parameterization="closed")
 
 
-@pytest.mark.parametrize("method", ["gd", "lbfgs"])
-def test_the_closest_demo_becomes_faster_and_verified(method):
+@pytest.mark.parametrize(
+    ("method", "search"), [("gd", "continuation"), ("lbfgs", "continuation"), ("gd", "bisection")]
+)
+def test_the_closest_demo_becomes_faster_and_verified(method, search):
     scenario, margins = _quadrotor()
     demo = 3  # passes 0.54 m from the hill: infeasible for d = 1 as flown
-    result = optimize_demo(scenario, demo, margins, OptimizeOptions(method=method))
+    result = optimize_demo(scenario, demo, margins, OptimizeOptions(method=method, search=search))
     assert result.success, result.message
     assert result.N < result.N_demo
     assert result.verification.passed
     assert min(result.verification.clearance.values()) >= scenario.clearance
-    # the bisection ended next to an infeasible try (or at 1 sample)
+    # the search ended next to an infeasible try (or at 1 sample)
     tried = {t.N: t.feasible for t in result.tries}
     assert tried[result.N] and (result.N == 1 or tried.get(result.N - 1) is False)
     # every intermediate feasible input really has zero cost
