@@ -3,9 +3,11 @@
 Format (``#`` lines are comments and are kept as the file's header)::
 
     # synthetic demonstration ...
-    t,u1,u2
+    t,ua,ub
     0.0,9.81,0.0
     0.1,10.2,-0.5
+
+(the header is ``t`` and the scenario's input names, here two inputs ``ua``, ``ub``).
 
 Row ``k`` holds ``u[k]`` on ``[k Ts, (k+1) Ts)``; ``t`` must equal ``k Ts``, so the flight lasts
 ``N Ts`` with ``N`` the number of rows. With input bounds given, every input must lie within them.

@@ -5,32 +5,38 @@ one. The pilot flies the same simulator the pipeline uses (``pipeline.simulate.s
 moves the stick once per sample, so the input is piecewise constant, ``u(t) = u[k]`` on
 ``[k Ts, (k+1) Ts)``. What makes it human-like, and suboptimal:
 
-- **Waypoints.** It steers for a route of waypoints in the position plane (climb, cross high
-  above the hill, fly past Goal, come back down into it) at a cruise speed, switching to the next
-  waypoint once within ``capture_radius`` of it or past it; at the last one it slows to a stop.
-  Some flights (``low_flights``) cut the hill crossing lower, the way a hurried pilot does.
+- **Waypoints.** It steers for a route of waypoints in the position plane at a cruise speed,
+  switching to the next waypoint once within ``capture_radius`` of it or past it; at the last one
+  it slows down (``k_position``). Some flights (``variant_flights``) move one waypoint by
+  ``variant_shift``, the way a hurried pilot cuts a corner.
 - **Late reactions.** It acts on the state it saw ``delay`` samples ago.
-- **A coarse stick.** Thrust and pitch commands are rounded to ``thrust_step`` and
-  ``pitch_step``, and kept in a comfortable range (``thrust_range``, inside the input bounds).
+- **A coarse stick.** Every input is rounded to ``stick_step`` and kept in a comfortable range
+  (``stick_range``, clipped to the input bounds).
 - **An unsteady hand.** Seeded, slowly varying noise (AR(1), ``numpy.random.default_rng(seed)``)
-  on both commands, and per-flight jitter of the waypoints.
+  with one channel per entry of ``noise``, and per-flight jitter of the waypoints.
 
-Its steering law is a cascade written for a planar quadrotor (thrust along the body axis, pitch
-driven by an angular acceleration), parameterised by the gains in ``PILOT_CONFIGS``:
+Everything vehicle-specific lives with the scenario, in ``scenarios/NAME/pilot.py`` (loaded by
+path, so this module never names a scenario's states). That file defines
 
-    F = (k_v (v_des,X - vX), hover + k_v (v_des,Y - vY))      desired force, stick units (N)
-    u1 = |F|,  theta_des = atan2(-F_X, F_Y)                   thrust and pitch that would give F
-    u2 = k_theta (theta_des - theta) - k_omega omega          pitch stick
+    CONFIG: PilotConfig                       the route, the hand and where flights start
+    steering(scenario) -> Steering            the vehicle's steering law
 
-The recording stops at the first sample where the vehicle is inside Goal (shrunk by
+where a ``Steering`` turns the wanted position velocity ``v_des (2,)`` into raw stick commands
+``(m,)`` from the state the pilot has registered, and says how fast the vehicle moves. The
+recording stops at the first sample where the vehicle is inside Goal (shrunk by
 ``goal_margin``) and slower than ``stop_speed``, so the demo's final state is in Goal.
 """
 
 from __future__ import annotations
 
+import importlib.util
+import itertools
 import re
+import sys
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 
@@ -42,105 +48,130 @@ from pipeline.errors import UserError
 from pipeline.scenario import Scenario, check_demo_flight, load_scenario, resolve_scenario_path
 from pipeline.simulate import simulate
 
+PILOT_FILE = "pilot.py"
 
-@dataclass(frozen=True)
+
+@dataclass(frozen=True, kw_only=True)
 class PilotConfig:
-    """How the synthetic pilot flies one scenario (positions in m, speeds in m/s, forces in N)."""
+    """How the synthetic pilot flies one scenario (positions in m, speeds in m/s, time in s).
 
-    waypoints: tuple[tuple[float, float], ...]  # route; the last one is the landing aim
-    low_flights: tuple[int, ...]  # flight numbers (1-based) that cross the hill low
-    low_drop: float  # how much lower those flights put waypoint ``crossing`` (m)
-    crossing: int  # index of the waypoint above the hill
-    waypoint_jitter: float  # std of the per-flight waypoint deviation (m)
+    Attributes:
+      waypoints: the route in the position plane; the last one is the landing aim.
+      stick_step: (m,) stick resolution per input; stick_range: (m,) comfortable
+        ``(lower, upper)`` per input, clipped to the input bounds.
+      noise: std of the hand's noise per channel (the steering law says what each perturbs).
+      grid: ``(state name, cells)`` pairs, slowest first: flights start on the cell centres of
+        this grid over Init, other states at Init's midpoint; ``extra_starts`` (n,) follow.
+    """
+
+    waypoints: tuple[tuple[float, float], ...]
+    waypoint_jitter: float  # std of the per-flight waypoint deviation
     cruise_speed: float
     capture_radius: float
     k_position: float  # (1/s) approach gain at the last waypoint
-    k_velocity: float  # (N s/m) velocity error -> force
-    k_theta: float  # (1/s^2) pitch error -> pitch acceleration
-    k_omega: float  # (1/s) pitch rate -> pitch acceleration
-    hover_thrust: float  # the thrust the pilot knows holds altitude
-    max_tilt: float  # (rad) the steepest pitch the pilot asks for
-    thrust_range: tuple[float, float]  # comfortable stick range (clipped to the input bounds)
-    thrust_step: float  # stick resolution
-    pitch_step: float
+    variant_flights: tuple[int, ...] = ()  # flight numbers (1-based) that move one waypoint
+    variant_waypoint: int = 0
+    variant_shift: tuple[float, float] = (0.0, 0.0)
+    variant_note: str = ""  # a line for the CSV header of those flights
     delay: int  # reaction delay (samples)
-    thrust_noise: float  # std of the hand's noise (stick units)
-    pitch_noise: float  # (rad) on the pitch the pilot aims for
+    noise: tuple[float, ...]
     noise_memory: float  # AR(1) coefficient of the noise, in [0, 1)
-    goal_margin: float  # stop only this far inside Goal (m)
+    stick_step: tuple[float, ...]
+    stick_range: tuple[tuple[float, float], ...]
+    goal_margin: float  # stop only this far inside Goal
     stop_speed: float
-    max_duration: float  # (s) give up after this long
-    grid: tuple[int, int]  # flights start on this grid of cell centres over Init's position box
-    roles: tuple[tuple[str, str], ...]  # (steering role, state or input name), one per ROLES
+    max_duration: float  # give up after this long
+    grid: tuple[tuple[str, int], ...]
+    extra_starts: tuple[tuple[float, ...], ...] = ()
 
 
-ROLES = ("pitch", "velocity_X", "velocity_Y", "pitch_rate", "thrust", "pitch_acceleration")
+class Steering(Protocol):
+    """A vehicle's steering law, built by ``scenarios/NAME/pilot.py`` for its scenario."""
+
+    def speed(self, x: FloatArray) -> float:
+        """How fast the vehicle at state ``x (n,)`` moves (for the stop rule)."""
+        ...
+
+    def __call__(self, x: FloatArray, v_des: FloatArray, noise: FloatArray) -> FloatArray:
+        """Raw stick commands ``(m,)`` towards the position velocity ``v_des (2,)`` from the
+        registered state ``x (n,)``, perturbed by the hand's ``noise`` (one value per channel)."""
+        ...
 
 
-PILOT_CONFIGS: dict[str, PilotConfig] = {
-    "quadrotor_hill": PilotConfig(
-        waypoints=((4.5, 5.8), (10.0, 6.6), (16.0, 6.0), (21.2, 4.8), (19.2, 2.6)),
-        low_flights=(4, 8),
-        low_drop=1.7,
-        crossing=1,
-        waypoint_jitter=0.25,
-        cruise_speed=3.4,
-        capture_radius=1.0,
-        k_position=0.5,
-        k_velocity=1.0,
-        k_theta=4.0,
-        k_omega=3.5,
-        hover_thrust=9.8,
-        max_tilt=0.45,
-        thrust_range=(5.0, 14.9),
-        thrust_step=0.5,
-        pitch_step=0.5,
-        delay=2,
-        thrust_noise=0.4,
-        pitch_noise=0.05,
-        noise_memory=0.8,
-        goal_margin=0.3,
-        stop_speed=0.6,
-        max_duration=40.0,
-        grid=(3, 3),
-        roles=(
-            ("pitch", "theta"),
-            ("velocity_X", "vX"),
-            ("velocity_Y", "vY"),
-            ("pitch_rate", "omega"),
-            ("thrust", "u1"),
-            ("pitch_acceleration", "u2"),
-        ),
-    ),
-}
+@dataclass(frozen=True)
+class Pilot:
+    """A scenario's pilot: its configuration, its steering law and the file they came from."""
+
+    config: PilotConfig
+    steering: Callable[[Scenario], Steering]
+    source: Path
 
 
-def pilot_config(scenario: Scenario) -> PilotConfig:
-    """The pilot's configuration for ``scenario``, or a UserError naming the configured ones."""
-    try:
-        return PILOT_CONFIGS[scenario.name]
-    except KeyError:
+def load_pilot(scenario: Scenario) -> Pilot:
+    """The pilot of ``scenario`` from ``scenarios/NAME/pilot.py``, checked against the scenario;
+    a UserError says what is missing."""
+    path = scenario.path.parent / PILOT_FILE
+    if not path.is_file():
         raise UserError(
             f"the synthetic pilot has no configuration for scenario '{scenario.name}'",
-            expected=f"one of {sorted(PILOT_CONFIGS)}; add an entry to "
-            "pipeline.pilot.PILOT_CONFIGS or write the demo CSVs by hand",
-        ) from None
+            file=path,
+            expected="a file defining CONFIG (pipeline.pilot.PilotConfig) and steering(scenario) "
+            "(see scenarios/double_integrator/pilot.py), or write the demo CSVs by hand",
+        )
+    name = f"_scenario_pilot_{abs(hash(path.resolve()))}"
+    spec = importlib.util.spec_from_file_location(name, path)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module  # dataclasses in the file look their module up here
+    try:
+        spec.loader.exec_module(module)
+    finally:
+        del sys.modules[name]
+    config, steering = getattr(module, "CONFIG", None), getattr(module, "steering", None)
+    if not isinstance(config, PilotConfig) or not callable(steering):
+        raise UserError(
+            "pilot file does not define CONFIG and steering",
+            file=path,
+            found=f"CONFIG: {type(config).__name__}, steering: {type(steering).__name__}",
+            expected="CONFIG = pipeline.pilot.PilotConfig(...) and def steering(scenario)",
+        )
+    m, states = scenario.m, scenario.state_names
+    problems = [
+        f"{field} has {len(value)} entries, expected {m} (one per input)"
+        for field, value in (("stick_step", config.stick_step), ("stick_range", config.stick_range))
+        if len(value) != m
+    ]
+    problems += [f"grid names unknown state '{s}'" for s, _ in config.grid if s not in states]
+    problems += [
+        f"extra start {list(x0)} has {len(x0)} values, expected {scenario.n}"
+        for x0 in config.extra_starts
+        if len(x0) != scenario.n
+    ]
+    if config.variant_flights and not 0 <= config.variant_waypoint < len(config.waypoints):
+        problems.append(f"variant_waypoint {config.variant_waypoint} is not a waypoint index")
+    if problems:
+        raise UserError(
+            f"CONFIG does not fit scenario '{scenario.name}': {'; '.join(problems)}",
+            file=path,
+            expected=f"states {list(states)}, inputs {list(scenario.input_names)}",
+        )
+    return Pilot(config, steering, path)
 
 
 def start_states(scenario: Scenario, config: PilotConfig) -> FloatArray:
-    """Starts on the centres of a ``grid`` over Init's position box, other states at Init's
-    midpoint, rounded to mm. -> ``(flights, n)``, row-major over (Y, X)."""
-    i, j = scenario.position_index
+    """Starts on the cell centres of ``config.grid`` over Init (first name slowest), other
+    states at Init's midpoint, rounded to 1e-3, then ``config.extra_starts``. -> ``(flights, n)``.
+    """
     lo, hi = scenario.init_lower, scenario.init_upper
-    columns, rows = config.grid
+    index = [scenario.state_names.index(name) for name, _ in config.grid]
     starts = []
-    for r in range(rows):
-        for c in range(columns):
-            x0 = 0.5 * (lo + hi)
-            x0[i] = lo[i] + (hi[i] - lo[i]) * (c + 0.5) / columns
-            x0[j] = lo[j] + (hi[j] - lo[j]) * (r + 0.5) / rows
-            starts.append(np.round(x0, 3))
-    return np.array(starts)
+    for cells in itertools.product(*(range(count) for _, count in config.grid)):
+        x0 = 0.5 * (lo + hi)
+        for i, c, (_, count) in zip(index, cells, config.grid, strict=True):
+            x0[i] = lo[i] + (hi[i] - lo[i]) * (c + 0.5) / count
+        starts.append(np.round(x0, 3))
+    starts.extend(np.array(x0, dtype=np.float64) for x0 in config.extra_starts)
+    return np.array(starts).reshape(-1, scenario.n)
 
 
 def _stick(command: float, step: float, lower: float, upper: float) -> float:
@@ -148,42 +179,38 @@ def _stick(command: float, step: float, lower: float, upper: float) -> float:
     return float(np.clip(step * np.round(command / step), lower, upper)) + 0.0  # no -0.0
 
 
-def fly(scenario: Scenario, x0: FloatArray, seed: int, low: bool = False) -> FloatArray:
-    """Fly from ``x0 (n,)`` until at rest in Goal; returns the held inputs ``u (N, m)``.
+def fly(
+    scenario: Scenario,
+    x0: FloatArray,
+    seed: int,
+    variant: bool = False,
+    pilot: Pilot | None = None,
+) -> FloatArray:
+    """Fly from ``x0 (n,)`` until slower than ``stop_speed`` inside Goal; returns the held inputs
+    ``u (N, m)``.
 
-    ``low``: cross the hill ``low_drop`` lower than the route says. Raises UserError if the pilot
-    crashes into Unsafe or has not landed in Goal after ``max_duration``.
+    ``variant``: move waypoint ``variant_waypoint`` by ``variant_shift``; ``pilot``: default
+    ``load_pilot(scenario)``. Raises UserError if the pilot crashes into Unsafe or has not
+    landed in Goal after ``max_duration``.
     """
-    config = pilot_config(scenario)
-    names = (*scenario.state_names, *scenario.input_names)
-    roles = dict(config.roles)
-    if sorted(roles) != sorted(ROLES) or not set(roles.values()) <= set(names):
-        raise UserError(
-            f"PILOT_CONFIGS['{scenario.name}'].roles does not fit the scenario",
-            found=config.roles,
-            expected=f"one name from {list(names)} for each role of {ROLES}",
-        )
-    index = {role: names.index(name) for role, name in roles.items()}
+    pilot = load_pilot(scenario) if pilot is None else pilot
+    config, steer = pilot.config, pilot.steering(scenario)
     ip = list(scenario.position_index)
-    iv = [index["velocity_X"], index["velocity_Y"]]
-    i_theta, i_omega = index["pitch"], index["pitch_rate"]
-    i_thrust = index["thrust"] - scenario.n
-    i_pitch = index["pitch_acceleration"] - scenario.n
-    m, Ts = scenario.m, scenario.Ts
-    lower, upper = scenario.input_lower, scenario.input_upper
-    thrust_lo = max(config.thrust_range[0], lower[i_thrust])
-    thrust_hi = min(config.thrust_range[1], upper[i_thrust])
+    Ts = scenario.Ts
+    comfortable = np.array(config.stick_range, dtype=np.float64)
+    stick_lo = np.maximum(comfortable[:, 0], scenario.input_lower)
+    stick_hi = np.minimum(comfortable[:, 1], scenario.input_upper)
     landing = geometry.shrink(scenario.goal, config.goal_margin)
 
     rng = np.random.default_rng(seed)
     W = np.array(config.waypoints) + rng.normal(
         0.0, config.waypoint_jitter, (len(config.waypoints), 2)
     )
-    if low:
-        W[config.crossing, 1] -= config.low_drop
+    if variant:
+        W[config.variant_waypoint] += config.variant_shift
     a = config.noise_memory
-    noise = np.zeros(2)
-    scale = np.array([config.thrust_noise, config.pitch_noise]) * np.sqrt(1.0 - a * a)
+    noise = np.zeros(len(config.noise))
+    scale = np.array(config.noise) * np.sqrt(1.0 - a * a)
 
     seen = [np.asarray(x0, dtype=np.float64)]  # states at the sample times
     us: list[FloatArray] = []
@@ -191,10 +218,10 @@ def fly(scenario: Scenario, x0: FloatArray, seed: int, low: bool = False) -> Flo
     for k in range(int(round(config.max_duration / Ts))):
         x = seen[-1]
         if k > 0 and scenario.in_goal(x) and geometry.contains(landing, x[ip]):
-            if np.hypot(*x[iv]) < config.stop_speed:
+            if steer.speed(x) < config.stop_speed:
                 return np.array(us)
         xo = seen[max(0, k - config.delay)]  # what the pilot has registered so far
-        p, v = xo[ip], xo[iv]
+        p = xo[ip]
         previous = W[target - 1] if target > 0 else seen[0][ip]
         if target < len(W) - 1 and (
             np.hypot(*(W[target] - p)) < config.capture_radius
@@ -209,39 +236,41 @@ def fly(scenario: Scenario, x0: FloatArray, seed: int, low: bool = False) -> Flo
         speed = np.hypot(*v_des)
         if speed > config.cruise_speed:
             v_des *= config.cruise_speed / speed
-        F = config.k_velocity * (v_des - v) + np.array([0.0, config.hover_thrust])
-        noise = a * noise + scale * rng.normal(size=2)
-        theta_des = np.clip(np.arctan2(-F[0], F[1]) + noise[1], -config.max_tilt, config.max_tilt)
-        thrust = np.hypot(*F) + noise[0]
-        pitch = config.k_theta * (theta_des - xo[i_theta]) - config.k_omega * xo[i_omega]
-        u = np.zeros(m)
-        u[i_thrust] = _stick(thrust, config.thrust_step, thrust_lo, thrust_hi)
-        u[i_pitch] = _stick(pitch, config.pitch_step, lower[i_pitch], upper[i_pitch])
+        noise = a * noise + scale * rng.normal(size=noise.size)
+        command = steer(xo, v_des, noise)
+        u = np.array(
+            [
+                _stick(c, step, lower, upper)
+                for c, step, lower, upper in zip(
+                    command, config.stick_step, stick_lo, stick_hi, strict=True
+                )
+            ]
+        )
         step = simulate(scenario.dynamics, x, u[None, :], Ts)
         for name, region in scenario.unsafe.items():
             if geometry.contains(region, scenario.positions(step.dense_xs)).any():
                 raise UserError(
                     f"synthetic pilot (seed {seed}) crashed into Unsafe set '{name}' at"
                     f" t = {(k + 1) * Ts:.1f} s, position {np.round(step.final_state[ip], 2)}",
-                    expected=f"a safe flight; retune PILOT_CONFIGS['{scenario.name}']",
+                    expected=f"a safe flight; retune {pilot.source}",
                 )
         us.append(u)
         seen.append(step.final_state)
     raise UserError(
         f"synthetic pilot (seed {seed}) did not come to rest in Goal within"
-        f" {config.max_duration:g} s; it is at {np.round(seen[-1][ip], 2)} with velocity"
-        f" {np.round(seen[-1][iv], 2)}",
-        expected=f"a landing; retune PILOT_CONFIGS['{scenario.name}']",
+        f" {config.max_duration:g} s; it is at {np.round(seen[-1][ip], 2)} moving at"
+        f" {steer.speed(seen[-1]):.2f}",
+        expected=f"a landing; retune {pilot.source}",
     )
 
 
-def demo_header(scenario: Scenario, seed: int, x0: FloatArray, low: bool) -> str:
+def demo_header(scenario: Scenario, seed: int, x0: FloatArray, note: str) -> str:
     """The CSV comment header: says plainly that the flight is synthetic and how to regenerate."""
     return (
         f"SYNTHETIC demonstration of scenario '{scenario.name}': flown by the synthetic pilot\n"
         f"in pipeline/pilot.py (seed {seed}), NOT by a human.\n"
         f"start x0 = {np.asarray(x0).tolist()} ({', '.join(scenario.state_names)})\n"
-        + ("This flight crosses the hill low, as a hurried pilot does.\n" if low else "")
+        + (f"{note}\n" if note else "")
         + f"Regenerate all demos with `make demos` (python -m pipeline demos {scenario.name}).\n"
         + f"Row k holds u[k] on [k Ts, (k+1) Ts), Ts = {scenario.Ts:g} s."
     )
@@ -255,7 +284,8 @@ def regenerate_demos(scenario_name: str | Path) -> list[Demo]:
     """
     path = resolve_scenario_path(scenario_name)
     scenario = load_scenario(path, check_demos=False)
-    config = pilot_config(scenario)
+    pilot = load_pilot(scenario)
+    config = pilot.config
     text = path.read_text()
     block = re.search(r"^demos:", text, flags=re.MULTILINE)
     if block is None:
@@ -266,14 +296,13 @@ def regenerate_demos(scenario_name: str | Path) -> list[Demo]:
         )
     demos, entries = [], []
     for seed, x0 in enumerate(start_states(scenario, config), start=1):
-        low = seed in config.low_flights
-        us = fly(scenario, x0, seed, low=low)
+        variant = seed in config.variant_flights
+        us = fly(scenario, x0, seed, variant=variant, pilot=pilot)
         file = Path("demos") / f"demo_{seed:02d}.csv"
         demo = Demo(name=file.stem, file=path.parent / file, x0=x0, us=us)
         check_demo_flight(scenario, demo)
-        write_demo_csv(
-            demo.file, us, scenario.input_names, scenario.Ts, demo_header(scenario, seed, x0, low)
-        )
+        header = demo_header(scenario, seed, x0, config.variant_note if variant else "")
+        write_demo_csv(demo.file, us, scenario.input_names, scenario.Ts, header)
         demos.append(demo)
         values = ", ".join(repr(float(value)) for value in x0)
         entries.append(f"  - {{file: {file.as_posix()}, x0: [{values}]}}\n")

@@ -1,4 +1,4 @@
-"""Shared fixtures: one full synthesis of quadrotor_hill per test session."""
+"""Shared fixtures: one full synthesis per shipped scenario per test session."""
 
 from __future__ import annotations
 
@@ -6,14 +6,28 @@ import pytest
 
 from pipeline.orchestrator import RunOptions, synthesize
 
-E2E_SAMPLES = 1000
+E2E_SAMPLES = 1000  # quadrotor_hill: the end-to-end tests reuse its run
+CI_SYNTHESIS_SAMPLES = 300  # every other shipped scenario: the CI safety check only
+SAMPLES = {"quadrotor_hill": E2E_SAMPLES}
 
 
 @pytest.fixture(scope="session")
-def synthesized(tmp_path_factory):
+def synthesis(tmp_path_factory):
+    """Factory: ``synthesis(name)`` -> ``(exit_code, out)`` of ``synthesize name`` with
+    ``SAMPLES.get(name, CI_SYNTHESIS_SAMPLES)`` Monte Carlo samples, run once per session."""
+    runs: dict[str, tuple[int, object]] = {}
+
+    def run(name: str):
+        if name not in runs:
+            out = tmp_path_factory.mktemp(name)
+            options = RunOptions(samples=SAMPLES.get(name, CI_SYNTHESIS_SAMPLES), quiet=True)
+            runs[name] = (synthesize(name, out=out, options=options), out)
+        return runs[name]
+
+    return run
+
+
+@pytest.fixture(scope="session")
+def synthesized(synthesis):
     """``(exit_code, out)`` of ``synthesize quadrotor_hill`` with 1,000 Monte Carlo samples."""
-    out = tmp_path_factory.mktemp("quadrotor_hill")
-    code = synthesize(
-        "quadrotor_hill", out=out, options=RunOptions(samples=E2E_SAMPLES, quiet=True)
-    )
-    return code, out
+    return synthesis("quadrotor_hill")

@@ -1,8 +1,10 @@
-"""The whole pipeline on quadrotor_hill, then closed-loop safety from sampled initial states.
+"""The whole pipeline on every shipped scenario, then closed-loop safety from sampled initial
+states; the other end-to-end properties on quadrotor_hill.
 
 This is the CI safety check: the controller is read back from ``controller.json`` exactly as
 emitted, and the closed loop is checked here with its own code (positions on the dense RK4 grid
-against the Unsafe polygons, the final state against Goal, the raw input against its bounds).
+against the Unsafe polygons, the final state against Goal and its bounds, the raw input against
+its bounds).
 """
 
 from __future__ import annotations
@@ -19,14 +21,16 @@ import numpy as np
 import pytest
 import shapely
 
-from pipeline import load_scenario
+from pipeline import available_scenarios, load_scenario
 from pipeline.closed_loop import simulate_closed_loop
 from pipeline.controller import load
 from stages.montecarlo import check_runs, validate_closed_loop
 
 ROOT = Path(__file__).resolve().parents[1]
-CI_SAMPLES = 1000
+CI_SAMPLES = {"quadrotor_hill": 1000}  # closed-loop runs per scenario; others: CI_SAMPLES_OTHER
+CI_SAMPLES_OTHER = 300
 CI_SEED = 987654321  # not the pipeline's Monte Carlo seed
+SHIPPED = available_scenarios()
 
 
 def _closed_loop_failures(scenario, controller, x0):
@@ -42,14 +46,16 @@ def _closed_loop_failures(scenario, controller, x0):
             failures[rows] |= hit.any(axis=1)
         end = positions[:, -1]
         failures[rows] |= ~shapely.intersects_xy(scenario.goal, end[:, 0], end[:, 1])
+        failures[rows] |= ~scenario.in_goal(run.xs[:, -1])  # and Goal's extra bounds
         raw = run.unclipped
         failures[rows] |= ((raw < controller.lower) | (raw > controller.upper)).any(axis=(1, 2, 3))
         failures[rows] |= ~np.isfinite(run.xs).all(axis=(1, 2))
     return int(failures.sum())
 
 
-def test_synthesis_certifies_and_validates(synthesized):
-    code, out = synthesized
+@pytest.mark.parametrize("name", SHIPPED)
+def test_synthesis_certifies_and_validates(synthesis, name):
+    code, out = synthesis(name)
     summary = json.loads((out / "summary.json").read_text())
     assert code == 0, summary["verdict"]
     assert summary["verdict"]["certified"] and summary["verdict"]["validated"]
@@ -65,13 +71,14 @@ def test_synthesis_certifies_and_validates(synthesized):
     }
 
 
-def test_ci_closed_loop_safety_from_sampled_initial_states(synthesized):
-    _, out = synthesized
-    scenario = load_scenario("quadrotor_hill", check_demos=False)
+@pytest.mark.parametrize("name", SHIPPED)
+def test_ci_closed_loop_safety_from_sampled_initial_states(synthesis, name):
+    _, out = synthesis(name)
+    scenario = load_scenario(name, check_demos=False)
     controller = load(out / "controller.json")
     rng = np.random.default_rng(CI_SEED)
     x0 = scenario.init_lower + (scenario.init_upper - scenario.init_lower) * rng.random(
-        (CI_SAMPLES, scenario.n)
+        (CI_SAMPLES.get(name, CI_SAMPLES_OTHER), scenario.n)
     )
     assert np.all(controller.coverage_ratio(x0) < 1.0)
     assert _closed_loop_failures(scenario, controller, x0) == 0

@@ -1,4 +1,5 @@
-"""The synthetic pilot and the demonstrations it ships for quadrotor_hill."""
+"""The synthetic pilot and the demonstrations it ships (quadrotor_hill, and every scenario
+with a ``pilot.py``)."""
 
 from __future__ import annotations
 
@@ -13,10 +14,11 @@ from pipeline import geometry
 from pipeline.cli import main
 from pipeline.errors import UserError
 from pipeline.pilot import fly, regenerate_demos
-from pipeline.scenario import SCENARIOS_ROOT, Scenario, load_scenario
+from pipeline.scenario import SCENARIOS_ROOT, Scenario, available_scenarios, load_scenario
 from pipeline.simulate import simulate
 
 SHIPPED = SCENARIOS_ROOT / "quadrotor_hill"
+FLOWN = [name for name in available_scenarios() if (SCENARIOS_ROOT / name / "pilot.py").is_file()]
 
 
 @pytest.fixture(scope="module")
@@ -65,28 +67,43 @@ def test_pilot_is_deterministic_for_a_seed(scenario: Scenario) -> None:
     assert not np.array_equal(first, fly(scenario, x0, seed=2))
 
 
-def test_regenerate_reproduces_shipped_files_and_keeps_the_yaml(tmp_path: Path) -> None:
-    copy = tmp_path / "quadrotor_hill"
-    shutil.copytree(SHIPPED, copy)
+@pytest.mark.parametrize("name", FLOWN)
+def test_regenerate_reproduces_shipped_files_and_keeps_the_yaml(tmp_path: Path, name: str) -> None:
+    shipped = SCENARIOS_ROOT / name
+    copy = tmp_path / name
+    shutil.copytree(shipped, copy)
     for csv in (copy / "demos").glob("*.csv"):
         csv.unlink()
     yaml_path = copy / "scenario.yaml"
-    shipped_yaml = (SHIPPED / "scenario.yaml").read_text()
+    shipped_yaml = (shipped / "scenario.yaml").read_text()
     block = re.search(r"^demos:", shipped_yaml, flags=re.MULTILINE)
     assert block is not None
     yaml_path.write_text(shipped_yaml[: block.start()] + "demos: []  # to be flown\n")
 
     demos = regenerate_demos(yaml_path)
 
-    assert yaml_path.read_bytes() == (SHIPPED / "scenario.yaml").read_bytes()
-    assert [demo.file.name for demo in demos] == [f"demo_{i:02d}.csv" for i in range(1, 10)]
+    assert yaml_path.read_bytes() == (shipped / "scenario.yaml").read_bytes()
+    count = len(load_scenario(name, check_demos=False).demos)
+    assert [demo.file.name for demo in demos] == [f"demo_{i:02d}.csv" for i in range(1, count + 1)]
     for demo in demos:
-        assert demo.file.read_bytes() == (SHIPPED / "demos" / demo.file.name).read_bytes()
+        assert demo.file.read_bytes() == (shipped / "demos" / demo.file.name).read_bytes()
+
+
+@pytest.mark.parametrize("name", FLOWN)
+def test_demos_start_on_every_free_direction_of_init(name: str) -> None:
+    """The pilot's starts spread over each non-degenerate Init interval (x, y and heading for
+    unicycle_slalom), so that coverage has a chance in every dimension."""
+    scenario = load_scenario(name, check_demos=False)
+    starts = np.array([demo.x0 for demo in scenario.demos])
+    width = scenario.init_upper - scenario.init_lower
+    free = width > 0
+    assert np.all(np.ptp(starts, axis=0)[free] >= 0.4 * width[free])
 
 
 def test_pilot_refuses_a_scenario_without_configuration(tmp_path: Path) -> None:
     copy = tmp_path / "other"
     shutil.copytree(SHIPPED, copy)
+    (copy / "pilot.py").unlink()
     yaml_path = copy / "scenario.yaml"
     yaml_path.write_text(
         yaml_path.read_text().replace("name: quadrotor_hill", "name: other_hill", 1)
@@ -100,3 +117,44 @@ def test_cli_demos_unknown_scenario(capsys: pytest.CaptureFixture[str]) -> None:
     error = capsys.readouterr().err
     assert error.startswith("error: unknown scenario 'nope'")
     assert error.count("\n") == 1
+
+
+@pytest.mark.parametrize(
+    ("pilot_text", "message"),
+    [
+        ("X = 1\n", "pilot file does not define CONFIG and steering"),
+        (
+            "CONFIG = {'waypoints': ()}\ndef steering(scenario):\n    return None\n",
+            "found 'CONFIG: dict, steering: function'",
+        ),
+    ],
+)
+def test_a_pilot_file_without_config_is_refused(tmp_path: Path, pilot_text, message) -> None:
+    copy = tmp_path / "quadrotor_hill"
+    shutil.copytree(SHIPPED, copy)
+    (copy / "pilot.py").write_text(pilot_text)
+    with pytest.raises(UserError, match=message):
+        regenerate_demos(copy / "scenario.yaml")
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ("stick_step=(0.5, 0.5)", "stick_step has 1 entries, expected 2 (one per input)"),
+        ('grid=(("Y", 3), ("X", 3))', "grid names unknown state 'Z'"),
+        ("variant_waypoint=1", "variant_waypoint 9 is not a waypoint index"),
+    ],
+)
+def test_a_pilot_config_that_does_not_fit_is_refused(tmp_path: Path, change, message) -> None:
+    copy = tmp_path / "quadrotor_hill"
+    shutil.copytree(SHIPPED, copy)
+    broken = {
+        "stick_step=(0.5, 0.5)": "stick_step=(0.5,)",
+        'grid=(("Y", 3), ("X", 3))': 'grid=(("Z", 3), ("X", 3))',
+        "variant_waypoint=1": "variant_waypoint=9",
+    }[change]
+    text = (copy / "pilot.py").read_text()
+    assert change in text
+    (copy / "pilot.py").write_text(text.replace(change, broken))
+    with pytest.raises(UserError, match=re.escape(message)):
+        fly(load_scenario(copy / "scenario.yaml", check_demos=False), np.zeros(6), seed=1)
