@@ -1,4 +1,4 @@
-"""Minimum-time optimisation: our bisection (gd, L-BFGS) against CasADi + IPOPT, side by side.
+"""Minimum-time optimisation: our search (gd, L-BFGS) against CasADi + IPOPT, side by side.
 
 For every quadrotor_hill demo start ``x0`` both solve the problem of ``stages.optimize``:
 
@@ -38,7 +38,7 @@ ModGoal (a convex polygon; a box here) is ``A p <= b`` from its edges. The NLP's
 tightened by ``NLP_MARGIN`` so that IPOPT's solution, to its tolerance, also has our cost
 ``J == 0`` exactly; it is then checked with ``J`` and ``pipeline.verify.verify_nominal``.
 
-Wall times: ours is ``optimize_demo`` (the whole bisection, after the numba kernels are loaded);
+Wall times: ours is ``optimize_demo`` (the whole search, after the numba kernels are loaded);
 IPOPT's is every NLP build and solve of phases 1 and 2. Runs on all 9 demos (about a minute).
 """
 
@@ -249,19 +249,13 @@ def _halfspaces(polygon) -> tuple[np.ndarray, np.ndarray]:
     return A, np.einsum("ij,ij->i", A, xy[:-1])
 
 
-def _rate_states(scenario: Scenario) -> list[int]:
-    """States that are some other state's derivative (``xdot_j = x_i``): scaled when time is."""
-    symbols = scenario.dynamics.state_symbols
-    return [symbols.index(e) for e in scenario.dynamics.expressions if e in symbols]
-
-
 def _retime(
     scenario: Scenario, X: np.ndarray, U: np.ndarray, T: float, N: int, T_new: float
 ) -> tuple[np.ndarray, np.ndarray]:
     """``X (M+1, n)``, ``U (M, m)`` over T, played over ``T_new`` with N samples."""
     tau_old, tau_new = np.linspace(0, 1, len(X)), np.linspace(0, 1, N + 1)
     X_new = np.stack([np.interp(tau_new, tau_old, column) for column in X.T], axis=-1)
-    X_new[:, _rate_states(scenario)] *= T / T_new
+    X_new[:, list(scenario.dynamics.rate_states)] *= T / T_new
     return X_new, reseed(U, N, "compress")
 
 

@@ -6,6 +6,10 @@ rejected and ``lam *= beta`` (``0 < beta < 1``). It stops when ``J == 0`` (every
 with its margin), when ``lam < eps``, or at an iteration cap. Only accepted steps move ``u``, so
 the result is never worse than the seed (the paper's guarantee, §III-C).
 
+Both minimisers take an optional ``reached(u, J)`` test that replaces ``J == 0`` as the goal:
+``stages.optimize`` descends on a slightly tightened cost and stops as soon as the problem's own
+cost is zero, which a descent that approaches ``J = 0`` from outside only reaches in the limit.
+
 ``lbfgs`` minimises the same cost with the same exact gradient by L-BFGS-B, the input bounds as
 box bounds.
 """
@@ -13,6 +17,7 @@ box bounds.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -60,7 +65,8 @@ class DescentResult:
     """Outcome of one minimisation from a seed.
 
     Attributes:
-      u: (N, m) best input found; cost: ``J(u)``; feasible: ``cost == 0``.
+      u: (N, m) best input found; cost: ``J(u)``; feasible: the goal was reached (``cost == 0``
+      unless a ``reached`` test was given).
       iterations: number of cost evaluations after the seed's; log: the iteration log.
     """
 
@@ -95,11 +101,12 @@ def gradient_descent(
     eps: float = 1e-9,
     max_iterations: int = 400,
     gradient_method: str = "adjoint",
+    reached: Callable[[FloatArray, float], bool] = lambda _u, J: J == 0.0,
 ) -> DescentResult:
     """The paper's adaptive-step gradient descent (§III-B) from the seed ``u0 (N, m)``.
 
     ``step`` is the initial ``lam``; by default the step that moves the largest input entry by
-    a tenth of the smallest input range.
+    a tenth of the smallest input range. ``reached(u, J)`` is the goal test (default ``J == 0``).
     """
     if not (alpha > 1.0 and 0.0 < beta < 1.0):
         raise ValueError(f"need alpha > 1 and 0 < beta < 1, got alpha={alpha}, beta={beta}")
@@ -124,7 +131,8 @@ def gradient_descent(
     lam = step
     rows = [(0, J, lam, True, 0.0)]
     iteration = 0
-    while J > 0.0 and lam >= eps and iteration < max_iterations:
+    done = reached(u, J)
+    while not done and lam >= eps and iteration < max_iterations:
         iteration += 1
         candidate = u - lam * q  # eq. (38)
         J_new, q_new = problem.cost_and_gradient(candidate, method=gradient_method)
@@ -132,16 +140,17 @@ def gradient_descent(
         if accepted:
             u, J, q = candidate, J_new, q_new
             lam *= alpha
+            done = reached(u, J)
         else:
             lam *= beta
         rows.append((iteration, J, lam, accepted, time.perf_counter() - start))
-    if J == 0.0:
+    if done:
         message = f"feasible after {iteration} iterations"
     elif lam < eps:
         message = f"step size fell below {eps:g}: a local minimum with J = {J:.3e} > 0"
     else:
         message = f"iteration cap {max_iterations} reached with J = {J:.3e} > 0"
-    return DescentResult(u, J, seed_cost, J == 0.0, iteration, _log(rows), True, message)
+    return DescentResult(u, J, seed_cost, done, iteration, _log(rows), True, message)
 
 
 def lbfgs(
@@ -151,9 +160,10 @@ def lbfgs(
     max_iterations: int = 400,
     gradient_method: str = "adjoint",
     box: bool = True,
+    reached: Callable[[FloatArray, float], bool] = lambda _u, J: J == 0.0,
 ) -> DescentResult:
     """L-BFGS-B on the same cost and exact gradient; input bounds as box bounds when ``box``
-    (without, the input penalty alone keeps the inputs in bounds)."""
+    (without, the input penalty alone keeps the inputs in bounds); stops when ``reached``."""
     start = time.perf_counter()
     shape = np.shape(u0)
     unbounded = np.full(shape, np.inf)
@@ -162,7 +172,7 @@ def lbfgs(
     u0 = np.clip(np.asarray(u0, dtype=np.float64).ravel(), lower, upper)
     seed_cost = problem.cost(np.asarray(u0).reshape(shape))
     rows: list[tuple[int, float, float, bool, float]] = [(0, seed_cost, np.nan, True, 0.0)]
-    best = {"u": u0.copy(), "J": seed_cost}
+    best = {"u": u0.copy(), "J": seed_cost, "reached": reached(u0.reshape(shape), seed_cost)}
 
     class _Feasible(Exception):
         pass
@@ -171,16 +181,16 @@ def lbfgs(
         J, q = problem.cost_and_gradient(flat.reshape(shape), method=gradient_method)
         accepted = bool(J < best["J"])
         if accepted:
-            best.update(u=flat.copy(), J=J)
+            best.update(u=flat.copy(), J=J, reached=reached(flat.reshape(shape), J))
         rows.append((len(rows), best["J"], np.nan, accepted, time.perf_counter() - start))
-        if J == 0.0:
+        if best["reached"]:
             raise _Feasible
         if not np.isfinite(J):
             return 1e300, np.zeros_like(flat)
         return J, q.ravel()
 
     message = ""
-    if seed_cost > 0.0 and np.isfinite(seed_cost):
+    if not best["reached"] and np.isfinite(seed_cost):
         try:
             outcome = minimize(
                 fun,
@@ -202,7 +212,7 @@ def lbfgs(
     u = np.asarray(best["u"]).reshape(shape)
     text = (
         f"feasible after {len(rows) - 1} evaluations"
-        if J == 0.0
+        if best["reached"]
         else (f"L-BFGS-B stopped ({message}) with J = {J:.3e} > 0")
     )
-    return DescentResult(u, J, seed_cost, J == 0.0, len(rows) - 1, _log(rows), True, text)
+    return DescentResult(u, J, seed_cost, best["reached"], len(rows) - 1, _log(rows), True, text)

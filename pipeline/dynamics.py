@@ -116,6 +116,12 @@ class Dynamics:
         out = self._f_u(x, u)
         return out.reshape(*out.shape[:-1], self.n, self.m)
 
+    @property
+    def rate_states(self) -> tuple[int, ...]:
+        """Indices of the states that are another state's derivative (``xdot_j = x_i``): they
+        scale by ``T / T'`` when a trajectory of duration ``T`` is replayed in ``T'``."""
+        return tuple(i for i, s in enumerate(self.state_symbols) if s in self.expressions)
+
     def depends_on(self) -> tuple[str, ...]:
         """Names of the states and inputs that the Jacobians depend on (the certified region)."""
         free = set().union(*(e.free_symbols for e in (*self.jacobian_x, *self.jacobian_u)))

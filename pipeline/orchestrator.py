@@ -1,7 +1,11 @@
 """The orchestrator: wires the stages in order and keeps their artifacts under ``reports/NAME``.
 
-    load -> feedback -> radius(demos) -> coverage(demos) -> optimize -> radius(optimized)
-         -> coverage(optimized) -> controller -> montecarlo -> report
+    load -> feedback -> radius(demos) -> coverage(demos) -> covering radius -> optimize
+         -> radius(optimized) -> coverage(optimized) -> controller -> montecarlo -> report
+
+The optimizer keeps every tube at the required radius ``max(r_d, covering radius)``: ``r_d`` is
+the radius that the clearance ``d`` certifies, and the covering radius the smallest common one
+whose balls around the demo starts cover Init, so that coverage survives the optimization.
 
 It holds no numerics: each stage is a function from typed inputs to a frozen result, stored by
 ``pipeline.runner.StageRunner`` with a hash of its inputs so that unchanged stages are reused.
@@ -26,7 +30,7 @@ from pipeline.simulate import Trajectory, simulate
 from pipeline.summary import print_summary, stress_summary, summarise
 from pipeline.verify import VERIFY_SUBSTEPS
 from stages.controller import emit_controller
-from stages.coverage import CoverageResult, cover_init
+from stages.coverage import CoverageResult, CoveringRadius, cover_init, covering_radius
 from stages.feedback import FeedbackResult, design_feedback
 from stages.montecarlo import validate_closed_loop
 from stages.optimize import ConstraintMargins, OptimizeOptions, OptimizeResult, optimize
@@ -128,12 +132,28 @@ def _synthesize(
     )
 
     r_d = feedback.required_radius(scenario.clearance)
-    margins = ConstraintMargins(feedback.input_margin(r_d), feedback.region_extent(r_d), feedback.K)
+    covering: CoveringRadius = runner.run(
+        "covering_radius",
+        inputs_key(tube, "covering/1"),
+        lambda: covering_radius(
+            scenario,
+            feedback,
+            np.array(demo_starts),
+            upper=max(r_d, *(r.radius for r in demo_radii)),
+        ),
+    )
+    r_required = covering.kept_radius(r_d)
+    margins = ConstraintMargins(
+        feedback.input_margin(r_required),
+        feedback.region_extent(r_required),
+        feedback.K,
+        clearance=scenario.clearance * r_required / r_d,
+    )
     optimize_options = OptimizeOptions(method=options.method, search=options.search)
     with progress_bar(len(scenario.demos), "demos optimized", options.quiet) as advance:
         optimized: OptimizeResult = runner.run(
             "optimize",
-            inputs_key(tube, "optimize/1", repr(optimize_options)),
+            inputs_key(tube, "optimize/2", r_required, repr(optimize_options)),
             lambda: optimize(
                 scenario, margins, optimize_options, executor=executor, progress=advance
             ),
@@ -202,6 +222,7 @@ def _synthesize(
         demo_trajectories,
         demo_radii,
         demo_coverage,
+        covering,
         optimized,
         final_trajectories,
         final_radii,

@@ -208,10 +208,13 @@ def build_constraints(
     eps_d: float = 0.05,
     eps_g: float = 0.05,
     eps_i: float = 0.0,
+    clearance: float | None = None,
 ) -> Constraints:
-    """The §IV-A constraints of ``scenario`` with the given margins (each error says the fix)."""
+    """The §IV-A constraints of ``scenario`` with the given margins (each error says the fix);
+    ``clearance`` replaces the scenario's ``d`` when the tube must be wider than ``d``'s."""
     m = scenario.m
-    for name, value in [("eps_d", eps_d), ("eps_g", eps_g), ("eps_i", eps_i)]:
+    d = scenario.clearance if clearance is None else clearance
+    for name, value in [("eps_d", eps_d), ("eps_g", eps_g), ("eps_i", eps_i), ("clearance", d)]:
         if not (np.isfinite(value) and value >= 0.0):
             raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
     margin = np.zeros(m) if input_margin is None else np.asarray(input_margin, dtype=np.float64)
@@ -252,7 +255,7 @@ def build_constraints(
     input_part = [(inputs.index(k), lo, hi) for k, (lo, hi) in region.items() if k in inputs]
     goal_part = [(states.index(k), lo, hi) for k, (lo, hi) in scenario.goal_bounds.items()]
 
-    goal_shrink = scenario.clearance + eps_g
+    goal_shrink = d + eps_g
     goal_region = geometry.shrink(scenario.goal, goal_shrink)
     if goal_region.is_empty:
         raise ValueError(
@@ -286,6 +289,6 @@ def build_constraints(
         goal_lower=g_lower,
         goal_upper=g_upper,
         unsafe=dict(scenario.unsafe),
-        unsafe_margin=scenario.clearance + eps_d,
+        unsafe_margin=d + eps_d,
         position_index=scenario.position_index,
     )

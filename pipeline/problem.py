@@ -215,6 +215,7 @@ def make_problem(
     eps_d: float = 0.05,
     eps_g: float = 0.05,
     eps_i: float = 0.0,
+    clearance: float | None = None,
     penalty_points: int = DEFAULT_PENALTY_POINTS,
     backend: str = "numba",
 ) -> Problem:
@@ -228,7 +229,7 @@ def make_problem(
       input_margin: (m,) or scalar extra shrink of the input bounds (feedback margin).
       region_margin: name -> shrink of the operating-region box (tube extent).
       eps_d, eps_g, eps_i: the margins of §IV-A (Unsafe bloated by d + eps_d, Goal shrunk by
-        d + eps_g, inputs shrunk by eps_i).
+        d + eps_g, inputs shrunk by eps_i); clearance: ``d`` (default: the scenario's).
       penalty_points: intermediate penalty points per interval = RK4 substeps - 1.
       backend: "numba" or "numpy".
     """
@@ -259,6 +260,7 @@ def make_problem(
         eps_d=eps_d,
         eps_g=eps_g,
         eps_i=eps_i,
+        clearance=clearance,
     )
     return Problem(
         scenario=scenario,

@@ -56,12 +56,14 @@ def verify_nominal(
     input_lower: FloatArray,
     input_upper: FloatArray,
     region: Mapping[str, tuple[float, float]],
+    clearance: float | None = None,
     substeps: int = VERIFY_SUBSTEPS,
 ) -> Verification:
     """Check ``x0 (n,)``, ``us (N, m)``: clearance ``>= d`` from every Unsafe set, final position
     in Goal shrunk by ``d`` (and Goal's extra bounds), inputs in ``[input_lower, input_upper]``
-    and states/inputs in the ``region`` box, all on ``[0, T]`` in continuous time."""
-    d = scenario.clearance
+    and states/inputs in the ``region`` box, all on ``[0, T]`` in continuous time. ``d`` is
+    ``clearance``, by default the scenario's."""
+    d = scenario.clearance if clearance is None else clearance
     trajectory = simulate(scenario.dynamics, x0, us, scenario.Ts, substeps=substeps)
     xs = trajectory.dense_xs
     h = scenario.Ts / substeps

@@ -180,3 +180,60 @@ def cover_init(
         success=covered,
         message=message,
     )
+
+
+@dataclass(frozen=True)
+class CoveringRadius:
+    """The smallest common radius (within ``tolerance``) at which the balls around the demo
+    starts cover Init: the radius every optimized trajectory must keep so that coverage
+    survives the optimization. ``radius`` is ``inf`` when even ``upper`` does not cover."""
+
+    radius: float
+    covered: bool
+    tries: int
+    success: bool
+    message: str
+
+    def kept_radius(self, r_d: float) -> float:
+        """The radius the optimizer keeps: ``max(r_d, radius)``, or ``r_d`` alone when no
+        common radius covers Init (the coverage stage then reports the gap)."""
+        return max(r_d, self.radius) if self.covered else r_d
+
+
+def covering_radius(
+    scenario: Scenario,
+    feedback: Metric,
+    centers: FloatArray,
+    upper: float,
+    tolerance: float = 0.01,
+    max_depth: int = DEFAULT_DEPTH,
+) -> CoveringRadius:
+    """Bisection on a common radius ``r`` in ``(0, upper]`` for the balls around ``centers
+    (k, n)``; coverage by ``cover_init`` is monotone in ``r``, and the radius returned is one
+    at which it was certified, at most ``(1 + tolerance)`` times the smallest such."""
+    centers = np.asarray(centers, dtype=np.float64)
+
+    def covers(radius: float) -> bool:
+        radii = np.full(len(centers), radius)
+        return cover_init(scenario, feedback, centers, radii, max_depth).covered
+
+    tries = 1
+    if not (upper > 0 and covers(upper)):
+        return CoveringRadius(
+            np.inf, False, tries, False, f"balls of radius {upper:.4g} do not cover Init"
+        )
+    lo, hi = 0.0, float(upper)
+    while hi - lo > tolerance * hi:
+        middle = (lo + hi) / 2
+        tries += 1
+        if covers(middle):
+            hi = middle
+        else:
+            lo = middle
+    return CoveringRadius(
+        hi,
+        True,
+        tries,
+        True,
+        f"balls of radius {hi:.4g} around the {len(centers)} starts cover Init",
+    )

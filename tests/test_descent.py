@@ -80,3 +80,21 @@ def test_rejects_bad_parameters():
 def test_log_table_has_a_row_per_iteration():
     result = gradient_descent(_problem(), np.full((20, 2), 3.0))
     assert len(result.log.table().splitlines()) == result.iterations + 2
+
+
+@pytest.mark.parametrize("minimise", [gradient_descent, lbfgs])
+def test_a_goal_test_replaces_zero_cost(minimise):
+    bowl, seed = _problem(Bowl), np.full((20, 2), 3.0)  # J >= 1: zero is never reached
+    assert not minimise(bowl, seed, max_iterations=40).feasible
+    threshold = (bowl.cost(seed) + 1.0) / 2
+    tested = []
+
+    def reached(u, J):
+        tested.append(J)
+        return J <= threshold
+
+    early = minimise(bowl, seed, reached=reached)
+    assert early.feasible and 1.0 < early.cost <= threshold
+    assert tested[-1] == early.cost  # stopped on the first iterate that passed the test
+    never = minimise(_problem(), seed, reached=lambda u, J: False, max_iterations=40)
+    assert not never.feasible and never.cost == 0.0  # J = 0 alone no longer stops it

@@ -126,6 +126,16 @@ def feedback(data: ReportData) -> tuple:
         ("P eigenvalues", vector(eig, 4)),
         ("P condition number", number(float(eig[-1] / eig[0]), 4)),
         ("required radius r_d (position extent d)", number(r_d, 4)),
+        (
+            "covering radius (smallest common radius of balls at the demo starts covering Init)",
+            "none found"
+            if summary.get("covering_radius") is None
+            else number(summary["covering_radius"], 4),
+        ),
+        (
+            "radius kept by the optimizer, max(r_d, covering radius)",
+            number(summary.get("kept_radius", r_d), 4),
+        ),
         ("position extent per unit P-radius", number(fb.position_extent(1.0), 4)),
         ("Jacobian hull", f"{len(fb.vertices)} vertices; " + "; ".join(fb.hull)),
         ("certified margin (max generalised eigenvalue, < 0)", scientific(fb.certified_margin)),

@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 from shapely.geometry import Point, box
 from shapely.ops import unary_union
 
-from stages.coverage import cover_init
+from stages.coverage import cover_init, covering_radius
 
 
 def init(lower, upper, names=None):
@@ -125,3 +125,15 @@ def test_lookup_table_is_sound(seed):
     volume = np.prod(result.boxes[:, 1] - result.boxes[:, 0], axis=1).sum()
     assert volume == pytest.approx(result.covered_fraction)
     assert abs(hit.mean() - result.covered_fraction) < 0.1  # 500 samples
+
+
+def test_covering_radius_of_two_balls_is_the_half_square_diagonal():
+    """Balls about (0.5, 0.5) and (1.5, 0.5) cover [0, 2] x [0, 1] from radius sqrt(0.5) on."""
+    centers, exact = np.array([[0.5, 0.5], [1.5, 0.5]]), np.sqrt(0.5)
+    found = covering_radius(init([0, 0], [2, 1]), METRIC, centers, upper=2.0, tolerance=0.01)
+    assert found.covered and exact <= found.radius <= exact * 1.01
+    assert cover_init(init([0, 0], [2, 1]), METRIC, centers, [found.radius] * 2).covered
+    assert found.kept_radius(0.5) == found.radius and found.kept_radius(1.0) == 1.0
+    too_small = covering_radius(init([0, 0], [2, 1]), METRIC, centers, upper=0.6)
+    assert not too_small.covered and too_small.radius == np.inf
+    assert too_small.kept_radius(0.5) == 0.5 and "do not cover" in too_small.message

@@ -68,6 +68,8 @@ def test_options_refuse_unknown_choices():
         OptimizeOptions(method="newton")
     with pytest.raises(ValueError, match="parameterization"):
         OptimizeOptions(parameterization="closed")
+    with pytest.raises(ValueError, match="overshoot"):
+        OptimizeOptions(overshoot=-0.1)
 
 
 @pytest.mark.parametrize(
@@ -126,3 +128,24 @@ def test_parallel_equals_serial():
         assert a.N == b.N
         np.testing.assert_array_equal(a.u, b.u)
         assert [t.N for t in a.tries] == [t.N for t in b.tries]
+
+
+def test_a_wider_tube_is_kept_away_by_its_own_clearance():
+    """``margins.clearance`` (a covering radius above ``r_d``) replaces ``d`` everywhere."""
+    scenario, margins = _quadrotor()
+    wider = ConstraintMargins(
+        margins.input_margin, margins.region_margin, margins.gain, clearance=1.2
+    )
+    result = optimize_demo(scenario, 7, wider, OptimizeOptions(method="lbfgs"))
+    assert result.success, result.message
+    assert min(result.verification.clearance.values()) >= 1.2
+    problem = scenario.problem(
+        demo=7,
+        input_margin=margins.input_margin,
+        region_margin={
+            k: v + (0.01 if k in scenario.state_names else 0.0)
+            for k, v in margins.region_margin.items()
+        },
+        clearance=1.2,
+    )
+    assert problem.with_horizon(result.N, result.u).cost(result.u) == 0.0
