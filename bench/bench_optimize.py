@@ -311,7 +311,7 @@ def run() -> None:
     Ts = scenario.Ts
     feedback = design_feedback(scenario)
     r_d = feedback.required_radius(scenario.clearance)
-    margins = ConstraintMargins(feedback.input_margin(r_d), feedback.region_extent(r_d), feedback.K)
+    margins = ConstraintMargins.of_tube(feedback, r_d)
     options = {m: OptimizeOptions(method=m) for m in ("gd", "lbfgs")}
     eps = options["gd"]
     region_margin = {  # as optimize_demo shrinks the region

@@ -143,12 +143,7 @@ def _synthesize(
         ),
     )
     r_required = covering.kept_radius(r_d)
-    margins = ConstraintMargins(
-        feedback.input_margin(r_required),
-        feedback.region_extent(r_required),
-        feedback.K,
-        clearance=scenario.clearance * r_required / r_d,
-    )
+    margins = ConstraintMargins.of_tube(feedback, r_required)
     optimize_options = OptimizeOptions(method=options.method, search=options.search)
     with progress_bar(len(scenario.demos), "demos optimized", options.quiet) as advance:
         optimized: OptimizeResult = runner.run(

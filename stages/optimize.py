@@ -22,7 +22,7 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -38,6 +38,18 @@ METHODS = ("gd", "lbfgs")
 SEED_MODES = ("compress", "truncate")
 PARAMETERIZATIONS = ("feedback", "open_loop")
 SEARCHES = ("continuation", "bisection")
+
+
+class Tube(Protocol):
+    """What ``ConstraintMargins.of_tube`` reads from the feedback stage's result."""
+
+    K: FloatArray  # (m, n)
+
+    def input_margin(self, radius: float) -> FloatArray: ...
+
+    def region_extent(self, radius: float) -> dict[str, float]: ...
+
+    def position_extent(self, radius: float) -> float: ...
 
 
 @dataclass(frozen=True)
@@ -56,6 +68,16 @@ class ConstraintMargins:
     region_margin: Mapping[str, float]
     gain: FloatArray
     clearance: float | None = None
+
+    @classmethod
+    def of_tube(cls, tube: Tube, radius: float) -> ConstraintMargins:
+        """The footprint of the feedback's tube of P-norm radius ``radius``."""
+        return cls(
+            tube.input_margin(radius),
+            tube.region_extent(radius),
+            tube.K,
+            clearance=tube.position_extent(radius),
+        )
 
 
 @dataclass(frozen=True)

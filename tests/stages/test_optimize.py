@@ -28,7 +28,7 @@ def _quadrotor():
     scenario = load_scenario("quadrotor_hill", check_demos=False)
     feedback = design_feedback(scenario)
     r_d = feedback.required_radius(scenario.clearance)
-    margins = ConstraintMargins(feedback.input_margin(r_d), feedback.region_extent(r_d), feedback.K)
+    margins = ConstraintMargins.of_tube(feedback, r_d)
     return scenario, margins
 
 
