@@ -251,7 +251,7 @@ def rebuild_reports(scenario_name: str | Path, out: Path | None = None) -> Repor
 
 def _print_optimization_logs(optimized: OptimizeResult) -> None:
     for trajectory in optimized.trajectories:
-        print(f"\n{trajectory.demo}: bisection tries (N', feasible, iterations, final J)")
+        print(f"\n{trajectory.demo}: horizons tried (N', feasible, iterations, final J)")
         for attempt in trajectory.tries:
             print(
                 f"  N'={attempt.N:4d}  {'feasible  ' if attempt.feasible else 'infeasible'}"

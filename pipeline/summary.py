@@ -72,7 +72,7 @@ def summarise(
                 "optimized": bool(opt.success),
                 "message": opt.message,
                 "iterations": int(sum(t.iterations for t in opt.tries)),
-                "bisection_tries": len(opt.tries),
+                "horizons_tried": len(opt.tries),
                 "seconds": opt.seconds,
                 "clearance_before": demo_radii[i].nominal_clearance,
                 "clearance_after": final_radii[i].nominal_clearance,

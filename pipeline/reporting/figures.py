@@ -141,7 +141,7 @@ def draw_bisection(fig: FigureLike, data: ReportData, index: int) -> None:
 
 
 def draw_optimization(fig: FigureLike, data: ReportData) -> None:
-    """Per demo: J and the step size over the final horizon's descent; the bisection tries."""
+    """Per demo: J and the step size over the final horizon's descent; the horizons tried."""
     cost, step, tries = fig.subplots(1, 3)
     colours = colormaps["tab10"]
     for k, opt in enumerate(data.optimize.trajectories):
@@ -149,7 +149,7 @@ def draw_optimization(fig: FigureLike, data: ReportData) -> None:
         log = opt.log
         positive = log.cost > 0
         cost.step(log.iteration[positive], log.cost[positive], where="post", color=colour, lw=1)
-        if len(log.cost) and log.cost[-1] == 0:  # J = 0: a triangle on the bottom axis
+        if len(log.cost) and opt.success:  # the real J reached 0: a triangle on the bottom axis
             cost.plot(
                 log.iteration[-1],
                 0.0,
@@ -169,7 +169,7 @@ def draw_optimization(fig: FigureLike, data: ReportData) -> None:
         yscale="log", xlabel="iteration", ylabel="penalty cost J", title="cost at the final T'"
     )
     step.set(yscale="log", xlabel="iteration", ylabel="step size λ", title="step size λ")
-    tries.set(xlabel="bisection try", ylabel="horizon T' (s)", title="bisection tries")
+    tries.set(xlabel="try", ylabel="horizon T' (s)", title="horizons tried")
     tries.legend(
         handles=[
             Line2D([], [], color="0.3", marker="o", ls="", label="feasible (J = 0)"),

@@ -185,7 +185,7 @@ def _scenario(data: ReportData) -> tuple:
         Figure(
             "bisection",
             f"As in the paper's Fig. 2, for {opt.demo} (flown closest to Unsafe: "
-            f"{before:.2f} m): the demonstration, the bisection's intermediate feasible "
+            f"{before:.2f} m): the demonstration, the search's intermediate feasible "
             f"trajectories (purple, darker = shorter horizon) and the optimal one "
             f"({opt.N_demo} → {opt.N} samples). Circles about the initial point: the tubes "
             f"(robustness bounds) of the demonstration and of the optimal trajectory. Markers "

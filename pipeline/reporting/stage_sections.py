@@ -29,6 +29,12 @@ from pipeline.reporting.data import ReportData
 def optimization(data: ReportData) -> tuple:
     options = data.optimize.options
     method = "gradient descent (§III-B, eq. (38))" if options.method == "gd" else "L-BFGS-B"
+    search = (
+        "bisection (Remark 4)"
+        if options.search == "bisection"
+        else "continuation (the last feasible horizon shortened by a tenth, the step halved "
+        "after a failure)"
+    )
     rows = []
     for opt in data.optimize.trajectories:
         tries = ", ".join(f"{t.N}{'✓' if t.feasible else '✗'}" for t in opt.tries)
@@ -64,15 +70,17 @@ def optimization(data: ReportData) -> tuple:
             f"Method: {method} on the penalty cost J (eqs. (40)-(42)); {options.parameterization} "
             f"parameterization; at most {options.max_iterations} iterations per horizon; Unsafe "
             f"bloated by d + {options.eps_d:g}, Goal shrunk by d + {options.eps_g:g}. A horizon N' "
-            "is feasible when J reaches 0; the shortest feasible N' is found by bisection "
-            f"(Remark 4), each try seeded by {options.seed_mode} of the best feasible input."
+            "is feasible when J reaches 0; the descent minimises J with every margin tightened "
+            f"by {options.overshoot:g} and stops as soon as the untightened J is exactly 0. The "
+            f"shortest feasible N' is found by {search}, each try seeded by "
+            f"{options.seed_mode} of the best feasible input."
         ),
         Figure(
             "optimization",
-            "Left: J over the descent at the final horizon (log scale; a triangle on the bottom "
-            "axis marks J = 0, i.e. feasible). Middle: the step size λ (grows by α after an "
-            "accepted step, shrinks by β after a rejected one). Right: the horizons tried by the "
-            "bisection (circle: feasible, cross: infeasible).",
+            "Left: the tightened J over the descent at the final horizon (log scale; a triangle "
+            "on the bottom axis marks where the untightened J reached 0, i.e. feasible). Middle: "
+            "the step size λ (grows by α after an accepted step, shrinks by β after a rejected "
+            "one). Right: the horizons tried, in order (circle: feasible, cross: infeasible).",
             partial(figures.draw_optimization, data=data),
             (10.0, 3.9),
         ),
@@ -80,13 +88,13 @@ def optimization(data: ReportData) -> tuple:
             (
                 "demo",
                 "samples",
-                "bisection tries (N', ✓ feasible)",
+                "horizons tried (N', ✓ feasible)",
                 "iterations",
                 "time (s)",
                 "result",
             ),
             tuple(rows),
-            "Bisection per demo",
+            "Search on the horizon per demo",
             numeric=(False, True, False, True, True, False),
         ),
         Table(
