@@ -228,6 +228,13 @@ def print_summary(summary: Mapping[str, Any]) -> None:
         f"(required {h['required_clearance']:g})"
     )
     print(f"Init coverage: {h['coverage_before']:.1%} -> {h['coverage_after']:.1%}")
+    fb = summary["feedback"]
+    if fb.get("kept_radius", fb["required_radius"]) > fb["required_radius"]:
+        print(
+            f"  tubes kept at the covering radius {fb['kept_radius']:.4g} > r_d = "
+            f"{fb['required_radius']:.4g} (balls of radius r_d about the demo starts miss parts"
+            " of Init)"
+        )
     print(
         f"Monte Carlo: {mc['samples']} runs, {h['montecarlo_failures']} failures, "
         f"failure probability <= {mc['failure_bound_95']:.2e} (95%)"

@@ -64,6 +64,10 @@ def test_synthesis_certifies_and_validates(synthesis, name):
     assert headline["min_clearance_after"] >= headline["required_clearance"]
     assert headline["covered_after"]
     assert headline["montecarlo_failures"] == 0
+    feedback = summary["feedback"]  # tubes kept wide enough to cover Init (>= r_d)
+    assert feedback["kept_radius"] == max(feedback["required_radius"], feedback["covering_radius"])
+    for demo in summary["demos"]:
+        assert demo["radius_after"] >= feedback["kept_radius"] * (1 - 1e-6)
     assert {c["kind"] for c in summary["claims"]} >= {
         "certified",
         "statistically validated",
