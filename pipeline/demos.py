@@ -141,3 +141,10 @@ def write_demo_csv(
     for k, u in enumerate(np.asarray(us)):
         buffer.write(",".join([f"{k * Ts:.10g}", *(f"{value:.6f}" for value in u)]) + "\n")
     atomic_write_text(path, buffer.getvalue())
+
+
+def demo_entry(file: str, x0: Sequence[float]) -> str:
+    """One demonstration as a YAML flow mapping, ``{file: F, x0: [...]}`` (the ``demos:`` list's
+    one-line form, written by the pilot and the recorder)."""
+    values = ", ".join(repr(float(value) + 0.0) for value in x0)  # + 0.0: no "-0.0"
+    return f"{{file: {file}, x0: [{values}]}}"

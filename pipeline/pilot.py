@@ -39,16 +39,18 @@ from pathlib import Path
 from typing import Protocol
 
 import numpy as np
+import yaml
 
 from pipeline import geometry
 from pipeline.artifacts import atomic_write_text
-from pipeline.demos import Demo, write_demo_csv
+from pipeline.demos import Demo, demo_entry, write_demo_csv
 from pipeline.dynamics import FloatArray
 from pipeline.errors import UserError
 from pipeline.scenario import Scenario, check_demo_flight, load_scenario, resolve_scenario_path
 from pipeline.simulate import simulate
 
 PILOT_FILE = "pilot.py"
+SYNTHETIC_FILE = re.compile(r"demos/demo_\d+\.csv")  # what the pilot writes
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -276,11 +278,30 @@ def demo_header(scenario: Scenario, seed: int, x0: FloatArray, note: str) -> str
     )
 
 
+def _other_demo_entries(block: str) -> list[str]:
+    """The entries of a ``demos:`` block that the pilot did not fly (recorded flights), one line
+    each: kept verbatim when already one line (with its comment), else re-written in flow style."""
+    listed = (yaml.safe_load(block) or {}).get("demos") or []
+    lines = block.splitlines(keepends=True)
+    kept = []
+    for entry in listed:
+        file = str(entry["file"])
+        if SYNTHETIC_FILE.fullmatch(Path(file).as_posix()):
+            continue
+        same = [
+            line for line in lines if line.lstrip().startswith("- {") and f"file: {file}," in line
+        ]
+        kept.append(same[0] if len(same) == 1 else f"  - {demo_entry(file, entry['x0'])}\n")
+    return [line if line.endswith("\n") else line + "\n" for line in kept]
+
+
 def regenerate_demos(scenario_name: str | Path) -> list[Demo]:
     """Fly the pilot from every start, write ``demos/demo_NN.csv`` and the YAML's ``demos:``.
 
     Only the ``demos:`` block at the end of ``scenario.yaml`` is rewritten; everything above it is
-    kept byte for byte. Seeds are the flight numbers, so the files are reproducible.
+    kept byte for byte, and so is every entry of the old block that is not one of the pilot's
+    ``demos/demo_NN.csv`` (a recorded flight is never dropped). Seeds are the flight numbers, so
+    the files are reproducible.
     """
     path = resolve_scenario_path(scenario_name)
     scenario = load_scenario(path, check_demos=False)
@@ -294,6 +315,7 @@ def regenerate_demos(scenario_name: str | Path) -> list[Demo]:
             file=path,
             expected="a line starting with 'demos:' (the last field of the file)",
         )
+    kept = _other_demo_entries(text[block.start() :])
     demos, entries = [], []
     for seed, x0 in enumerate(start_states(scenario, config), start=1):
         variant = seed in config.variant_flights
@@ -304,13 +326,12 @@ def regenerate_demos(scenario_name: str | Path) -> list[Demo]:
         header = demo_header(scenario, seed, x0, config.variant_note if variant else "")
         write_demo_csv(demo.file, us, scenario.input_names, scenario.Ts, header)
         demos.append(demo)
-        values = ", ".join(repr(float(value)) for value in x0)
-        entries.append(f"  - {{file: {file.as_posix()}, x0: [{values}]}}\n")
+        entries.append(f"  - {demo_entry(file.as_posix(), x0)}\n")
     atomic_write_text(
         path,
         text[: block.start()]
         + "demos:  # SYNTHETIC flights from pipeline/pilot.py, not human; regenerate: make demos\n"
-        + "".join(entries),
+        + "".join(entries + kept),
     )
     load_scenario(path, check_demos=True)
     return demos

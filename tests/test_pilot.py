@@ -14,6 +14,7 @@ from pipeline import geometry
 from pipeline.cli import main
 from pipeline.errors import UserError
 from pipeline.pilot import fly, regenerate_demos
+from pipeline.recorder.save import append_demo_entry
 from pipeline.scenario import SCENARIOS_ROOT, Scenario, available_scenarios, load_scenario
 from pipeline.simulate import simulate
 
@@ -158,3 +159,25 @@ def test_a_pilot_config_that_does_not_fit_is_refused(tmp_path: Path, change, mes
     (copy / "pilot.py").write_text(text.replace(change, broken))
     with pytest.raises(UserError, match=re.escape(message)):
         fly(load_scenario(copy / "scenario.yaml", check_demos=False), np.zeros(6), seed=1)
+
+
+def test_regenerating_keeps_the_flights_the_pilot_did_not_fly(tmp_path: Path) -> None:
+    copy = tmp_path / "double_integrator"
+    shutil.copytree(SCENARIOS_ROOT / "double_integrator", copy)
+    yaml_path = copy / "scenario.yaml"
+    first = load_scenario(yaml_path, check_demos=False).demos[0]
+    for name in ("recorded_01.csv", "recorded_02.csv"):
+        shutil.copyfile(first.file, copy / "demos" / name)
+    append_demo_entry(yaml_path, "demos/recorded_01.csv", first.x0, comment="flown by Ada")
+    values = ", ".join(str(float(v)) for v in first.x0)
+    with yaml_path.open("a") as text:  # a block-style entry, as someone may write by hand
+        text.write(f"  - file: demos/recorded_02.csv\n    x0: [{values}]\n")
+    before = load_scenario(yaml_path, check_demos=False).demos
+
+    regenerate_demos(yaml_path)
+
+    after = load_scenario(yaml_path, check_demos=True).demos
+    assert [d.name for d in after] == [d.name for d in before]
+    for old, new in zip(before, after, strict=True):
+        np.testing.assert_array_equal(old.x0, new.x0)
+    assert "recorded_01.csv" in yaml_path.read_text().split("# flown by Ada")[0].splitlines()[-1]

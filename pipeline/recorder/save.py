@@ -19,7 +19,7 @@ import numpy as np
 import yaml
 
 from pipeline.artifacts import atomic_write_text
-from pipeline.demos import write_demo_csv
+from pipeline.demos import demo_entry, write_demo_csv
 from pipeline.dynamics import FloatArray
 from pipeline.errors import UserError
 from pipeline.recorder.flight import Flight
@@ -28,14 +28,9 @@ from pipeline.scenario import Scenario, load_scenario
 RECORDED_NAME = re.compile(r"recorded_(\d+)\.csv$")
 
 
-def _flow_entry(file: str, x0: Sequence[float]) -> str:
-    values = ", ".join(repr(float(value) + 0.0) for value in x0)
-    return f"{{file: {file}, x0: [{values}]}}"
-
-
 def with_demo_entry(text: str, file: str, x0: Sequence[float], comment: str = "") -> str:
     """``text`` of a scenario file with one more entry in its ``demos:`` list (comments kept)."""
-    entry = _flow_entry(file, x0) + (f"  # {comment}" if comment else "")
+    entry = demo_entry(file, x0) + (f"  # {comment}" if comment else "")
     lines = text.splitlines(keepends=True)
     if lines and not lines[-1].endswith("\n"):
         lines[-1] += "\n"
@@ -78,7 +73,7 @@ def append_demo_entry(path: Path, file: str, x0: FloatArray, comment: str = "") 
             "could not add the demo to the scenario file's demos list (layout not understood)",
             file=path,
             field="demos",
-            expected=f"a block list; add by hand: - {_flow_entry(file, np.asarray(x0).tolist())}",
+            expected=f"a block list; add by hand: - {demo_entry(file, np.asarray(x0).tolist())}",
         )
     atomic_write_text(path, new_text)
 
