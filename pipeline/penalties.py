@@ -209,9 +209,11 @@ def build_constraints(
     eps_g: float = 0.05,
     eps_i: float = 0.0,
     clearance: float | None = None,
+    goal_margin: Mapping[str, float] | None = None,
 ) -> Constraints:
     """The §IV-A constraints of ``scenario`` with the given margins (each error says the fix);
-    ``clearance`` replaces the scenario's ``d`` when the tube must be wider than ``d``'s."""
+    ``clearance`` replaces the scenario's ``d`` when the tube must be wider than ``d``'s, and
+    ``goal_margin`` (state name -> the tube's extent) shrinks Goal's extra bounds."""
     m = scenario.m
     d = scenario.clearance if clearance is None else clearance
     for name, value in [("eps_d", eps_d), ("eps_g", eps_g), ("eps_i", eps_i), ("clearance", d)]:
@@ -253,7 +255,15 @@ def build_constraints(
     states, inputs = scenario.state_names, scenario.input_names
     state_part = [(states.index(k), lo, hi) for k, (lo, hi) in region.items() if k in states]
     input_part = [(inputs.index(k), lo, hi) for k, (lo, hi) in region.items() if k in inputs]
-    goal_part = [(states.index(k), lo, hi) for k, (lo, hi) in scenario.goal_bounds.items()]
+    goal_part = []
+    for name, (lower, upper) in scenario.goal_bounds.items():
+        shrink = float((goal_margin or {}).get(name, 0.0))
+        if lower + shrink > upper - shrink:
+            raise ValueError(
+                f"Goal's bound on '{name}' [{lower:g}, {upper:g}] is empty after shrinking by the"
+                f" tube's extent {shrink:g}; widen the bound or use a smaller clearance"
+            )
+        goal_part.append((states.index(name), lower + shrink, upper - shrink))
 
     goal_shrink = d + eps_g
     goal_region = geometry.shrink(scenario.goal, goal_shrink)

@@ -216,6 +216,7 @@ def make_problem(
     eps_g: float = 0.05,
     eps_i: float = 0.0,
     clearance: float | None = None,
+    goal_margin: Mapping[str, float] | None = None,
     penalty_points: int = DEFAULT_PENALTY_POINTS,
     backend: str = "numba",
 ) -> Problem:
@@ -229,7 +230,8 @@ def make_problem(
       input_margin: (m,) or scalar extra shrink of the input bounds (feedback margin).
       region_margin: name -> shrink of the operating-region box (tube extent).
       eps_d, eps_g, eps_i: the margins of §IV-A (Unsafe bloated by d + eps_d, Goal shrunk by
-        d + eps_g, inputs shrunk by eps_i); clearance: ``d`` (default: the scenario's).
+        d + eps_g, inputs shrunk by eps_i); clearance: ``d`` (default: the scenario's);
+        goal_margin: name -> shrink of Goal's extra bounds (the tube's extent).
       penalty_points: intermediate penalty points per interval = RK4 substeps - 1.
       backend: "numba" or "numpy".
     """
@@ -261,6 +263,7 @@ def make_problem(
         eps_g=eps_g,
         eps_i=eps_i,
         clearance=clearance,
+        goal_margin=goal_margin,
     )
     return Problem(
         scenario=scenario,

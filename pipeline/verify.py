@@ -57,12 +57,14 @@ def verify_nominal(
     input_upper: FloatArray,
     region: Mapping[str, tuple[float, float]],
     clearance: float | None = None,
+    goal_bounds: Mapping[str, tuple[float, float]] | None = None,
     substeps: int = VERIFY_SUBSTEPS,
 ) -> Verification:
     """Check ``x0 (n,)``, ``us (N, m)``: clearance ``>= d`` from every Unsafe set, final position
     in Goal shrunk by ``d`` (and Goal's extra bounds), inputs in ``[input_lower, input_upper]``
     and states/inputs in the ``region`` box, all on ``[0, T]`` in continuous time. ``d`` is
-    ``clearance``, by default the scenario's."""
+    ``clearance``, by default the scenario's; ``goal_bounds`` replaces Goal's extra bounds (e.g.
+    shrunk by the tube's extent)."""
     d = scenario.clearance if clearance is None else clearance
     trajectory = simulate(scenario.dynamics, x0, us, scenario.Ts, substeps=substeps)
     xs = trajectory.dense_xs
@@ -96,7 +98,8 @@ def verify_nominal(
     inside = bool(geometry.contains(mod_goal, final))
     to_boundary = float(geometry.boundary_distance(final, mod_goal)) if not mod_goal.is_empty else 0
     goal_margin = to_boundary if inside else -to_boundary
-    for name, (lower, upper) in scenario.goal_bounds.items():
+    bounds = scenario.goal_bounds if goal_bounds is None else goal_bounds
+    for name, (lower, upper) in bounds.items():
         value = xs[-1, scenario.state_names.index(name)]
         goal_margin = min(goal_margin, value - lower, upper - value)
     if goal_margin < 0:

@@ -44,8 +44,11 @@ class Tube(Protocol):
     """What ``ConstraintMargins.of_tube`` reads from the feedback stage's result."""
 
     K: FloatArray  # (m, n)
+    state_names: tuple[str, ...]
 
     def input_margin(self, radius: float) -> FloatArray: ...
+
+    def state_extent(self, radius: float) -> FloatArray: ...
 
     def region_extent(self, radius: float) -> dict[str, float]: ...
 
@@ -62,12 +65,14 @@ class ConstraintMargins:
       gain: (m, n) the feedback gain, which also stabilises the shooting (``pipeline.shooting``).
       clearance: the tube's position extent, kept from Unsafe and Goal's boundary (default: the
         scenario's ``d``; larger when coverage of Init needs a radius above ``r_d``).
+      goal_margin: state name -> how far the tube extends along it (shrinks Goal's extra bounds).
     """
 
     input_margin: FloatArray
     region_margin: Mapping[str, float]
     gain: FloatArray
     clearance: float | None = None
+    goal_margin: Mapping[str, float] = field(default_factory=dict)
 
     @classmethod
     def of_tube(cls, tube: Tube, radius: float) -> ConstraintMargins:
@@ -77,6 +82,9 @@ class ConstraintMargins:
             tube.region_extent(radius),
             tube.K,
             clearance=tube.position_extent(radius),
+            goal_margin=dict(
+                zip(tube.state_names, map(float, tube.state_extent(radius)), strict=True)
+            ),
         )
 
 
@@ -266,6 +274,7 @@ def optimize_demo(
             eps_g=options.eps_g + extra,
             eps_i=options.eps_i + extra,
             clearance=margins.clearance,
+            goal_margin={name: extent + extra for name, extent in margins.goal_margin.items()},
         )
 
     problem, tightened = constrained(0.0), constrained(options.overshoot)
@@ -338,6 +347,13 @@ def optimize_demo(
             for name, (lower, upper) in scenario.operating_region.items()
         },
         clearance=margins.clearance,
+        goal_bounds={
+            name: (
+                lower + margins.goal_margin.get(name, 0.0),
+                upper - margins.goal_margin.get(name, 0.0),
+            )
+            for name, (lower, upper) in scenario.goal_bounds.items()
+        },
     )
     success = verification.passed
     message = (

@@ -24,6 +24,7 @@
 from __future__ import annotations
 
 import math
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -35,10 +36,12 @@ from pipeline.closed_loop import simulate_closed_loop
 from pipeline.controller import load
 from pipeline.demos import write_demo_csv
 from pipeline.hull import jacobian_hull
-from pipeline.scenario import Scenario, load_scenario
+from pipeline.scenario import SCENARIOS_ROOT, Scenario, load_scenario
+from pipeline.simulate import simulate
 from stages.controller import emit_controller
 from stages.feedback import design_feedback
 from stages.optimize import ConstraintMargins, OptimizeOptions, optimize_demo
+from stages.radius import robustness_radius
 
 TS = 0.1
 CLEARANCE = 0.5
@@ -205,3 +208,22 @@ def test_the_emitted_controller_reproduces_the_exact_error(shipped, certified, t
     gap = run.xs - run.x_ref - predicted
     gap_P = np.sqrt(np.einsum("bti,ij,btj->bt", gap, P, gap))
     assert gap_P.max() <= 2 * emitted.interpolation_error, (gap_P.max(), emitted)
+
+
+def test_goal_bounds_are_shrunk_by_the_tube_so_the_radius_is_kept(tmp_path):
+    """With Goal bounding the final speed, an optimizer that ignores the tube's extent along
+    the speed ends on the bound and leaves a zero radius (measured: 1e-6, bound on 'vy')."""
+    copy = tmp_path / "double_integrator"
+    shutil.copytree(SCENARIOS_ROOT / "double_integrator", copy)
+    text = (copy / "scenario.yaml").read_text()
+    polygon = "  polygon: [[9.0, -0.5], [11.0, -0.5], [11.0, 1.5], [9.0, 1.5]]\n"
+    assert polygon in text
+    bounds = "  bounds: {vx: [-1.5, 1.5], vy: [-1.5, 1.5]}\n"
+    (copy / "scenario.yaml").write_text(text.replace(polygon, polygon + bounds))
+    scenario = load_scenario(copy / "scenario.yaml")
+    feedback = design_feedback(scenario)
+    r_d = feedback.required_radius(scenario.clearance)
+    result = optimize_demo(scenario, 0, ConstraintMargins.of_tube(feedback, r_d), OptimizeOptions())
+    assert result.success and result.N < result.N_demo
+    trajectory = simulate(scenario.dynamics, result.x0, result.u, scenario.Ts, substeps=8)
+    assert robustness_radius(scenario, feedback, trajectory).radius >= r_d
