@@ -139,7 +139,8 @@ def summarise(
                 "one-sided 95% Clopper-Pearson bound",
             },
             {
-                "claim": f"worst safety margin found {falsification.worst_margin:.3f}",
+                "claim": f"worst safety margin found {falsification.worst_margin:.3f}"
+                + (f" ({falsification.binding})" if falsification.binding else ""),
                 "kind": "falsification-searched",
                 "how": f"Init corners, Sobol points and Nelder-Mead ({falsification.evaluations} "
                 "closed-loop runs); evidence, not a bound",
@@ -186,6 +187,7 @@ def summarise(
             "falsification": {
                 "worst_x0": falsification.worst_x0.tolist(),
                 "worst_margin": falsification.worst_margin,
+                "binding": falsification.binding,
                 "evaluations": falsification.evaluations,
             },
             "message": montecarlo.message,

@@ -52,6 +52,15 @@ class RunChecks:
         worst = np.minimum.reduce([self.clearance, self.goal_margin, self.input_slack])
         return np.where(self.finite & self.covered, worst, -np.inf)
 
+    def binding(self) -> list[str]:
+        """Which margin is the smallest in each run, with its unit."""
+        parts = np.stack([self.clearance, self.goal_margin, self.input_slack])
+        names = ("clearance to Unsafe, m", "Goal margin, m", "input slack, input units")
+        return [
+            names[k] if f and c else ("not covered" if not c else "non-finite state")
+            for k, f, c in zip(np.argmin(parts, axis=0), self.finite, self.covered, strict=True)
+        ]
+
     def failures(self) -> dict[str, np.ndarray]:
         """Failure masks ``(B,)`` by kind."""
         ok = self.finite
@@ -72,6 +81,7 @@ class Falsification:
     worst_x0: FloatArray
     worst_margin: float
     evaluations: int
+    binding: str = ""  # which margin is the smallest there, with its unit
 
 
 @dataclass(frozen=True)
@@ -206,7 +216,9 @@ def falsify(
         evaluations += int(outcome.nfev)
         if outcome.fun < best:
             best_z, best = outcome.x, float(outcome.fun)
-    return Falsification(full(best_z[None])[0], best, evaluations)
+    worst = full(best_z[None])
+    binding = check_runs(scenario, controller, worst)[0].binding()[0]
+    return Falsification(worst[0], best, evaluations, binding)
 
 
 def _run_chunk(

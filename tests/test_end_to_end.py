@@ -24,7 +24,7 @@ import shapely
 from pipeline import available_scenarios, load_scenario
 from pipeline.closed_loop import simulate_closed_loop
 from pipeline.controller import load
-from stages.montecarlo import check_runs, validate_closed_loop
+from stages.montecarlo import RunChecks, check_runs, falsify, validate_closed_loop
 
 ROOT = Path(__file__).resolve().parents[1]
 CI_SAMPLES = {"quadrotor_hill": 1000}  # closed-loop runs per scenario; others: CI_SAMPLES_OTHER
@@ -64,6 +64,8 @@ def test_synthesis_certifies_and_validates(synthesis, name):
     assert headline["min_clearance_after"] >= headline["required_clearance"]
     assert headline["covered_after"]
     assert headline["montecarlo_failures"] == 0
+    worst = summary["montecarlo"]["falsification"]
+    assert worst["worst_margin"] > 0 and worst["binding"].endswith((", m", "input units"))
     feedback = summary["feedback"]  # tubes kept wide enough to cover Init (>= r_d)
     assert feedback["kept_radius"] == max(feedback["required_radius"], feedback["covering_radius"])
     for demo in summary["demos"]:
@@ -106,6 +108,8 @@ def test_a_destabilising_gain_is_caught(synthesized, tmp_path):
     broken = _write_modified(out, tmp_path, flip)
     result = validate_closed_loop(scenario, broken, samples=200, seed=1)
     assert not result.success and sum(result.failures.values()) > 0
+    search = falsify(scenario, load(broken), sobol_points=16, local_searches=0)
+    assert search.worst_margin < 0 and search.binding
     x0 = scenario.init_lower + (scenario.init_upper - scenario.init_lower) * 0.3
     assert _closed_loop_failures(scenario, load(broken), x0[None]) == 1
 
@@ -224,3 +228,22 @@ def test_a_killed_run_keeps_the_last_good_output_and_resumes(synthesized, tmp_pa
     assert resumed.returncode == 0, resumed.stdout + resumed.stderr
     assert "[controller] unchanged inputs: reusing" in resumed.stdout
     assert "[montecarlo] unchanged inputs: reusing" in resumed.stdout
+
+
+def test_the_smallest_margin_names_its_kind():
+    checks = RunChecks(
+        clearance=np.array([0.5, 2.0, 1.0, 1.0]),
+        goal_margin=np.array([1.0, 0.3, 1.0, 1.0]),
+        input_slack=np.array([1.0, 1.0, -0.2, 1.0]),
+        tube_tightness=np.ones(4),
+        finite=np.array([True, True, True, True]),
+        covered=np.array([True, True, True, False]),
+    )
+    np.testing.assert_array_equal(checks.margin(), [0.5, 0.3, -0.2, -np.inf])
+    assert checks.binding() == [
+        "clearance to Unsafe, m",
+        "Goal margin, m",
+        "input slack, input units",
+        "not covered",
+    ]
+    assert checks.failures()["clipping"].tolist() == [False, False, True, False]

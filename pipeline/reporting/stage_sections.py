@@ -326,7 +326,10 @@ def montecarlo(data: ReportData) -> tuple:
                 ("minimum clearance to Unsafe (m)", fixed(mc.min_clearance, 3)),
                 ("minimum goal margin (m)", fixed(mc.min_goal_margin, 3)),
                 ("maximum tube tightness", fixed(mc.max_tube_tightness, 4)),
-                ("falsification: worst margin found", number(f.worst_margin, 4)),
+                (
+                    "falsification: worst margin found",
+                    number(f.worst_margin, 4) + (f" ({f.binding})" if f.binding else ""),
+                ),
                 ("falsification: worst start", vector(f.worst_x0, 4)),
                 ("falsification: closed-loop runs", str(f.evaluations)),
             ),
