@@ -339,21 +339,9 @@ def optimize_demo(
         best,
         input_lower=problem.input_lower,
         input_upper=problem.input_upper,
-        region={
-            name: (
-                lower + margins.region_margin.get(name, 0.0),
-                upper - margins.region_margin.get(name, 0.0),
-            )
-            for name, (lower, upper) in scenario.operating_region.items()
-        },
+        region=_shrunk(scenario.operating_region, margins.region_margin),
         clearance=margins.clearance,
-        goal_bounds={
-            name: (
-                lower + margins.goal_margin.get(name, 0.0),
-                upper - margins.goal_margin.get(name, 0.0),
-            )
-            for name, (lower, upper) in scenario.goal_bounds.items()
-        },
+        goal_bounds=_shrunk(scenario.goal_bounds, margins.goal_margin),
     )
     success = verification.passed
     message = (
@@ -376,6 +364,16 @@ def optimize_demo(
         success,
         message,
     )
+
+
+def _shrunk(
+    box: Mapping[str, tuple[float, float]], margin: Mapping[str, float]
+) -> dict[str, tuple[float, float]]:
+    """``box`` (name -> (lower, upper)) shrunk on both sides by ``margin`` (name -> amount)."""
+    return {
+        name: (lower + margin.get(name, 0.0), upper - margin.get(name, 0.0))
+        for name, (lower, upper) in box.items()
+    }
 
 
 def _optimize_in_worker(
