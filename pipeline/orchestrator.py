@@ -27,7 +27,7 @@ from pipeline.progress import progress_bar
 from pipeline.runner import StageRunner
 from pipeline.scenario import Scenario, load_scenario
 from pipeline.simulate import Trajectory, simulate
-from pipeline.summary import print_summary, stress_summary, summarise
+from pipeline.summary import demo_table, print_summary, stress_summary, summarise
 from pipeline.verify import VERIFY_SUBSTEPS
 from stages.controller import emit_controller
 from stages.coverage import CoverageResult, CoveringRadius, cover_init, covering_radius
@@ -40,6 +40,7 @@ from stages.stress import stress_test
 
 REPORTS_ROOT = Path(__file__).resolve().parents[1] / "reports"
 MONTE_CARLO_SEED = 20261122
+REPORT_FILES = ("report.html", "report.pdf", "scenario.png")
 
 
 @dataclass(frozen=True)
@@ -107,9 +108,10 @@ def _synthesize(
     base = inputs_key(scenario.source_hash, [file_hash(d.file) for d in scenario.demos])
     demo_starts = [d.x0 for d in scenario.demos]
     demo_inputs = [d.us for d in scenario.demos]
+    demo_trajectories = _trajectories(scenario, demo_starts, demo_inputs)
     say(
         f"scenario {scenario.name}: {len(scenario.demos)} demos, all valid "
-        "(never in Unsafe, end in Goal)"
+        f"(never in Unsafe, end in Goal)\n{demo_table(scenario, demo_trajectories)}\n"
     )
 
     feedback = runner.run(
@@ -119,7 +121,6 @@ def _synthesize(
         print(f"not certified: the feedback could not be certified: {feedback.message}")
         return 1
     tube = inputs_key(base, feedback.K, feedback.P, feedback.rate)
-    demo_trajectories = _trajectories(scenario, demo_starts, demo_inputs)
     demo_radii = runner.run(
         "radius_demos",
         inputs_key(tube, "radius/2"),
@@ -233,9 +234,9 @@ def _synthesize(
     atomic_write_json(out / "summary.json", summary)
     runner.run(
         "report",
-        inputs_key(summary, "report/1"),
+        inputs_key(summary, "report/2"),
         lambda: write_reports(scenario, out),
-        rerun=not (out / "report.html").is_file(),
+        rerun=not all((out / name).is_file() for name in REPORT_FILES),
     )
     if not options.quiet:
         print_summary(summary)

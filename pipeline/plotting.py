@@ -10,12 +10,10 @@ Tubes: the set ``{x : ||x - x_ref(t)||_P <= rho}`` projects on the position plan
 from __future__ import annotations
 
 from collections.abc import Sequence
-from pathlib import Path
 
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.axes import Axes  # noqa: E402
 from matplotlib.collections import EllipseCollection  # noqa: E402
@@ -24,7 +22,6 @@ from shapely.geometry import box  # noqa: E402
 from shapely.geometry.base import BaseGeometry  # noqa: E402
 
 from pipeline import geometry  # noqa: E402
-from pipeline.artifacts import atomic_save  # noqa: E402
 from pipeline.dynamics import FloatArray  # noqa: E402
 from pipeline.scenario import Scenario  # noqa: E402
 
@@ -231,26 +228,3 @@ def ellipses(
     if label:
         collection.set_label(label)
     ax.add_collection(collection)
-
-
-def save_scenario_figure(
-    path: Path,
-    scenario: Scenario,
-    paths: Sequence[FloatArray],
-    labels: Sequence[str],
-    title: str,
-    marker_every: int | None = None,
-) -> None:
-    """Write the scenario with trajectories ``paths`` (each ``(K, n)`` at the sample times) to
-    ``path`` (PNG) atomically; markers every ``marker_every`` samples."""
-    with plt.rc_context(STYLE):
-        fig, ax = plt.subplots(figsize=(10, 5), layout="constrained")
-        draw_scenario(ax, scenario, np.concatenate([scenario.positions(p) for p in paths]))
-        for k, (xs, label) in enumerate(zip(paths, labels, strict=True)):
-            ts = scenario.Ts * np.arange(len(xs))
-            period = None if marker_every is None else marker_every * scenario.Ts
-            draw_path(ax, scenario, ts, xs, f"C{k % 10}", label, marker_period=period, lw=1.2)
-        ax.set_title(title)
-        ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0))
-        atomic_save(path, lambda p: fig.savefig(p, dpi=130), suffix=".png")
-        plt.close(fig)

@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from pipeline import geometry
 from pipeline.simulate import Trajectory
 
 KEY_PACKAGES = (
@@ -206,6 +207,26 @@ def summarise(
             "command": list(command),
         },
     }
+
+
+def demo_table(scenario: Any, trajectories: Sequence[Trajectory]) -> str:
+    """The demonstrations as flown: start, duration, the smallest distance of the dense path to
+    each Unsafe set (m), and whether it ends in Goal. ``trajectories``: one per demo."""
+    names = list(scenario.unsafe)
+    header = f"{'demo':<12} {'start':<22} {'T (s)':>6}" + "".join(
+        f" {('to ' + name)[:14]:>14}" for name in names
+    )
+    lines = [header + "  ends in Goal"]
+    for demo, trajectory in zip(scenario.demos, trajectories, strict=True):
+        positions = scenario.positions(trajectory.dense_xs)
+        start = "(" + ", ".join(f"{v:.2f}" for v in scenario.positions(demo.x0)) + ")"
+        clearance = "".join(
+            f" {float(geometry.distance(positions, scenario.unsafe[name]).min()):>14.3f}"
+            for name in names
+        )
+        ends = "yes" if bool(scenario.in_goal(trajectory.dense_xs[-1])) else "NO"
+        lines.append(f"{demo.name:<12} {start:<22} {trajectory.duration:>6.1f}{clearance}  {ends}")
+    return "\n".join(lines)
 
 
 def print_summary(summary: Mapping[str, Any]) -> None:

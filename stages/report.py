@@ -1,4 +1,5 @@
-"""Stage ``report``: ``report.html`` and ``report.pdf`` from the saved artifacts (no recomputation).
+"""Stage ``report``: ``report.html``, ``report.pdf`` and ``scenario.png`` from the saved artifacts
+(no recomputation).
 
 Reads ``summary.json`` and ``artifacts/*`` under the output folder (``pipeline.reporting.data``),
 builds the eight sections once (``pipeline.reporting.sections``) and writes them twice: one
@@ -14,8 +15,9 @@ from importlib import metadata
 from pathlib import Path
 
 from pipeline.artifacts import atomic_save, atomic_write_text
+from pipeline.reporting.content import Figure
 from pipeline.reporting.data import load_report_data
-from pipeline.reporting.html import render_html
+from pipeline.reporting.html import render_html, save_figure_png
 from pipeline.reporting.pdf import write_pdf
 from pipeline.reporting.sections import build_sections
 from pipeline.scenario import Scenario
@@ -59,6 +61,14 @@ def write_reports(scenario: Scenario, out: Path) -> ReportResult:
         lambda path: pages.append(write_pdf(path, title, sections)),
         suffix=".pdf",
     )
+    overview = [
+        block
+        for section in sections
+        for block in section.blocks
+        if isinstance(block, Figure) and block.key == "overview"
+    ]
+    for figure in overview:  # the scenario figure on its own, for slides and notes
+        save_figure_png(figure, out / "scenario.png")
     seconds = time.perf_counter() - start
     return ReportResult(
         out / "report.html",

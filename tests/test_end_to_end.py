@@ -24,6 +24,8 @@ import shapely
 from pipeline import available_scenarios, load_scenario
 from pipeline.closed_loop import simulate_closed_loop
 from pipeline.controller import load
+from pipeline.simulate import simulate
+from pipeline.summary import demo_table
 from stages.montecarlo import RunChecks, check_runs, falsify, validate_closed_loop
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -247,3 +249,20 @@ def test_the_smallest_margin_names_its_kind():
         "not covered",
     ]
     assert checks.failures()["clipping"].tolist() == [False, False, True, False]
+
+
+def test_the_demo_table_lists_each_unsafe_set_and_the_goal_check():
+    scenario = load_scenario("quadrotor_hill", check_demos=False)
+    trajectories = [simulate(scenario.dynamics, d.x0, d.us, scenario.Ts, 8) for d in scenario.demos]
+    lines = demo_table(scenario, trajectories).splitlines()
+    assert "to hill" in lines[0] and "to ceiling" in lines[0] and "ends in Goal" in lines[0]
+    assert [line.split()[0] for line in lines[1:]] == [d.name for d in scenario.demos]
+    closest = min(
+        float(
+            shapely.distance(
+                shapely.points(scenario.positions(t.dense_xs)), scenario.unsafe["hill"]
+            ).min()
+        )
+        for t in trajectories
+    )
+    assert f"{closest:.3f}" in "\n".join(lines) and all(line.endswith("yes") for line in lines[1:])

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import io
 import re
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -19,6 +19,7 @@ matplotlib.use("Agg")
 import jinja2  # noqa: E402
 import matplotlib.pyplot as plt  # noqa: E402
 
+from pipeline.artifacts import atomic_save  # noqa: E402
 from pipeline.plotting import STYLE  # noqa: E402
 from pipeline.reporting.content import Figure, Section  # noqa: E402
 
@@ -30,17 +31,27 @@ BADGES = {
 }
 
 
-def figure_svg(figure: Figure) -> str:
-    """The figure drawn at its size as an inline ``<svg>`` element (no XML prolog, scalable)."""
+def _render(figure: Figure, save: Callable[[Any], None]) -> None:
+    """Draw ``figure`` at its size and hand the matplotlib figure to ``save``."""
     with plt.rc_context({**STYLE, "svg.hashsalt": figure.key}):
         fig = plt.figure(figsize=figure.size, layout="constrained")
         try:
             figure.draw(fig)
-            buffer = io.StringIO()
-            fig.savefig(buffer, format="svg", metadata={"Date": None})
+            save(fig)
         finally:
             plt.close(fig)
+
+
+def figure_svg(figure: Figure) -> str:
+    """The figure drawn at its size as an inline ``<svg>`` element (no XML prolog, scalable)."""
+    buffer = io.StringIO()
+    _render(figure, lambda fig: fig.savefig(buffer, format="svg", metadata={"Date": None}))
     return _inline(buffer.getvalue(), figure.key)
+
+
+def save_figure_png(figure: Figure, path: Path, dpi: int = 130) -> None:
+    """The figure as a PNG file, written atomically (e.g. ``scenario.png`` beside the report)."""
+    _render(figure, lambda fig: atomic_save(path, lambda p: fig.savefig(p, dpi=dpi), ".png"))
 
 
 def _inline(svg: str, key: str) -> str:

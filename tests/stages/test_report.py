@@ -141,6 +141,12 @@ def test_pdf_has_a_page_for_every_section_in_order(run: tuple[Scenario, Path]) -
     assert f"{summary['headline']['faster_percent_mean']:.0f}%" in texts[0]
 
 
+def test_the_scenario_figure_is_written_beside_the_report(run: tuple[Scenario, Path]) -> None:
+    image = matplotlib.image.imread(run[1] / "scenario.png")
+    assert image.shape[0] > 400 and image.shape[1] > 800
+    assert image[..., :3].std() > 0.05  # drawn, not blank
+
+
 def test_missing_artifact_is_a_clear_error(run: tuple[Scenario, Path], tmp_path: Path) -> None:
     scenario, out = run
     copy = tmp_path / "copy"
