@@ -194,7 +194,7 @@ def _synthesize(
     with progress_bar(options.samples, "closed-loop runs", options.quiet) as advance:
         montecarlo = runner.run(
             "montecarlo",
-            inputs_key(file_hash(controller_path), options.samples, options.seed, "mc/1"),
+            inputs_key(file_hash(controller_path), options.samples, options.seed, "mc/2"),
             lambda: validate_closed_loop(
                 scenario,
                 controller_path,

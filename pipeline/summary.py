@@ -185,6 +185,7 @@ def summarise(
             "min_clearance": montecarlo.min_clearance,
             "min_goal_margin": montecarlo.min_goal_margin,
             "max_tube_tightness": montecarlo.max_tube_tightness,
+            "tube_ratio_at_T": _quantiles(montecarlo.tube_final),
             "falsification": {
                 "worst_x0": falsification.worst_x0.tolist(),
                 "worst_margin": falsification.worst_margin,
@@ -207,6 +208,15 @@ def summarise(
             "command": list(command),
         },
     }
+
+
+def _quantiles(values: Any) -> dict[str, float] | None:
+    """Median, 95th percentile and maximum of ``values (k,)``; None when empty."""
+    values = np.asarray(values, dtype=np.float64)
+    if values.size == 0:
+        return None
+    median, p95, top = np.quantile(values, [0.5, 0.95, 1.0])
+    return {"median": float(median), "p95": float(p95), "max": float(top)}
 
 
 def demo_table(scenario: Any, trajectories: Sequence[Trajectory]) -> str:
@@ -262,6 +272,12 @@ def print_summary(summary: Mapping[str, Any]) -> None:
         f"Monte Carlo: {mc['samples']} runs, {h['montecarlo_failures']} failures, "
         f"failure probability <= {mc['failure_bound_95']:.2e} (95%)"
     )
+    if mc.get("tube_ratio_at_T"):
+        q = mc["tube_ratio_at_T"]
+        print(
+            f"  tube ratio at the final time: median {q['median']:.3f}, max {q['max']:.3f} "
+            "(1 = the certified decay e^(-λT); below: the rate is conservative)"
+        )
     for claim in summary["claims"]:
         print(f"  [{claim['kind']}] {claim['claim']}")
     if "stress" in summary:

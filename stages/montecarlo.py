@@ -42,6 +42,7 @@ class RunChecks:
     goal_margin: FloatArray
     input_slack: FloatArray
     tube_tightness: FloatArray
+    tube_final: FloatArray
     finite: np.ndarray
     covered: np.ndarray
 
@@ -100,6 +101,8 @@ class MonteCarloResult:
     falsification: Falsification
     success: bool
     message: str
+    # ||e(T)||_P e^(lambda T) / ||e(0)||_P per run: how much of the certified decay is used
+    tube_final: FloatArray = field(default_factory=lambda: np.zeros(0), repr=False)
 
 
 def check_runs(
@@ -118,7 +121,8 @@ def check_runs(
     used, the runs' positions ``(b, K+1, 2)``.
     """
     B = len(x0)
-    checks = {name: np.empty(B) for name in ("clearance", "goal_margin", "input_slack", "tube")}
+    names = ("clearance", "goal_margin", "input_slack", "tube", "tube_final")
+    checks = {name: np.empty(B) for name in names}
     finite = np.ones(B, dtype=bool)
     covered = controller.coverage_ratio(x0) < 1.0
     index = controller.select(x0)
@@ -160,13 +164,16 @@ def check_runs(
         # the reference is interpolated: allow twice its stated error (P-norm) on top of the tube
         slack = 2.0 * float(controller.data.get("interpolation_error_P_norm", 0.0)) + 1e-9
         decayed = np.maximum(norm - slack, 0.0) * np.exp(controller.rate * run.ts)
-        checks["tube"][rows] = np.max(decayed / np.maximum(norm[:, :1], 1e-12), axis=1)
+        ratio = decayed / np.maximum(norm[:, :1], 1e-12)
+        checks["tube"][rows] = np.max(ratio, axis=1)
+        checks["tube_final"][rows] = ratio[:, -1]
         paths.append(positions)
     result = RunChecks(
         checks["clearance"],
         checks["goal_margin"],
         checks["input_slack"],
         checks["tube"],
+        checks["tube_final"],
         finite,
         covered,
     )
@@ -304,4 +311,5 @@ def validate_closed_loop(
         falsification=falsification,
         success=success,
         message=message,
+        tube_final=checks.tube_final,
     )

@@ -66,6 +66,8 @@ def test_synthesis_certifies_and_validates(synthesis, name):
     assert headline["min_clearance_after"] >= headline["required_clearance"]
     assert headline["covered_after"]
     assert headline["montecarlo_failures"] == 0
+    ratio = summary["montecarlo"]["tube_ratio_at_T"]  # the certified decay holds at T
+    assert 0 < ratio["median"] <= ratio["p95"] <= ratio["max"] <= 1.0 + 1e-6
     worst = summary["montecarlo"]["falsification"]
     assert worst["worst_margin"] > 0 and worst["binding"].endswith((", m", "input units"))
     feedback = summary["feedback"]  # tubes kept wide enough to cover Init (>= r_d)
@@ -238,6 +240,7 @@ def test_the_smallest_margin_names_its_kind():
         goal_margin=np.array([1.0, 0.3, 1.0, 1.0]),
         input_slack=np.array([1.0, 1.0, -0.2, 1.0]),
         tube_tightness=np.ones(4),
+        tube_final=np.full(4, 0.5),
         finite=np.array([True, True, True, True]),
         covered=np.array([True, True, True, False]),
     )

@@ -113,6 +113,12 @@ def optimization(data: ReportData) -> tuple:
     )
 
 
+def _quantile_text(quantiles: dict[str, float] | None) -> str:
+    if quantiles is None:
+        return "n/a (re-run synthesize)"
+    return ", ".join(fixed(quantiles[k], 3) for k in ("median", "p95", "max"))
+
+
 def feedback(data: ReportData) -> tuple:
     s, fb, summary = data.scenario, data.feedback, data.summary["feedback"]
     K = np.asarray(fb.K)
@@ -326,6 +332,11 @@ def montecarlo(data: ReportData) -> tuple:
                 ("minimum clearance to Unsafe (m)", fixed(mc.min_clearance, 3)),
                 ("minimum goal margin (m)", fixed(mc.min_goal_margin, 3)),
                 ("maximum tube tightness", fixed(mc.max_tube_tightness, 4)),
+                (
+                    "tube ratio at the final time, ||e(T)||_P e^(λT) / ||e(0)||_P: median, 95%,"
+                    " max (1 = the certified bound; below: λ is conservative)",
+                    _quantile_text(data.summary["montecarlo"].get("tube_ratio_at_T")),
+                ),
                 (
                     "falsification: worst margin found",
                     number(f.worst_margin, 4) + (f" ({f.binding})" if f.binding else ""),
