@@ -238,7 +238,9 @@ def _synthesize(
         lambda: write_reports(scenario, out),
         rerun=not all((out / name).is_file() for name in REPORT_FILES),
     )
-    if not options.quiet:
+    if options.quiet:
+        print(f"verdict: {summary['verdict']['text']}")
+    else:
         print_summary(summary)
     return 0 if summary["verdict"]["certified"] and summary["verdict"]["validated"] else 1
 
