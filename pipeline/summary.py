@@ -243,7 +243,7 @@ def print_summary(summary: Mapping[str, Any]) -> None:
     """The end-of-run table."""
     print(
         f"\n{'demo':<9} {'T demo':>7} {'T opt':>6} {'faster':>7} {'clear before':>13}"
-        f" {'clear after':>12} {'r before':>9} {'r after':>8}"
+        f" {'clear after':>12} {'r before':>9} {'r after':>8} {'iters':>6} {'time':>6}"
     )
     for d in summary["demos"]:
         mark = "" if d["optimized"] else "  (kept as flown)"
@@ -251,7 +251,7 @@ def print_summary(summary: Mapping[str, Any]) -> None:
             f"{d['demo']:<9} {d['T_demo']:>6.1f}s {d['T_optimized']:>5.1f}s "
             f"{d['faster_percent']:>6.0f}% {d['clearance_before']:>13.3f} "
             f"{d['clearance_after']:>12.3f} {d['radius_before']:>9.3f} "
-            f"{d['radius_after']:>8.3f}{mark}"
+            f"{d['radius_after']:>8.3f} {d['iterations']:>6d} {d['seconds']:>5.1f}s{mark}"
         )
     h, mc = summary["headline"], summary["montecarlo"]
     print(
