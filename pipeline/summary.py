@@ -81,6 +81,8 @@ def summarise(
                 "radius_after": final_radii[i].radius,
                 "binding_before": demo_radii[i].binding,
                 "binding_after": final_radii[i].binding,
+                "binding_time_before": demo_radii[i].binding_time,
+                "binding_time_after": final_radii[i].binding_time,
             }
         )
     T_before = np.array([d["T_demo"] for d in demos])
@@ -253,6 +255,13 @@ def print_summary(summary: Mapping[str, Any]) -> None:
             f"{d['clearance_after']:>12.3f} {d['radius_before']:>9.3f} "
             f"{d['radius_after']:>8.3f} {d['iterations']:>6d} {d['seconds']:>5.1f}s{mark}"
         )
+    print("\nradius limited by (demonstration -> optimized):")
+    for d in summary["demos"]:
+        before, after = (
+            f"{d[f'binding_{when}']} at {d.get(f'binding_time_{when}', float('nan')):.1f} s"
+            for when in ("before", "after")
+        )
+        print(f"  {d['demo']:<9} {before:<30} -> {after}")
     h, mc = summary["headline"], summary["montecarlo"]
     print(
         f"\nmean duration {h['T_demo_mean']:.1f} s -> {h['T_optimized_mean']:.1f} s "
