@@ -13,13 +13,18 @@ import pytest
 from pipeline import geometry
 from pipeline.cli import main
 from pipeline.errors import UserError
-from pipeline.pilot import fly, regenerate_demos
+from pipeline.pilot import SYNTHETIC_FILE, fly, regenerate_demos
 from pipeline.recorder.save import append_demo_entry
 from pipeline.scenario import SCENARIOS_ROOT, Scenario, available_scenarios, load_scenario
 from pipeline.simulate import simulate
 
 SHIPPED = SCENARIOS_ROOT / "quadrotor_hill"
 FLOWN = [name for name in available_scenarios() if (SCENARIOS_ROOT / name / "pilot.py").is_file()]
+
+
+def _flown_by_pilot(scenario: Scenario) -> list:
+    """The pilot's demos (``demos/demo_NN.csv``); a user may have recorded more."""
+    return [d for d in scenario.demos if SYNTHETIC_FILE.search(d.file.as_posix())]
 
 
 @pytest.fixture(scope="module")
@@ -29,17 +34,18 @@ def scenario() -> Scenario:
 
 
 def test_shipped_demos_start_spread_over_init(scenario: Scenario) -> None:
-    assert len(scenario.demos) >= 6
-    starts = np.array([demo.x0 for demo in scenario.demos])
+    demos = _flown_by_pilot(scenario)
+    assert len(demos) >= 6
+    starts = np.array([demo.x0 for demo in demos])
     assert np.all(starts >= scenario.init_lower) and np.all(starts <= scenario.init_upper)
     positions = scenario.positions(starts)
-    assert len({tuple(p) for p in positions.tolist()}) == len(scenario.demos)
+    assert len({tuple(p) for p in positions.tolist()}) == len(demos)
     width = scenario.positions(scenario.init_upper - scenario.init_lower)
     assert np.all(np.ptp(positions, axis=0) >= 0.5 * width)
 
 
 def test_shipped_demos_are_synthetic_and_say_so(scenario: Scenario) -> None:
-    for demo in scenario.demos:
+    for demo in _flown_by_pilot(scenario):
         header = demo.file.read_text().split("\nt,")[0]
         assert "SYNTHETIC" in header and "NOT by a human" in header
         assert "make demos" in header
@@ -47,7 +53,7 @@ def test_shipped_demos_are_synthetic_and_say_so(scenario: Scenario) -> None:
 
 def test_shipped_demos_are_suboptimal_and_one_passes_close(scenario: Scenario) -> None:
     closest = []
-    for demo in scenario.demos:
+    for demo in _flown_by_pilot(scenario):
         assert np.all(demo.us >= scenario.input_lower) and np.all(demo.us <= scenario.input_upper)
         trajectory = simulate(scenario.dynamics, demo.x0, demo.us, scenario.Ts)
         positions = scenario.positions(trajectory.dense_xs)
@@ -73,18 +79,24 @@ def test_regenerate_reproduces_shipped_files_and_keeps_the_yaml(tmp_path: Path, 
     shipped = SCENARIOS_ROOT / name
     copy = tmp_path / name
     shutil.copytree(shipped, copy)
-    for csv in (copy / "demos").glob("*.csv"):
+    for csv in (copy / "demos").glob("demo_*.csv"):
         csv.unlink()
     yaml_path = copy / "scenario.yaml"
     shipped_yaml = (shipped / "scenario.yaml").read_text()
     block = re.search(r"^demos:", shipped_yaml, flags=re.MULTILINE)
     assert block is not None
-    yaml_path.write_text(shipped_yaml[: block.start()] + "demos: []  # to be flown\n")
+    recorded = [  # flights a user recorded into the shipped scenario stay listed
+        line
+        for line in shipped_yaml[block.start() :].splitlines(keepends=True)
+        if line.lstrip().startswith("- {") and not SYNTHETIC_FILE.search(line)
+    ]
+    demos_block = "demos:\n" + "".join(recorded) if recorded else "demos: []  # to be flown\n"
+    yaml_path.write_text(shipped_yaml[: block.start()] + demos_block)
 
     demos = regenerate_demos(yaml_path)
 
     assert yaml_path.read_bytes() == (shipped / "scenario.yaml").read_bytes()
-    count = len(load_scenario(name, check_demos=False).demos)
+    count = len(_flown_by_pilot(load_scenario(name, check_demos=False)))
     assert [demo.file.name for demo in demos] == [f"demo_{i:02d}.csv" for i in range(1, count + 1)]
     for demo in demos:
         assert demo.file.read_bytes() == (shipped / "demos" / demo.file.name).read_bytes()
