@@ -31,6 +31,8 @@ record: $(STAMP)
 
 lint: $(STAMP)
 	$(PY) -m ruff check pipeline stages tests bench
+	$(PY) -m ruff format --check pipeline stages tests bench
+	$(VENV)/bin/lint-imports
 
 clean:
 	rm -rf $(VENV) reports/*/ .pytest_cache build *.egg-info

@@ -9,9 +9,9 @@ from __future__ import annotations
 import numpy as np
 
 from bench.timing import best_time
-from pipeline.hull import jacobian_hull
-from pipeline.scenario import load_scenario
-from pipeline.simulate import simulate
+from pipeline.model.scenario import load_scenario
+from pipeline.model.simulate import simulate
+from pipeline.numerics.hull import jacobian_hull
 from stages.coverage import cover_init
 from stages.feedback import design_feedback
 from stages.radius import robustness_radius

@@ -4,7 +4,8 @@ The controller is ``reports/quadrotor_hill/controller.json`` (copied to a tempor
 that a concurrent ``make synthesize`` cannot change it mid-run); if it is missing, the pipeline
 is run into a temporary folder first (``--samples 1000``).
 
-(a) Batched: ``stages.montecarlo.check_runs`` on 10,000 initial states drawn uniformly from Init:
+(a) Batched: ``pipeline.numerics.closed_loop.check_runs`` on 10,000 initial states drawn uniformly
+    from Init:
     RK4 (4 substeps per Ts) on the whole batch around each selected trajectory, with every
     continuous-time check (clearance, goal, clipping, tube).
 (b) One at a time: ``select(x0)`` then ``xdot = f(x, controller(t, x))`` by ``solve_ivp``
@@ -29,12 +30,13 @@ from pathlib import Path
 import numpy as np
 from scipy.integrate import solve_ivp
 
-from pipeline import geometry
 from pipeline.controller import Controller, load
-from pipeline.executor import make_executor
-from pipeline.orchestrator import REPORTS_ROOT, RunOptions, synthesize
-from pipeline.scenario import Scenario, load_scenario
-from stages.montecarlo import check_runs, falsify, validate_closed_loop
+from pipeline.io.executor import make_executor
+from pipeline.model import geometry
+from pipeline.model.scenario import Scenario, load_scenario
+from pipeline.numerics.closed_loop import check_runs
+from pipeline.runtime.orchestrator import REPORTS_ROOT, RunOptions, synthesize
+from stages.montecarlo import falsify, validate_closed_loop
 
 SCENARIO = "quadrotor_hill"
 BATCH = 10_000
@@ -74,7 +76,7 @@ def rollout_solve_ivp(
         return scenario.dynamics.f(state, controller(t, state))
 
     for k in range(N):  # u_ref is piecewise constant: integrate each sample interval on its own
-        end = (k + 1) * Ts - 1e-9  # the left limit, as pipeline.closed_loop does
+        end = (k + 1) * Ts - 1e-9  # the left limit, as pipeline.numerics.closed_loop does
         solution = solve_ivp(field, (k * Ts, end), x, method="DOP853", rtol=rtol, atol=rtol)
         if not solution.success:
             raise RuntimeError(f"solve_ivp failed on interval {k}: {solution.message}")

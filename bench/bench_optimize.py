@@ -36,7 +36,7 @@ polygon; consecutive grid points are closer than ``2 d'`` (speed * Ts / 4 << 2.1
 that starts outside cannot cross a band of width ``2 d'`` around an edge, and stays outside.
 ModGoal (a convex polygon; a box here) is ``A p <= b`` from its edges. The NLP's constraints are
 tightened by ``NLP_MARGIN`` so that IPOPT's solution, to its tolerance, also has our cost
-``J == 0`` exactly; it is then checked with ``J`` and ``pipeline.verify.verify_nominal``.
+``J == 0`` exactly; it is then checked with ``J`` and ``pipeline.numerics.verify.verify_nominal``.
 
 Wall times: ours is ``optimize_demo`` (the whole search, after the numba kernels are loaded);
 IPOPT's is every NLP build and solve of phases 1 and 2. Runs on all 9 demos (about a minute).
@@ -50,11 +50,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.penalties import Constraints
-from pipeline.problem import Problem
-from pipeline.scenario import Scenario, load_scenario
-from pipeline.simulate import simulate
-from pipeline.verify import verify_nominal
+from pipeline.model.scenario import Scenario, load_scenario
+from pipeline.model.simulate import simulate
+from pipeline.numerics.penalties import Constraints
+from pipeline.numerics.problem import Problem, make_problem
+from pipeline.numerics.verify import verify_nominal
 from stages.feedback import design_feedback
 from stages.optimize import ConstraintMargins, OptimizeOptions, optimize_demo, reseed
 
@@ -361,7 +361,8 @@ def run() -> None:
         if casadi is None:
             print(f"{line}  wall time gd {ours['gd'][1]:.2f} s, lbfgs {ours['lbfgs'][1]:.2f} s")
             continue
-        problem = scenario.problem(
+        problem = make_problem(
+            scenario,
             demo=i,
             input_margin=margins.input_margin,
             region_margin=region_margin,

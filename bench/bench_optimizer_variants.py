@@ -11,7 +11,7 @@ import time
 
 import numpy as np
 
-from pipeline.scenario import load_scenario
+from pipeline.model.scenario import load_scenario
 from stages.feedback import design_feedback
 from stages.optimize import ConstraintMargins, OptimizeOptions, optimize_demo
 

@@ -1,7 +1,7 @@
 """Simulation speed, measured side by side in one run.
 
 (a) One flight (the first shipped demo, else a 100-sample hover input): fixed-step RK4
-    (``pipeline.simulate.simulate``) against ``solve_ivp`` (``simulate_reference``).
+    (``pipeline.model.simulate.simulate``) against ``solve_ivp`` (``simulate_reference``).
 (b) 10,000 initial states simulated as one batch against 100 simulated one at a time, per state.
 """
 
@@ -10,8 +10,8 @@ from __future__ import annotations
 import numpy as np
 
 from bench.timing import best_time
-from pipeline.scenario import load_scenario
-from pipeline.simulate import DEFAULT_SUBSTEPS, simulate, simulate_reference
+from pipeline.model.scenario import load_scenario
+from pipeline.model.simulate import DEFAULT_SUBSTEPS, simulate, simulate_reference
 
 BATCH = 10_000
 ONE_AT_A_TIME = 100

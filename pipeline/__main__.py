@@ -1,7 +1,7 @@
-"""``python -m pipeline``: see ``pipeline.cli``."""
+"""``python -m pipeline``: see ``pipeline.runtime.cli``."""
 
 import sys
 
-from pipeline.cli import main
+from pipeline.runtime.cli import main
 
 sys.exit(main())

@@ -14,11 +14,11 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.artifacts import atomic_write_json
 from pipeline.controller import FORMAT, load
-from pipeline.dynamics import FloatArray
-from pipeline.scenario import Scenario
-from pipeline.simulate import simulate
+from pipeline.io.artifacts import atomic_write_json
+from pipeline.model.dynamics import FloatArray
+from pipeline.model.scenario import Scenario
+from pipeline.model.simulate import simulate
 
 REFERENCE_SUBSTEPS = 20
 

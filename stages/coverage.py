@@ -18,8 +18,8 @@ from typing import Protocol
 
 import numpy as np
 
-from pipeline.dynamics import FloatArray
-from pipeline.scenario import Scenario
+from pipeline.model.dynamics import FloatArray
+from pipeline.model.scenario import Scenario
 
 DEFAULT_DEPTH = 8
 MAX_BOXES = 200_000

@@ -2,7 +2,7 @@
 contraction certificate.
 
 Certificate: ``P > 0`` and a rate ``lambda > 0`` with, for every vertex ``[A_i B_i]`` of a polytope
-that soundly contains ``[f_x f_u]`` over the operating region (``pipeline.hull``),
+that soundly contains ``[f_x f_u]`` over the operating region (``pipeline.numerics.hull``),
 
     (A_i + B_i K)^T P + P (A_i + B_i K) + 2 lambda P <= -eps P.                         (C)
 
@@ -38,9 +38,9 @@ import control
 import cvxpy as cp
 import numpy as np
 
-from pipeline.dynamics import FloatArray
-from pipeline.hull import DEFAULT_SEGMENTS, HullError, jacobian_hull
-from pipeline.scenario import Scenario
+from pipeline.model.dynamics import FloatArray
+from pipeline.model.scenario import Scenario
+from pipeline.numerics.hull import DEFAULT_SEGMENTS, HullError, jacobian_hull
 
 GAINS = ("auto", "lqr", "joint")
 EPS = 1e-3

@@ -12,7 +12,8 @@ nearest feasible solution, time-compressed (default) or truncated (the paper) to
 samples. Each descent runs on the cost with every margin tightened by ``overshoot`` and stops
 as soon as the problem's own cost is zero: a descent that approaches ``J = 0`` from outside only
 reaches it in the limit (measured: most failed tries ended at J ~ 1e-10 after the iteration cap).
-The result is re-verified in continuous time independently of the cost (``pipeline.verify``).
+The result is re-verified in continuous time independently of the cost
+(``pipeline.numerics.verify``).
 """
 
 from __future__ import annotations
@@ -26,13 +27,13 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from pipeline.descent import DescentResult, IterationLog, gradient_descent, lbfgs
-from pipeline.dynamics import FloatArray
-from pipeline.executor import Executor, SerialExecutor
-from pipeline.problem import Problem
-from pipeline.scenario import Scenario, load_scenario_cached
-from pipeline.shooting import StabilisedProblem
-from pipeline.verify import Verification, verify_nominal
+from pipeline.io.executor import Executor, SerialExecutor
+from pipeline.model.dynamics import FloatArray
+from pipeline.model.scenario import Scenario, load_scenario_cached
+from pipeline.numerics.descent import DescentResult, IterationLog, gradient_descent, lbfgs
+from pipeline.numerics.problem import Problem, make_problem
+from pipeline.numerics.shooting import StabilisedProblem
+from pipeline.numerics.verify import Verification, verify_nominal
 
 METHODS = ("gd", "lbfgs")
 SEED_MODES = ("compress", "truncate")
@@ -62,7 +63,8 @@ class ConstraintMargins:
     Attributes:
       input_margin: (m,) how much the tube's feedback may add to ``u_ref``, per input.
       region_margin: state/input name -> how far the tube extends along it.
-      gain: (m, n) the feedback gain, which also stabilises the shooting (``pipeline.shooting``).
+      gain: (m, n) the feedback gain, which also stabilises the shooting
+        (``pipeline.numerics.shooting``).
       clearance: the tube's position extent, kept from Unsafe and Goal's boundary (default: the
         scenario's ``d``; larger when coverage of Init needs a radius above ``r_d``).
       goal_margin: state name -> how far the tube extends along it (shrinks Goal's extra bounds).
@@ -221,8 +223,9 @@ def _minimise(
     (the same problem with larger margins); returns the outcome, whose ``cost`` is
     ``problem``'s, and its nominal input ``(N, m)``.
 
-    With ``parameterization="feedback"`` the descent runs over ``v`` of ``pipeline.shooting``
-    (the same cost, better conditioned); ``"open_loop"`` is the paper's literal ``u``.
+    With ``parameterization="feedback"`` the descent runs over ``v`` of
+    ``pipeline.numerics.shooting`` (the same cost, better conditioned); ``"open_loop"`` is the
+    paper's literal ``u``.
     """
     if options.parameterization == "feedback":
         target: Any = StabilisedProblem.around(tightened, gain, seed)
@@ -263,7 +266,8 @@ def optimize_demo(
     start = time.perf_counter()
 
     def constrained(extra: float) -> Problem:
-        return scenario.problem(
+        return make_problem(
+            scenario,
             demo=demo,
             input_margin=margins.input_margin,
             region_margin={

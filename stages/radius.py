@@ -32,10 +32,10 @@ import numpy as np
 import shapely
 from shapely.affinity import affine_transform
 
-from pipeline import geometry
-from pipeline.dynamics import FloatArray
-from pipeline.scenario import Scenario
-from pipeline.simulate import Trajectory
+from pipeline.model import geometry
+from pipeline.model.dynamics import FloatArray
+from pipeline.model.scenario import Scenario
+from pipeline.model.simulate import Trajectory
 
 
 class Tube(Protocol):

@@ -14,13 +14,13 @@ from dataclasses import dataclass
 from importlib import metadata
 from pathlib import Path
 
-from pipeline.artifacts import atomic_save, atomic_write_text
+from pipeline.io.artifacts import atomic_save, atomic_write_text
+from pipeline.model.scenario import Scenario
 from pipeline.reporting.content import Figure
 from pipeline.reporting.data import load_report_data
 from pipeline.reporting.html import render_html, save_figure_png
 from pipeline.reporting.pdf import write_pdf
 from pipeline.reporting.sections import build_sections
-from pipeline.scenario import Scenario
 
 
 @dataclass(frozen=True)

@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.controller import load
-from pipeline.scenario import Scenario
-from stages.montecarlo import check_runs
+from pipeline.model.scenario import Scenario
+from pipeline.numerics.closed_loop import check_runs
 
 
 @dataclass(frozen=True)

@@ -8,7 +8,13 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from pipeline.artifacts import atomic_save, atomic_write_text, inputs_key, load_result, save_result
+from pipeline.io.artifacts import (
+    atomic_save,
+    atomic_write_text,
+    inputs_key,
+    load_result,
+    save_result,
+)
 
 
 @dataclass(frozen=True)

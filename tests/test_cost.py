@@ -8,10 +8,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline import available_scenarios, geometry, load_scenario
-from pipeline.penalties import barrier, box_penalty
-from pipeline.problem import make_problem
-from pipeline.simulate import simulate
+from pipeline import available_scenarios, load_scenario
+from pipeline.model import geometry
+from pipeline.model.simulate import simulate
+from pipeline.numerics.penalties import barrier, box_penalty
+from pipeline.numerics.problem import make_problem
 
 
 @pytest.fixture(scope="module")
@@ -181,10 +182,10 @@ def test_demo_problem_and_horizons():
     if not scenario.demos:
         pytest.skip("no demos yet")
     demo = scenario.demos[0]
-    problem = scenario.problem(demo=0)
+    problem = make_problem(scenario, demo=0)
     assert problem.N == len(demo.us) and np.array_equal(problem.x0, demo.x0)
     assert np.array_equal(problem.u_seed, demo.us)
-    short = scenario.problem(demo=0, N=40)
+    short = make_problem(scenario, demo=0, N=40)
     assert short.N == 40 and np.array_equal(short.u_seed, demo.us[:40])
     long = problem.with_horizon(problem.N + 5)
     assert long.N == problem.N + 5 and np.array_equal(

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from pipeline.descent import gradient_descent, lbfgs
+from pipeline.numerics.descent import gradient_descent, lbfgs
 
 
 @dataclass(frozen=True)

@@ -32,12 +32,12 @@ import pytest
 from scipy.integrate import solve_ivp
 from scipy.linalg import expm
 
-from pipeline.closed_loop import simulate_closed_loop
 from pipeline.controller import load
-from pipeline.demos import write_demo_csv
-from pipeline.hull import jacobian_hull
-from pipeline.scenario import SCENARIOS_ROOT, Scenario, load_scenario
-from pipeline.simulate import simulate
+from pipeline.model.demos import write_demo_csv
+from pipeline.model.scenario import SCENARIOS_ROOT, Scenario, load_scenario
+from pipeline.model.simulate import simulate
+from pipeline.numerics.closed_loop import simulate_closed_loop
+from pipeline.numerics.hull import jacobian_hull
 from stages.controller import emit_controller
 from stages.feedback import design_feedback
 from stages.optimize import ConstraintMargins, OptimizeOptions, optimize_demo

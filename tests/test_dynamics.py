@@ -15,7 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pipeline import available_scenarios, load_scenario
-from pipeline.dynamics import Dynamics, FloatArray
+from pipeline.model.dynamics import Dynamics, FloatArray
 
 SCENARIOS = available_scenarios()
 

@@ -22,11 +22,11 @@ import pytest
 import shapely
 
 from pipeline import available_scenarios, load_scenario
-from pipeline.closed_loop import simulate_closed_loop
 from pipeline.controller import load
-from pipeline.simulate import simulate
-from pipeline.summary import demo_table
-from stages.montecarlo import RunChecks, check_runs, falsify, validate_closed_loop
+from pipeline.model.simulate import simulate
+from pipeline.numerics.closed_loop import RunChecks, check_runs, simulate_closed_loop
+from pipeline.runtime.summary import demo_table
+from stages.montecarlo import falsify, validate_closed_loop
 
 ROOT = Path(__file__).resolve().parents[1]
 CI_SAMPLES = {"quadrotor_hill": 1000}  # closed-loop runs per scenario; others: CI_SAMPLES_OTHER
@@ -155,7 +155,7 @@ def test_an_inflated_radius_is_caught(synthesized, tmp_path):
 
 
 def test_a_rerun_reuses_every_stage(synthesized, capsys):
-    from pipeline.orchestrator import RunOptions, synthesize
+    from pipeline.runtime.orchestrator import RunOptions, synthesize
 
     _, out = synthesized
     code = synthesize("quadrotor_hill", out=out, options=RunOptions(samples=1000))

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from pipeline import load_scenario
-from pipeline.artifacts import read_result
-from pipeline.errors import UserError
-from pipeline.executor import ChunkFailed, ProcessExecutor, SerialExecutor, make_executor
+from pipeline.io.artifacts import read_result
+from pipeline.io.errors import UserError
+from pipeline.io.executor import ChunkFailed, ProcessExecutor, SerialExecutor, make_executor
 from stages.montecarlo import validate_closed_loop
 from stages.optimize import ConstraintMargins, OptimizeOptions, optimize
 

@@ -9,7 +9,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline import geometry
+from pipeline.model import geometry
 
 SQUARE = geometry.polygon([[0, 0], [1, 0], [1, 1], [0, 1]])  # the unit square
 # An L-shape: the square [0, 2] x [0, 2] without [1, 2] x [1, 2] (non-convex).

@@ -8,9 +8,10 @@ import dataclasses
 import numpy as np
 import pytest
 
-from pipeline import available_scenarios, geometry, load_scenario
-from pipeline.problem import make_problem
-from pipeline.sensitivity import interval_sensitivities, sensitivity_pattern
+from pipeline import available_scenarios, load_scenario
+from pipeline.model import geometry
+from pipeline.numerics.problem import make_problem
+from pipeline.numerics.sensitivity import interval_sensitivities, sensitivity_pattern
 
 METHODS = ("adjoint", "sensitivity")
 

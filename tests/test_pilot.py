@@ -10,13 +10,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline import geometry
-from pipeline.cli import main
-from pipeline.errors import UserError
-from pipeline.pilot import SYNTHETIC_FILE, fly, regenerate_demos
-from pipeline.recorder.save import append_demo_entry
-from pipeline.scenario import SCENARIOS_ROOT, Scenario, available_scenarios, load_scenario
-from pipeline.simulate import simulate
+from pipeline.demonstrations.pilot import SYNTHETIC_FILE, fly, regenerate_demos
+from pipeline.demonstrations.recorder.save import append_demo_entry
+from pipeline.io.errors import UserError
+from pipeline.model import geometry
+from pipeline.model.scenario import SCENARIOS_ROOT, Scenario, available_scenarios, load_scenario
+from pipeline.model.simulate import simulate
+from pipeline.runtime.cli import main
 
 SHIPPED = SCENARIOS_ROOT / "quadrotor_hill"
 FLOWN = [name for name in available_scenarios() if (SCENARIOS_ROOT / name / "pilot.py").is_file()]

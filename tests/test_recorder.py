@@ -21,14 +21,14 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 import yaml  # noqa: E402
 
-from pipeline.artifacts import save_result  # noqa: E402
-from pipeline.cli import main  # noqa: E402
-from pipeline.errors import ScenarioError, UserError  # noqa: E402
-from pipeline.recorder.config import load_recorder_config  # noqa: E402
-from pipeline.recorder.flight import FlightStatus, Recorder, suggested_start  # noqa: E402
-from pipeline.recorder.save import save_flight, with_demo_entry  # noqa: E402
-from pipeline.scenario import SCENARIOS_ROOT, load_scenario  # noqa: E402
-from pipeline.simulate import simulate  # noqa: E402
+from pipeline.demonstrations.recorder.config import load_recorder_config  # noqa: E402
+from pipeline.demonstrations.recorder.flight import FlightStatus, Recorder, suggested_start  # noqa: E402
+from pipeline.demonstrations.recorder.save import save_flight, with_demo_entry  # noqa: E402
+from pipeline.io.artifacts import save_result  # noqa: E402
+from pipeline.io.errors import ScenarioError, UserError  # noqa: E402
+from pipeline.model.scenario import SCENARIOS_ROOT, load_scenario  # noqa: E402
+from pipeline.model.simulate import simulate  # noqa: E402
+from pipeline.runtime.cli import main  # noqa: E402
 
 QUADROTOR = SCENARIOS_ROOT / "quadrotor_hill"
 
@@ -86,7 +86,7 @@ def quadrotor(tmp_path: Path) -> Path:
 def pg():
     """pygame with a (dummy) display; the window tests skip cleanly without pygame."""
     pygame = pytest.importorskip("pygame")
-    from pipeline.recorder import app
+    from pipeline.demonstrations.recorder import app
 
     app.start_pygame()
     yield pygame
@@ -269,7 +269,7 @@ def post_axis(pygame, axis: int, value: float) -> None:
 
 
 def make_app(pygame, path: Path, x0=None):  # type: ignore[no-untyped-def]
-    from pipeline.recorder.app import RecorderApp
+    from pipeline.demonstrations.recorder.app import RecorderApp
 
     scenario = load_scenario(path, check_demos=False)
     config = load_recorder_config(scenario)
@@ -281,7 +281,7 @@ def make_app(pygame, path: Path, x0=None):  # type: ignore[no-untyped-def]
 def fly(pygame, app, before_sample=lambda k: None, start: float = 0.0) -> int:  # type: ignore[no-untyped-def]
     """Start the countdown at ``start``, then call ``before_sample(k)`` and update at the
     middle of every sample interval until the flight ends. Returns the samples flown."""
-    from pipeline.recorder.app import Phase
+    from pipeline.demonstrations.recorder.app import Phase
 
     post_key(pygame, "space")
     app.update(start)
@@ -366,7 +366,7 @@ def test_fake_joystick_flies_a_shipped_demo_into_goal_and_it_is_saved(
     np.testing.assert_array_equal(end, app.recorder.x)
     assert "input device: joystick 0" in saved.read_text()
     lines = quadrotor.read_text().splitlines()
-    assert "# SYNTHETIC flights from pipeline/pilot.py" in lines[-11]  # comments kept
+    assert "# SYNTHETIC flights from pipeline/demonstrations/pilot.py" in lines[-11]  # comments kept
     assert lines[-1].startswith("  - {file: demos/recorded_01.csv, x0: [")
     assert "# HUMAN, recorded" in lines[-1] and lines[-1].endswith("with joystick 0")
     image = pg.image.load(str(screenshot))
@@ -384,7 +384,7 @@ def test_click_inside_init_moves_the_start(pg, slider: Path) -> None:
 
 
 def test_replay_shows_a_demo_to_its_end(pg) -> None:
-    from pipeline.recorder.app import ReplayApp
+    from pipeline.demonstrations.recorder.app import ReplayApp
 
     scenario = load_scenario(QUADROTOR, check_demos=False)
     pg.event.clear()

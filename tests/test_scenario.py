@@ -19,9 +19,9 @@ import pytest
 import sympy
 
 from pipeline import ScenarioError, available_scenarios, load_scenario
-from pipeline.cli import main
-from pipeline.expressions import ExpressionError, parse_expression
-from pipeline.schema import json_schema
+from pipeline.model.expressions import ExpressionError, parse_expression
+from pipeline.model.schema import json_schema
+from pipeline.runtime.cli import main
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -6,14 +6,15 @@ import numpy as np
 import pytest
 
 from pipeline import load_scenario
-from pipeline.shooting import StabilisedProblem
+from pipeline.numerics.problem import make_problem
+from pipeline.numerics.shooting import StabilisedProblem
 from stages.feedback import lqr_gain
 
 
 @pytest.fixture(scope="module")
 def stabilised():
     scenario = load_scenario("quadrotor_hill", check_demos=False)
-    problem = scenario.problem(demo=3, N=60)
+    problem = make_problem(scenario, demo=3, N=60)
     return problem, StabilisedProblem.around(problem, lqr_gain(scenario), problem.u_seed)
 
 

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from pipeline import ScenarioError, load_scenario
-from pipeline.simulate import simulate, simulate_reference
+from pipeline.model.simulate import simulate, simulate_reference
 
 
 @cache

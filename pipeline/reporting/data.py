@@ -14,11 +14,11 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.artifacts import read_result
-from pipeline.dynamics import FloatArray
-from pipeline.errors import UserError
-from pipeline.scenario import Scenario
-from pipeline.simulate import Trajectory, simulate
+from pipeline.io.artifacts import read_result
+from pipeline.io.errors import UserError
+from pipeline.model.dynamics import FloatArray
+from pipeline.model.scenario import Scenario
+from pipeline.model.simulate import Trajectory, simulate
 
 STAGES = (
     "feedback",

@@ -1,7 +1,7 @@
 """The report's figures, each drawn into a matplotlib figure or subfigure from ``ReportData``.
 
-Colours follow ``pipeline.plotting``: demonstrations blue, optimized orange, intermediate feasible
-trajectories purple, closed loop teal, failures and gaps red.
+Colours follow ``pipeline.reporting.plotting``: demonstrations blue, optimized orange, intermediate
+feasible trajectories purple, closed loop teal, failures and gaps red.
 """
 
 from __future__ import annotations
@@ -15,10 +15,14 @@ from matplotlib.lines import Line2D
 from matplotlib.patches import Patch, Rectangle
 from matplotlib.ticker import MaxNLocator
 
-from pipeline.closed_loop import simulate_closed_loop
 from pipeline.controller import load
-from pipeline.dynamics import FloatArray
-from pipeline.plotting import (
+from pipeline.model.dynamics import FloatArray
+from pipeline.model.scenario import Scenario
+from pipeline.model.simulate import Trajectory, simulate
+from pipeline.numerics.closed_loop import simulate_closed_loop
+from pipeline.reporting.content import FigureLike
+from pipeline.reporting.data import ReportData
+from pipeline.reporting.plotting import (
     BOUND,
     CLOSED_LOOP,
     DEMO,
@@ -32,10 +36,6 @@ from pipeline.plotting import (
     projection_shape,
     slice_shape,
 )
-from pipeline.reporting.content import FigureLike
-from pipeline.reporting.data import ReportData
-from pipeline.scenario import Scenario
-from pipeline.simulate import Trajectory, simulate
 
 TUBE_PERIOD = 0.5  # s between the tube ellipses drawn along a path
 MARKER_PERIOD = 1.0  # s between the time markers on a path

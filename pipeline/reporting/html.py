@@ -19,9 +19,9 @@ matplotlib.use("Agg")
 import jinja2  # noqa: E402
 import matplotlib.pyplot as plt  # noqa: E402
 
-from pipeline.artifacts import atomic_save  # noqa: E402
-from pipeline.plotting import STYLE  # noqa: E402
+from pipeline.io.artifacts import atomic_save  # noqa: E402
 from pipeline.reporting.content import Figure, Section  # noqa: E402
+from pipeline.reporting.plotting import STYLE  # noqa: E402
 
 TEMPLATES = Path(__file__).resolve().parent / "templates"
 BADGES = {

@@ -24,7 +24,6 @@ from matplotlib.lines import Line2D  # noqa: E402
 from matplotlib.patches import Rectangle  # noqa: E402
 from matplotlib.textpath import TextToPath  # noqa: E402
 
-from pipeline.plotting import STYLE  # noqa: E402
 from pipeline.reporting.content import (  # noqa: E402
     Block,
     Figure,
@@ -34,6 +33,7 @@ from pipeline.reporting.content import (  # noqa: E402
     Table,
     Verdict,
 )
+from pipeline.reporting.plotting import STYLE  # noqa: E402
 
 PAGE = (11.69, 8.27)  # A4 landscape (in)
 MARGIN = 0.6

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.artifacts import file_hash
+from pipeline.io.artifacts import file_hash
 from pipeline.reporting import figures, stage_sections
 from pipeline.reporting.content import (
     Figure,

@@ -13,9 +13,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.dynamics import FloatArray
-from pipeline.pilot import PilotConfig
-from pipeline.scenario import Scenario
+from pipeline.demonstrations.pilot import PilotConfig
+from pipeline.model.dynamics import FloatArray
+from pipeline.model.scenario import Scenario
 
 CONFIG = PilotConfig(
     waypoints=((2.5, 3.6), (7.5, 3.6), (10.0, 0.5)),

@@ -17,9 +17,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.dynamics import FloatArray
-from pipeline.pilot import PilotConfig
-from pipeline.scenario import Scenario
+from pipeline.demonstrations.pilot import PilotConfig
+from pipeline.model.dynamics import FloatArray
+from pipeline.model.scenario import Scenario
 
 CONFIG = PilotConfig(
     waypoints=((4.5, 5.8), (10.0, 6.6), (16.0, 6.0), (21.2, 4.8), (19.2, 2.6)),

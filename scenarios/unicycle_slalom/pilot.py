@@ -17,9 +17,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.dynamics import FloatArray
-from pipeline.pilot import PilotConfig
-from pipeline.scenario import Scenario
+from pipeline.demonstrations.pilot import PilotConfig
+from pipeline.model.dynamics import FloatArray
+from pipeline.model.scenario import Scenario
 
 CONFIG = PilotConfig(
     waypoints=((6.3, 1.3), (13.3, -1.3), (20.3, 1.3), (27.0, 0.0)),

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.scenario import Scenario, load_scenario
+from pipeline.model.scenario import Scenario, load_scenario
 
 # States [X, Y, vX, vY], inputs [aX, aY]. Unsafe "wall" is the half-plane Y <= 0 (as a large
 # rectangle), Goal a large box above it, Init [0, 1] x [2, 3] at rest.

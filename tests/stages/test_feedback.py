@@ -19,9 +19,9 @@ from hypothesis import strategies as st
 from scipy.optimize import linprog
 from shapely.geometry import MultiPoint, Point
 
-from pipeline.dynamics import Dynamics
-from pipeline.hull import arc_polygon, jacobian_hull
-from pipeline.scenario import load_scenario
+from pipeline.model.dynamics import Dynamics
+from pipeline.model.scenario import load_scenario
+from pipeline.numerics.hull import arc_polygon, jacobian_hull
 from stages.feedback import FeedbackResult, design_feedback
 
 

@@ -10,7 +10,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from pipeline import load_scenario
-from pipeline.executor import ProcessExecutor
+from pipeline.io.executor import ProcessExecutor
+from pipeline.numerics.problem import make_problem
 from stages.feedback import design_feedback
 from stages.optimize import (
     ConstraintMargins,
@@ -87,7 +88,8 @@ def test_the_closest_demo_becomes_faster_and_verified(method, search):
     tried = {t.N: t.feasible for t in result.tries}
     assert tried[result.N] and (result.N == 1 or tried.get(result.N - 1) is False)
     # every intermediate feasible input really has zero cost
-    problem = scenario.problem(
+    problem = make_problem(
+        scenario,
         demo=demo,
         input_margin=margins.input_margin,
         region_margin={
@@ -139,7 +141,8 @@ def test_a_wider_tube_is_kept_away_by_its_own_clearance():
     result = optimize_demo(scenario, 7, wider, OptimizeOptions(method="lbfgs"))
     assert result.success, result.message
     assert min(result.verification.clearance.values()) >= 1.2
-    problem = scenario.problem(
+    problem = make_problem(
+        scenario,
         demo=7,
         input_margin=margins.input_margin,
         region_margin={

@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 import scipy.linalg
 
-from pipeline.geometry import distance
-from pipeline.scenario import load_scenario
-from pipeline.simulate import simulate
-from pipeline.verify import VERIFY_SUBSTEPS
+from pipeline.model.geometry import distance
+from pipeline.model.scenario import load_scenario
+from pipeline.model.simulate import simulate
+from pipeline.numerics.verify import VERIFY_SUBSTEPS
 from stages.feedback import design_feedback
 from stages.radius import robustness_radius
 

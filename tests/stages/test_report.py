@@ -17,11 +17,11 @@ import numpy as np
 import pytest
 from pypdf import PdfReader
 
-from pipeline.cli import main
-from pipeline.errors import UserError
-from pipeline.orchestrator import RunOptions, synthesize
+from pipeline.io.errors import UserError
+from pipeline.model.scenario import Scenario, load_scenario
 from pipeline.reporting.sections import headline_items, section_headings
-from pipeline.scenario import Scenario, load_scenario
+from pipeline.runtime.cli import main
+from pipeline.runtime.orchestrator import RunOptions, synthesize
 from stages.report import write_reports
 
 CHROMIUM = Path("/usr/bin/chromium")

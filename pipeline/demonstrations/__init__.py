@@ -1,0 +1,1 @@
+"""Making demonstrations: the scripted pilot and the interactive recorder."""

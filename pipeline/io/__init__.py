@@ -1,0 +1,1 @@
+"""Foundation used by every layer: errors, atomic files and hashing, executors, progress."""

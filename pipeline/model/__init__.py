@@ -1,0 +1,1 @@
+"""The model: scenario schema and validation, dynamics, geometry, simulation, demos."""

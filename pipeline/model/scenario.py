@@ -1,0 +1,466 @@
+"""Scenarios: load ``scenarios/NAME/scenario.yaml``, validate it, and build the frozen objects.
+
+Validation happens in three layers, each ending in one ``ScenarioError`` that names the file, the
+field path (or CSV row), what was found and what was expected:
+1. YAML syntax (line and column; a key repeated in one mapping is refused too);
+2. the schema (``pipeline.model.schema``: types, missing and extra keys, ordered bounds, ``Ts >
+0``);
+3. cross-field rules here: names that must match, symbols in the dynamics, valid polygons,
+   Init and Goal clear of Unsafe, demo files (inputs within bounds), and each demo's flight
+   (avoids Unsafe, ends in Goal).
+"""
+
+from __future__ import annotations
+
+import functools
+import keyword
+import os
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pydantic
+import shapely
+import sympy
+import yaml
+from shapely.geometry import MultiPoint, Polygon
+from shapely.validation import explain_validity
+
+from pipeline.io.artifacts import file_hash
+from pipeline.io.errors import ScenarioError
+from pipeline.model import geometry
+from pipeline.model.demos import Demo, read_demo_csv
+from pipeline.model.dynamics import Dynamics, FloatArray
+from pipeline.model.expressions import (
+    ALLOWED_CONSTANTS,
+    ALLOWED_FUNCTIONS,
+    ExpressionError,
+    parse_expression,
+)
+from pipeline.model.schema import FeedbackSpec, ScenarioSpec
+from pipeline.model.simulate import simulate
+
+SCENARIOS_ROOT = Path(
+    os.environ.get("SAFETY_SCENARIOS", Path(__file__).resolve().parents[2] / "scenarios")
+)
+
+
+@dataclass(frozen=True, eq=False)
+class Scenario:
+    """A validated scenario. Arrays: ``n`` states, ``m`` inputs.
+
+    Attributes:
+      input_lower, input_upper: (m,) input bounds.
+      init_lower, init_upper: (n,) the Init box (degenerate intervals allowed).
+      position_index: (2,) indices of the position states in the state vector.
+      unsafe: name -> polygon over position; goal: polygon over position.
+      goal_bounds: state name -> (lower, upper) extra bounds at the final time.
+      operating_region: state or input name -> (lower, upper).
+    """
+
+    name: str
+    path: Path
+    spec: ScenarioSpec = field(repr=False)
+    dynamics: Dynamics = field(repr=False)
+    Ts: float
+    input_lower: FloatArray
+    input_upper: FloatArray
+    init_lower: FloatArray
+    init_upper: FloatArray
+    position_index: tuple[int, int]
+    unsafe: Mapping[str, Polygon] = field(repr=False)
+    goal: Polygon = field(repr=False)
+    goal_bounds: Mapping[str, tuple[float, float]]
+    clearance: float
+    operating_region: Mapping[str, tuple[float, float]]
+    feedback: FeedbackSpec = field(repr=False)
+    demos: tuple[Demo, ...] = field(repr=False)
+    source_hash: str = ""
+
+    @property
+    def state_names(self) -> tuple[str, ...]:
+        return self.dynamics.state_names
+
+    @property
+    def input_names(self) -> tuple[str, ...]:
+        return self.dynamics.input_names
+
+    @property
+    def n(self) -> int:
+        return self.dynamics.n
+
+    @property
+    def m(self) -> int:
+        return self.dynamics.m
+
+    def positions(self, xs: FloatArray) -> FloatArray:
+        """Position coordinates of states: ``(..., n)`` -> ``(..., 2)``."""
+        return np.asarray(xs)[..., list(self.position_index)]
+
+    def in_goal(self, x: FloatArray) -> np.ndarray:
+        """True where a state ``(..., n)`` is in Goal (polygon and extra bounds). -> ``(...)``."""
+        inside = geometry.contains(self.goal, self.positions(x))
+        for name, (lower, upper) in self.goal_bounds.items():
+            value = np.asarray(x)[..., self.state_names.index(name)]
+            inside &= (value >= lower) & (value <= upper)
+        return inside
+
+
+def available_scenarios(root: Path = SCENARIOS_ROOT) -> list[str]:
+    """Names of the scenario folders under ``root`` that hold a ``scenario.yaml``."""
+    return sorted(p.parent.name for p in Path(root).glob("*/scenario.yaml"))
+
+
+def resolve_scenario_path(name_or_path: str | Path, root: Path = SCENARIOS_ROOT) -> Path:
+    """A scenario name, folder or YAML path -> the YAML path; unknown names list the known ones."""
+    candidate = Path(name_or_path)
+    if candidate.is_file():
+        return candidate
+    if (candidate / "scenario.yaml").is_file():
+        return candidate / "scenario.yaml"
+    if (Path(root) / str(name_or_path) / "scenario.yaml").is_file():
+        return Path(root) / str(name_or_path) / "scenario.yaml"
+    known = ", ".join(available_scenarios(root)) or "none"
+    raise ScenarioError(
+        f"unknown scenario '{name_or_path}'", expected=f"one of: {known} (or a path to a YAML file)"
+    )
+
+
+def load_scenario(name_or_path: str | Path, check_demos: bool = True) -> Scenario:
+    """Load and validate a scenario by name (``scenarios/NAME``) or path.
+
+    With ``check_demos`` every demo is simulated and must avoid Unsafe and end in Goal.
+    """
+    path = resolve_scenario_path(name_or_path)
+    spec = _parse_spec(path)
+    scenario = _build(path, spec)
+    if check_demos:
+        for demo in scenario.demos:
+            check_demo_flight(scenario, demo)
+    return scenario
+
+
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """``yaml.SafeLoader`` that refuses a key repeated in one mapping (PyYAML keeps the last)."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict:  # type: ignore[override]
+        first_line: dict[object, int] = {}
+        for key_node, _ in node.value:
+            if not isinstance(key_node, yaml.ScalarNode) or key_node.tag.endswith(":merge"):
+                continue
+            key = self.construct_object(key_node)
+            if key in first_line:
+                raise yaml.constructor.ConstructorError(
+                    problem=f"duplicate key '{key}' (first at line {first_line[key]})",
+                    problem_mark=key_node.start_mark,
+                )
+            first_line[key] = key_node.start_mark.line + 1
+        return super().construct_mapping(node, deep=deep)
+
+
+@functools.cache
+def load_scenario_cached(path: Path, source_hash: str) -> Scenario:
+    """``load_scenario(path, check_demos=False)`` once per process and file content (for workers
+    of an executor; ``source_hash`` keys the cache so that an edited file is reloaded)."""
+    del source_hash
+    return load_scenario(path, check_demos=False)
+
+
+def _parse_spec(path: Path) -> ScenarioSpec:
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as error:
+        reason = error.strerror if isinstance(error, OSError) else "not UTF-8 text"
+        raise ScenarioError(
+            f"cannot read scenario file ({reason})", file=path, expected="a readable YAML file"
+        ) from None
+    try:
+        data = yaml.load(text, Loader=_UniqueKeyLoader)  # a SafeLoader subclass
+    except yaml.MarkedYAMLError as error:
+        mark = error.problem_mark
+        where = f"line {mark.line + 1}, column {mark.column + 1}" if mark else "unknown place"
+        raise ScenarioError(f"YAML syntax error at {where}: {error.problem}", file=path) from None
+    except yaml.YAMLError as error:
+        raise ScenarioError(f"YAML syntax error: {error}", file=path) from None
+    if not isinstance(data, dict):
+        raise ScenarioError(
+            "not a mapping",
+            file=path,
+            found=type(data).__name__,
+            expected="a YAML mapping of scenario fields",
+        )
+    try:
+        return ScenarioSpec.model_validate(data)
+    except pydantic.ValidationError as error:
+        raise _schema_error(path, error) from None
+
+
+def _schema_error(path: Path, error: pydantic.ValidationError) -> ScenarioError:
+    first = error.errors()[0]
+    location = ".".join(str(part) for part in first["loc"]) or "(top level)"
+    more = len(error.errors()) - 1
+    suffix = f" (and {more} more error{'s' if more > 1 else ''})" if more else ""
+    kind = first["type"]
+    if kind == "missing":
+        return ScenarioError(
+            f"missing field{suffix}",
+            file=path,
+            field=location,
+            expected="this field (see the README's scenario reference)",
+        )
+    if kind == "extra_forbidden":
+        return ScenarioError(
+            f"unknown field{suffix}",
+            file=path,
+            field=location,
+            expected="only the fields of the scenario schema",
+        )
+    message = first["msg"].removeprefix("Value error, ").removeprefix("Input should be ")
+    return ScenarioError(
+        f"invalid value{suffix}",
+        file=path,
+        field=location,
+        found=first.get("input"),
+        expected=message[:1].lower() + message[1:],
+    )
+
+
+def _require_names(
+    path: Path, field_name: str, found: Sequence[str], expected: Sequence[str], exact: bool = True
+) -> None:
+    unknown = [name for name in found if name not in expected]
+    if unknown:
+        raise ScenarioError(
+            f"unknown name '{unknown[0]}'",
+            file=path,
+            field=f"{field_name}",
+            expected=f"names from {list(expected)}",
+        )
+    missing = [name for name in expected if name not in found]
+    if exact and missing:
+        raise ScenarioError(
+            f"missing entry '{missing[0]}'",
+            file=path,
+            field=field_name,
+            expected=f"one entry for every name in {list(expected)}",
+        )
+
+
+def _valid_polygon(path: Path, where: str, vertices: Sequence[Sequence[float]]) -> Polygon:
+    shape = geometry.polygon(vertices)
+    if not shape.is_valid or shape.area <= 0:
+        reason = explain_validity(shape) if not shape.is_valid else "zero area"
+        raise ScenarioError(
+            f"invalid polygon ({reason})",
+            file=path,
+            field=where,
+            expected="a simple polygon (no self-intersection, non-zero area)",
+        )
+    return shape
+
+
+def _build(path: Path, spec: ScenarioSpec) -> Scenario:
+    states, inputs = list(spec.states), list(spec.inputs)
+    names = states + inputs + list(spec.parameters)
+    duplicates = sorted({name for name in names if names.count(name) > 1})
+    if duplicates:
+        raise ScenarioError(
+            f"name '{duplicates[0]}' declared twice",
+            file=path,
+            field="states/inputs/parameters",
+            expected="distinct names",
+        )
+    reserved = [
+        name
+        for name in names
+        if name in ALLOWED_FUNCTIONS or name in ALLOWED_CONSTANTS or keyword.iskeyword(name)
+    ]
+    if reserved:
+        raise ScenarioError(
+            f"name '{reserved[0]}' is reserved (a function, constant or Python keyword)",
+            file=path,
+            field="states/inputs/parameters",
+            expected="another name",
+        )
+    if spec.position[0] == spec.position[1]:
+        raise ScenarioError(
+            "the same state twice",
+            file=path,
+            field="position",
+            found=list(spec.position),
+            expected="two different states",
+        )
+    _require_names(path, "dynamics", list(spec.dynamics), states)
+    _require_names(path, "input_bounds", list(spec.input_bounds), inputs)
+    _require_names(path, "init", list(spec.init), states)
+    _require_names(path, "position", list(spec.position), states, exact=False)
+    _require_names(path, "goal.bounds", list(spec.goal.bounds), states, exact=False)
+    if spec.stress is not None:
+        _require_names(
+            path, "stress.disturbance", list(spec.stress.disturbance), states, exact=False
+        )
+        _require_names(
+            path,
+            "stress.measurement_noise",
+            list(spec.stress.measurement_noise),
+            states,
+            exact=False,
+        )
+    _require_names(
+        path, "operating_region", list(spec.operating_region), states + inputs, exact=False
+    )
+    for key, values, size in [
+        ("feedback.reference_state", spec.feedback.reference_state, len(states)),
+        ("feedback.reference_input", spec.feedback.reference_input, len(inputs)),
+        ("feedback.state_weights", spec.feedback.state_weights, len(states)),
+        ("feedback.input_weights", spec.feedback.input_weights, len(inputs)),
+    ]:
+        if len(values) != size:
+            raise ScenarioError(
+                f"wrong length {len(values)}", file=path, field=key, expected=f"{size} values"
+            )
+
+    dynamics = _build_dynamics(path, spec)
+    unsafe = {
+        name: _valid_polygon(path, f"unsafe.{name}", vertices)
+        for name, vertices in spec.unsafe.items()
+    }
+    goal = _valid_polygon(path, "goal.polygon", spec.goal.polygon)
+    position_index = (states.index(spec.position[0]), states.index(spec.position[1]))
+    init_lower = np.array([spec.init[s][0] for s in states])
+    init_upper = np.array([spec.init[s][1] for s in states])
+    # The Init box projected on position; a point or a segment when an interval is degenerate.
+    corners = [init_lower[list(position_index)], init_upper[list(position_index)]]
+    init_box = MultiPoint(corners).envelope
+    for name, region in unsafe.items():
+        for label, other in [("init", init_box), ("goal.polygon", goal)]:
+            if shapely.intersects(region, other):
+                X, Y = shapely.intersection(region, other).representative_point().coords[0]
+                raise ScenarioError(
+                    f"overlaps Unsafe set '{name}' (for example at position ({X:g}, {Y:g}))",
+                    file=path,
+                    field=label,
+                    found=shapely.to_wkt(other, rounding_precision=6),
+                    expected=f"a set disjoint from unsafe.{name}",
+                )
+    Ts = float(spec.sampling_time)
+    demos = tuple(
+        _load_demo(path, spec, index, dynamics, init_lower, init_upper, Ts)
+        for index in range(len(spec.demos))
+    )
+    return Scenario(
+        name=spec.name,
+        path=path,
+        spec=spec,
+        dynamics=dynamics,
+        Ts=Ts,
+        input_lower=np.array([spec.input_bounds[u][0] for u in inputs]),
+        input_upper=np.array([spec.input_bounds[u][1] for u in inputs]),
+        init_lower=init_lower,
+        init_upper=init_upper,
+        position_index=position_index,
+        unsafe=unsafe,
+        goal=goal,
+        goal_bounds=dict(spec.goal.bounds),
+        clearance=float(spec.clearance),
+        operating_region=dict(spec.operating_region),
+        feedback=spec.feedback,
+        demos=demos,
+        source_hash=file_hash(path),
+    )
+
+
+def _build_dynamics(path: Path, spec: ScenarioSpec) -> Dynamics:
+    state_symbols = [sympy.Symbol(name, real=True) for name in spec.states]
+    input_symbols = [sympy.Symbol(name, real=True) for name in spec.inputs]
+    parameter_symbols = {name: sympy.Symbol(name, real=True) for name in spec.parameters}
+    symbols = {s.name: s for s in (*state_symbols, *input_symbols)} | parameter_symbols
+    values = {parameter_symbols[k]: sympy.Float(v) for k, v in spec.parameters.items()}
+    expressions = []
+    for name in spec.states:
+        try:
+            expression = parse_expression(spec.dynamics[name], symbols)
+        except ExpressionError as error:
+            raise ScenarioError(
+                str(error), file=path, field=f"dynamics.{name}", found=spec.dynamics[name]
+            ) from None
+        expression = sympy.sympify(expression.subs(values))
+        if expression.has(sympy.zoo, sympy.oo, -sympy.oo, sympy.nan, sympy.I):
+            raise ScenarioError(
+                f"not a finite real expression after substituting the parameters ({expression})",
+                file=path,
+                field=f"dynamics.{name}",
+                found=spec.dynamics[name],
+                expected="no division by zero and no complex values",
+            )
+        expressions.append(expression)
+    return Dynamics.from_expressions(state_symbols, input_symbols, expressions)
+
+
+def _load_demo(
+    path: Path,
+    spec: ScenarioSpec,
+    index: int,
+    dynamics: Dynamics,
+    init_lower: FloatArray,
+    init_upper: FloatArray,
+    Ts: float,
+) -> Demo:
+    entry = spec.demos[index]
+    where = f"demos.{index}.x0"
+    x0 = np.array(entry.x0, dtype=np.float64)
+    if x0.shape != (dynamics.n,):
+        raise ScenarioError(
+            f"wrong length {x0.size}",
+            file=path,
+            field=where,
+            expected=f"{dynamics.n} values ({', '.join(dynamics.state_names)})",
+        )
+    outside = np.flatnonzero((x0 < init_lower - 1e-12) | (x0 > init_upper + 1e-12))
+    if outside.size:
+        i = outside[0]
+        raise ScenarioError(
+            f"initial state outside Init in '{dynamics.state_names[i]}'",
+            file=path,
+            field=where,
+            found=float(x0[i]),
+            expected=f"a value in [{init_lower[i]:g}, {init_upper[i]:g}]",
+        )
+    demo_path = path.parent / entry.file
+    bounds = np.array([spec.input_bounds[name] for name in dynamics.input_names])
+    us = read_demo_csv(demo_path, dynamics.input_names, Ts, bounds=bounds)
+    return Demo(name=Path(entry.file).stem, file=demo_path, x0=x0, us=us)
+
+
+def check_demo_flight(scenario: Scenario, demo: Demo) -> None:
+    """Simulate ``demo`` and raise if it enters Unsafe or ends outside Goal (saying where/when)."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        trajectory = simulate(scenario.dynamics, demo.x0, demo.us, scenario.Ts)
+    if not np.all(np.isfinite(trajectory.dense_xs)):
+        k = int(np.argmax(~np.all(np.isfinite(trajectory.dense_xs), axis=-1)))
+        raise ScenarioError(
+            f"demo '{demo.name}' diverges (non-finite state) at t = {trajectory.dense_ts[k]:.2f} s",
+            file=demo.file,
+        )
+    positions = scenario.positions(trajectory.dense_xs)
+    for name, region in scenario.unsafe.items():
+        hits = np.flatnonzero(geometry.contains(region, positions))
+        if hits.size:
+            k = hits[0]
+            X, Y = positions[k]
+            raise ScenarioError(
+                f"demo '{demo.name}' enters Unsafe set '{name}'"
+                f" at t = {trajectory.dense_ts[k]:.2f} s,"
+                f" position ({X:.3f}, {Y:.3f})",
+                file=demo.file,
+                expected="a flight that never touches Unsafe",
+            )
+    if not scenario.in_goal(trajectory.final_state):
+        X, Y = positions[-1]
+        raise ScenarioError(
+            f"demo '{demo.name}' does not end in Goal: at t = {trajectory.duration:.2f} s it is at"
+            f" position ({X:.3f}, {Y:.3f}), state {np.round(trajectory.final_state, 3).tolist()}",
+            file=demo.file,
+            expected="a final state inside Goal",
+        )

@@ -1,0 +1,118 @@
+"""The scenario file's schema (pydantic); ``python -m pipeline schema`` prints it as JSON Schema.
+
+Field names here are the YAML keys. Cross-field rules (names that must match, polygons that
+must be valid, sets that must not overlap) are checked in ``pipeline.model.scenario``.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    PositiveFloat,
+    WithJsonSchema,
+)
+
+
+def _ordered(interval: tuple[float, float]) -> tuple[float, float]:
+    lower, upper = interval
+    if lower > upper:
+        raise ValueError(f"lower bound {lower} is above upper bound {upper}")
+    return interval
+
+
+def _number_as_text(value: object) -> object:
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        return str(value)
+    return value
+
+
+Interval = Annotated[tuple[float, float], AfterValidator(_ordered)]
+Vertex = tuple[float, float]
+Name = Annotated[str, Field(pattern=r"^[A-Za-z_][A-Za-z0-9_]*$")]
+# A dynamics expression: text in the grammar of ``pipeline.model.expressions``; a bare number is
+# accepted.
+Expression = Annotated[
+    str,
+    BeforeValidator(_number_as_text),
+    WithJsonSchema({"anyOf": [{"type": "string"}, {"type": "number"}]}),
+]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+
+class GoalSpec(_Strict):
+    """Goal: a polygon over the position coordinates, optionally with bounds on other states."""
+
+    polygon: list[Vertex] = Field(min_length=3, description="vertices [[x, y], ...] in order")
+    bounds: dict[str, Interval] = Field(
+        default_factory=dict, description="extra bounds on named states at the final time"
+    )
+
+
+class FeedbackSpec(_Strict):
+    """Design data for the robustness feedback ``u = u_ref + K (x - x_ref)``."""
+
+    reference_state: list[float] = Field(description="operating point x* for the LQR design (n)")
+    reference_input: list[float] = Field(description="operating point u* with f(x*, u*) = 0 (m)")
+    state_weights: list[PositiveFloat] = Field(description="diagonal of the LQR Q (n)")
+    input_weights: list[PositiveFloat] = Field(description="diagonal of the LQR R (m)")
+    rate: PositiveFloat = Field(description="contraction rate lambda to certify (1/s)")
+
+
+class StressSpec(_Strict):
+    """Perturbations for the stress test (``--stress``), never part of the certificate."""
+
+    disturbance: dict[str, PositiveFloat] = Field(
+        default_factory=dict,
+        description="bound on a constant term added to the named state's derivative, drawn "
+        "uniformly per run (e.g. wind)",
+    )
+    measurement_noise: dict[str, PositiveFloat] = Field(
+        default_factory=dict, description="standard deviation of noise on the measured state"
+    )
+
+
+class DemoSpec(_Strict):
+    """One demonstration: a CSV of held inputs and the initial state it was flown from."""
+
+    file: str = Field(description="CSV path relative to the scenario folder")
+    x0: list[float] = Field(description="initial state (n), inside Init")
+
+
+class ScenarioSpec(_Strict):
+    """A scenario file, ``scenarios/NAME/scenario.yaml``."""
+
+    name: str = Field(pattern=r"^[A-Za-z0-9_\-]+$")
+    description: str = ""
+    states: list[Name] = Field(min_length=1, description="state names, in order")
+    inputs: list[Name] = Field(min_length=1, description="input names, in order")
+    parameters: dict[Name, float] = Field(default_factory=dict)
+    dynamics: dict[str, Expression] = Field(description="time derivative of every state, as text")
+    position: tuple[str, str] = Field(description="the two states that Unsafe and Goal are over")
+    sampling_time: PositiveFloat = Field(description="Ts: inputs are held for Ts seconds")
+    input_bounds: dict[str, Interval]
+    unsafe: dict[str, Annotated[list[Vertex], Field(min_length=3)]] = Field(
+        description="named Unsafe polygons over position"
+    )
+    goal: GoalSpec
+    init: dict[str, Interval] = Field(description="Init box over every state")
+    clearance: PositiveFloat = Field(description="required distance d from Unsafe (m)")
+    operating_region: dict[str, Interval] = Field(
+        description="box over the states and inputs the Jacobian depends on"
+    )
+    feedback: FeedbackSpec
+    stress: StressSpec | None = Field(default=None, description="optional stress-test settings")
+    demos: list[DemoSpec] = Field(default_factory=list)
+
+
+def json_schema() -> dict[str, object]:
+    """The JSON Schema of the scenario file."""
+    return ScenarioSpec.model_json_schema()

@@ -1,0 +1,129 @@
+"""Simulation of ``xdot = f(x, u(t))`` under piecewise-constant inputs.
+
+The input is held on each sample interval: ``u(t) = u[k]`` for ``k Ts <= t < (k+1) Ts`` (the
+paper's joystick samples, §IV-A). The continuous model is integrated, never replaced by a
+discrete one: ``simulate`` uses fixed-step RK4 with ``substeps`` steps per interval (batched over
+any leading axes), ``simulate_reference`` uses ``scipy.integrate.solve_ivp`` restarted at every
+sample boundary (the input is discontinuous there) with tight tolerances.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.integrate import solve_ivp
+
+from pipeline.model.dynamics import Dynamics, FloatArray
+
+DEFAULT_SUBSTEPS = 4
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """A simulated trajectory; time is the first non-batch axis.
+
+    Attributes:
+      ts: (N+1,) sample times ``k Ts``.
+      xs: (..., N+1, n) states at the sample times.
+      us: (..., N, m) inputs; ``us[k]`` is held on ``[ts[k], ts[k+1])``.
+      dense_ts: (N*s+1,) times of the RK4 grid (``s`` substeps per interval).
+      dense_xs: (..., N*s+1, n) states on that grid.
+    """
+
+    ts: FloatArray
+    xs: FloatArray
+    us: FloatArray
+    dense_ts: FloatArray
+    dense_xs: FloatArray
+
+    @property
+    def duration(self) -> float:
+        return float(self.ts[-1])
+
+    @property
+    def final_state(self) -> FloatArray:
+        return self.xs[..., -1, :]
+
+
+def rk4_step(dynamics: Dynamics, x: FloatArray, u: FloatArray, h: float) -> FloatArray:
+    """One classical Runge-Kutta step of length ``h``: ``x (..., n)``, ``u (..., m)``."""
+    k1 = dynamics.f(x, u)
+    k2 = dynamics.f(x + 0.5 * h * k1, u)
+    k3 = dynamics.f(x + 0.5 * h * k2, u)
+    k4 = dynamics.f(x + h * k3, u)
+    return x + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+
+
+def simulate(
+    dynamics: Dynamics,
+    x0: FloatArray,
+    us: FloatArray,
+    Ts: float,
+    substeps: int = DEFAULT_SUBSTEPS,
+) -> Trajectory:
+    """Integrate with fixed-step RK4, ``substeps`` steps per sample interval.
+
+    Args:
+      x0: (..., n) initial states.
+      us: (..., N, m) piecewise-constant inputs; the leading axes broadcast with ``x0``'s.
+      Ts: sampling time (s).
+    """
+    if substeps < 1:
+        raise ValueError(f"substeps must be >= 1, got {substeps}")
+    x0 = np.asarray(x0, dtype=np.float64)
+    us = np.asarray(us, dtype=np.float64)
+    N = us.shape[-2]
+    batch = np.broadcast_shapes(x0.shape[:-1], us.shape[:-2])
+    h = Ts / substeps
+    dense = np.empty((*batch, N * substeps + 1, x0.shape[-1]))
+    x = np.broadcast_to(x0, (*batch, x0.shape[-1])).copy()
+    dense[..., 0, :] = x
+    for k in range(N):
+        u = us[..., k, :]
+        for s in range(substeps):
+            x = rk4_step(dynamics, x, u, h)
+            dense[..., k * substeps + s + 1, :] = x
+    ts = Ts * np.arange(N + 1)
+    dense_ts = h * np.arange(N * substeps + 1)
+    return Trajectory(
+        ts=ts,
+        xs=dense[..., ::substeps, :],
+        us=np.broadcast_to(us, (*batch, *us.shape[-2:])),
+        dense_ts=dense_ts,
+        dense_xs=dense,
+    )
+
+
+def simulate_reference(
+    dynamics: Dynamics,
+    x0: FloatArray,
+    us: FloatArray,
+    Ts: float,
+    rtol: float = 1e-10,
+    atol: float = 1e-10,
+    method: str = "DOP853",
+) -> FloatArray:
+    """States at the sample times by ``solve_ivp``, one interval at a time.
+
+    Args:
+      x0: (n,) initial state; us: (N, m) inputs. Returns (N+1, n).
+    """
+    x = np.asarray(x0, dtype=np.float64).copy()
+    us = np.asarray(us, dtype=np.float64)
+    out = np.empty((us.shape[0] + 1, x.shape[0]))
+    out[0] = x
+    for k, u in enumerate(us):
+        solution = solve_ivp(
+            lambda _t, y, u=u: dynamics.f(y, u),
+            (k * Ts, (k + 1) * Ts),
+            x,
+            method=method,
+            rtol=rtol,
+            atol=atol,
+        )
+        if not solution.success:
+            raise RuntimeError(f"solve_ivp failed on interval {k}: {solution.message}")
+        x = solution.y[:, -1]
+        out[k + 1] = x
+    return out

@@ -1,0 +1,1 @@
+"""Numerical methods on the model: penalties, gradients, descent, hull, verification."""

@@ -1,0 +1,202 @@
+"""Closed-loop simulation of the emitted controller: ``xdot = f(x, controller(t, x))``.
+
+The feedback acts in continuous time, so the controller is evaluated at every RK4 stage. Its
+reference input is piecewise constant, so each sample interval is integrated on its own and the
+stage at an interval's right end uses the left limit of the input.
+
+``check_runs`` measures each run's margins in continuous time (dense grid plus the motion bound
+between grid points): clearance to Unsafe, Goal at ``T``, input slack before clipping, and the
+error against the predicted tube ``||e(t)||_P <= e^{-lambda t} ||e(0)||_P + 2 delta``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from pipeline.controller import Controller
+from pipeline.model import geometry
+from pipeline.model.dynamics import Dynamics, FloatArray
+from pipeline.model.scenario import Scenario
+
+LEFT_LIMIT = 1e-9
+TUBE_TOLERANCE = 1e-6
+
+
+@dataclass(frozen=True)
+class ClosedLoopRun:
+    """Closed-loop runs of one batch around one reference trajectory.
+
+    Attributes:
+      ts: (K+1,) dense times; xs: (B, K+1, n) states; x_ref: (K+1, n) the reference there.
+      unclipped: (B, K, 4, m) the controller's output before clipping at every RK4 stage.
+    """
+
+    ts: FloatArray
+    xs: FloatArray
+    x_ref: FloatArray
+    unclipped: FloatArray
+
+
+def simulate_closed_loop(
+    dynamics: Dynamics,
+    controller: Controller,
+    x0: FloatArray,
+    trajectory: int,
+    substeps: int = 4,
+    disturbance: FloatArray | None = None,
+    noise: FloatArray | None = None,
+) -> ClosedLoopRun:
+    """Run the batch ``x0 (B, n)`` around trajectory number ``trajectory`` until its end ``T``.
+
+    Stress tests only: ``disturbance (B, n)`` is added to ``xdot``; ``noise (B, K, n)`` is added
+    to the state the controller measures on RK4 step ``j`` (``K = N * substeps``).
+    """
+    x = np.array(x0, dtype=np.float64)
+    B = x.shape[0]
+    controller.follow(np.full(B, trajectory))
+    reference = controller.trajectories[trajectory]
+    N = len(reference.u_ref)
+    h = controller.Ts / substeps
+    K = N * substeps
+    xs = np.empty((B, K + 1, x.shape[1]))
+    unclipped = np.empty((B, K, 4, len(controller.input_names)))
+    xs[:, 0] = x
+    extra = 0.0 if disturbance is None else disturbance
+
+    def field(t: float, state: FloatArray, j: int, stage: int) -> FloatArray:
+        raw = controller.unclipped(t, state if noise is None else state + noise[:, j])
+        unclipped[:, j, stage] = raw
+        return dynamics.f(state, np.clip(raw, controller.lower, controller.upper)) + extra
+
+    for j in range(K):
+        t = j * h
+        t_end = (j + 1) * h - (LEFT_LIMIT if (j + 1) % substeps == 0 else 0.0)
+        k1 = field(t, x, j, 0)
+        k2 = field(t + h / 2, x + h / 2 * k1, j, 1)
+        k3 = field(t + h / 2, x + h / 2 * k2, j, 2)
+        k4 = field(t_end, x + h * k3, j, 3)
+        x = x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+        xs[:, j + 1] = x
+    ts = h * np.arange(K + 1)
+    x_ref = np.stack(
+        [np.interp(ts, reference.t, reference.x_ref[:, i]) for i in range(x.shape[1])], axis=-1
+    )
+    return ClosedLoopRun(ts, xs, x_ref, unclipped)
+
+
+@dataclass(frozen=True)
+class RunChecks:
+    """Per-run margins for a batch ``(B,)``; a run fails when any margin is negative."""
+
+    clearance: FloatArray
+    goal_margin: FloatArray
+    input_slack: FloatArray
+    tube_tightness: FloatArray
+    tube_final: FloatArray
+    finite: np.ndarray
+    covered: np.ndarray
+
+    def margin(self) -> FloatArray:
+        """The smallest safety margin of each run (negative: unsafe, misses Goal or clips the
+        input), for falsification. The tube check is a failure kind but not a margin: its
+        ratio is 1 at ``t = 0`` by definition."""
+        worst = np.minimum.reduce([self.clearance, self.goal_margin, self.input_slack])
+        return np.where(self.finite & self.covered, worst, -np.inf)
+
+    def binding(self) -> list[str]:
+        """Which margin is the smallest in each run, with its unit."""
+        parts = np.stack([self.clearance, self.goal_margin, self.input_slack])
+        names = ("clearance to Unsafe, m", "Goal margin, m", "input slack, input units")
+        return [
+            names[k] if f and c else ("not covered" if not c else "non-finite state")
+            for k, f, c in zip(np.argmin(parts, axis=0), self.finite, self.covered, strict=True)
+        ]
+
+    def failures(self) -> dict[str, np.ndarray]:
+        """Failure masks ``(B,)`` by kind."""
+        ok = self.finite
+        return {
+            "unsafe": ok & (self.clearance <= 0),
+            "goal": ok & (self.goal_margin < 0),
+            "clipping": ok & (self.input_slack < 0),
+            "tube": ok & (self.tube_tightness > 1 + TUBE_TOLERANCE),
+            "non_finite": ~ok,
+            "uncovered": ~self.covered,
+        }
+
+
+def check_runs(
+    scenario: Scenario,
+    controller: Controller,
+    x0: FloatArray,
+    substeps: int = 4,
+    disturbance: FloatArray | None = None,
+    noise_std: FloatArray | None = None,
+    rng: np.random.Generator | None = None,
+) -> tuple[RunChecks, list[FloatArray]]:
+    """Simulate the closed loop from ``x0 (B, n)`` and measure every run's margins.
+
+    ``disturbance (B, n)`` and measurement noise of standard deviation ``noise_std (n,)`` (drawn
+    from ``rng``) are for stress tests only. Returns the checks and, per reference trajectory
+    used, the runs' positions ``(b, K+1, 2)``.
+    """
+    B = len(x0)
+    names = ("clearance", "goal_margin", "input_slack", "tube", "tube_final")
+    checks = {name: np.empty(B) for name in names}
+    finite = np.ones(B, dtype=bool)
+    covered = controller.coverage_ratio(x0) < 1.0
+    index = controller.select(x0)
+    paths = []
+    P = controller.P
+    for i in np.unique(index):
+        rows = np.flatnonzero(index == i)
+        steps = len(controller.trajectories[int(i)].u_ref) * substeps
+        noise = None
+        if noise_std is not None:
+            generator = rng if rng is not None else np.random.default_rng(0)
+            noise = generator.normal(size=(len(rows), steps, len(x0[0]))) * noise_std
+        run = simulate_closed_loop(
+            scenario.dynamics,
+            controller,
+            x0[rows],
+            int(i),
+            substeps,
+            disturbance=None if disturbance is None else disturbance[rows],
+            noise=noise,
+        )
+        xs = run.xs
+        finite[rows] = np.all(np.isfinite(xs), axis=(1, 2))
+        positions = scenario.positions(np.nan_to_num(xs, nan=1e9, posinf=1e9, neginf=-1e9))
+        step = np.linalg.norm(np.diff(positions, axis=1), axis=-1).max(axis=1)  # (b,)
+        # between grid points a run is within (step / 2) of a grid point (RK4 substeps are short)
+        distances = np.min(
+            [geometry.distance(positions, u) for u in scenario.unsafe.values()], axis=0
+        )
+        checks["clearance"][rows] = distances.min(axis=1) - step / 2
+        inside = scenario.in_goal(xs[:, -1])
+        to_edge = geometry.boundary_distance(positions[:, -1], scenario.goal)
+        checks["goal_margin"][rows] = np.where(inside, to_edge, -to_edge)
+        raw = run.unclipped
+        slack = np.minimum(raw - controller.lower, controller.upper - raw)
+        checks["input_slack"][rows] = slack.min(axis=(1, 2, 3))
+        e = xs - run.x_ref
+        norm = np.sqrt(np.einsum("btj,jk,btk->bt", e, P, e))
+        # the reference is interpolated: allow twice its stated error (P-norm) on top of the tube
+        slack = 2.0 * float(controller.data.get("interpolation_error_P_norm", 0.0)) + 1e-9
+        decayed = np.maximum(norm - slack, 0.0) * np.exp(controller.rate * run.ts)
+        ratio = decayed / np.maximum(norm[:, :1], 1e-12)
+        checks["tube"][rows] = np.max(ratio, axis=1)
+        checks["tube_final"][rows] = ratio[:, -1]
+        paths.append(positions)
+    result = RunChecks(
+        checks["clearance"],
+        checks["goal_margin"],
+        checks["input_slack"],
+        checks["tube"],
+        checks["tube_final"],
+        finite,
+        covered,
+    )
+    return result, paths

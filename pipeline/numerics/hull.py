@@ -1,0 +1,231 @@
+"""A sound polytope containing the Jacobians ``[f_x f_u]`` over a box (the operating region).
+
+Problem: find matrices ``J_1 .. J_V`` (n, n+m) with ``[f_x f_u](z) in conv{J_i}`` for every ``z``
+in the box ``Z = prod_k [lo_k, hi_k]`` over the variables the Jacobian depends on. Sampling ``Z``
+is not sound; this construction is.
+
+1. Features. Each (expanded) Jacobian entry is a sum ``c_0 + sum_k c_k phi_k(z)`` of numbers times
+   products ``phi_k``, so ``J(z) = J_0 + sum_k phi_k(z) M_k`` is affine in the feature vector
+   ``phi``. A feature that factors into single-variable parts ``phi = prod_z g_z(z)`` is
+   *multilinear* in the coordinates ``g_z`` (one per variable); any other feature is its own
+   coordinate.
+2. Blocks. The coordinates of one variable ``z`` form a block ``G_z = {(g_1(z), .., g_p(z))}``
+   over ``[lo, hi]``; each block is enclosed by a polytope with vertices ``V_z``:
+   - one coordinate: the interval ``[min g, max g]`` (interval arithmetic, exact for ``g = z``);
+   - ``(cos z, sin z)``: the arc circumscribed by tangents at ``k`` equally spaced angles (each
+     arc piece lies in the triangle of its end points and the tangents' intersection);
+   - anything else: the corners of interval boxes over ``k`` pieces of ``[lo, hi]``.
+   A feature that does not factor gets the interval of its value over the whole box.
+3. Vertices. ``phi`` is multilinear in the block coordinates, and a multilinear map sends a
+   product of polytopes into the hull of the images of vertex tuples (fix all blocks but one:
+   the map is affine in it). So ``J(Z) in conv{J_0 + sum_k phi_k(v) M_k : v in prod_z V_z}``.
+   Linear dynamics have no features and give one vertex, the exact Jacobian.
+
+Interval bounds use ``sympy.AccumBounds`` and are widened outward by ``PAD`` relative units to
+cover floating-point rounding.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import sympy
+from sympy import AccumBounds
+
+from pipeline.model.dynamics import Dynamics, FloatArray
+
+PAD = 1e-9
+DEFAULT_SEGMENTS = 8
+MAX_SEGMENT_ANGLE = math.pi / 4
+MAX_VERTICES = 4096
+
+
+class HullError(ValueError):
+    """The Jacobian cannot be enclosed over the given region (unbounded variable, bad function)."""
+
+
+@dataclass(frozen=True)
+class JacobianHull:
+    """Vertices of a polytope containing ``[f_x f_u]`` over ``region``.
+
+    Attributes:
+      vertices: (V, n, n+m) matrices ``[A_i B_i]``.
+      region: variable name -> (lower, upper), the box it holds over.
+      blocks: one line per block saying how it was enclosed (for reports).
+    """
+
+    vertices: FloatArray
+    region: Mapping[str, tuple[float, float]]
+    blocks: tuple[str, ...]
+
+    @property
+    def A(self) -> FloatArray:
+        """(V, n, n) state Jacobian vertices."""
+        n = self.vertices.shape[1]
+        return self.vertices[:, :, :n]
+
+    @property
+    def B(self) -> FloatArray:
+        """(V, n, m) input Jacobian vertices."""
+        n = self.vertices.shape[1]
+        return self.vertices[:, :, n:]
+
+
+def arc_polygon(lower: float, upper: float, segments: int = DEFAULT_SEGMENTS) -> FloatArray:
+    """Vertices (segments+4, 2) of a polygon containing ``{(cos a, sin a) : a in [lower, upper]}``.
+
+    The arc's end points and the intersections of the tangents at ``segments + 1`` equally spaced
+    angles (at mid-angles, distance ``1 / cos(delta / 2)`` from the origin). Against rounding, the
+    arc is widened by ``PAD`` radians at each end (margin along the chord) and the tangent polygon
+    is scaled by ``1 + PAD`` (margin along the tangents; the unscaled end points keep the chord).
+    """
+    if upper <= lower:
+        return np.array([[math.cos(lower), math.sin(lower)]])
+    lower, upper = lower - PAD, upper + PAD
+    segments = max(segments, math.ceil((upper - lower) / MAX_SEGMENT_ANGLE))
+    delta = (upper - lower) / segments
+    mids = lower + delta * (np.arange(segments) + 0.5)
+    tangents = np.column_stack([np.cos(mids), np.sin(mids)]) / math.cos(delta / 2)
+    ends = np.array([[math.cos(lower), math.sin(lower)], [math.cos(upper), math.sin(upper)]])
+    scaled = (1.0 + PAD) * np.vstack([ends[:1], tangents, ends[1:]])
+    return np.vstack([ends[:1], scaled, ends[1:]])
+
+
+def _bounds(expression: sympy.Expr, box: Mapping[sympy.Symbol, tuple[float, float]]) -> FloatArray:
+    """Sound ``[lower, upper]`` of ``expression`` over ``box`` by interval arithmetic."""
+    value = expression.subs(
+        {s: (AccumBounds(lo, hi) if hi > lo else sympy.Float(lo)) for s, (lo, hi) in box.items()}
+    )
+    if isinstance(value, AccumBounds):
+        lower, upper = value.min, value.max
+    else:
+        lower = upper = value
+    try:
+        lower, upper = float(lower), float(upper)
+    except TypeError:
+        raise HullError(
+            f"cannot bound '{expression}' over {dict(box)} by interval arithmetic (got {value})"
+        ) from None
+    if not (math.isfinite(lower) and math.isfinite(upper)):
+        raise HullError(f"'{expression}' is unbounded over {dict(box)}: [{lower}, {upper}]")
+    return np.array([lower - PAD * (1 + abs(lower)), upper + PAD * (1 + abs(upper))])
+
+
+def _block_vertices(
+    z: sympy.Symbol, functions: Sequence[sympy.Expr], lower: float, upper: float, segments: int
+) -> tuple[FloatArray, str]:
+    """Vertices (k, p) of a polytope containing ``{(g_1(z), .., g_p(z)) : z in [lower, upper]}``."""
+    if len(functions) == 1:
+        interval = _bounds(functions[0], {z: (lower, upper)})
+        return interval[:, None], f"{functions[0]} in [{interval[0]:.6g}, {interval[1]:.6g}]"
+    if set(functions) == {sympy.cos(z), sympy.sin(z)}:
+        polygon = arc_polygon(lower, upper, segments)
+        if functions[0] == sympy.sin(z):
+            polygon = polygon[:, ::-1]
+        return polygon, f"(cos {z}, sin {z}) on [{lower:g}, {upper:g}]: {len(polygon)}-gon"
+    edges = np.linspace(lower, upper, segments + 1)
+    corners = []
+    for a, b in itertools.pairwise(edges):
+        intervals = [_bounds(g, {z: (a, b)}) for g in functions]
+        corners.extend(itertools.product(*intervals))
+    return np.unique(np.array(corners), axis=0), (
+        f"({', '.join(map(str, functions))}) on [{lower:g}, {upper:g}]: boxes over {segments}"
+        " pieces"
+    )
+
+
+def jacobian_hull(
+    dynamics: Dynamics,
+    region: Mapping[str, tuple[float, float]],
+    segments: int = DEFAULT_SEGMENTS,
+) -> JacobianHull:
+    """A sound polytope of ``[f_x f_u]`` over the box ``region`` (name -> (lower, upper)).
+
+    Every variable the Jacobian depends on must be bounded by ``region``; ``segments`` is the
+    number of pieces per angle-like block (the arc polygon's tangents, or interval boxes).
+    """
+    n, m = dynamics.n, dynamics.m
+    symbols = {s.name: s for s in (*dynamics.state_symbols, *dynamics.input_symbols)}
+    missing = [name for name in dynamics.depends_on() if name not in region]
+    if missing:
+        raise HullError(
+            f"the Jacobian depends on {missing} but the operating region does not bound them; "
+            f"add them to operating_region (it has {sorted(region)})"
+        )
+    box = {symbols[name]: tuple(map(float, region[name])) for name in dynamics.depends_on()}
+    entries = sympy.Matrix.hstack(dynamics.jacobian_x, dynamics.jacobian_u)
+
+    # 1. J(z) = J_0 + sum_k phi_k(z) M_k.
+    J0 = np.zeros((n, n + m))
+    features: dict[sympy.Expr, FloatArray] = {}
+    for (i, j), entry in np.ndenumerate(np.array(entries.tolist(), dtype=object)):
+        for term in sympy.Add.make_args(sympy.expand(entry)):
+            coefficient, feature = term.as_coeff_Mul()
+            if feature.is_number:
+                J0[i, j] += float(coefficient * feature)
+                continue
+            features.setdefault(feature, np.zeros((n, n + m)))[i, j] += float(coefficient)
+
+    # 2. Split each feature into single-variable parts g_z (or keep it whole).
+    parts: dict[sympy.Symbol, list[sympy.Expr]] = {}
+    whole: list[sympy.Expr] = []
+    factorisation: list[list[tuple[object, sympy.Expr]]] = []
+    for feature in features:
+        by_variable: dict[sympy.Symbol, sympy.Expr] = {}
+        separable = True
+        for factor in sympy.Mul.make_args(feature):
+            free = factor.free_symbols
+            if len(free) != 1:
+                separable = False
+                break
+            (z,) = free
+            by_variable[z] = by_variable.get(z, sympy.Integer(1)) * factor
+        if separable:
+            factorisation.append(list(by_variable.items()))
+            for z, g in by_variable.items():
+                if g not in parts.setdefault(z, []):
+                    parts[z].append(g)
+        else:
+            factorisation.append([(None, feature)])
+            whole.append(feature)
+
+    # Blocks: vertices (k_b, p_b) and the coordinate of each (variable, g) or whole feature.
+    block_vertices: list[FloatArray] = []
+    descriptions: list[str] = []
+    coordinate: dict[tuple[object, sympy.Expr], tuple[int, int]] = {}
+    for z, functions in parts.items():
+        lower, upper = box[z]
+        vertices, text = _block_vertices(z, functions, lower, upper, segments)
+        for p, g in enumerate(functions):
+            coordinate[(z, g)] = (len(block_vertices), p)
+        block_vertices.append(vertices)
+        descriptions.append(text)
+    for feature in whole:
+        interval = _bounds(feature, {s: box[s] for s in feature.free_symbols})
+        coordinate[(None, feature)] = (len(block_vertices), 0)
+        block_vertices.append(interval[:, None])
+        descriptions.append(f"{feature} in [{interval[0]:.6g}, {interval[1]:.6g}] (whole)")
+
+    # 3. Vertices: every tuple of block vertices.
+    count = math.prod(len(v) for v in block_vertices)
+    if count > MAX_VERTICES:
+        raise HullError(
+            f"the Jacobian hull would have {count} vertices (> {MAX_VERTICES}); "
+            "reduce segments or the number of variables in the operating region"
+        )
+    grids = np.meshgrid(*[np.arange(len(v)) for v in block_vertices], indexing="ij")
+    choice = [g.ravel() for g in grids]  # block b -> (count,) vertex index
+    vertices = np.broadcast_to(J0, (count, n, n + m)).copy()
+    for (feature, M), parts_of in zip(features.items(), factorisation, strict=True):
+        del feature
+        value = np.ones(count)
+        for key in parts_of:
+            b, p = coordinate[key]
+            value = value * block_vertices[b][choice[b], p]
+        vertices += value[:, None, None] * M
+    vertices = np.unique(vertices, axis=0)
+    return JacobianHull(vertices=vertices, region=dict(region), blocks=tuple(descriptions))

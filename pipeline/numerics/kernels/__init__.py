@@ -1,0 +1,1 @@
+"""numba kernels generated from the scenario's expressions."""

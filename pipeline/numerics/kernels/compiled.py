@@ -1,0 +1,248 @@
+"""Compiled cost and gradients: numba kernels generated from the scenario's sympy expressions.
+
+The scalar functions ``f``, ``[f, f_x, f_u]`` (structural nonzeros only) and the vector-Jacobian
+product ``lam -> (lam f_x, lam f_u)`` are printed from the same sympy expressions as
+``pipeline.model.dynamics`` (common subexpressions eliminated, floats printed exactly), appended to
+the loops of ``pipeline.numerics.kernels.loops`` and written to a cache folder under a name that
+hashes the source, so numba's ``cache=True`` compiles each scenario once per machine. Polygons
+become vertex arrays (``PenaltyData``): shapely cannot run inside numba.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import os
+import sys
+import tempfile
+import weakref
+from pathlib import Path
+from types import ModuleType
+from typing import NamedTuple
+
+import numba
+import numpy as np
+import sympy
+from shapely.geometry import MultiPolygon, Polygon
+from shapely.geometry.base import BaseGeometry
+from sympy.printing.pycode import PythonCodePrinter
+
+from pipeline.model.dynamics import Dynamics, FloatArray
+from pipeline.numerics.penalties import Constraints, IntArray
+from pipeline.numerics.sensitivity import SensitivityPattern
+
+_TEMPLATE = Path(__file__).with_name("loops.py")
+_LOADED: dict[str, ModuleType] = {}
+_BY_DYNAMICS: weakref.WeakKeyDictionary[Dynamics, ModuleType] = weakref.WeakKeyDictionary()
+
+
+def cache_folder() -> Path:
+    """Where generated kernels live: ``$SAFETY_KERNEL_CACHE``, else ``~/.cache/...``."""
+    configured = os.environ.get("SAFETY_KERNEL_CACHE")
+    folder = (
+        Path(configured) if configured else Path.home() / ".cache" / "safety-synthesis" / "kernels"
+    )
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        if os.access(folder, os.W_OK):
+            return folder
+    except OSError:
+        pass
+    fallback = Path(tempfile.gettempdir()) / "safety-synthesis-kernels"
+    fallback.mkdir(parents=True, exist_ok=True)
+    return fallback
+
+
+class _Printer(PythonCodePrinter):
+    """Python source with ``math`` functions; floats with all their digits."""
+
+    def _print_Float(self, expr: sympy.Float) -> str:
+        return repr(float(expr))
+
+
+def _function(name: str, args: str, outputs: list[tuple[str, sympy.Expr]], unpack: str) -> str:
+    printer = _Printer({"fully_qualified_modules": True})
+    temporaries, reduced = sympy.cse(
+        [expression for _, expression in outputs], symbols=sympy.numbered_symbols("c_")
+    )
+    lines = ["", "", "@njit(cache=True)", f"def {name}({args}):", *unpack.splitlines()]
+    lines += [f"    {symbol} = {printer.doprint(value)}" for symbol, value in temporaries]
+    for (target, _), value in zip(outputs, reduced, strict=True):
+        lines.append(f"    {target} = {printer.doprint(value)}")
+    return "\n".join(lines) + "\n"
+
+
+def dynamics_source(dynamics: Dynamics) -> str:
+    """Numba source of ``f_eval``, ``f_jac_eval`` and ``vjp_eval`` for ``dynamics``."""
+    n, m = dynamics.n, dynamics.m
+    x = [sympy.Symbol(f"x_{i}") for i in range(n)]
+    u = [sympy.Symbol(f"u_{j}") for j in range(m)]
+    lam = [sympy.Symbol(f"l_{i}") for i in range(n)]
+    rename = dict(zip((*dynamics.state_symbols, *dynamics.input_symbols), (*x, *u), strict=True))
+    f = [sympy.sympify(e).xreplace(rename) for e in dynamics.expressions]
+    A = dynamics.jacobian_x.xreplace(rename)
+    B = dynamics.jacobian_u.xreplace(rename)
+    unpack = "\n".join(
+        [f"    x_{i} = x[{i}]" for i in range(n)] + [f"    u_{j} = u[{j}]" for j in range(m)]
+    )
+    source = _function("f_eval", "x, u, out", [(f"out[{i}]", f[i]) for i in range(n)], unpack)
+    outputs = [(f"out[{i}]", f[i]) for i in range(n)]
+    outputs += [(f"A[{i * n + j}]", A[i, j]) for i in range(n) for j in range(n) if A[i, j] != 0]
+    outputs += [(f"B[{i * m + j}]", B[i, j]) for i in range(n) for j in range(m) if B[i, j] != 0]
+    source += _function("f_jac_eval", "x, u, out, A, B", outputs, unpack)
+    vjp = [
+        (f"out_x[{j}]", sum((lam[i] * A[i, j] for i in range(n)), sympy.S.Zero)) for j in range(n)
+    ]
+    vjp += [
+        (f"out_u[{j}]", sum((lam[i] * B[i, j] for i in range(n)), sympy.S.Zero)) for j in range(m)
+    ]
+    unpack_lam = unpack + "\n" + "\n".join(f"    l_{i} = lam[{i}]" for i in range(n))
+    source += _function("vjp_eval", "x, u, lam, out_x, out_u", vjp, unpack_lam)
+    return source
+
+
+def load_kernels(dynamics: Dynamics) -> ModuleType:
+    """The compiled kernel module of ``dynamics`` (generated and imported once per process)."""
+    if dynamics in _BY_DYNAMICS:
+        return _BY_DYNAMICS[dynamics]
+    source = _TEMPLATE.read_text() + "\n# ---- generated from the scenario's expressions ----\n"
+    source += dynamics_source(dynamics)
+    stamp = f"{numba.__version__} {sys.version}\n{source}"
+    key = hashlib.sha256(stamp.encode()).hexdigest()[:20]
+    if key in _LOADED:
+        _BY_DYNAMICS[dynamics] = _LOADED[key]
+        return _LOADED[key]
+    path = cache_folder() / f"kernels_{key}.py"
+    if not path.is_file() or path.read_text() != source:
+        partial = path.with_suffix(f".{os.getpid()}.tmp")
+        partial.write_text(source)
+        os.replace(partial, path)  # atomic: parallel workers never see a half-written file
+    name = f"_safety_kernels_{key}"
+    spec = importlib.util.spec_from_file_location(name, path)
+    if spec is None or spec.loader is None:
+        raise ImportError(f"cannot import the generated kernels {path}")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    _LOADED[key] = _BY_DYNAMICS[dynamics] = module
+    return module
+
+
+class PenaltyData(NamedTuple):
+    """``Constraints`` as arrays for numba (see ``pipeline.numerics.kernels.loops``)."""
+
+    position: IntArray
+    unsafe_margin: float
+    unsafe_vertices: FloatArray
+    unsafe_ring_start: IntArray
+    unsafe_set_rings: IntArray
+    unsafe_box: FloatArray
+    goal_vertices: FloatArray
+    goal_ring_start: IntArray
+    input_lower: FloatArray
+    input_upper: FloatArray
+    region_state_index: IntArray
+    region_state_lower: FloatArray
+    region_state_upper: FloatArray
+    region_input_index: IntArray
+    region_input_lower: FloatArray
+    region_input_upper: FloatArray
+    goal_index: IntArray
+    goal_lower: FloatArray
+    goal_upper: FloatArray
+
+
+def _rings(shape: BaseGeometry) -> list[FloatArray]:
+    """Every ring (exterior and holes) of a polygon or multipolygon, without the closing vertex."""
+    if isinstance(shape, Polygon):
+        polygons = [shape]
+    elif isinstance(shape, MultiPolygon):
+        polygons = list(shape.geoms)
+    else:
+        raise TypeError(f"expected a polygon or multipolygon, got {shape.geom_type}")
+    rings = []
+    for polygon in polygons:
+        for ring in (polygon.exterior, *polygon.interiors):
+            rings.append(np.asarray(ring.coords, dtype=np.float64)[:-1])
+    return rings
+
+
+def _ring_arrays(rings: list[FloatArray]) -> tuple[FloatArray, IntArray]:
+    start = np.concatenate([[0], np.cumsum([len(r) for r in rings])]).astype(np.int64)
+    return np.concatenate(rings, axis=0), start
+
+
+def penalty_data(constraints: Constraints) -> PenaltyData:
+    """Vertex arrays and bounds of ``constraints`` for the kernels."""
+    unsafe_rings, set_rings, boxes = [], [0], []
+    for region in constraints.unsafe.values():
+        rings = _rings(region)
+        unsafe_rings += rings
+        set_rings.append(set_rings[-1] + len(rings))
+        boxes.append(region.bounds)
+    unsafe_vertices, unsafe_start = (
+        _ring_arrays(unsafe_rings) if unsafe_rings else (np.zeros((0, 2)), np.zeros(1, np.int64))
+    )
+    goal_vertices, goal_start = _ring_arrays(_rings(constraints.goal_region))
+    c = constraints
+    return PenaltyData(
+        position=np.array(c.position_index, dtype=np.int64),
+        unsafe_margin=float(c.unsafe_margin),
+        unsafe_vertices=unsafe_vertices,
+        unsafe_ring_start=unsafe_start,
+        unsafe_set_rings=np.array(set_rings, dtype=np.int64),
+        unsafe_box=np.array(boxes, dtype=np.float64).reshape(-1, 4),
+        goal_vertices=goal_vertices,
+        goal_ring_start=goal_start,
+        input_lower=c.input_lower,
+        input_upper=c.input_upper,
+        region_state_index=c.region_state_index,
+        region_state_lower=c.region_state_lower,
+        region_state_upper=c.region_state_upper,
+        region_input_index=c.region_input_index,
+        region_input_lower=c.region_input_lower,
+        region_input_upper=c.region_input_upper,
+        goal_index=c.goal_index,
+        goal_lower=c.goal_lower,
+        goal_upper=c.goal_upper,
+    )
+
+
+class PatternData(NamedTuple):
+    """The pruned entries of ``Phi``/``Gamma`` and term lists of ``(A Phi)_P``, ``(A Gamma)_Q``."""
+
+    phi_rows: IntArray
+    phi_cols: IntArray
+    gamma_rows: IntArray
+    gamma_cols: IntArray
+    terms: tuple[IntArray, IntArray, IntArray, IntArray, IntArray, IntArray, IntArray]
+
+
+def pattern_data(pattern: SensitivityPattern, sparsity_x: np.ndarray) -> PatternData:
+    """Index lists of the sparse products on the structural pattern (row-major entries)."""
+    n, m = pattern.gamma.shape
+    phi_rows, phi_cols = np.nonzero(pattern.phi)
+    gamma_rows, gamma_cols = np.nonzero(pattern.gamma)
+    phi_at = {(i, j): e for e, (i, j) in enumerate(zip(phi_rows, phi_cols, strict=True))}
+    gamma_at = {(i, j): e for e, (i, j) in enumerate(zip(gamma_rows, gamma_cols, strict=True))}
+
+    def terms(rows: IntArray, cols: IntArray, at: dict) -> tuple[IntArray, IntArray, IntArray]:
+        ptr, a, src = [0], [], []
+        for i, j in zip(rows, cols, strict=True):
+            for k in np.flatnonzero(sparsity_x[i]):
+                if (k, j) in at:
+                    a.append(i * n + k)
+                    src.append(at[(k, j)])
+            ptr.append(len(a))
+        return tuple(np.array(v, dtype=np.int64) for v in (ptr, a, src))  # type: ignore[return-value]
+
+    phi_terms = terms(phi_rows, phi_cols, phi_at)
+    gamma_terms = terms(gamma_rows, gamma_cols, gamma_at)
+    gamma_b = (gamma_rows * m + gamma_cols).astype(np.int64)
+    return PatternData(
+        phi_rows=phi_rows.astype(np.int64),
+        phi_cols=phi_cols.astype(np.int64),
+        gamma_rows=gamma_rows.astype(np.int64),
+        gamma_cols=gamma_cols.astype(np.int64),
+        terms=(*phi_terms, *gamma_terms, gamma_b),
+    )

@@ -1,0 +1,230 @@
+"""Drawing helpers over the position plane: the scenario's sets, trajectories, tubes.
+
+One palette for every figure: demonstrations blue, optimized trajectories orange, the bisection's
+intermediate feasible trajectories in purples, closed-loop runs teal, failures and gaps red.
+
+Tubes: the set ``{x : ||x - x_ref(t)||_P <= rho}`` projects on the position plane to the ellipse
+``{p : (p - p_ref)^T Sigma^-1 (p - p_ref) <= rho^2}`` with ``Sigma = C P^-1 C^T``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import matplotlib
+
+matplotlib.use("Agg")
+import numpy as np  # noqa: E402
+from matplotlib.axes import Axes  # noqa: E402
+from matplotlib.collections import EllipseCollection  # noqa: E402
+from matplotlib.patches import Rectangle  # noqa: E402
+from shapely.geometry import box  # noqa: E402
+from shapely.geometry.base import BaseGeometry  # noqa: E402
+
+from pipeline.model import geometry  # noqa: E402
+from pipeline.model.dynamics import FloatArray  # noqa: E402
+from pipeline.model.scenario import Scenario  # noqa: E402
+
+DEMO = "#4C72B0"
+OPTIMIZED = "#DD8452"
+CLOSED_LOOP = "#2A9D8F"
+FAILURE = "#C44E52"
+GOAL = "#55A868"
+INIT = "0.15"
+UNSAFE = "0.62"
+BOUND = "#8C1C13"
+INTERMEDIATE = "Purples"
+
+STYLE = {
+    "font.size": 9,
+    "axes.titlesize": 10,
+    "axes.labelsize": 9,
+    "legend.fontsize": 8,
+    "xtick.labelsize": 8,
+    "ytick.labelsize": 8,
+    "axes.spines.top": False,
+    "axes.spines.right": False,
+    "axes.grid": True,
+    "grid.color": "0.9",
+    "grid.linewidth": 0.6,
+    "svg.fonttype": "none",
+    "pdf.fonttype": 42,
+}
+
+
+def _fill(ax: Axes, shape: BaseGeometry, **style: object) -> None:
+    for poly in getattr(shape, "geoms", [shape]):
+        if not poly.is_empty:
+            x, y = poly.exterior.xy
+            ax.fill(x, y, **style)
+            style.pop("label", None)  # one legend entry per set
+
+
+def _outline(ax: Axes, shape: BaseGeometry, **style: object) -> None:
+    for poly in getattr(shape, "geoms", [shape]):
+        if not poly.is_empty:
+            ax.plot(*poly.exterior.xy, **style)
+            style.pop("label", None)
+
+
+def scenario_frame(
+    scenario: Scenario, positions: FloatArray | None = None, margin: float = 4.0
+) -> tuple[float, float, float, float]:
+    """``(xmin, xmax, ymin, ymax)``: Init and Goal (and ``positions (..., 2)``) with a margin,
+    widened so that at least 1 of every Unsafe set beside the frame shows."""
+    i, j = scenario.position_index
+    lo, hi = scenario.init_lower, scenario.init_upper
+    frame = box(lo[i], lo[j], hi[i], hi[j]).union(scenario.goal)
+    xmin, ymin, xmax, ymax = frame.buffer(margin).bounds
+    if positions is not None and np.size(positions):
+        p = np.asarray(positions).reshape(-1, 2)
+        p = p[np.all(np.isfinite(p), axis=1)]
+        if len(p):
+            xmin, ymin = min(xmin, p[:, 0].min() - 1.0), min(ymin, p[:, 1].min() - 1.0)
+            xmax, ymax = max(xmax, p[:, 0].max() + 1.0), max(ymax, p[:, 1].max() + 1.0)
+    for region in scenario.unsafe.values():
+        strip = region.intersection(box(xmin, -1e9, xmax, 1e9))
+        if not strip.is_empty:
+            low, high = strip.bounds[1], strip.bounds[3]
+            ymax = max(ymax, low + 1.0) if low >= ymax - 1.0 else ymax
+            ymin = min(ymin, high - 1.0) if high <= ymin + 1.0 else ymin
+    return xmin, xmax, ymin, ymax
+
+
+def draw_scenario(
+    ax: Axes,
+    scenario: Scenario,
+    positions: FloatArray | None = None,
+    goal_label: str = "Goal",
+) -> None:
+    """Unsafe sets (grey; bloated by ``d`` dotted), Goal (green), ModGoal (Goal shrunk by ``d``,
+    dashed) and Init (dark outline), framed to include ``positions (..., 2)``."""
+    xmin, xmax, ymin, ymax = scenario_frame(scenario, positions)
+    view = box(xmin, ymin, xmax, ymax)
+    for k, (name, region) in enumerate(scenario.unsafe.items()):
+        _fill(ax, region, color=UNSAFE, zorder=1, lw=0, label="Unsafe" if k == 0 else None)
+        bloated = geometry.bloat(region, scenario.clearance)
+        _outline(
+            ax,
+            bloated,
+            color="0.35",
+            ls=":",
+            lw=0.9,
+            zorder=1,
+            label=f"Unsafe bloated by d = {scenario.clearance:g} m" if k == 0 else None,
+        )
+        visible = region.intersection(view)
+        if not visible.is_empty:
+            where = visible.representative_point()
+            ax.annotate(
+                name,
+                (where.x, where.y),
+                color="0.1",
+                fontsize=8,
+                ha="center",
+                va="center",
+                zorder=6,
+                bbox={"boxstyle": "round,pad=0.15", "fc": "white", "ec": "none", "alpha": 0.75},
+            )
+    _fill(ax, scenario.goal, color=GOAL, alpha=0.22, lw=0, zorder=1, label=goal_label)
+    _outline(
+        ax,
+        geometry.shrink(scenario.goal, scenario.clearance),
+        color=GOAL,
+        ls="--",
+        lw=1.1,
+        zorder=2,
+        label="ModGoal (Goal shrunk by d)",
+    )
+    i, j = scenario.position_index
+    lo, hi = scenario.init_lower, scenario.init_upper
+    ax.add_patch(
+        Rectangle(
+            (lo[i], lo[j]),
+            hi[i] - lo[i],
+            hi[j] - lo[j],
+            fill=False,
+            edgecolor=INIT,
+            lw=1.3,
+            label="Init",
+            zorder=5,
+        )
+    )
+    ax.set_xlim(xmin, xmax)
+    ax.set_ylim(ymin, ymax)
+    ax.set_aspect("equal")
+    ax.grid(False)
+    ax.set_xlabel(f"{scenario.state_names[i]} (m)")
+    ax.set_ylabel(f"{scenario.state_names[j]} (m)")
+
+
+def draw_path(
+    ax: Axes,
+    scenario: Scenario,
+    ts: FloatArray,
+    xs: FloatArray,
+    color: str,
+    label: str | None = None,
+    marker_period: float | None = 1.0,
+    marker: str = "o",
+    **style: object,
+) -> None:
+    """One trajectory ``xs (K, n)`` at times ``ts (K,)``; markers every ``marker_period``
+    seconds (evenly spaced in time, so their spacing shows the speed)."""
+    p = scenario.positions(xs)
+    ax.plot(p[:, 0], p[:, 1], color=color, label=label, zorder=4, **style)
+    if marker_period:
+        t = np.arange(0.0, ts[-1] + 1e-9, marker_period)
+        ax.plot(
+            np.interp(t, ts, p[:, 0]),
+            np.interp(t, ts, p[:, 1]),
+            marker,
+            ms=2.6,
+            color=color,
+            alpha=float(style.get("alpha", 1.0)),  # type: ignore[arg-type]
+            zorder=4,
+        )
+
+
+def projection_shape(P: FloatArray, index: Sequence[int]) -> FloatArray:
+    """``C P^-1 C^T`` (2, 2): the projection of ``||e||_P <= 1`` on the states ``index``."""
+    c = list(index)
+    return np.linalg.inv(P)[np.ix_(c, c)]
+
+
+def slice_shape(P: FloatArray, index: Sequence[int]) -> FloatArray:
+    """``(S^T P S)^-1`` (2, 2): the slice of ``||e||_P <= 1`` along the states ``index``."""
+    c = list(index)
+    return np.linalg.inv(P[np.ix_(c, c)])
+
+
+def ellipses(
+    ax: Axes,
+    shape: FloatArray,
+    centers: FloatArray,
+    radii: FloatArray,
+    color: str,
+    filled: bool = False,
+    label: str | None = None,
+    **style: object,
+) -> None:
+    """The ellipses ``{p : (p - c)^T shape^-1 (p - c) <= r^2}`` for ``centers (k, 2)`` and
+    ``radii (k,)``; ``shape (2, 2)`` from ``projection_shape`` or ``slice_shape``."""
+    values, vectors = np.linalg.eigh(shape)
+    angle = np.degrees(np.arctan2(vectors[1, 1], vectors[0, 1]))  # the major axis
+    radii = np.asarray(radii, dtype=np.float64).reshape(-1)
+    collection = EllipseCollection(
+        widths=2 * radii * np.sqrt(values[1]),
+        heights=2 * radii * np.sqrt(values[0]),
+        angles=np.full(len(radii), angle),
+        units="xy",
+        offsets=np.asarray(centers, dtype=np.float64).reshape(-1, 2),
+        offset_transform=ax.transData,
+        facecolors=color if filled else "none",
+        edgecolors=color,
+        zorder=3,
+        **style,
+    )
+    if label:
+        collection.set_label(label)
+    ax.add_collection(collection)

@@ -1,0 +1,136 @@
+"""Command line: ``python -m pipeline COMMAND ...``.
+
+User mistakes (``UserError``) print one line on stderr and exit with code 2, no traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+from pipeline.controller import ControllerFormatError
+from pipeline.io.errors import UserError
+
+
+def _positive(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, found {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, found {value}")
+    return value
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="python -m pipeline", description=__doc__)
+    commands = parser.add_subparsers(dest="command", required=True)
+
+    synthesize = commands.add_parser("synthesize", help="run the synthesis pipeline on a scenario")
+    synthesize.add_argument("scenario", help="scenario name (scenarios/NAME) or path to its YAML")
+    synthesize.add_argument("--out", type=Path, default=None, help="output folder (reports/NAME)")
+    synthesize.add_argument(
+        "--method",
+        choices=("gd", "lbfgs"),
+        default="gd",
+        help="optimizer: the paper's gradient descent (default) or L-BFGS-B",
+    )
+    synthesize.add_argument(
+        "--samples",
+        type=_positive,
+        default=10_000,
+        help="Monte Carlo closed-loop runs (default 10000)",
+    )
+    synthesize.add_argument(
+        "--search",
+        choices=("continuation", "bisection"),
+        default="continuation",
+        help="how the final time is shortened (bisection: the paper's Remark 4)",
+    )
+    synthesize.add_argument("--jobs", type=_positive, default=1, help="worker processes")
+    synthesize.add_argument(
+        "--executor",
+        default=None,
+        help="where parallel work runs: local (default), dask-local, or dask://HOST:PORT",
+    )
+    synthesize.add_argument("--force", action="store_true", help="rerun every stage")
+    synthesize.add_argument(
+        "--stress",
+        action="store_true",
+        help="also run the stress test (wind, noise; not certified)",
+    )
+    verbosity = synthesize.add_mutually_exclusive_group()
+    verbosity.add_argument("-v", "--verbose", action="store_true", help="print iteration logs")
+    verbosity.add_argument("-q", "--quiet", action="store_true", help="print only the verdict")
+
+    demos = commands.add_parser("demos", help="regenerate a scenario's synthetic demonstrations")
+    demos.add_argument("scenario")
+
+    report = commands.add_parser(
+        "report", help="rebuild report.html and report.pdf from a finished run's artifacts"
+    )
+    report.add_argument("scenario", help="scenario name (scenarios/NAME) or path to its YAML")
+    report.add_argument("--out", type=Path, default=None, help="the run's folder (reports/NAME)")
+
+    commands.add_parser("schema", help="print the scenario file's JSON Schema")
+
+    from pipeline.demonstrations.recorder.commands import add_commands
+
+    add_commands(commands)  # record, replay
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    try:
+        return _run(args)
+    except (UserError, ControllerFormatError) as error:
+        print(f"error: {error}", file=sys.stderr)
+        return error.exit_code
+    except BrokenPipeError:
+        return 0
+    except KeyboardInterrupt:
+        print("interrupted: finished artifacts are kept; re-run to resume", file=sys.stderr)
+        return 130
+
+
+def _run(args: argparse.Namespace) -> int:
+    if args.command == "synthesize":
+        from pipeline.runtime.orchestrator import RunOptions, synthesize
+
+        options = RunOptions(
+            method=args.method,
+            search=args.search,
+            samples=args.samples,
+            jobs=args.jobs,
+            executor=args.executor,
+            force=args.force,
+            stress=args.stress,
+            verbose=args.verbose,
+            quiet=args.quiet,
+        )
+        return synthesize(args.scenario, out=args.out, options=options)
+    if args.command == "demos":
+        from pipeline.demonstrations.pilot import regenerate_demos
+
+        regenerate_demos(args.scenario)
+        return 0
+    if args.command == "report":
+        from pipeline.runtime.orchestrator import rebuild_reports
+
+        result = rebuild_reports(args.scenario, args.out)
+        print(f"{result.message}:\n  {result.html}\n  {result.pdf}")
+        return 0
+    if args.command == "schema":
+        from pipeline.model.schema import json_schema
+
+        print(json.dumps(json_schema(), indent=2))
+        return 0
+    if args.command in ("record", "replay"):
+        from pipeline.demonstrations.recorder.commands import run
+
+        return run(args)
+    raise AssertionError(f"unhandled command {args.command!r}")

@@ -1,0 +1,58 @@
+"""The architecture is enforced: import-linter's layer contracts and a NumPy-only controller."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+LAYERED = ("io", "model", "numerics", "reporting", "runtime", "demonstrations")
+
+
+def test_import_linter_contracts_are_kept():
+    """``pyproject.toml``'s contracts: layers, the NumPy-only controller, independent stages."""
+    lint = Path(sys.executable).with_name("lint-imports")
+    run = subprocess.run(
+        [str(lint), "--config", str(ROOT / "pyproject.toml")],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert run.returncode == 0, run.stdout + run.stderr
+    assert "BROKEN" not in run.stdout
+    assert run.stdout.count("KEPT") >= 3
+
+
+def test_the_tree_shows_the_layers():
+    """Every module of ``pipeline/`` lives in a layer package, except the controller and the
+    entry points."""
+    flat = {p.name for p in (ROOT / "pipeline").glob("*.py")}
+    assert flat == {"__init__.py", "__main__.py", "controller.py"}
+    for layer in LAYERED:
+        assert (ROOT / "pipeline" / layer / "__init__.py").is_file(), layer
+
+
+def test_controller_module_loads_numpy_and_the_standard_library_only():
+    code = (
+        "import sys; before = set(sys.modules); import pipeline.controller; "
+        "print('\\n'.join(sorted({m.split('.')[0] for m in set(sys.modules) - before})))"
+    )
+    run = subprocess.run(
+        [sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True
+    )
+    loaded = set(run.stdout.split())
+    third_party = loaded - set(sys.stdlib_module_names) - {"pipeline", "numpy"}
+    assert not third_party, f"pipeline.controller pulled in {sorted(third_party)}"
+    assert "pipeline" in loaded and "numpy" in loaded
+
+
+def test_package_import_is_lazy_and_names_resolve():
+    code = (
+        "import sys, pipeline; heavy = {'sympy', 'scipy', 'pydantic', 'shapely', 'cvxpy'}; "
+        "assert not heavy & set(sys.modules), sorted(heavy & set(sys.modules)); "
+        "from pipeline import load_scenario, Scenario, ScenarioError, UserError; "
+        "assert callable(load_scenario)"
+    )
+    subprocess.run([sys.executable, "-c", code], cwd=ROOT, check=True, timeout=120)
