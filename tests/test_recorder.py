@@ -366,7 +366,8 @@ def test_fake_joystick_flies_a_shipped_demo_into_goal_and_it_is_saved(
     np.testing.assert_array_equal(end, app.recorder.x)
     assert "input device: joystick 0" in saved.read_text()
     lines = quadrotor.read_text().splitlines()
-    assert "# SYNTHETIC flights from pipeline/demonstrations/pilot.py" in lines[-11]  # comments kept
+    # comments kept
+    assert "# SYNTHETIC flights from pipeline/demonstrations/pilot.py" in lines[-11]
     assert lines[-1].startswith("  - {file: demos/recorded_01.csv, x0: [")
     assert "# HUMAN, recorded" in lines[-1] and lines[-1].endswith("with joystick 0")
     image = pg.image.load(str(screenshot))
