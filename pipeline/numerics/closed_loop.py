@@ -22,6 +22,7 @@ from pipeline.model.scenario import Scenario
 
 LEFT_LIMIT = 1e-9
 TUBE_TOLERANCE = 1e-6
+INTERPOLATION_SLACK = 2.0  # the reference is interpolated: allow twice its stated error
 
 
 @dataclass(frozen=True)
@@ -184,7 +185,8 @@ def check_runs(
         e = xs - run.x_ref
         norm = np.sqrt(np.einsum("btj,jk,btk->bt", e, P, e))
         # the reference is interpolated: allow twice its stated error (P-norm) on top of the tube
-        slack = 2.0 * float(controller.data.get("interpolation_error_P_norm", 0.0)) + 1e-9
+        slack = INTERPOLATION_SLACK * float(controller.data.get("interpolation_error_P_norm", 0.0))
+        slack += 1e-9
         decayed = np.maximum(norm - slack, 0.0) * np.exp(controller.rate * run.ts)
         ratio = decayed / np.maximum(norm[:, :1], 1e-12)
         checks["tube"][rows] = np.max(ratio, axis=1)
