@@ -74,13 +74,13 @@ def rollout_solve_ivp(
     scenario: Scenario, controller: Controller, x0: np.ndarray, rtol: float = 1e-8
 ) -> float:
     """One closed-loop run from ``x0 (n,)`` by ``solve_ivp``; returns its smallest clearance."""
-    index = int(controller.select(x0))
-    N = len(controller.trajectories[index].u_ref)
+    index, _ = controller.select(x0)
+    N = len(controller.trajectories[int(index)].u_ref)
     Ts = controller.Ts
     x, points = np.array(x0, dtype=np.float64), [np.asarray(x0)[None]]
 
     def field(t: float, state: np.ndarray) -> np.ndarray:
-        return scenario.dynamics.f(state, controller(t, state))
+        return scenario.dynamics.f(state, controller(t, state, index))
 
     for k in range(N):  # u_ref is piecewise constant: integrate each sample interval on its own
         end = (k + 1) * Ts - 1e-9  # the left limit, as pipeline.numerics.closed_loop does

@@ -122,7 +122,7 @@ def _run_chunk(
     checks = check_runs_compiled(scenario, controller, x0)
     failed = np.any(list(checks.failures().values()), axis=0)
     # the paths drawn in the report: the first two runs around each trajectory, by the oracle
-    index = controller.select(x0)
+    index, _ = controller.select(x0)
     drawn = np.concatenate([np.flatnonzero(index == i)[:2] for i in np.unique(index)])
     _, paths = check_runs(scenario, controller, x0[np.sort(drawn)])
     return checks, x0[failed], [group[:, :: max(1, group.shape[1] // 200)] for group in paths]

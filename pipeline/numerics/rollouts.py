@@ -77,9 +77,9 @@ def check_runs_compiled(
     kernels = load_kernels(scenario.dynamics)
     scene = SceneArrays.of(scenario)
     out = np.empty((len(x0), kernels.CHECKS))
-    covered = controller.coverage_ratio(x0) < 1.0
-    index = controller.select(x0)
-    slack = INTERPOLATION_SLACK * float(controller.data.get("interpolation_error_P_norm", 0.0))
+    index, ratio = controller.select(x0)
+    covered = ratio < 1.0
+    slack = INTERPOLATION_SLACK * controller.interpolation_error
     for i in np.unique(index):
         rows = np.flatnonzero(index == i)
         reference = controller.trajectories[int(i)]
