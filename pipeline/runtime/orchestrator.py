@@ -1,7 +1,12 @@
 """The orchestrator: wires the stages in order and keeps their artifacts under ``reports/NAME``.
 
     load -> feedback -> radius(demos) -> coverage(demos) -> covering radius -> optimize
-         -> radius(optimized) -> coverage(optimized) -> controller -> montecarlo -> report
+         -> radius(optimized) -> coverage(optimized) -> controller -> certify -> montecarlo
+         -> report
+
+The controller stage writes ``controller.json`` on every run, from this run's certified
+results; the certify stage then re-verifies that file as written (never cached), and the
+verdict's "certified" is its result.
 
 The optimizer keeps every tube at the required radius ``max(r_d, covering radius)``: ``r_d`` is
 the radius that the clearance ``d`` certifies, and the covering radius the smallest common one
@@ -30,6 +35,7 @@ from pipeline.model.simulate import Trajectory, simulate
 from pipeline.numerics.verify import VERIFY_SUBSTEPS
 from pipeline.runtime.runner import StageRunner
 from pipeline.runtime.summary import demo_table, print_summary, stress_summary, summarise
+from stages.certify import certify_controller
 from stages.controller import emit_controller
 from stages.coverage import CoverageResult, CoveringRadius, cover_init, covering_radius
 from stages.feedback import FeedbackResult, design_feedback
@@ -190,8 +196,12 @@ def _synthesize(
             [final_radii[i].radius for i in usable],
             controller_path,
         ),
-        rerun=not controller_path.is_file(),
+        rerun=True,  # always written from this run's certified results
     )
+    started_certify = time.perf_counter()
+    certification = certify_controller(scenario, controller_path)
+    certify_seconds = time.perf_counter() - started_certify
+    say(f"[certify] {certification.message}")
     with progress_bar(options.samples, "closed-loop runs", options.quiet) as advance:
         montecarlo = runner.run(
             "montecarlo",
@@ -225,8 +235,9 @@ def _synthesize(
         final_radii,
         final_coverage,
         controller,
+        certification,
         montecarlo,
-        runner.timings(),
+        {**runner.timings(), "certify": certify_seconds},
         time.perf_counter() - started,
         command=sys.argv,
     )

@@ -52,6 +52,7 @@ def summarise(
     final_radii: Sequence[Any],
     final_coverage: Any,
     controller: Any,
+    certification: Any,
     montecarlo: Any,
     timings: Mapping[str, float],
     total_seconds: float,
@@ -101,10 +102,16 @@ def summarise(
         reasons.append(f"not optimized (kept as flown): {', '.join(failed)}")
     if any(r.radius <= 0 for r in final_radii):
         reasons.append("a nominal trajectory has no robustness radius")
+    if not certification.success:
+        reasons.append(certification.message)
     if not montecarlo.success:
         reasons.append(f"Monte Carlo failure: {montecarlo.message}")
+    # the file that ships must pass the final check; the stages' own results must agree
     certified = bool(
-        feedback.success and final_coverage.covered and all(r.radius > 0 for r in final_radii)
+        certification.success
+        and feedback.success
+        and final_coverage.covered
+        and all(r.radius > 0 for r in final_radii)
     )
     falsification = montecarlo.falsification
     return {
