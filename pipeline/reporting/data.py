@@ -19,6 +19,7 @@ from pipeline.io.errors import UserError
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import Trajectory, simulate
+from pipeline.reporting.summary import Summary
 
 STAGES = (
     "feedback",
@@ -45,7 +46,7 @@ class ReportData:
 
     scenario: Scenario
     out: Path
-    summary: Mapping[str, Any]
+    summary: Summary
     feedback: Any
     radius_demos: tuple[Any, ...]
     coverage_demos: Any
@@ -101,10 +102,12 @@ def load_report_data(scenario: Scenario, out: Path) -> ReportData:
     if not summary_path.is_file():
         raise _missing(summary_path, scenario, "summary.json not found")
     try:
-        summary = json.loads(summary_path.read_text())
+        summary = Summary.from_json(json.loads(summary_path.read_text()))
     except json.JSONDecodeError as error:
         raise _missing(summary_path, scenario, f"not valid JSON ({error})") from None
-    found = summary.get("reproducibility", {}).get("scenario_sha256")
+    except ValueError as error:
+        raise _missing(summary_path, scenario, f"not a run summary ({error})") from None
+    found = summary.reproducibility.scenario_sha256
     if found != scenario.source_hash:
         raise UserError(
             f"the run was made from another version of {scenario.path.name}",
