@@ -45,7 +45,7 @@ def write_reports(scenario: Scenario, out: Path) -> ReportResult:
     out = Path(out)
     data = load_report_data(scenario, out)
     sections = build_sections(data)
-    verdict = data.summary["verdict"]["text"]
+    verdict = data.summary.text
     title = f"Safety controller synthesis report: {scenario.name}"
     html = render_html(
         title,

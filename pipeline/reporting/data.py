@@ -10,7 +10,7 @@ import json
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -19,6 +19,15 @@ from pipeline.io.errors import UserError
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import Trajectory, simulate
+from pipeline.reporting.summary import Summary
+
+if TYPE_CHECKING:  # the stage results, read from artifacts (reporting sits below stages)
+    from stages.controller import ControllerResult
+    from stages.coverage import CoverageResult
+    from stages.feedback import FeedbackResult
+    from stages.montecarlo import MonteCarloResult
+    from stages.optimize import OptimizeResult
+    from stages.radius import RadiusResult
 
 STAGES = (
     "feedback",
@@ -45,15 +54,15 @@ class ReportData:
 
     scenario: Scenario
     out: Path
-    summary: Mapping[str, Any]
-    feedback: Any
-    radius_demos: tuple[Any, ...]
-    coverage_demos: Any
-    optimize: Any
-    radius_optimized: tuple[Any, ...]
-    coverage_optimized: Any
-    controller: Any
-    montecarlo: Any
+    summary: Summary
+    feedback: FeedbackResult
+    radius_demos: tuple[RadiusResult, ...]
+    coverage_demos: CoverageResult
+    optimize: OptimizeResult
+    radius_optimized: tuple[RadiusResult, ...]
+    coverage_optimized: CoverageResult
+    controller: ControllerResult
+    montecarlo: MonteCarloResult
     keys: Mapping[str, str]
     demo_paths: tuple[Trajectory, ...]
     final_paths: tuple[Trajectory, ...]
@@ -101,10 +110,12 @@ def load_report_data(scenario: Scenario, out: Path) -> ReportData:
     if not summary_path.is_file():
         raise _missing(summary_path, scenario, "summary.json not found")
     try:
-        summary = json.loads(summary_path.read_text())
+        summary = Summary.from_json(json.loads(summary_path.read_text()))
     except json.JSONDecodeError as error:
         raise _missing(summary_path, scenario, f"not valid JSON ({error})") from None
-    found = summary.get("reproducibility", {}).get("scenario_sha256")
+    except ValueError as error:
+        raise _missing(summary_path, scenario, f"not a run summary ({error})") from None
+    found = summary.reproducibility.scenario_sha256
     if found != scenario.source_hash:
         raise UserError(
             f"the run was made from another version of {scenario.path.name}",

@@ -90,7 +90,7 @@ def draw_overview(fig: FigureLike, data: ReportData) -> None:
 
 def bisection_demo(data: ReportData) -> int:
     """The demo shown like the paper's Fig. 2: the one flown closest to Unsafe."""
-    clearances = [d["clearance_before"] for d in data.summary["demos"]]
+    clearances = [d.clearance_before for d in data.summary.demos]
     return int(np.argmin(clearances))
 
 
