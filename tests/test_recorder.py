@@ -28,8 +28,8 @@ from pipeline.io.artifacts import save_result  # noqa: E402
 from pipeline.io.errors import ScenarioError, UserError  # noqa: E402
 from pipeline.model.scenario import SCENARIOS_ROOT, load_scenario  # noqa: E402
 from pipeline.model.simulate import simulate  # noqa: E402
-from pipeline.runtime.registry import RESULT_TYPES  # noqa: E402
 from pipeline.runtime.cli import main  # noqa: E402
+from pipeline.runtime.registry import RESULT_TYPES  # noqa: E402
 
 QUADROTOR = SCENARIOS_ROOT / "quadrotor_hill"
 

@@ -20,9 +20,10 @@ WAIT_SECONDS = 5.0
 
 
 @contextmanager
-def folder_lock(folder: Path, wait: float = WAIT_SECONDS) -> Iterator[Path]:
-    """Hold ``folder/.lock`` for the ``with`` block; wait up to ``wait`` seconds for another
-    holder, then raise ``UserError`` naming its pid."""
+def folder_lock(folder: Path, wait: float | None = None) -> Iterator[Path]:
+    """Hold ``folder/.lock`` for the ``with`` block; wait up to ``wait`` seconds (default
+    ``WAIT_SECONDS``) for another holder, then raise ``UserError`` naming its pid."""
+    wait = WAIT_SECONDS if wait is None else wait
     path = Path(folder) / LOCK_NAME
     handle = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
     try:

@@ -50,7 +50,7 @@ REPORT_FILES = ("report.html", "report.pdf", "scenario.png")
 # the code each cached stage's key covers besides its own module (see pipeline.runtime.codekey)
 RADIUS_CODE = ("stages.radius", "pipeline.model.simulate", "pipeline.numerics.verify")
 REPORT_CODE = ("stages.report", "pipeline.runtime.summary", "pipeline.runtime.stored")
-REPORT_STAGES = (
+REPORT_STAGES = (  # the controller's result is the file itself, keyed by its hash
     "feedback",
     "radius_demos",
     "coverage_demos",
@@ -58,7 +58,6 @@ REPORT_STAGES = (
     "optimize",
     "radius_optimized",
     "coverage_optimized",
-    "controller",
     "montecarlo",
 )
 
