@@ -26,16 +26,28 @@ def demo_fingerprints(scenario: Scenario) -> dict[str, str]:
     return {d.name: inputs_key(d.x0, d.us) for d in scenario.demos}
 
 
-def write_manifest(scenario: Scenario, out: Path) -> None:
-    """Record what the run was made from, for ``report`` to check against the current files."""
+def write_manifest(scenario: Scenario, out: Path, controller_sha256: str) -> None:
+    """Record what the run was made from (for ``report`` to check against the current files)
+    and the hash of the ``controller.json`` it certified (for the next run to reuse)."""
     atomic_write_json(
         Path(out) / "artifacts" / MANIFEST,
         {
             "scenario": scenario.name,
             "scenario_sha256": scenario.source_hash,
             "demos": demo_fingerprints(scenario),
+            "controller_sha256": controller_sha256,
         },
     )
+
+
+def shipped_controller(out: Path) -> str | None:
+    """The sha256 of the ``controller.json`` the last finished run wrote, if recorded."""
+    try:
+        manifest = json.loads((Path(out) / "artifacts" / MANIFEST).read_text())
+    except (OSError, UnicodeDecodeError, ValueError, RecursionError):
+        return None
+    found = manifest.get("controller_sha256") if isinstance(manifest, dict) else None
+    return found if isinstance(found, str) else None
 
 
 def _rerun(path: Path, scenario: Scenario, what: str) -> UserError:
