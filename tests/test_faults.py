@@ -9,6 +9,7 @@ follow the code and the parsed inputs.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import shutil
@@ -160,6 +161,21 @@ def test_failed_stage_writes_a_failed_summary_and_stales_old_outputs(run, capsys
     monkeypatch.undo()  # the next good run clears the stale files
     assert synthesize(run, "-q") == 0
     assert (out / "controller.json").is_file() and not list(out.glob("*.stale.*"))
+
+
+def test_uncertifiable_feedback_is_exit_1_with_a_failed_summary(run, capsys, monkeypatch):
+    _, out = run
+    stored = read_stored(out / "artifacts" / "feedback", RESULT_TYPES).result
+    failed = dataclasses.replace(stored, success=False, message="LMI infeasible at rate 0.5")
+    monkeypatch.setattr(orchestrator, "design_feedback", lambda scenario: failed)
+    assert synthesize(run, "--force", "-q") == 1
+    assert "failed: stage feedback: the feedback could not be certified" in (
+        capsys.readouterr().out
+    )
+    summary = json.loads((out / "summary.json").read_text())
+    assert (summary["status"], summary["stage"]) == ("failed", "feedback")
+    assert "LMI infeasible" in summary["reason"]
+    assert not (out / "controller.json").exists()
 
 
 # --- 5. corrupt caches -------------------------------------------------------------------------

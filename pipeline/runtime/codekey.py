@@ -3,7 +3,8 @@ or a numerical library changes, without hand-written version strings.
 
 ``code_key("stages.radius")`` hashes the source of that module and of every project module it
 imports, transitively (imports of ``pipeline`` and ``stages`` found in the syntax tree, including
-those inside functions), together with the installed versions of the numerical libraries.
+those inside functions; the data folders of the packages met, e.g. the report's templates),
+together with the installed versions of the numerical libraries.
 """
 
 from __future__ import annotations
@@ -87,8 +88,23 @@ def _sources(modules: tuple[str, ...]) -> dict[str, bytes]:
         if path is None:
             raise ValueError(f"{module!r} is not a module of {PROJECT_PACKAGES}")
         seen[module] = path.read_bytes()
-        pending.extend(_imported(module, seen[module].decode(), path.name == "__init__.py"))
+        is_package = path.name == "__init__.py"
+        pending.extend(_imported(module, seen[module].decode(), is_package))
+        if is_package:
+            seen.update(_package_data(module, path.parent))
     return seen
+
+
+def _package_data(package: str, folder: Path) -> dict[str, bytes]:
+    """Files in a package's data folders (folders without ``__init__.py``, e.g. the report's
+    ``templates/``), keyed ``package/relative/path``."""
+    data = {}
+    for sub in folder.iterdir():
+        if sub.is_dir() and sub.name != "__pycache__" and not (sub / "__init__.py").exists():
+            for file in sorted(p for p in sub.rglob("*") if p.is_file()):
+                if "__pycache__" not in file.parts:
+                    data[f"{package}/{file.relative_to(folder).as_posix()}"] = file.read_bytes()
+    return data
 
 
 @cache
