@@ -22,7 +22,7 @@ import numpy as np
 TEMPORARY = ".tmp"
 
 
-def _atomic(path: Path, write: Callable[[Path], None], suffix: str = "") -> None:
+def _atomic(path: Path, write: Callable[[Path], object], suffix: str = "") -> None:
     """Call ``write(temporary)`` and rename the temporary to ``path``; on any failure delete
     exactly that temporary (``.NAME.XXXX.tmp`` + ``suffix``, and whatever a writer appended to
     that unique name), so nothing is left behind."""
