@@ -1,10 +1,11 @@
 """Stage ``report``: ``report.html``, ``report.pdf`` and ``scenario.png`` from the saved artifacts
 (no recomputation).
 
-Reads ``summary.json`` and ``artifacts/*`` under the output folder (``pipeline.reporting.data``),
-builds the eight sections once (``pipeline.reporting.sections``) and writes them twice: one
-self-contained HTML page (Jinja2 template, inline SVG figures) and a paginated PDF (matplotlib's
-``PdfPages``, at least one page per section). Both files are written atomically.
+Takes the run's summary and stage results as ``ReportData`` (read from ``summary.json`` and
+``artifacts/*`` by the stage cache, which alone knows the result types), builds the eight
+sections once (``pipeline.reporting.sections``) and writes them twice: one self-contained HTML
+page (Jinja2 template, inline SVG figures) and a paginated PDF (matplotlib's ``PdfPages``, at
+least one page per section). Both files are written atomically.
 """
 
 from __future__ import annotations
@@ -15,9 +16,8 @@ from importlib import metadata
 from pathlib import Path
 
 from pipeline.io.artifacts import atomic_save, atomic_write_text
-from pipeline.model.scenario import Scenario
 from pipeline.reporting.content import Figure
-from pipeline.reporting.data import load_report_data
+from pipeline.reporting.data import ReportData
 from pipeline.reporting.html import render_html, save_figure_png
 from pipeline.reporting.pdf import write_pdf
 from pipeline.reporting.sections import build_sections
@@ -38,12 +38,11 @@ def _version() -> str:
         return "(not installed)"
 
 
-def write_reports(scenario: Scenario, out: Path) -> ReportResult:
-    """Write ``out/report.html`` and ``out/report.pdf`` from ``out/summary.json`` and
-    ``out/artifacts``; a missing input raises ``UserError`` naming the file."""
+def write_reports(data: ReportData) -> ReportResult:
+    """Write ``report.html``, ``report.pdf`` and ``scenario.png`` into ``data.out`` from the run's
+    summary and stage results (read by the stage cache: ``pipeline.runtime.stored``)."""
     start = time.perf_counter()
-    out = Path(out)
-    data = load_report_data(scenario, out)
+    scenario, out = data.scenario, data.out
     sections = build_sections(data)
     verdict = data.summary.text
     title = f"Safety controller synthesis report: {scenario.name}"

@@ -9,11 +9,13 @@ import numpy as np
 import pytest
 
 from pipeline.io.artifacts import (
+    ArtifactError,
     atomic_save,
     atomic_write_text,
     inputs_key,
-    load_result,
+    read_stored,
     save_result,
+    type_name,
 )
 
 
@@ -29,6 +31,15 @@ class Outer:
     table: dict[str, float]
     small: np.ndarray
     flag: bool
+
+
+REGISTRY = {type_name(Inner): Inner, type_name(Outer): Outer}
+
+
+def load_result(stem, key):
+    """The stored result if its key is ``key``, else None (a miss)."""
+    stored = read_stored(stem, REGISTRY)
+    return stored.result if stored is not None and stored.key == key else None
 
 
 def _result() -> Outer:
@@ -52,12 +63,18 @@ def test_another_key_is_a_miss(tmp_path):
     assert load_result(tmp_path / "missing", "key1") is None
 
 
-def test_half_written_pair_is_a_miss(tmp_path):
+def test_half_written_pair_is_refused(tmp_path):
     save_result(tmp_path / "stage", "old", _result())
     # an interrupted save of a new result: the arrays were replaced, the JSON was not
     np.savez(tmp_path / "stage.npz", __key__=np.array("new"))
-    assert load_result(tmp_path / "stage", "old") is None
-    assert load_result(tmp_path / "stage", "new") is None
+    with pytest.raises(ArtifactError, match="belongs to another run"):
+        read_stored(tmp_path / "stage", REGISTRY)
+
+
+def test_unregistered_type_is_refused_and_nothing_else_is_called(tmp_path):
+    save_result(tmp_path / "stage", "k", _result())
+    with pytest.raises(ArtifactError, match="not a registered result type"):
+        read_stored(tmp_path / "stage", {type_name(Outer): Outer})  # Inner not registered
 
 
 def test_failed_write_keeps_the_previous_file(tmp_path):
@@ -72,6 +89,21 @@ def test_failed_write_keeps_the_previous_file(tmp_path):
         atomic_save(target, broken)
     assert target.read_text() == "good"
     assert [p.name for p in tmp_path.iterdir()] == ["report.txt"]
+
+
+@pytest.mark.parametrize("suffix", [".npz", ".pdf", ""])
+def test_failed_save_deletes_exactly_the_temporary_it_made(tmp_path, suffix):
+    """The writer creates the temporary's own name (``np.savez`` adds ``.npz`` unless present)."""
+    made = []
+
+    def broken(path):
+        np.savez(path, x=np.arange(3))  # writes path (or path + .npz)
+        made.extend(tmp_path.iterdir())
+        raise OSError("No space left on device")
+
+    with pytest.raises(OSError):
+        atomic_save(tmp_path / f"target{suffix}", broken, suffix=suffix)
+    assert made and list(tmp_path.iterdir()) == []
 
 
 def test_inputs_key_depends_on_every_part():

@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 
 from pipeline import load_scenario
-from pipeline.io.artifacts import read_result
+from pipeline.io.artifacts import read_stored
 from pipeline.io.errors import UserError
 from pipeline.io.executor import ChunkFailed, ProcessExecutor, SerialExecutor, make_executor
+from pipeline.runtime.registry import RESULT_TYPES
 from stages.montecarlo import validate_closed_loop
 from stages.optimize import ConstraintMargins, OptimizeOptions, optimize
 
@@ -81,7 +82,7 @@ def test_unknown_executor_is_a_user_error():
 def test_monte_carlo_and_optimization_are_identical_on_every_executor(synthesized):
     _, out = synthesized
     scenario = load_scenario("quadrotor_hill", check_demos=False)
-    feedback = read_result(out / "artifacts" / "feedback")
+    feedback = read_stored(out / "artifacts" / "feedback", RESULT_TYPES).result
     r_d = feedback.required_radius(scenario.clearance)
     margins = ConstraintMargins.of_tube(feedback, r_d)
     runs, optimized = {}, {}

@@ -29,6 +29,7 @@ from pipeline.io.errors import ScenarioError, UserError  # noqa: E402
 from pipeline.model.scenario import SCENARIOS_ROOT, load_scenario  # noqa: E402
 from pipeline.model.simulate import simulate  # noqa: E402
 from pipeline.runtime.cli import main  # noqa: E402
+from pipeline.runtime.registry import RESULT_TYPES  # noqa: E402
 
 QUADROTOR = SCENARIOS_ROOT / "quadrotor_hill"
 
@@ -183,7 +184,7 @@ def test_suggested_start_is_the_largest_uncovered_box(slider: Path, tmp_path: Pa
     from stages.coverage import CoverageResult
 
     scenario = load_scenario(slider)
-    x0, reason = suggested_start(scenario, reports=tmp_path / "reports")
+    x0, reason = suggested_start(scenario, tmp_path / "reports", RESULT_TYPES)
     np.testing.assert_array_equal(x0, [0.5, 0.0])
     assert "no coverage result" in reason
     boxes = np.array([[[0.0, -0.5], [0.25, -0.25]], [[0.5, 0.0], [1.0, 0.5]]])
@@ -199,7 +200,7 @@ def test_suggested_start_is_the_largest_uncovered_box(slider: Path, tmp_path: Pa
         message="2 boxes uncovered",
     )
     save_result(tmp_path / "reports" / "artifacts" / "coverage_optimized", "k", coverage)
-    x0, reason = suggested_start(scenario, reports=tmp_path / "reports")
+    x0, reason = suggested_start(scenario, tmp_path / "reports", RESULT_TYPES)
     np.testing.assert_array_equal(x0, [0.75, 0.25])
     assert "uncovered" in reason
 

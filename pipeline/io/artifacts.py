@@ -6,32 +6,55 @@ A run that fails or is interrupted never leaves a half-written file where a good
 from __future__ import annotations
 
 import dataclasses
+import glob
 import hashlib
-import importlib
 import json
 import os
 import tempfile
+import zipfile
+import zlib
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+TEMPORARY = ".tmp"
 
-def _atomic(path: Path, write: Callable[[Path], None]) -> None:
+
+def _atomic(path: Path, write: Callable[[Path], object], suffix: str = "") -> None:
+    """Call ``write(temporary)`` and rename the temporary to ``path``; on any failure delete
+    exactly that temporary (``.NAME.XXXX.tmp`` + ``suffix``, and whatever a writer appended to
+    that unique name), so nothing is left behind."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    handle, name = tempfile.mkstemp(
+        prefix=f".{path.name}.", suffix=f"{TEMPORARY}{suffix}", dir=path.parent
+    )
     os.close(handle)
+    temporary = Path(name)
     try:
-        write(Path(temporary))
+        write(temporary)
         umask = os.umask(0)
         os.umask(umask)
         os.chmod(temporary, 0o666 & ~umask)  # mkstemp creates 0600; a report is for reading
         os.replace(temporary, path)
     except BaseException:
-        Path(temporary).unlink(missing_ok=True)
+        # the temporary, and anything a writer made by appending to its (unique) name
+        for left in path.parent.glob(f"{glob.escape(temporary.name)}*"):
+            left.unlink(missing_ok=True)
         raise
+
+
+def remove_temporaries(folder: Path) -> list[Path]:
+    """Delete the temporaries that killed writers left in ``folder`` (call it only while holding
+    the folder's lock, when no writer can be active); returns what was deleted."""
+    removed = []
+    for candidate in Path(folder).glob(f".*{TEMPORARY}*"):
+        if candidate.is_file():
+            candidate.unlink(missing_ok=True)
+            removed.append(candidate)
+    return removed
 
 
 def atomic_write_text(path: Path, text: str) -> None:
@@ -47,16 +70,11 @@ def atomic_write_json(path: Path, data: Any) -> None:
 def atomic_save(path: Path, save: Callable[[Path], None], suffix: str = "") -> None:
     """Call ``save(temporary_path)`` (e.g. ``fig.savefig``) and rename the result to ``path``.
 
-    ``suffix`` is appended to the temporary name for writers that infer the format from it.
+    The temporary's name ends in ``suffix`` (for writers that infer the format from it, or
+    append it when missing, like ``np.savez``), so the file the writer creates is the one deleted
+    on failure.
     """
-
-    def write(temporary: Path) -> None:
-        with_suffix = temporary.with_name(temporary.name + suffix)
-        save(with_suffix)
-        if with_suffix != temporary:
-            os.replace(with_suffix, temporary)
-
-    _atomic(path, write)
+    _atomic(path, save, suffix)
 
 
 def file_hash(path: Path) -> str:
@@ -65,17 +83,35 @@ def file_hash(path: Path) -> str:
 
 
 # --- Stage results as artifacts: JSON for the structure, .npz for the larger arrays. ---------
+#
+# Nothing read from disk chooses code to run: a dataclass node names a type, and decoding looks
+# that name up in the caller's registry (``pipeline.runtime.registry``) and calls that class with
+# exactly its declared fields; any other name or field refuses the artifact. Each artifact stores
+# a SHA-256 over its JSON tree, its key and every array, so an edited or damaged file is refused.
 
 SMALL_ARRAY = 64
+FORMAT = "stage-artifact/2"
+
+
+class ArtifactError(ValueError):
+    """A stored artifact is corrupt, was edited, or names a type outside the registry."""
+
+    def __init__(self, reason: str, file: Path | None = None) -> None:
+        self.reason, self.file = reason, file
+        super().__init__(reason if file is None else f"{file}: {reason}")
+
+
+def type_name(cls: type) -> str:
+    """The name a dataclass is stored under: ``module:qualname``."""
+    return f"{cls.__module__}:{cls.__qualname__}"
 
 
 def _encode(value: Any, arrays: dict[str, np.ndarray]) -> Any:
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        cls = type(value)
         fields = {
             f.name: _encode(getattr(value, f.name), arrays) for f in dataclasses.fields(value)
         }
-        return {"__dataclass__": f"{cls.__module__}:{cls.__qualname__}", "fields": fields}
+        return {"__dataclass__": type_name(type(value)), "fields": fields}
     if isinstance(value, np.ndarray):
         if value.dtype == object:
             raise TypeError("object arrays cannot be stored as artifacts")
@@ -99,17 +135,25 @@ def _encode(value: Any, arrays: dict[str, np.ndarray]) -> Any:
     raise TypeError(f"cannot store a {type(value).__name__} in an artifact")
 
 
-def _decode(value: Any, arrays: Mapping[str, np.ndarray]) -> Any:
+def _decode(value: Any, arrays: Mapping[str, np.ndarray], registry: Mapping[str, type]) -> Any:
     if isinstance(value, list):
-        return [_decode(v, arrays) for v in value]
+        return [_decode(v, arrays, registry) for v in value]
     if not isinstance(value, dict):
         return value
     if "__dataclass__" in value:
-        module, name = value["__dataclass__"].split(":")
-        cls: Any = importlib.import_module(module)
-        for part in name.split("."):
-            cls = getattr(cls, part)
-        return cls(**{k: _decode(v, arrays) for k, v in value["fields"].items()})
+        name = value["__dataclass__"]
+        cls = registry.get(name) if isinstance(name, str) else None
+        if cls is None:
+            raise ArtifactError(f"names type {name!r}, which is not a registered result type")
+        stored = value.get("fields")
+        declared = {f.name for f in dataclasses.fields(cls) if f.init}  # type: ignore[arg-type]
+        if not isinstance(stored, dict) or set(stored) != declared:
+            found = sorted(stored) if isinstance(stored, dict) else stored
+            raise ArtifactError(
+                f"fields of {name} do not match its declaration; found {found}, "
+                f"expected {sorted(declared)}"
+            )
+        return cls(**{k: _decode(v, arrays, registry) for k, v in stored.items()})
     if "__array__" in value:
         return np.array(value["__array__"], dtype=np.dtype(value["dtype"])).reshape(value["shape"])
     if "__npz__" in value:
@@ -117,52 +161,92 @@ def _decode(value: Any, arrays: Mapping[str, np.ndarray]) -> Any:
     if "__path__" in value:
         return Path(value["__path__"])
     if "__tuple__" in value:
-        return tuple(_decode(v, arrays) for v in value["__tuple__"])
+        return tuple(_decode(v, arrays, registry) for v in value["__tuple__"])
     if "__dict__" in value:
-        return {_decode(k, arrays): _decode(v, arrays) for k, v in value["__dict__"]}
-    raise ValueError(f"unknown artifact node with keys {sorted(value)}")
+        return {
+            _decode(k, arrays, registry): _decode(v, arrays, registry) for k, v in value["__dict__"]
+        }
+    raise ArtifactError(f"unknown artifact node with keys {sorted(value)}")
 
 
-def save_result(stem: Path, key: str, result: Any) -> None:
-    """Store a stage result as ``stem.json`` (+ ``stem.npz``), tagged with its inputs' ``key``.
+def content_hash(key: str, tree: Any, arrays: Mapping[str, np.ndarray]) -> str:
+    """SHA-256 over an artifact's key, JSON tree and arrays (name, dtype, shape, bytes)."""
+    digest = hashlib.sha256(json.dumps([key, tree], sort_keys=True).encode())
+    for name in sorted(arrays):
+        array = np.ascontiguousarray(arrays[name])
+        digest.update(f"\x00{name}:{array.dtype.str}:{array.shape}\x00".encode())
+        digest.update(array.tobytes())
+    return digest.hexdigest()
 
-    The arrays are written first, the JSON (which names the key) last, each atomically: a run
-    interrupted between the two leaves a JSON whose key does not match the arrays, i.e. a miss.
+
+def save_result(stem: Path, key: str, result: Any) -> str:
+    """Store a stage result as ``stem.json`` (+ ``stem.npz``), tagged with its inputs' ``key``;
+    returns the content hash stored with it.
+
+    The arrays are written first, the JSON (which holds the key and the content hash) last, each
+    atomically: a run interrupted between the two leaves a pair whose hash does not match.
     """
     arrays: dict[str, np.ndarray] = {}
     tree = _encode(result, arrays)
+    sha256 = content_hash(key, tree, arrays)
     npz = stem.with_suffix(".npz")
     atomic_save(
         npz, lambda p: np.savez_compressed(p, __key__=np.array(key), **arrays), suffix=".npz"
     )
-    atomic_write_text(
-        stem.with_suffix(".json"), json.dumps({"key": key, "result": tree}, indent=1) + "\n"
-    )
+    document = {"format": FORMAT, "key": key, "sha256": sha256, "result": tree}
+    atomic_write_text(stem.with_suffix(".json"), json.dumps(document, indent=1) + "\n")
+    return sha256
 
 
-def read_result(stem: Path) -> Any:
-    """The stored result of ``stem`` whatever its key (for reports); raises if missing/broken."""
-    document = json.loads(stem.with_suffix(".json").read_text())
-    result = load_result(stem, document["key"])
-    if result is None:
-        raise FileNotFoundError(f"{stem}: artifact missing or incomplete; re-run synthesize")
-    return result
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class Stored:
+    """A stored stage result as read back: its input ``key``, content ``sha256`` and value."""
+
+    key: str
+    sha256: str
+    result: Any
 
 
-def load_result(stem: Path, key: str) -> Any | None:
-    """The stored result of ``stem`` if both files exist and carry ``key``; else ``None``."""
+# everything a damaged .json/.npz can raise on reading (truncated, bit-flipped, empty, edited)
+_DAMAGE = (
+    OSError,
+    EOFError,
+    ValueError,
+    KeyError,
+    TypeError,
+    AttributeError,
+    RecursionError,
+    zipfile.BadZipFile,
+    zlib.error,
+)
+
+
+def read_stored(stem: Path, registry: Mapping[str, type]) -> Stored | None:
+    """The artifact ``stem.json`` + ``stem.npz``; ``None`` when either file is missing.
+
+    Raises ``ArtifactError`` (one line, naming the file) when it is unreadable, corrupt, does not
+    match its content hash, or names a type or field outside ``registry``.
+    """
     json_path, npz_path = stem.with_suffix(".json"), stem.with_suffix(".npz")
     if not (json_path.is_file() and npz_path.is_file()):
         return None
     try:
         document = json.loads(json_path.read_text())
+        if not isinstance(document, dict) or document.get("format") != FORMAT:
+            raise ArtifactError("not a stage artifact of this version")
+        key, sha256, tree = document["key"], document["sha256"], document["result"]
         with np.load(npz_path, allow_pickle=False) as stored:
-            if document.get("key") != key or str(stored["__key__"]) != key:
-                return None
             arrays = {name: stored[name] for name in stored.files}
-        return _decode(document["result"], arrays)
-    except (OSError, ValueError, KeyError, TypeError, AttributeError):
-        return None
+        if str(arrays.pop("__key__")) != key:
+            raise ArtifactError(f"{npz_path.name} belongs to another run than {json_path.name}")
+        if content_hash(key, tree, arrays) != sha256:
+            raise ArtifactError("content does not match its stored sha256 (edited or damaged)")
+        return Stored(key=str(key), sha256=str(sha256), result=_decode(tree, arrays, registry))
+    except ArtifactError as error:
+        raise ArtifactError(error.reason, json_path) from None
+    except _DAMAGE as error:
+        reason = f"unreadable ({type(error).__name__}: {error})"
+        raise ArtifactError(reason, json_path) from None
 
 
 def inputs_key(*parts: Any) -> str:

@@ -4,7 +4,8 @@
 the order of ``items``) and ``close()``:
 
 - ``None`` / ``"local"``: in this process when ``jobs == 1``, else ``jobs`` local processes
-  (``concurrent.futures``, spawned with BLAS threads pinned to 1);
+  (``concurrent.futures``, spawned with BLAS threads pinned to 1; each exits when its parent
+  dies, so a killed run leaves no worker behind);
 - ``"dask-local"``: a ``dask.distributed`` LocalCluster with ``jobs`` workers;
 - ``"dask://HOST:PORT"``: an existing Dask scheduler (``pip install .[dask]``).
 
@@ -16,6 +17,8 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import threading
+import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
@@ -76,6 +79,21 @@ class SerialExecutor:
         pass
 
 
+PARENT_POLL_SECONDS = 0.5
+
+
+def _exit_with_parent(parent: int) -> None:
+    """Worker initializer: exit as soon as the parent process is gone (e.g. ``kill -9``), so that
+    no orphaned worker keeps computing. A daemon thread polls the parent's pid."""
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(PARENT_POLL_SECONDS)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
+
+
 class ProcessExecutor:
     """``jobs`` spawned local processes with single-threaded BLAS."""
 
@@ -89,7 +107,10 @@ class ProcessExecutor:
             os.environ.update(PINNED_THREADS)  # inherited by the spawned workers
             try:
                 self._pool = ProcessPoolExecutor(
-                    max_workers=self.jobs, mp_context=multiprocessing.get_context("spawn")
+                    max_workers=self.jobs,
+                    mp_context=multiprocessing.get_context("spawn"),
+                    initializer=_exit_with_parent,
+                    initargs=(os.getpid(),),
                 )
                 self._pool.submit(int).result()  # start the workers under the pinned env
             finally:

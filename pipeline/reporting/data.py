@@ -1,21 +1,19 @@
-"""What a report is made from: ``summary.json`` and the stage artifacts of one output folder.
+"""What a report is made from: ``summary.json`` and the stage results of one output folder.
 
-Nothing is recomputed except re-simulating the nominal trajectories from their saved inputs (for
-drawing) and one closed-loop run for the inputs figure.
+The stage cache (``pipeline.runtime.stored``) reads them; nothing is recomputed here except
+re-simulating the nominal trajectories from their saved inputs (for drawing) and one closed-loop
+run for the inputs figure.
 """
 
 from __future__ import annotations
 
-import json
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from pipeline.io.artifacts import read_result
-from pipeline.io.errors import UserError
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import Trajectory, simulate
@@ -94,56 +92,15 @@ def _simulate_all(
     ]
 
 
-def _missing(path: Path, scenario: Scenario, what: str) -> UserError:
-    return UserError(
-        f"{what}; run `python -m pipeline synthesize {scenario.name} --out {path.parent}` "
-        "first (the report is built from a finished run's output folder)",
-        file=path,
-    )
-
-
-def load_report_data(scenario: Scenario, out: Path) -> ReportData:
-    """Read ``out/summary.json`` and ``out/artifacts/<stage>``; a missing or unreadable file is a
-    ``UserError`` naming it and the command that writes it."""
-    out = Path(out)
-    summary_path = out / "summary.json"
-    if not summary_path.is_file():
-        raise _missing(summary_path, scenario, "summary.json not found")
-    try:
-        summary = Summary.from_json(json.loads(summary_path.read_text()))
-    except json.JSONDecodeError as error:
-        raise _missing(summary_path, scenario, f"not valid JSON ({error})") from None
-    except ValueError as error:
-        raise _missing(summary_path, scenario, f"not a run summary ({error})") from None
-    found = summary.reproducibility.scenario_sha256
-    if found != scenario.source_hash:
-        raise UserError(
-            f"the run was made from another version of {scenario.path.name}",
-            file=summary_path,
-            found=found,
-            expected=f"scenario sha256 {scenario.source_hash}; re-run synthesize",
-        )
-    results, keys = {}, {}
-    for stage in STAGES:
-        stem = out / "artifacts" / stage
-        json_path = stem.with_suffix(".json")
-        if not json_path.is_file():
-            raise _missing(json_path, scenario, f"artifact of stage '{stage}' not found")
-        try:
-            results[stage] = read_result(stem)
-            keys[stage] = str(json.loads(json_path.read_text())["key"])
-        except (OSError, ValueError, KeyError, TypeError, AttributeError) as error:
-            what = f"artifact of stage '{stage}' unreadable ({error})"
-            raise _missing(json_path, scenario, what) from None
-    if not (out / "controller.json").is_file():
-        raise _missing(out / "controller.json", scenario, "controller.json not found")
-    if len(results["optimize"].trajectories) != len(scenario.demos):
-        raise _missing(
-            out / "artifacts" / "optimize.json",
-            scenario,
-            f"artifact holds {len(results['optimize'].trajectories)} trajectories for "
-            f"{len(scenario.demos)} demos",
-        )
+def report_data(
+    scenario: Scenario,
+    out: Path,
+    summary: Summary,
+    results: Mapping[str, Any],
+    keys: Mapping[str, str],
+) -> ReportData:
+    """``ReportData`` from a run's summary and stage ``results`` (stage name -> result, as read by
+    the stage cache, ``pipeline.runtime.stored``); re-simulates the nominal trajectories."""
     final_inputs = [
         opt.u if opt.success else demo.us
         for demo, opt in zip(scenario.demos, results["optimize"].trajectories, strict=True)
@@ -154,10 +111,10 @@ def load_report_data(scenario: Scenario, out: Path) -> ReportData:
     demo_paths, final_paths = paths[: len(scenario.demos)], paths[len(scenario.demos) :]
     return ReportData(
         scenario=scenario,
-        out=out,
+        out=Path(out),
         summary=summary,
         keys=keys,
         demo_paths=tuple(demo_paths),
         final_paths=tuple(final_paths),
-        **results,
+        **{stage: results[stage] for stage in STAGES},
     )

@@ -131,6 +131,7 @@ def _run(args: argparse.Namespace) -> int:
         return 0
     if args.command in ("record", "replay"):
         from pipeline.demonstrations.recorder.commands import run
+        from pipeline.runtime.registry import RESULT_TYPES
 
-        return run(args)
+        return run(args, RESULT_TYPES)
     raise AssertionError(f"unhandled command {args.command!r}")

@@ -19,22 +19,28 @@ reused.
 
 from __future__ import annotations
 
+import os
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from pipeline.io.artifacts import atomic_write_json, file_hash, inputs_key
+from pipeline.io.artifacts import atomic_write_json, file_hash, inputs_key, remove_temporaries
+from pipeline.io.errors import UserError
 from pipeline.io.executor import Executor, make_executor
+from pipeline.io.lock import folder_lock
 from pipeline.io.progress import progress_bar
 from pipeline.model.scenario import Scenario, load_scenario
 from pipeline.model.simulate import Trajectory, simulate
 from pipeline.numerics.verify import VERIFY_SUBSTEPS
 from pipeline.reporting.summary import Verdict
+from pipeline.runtime.codekey import code_key
+from pipeline.runtime.outdir import check_output_folder, clear_stale, mark_failed, stale_name
 from pipeline.runtime.runner import StageRunner
+from pipeline.runtime.stored import load_report_data, write_manifest
 from pipeline.runtime.summary import StageResults, demo_table, print_summary, summarise
 from stages.certify import certify_controller
 from stages.controller import emit_controller
@@ -49,6 +55,19 @@ from stages.stress import stress_test
 REPORTS_ROOT = Path(__file__).resolve().parents[2] / "reports"
 MONTE_CARLO_SEED = 20261122
 REPORT_FILES = ("report.html", "report.pdf", "scenario.png")
+# the code each cached stage's key covers besides its own module (see pipeline.runtime.codekey)
+RADIUS_CODE = ("stages.radius", "pipeline.model.simulate", "pipeline.numerics.verify")
+REPORT_CODE = ("stages.report", "pipeline.runtime.summary", "pipeline.runtime.stored")
+REPORT_STAGES = (  # the controller's result is the file itself, keyed by its hash
+    "feedback",
+    "radius_demos",
+    "coverage_demos",
+    "covering_radius",
+    "optimize",
+    "radius_optimized",
+    "coverage_optimized",
+    "montecarlo",
+)
 
 
 @dataclass(frozen=True)
@@ -82,40 +101,80 @@ def _radii(
     return tuple(robustness_radius(scenario, feedback, tr) for tr in trajectories)
 
 
+def _cover_radii(radii: Sequence[RadiusResult]) -> np.ndarray:
+    """(k,) the radii coverage reads: negative ones (no valid tube) count as 0."""
+    return np.array([max(r.radius, 0.0) for r in radii])
+
+
 def _coverage(
     scenario: Scenario,
     feedback: FeedbackResult,
     starts: Sequence[np.ndarray],
     radii: Sequence[RadiusResult],
 ) -> CoverageResult:
-    return cover_init(
-        scenario, feedback, np.array(starts), np.array([max(r.radius, 0.0) for r in radii])
-    )
+    return cover_init(scenario, feedback, np.array(starts), _cover_radii(radii))
+
+
+def _spec_key(scenario: Scenario, *exclude: str) -> str:
+    """A hash of the scenario's parsed values (not the file's bytes), without ``exclude``."""
+    spec = scenario.spec.model_dump(mode="json", exclude={"demos", *exclude})
+    return inputs_key(scenario.name, spec)
 
 
 def synthesize(
     scenario_name: str | Path, out: Path | None = None, options: RunOptions | None = None
 ) -> int:
-    """Run every stage on a scenario; returns the exit code (0 certified and validated, 1 not)."""
+    """Run every stage on a scenario; returns the exit code (0 certified and validated, 1 not).
+
+    Bad input (the scenario, the output folder, a folder in use) raises ``UserError`` before any
+    work. A run that fails writes ``summary.json`` saying so and renames the previous
+    ``controller.json`` and reports to ``*.stale.*`` (``pipeline.runtime.outdir``).
+    """
+    started = time.perf_counter()
     options = options or RunOptions()
-    executor = make_executor(options.executor, options.jobs)
-    try:
-        return _synthesize(scenario_name, out, options, executor)
-    finally:
-        executor.close()
+    scenario = load_scenario(scenario_name)
+    out = Path(out) if out is not None else REPORTS_ROOT / scenario.name
+    check_output_folder(out, scenario.name)
+    with folder_lock(out):
+        for folder in (out, out / "artifacts"):
+            remove_temporaries(folder)  # left by killed writers; none can be active now
+        runner = StageRunner(out, force=options.force, log=_say(options))
+        executor = make_executor(options.executor, options.jobs)
+        try:
+            return _synthesize(scenario, out, options, executor, runner, started)
+        except (UserError, KeyboardInterrupt):
+            raise
+        except Exception as error:
+            return _failed(out, scenario, runner.current, f"{type(error).__name__}: {error}")
+        finally:
+            executor.close()
+
+
+def _say(options: RunOptions) -> Callable[[str], None]:
+    return (lambda _text: None) if options.quiet else print
+
+
+def _failed(out: Path, scenario: Scenario, stage: str, reason: str) -> int:
+    """Record a failed run (``summary.json``, stale outputs renamed) and say so; exit code 1."""
+    stale = mark_failed(out, scenario.name, stage, reason)
+    renamed = f"; previous outputs renamed: {', '.join(p.name for p in stale)}" if stale else ""
+    print(f"failed: stage {stage}: {reason} ({out / 'summary.json'}{renamed})")
+    return 1
 
 
 def _synthesize(
-    scenario_name: str | Path, out: Path | None, options: RunOptions, executor: Executor
+    scenario: Scenario,
+    out: Path,
+    options: RunOptions,
+    executor: Executor,
+    runner: StageRunner,
+    started: float,
 ) -> int:
-    started = time.perf_counter()
-    scenario = load_scenario(scenario_name)
-    out = Path(out) if out is not None else REPORTS_ROOT / scenario.name
-    say = (lambda _text: None) if options.quiet else print
-    runner = StageRunner(out, force=options.force, log=say)
-    base = inputs_key(scenario.source_hash, [file_hash(d.file) for d in scenario.demos])
+    say = _say(options)
+    core = _spec_key(scenario, "description", "stress")  # what the numerical stages read
     demo_starts = [d.x0 for d in scenario.demos]
     demo_inputs = [d.us for d in scenario.demos]
+    demos = inputs_key([d.name for d in scenario.demos], *demo_starts, *demo_inputs)
     demo_trajectories = _trajectories(scenario, demo_starts, demo_inputs)
     say(
         f"scenario {scenario.name}: {len(scenario.demos)} demos, all valid "
@@ -123,33 +182,31 @@ def _synthesize(
     )
 
     feedback = runner.run(
-        "feedback", inputs_key(base, "feedback/1"), lambda: design_feedback(scenario)
+        "feedback",
+        inputs_key(code_key("stages.feedback"), core),
+        lambda: design_feedback(scenario),
     )
     if not feedback.success:
-        print(f"not certified: the feedback could not be certified: {feedback.message}")
-        return 1
-    tube = inputs_key(base, feedback.K, feedback.P, feedback.rate)
+        reason = f"the feedback could not be certified: {feedback.message}"
+        return _failed(out, scenario, "feedback", reason)
+    tube = inputs_key(core, runner.digest("feedback"))
     demo_radii = runner.run(
         "radius_demos",
-        inputs_key(tube, "radius/2"),
+        inputs_key(code_key(*RADIUS_CODE), tube, demos),
         lambda: _radii(scenario, feedback, demo_trajectories),
     )
     demo_coverage = runner.run(
         "coverage_demos",
-        inputs_key(tube, "coverage/1"),
+        inputs_key(code_key("stages.coverage"), tube, *demo_starts, _cover_radii(demo_radii)),
         lambda: _coverage(scenario, feedback, demo_starts, demo_radii),
     )
 
     r_d = feedback.required_radius(scenario.clearance)
+    upper = max(r_d, *(r.radius for r in demo_radii))
     covering: CoveringRadius = runner.run(
         "covering_radius",
-        inputs_key(tube, "covering/1"),
-        lambda: covering_radius(
-            scenario,
-            feedback,
-            np.array(demo_starts),
-            upper=max(r_d, *(r.radius for r in demo_radii)),
-        ),
+        inputs_key(code_key("stages.coverage"), tube, *demo_starts, upper),
+        lambda: covering_radius(scenario, feedback, np.array(demo_starts), upper=upper),
     )
     r_required = covering.kept_radius(r_d)
     margins = ConstraintMargins.of_tube(feedback, r_required)
@@ -157,7 +214,9 @@ def _synthesize(
     with progress_bar(len(scenario.demos), "demos optimized", options.quiet) as advance:
         optimized: OptimizeResult = runner.run(
             "optimize",
-            inputs_key(tube, "optimize/2", r_required, repr(optimize_options)),
+            inputs_key(
+                code_key("stages.optimize"), tube, demos, r_required, repr(optimize_options)
+            ),
             lambda: optimize(
                 scenario, margins, optimize_options, executor=executor, progress=advance
             ),
@@ -170,15 +229,14 @@ def _synthesize(
         for t, d in zip(optimized.trajectories, scenario.demos, strict=True)
     ]
     final_trajectories = _trajectories(scenario, demo_starts, final_inputs)
-    final_key = inputs_key(tube, *final_inputs)
     final_radii = runner.run(
         "radius_optimized",
-        inputs_key(final_key, "radius/2"),
+        inputs_key(code_key(*RADIUS_CODE), tube, *demo_starts, *final_inputs),
         lambda: _radii(scenario, feedback, final_trajectories),
     )
     final_coverage = runner.run(
         "coverage_optimized",
-        inputs_key(final_key, "coverage/1"),
+        inputs_key(code_key("stages.coverage"), tube, *demo_starts, _cover_radii(final_radii)),
         lambda: _coverage(scenario, feedback, demo_starts, final_radii),
     )
 
@@ -186,7 +244,14 @@ def _synthesize(
     controller_path = out / "controller.json"
     controller = runner.run(
         "controller",
-        inputs_key(final_key, [final_radii[i].radius for i in usable]),
+        inputs_key(
+            code_key("stages.controller"),
+            tube,
+            usable,
+            *demo_starts,
+            *final_inputs,
+            [final_radii[i].radius for i in usable],
+        ),
         lambda: emit_controller(
             scenario,
             feedback.K,
@@ -206,7 +271,13 @@ def _synthesize(
     with progress_bar(options.samples, "closed-loop runs", options.quiet) as advance:
         montecarlo = runner.run(
             "montecarlo",
-            inputs_key(file_hash(controller_path), options.samples, options.seed, "mc/2"),
+            inputs_key(
+                code_key("stages.montecarlo"),
+                core,
+                file_hash(controller_path),
+                options.samples,
+                options.seed,
+            ),
             lambda: validate_closed_loop(
                 scenario,
                 controller_path,
@@ -220,7 +291,12 @@ def _synthesize(
     if options.stress:
         stress = runner.run(
             "stress",
-            inputs_key(file_hash(controller_path), options.seed, "stress/1"),
+            inputs_key(
+                code_key("stages.stress"),
+                _spec_key(scenario, "description"),
+                file_hash(controller_path),
+                options.seed,
+            ),
             lambda: stress_test(scenario, controller_path, seed=options.seed),
         )
 
@@ -246,14 +322,25 @@ def _synthesize(
         command=sys.argv,
         stress=stress,
     )
-    document = summary.to_json()
-    atomic_write_json(out / "summary.json", document)
-    runner.run(
+    atomic_write_json(out / "summary.json", summary.to_json())
+    write_manifest(scenario, out, file_hash(controller_path))
+    runner.run(  # keyed on what the report shows: never on this run's timings
         "report",
-        inputs_key(document, "report/2"),
-        lambda: write_reports(scenario, out),
+        inputs_key(
+            code_key(*REPORT_CODE),
+            scenario.source_hash,
+            _spec_key(scenario),
+            [runner.digest(name) for name in REPORT_STAGES],
+            None if stress is None else runner.digest("stress"),
+            file_hash(controller_path),
+        ),
+        lambda: write_reports(load_report_data(scenario, out)),
         rerun=not all((out / name).is_file() for name in REPORT_FILES),
     )
+    clear_stale(out)
+    if not summary.certified:  # this run did not certify it: no current-looking controller.json
+        os.replace(controller_path, stale_name(controller_path))
+        say(f"controller.json renamed to {stale_name(controller_path).name}: not certified")
     if options.quiet:
         print(f"verdict: {summary.text}")
     else:
@@ -263,9 +350,13 @@ def _synthesize(
 
 def rebuild_reports(scenario_name: str | Path, out: Path | None = None) -> ReportResult:
     """The report stage alone, from a finished run's saved artifacts (``python -m pipeline
-    report``)."""
+    report``); a missing, corrupt or stale artifact is a ``UserError`` naming it."""
     scenario = load_scenario(scenario_name)
-    return write_reports(scenario, Path(out) if out is not None else REPORTS_ROOT / scenario.name)
+    out = Path(out) if out is not None else REPORTS_ROOT / scenario.name
+    if not out.is_dir():  # nothing to lock: the loader names the missing file and its fix
+        return write_reports(load_report_data(scenario, out))
+    with folder_lock(out):
+        return write_reports(load_report_data(scenario, out))
 
 
 def _print_optimization_logs(optimized: OptimizeResult) -> None:

@@ -1,58 +1,94 @@
 """Run stages with cached artifacts: a stage whose inputs did not change is not recomputed.
 
-Each stage's result is stored under ``OUT/artifacts/<stage>.json`` (+ ``.npz``) with a content
-hash of its inputs (``pipeline.io.artifacts.inputs_key``). A run interrupted at any point leaves
-the last good artifacts in place (every write is atomic) and the next run resumes from them.
+Each stage's result is stored under ``OUT/artifacts/<stage>.json`` (+ ``.npz``) with a key over
+its inputs (the parsed values it reads and ``pipeline.runtime.codekey.code_key`` of its code) and
+a content hash. An artifact that is corrupt, edited, or names a type outside
+``pipeline.runtime.registry.RESULT_TYPES`` is refused in one line and recomputed. A run
+interrupted at any point leaves the last good artifacts in place (every write is atomic) and the
+next run resumes from them.
 """
 
 from __future__ import annotations
 
+import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import TypeVar
 
-from pipeline.io.artifacts import load_result, save_result
+from pipeline.io.artifacts import ArtifactError, Stored, read_stored, save_result
+from pipeline.runtime.registry import RESULT_TYPES
 
 T = TypeVar("T")
 
 
-@dataclass
+def warn(text: str) -> None:
+    """One line on stderr (shown even with ``-q``)."""
+    print(text, file=sys.stderr)
+
+
+def read_checked(
+    stem: Path, warn: Callable[[str], None] = warn, registry: Mapping[str, type] = RESULT_TYPES
+) -> Stored | None:
+    """The stored artifact ``stem``, or ``None`` when it is missing or refused (said in one
+    line through ``warn``)."""
+    try:
+        return read_stored(stem, registry)
+    except ArtifactError as error:
+        warn(f"[{stem.name}] artifact refused, recomputing: {error}")
+        return None
+
+
+@dataclass(frozen=True, kw_only=True)
 class StageRecord:
     name: str
     key: str
+    sha256: str
     seconds: float
     cached: bool
 
 
 @dataclass
 class StageRunner:
-    """Runs named stages, reusing stored results whose input key matches (unless ``force``)."""
+    """Runs named stages, reusing stored results whose input key matches (unless ``force``).
+
+    ``current`` names the stage being computed (for the summary of a failed run).
+    """
 
     out: Path
     force: bool = False
     log: Callable[[str], None] = print
-    records: list[StageRecord] = field(default_factory=list)
+    records: dict[str, StageRecord] = field(default_factory=dict)
+    current: str = "load"
 
     def run(self, name: str, key: str, compute: Callable[[], T], rerun: bool = False) -> T:
         """``compute()``'s result, or the stored one when its key matches (``rerun`` forces)."""
         stem = self.out / "artifacts" / name
+        self.current = name
         if not (self.force or rerun):
-            stored: Any = load_result(stem, key)
-            if stored is not None:
-                self.records.append(StageRecord(name, key, 0.0, True))
+            stored = read_checked(stem)
+            if stored is not None and stored.key == key:
+                self.records[name] = StageRecord(
+                    name=name, key=key, sha256=stored.sha256, seconds=0.0, cached=True
+                )
                 self.log(f"[{name}] unchanged inputs: reusing {stem.name}.json")
-                return stored  # type: ignore[no-any-return]
+                return stored.result  # type: ignore[no-any-return]
         self.log(f"[{name}] running")
         start = time.perf_counter()
         result = compute()
         seconds = time.perf_counter() - start
-        save_result(stem, key, result)
-        self.records.append(StageRecord(name, key, seconds, False))
+        sha256 = save_result(stem, key, result)
+        self.records[name] = StageRecord(
+            name=name, key=key, sha256=sha256, seconds=seconds, cached=False
+        )
         self.log(f"[{name}] done in {seconds:.1f} s")
         return result
 
+    def digest(self, name: str) -> str:
+        """The content hash of stage ``name``'s result in this run (a key for what reads it)."""
+        return self.records[name].sha256
+
     def timings(self) -> dict[str, float]:
         """Wall time per stage in this run (0 for reused results)."""
-        return {record.name: record.seconds for record in self.records}
+        return {record.name: record.seconds for record in self.records.values()}

@@ -23,7 +23,7 @@ from pipeline.reporting.sections import headline_items, section_headings
 from pipeline.reporting.summary import Summary
 from pipeline.runtime.cli import main
 from pipeline.runtime.orchestrator import RunOptions, synthesize
-from stages.report import write_reports
+from pipeline.runtime.stored import load_report_data
 
 CHROMIUM = Path("/usr/bin/chromium")
 
@@ -154,7 +154,7 @@ def test_missing_artifact_is_a_clear_error(run: tuple[Scenario, Path], tmp_path:
     shutil.copytree(out, copy)
     (copy / "artifacts" / "optimize.json").unlink()
     with pytest.raises(UserError, match=r"optimize\.json: artifact of stage 'optimize' not found"):
-        write_reports(scenario, copy)
+        load_report_data(scenario, copy)
     assert not (copy / "report.pdf").exists() or (copy / "report.pdf").stat().st_size > 0
 
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import os
+from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -60,8 +61,9 @@ def find_demo(scenario: Scenario, name: str) -> int:
     )
 
 
-def run(args: argparse.Namespace) -> int:
-    """Run ``record`` or ``replay``; returns the exit code."""
+def run(args: argparse.Namespace, registry: Mapping[str, type] | None = None) -> int:
+    """Run ``record`` or ``replay``; returns the exit code. ``registry``: the stage cache's result
+    types, to read the last run's coverage (where to start the next flight)."""
     _pygame()
     from pipeline.demonstrations.recorder import app
     from pipeline.demonstrations.recorder.config import load_recorder_config
@@ -74,7 +76,7 @@ def run(args: argparse.Namespace) -> int:
         if args.x0 is not None:
             x0, reason = check_start(scenario, args.x0), "--x0"
         else:
-            x0, reason = suggested_start(scenario)
+            x0, reason = suggested_start(scenario, registry=registry)
         app.start_pygame()
         window = app.RecorderApp(scenario, config, x0, reason)
         app.run_loop(window)

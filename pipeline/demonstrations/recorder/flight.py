@@ -16,12 +16,13 @@ and as valid at the first sample ``k >= 1`` whose state is in Goal with the posi
 from __future__ import annotations
 
 import enum
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from pipeline.io.artifacts import read_result
+from pipeline.io.artifacts import ArtifactError, read_stored
 from pipeline.io.errors import UserError
 from pipeline.model import geometry
 from pipeline.model.dynamics import FloatArray
@@ -220,15 +221,21 @@ def check_start(scenario: Scenario, x0: FloatArray) -> FloatArray:
     return x0
 
 
-def suggested_start(scenario: Scenario, reports: Path | None = None) -> tuple[FloatArray, str]:
+def suggested_start(
+    scenario: Scenario, reports: Path | None = None, registry: Mapping[str, type] | None = None
+) -> tuple[FloatArray, str]:
     """Where to start the next flight, and why: the centre of the largest box of Init that the
-    last ``synthesize`` run left uncovered (``reports/NAME/artifacts/coverage_optimized``), else
-    the middle of Init. -> ``(x0 (n,), reason)``."""
+    last ``synthesize`` run left uncovered (``reports/NAME/artifacts/coverage_optimized``, read
+    with the stage cache's ``registry`` of result types), else the middle of Init.
+    -> ``(x0 (n,), reason)``."""
     stem = (reports or REPORTS_ROOT / scenario.name) / "artifacts" / "coverage_optimized"
     middle = 0.5 * (scenario.init_lower + scenario.init_upper)
     try:
-        gap = read_result(stem).largest_gap()
-    except Exception:  # no run yet, or an artifact from another version: only a hint
+        stored = read_stored(stem, registry or {})
+        gap = None if stored is None else stored.result.largest_gap()
+    except (ArtifactError, AttributeError):  # from another version or damaged: only a hint
+        stored = None
+    if stored is None:
         return middle, "the middle of Init (no coverage result yet)"
     if gap is None:
         return middle, "the middle of Init (the last run covered all of Init)"

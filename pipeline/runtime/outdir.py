@@ -1,0 +1,88 @@
+"""The output folder of a run: checked before computing, locked while running, and marked when a
+run fails so that nothing it did not certify looks current.
+
+- ``check_output_folder``: ``--out`` must be a folder we can write, and must not hold another
+  scenario's ``controller.json``; each mistake is a ``UserError`` (exit 2) before any work.
+- ``mark_failed``: a run that fails writes ``summary.json`` saying so (stage and reason) and
+  renames the previous ``controller.json`` and reports to ``*.stale.*``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from pathlib import Path
+
+from pipeline.io.artifacts import atomic_write_json
+from pipeline.io.errors import UserError
+
+STALE_FILES = ("controller.json", "report.html", "report.pdf", "scenario.png")
+
+
+def stale_name(path: Path) -> Path:
+    """``controller.json`` -> ``controller.stale.json``."""
+    return path.with_name(f"{path.stem}.stale{path.suffix}")
+
+
+def _owner(controller: Path) -> object:
+    """The scenario named by an existing ``controller.json`` (``None`` if it names none)."""
+    try:
+        document = json.loads(controller.read_text())
+    except (OSError, UnicodeDecodeError, ValueError, RecursionError):
+        return None  # unreadable: ours to regenerate
+    return document.get("scenario") if isinstance(document, dict) else None
+
+
+def check_output_folder(out: Path, scenario_name: str) -> None:
+    """Create ``out`` if needed and check, before any computing, that a run can use it."""
+    if out.exists() and not out.is_dir():
+        raise UserError("--out names a file", file=out, expected="a folder (or a new path)")
+    try:
+        (out / "artifacts").mkdir(parents=True, exist_ok=True)
+        for folder in (out, out / "artifacts"):
+            with tempfile.TemporaryFile(dir=folder):
+                pass
+    except OSError as error:
+        raise UserError(
+            f"output folder is not writable ({error.strerror})",
+            file=out,
+            expected="a folder this user can write; choose another --out",
+        ) from None
+    owner = _owner(out / "controller.json")
+    if owner is not None and owner != scenario_name:
+        raise UserError(
+            "output folder holds another scenario's controller.json",
+            file=out / "controller.json",
+            found=owner,
+            expected=f"'{scenario_name}'; choose another --out or remove that folder",
+        )
+
+
+def mark_failed(out: Path, scenario_name: str, stage: str, reason: str) -> list[Path]:
+    """Write ``out/summary.json`` for a failed run and rename the previous run's controller and
+    reports to ``*.stale.*``; returns the renamed files (their new names)."""
+    renamed = []
+    for name in STALE_FILES:
+        path = out / name
+        if path.is_file():
+            os.replace(path, stale_name(path))
+            renamed.append(stale_name(path))
+    atomic_write_json(
+        out / "summary.json",
+        {
+            "status": "failed",
+            "scenario": scenario_name,
+            "stage": stage,
+            "reason": reason,
+            "verdict": {"text": f"failed at stage {stage}", "certified": False},
+            "stale": [p.name for p in renamed],
+        },
+    )
+    return renamed
+
+
+def clear_stale(out: Path) -> None:
+    """Remove ``*.stale.*`` files once a run has written fresh ones."""
+    for name in STALE_FILES:
+        stale_name(out / name).unlink(missing_ok=True)

@@ -1,0 +1,391 @@
+"""Fault injection on the stage cache and the output folder (issue 14: 1, 2, 5, 6, 7, 8, 9).
+
+One short run of ``double_integrator`` (100 Monte Carlo samples) is copied for each test, which
+then tampers with, corrupts, locks or kills it and checks the next run's behaviour: nothing read
+from disk chooses code to run, an edited or damaged artifact is refused in one line and
+recomputed, a failed run says so and leaves no controller it did not certify, and the cache keys
+follow the code and the parsed inputs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline.io import lock
+from pipeline.io.artifacts import content_hash, read_stored
+from pipeline.runtime import orchestrator
+from pipeline.runtime.cli import main
+from pipeline.runtime.registry import RESULT_TYPES
+
+ROOT = Path(__file__).resolve().parents[1]
+SAMPLES = "100"
+
+
+@pytest.fixture(scope="module")
+def finished(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """``(scenario folder, output folder)`` of one finished run on a copy of the scenario."""
+    base = tmp_path_factory.mktemp("faults")
+    scenario = base / "double_integrator"
+    shutil.copytree(ROOT / "scenarios" / "double_integrator", scenario)
+    out = base / "out"
+    assert main(["synthesize", str(scenario), "--out", str(out), "--samples", SAMPLES, "-q"]) == 0
+    return scenario, out
+
+
+@pytest.fixture
+def run(finished: tuple[Path, Path], tmp_path: Path) -> tuple[Path, Path]:
+    """A private copy of the finished run (scenario and output folder)."""
+    scenario, out = tmp_path / "double_integrator", tmp_path / "out"
+    shutil.copytree(finished[0], scenario)
+    shutil.copytree(finished[1], out)
+    return scenario, out
+
+
+def synthesize(run: tuple[Path, Path], *extra: str) -> int:
+    return main(["synthesize", str(run[0]), "--out", str(run[1]), "--samples", SAMPLES, *extra])
+
+
+def mtimes(out: Path) -> dict[str, int]:
+    """Modification times of the stage artifacts (the input manifest is rewritten every run)."""
+    stems = (out / "artifacts").glob("*.json")
+    return {p.name: p.stat().st_mtime_ns for p in stems if p.name != "inputs.json"}
+
+
+def radii(out: Path) -> list[float]:
+    document = json.loads((out / "controller.json").read_text())
+    return [float(t["radius"]) for t in document["trajectories"]]
+
+
+# --- 1. nothing read from disk chooses code ---------------------------------------------------
+
+
+def test_artifact_naming_a_callable_is_refused_and_recomputed(run, capsys):
+    scenario, out = run
+    marker = out.parent / "PWNED"
+    path = out / "artifacts" / "feedback.json"
+    document = json.loads(path.read_text())
+    document["result"] = {
+        "__dataclass__": "subprocess:call",
+        "fields": {"args": f"touch {marker}", "shell": True},
+    }
+    with np.load(out / "artifacts" / "feedback.npz") as stored:  # re-signed: only the registry
+        arrays = {k: stored[k] for k in stored.files if k != "__key__"}  # stands in the way
+    document["sha256"] = content_hash(document["key"], document["result"], arrays)
+    path.write_text(json.dumps(document))
+
+    assert main(["report", str(scenario), "--out", str(out)]) == 2
+    error = capsys.readouterr().err
+    assert "'subprocess:call', which is not a registered result type" in error
+    assert error.count("\n") == 1 and str(path) in error
+
+    assert synthesize(run, "-q") == 0
+    assert "not a registered result type" in capsys.readouterr().err
+    assert not marker.exists()
+    assert type(read_stored(out / "artifacts" / "feedback", RESULT_TYPES).result).__name__ == (
+        "FeedbackResult"
+    )
+
+
+def test_unknown_field_of_a_registered_type_is_refused(run, capsys):
+    _, out = run
+    path = out / "artifacts" / "covering_radius.json"
+    document = json.loads(path.read_text())
+    document["result"]["fields"]["extra"] = 1
+    document["sha256"] = content_hash(document["key"], document["result"], {})
+    path.write_text(json.dumps(document))
+    assert synthesize(run, "-q") == 0
+    assert "fields of stages.coverage:CoveringRadius do not match" in capsys.readouterr().err
+
+
+# --- 2. an edited artifact is refused; a failed run certifies nothing -----------------------
+
+
+def test_edited_radius_is_recomputed_and_never_shipped(run, capsys):
+    _, out = run
+    shipped = radii(out)
+    path = out / "artifacts" / "radius_optimized.json"
+    text = path.read_text()
+    field = f'"radius": {shipped[0]!r}'
+    assert field in text
+    path.write_text(text.replace(field, f'"radius": {shipped[0] * 10!r}', 1))
+    assert synthesize(run, "-q") == 0
+    printed = capsys.readouterr()
+    assert "radius_optimized.json: content does not match its stored sha256" in printed.err
+    assert printed.err.count("refused") == 1
+    assert radii(out) == shipped
+
+
+def nudge_demo(scenario: Path, name: str, delta: float) -> Path:
+    """Add ``delta`` to the first input value of demo ``name``'s first data row."""
+    demo = scenario / "demos" / f"{name}.csv"
+    lines = demo.read_text().splitlines()
+    row = next(i for i, line in enumerate(lines) if line[:1].isdigit())
+    cells = lines[row].split(",")
+    cells[1] = repr(float(cells[1]) + delta)
+    lines[row] = ",".join(cells)
+    demo.write_text("\n".join(lines) + "\n")
+    return demo
+
+
+def test_failed_stage_writes_a_failed_summary_and_stales_old_outputs(run, capsys, monkeypatch):
+    scenario, out = run
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("worker lost")
+
+    nudge_demo(scenario, "demo_01", 1e-10)  # reruns the demo stages, not the feedback
+    monkeypatch.setattr(orchestrator, "design_feedback", pytest.fail)
+    monkeypatch.setattr(orchestrator, "validate_closed_loop", broken)
+    assert synthesize(run, "-q") == 1
+    assert "failed: stage montecarlo: RuntimeError: worker lost" in capsys.readouterr().out
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["status"] == "failed" and summary["stage"] == "montecarlo"
+    assert "worker lost" in summary["reason"] and summary["verdict"]["certified"] is False
+    assert not (out / "controller.json").exists() and (out / "controller.stale.json").is_file()
+    assert not (out / "report.html").exists() and (out / "report.stale.html").is_file()
+
+    assert main(["report", str(scenario), "--out", str(out)]) == 2
+    assert "the last run failed at stage 'montecarlo'" in capsys.readouterr().err
+
+    monkeypatch.undo()  # the next good run clears the stale files
+    assert synthesize(run, "-q") == 0
+    assert (out / "controller.json").is_file() and not list(out.glob("*.stale.*"))
+
+
+def test_uncertifiable_feedback_is_exit_1_with_a_failed_summary(run, capsys, monkeypatch):
+    _, out = run
+    stored = read_stored(out / "artifacts" / "feedback", RESULT_TYPES).result
+    failed = dataclasses.replace(stored, success=False, message="LMI infeasible at rate 0.5")
+    monkeypatch.setattr(orchestrator, "design_feedback", lambda scenario: failed)
+    assert synthesize(run, "--force", "-q") == 1
+    assert "failed: stage feedback: the feedback could not be certified" in (
+        capsys.readouterr().out
+    )
+    summary = json.loads((out / "summary.json").read_text())
+    assert (summary["status"], summary["stage"]) == ("failed", "feedback")
+    assert "LMI infeasible" in summary["reason"]
+    assert not (out / "controller.json").exists()
+
+
+# --- 5. corrupt caches -------------------------------------------------------------------------
+
+DAMAGE = {
+    "truncated npz": ("coverage_optimized.npz", lambda b: b[: len(b) // 2]),
+    "bit-flipped npz": ("montecarlo.npz", lambda b: b[:-9999] + bytes([b[-9999] ^ 4]) + b[-9998:]),
+    "empty npz": ("radius_demos.npz", lambda b: b""),
+    "truncated json": ("coverage_demos.json", lambda b: b[: len(b) // 3]),
+    "empty json": ("feedback.json", lambda b: b""),
+}
+
+
+def test_corrupt_artifacts_are_recomputed_in_one_line_each(run, capsys):
+    _, out = run
+    for name, damage in DAMAGE.values():
+        path = out / "artifacts" / name
+        path.write_bytes(damage(path.read_bytes()))
+    shipped = radii(out)
+    assert synthesize(run, "-q") == 0
+    refused = [line for line in capsys.readouterr().err.splitlines() if "refused" in line]
+    assert len(refused) == len(DAMAGE)
+    assert radii(out) == shipped
+
+
+@pytest.mark.parametrize("case", sorted(DAMAGE))
+def test_report_on_a_corrupt_artifact_is_exit_2_naming_it(run, capsys, case):
+    scenario, out = run
+    name, damage = DAMAGE[case]
+    path = out / "artifacts" / name
+    path.write_bytes(damage(path.read_bytes()))
+    assert main(["report", str(scenario), "--out", str(out)]) == 2
+    error = capsys.readouterr().err
+    assert error.startswith("error: ") and error.count("\n") == 1
+    assert str(path.with_suffix(".json")) in error and "synthesize" in error
+
+
+# --- 6. output folder mistakes: exit 2 before computing ---------------------------------------
+
+
+def test_out_naming_a_file_is_exit_2(run, capsys, tmp_path):
+    target = tmp_path / "a_file"
+    target.write_text("x")
+    assert main(["synthesize", str(run[0]), "--out", str(target)]) == 2
+    assert "--out names a file" in capsys.readouterr().err
+    assert target.read_text() == "x"
+
+
+def test_unwritable_out_is_exit_2_before_computing(run, capsys, tmp_path, monkeypatch):
+    if os.geteuid() == 0:  # root writes through permissions; sysfs refuses everyone
+        target = Path("/sys/safety-synthesis-out")
+        if not Path("/sys/kernel").is_dir():
+            pytest.skip("no read-only file system to write to")
+    else:
+        tmp_path.chmod(0o555)
+        target = tmp_path / "out"
+    monkeypatch.setattr(orchestrator, "design_feedback", pytest.fail)  # nothing computed
+    try:
+        assert main(["synthesize", str(run[0]), "--out", str(target)]) == 2
+    finally:
+        tmp_path.chmod(0o755)
+    assert "output folder is not writable" in capsys.readouterr().err
+
+
+def test_another_scenarios_controller_is_refused(run, capsys, tmp_path):
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "controller.json").write_text(json.dumps({"scenario": "quadrotor_hill"}))
+    assert main(["synthesize", str(run[0]), "--out", str(other)]) == 2
+    error = capsys.readouterr().err
+    assert "holds another scenario's controller.json; found 'quadrotor_hill'" in error
+
+
+# --- 7. leaks and races ------------------------------------------------------------------------
+
+
+def test_second_run_on_a_locked_folder_exits_2_naming_the_holder(run, capsys, monkeypatch):
+    monkeypatch.setattr(lock, "WAIT_SECONDS", 0.3)
+    with lock.folder_lock(run[1]):
+        started = time.monotonic()
+        assert synthesize(run) == 2
+        assert time.monotonic() - started < 5
+    assert f"another run (pid {os.getpid()}) is using this output folder" in (
+        capsys.readouterr().err
+    )
+
+
+def _descendants(pid: int) -> set[int]:
+    children: dict[int, list[int]] = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        children.setdefault(int(fields[1]), []).append(int(stat.parent.name))
+    found, pending = set(), [pid]
+    while pending:
+        for child in children.get(pending.pop(), []):
+            found.add(child)
+            pending.append(child)
+    return found
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+@pytest.mark.slow
+def test_kill_9_with_workers_leaves_no_worker_and_no_temporary(run):
+    scenario, out = run
+    command = [sys.executable, "-m", "pipeline", "synthesize", str(scenario), "--out", str(out)]
+    process = subprocess.Popen(
+        [*command, "--samples", SAMPLES, "--jobs", "2", "--force", "-q"],
+        cwd=ROOT,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
+    workers: set[int] = set()
+    try:
+        deadline = time.monotonic() + 60
+        while len(workers) < 2 and time.monotonic() < deadline and process.poll() is None:
+            time.sleep(0.2)
+            workers = _descendants(process.pid)
+        assert len(workers) >= 2, "the run never started its workers"
+        time.sleep(0.5)
+        process.send_signal(signal.SIGKILL)
+        process.wait()
+        deadline = time.monotonic() + 10
+        while any(_alive(p) for p in workers) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert not [p for p in workers if _alive(p)], "workers outlived the killed run"
+    finally:  # whatever happened, leave nothing of this test running
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+        for pid in _descendants(process.pid) | {p for p in workers if _alive(p)}:
+            os.kill(pid, signal.SIGKILL)
+    assert synthesize(run, "-q") == 0  # resumes; the lock died with its holder
+    assert not [p for p in out.rglob("*") if ".tmp" in p.name]
+
+
+# --- 8. cache granularity: keyed on the code and on what each stage reads ---------------------
+
+
+def test_fully_cached_rerun_and_csv_comment_edit_recompute_nothing(run, capsys):
+    scenario, out = run
+    before = mtimes(out)
+    report = (out / "report.html").stat().st_mtime_ns
+    demo = scenario / "demos" / "demo_01.csv"
+    demo.write_text("# a comment added by hand\n" + demo.read_text().replace(",", ", "))
+    assert synthesize(run) == 0
+    printed = capsys.readouterr().out
+    assert "] running" not in printed
+    assert mtimes(out) == before
+    assert (out / "report.html").stat().st_mtime_ns == report  # timings are not in its key
+
+
+def test_report_checks_the_demo_values_not_only_the_yaml(run, capsys):
+    scenario, out = run
+    demo = nudge_demo(scenario, "demo_02", 1e-3)
+    assert main(["report", str(scenario), "--out", str(out)]) == 2
+    assert f"demos changed since the run: {demo}" in capsys.readouterr().err
+
+
+def test_an_edited_controller_is_rewritten_from_the_certified_results(run, capsys):
+    _, out = run
+    shipped = radii(out)
+    path = out / "controller.json"
+    document = json.loads(path.read_text())
+    document["trajectories"][0]["radius"] = -1.0  # every state would look covered
+    path.write_text(json.dumps(document))
+    assert synthesize(run) == 0
+    assert "[controller] running" in capsys.readouterr().out
+    assert radii(out) == shipped
+
+
+def _copy_project(destination: Path) -> Path:
+    for package in ("pipeline", "stages"):
+        shutil.copytree(
+            ROOT / package, destination / package, ignore=shutil.ignore_patterns("__pycache__")
+        )
+    return destination
+
+
+def _stages_run(project: Path, scenario: Path, out: Path) -> set[str]:
+    done = subprocess.run(
+        [sys.executable, "-m", "pipeline", "synthesize", str(scenario), "--out", str(out)]
+        + ["--samples", SAMPLES],
+        cwd=project,
+        env={**os.environ, "PYTHONPATH": str(project)},
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert done.returncode == 0, done.stdout + done.stderr
+    return {line.split("]")[0][1:] for line in done.stdout.splitlines() if "] running" in line}
+
+
+@pytest.mark.slow
+def test_editing_a_stage_recomputes_that_stage_and_nothing_unrelated(run, tmp_path):
+    scenario, out = run
+    project = _copy_project(tmp_path / "project")
+    for stage in ("radius", "montecarlo"):
+        source = project / "stages" / f"{stage}.py"
+        source.write_text(source.read_text() + f"\n# an edit: stage {stage} must recompute\n")
+    ran = _stages_run(project, scenario, out)
+    assert {"radius_demos", "radius_optimized", "montecarlo"} <= ran
+    assert not {"feedback", "covering_radius", "optimize"} & ran
