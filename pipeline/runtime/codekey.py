@@ -3,8 +3,9 @@ or a numerical library changes, without hand-written version strings.
 
 ``code_key("stages.radius")`` hashes the source of that module and of every project module it
 imports, transitively (imports of ``pipeline`` and ``stages`` found in the syntax tree, including
-those inside functions; the data folders of the packages met, e.g. the report's templates),
-together with the installed versions of the numerical libraries.
+those inside functions but not those under ``if TYPE_CHECKING:``; the data folders of the
+packages met, e.g. the report's templates), together with the installed versions of the
+numerical libraries.
 """
 
 from __future__ import annotations
@@ -40,11 +41,27 @@ def module_file(module: str) -> Path | None:
     return None
 
 
+def _is_type_checking(test: ast.expr) -> bool:
+    return (isinstance(test, ast.Name) and test.id == "TYPE_CHECKING") or (
+        isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING"
+    )
+
+
 def _imported(module: str, source: str, is_package: bool) -> set[str]:
     """Project modules named by the imports in ``source`` (and their parent packages)."""
     names: set[str] = set()
     package = module if is_package else module.rpartition(".")[0]
-    for node in ast.walk(ast.parse(source)):
+    tree = ast.parse(source)
+    typing_only = {  # ``if TYPE_CHECKING:`` imports never run: they cannot change a result
+        id(inner)
+        for node in ast.walk(tree)
+        if isinstance(node, ast.If) and _is_type_checking(node.test)
+        for statement in node.body
+        for inner in ast.walk(statement)
+    }
+    for node in ast.walk(tree):
+        if id(node) in typing_only:
+            continue
         if isinstance(node, ast.Import):
             names.update(alias.name for alias in node.names)
         elif isinstance(node, ast.ImportFrom):
