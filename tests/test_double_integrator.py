@@ -113,7 +113,9 @@ def test_minimum_time_is_two_sqrt_distance_over_acceleration(tmp_path, D, a, opt
     scenario = _rest_to_rest(tmp_path, D, a)
     feedback = design_feedback(scenario)
     assert feedback.success, feedback.message
-    margins = ConstraintMargins(np.zeros(2), {}, feedback.K)  # no input margin
+    margins = ConstraintMargins(  # no input margin
+        input_margin=np.zeros(2), region_margin={}, gain=feedback.K
+    )
 
     result = optimize_demo(scenario, 0, margins, options)
 

@@ -48,6 +48,17 @@ class IterationLog:
     accepted: np.ndarray
     seconds: FloatArray
 
+    @classmethod
+    def empty(cls) -> IterationLog:
+        """The log of no iterations."""
+        return cls(
+            iteration=np.zeros(0),
+            cost=np.zeros(0),
+            step=np.zeros(0),
+            accepted=np.zeros(0, dtype=bool),
+            seconds=np.zeros(0),
+        )
+
     def table(self) -> str:
         """The log as an aligned text table (printed at ``-v``)."""
         lines = [f"{'iter':>5} {'J':>12} {'lam':>10} {'accepted':>8} {'time (s)':>9}"]

@@ -43,6 +43,11 @@ IntArray = npt.NDArray[np.int64]
 _SERIES_BELOW = 1e-4
 
 
+class MarginError(ValueError):
+    """The margins leave a constraint set empty (inputs, operating region, Goal); the message
+    names the set and the fix."""
+
+
 def box_penalty(
     z: FloatArray, lower: FloatArray, upper: FloatArray
 ) -> tuple[FloatArray, FloatArray]:
@@ -228,7 +233,7 @@ def build_constraints(
     input_lower = scenario.input_lower + eps_i + margin
     input_upper = scenario.input_upper - eps_i - margin
     for j in np.flatnonzero(input_lower > input_upper):
-        raise ValueError(
+        raise MarginError(
             f"input bounds of '{scenario.input_names[j]}' are empty after shrinking by eps_i +"
             f" input_margin = {eps_i + np.broadcast_to(margin, (m,))[j]:g}: "
             f"[{input_lower[j]:g}, {input_upper[j]:g}]; use smaller margins"
@@ -247,7 +252,7 @@ def build_constraints(
         if not (np.isfinite(shrink) and shrink >= 0.0):
             raise ValueError(f"region_margin['{name}'] must be a finite number >= 0, got {shrink}")
         if lower + shrink > upper - shrink:
-            raise ValueError(
+            raise MarginError(
                 f"operating region of '{name}' [{lower:g}, {upper:g}] is empty after shrinking by"
                 f" region_margin = {shrink:g}; use a smaller margin"
             )
@@ -259,7 +264,7 @@ def build_constraints(
     for name, (lower, upper) in scenario.goal_bounds.items():
         shrink = float((goal_margin or {}).get(name, 0.0))
         if lower + shrink > upper - shrink:
-            raise ValueError(
+            raise MarginError(
                 f"Goal's bound on '{name}' [{lower:g}, {upper:g}] is empty after shrinking by the"
                 f" tube's extent {shrink:g}; widen the bound or use a smaller clearance"
             )
@@ -268,9 +273,9 @@ def build_constraints(
     goal_shrink = d + eps_g
     goal_region = geometry.shrink(scenario.goal, goal_shrink)
     if goal_region.is_empty:
-        raise ValueError(
-            f"Goal shrunk by d + eps_g = {goal_shrink:g} is empty; use a smaller eps_g or a larger"
-            " Goal"
+        raise MarginError(
+            f"Goal shrunk by d + eps_g = {goal_shrink:g} (d = {d:g}, the tube's position extent)"
+            " is empty; use a smaller clearance or eps_g, or a larger Goal"
         )
 
     def columns(part: list[tuple[int, float, float]]) -> tuple[IntArray, FloatArray, FloatArray]:

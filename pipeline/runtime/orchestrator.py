@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.io.artifacts import atomic_write_json, file_hash, inputs_key
+from pipeline.io.errors import ScenarioError
 from pipeline.io.executor import Executor, make_executor
 from pipeline.io.progress import progress_bar
 from pipeline.model.scenario import Scenario, load_scenario
@@ -103,6 +104,14 @@ def _synthesize(
 ) -> int:
     started = time.perf_counter()
     scenario = load_scenario(scenario_name)
+    if not scenario.demos:
+        raise ScenarioError(
+            "no demonstrations to synthesize from",
+            file=scenario.path,
+            field="demos",
+            found=[],
+            expected=f"at least one demo (record one: python -m pipeline record {scenario.name})",
+        )
     out = Path(out) if out is not None else REPORTS_ROOT / scenario.name
     say = (lambda _text: None) if options.quiet else print
     runner = StageRunner(out, force=options.force, log=say)
