@@ -33,13 +33,14 @@ from pipeline.model.scenario import Scenario, load_scenario_cached
 from pipeline.numerics.descent import DescentResult, IterationLog, gradient_descent, lbfgs
 from pipeline.numerics.penalties import MarginError
 from pipeline.numerics.problem import Problem, make_problem
+from pipeline.numerics.settings import DESCENT_METHODS, EPS_D, EPS_G, EPS_I, HORIZON_SEARCHES
 from pipeline.numerics.shooting import StabilisedProblem
 from pipeline.numerics.verify import Verification, verify_nominal
 
-METHODS = ("gd", "lbfgs")
+METHODS = DESCENT_METHODS
 SEED_MODES = ("compress", "truncate")
 PARAMETERIZATIONS = ("feedback", "open_loop")
-SEARCHES = ("continuation", "bisection")
+SEARCHES = HORIZON_SEARCHES
 
 
 class Tube(Protocol):
@@ -93,14 +94,14 @@ class ConstraintMargins:
 
 @dataclass(frozen=True, kw_only=True)
 class OptimizeOptions:
-    method: str = "gd"
+    method: str = METHODS[0]
     seed_mode: str = "compress"
     parameterization: str = "feedback"
-    search: str = "continuation"
+    search: str = SEARCHES[0]
     step_fraction: float = 0.1  # continuation: shorten by this fraction of the horizon
-    eps_d: float = 0.05
-    eps_g: float = 0.05
-    eps_i: float = 0.0
+    eps_d: float = EPS_D
+    eps_g: float = EPS_G
+    eps_i: float = EPS_I
     eps_r: float = 0.01  # operating-region states: room for motion between penalty points
     overshoot: float = 0.01  # the descent's extra margin (m, N, rad: the constraints' units)
     max_iterations: int = 1000

@@ -33,6 +33,7 @@ from shapely.geometry.base import BaseGeometry
 
 from pipeline.model import geometry
 from pipeline.model.dynamics import FloatArray
+from pipeline.numerics.settings import EPS_D, EPS_G, EPS_I
 
 if TYPE_CHECKING:
     from pipeline.model.scenario import Scenario
@@ -210,9 +211,9 @@ def build_constraints(
     *,
     input_margin: FloatArray | float | None = None,
     region_margin: Mapping[str, float] | None = None,
-    eps_d: float = 0.05,
-    eps_g: float = 0.05,
-    eps_i: float = 0.0,
+    eps_d: float = EPS_D,
+    eps_g: float = EPS_G,
+    eps_i: float = EPS_I,
     clearance: float | None = None,
     goal_margin: Mapping[str, float] | None = None,
 ) -> Constraints:

@@ -17,7 +17,6 @@ from __future__ import annotations
 import sys
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -29,6 +28,7 @@ from pipeline.io.progress import progress_bar
 from pipeline.model.scenario import Scenario, load_scenario
 from pipeline.model.simulate import Trajectory, simulate
 from pipeline.numerics.verify import VERIFY_SUBSTEPS
+from pipeline.runtime.options import RunOptions
 from pipeline.runtime.runner import StageRunner
 from pipeline.runtime.summary import demo_table, print_summary, stress_summary, summarise
 from stages.controller import emit_controller
@@ -41,24 +41,7 @@ from stages.report import ReportResult, write_reports
 from stages.stress import stress_test
 
 REPORTS_ROOT = Path(__file__).resolve().parents[2] / "reports"
-MONTE_CARLO_SEED = 20261122
 REPORT_FILES = ("report.html", "report.pdf", "scenario.png")
-
-
-@dataclass(frozen=True)
-class RunOptions:
-    """Command-line choices of ``synthesize``."""
-
-    method: str = "gd"
-    search: str = "continuation"
-    samples: int = 10_000
-    jobs: int = 1
-    executor: str | None = None
-    force: bool = False
-    verbose: bool = False
-    quiet: bool = False
-    stress: bool = False
-    seed: int = MONTE_CARLO_SEED
 
 
 def _trajectories(
