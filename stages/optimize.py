@@ -23,7 +23,7 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 
@@ -35,27 +35,13 @@ from pipeline.numerics.penalties import MarginError
 from pipeline.numerics.problem import Problem, make_problem
 from pipeline.numerics.settings import DESCENT_METHODS, EPS_D, EPS_G, EPS_I, HORIZON_SEARCHES
 from pipeline.numerics.shooting import StabilisedProblem
+from pipeline.numerics.tube import Tube
 from pipeline.numerics.verify import Verification, verify_nominal
 
 METHODS = DESCENT_METHODS
 SEED_MODES = ("compress", "truncate")
 PARAMETERIZATIONS = ("feedback", "open_loop")
 SEARCHES = HORIZON_SEARCHES
-
-
-class Tube(Protocol):
-    """What ``ConstraintMargins.of_tube`` reads from the feedback stage's result."""
-
-    K: FloatArray  # (m, n)
-    state_names: tuple[str, ...]
-
-    def input_margin(self, radius: float) -> FloatArray: ...
-
-    def state_extent(self, radius: float) -> FloatArray: ...
-
-    def region_extent(self, radius: float) -> dict[str, float]: ...
-
-    def position_extent(self, radius: float) -> float: ...
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -26,7 +26,6 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Protocol
 
 import numpy as np
 import shapely
@@ -36,18 +35,10 @@ from pipeline.model import geometry
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import Trajectory
+from pipeline.numerics.tube import Tube
 
 
-class Tube(Protocol):
-    """What this stage reads from the feedback stage's result."""
-
-    K: FloatArray | None  # (m, n)
-    P: FloatArray | None  # (n, n)
-    rate: float
-    region: Mapping[str, tuple[float, float]]
-
-
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class RadiusResult:
     """The robustness radius of one nominal trajectory.
 
@@ -78,12 +69,11 @@ def _interval_lower_bound(q: FloatArray, rate: FloatArray, h: float) -> FloatArr
     return np.minimum(np.minimum(q[:-1], q[1:]), (q[:-1] + q[1:] - L * h) / 2)
 
 
-def robustness_radius(scenario: Scenario, feedback: Tube, trajectory: Trajectory) -> RadiusResult:
+def robustness_radius(scenario: Scenario, tube: Tube, trajectory: Trajectory) -> RadiusResult:
     """The robustness radius of ``trajectory`` (one, unbatched: ``dense_xs (N s + 1, n)``,
-    ``us (N, m)``) under ``feedback`` (``K (m, n)``, ``P (n, n)``, ``rate``, ``region``)."""
-    if feedback.P is None or feedback.K is None:
-        raise ValueError("radius: the feedback has no certified P and K; run the feedback stage")
-    P, K, lam = np.asarray(feedback.P), np.asarray(feedback.K), float(feedback.rate)
+    ``us (N, m)``) in the certified ``tube`` (``K (m, n)``, ``P (n, n)``, ``rate``,
+    ``region``)."""
+    lam = float(tube.rate)
     ts, xs, us = trajectory.dense_ts, trajectory.dense_xs, trajectory.us
     if xs.ndim != 2:
         raise ValueError(f"radius: expected one trajectory, got dense_xs of shape {xs.shape}")
@@ -104,9 +94,8 @@ def robustness_radius(scenario: Scenario, feedback: Tube, trajectory: Trajectory
         [scenario.dynamics.f(xs[:-1], u_grid), scenario.dynamics.f(xs[1:], u_grid)], axis=1
     )  # (N s, 2, n): dx/dt at both ends of each dense interval
     growth = np.exp(lam * ts[:-1])  # (N s,) e^{lambda t_k}
-    P_inv = np.linalg.inv(P)
-    extent = np.sqrt(np.diag(P_inv))  # (n,)
-    gain = np.sqrt(np.einsum("ji,ik,jk->j", K, P_inv, K))  # (m,)
+    extent = tube.state_extent_per_radius  # (n,) sqrt((P^-1)_ii)
+    gain = tube.input_margin_per_radius  # (m,) ||K_j P^-1/2||
     limits: dict[str, tuple[float, float]] = {}  # name -> (radius, time)
 
     def record(name: str, per_interval: FloatArray, times: FloatArray) -> None:
@@ -114,10 +103,7 @@ def robustness_radius(scenario: Scenario, feedback: Tube, trajectory: Trajectory
         limits[name] = (max(float(per_interval[k]), 0.0), float(times[k]))
 
     # 1. Unsafe, in the coordinates where the position ellipse is a disk.
-    c = list(scenario.position_index)
-    Sigma = P_inv[np.ix_(c, c)]  # C P^-1 C^T (2, 2)
-    values, vectors = np.linalg.eigh(Sigma)
-    W = vectors @ np.diag(values**-0.5) @ vectors.T
+    W = tube.position_whitening  # Sigma^-1/2, Sigma = C P^-1 C^T (2, 2)
     positions = scenario.positions(xs)
     Wp = positions @ W.T
     Wv = scenario.positions(rates) @ W.T  # (N s, 2, 2)
@@ -136,7 +122,7 @@ def robustness_radius(scenario: Scenario, feedback: Tube, trajectory: Trajectory
     # 2. Operating region (states with their rates; held inputs exactly) and input bounds.
     t_N = trajectory.ts[:-1]  # (N,) sample times
     growth_N = np.exp(lam * t_N)
-    for name, (lower, upper) in feedback.region.items():
+    for name, (lower, upper) in tube.region.items():
         if name in scenario.state_names:
             i = scenario.state_names.index(name)
             for side, q in (("lower", xs[:, i] - lower), ("upper", upper - xs[:, i])):
@@ -166,7 +152,7 @@ def robustness_radius(scenario: Scenario, feedback: Tube, trajectory: Trajectory
 
     binding = min(limits, key=lambda key: limits[key][0])
     radius, when = limits[binding]
-    position_clearance = radius * float(np.sqrt(values[-1]))
+    position_clearance = tube.position_extent(radius)
     if radius > 0:
         message = (
             f"radius {radius:.4g} (position clearance {position_clearance:.3g}), "

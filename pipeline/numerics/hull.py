@@ -55,7 +55,7 @@ class HullError(ValueError):
     """The Jacobian cannot be enclosed over the given region (unbounded variable, bad function)."""
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class JacobianHull:
     """Vertices of a polytope containing ``[f_x f_u]`` over ``region``.
 

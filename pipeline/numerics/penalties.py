@@ -104,7 +104,7 @@ def polygon_distance(positions: FloatArray, region: BaseGeometry) -> tuple[Float
     return r, gradient
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class Penalized:
     """``J`` and its partial derivatives with respect to each grid state and input.
 
@@ -119,7 +119,7 @@ class Penalized:
     J_u: FloatArray
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, kw_only=True, eq=False)
 class Constraints:
     """The modified constraints of §IV-A, as penalties. Index arrays select state/input entries.
 

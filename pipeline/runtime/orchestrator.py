@@ -56,7 +56,8 @@ def _trajectories(
 def _radii(
     scenario: Scenario, feedback: FeedbackResult, trajectories: Sequence[Trajectory]
 ) -> tuple[RadiusResult, ...]:
-    return tuple(robustness_radius(scenario, feedback, tr) for tr in trajectories)
+    tube = feedback.certified_tube
+    return tuple(robustness_radius(scenario, tube, tr) for tr in trajectories)
 
 
 def _coverage(
@@ -137,7 +138,7 @@ def _synthesize(
         ),
     )
     r_required = covering.kept_radius(r_d)
-    margins = ConstraintMargins.of_tube(feedback, r_required)
+    margins = ConstraintMargins.of_tube(feedback.certified_tube, r_required)
     optimize_options = OptimizeOptions(method=options.method, search=options.search)
     with progress_bar(len(scenario.demos), "demos optimized", options.quiet) as advance:
         optimized: OptimizeResult = runner.run(

@@ -30,7 +30,7 @@ def _quadrotor():
     scenario = load_scenario("quadrotor_hill", check_demos=False)
     feedback = design_feedback(scenario)
     r_d = feedback.required_radius(scenario.clearance)
-    margins = ConstraintMargins.of_tube(feedback, r_d)
+    margins = ConstraintMargins.of_tube(feedback.certified_tube, r_d)
     return scenario, margins
 
 
