@@ -109,7 +109,7 @@ def _synthesize(
     )
 
     feedback = runner.run(
-        "feedback", inputs_key(base, "feedback/1"), lambda: design_feedback(scenario)
+        "feedback", inputs_key(base, "feedback/2"), lambda: design_feedback(scenario)
     )
     if not feedback.success:
         print(f"not certified: the feedback could not be certified: {feedback.message}")
