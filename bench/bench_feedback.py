@@ -34,7 +34,9 @@ def run(scenario_name: str = "quadrotor_hill") -> None:
     t_joint = best_time(lambda: design_feedback(scenario, gain="joint"), repeat=3)
 
     def radii() -> list[float]:
-        return [robustness_radius(scenario, feedback, t).radius for t in trajectories]
+        return [
+            robustness_radius(scenario, feedback.certified_tube, t).radius for t in trajectories
+        ]
 
     t_radius = best_time(radii) / len(trajectories)
     centers = np.array([d.x0 for d in demos])

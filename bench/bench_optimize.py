@@ -311,7 +311,7 @@ def run() -> None:
     Ts = scenario.Ts
     feedback = design_feedback(scenario)
     r_d = feedback.required_radius(scenario.clearance)
-    margins = ConstraintMargins.of_tube(feedback, r_d)
+    margins = ConstraintMargins.of_tube(feedback.certified_tube, r_d)
     options = {m: OptimizeOptions(method=m) for m in ("gd", "lbfgs")}
     eps = options["gd"]
     region_margin = {  # as optimize_demo shrinks the region

@@ -35,6 +35,7 @@ from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import simulate
 from pipeline.numerics.cover import DEFAULT_DEPTH, subdivide
 from pipeline.numerics.hull import DEFAULT_SEGMENTS, HullError, jacobian_hull
+from pipeline.numerics.tube import Tube
 from pipeline.numerics.tube_radius import radius_limits
 from pipeline.numerics.verify import VERIFY_SUBSTEPS
 
@@ -150,7 +151,16 @@ def certify_controller(
             f"{margin:.3g} >= 0 over {vertices} hull vertices"
         )
 
-    # 4. Each reference and its radius.
+    # 4. Each reference and its radius, in the file's tube.
+    tube = Tube(
+        K=controller.K,
+        P=controller.P,
+        rate=controller.rate,
+        region=scenario.operating_region,
+        state_names=scenario.state_names,
+        input_names=scenario.input_names,
+        position_index=scenario.position_index,
+    )
     verified, reference_error = [], 0.0
     for i, tr in enumerate(controller.trajectories):
         N = len(tr.u_ref)
@@ -169,14 +179,7 @@ def certify_controller(
                 f"(P-norm error {error:.3g} radius)"
             )
         nominal = simulate(scenario.dynamics, tr.x0, tr.u_ref, scenario.Ts, VERIFY_SUBSTEPS)
-        limits = radius_limits(
-            scenario,
-            controller.K,
-            controller.P,
-            controller.rate,
-            scenario.operating_region,
-            nominal,
-        )
+        limits = radius_limits(scenario, tube, nominal)
         verified.append(limits.radius)
         if not tr.radius <= limits.radius * (1 + RADIUS_TOLERANCE):
             binding = min(limits.limits, key=lambda key: limits.limits[key][0])

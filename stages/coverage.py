@@ -18,6 +18,8 @@ from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
 from pipeline.numerics.cover import DEFAULT_DEPTH, subdivide
 
+MAX_BISECTIONS = 200  # covering_radius: tries of a radius (about 10 suffice in practice)
+
 
 class Metric(Protocol):
     """What this stage reads from the feedback stage's result."""
@@ -25,7 +27,7 @@ class Metric(Protocol):
     P: FloatArray | None  # (n, n)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class CoverageResult:
     """Coverage of Init by the balls ``||x - centers[i]||_P <= radii[i]``.
 
@@ -119,7 +121,7 @@ def cover_init(
     )
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class CoveringRadius:
     """The smallest common radius (within ``tolerance``) at which the balls around the demo
     starts cover Init: the radius every optimized trajectory must keep so that coverage
@@ -149,28 +151,70 @@ def covering_radius(
     (k, n)``; coverage by ``cover_init`` is monotone in ``r``, and the radius returned is one
     at which it was certified, at most ``(1 + tolerance)`` times the smallest such."""
     centers = np.asarray(centers, dtype=np.float64)
+    lower0 = np.asarray(scenario.init_lower, dtype=np.float64)
+    upper0 = np.asarray(scenario.init_upper, dtype=np.float64)
+    if np.all(upper0 == lower0):
+        return _point_covering_radius(feedback, centers, lower0)
 
     def covers(radius: float) -> bool:
         radii = np.full(len(centers), radius)
         return cover_init(scenario, feedback, centers, radii, max_depth).covered
 
     tries = 1
-    if not (upper > 0 and covers(upper)):
+    if not (np.isfinite(upper) and upper > 0 and covers(upper)):
         return CoveringRadius(
-            np.inf, False, tries, False, f"balls of radius {upper:.4g} do not cover Init"
+            radius=np.inf,
+            covered=False,
+            tries=tries,
+            success=False,
+            message=f"balls of radius {upper:.4g} do not cover Init",
         )
+    # Init has a free direction, so the smallest covering radius is positive and each halving
+    # while lo = 0 brings hi closer to it: the loop ends after about log2(upper / radius) +
+    # log2(1 / tolerance) tries. MAX_BISECTIONS bounds it whatever the numbers.
     lo, hi = 0.0, float(upper)
-    while hi - lo > tolerance * hi:
+    while hi - lo > tolerance * hi and tries <= MAX_BISECTIONS:
         middle = (lo + hi) / 2
         tries += 1
         if covers(middle):
             hi = middle
         else:
             lo = middle
+    converged = hi - lo <= tolerance * hi
+    note = "" if converged else f" (bisection stopped after {MAX_BISECTIONS} tries)"
     return CoveringRadius(
-        hi,
-        True,
-        tries,
-        True,
-        f"balls of radius {hi:.4g} around the {len(centers)} starts cover Init",
+        radius=hi,
+        covered=True,
+        tries=tries,
+        success=True,
+        message=f"balls of radius {hi:.4g} around the {len(centers)} starts cover Init{note}",
+    )
+
+
+def _point_covering_radius(
+    feedback: Metric, centers: FloatArray, point: FloatArray
+) -> CoveringRadius:
+    """Init is the single state ``point (n,)``: the smallest common radius is exactly the
+    distance ``min_i ||point - centers[i]||_P`` (0 when a demo starts there; every tube then
+    covers Init and the optimizer keeps ``r_d``)."""
+    if feedback.P is None:
+        raise ValueError("coverage: the feedback has no certified P; run the feedback stage")
+    P = np.asarray(feedback.P, dtype=np.float64)
+    e = point[None] - centers.reshape(-1, point.shape[0])  # (k, n)
+    distance = float(np.sqrt(max(np.min(np.einsum("ki,ij,kj->k", e, P, e)), 0.0)))
+    # One ulp-scale step up, so that cover_init (q <= r^2) certifies this radius too.
+    radius = distance * (1.0 + 1e-12)
+    return CoveringRadius(
+        radius=radius,
+        covered=True,
+        tries=0,
+        success=True,
+        message=(
+            "Init is a single state; "
+            + (
+                "a demo starts there, so any tube covers it"
+                if radius == 0.0
+                else f"the nearest start is at P-distance {distance:.4g}"
+            )
+        ),
     )

@@ -41,15 +41,16 @@ import numpy as np
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
 from pipeline.numerics.hull import DEFAULT_SEGMENTS, HullError, jacobian_hull
+from pipeline.numerics.tube import Tube
 
 GAINS = ("auto", "lqr", "joint")
 EPS = 1e-3
 MIN_EIGENVALUE = 1e-6
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class FeedbackResult:
-    """The certified feedback and the tube's footprint per unit P-norm radius.
+    """The certified feedback and its tube (``pipeline.numerics.tube``).
 
     Attributes:
       K: (m, n) gain of ``u = u_ref + K (x - x_ref)``; None if no gain could be designed.
@@ -57,10 +58,9 @@ class FeedbackResult:
       rate: lambda (1/s): ``||e(t)||_P <= exp(-lambda t) ||e(0)||_P`` inside ``region``.
       vertices: (V, n, n+m) the Jacobian hull's vertices ``[A_i B_i]``.
       solver_status: cvxpy status of the chosen design (or of each try on failure).
-      input_margin_per_radius: (m,) ``||K_j P^-1/2||``: ``|K_j e| <= r`` times this.
-      state_extent_per_radius: (n,) ``sqrt((P^-1)_ii)``: ``|e_i| <= r`` times this.
-      position_shape: (2, 2) ``C P^-1 C^T``: the position projection of the unit ball.
       region: name -> (lower, upper) box of states/inputs where the certificate holds.
+      tube: the certified tube's geometry (None unless ``success``); the per-radius quantities
+        and the methods below read it.
       gain: "lqr" or "joint", the design that was kept.
       certified_margin: largest eigenvalue of ``P^-1/2 (A_cl^T P + P A_cl + 2 lambda P) P^-1/2``
         over the vertices (< 0 for a certificate).
@@ -73,12 +73,10 @@ class FeedbackResult:
     rate: float
     vertices: FloatArray = field(repr=False)
     solver_status: str
-    input_margin_per_radius: FloatArray
-    state_extent_per_radius: FloatArray
-    position_shape: FloatArray
     region: Mapping[str, tuple[float, float]]
     state_names: tuple[str, ...]
     input_names: tuple[str, ...]
+    tube: Tube | None = field(default=None, repr=False)
     success: bool
     message: str
     gain: str = ""
@@ -86,48 +84,50 @@ class FeedbackResult:
     objective: float = float("nan")
     hull: tuple[str, ...] = ()
 
-    def _require(self) -> None:
-        if not self.success:
+    @property
+    def certified_tube(self) -> Tube:
+        """The tube; raises if the feedback was not certified."""
+        if not self.success or self.tube is None:
             raise ValueError(f"the feedback was not certified: {self.message}")
+        return self.tube
+
+    @property
+    def input_margin_per_radius(self) -> FloatArray:
+        """(m,) ``||K_j P^-1/2||``: ``|K_j e| <= r`` times this."""
+        return self.certified_tube.input_margin_per_radius
+
+    @property
+    def state_extent_per_radius(self) -> FloatArray:
+        """(n,) ``sqrt((P^-1)_ii)``: ``|e_i| <= r`` times this."""
+        return self.certified_tube.state_extent_per_radius
+
+    @property
+    def position_shape(self) -> FloatArray:
+        """(2, 2) ``C P^-1 C^T``: the position projection of the unit ball."""
+        return self.certified_tube.position_shape
 
     def required_radius(self, clearance: float) -> float:
-        """``r_d = d / sqrt(lambda_max(C P^-1 C^T))``: the largest P-norm radius whose position
-        projection fits in a disk of radius ``d = clearance``."""
-        self._require()
-        return float(clearance / np.sqrt(np.linalg.eigvalsh(self.position_shape)[-1]))
+        """``r_d``: see ``Tube.required_radius``."""
+        return self.certified_tube.required_radius(clearance)
 
     def position_extent(self, radius: float) -> float:
-        """Radius of the smallest disk holding the position projection of the ``radius`` ball."""
-        self._require()
-        return float(radius * np.sqrt(np.linalg.eigvalsh(self.position_shape)[-1]))
+        """See ``Tube.position_extent``."""
+        return self.certified_tube.position_extent(radius)
 
     def input_margin(self, radius: float) -> FloatArray:
-        """(m,) the largest ``|K_j e|`` over ``||e||_P <= radius``."""
-        self._require()
-        return radius * self.input_margin_per_radius
-
-    def state_extent(self, radius: float) -> FloatArray:
-        """(n,) the largest ``|e_i|`` over ``||e||_P <= radius``."""
-        self._require()
-        return radius * self.state_extent_per_radius
+        """(m,) see ``Tube.input_margin``."""
+        return self.certified_tube.input_margin(radius)
 
     def region_extent(self, radius: float) -> dict[str, float]:
-        """Name -> how far the tube of P-radius ``radius`` reaches along each operating-region
-        state or input (shrink the region by this to keep the tube inside)."""
-        extent = dict(zip(self.state_names, self.state_extent(radius), strict=True))
-        extent |= dict(zip(self.input_names, self.input_margin(radius), strict=True))
-        return {name: float(extent[name]) for name in self.region}
+        """See ``Tube.region_extent``."""
+        return self.certified_tube.region_extent(radius)
 
     def slice_semi_axes(self, radius: float, index: tuple[int, ...]) -> FloatArray:
-        """Semi-axes (len(index),), largest first, of the ball's slice along the states
-        ``index`` (e.g. Init's free directions): ``{s : ||S s||_P <= radius}``."""
-        self._require()
-        assert self.P is not None
-        index = list(index)
-        return radius / np.sqrt(np.linalg.eigvalsh(self.P[np.ix_(index, index)]))
+        """See ``Tube.slice_semi_axes``."""
+        return self.certified_tube.slice_semi_axes(radius, index)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class _Design:
     K: FloatArray
     P: FloatArray
@@ -257,7 +257,9 @@ def _solve(
         return f"{problem.status} but no usable solution"
     if not (np.all(np.isfinite(K)) and np.all(np.isfinite(P))):
         return f"{problem.status} but non-finite K or P"
-    return _Design(np.asarray(K), (P + P.T) / 2, problem.status, float(problem.value))
+    return _Design(
+        K=np.asarray(K), P=(P + P.T) / 2, status=problem.status, objective=float(problem.value)
+    )
 
 
 def certificate_margin(P: FloatArray, K: FloatArray, vertices: FloatArray, rate: float) -> float:
@@ -299,14 +301,21 @@ def design_feedback(
     n, m = scenario.n, scenario.m
     region = dict(scenario.operating_region)
     where = ", ".join(f"{k} in [{lo:g}, {hi:g}]" for k, (lo, hi) in region.items()) or "everywhere"
-    nan_n, nan_m = np.full(n, np.nan), np.full(m, np.nan)
 
     def failed(message: str, K=None, vertices=None, status="", hull=()):
-        vertices = np.zeros((0, n, n + m)) if vertices is None else vertices
         return FeedbackResult(
-            K, None, rate, vertices, status, nan_m, nan_n, np.full((2, 2), np.nan), region,
-            scenario.state_names, scenario.input_names, False, message, hull=hull,
-        )  # fmt: skip
+            K=K,
+            P=None,
+            rate=rate,
+            vertices=np.zeros((0, n, n + m)) if vertices is None else vertices,
+            solver_status=status,
+            region=region,
+            state_names=scenario.state_names,
+            input_names=scenario.input_names,
+            success=False,
+            message=message,
+            hull=hull,
+        )
 
     try:
         hull = jacobian_hull(scenario.dynamics, region, segments)
@@ -351,8 +360,6 @@ def design_feedback(
         )
     name = min(certified, key=lambda k: certified[k][0].objective)
     design, margin = certified[name]
-    P_inv = np.linalg.inv(design.P)
-    C = _position_matrix(scenario)
     K = design.K
     others = "".join(
         f"; {k} objective {v[0].objective:.4g}" for k, v in certified.items() if k != name
@@ -363,9 +370,15 @@ def design_feedback(
         rate=rate,
         vertices=hull.vertices,
         solver_status=design.status,
-        input_margin_per_radius=np.sqrt(np.einsum("ji,ik,jk->j", K, P_inv, K)),
-        state_extent_per_radius=np.sqrt(np.diag(P_inv)),
-        position_shape=C @ P_inv @ C.T,
+        tube=Tube(
+            K=K,
+            P=design.P,
+            rate=rate,
+            region=region,
+            state_names=scenario.state_names,
+            input_names=scenario.input_names,
+            position_index=scenario.position_index,
+        ),
         region=region,
         state_names=scenario.state_names,
         input_names=scenario.input_names,

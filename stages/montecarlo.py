@@ -82,6 +82,9 @@ def falsify(
     """Corners of Init, a scrambled Sobol set, then Nelder-Mead from the worst starts."""
     lo, hi = scenario.init_lower, scenario.init_upper
     free = np.flatnonzero(hi > lo)
+    if free.size == 0:  # Init is a single state: the only start there is to try
+        checks = check_runs(scenario, controller, lo[None])[0]
+        return Falsification(lo.copy(), float(checks.margin()[0]), 1, checks.binding()[0])
     corners = (
         np.array(np.meshgrid(*[[lo[i], hi[i]] for i in free], indexing="ij"))
         .reshape(len(free), -1)

@@ -23,7 +23,7 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 
@@ -31,32 +31,20 @@ from pipeline.io.executor import Executor, SerialExecutor
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario, load_scenario_cached
 from pipeline.numerics.descent import DescentResult, IterationLog, gradient_descent, lbfgs
+from pipeline.numerics.penalties import MarginError
 from pipeline.numerics.problem import Problem, make_problem
+from pipeline.numerics.settings import DESCENT_METHODS, EPS_D, EPS_G, EPS_I, HORIZON_SEARCHES
 from pipeline.numerics.shooting import StabilisedProblem
+from pipeline.numerics.tube import Tube
 from pipeline.numerics.verify import Verification, verify_nominal
 
-METHODS = ("gd", "lbfgs")
+METHODS = DESCENT_METHODS
 SEED_MODES = ("compress", "truncate")
 PARAMETERIZATIONS = ("feedback", "open_loop")
-SEARCHES = ("continuation", "bisection")
+SEARCHES = HORIZON_SEARCHES
 
 
-class Tube(Protocol):
-    """What ``ConstraintMargins.of_tube`` reads from the feedback stage's result."""
-
-    K: FloatArray  # (m, n)
-    state_names: tuple[str, ...]
-
-    def input_margin(self, radius: float) -> FloatArray: ...
-
-    def state_extent(self, radius: float) -> FloatArray: ...
-
-    def region_extent(self, radius: float) -> dict[str, float]: ...
-
-    def position_extent(self, radius: float) -> float: ...
-
-
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class ConstraintMargins:
     """The tube's footprint at the required radius, from the feedback stage.
 
@@ -80,9 +68,9 @@ class ConstraintMargins:
     def of_tube(cls, tube: Tube, radius: float) -> ConstraintMargins:
         """The footprint of the feedback's tube of P-norm radius ``radius``."""
         return cls(
-            tube.input_margin(radius),
-            tube.region_extent(radius),
-            tube.K,
+            input_margin=tube.input_margin(radius),
+            region_margin=tube.region_extent(radius),
+            gain=tube.K,
             clearance=tube.position_extent(radius),
             goal_margin=dict(
                 zip(tube.state_names, map(float, tube.state_extent(radius)), strict=True)
@@ -90,16 +78,16 @@ class ConstraintMargins:
         )
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class OptimizeOptions:
-    method: str = "gd"
+    method: str = METHODS[0]
     seed_mode: str = "compress"
     parameterization: str = "feedback"
-    search: str = "continuation"
+    search: str = SEARCHES[0]
     step_fraction: float = 0.1  # continuation: shorten by this fraction of the horizon
-    eps_d: float = 0.05
-    eps_g: float = 0.05
-    eps_i: float = 0.0
+    eps_d: float = EPS_D
+    eps_g: float = EPS_G
+    eps_i: float = EPS_I
     eps_r: float = 0.01  # operating-region states: room for motion between penalty points
     overshoot: float = 0.01  # the descent's extra margin (m, N, rad: the constraints' units)
     max_iterations: int = 1000
@@ -120,7 +108,7 @@ class OptimizeOptions:
             )
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class BisectionTry:
     """One horizon tried: ``N`` samples, whether ``J`` reached 0, and at what effort."""
 
@@ -131,7 +119,7 @@ class BisectionTry:
     seconds: float
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class TrajectoryOptimization:
     """The optimisation of one demo.
 
@@ -162,7 +150,7 @@ class TrajectoryOptimization:
         return 1.0 - self.N / self.N_demo
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class OptimizeResult:
     trajectories: tuple[TrajectoryOptimization, ...]
     options: OptimizeOptions
@@ -292,10 +280,29 @@ def optimize_demo(
             goal_margin={name: extent + extra for name, extent in margins.goal_margin.items()},
         )
 
-    problem, tightened = constrained(0.0), constrained(options.overshoot)
+    name = scenario.demos[demo].name
+    try:
+        problem, tightened = constrained(0.0), constrained(options.overshoot)
+    except MarginError as error:  # e.g. a tube too wide for Goal: this demo cannot be optimized
+        us = scenario.demos[demo].us
+        return TrajectoryOptimization(
+            demo=name,
+            x0=scenario.demos[demo].x0,
+            N_demo=len(us),
+            N=len(us),
+            u=us,
+            Ts=scenario.Ts,
+            tries=(),
+            feasible_inputs=(),
+            log=IterationLog.empty(),
+            verification=None,
+            seconds=0.0,
+            success=False,
+            message=f"demo '{name}' was not optimized: {error}",
+        )
     _warm_up(problem, margins.gain, options)
     start = time.perf_counter()
-    name, N_demo = scenario.demos[demo].name, problem.N
+    N_demo = problem.N
     tries: list[BisectionTry] = []
     feasible_inputs: list[FloatArray] = []
 
@@ -310,7 +317,11 @@ def optimize_demo(
         )
         tries.append(
             BisectionTry(
-                N, outcome.feasible, outcome.iterations, outcome.cost, time.perf_counter() - t0
+                N=N,
+                feasible=outcome.feasible,
+                iterations=outcome.iterations,
+                cost=outcome.cost,
+                seconds=time.perf_counter() - t0,
             )
         )
         if outcome.feasible:
@@ -320,20 +331,20 @@ def optimize_demo(
     first = attempt(N_demo, problem.u_seed)
     if not first.feasible:
         return TrajectoryOptimization(
-            name,
-            problem.x0,
-            N_demo,
-            N_demo,
-            problem.u_seed,
-            scenario.Ts,
-            tuple(tries),
-            (),
-            first.log,
-            None,
-            time.perf_counter() - start,
-            False,
-            f"demo '{name}' could not be made feasible at its own length ({first.message}); "
-            "record a demonstration with more clearance",
+            demo=name,
+            x0=problem.x0,
+            N_demo=N_demo,
+            N=N_demo,
+            u=problem.u_seed,
+            Ts=scenario.Ts,
+            tries=tuple(tries),
+            feasible_inputs=(),
+            log=first.log,
+            verification=None,
+            seconds=time.perf_counter() - start,
+            success=False,
+            message=f"demo '{name}' could not be made feasible at its own length "
+            f"({first.message}); record a demonstration with more clearance",
         )
     nearest = {"u": first.u, "log": first.log}  # the shortest feasible solution so far
 
@@ -367,19 +378,19 @@ def optimize_demo(
         else f"optimized trajectory failed verification: {verification.message}"
     )
     return TrajectoryOptimization(
-        name,
-        problem.x0,
-        N_demo,
-        hi,
-        best,
-        scenario.Ts,
-        tuple(tries),
-        tuple(feasible_inputs),
-        best_log,
-        verification,
-        time.perf_counter() - start,
-        success,
-        message,
+        demo=name,
+        x0=problem.x0,
+        N_demo=N_demo,
+        N=hi,
+        u=best,
+        Ts=scenario.Ts,
+        tries=tuple(tries),
+        feasible_inputs=tuple(feasible_inputs),
+        log=best_log,
+        verification=verification,
+        seconds=time.perf_counter() - start,
+        success=success,
+        message=message,
     )
 
 
@@ -422,4 +433,6 @@ def optimize(
         if not failed
         else "; ".join(r.message for r in failed)
     )
-    return OptimizeResult(tuple(results), options, not failed, message)
+    return OptimizeResult(
+        trajectories=tuple(results), options=options, success=not failed, message=message
+    )

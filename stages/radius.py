@@ -12,26 +12,14 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Protocol
 
-import numpy as np
-
-from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import Trajectory
+from pipeline.numerics.tube import Tube
 from pipeline.numerics.tube_radius import radius_limits
 
 
-class Tube(Protocol):
-    """What this stage reads from the feedback stage's result."""
-
-    K: FloatArray | None  # (m, n)
-    P: FloatArray | None  # (n, n)
-    rate: float
-    region: Mapping[str, tuple[float, float]]
-
-
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class RadiusResult:
     """The robustness radius of one nominal trajectory.
 
@@ -55,23 +43,15 @@ class RadiusResult:
     message: str
 
 
-def robustness_radius(scenario: Scenario, feedback: Tube, trajectory: Trajectory) -> RadiusResult:
+def robustness_radius(scenario: Scenario, tube: Tube, trajectory: Trajectory) -> RadiusResult:
     """The robustness radius of ``trajectory`` (one, unbatched: ``dense_xs (N s + 1, n)``,
-    ``us (N, m)``) under ``feedback`` (``K (m, n)``, ``P (n, n)``, ``rate``, ``region``)."""
-    if feedback.P is None or feedback.K is None:
-        raise ValueError("radius: the feedback has no certified P and K; run the feedback stage")
-    tube = radius_limits(
-        scenario,
-        np.asarray(feedback.K),
-        np.asarray(feedback.P),
-        float(feedback.rate),
-        feedback.region,
-        trajectory,
-    )
-    limits = tube.limits
+    ``us (N, m)``) in the certified ``tube`` (``K (m, n)``, ``P (n, n)``, ``rate``,
+    ``region``)."""
+    found = radius_limits(scenario, tube, trajectory)
+    limits = found.limits
     binding = min(limits, key=lambda key: limits[key][0])
     radius, when = limits[binding]
-    position_clearance = radius * tube.position_scale
+    position_clearance = tube.position_extent(radius)
     if radius > 0:
         message = (
             f"radius {radius:.4g} (position clearance {position_clearance:.3g}), "
@@ -85,7 +65,7 @@ def robustness_radius(scenario: Scenario, feedback: Tube, trajectory: Trajectory
         binding=binding,
         binding_time=when,
         limits={key: value[0] for key, value in limits.items()},
-        nominal_clearance=tube.nominal_clearance,
+        nominal_clearance=found.nominal_clearance,
         success=radius > 0,
         message=message,
     )

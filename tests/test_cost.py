@@ -223,7 +223,7 @@ def test_margins_shrink_the_bounds_and_the_region(quadrotor):
         (dict(input_margin=[1.0]), "input_margin must be a number or 2 numbers"),
         (dict(region_margin={"vX": 0.1}), "'vX', which is not in the scenario's operating_region"),
         (dict(region_margin={"theta": 0.7}), "operating region of 'theta'"),
-        (dict(eps_g=5.0), "Goal shrunk by d + eps_g = 6 is empty"),
+        (dict(eps_g=5.0), "Goal shrunk by d + eps_g = 6 (d = "),
         (dict(eps_d=-1.0), "eps_d must be a finite number >= 0"),
         (dict(penalty_points=-1), "penalty_points must be a whole number >= 0"),
         (dict(backend="jax"), "backend must be one of"),

@@ -113,7 +113,9 @@ def test_minimum_time_is_two_sqrt_distance_over_acceleration(tmp_path, D, a, opt
     scenario = _rest_to_rest(tmp_path, D, a)
     feedback = design_feedback(scenario)
     assert feedback.success, feedback.message
-    margins = ConstraintMargins(np.zeros(2), {}, feedback.K)  # no input margin
+    margins = ConstraintMargins(  # no input margin
+        input_margin=np.zeros(2), region_margin={}, gain=feedback.K
+    )
 
     result = optimize_demo(scenario, 0, margins, options)
 
@@ -223,7 +225,9 @@ def test_goal_bounds_are_shrunk_by_the_tube_so_the_radius_is_kept(tmp_path):
     scenario = load_scenario(copy / "scenario.yaml")
     feedback = design_feedback(scenario)
     r_d = feedback.required_radius(scenario.clearance)
-    result = optimize_demo(scenario, 0, ConstraintMargins.of_tube(feedback, r_d), OptimizeOptions())
+    result = optimize_demo(
+        scenario, 0, ConstraintMargins.of_tube(feedback.certified_tube, r_d), OptimizeOptions()
+    )
     assert result.success and result.N < result.N_demo
     trajectory = simulate(scenario.dynamics, result.x0, result.u, scenario.Ts, substeps=8)
-    assert robustness_radius(scenario, feedback, trajectory).radius >= r_d
+    assert robustness_radius(scenario, feedback.certified_tube, trajectory).radius >= r_d

@@ -84,7 +84,7 @@ def test_monte_carlo_and_optimization_are_identical_on_every_executor(synthesize
     scenario = load_scenario("quadrotor_hill", check_demos=False)
     feedback = read_stored(out / "artifacts" / "feedback", RESULT_TYPES).result
     r_d = feedback.required_radius(scenario.clearance)
-    margins = ConstraintMargins.of_tube(feedback, r_d)
+    margins = ConstraintMargins.of_tube(feedback.certified_tube, r_d)
     runs, optimized = {}, {}
     for name in ("local", "processes", "dask-local"):
         if name == "dask-local":

@@ -53,7 +53,7 @@ SCENARIO_YAML = textwrap.dedent(
       Y: [0.0, 1.0]
       vX: [0.0, 0.0]
       vY: [0.0, 0.0]
-    clearance: 0.5
+    clearance: 0.25
     operating_region:
       aX: [-2.0, 2.0]
     feedback:
@@ -178,9 +178,63 @@ BAD_INPUTS: list[tuple[str, Mutation, str | None, list[str]]] = [
     ),
     (
         "extra field",
-        yaml_replace("clearance: 0.5\n", "clearance: 0.5\ncolour: red\n"),
+        yaml_replace("clearance: 0.25\n", "clearance: 0.25\ncolour: red\n"),
         YAML,
-        ["colour: unknown field", "expected only the fields of the scenario schema"],
+        ["colour: unknown field 'colour';", "expected one of the fields of the scenario: name,"],
+    ),
+    (
+        "misspelled field",
+        yaml_replace("clearance: 0.25\n", "clearence: 0.25\n"),
+        YAML,
+        ["clearence: unknown field 'clearence' (did you mean 'clearance'?) (and 1 more error)"],
+    ),
+    (
+        "misspelled nested field",
+        yaml_replace("  rate: 0.5\n", "  rat: 0.5\n"),
+        YAML,
+        ["feedback.rat: unknown field 'rat' (did you mean 'rate'?)", "input_weights, rate"],
+    ),
+    (
+        "no Unsafe set",
+        yaml_replace("unsafe:\n  " + BLOCK, "unsafe: {}"),
+        YAML,
+        ["unsafe: no Unsafe set; found {}", "at least one named polygon"],
+    ),
+    (
+        "clearance larger than Goal allows",
+        yaml_replace("clearance: 0.25", "clearance: 0.6"),
+        YAML,
+        ["clearance: does not fit in Goal", "radius 0.5", "found 0.6", "below 0.5"],
+    ),
+    (
+        "absolute demo path",
+        yaml_replace("file: demos/straight.csv", "file: /etc/hostname"),
+        YAML,
+        ["demos.0.file: demo file outside the scenario folder", "found '/etc/hostname'"],
+    ),
+    (
+        "demo path out of the folder",
+        yaml_replace("file: demos/straight.csv", "file: ../scenario/demos/../../x.csv"),
+        YAML,
+        ["demos.0.file: demo file outside the scenario folder"],
+    ),
+    (
+        "underscore digits in a CSV",
+        csv_replace("0.1,1.0,0.0", "0.1,0_5,0.0"),
+        CSV,
+        ["row 4: not a number: '0_5'", "expected decimal numbers"],
+    ),
+    (
+        "non-ASCII digits in a CSV",
+        csv_replace("0.1,1.0,0.0", "0.1,\u0661,0.0"),
+        CSV,
+        ["row 4: not a number: '\u0661'"],
+    ),
+    (
+        "demo too long for the tube's decay",
+        csv_write(demo_csv([1.0] * 20 + [-1.0] * 20 + [0.0] * 12000, [0.0] * 12040)),
+        CSV,
+        ["demo lasts 1204 s", "at most 1200 s at feedback.rate = 0.5 1/s"],
     ),
     (
         "extra nested field",
@@ -307,7 +361,7 @@ BAD_INPUTS: list[tuple[str, Mutation, str | None, list[str]]] = [
     ),
     (
         "NaN in the YAML",
-        yaml_replace("clearance: 0.5", "clearance: .nan"),
+        yaml_replace("clearance: 0.25", "clearance: .nan"),
         YAML,
         ["clearance: invalid value", "found nan", "expected a finite number"],
     ),

@@ -18,6 +18,7 @@ from __future__ import annotations
 import csv
 import io
 import math
+import re
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,6 +29,8 @@ from pipeline.io.artifacts import atomic_write_text
 from pipeline.io.errors import ScenarioError
 from pipeline.model.dynamics import FloatArray
 
+# A decimal number in ASCII (nan and inf too, refused below with their own message).
+NUMBER = re.compile(r"[+-]?(?:(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?|nan|inf|infinity)", re.I | re.A)
 TIME_TOLERANCE = 1e-6
 BOUND_TOLERANCE = 1e-9
 
@@ -88,12 +91,16 @@ def read_demo_csv(
                 found=line,
                 expected=f"{len(expected_header)} columns ({','.join(expected_header)})",
             )
-        try:
-            values = [float(cell) for cell in cells]
-        except ValueError:
+        bad = next((cell for cell in cells if not NUMBER.fullmatch(cell)), None)
+        if bad is not None:  # float() would also take "0_5" (as 5.0) and non-ASCII digits
             raise ScenarioError(
-                "not a number", file=path, field=where, found=line, expected="decimal numbers"
-            ) from None
+                f"not a number: {bad!r}",
+                file=path,
+                field=where,
+                found=line,
+                expected="decimal numbers such as 0.5, -2 or 1e-3",
+            )
+        values = [float(cell) for cell in cells]
         for name, value in zip(expected_header, values, strict=True):
             if not math.isfinite(value):
                 raise ScenarioError(

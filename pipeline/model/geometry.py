@@ -60,3 +60,9 @@ def bloat(region: BaseGeometry, margin: float) -> BaseGeometry:
 def shrink(region: BaseGeometry, margin: float) -> BaseGeometry:
     """The points of ``region`` at least ``margin`` from its boundary (ModGoal); may be empty."""
     return region.buffer(-margin, quad_segs=32)
+
+
+def inscribed_radius(region: BaseGeometry) -> float:
+    """Radius of the largest disk inside ``region`` (the largest margin ``shrink`` can take)."""
+    tolerance = 1e-6 * max(region.length, 1e-12)
+    return float(shapely.maximum_inscribed_circle(region, tolerance).length)

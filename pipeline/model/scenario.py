@@ -2,7 +2,8 @@
 
 Validation happens in three layers, each ending in one ``ScenarioError`` that names the file, the
 field path (or CSV row), what was found and what was expected:
-1. YAML syntax (line and column; a key repeated in one mapping is refused too);
+1. YAML syntax (line and column; a key repeated in one mapping, a file above 1 MB and aliases
+   that expand without bound are refused too: ``pipeline.model.safe_yaml``);
 2. the schema (``pipeline.model.schema``: types, missing and extra keys, ordered bounds, ``Ts >
 0``);
 3. cross-field rules here: names that must match, symbols in the dynamics, valid polygons,
@@ -12,6 +13,7 @@ field path (or CSV row), what was found and what was expected:
 
 from __future__ import annotations
 
+import difflib
 import functools
 import keyword
 import os
@@ -23,7 +25,6 @@ import numpy as np
 import pydantic
 import shapely
 import sympy
-import yaml
 from shapely.geometry import MultiPoint, Polygon
 from shapely.validation import explain_validity
 
@@ -38,12 +39,18 @@ from pipeline.model.expressions import (
     ExpressionError,
     parse_expression,
 )
-from pipeline.model.schema import FeedbackSpec, ScenarioSpec
+from pipeline.model.safe_yaml import load_yaml
+from pipeline.model.schema import FeedbackSpec, ScenarioSpec, field_names
 from pipeline.model.simulate import simulate
 
 SCENARIOS_ROOT = Path(
     os.environ.get("SAFETY_SCENARIOS", Path(__file__).resolve().parents[2] / "scenarios")
 )
+
+
+# The largest lambda T of a demo: e^{lambda T} stays far below float64's limit e^709.78 (room for
+# the factors it multiplies).
+MAX_DECAY_EXPONENT = 600.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -141,24 +148,6 @@ def load_scenario(name_or_path: str | Path, check_demos: bool = True) -> Scenari
     return scenario
 
 
-class _UniqueKeyLoader(yaml.SafeLoader):
-    """``yaml.SafeLoader`` that refuses a key repeated in one mapping (PyYAML keeps the last)."""
-
-    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict:  # type: ignore[override]
-        first_line: dict[object, int] = {}
-        for key_node, _ in node.value:
-            if not isinstance(key_node, yaml.ScalarNode) or key_node.tag.endswith(":merge"):
-                continue
-            key = self.construct_object(key_node)
-            if key in first_line:
-                raise yaml.constructor.ConstructorError(
-                    problem=f"duplicate key '{key}' (first at line {first_line[key]})",
-                    problem_mark=key_node.start_mark,
-                )
-            first_line[key] = key_node.start_mark.line + 1
-        return super().construct_mapping(node, deep=deep)
-
-
 @functools.cache
 def load_scenario_cached(path: Path, source_hash: str) -> Scenario:
     """``load_scenario(path, check_demos=False)`` once per process and file content (for workers
@@ -168,21 +157,7 @@ def load_scenario_cached(path: Path, source_hash: str) -> Scenario:
 
 
 def _parse_spec(path: Path) -> ScenarioSpec:
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as error:
-        reason = error.strerror if isinstance(error, OSError) else "not UTF-8 text"
-        raise ScenarioError(
-            f"cannot read scenario file ({reason})", file=path, expected="a readable YAML file"
-        ) from None
-    try:
-        data = yaml.load(text, Loader=_UniqueKeyLoader)  # a SafeLoader subclass
-    except yaml.MarkedYAMLError as error:
-        mark = error.problem_mark
-        where = f"line {mark.line + 1}, column {mark.column + 1}" if mark else "unknown place"
-        raise ScenarioError(f"YAML syntax error at {where}: {error.problem}", file=path) from None
-    except yaml.YAMLError as error:
-        raise ScenarioError(f"YAML syntax error: {error}", file=path) from None
+    data = load_yaml(path)  # plain data only; size, aliases and duplicate keys checked
     if not isinstance(data, dict):
         raise ScenarioError(
             "not a mapping",
@@ -197,9 +172,12 @@ def _parse_spec(path: Path) -> ScenarioSpec:
 
 
 def _schema_error(path: Path, error: pydantic.ValidationError) -> ScenarioError:
-    first = error.errors()[0]
+    errors = error.errors()
+    # A misspelled key gives "missing X" and "unknown Y"; the unknown key is the one to name.
+    extra = [e for e in errors if e["type"] == "extra_forbidden"]
+    first = extra[0] if extra else errors[0]
     location = ".".join(str(part) for part in first["loc"]) or "(top level)"
-    more = len(error.errors()) - 1
+    more = len(errors) - 1
     suffix = f" (and {more} more error{'s' if more > 1 else ''})" if more else ""
     kind = first["type"]
     if kind == "missing":
@@ -210,11 +188,16 @@ def _schema_error(path: Path, error: pydantic.ValidationError) -> ScenarioError:
             expected="this field (see the README's scenario reference)",
         )
     if kind == "extra_forbidden":
+        key = str(first["loc"][-1])
+        known = field_names(first["loc"][:-1])
+        close = difflib.get_close_matches(key, known, n=1, cutoff=0.5)
+        hint = f" (did you mean '{close[0]}'?)" if close else ""
+        parent = ".".join(str(part) for part in first["loc"][:-1])
         return ScenarioError(
-            f"unknown field{suffix}",
+            f"unknown field '{key}'{hint}{suffix}",
             file=path,
             field=location,
-            expected="only the fields of the scenario schema",
+            expected=f"one of the fields of {parent or 'the scenario'}: {', '.join(known)}",
         )
     message = first["msg"].removeprefix("Value error, ").removeprefix("Input should be ")
     return ScenarioError(
@@ -326,7 +309,26 @@ def _build(path: Path, spec: ScenarioSpec) -> Scenario:
         name: _valid_polygon(path, f"unsafe.{name}", vertices)
         for name, vertices in spec.unsafe.items()
     }
+    if not spec.unsafe:
+        raise ScenarioError(
+            "no Unsafe set",
+            file=path,
+            field="unsafe",
+            found={},
+            expected="at least one named polygon: the certificate is a clearance d from Unsafe"
+            " (for open space, name a polygon far from every flight)",
+        )
     goal = _valid_polygon(path, "goal.polygon", spec.goal.polygon)
+    if geometry.shrink(goal, spec.clearance).is_empty:
+        room = geometry.inscribed_radius(goal)
+        raise ScenarioError(
+            f"does not fit in Goal (the largest disk inside goal.polygon has radius {room:.4g};"
+            " every tube must end inside Goal, at least d from its boundary)",
+            file=path,
+            field="clearance",
+            found=spec.clearance,
+            expected=f"a clearance below {room:.4g}, or a larger goal.polygon",
+        )
     position_index = (states.index(spec.position[0]), states.index(spec.position[1]))
     init_lower = np.array([spec.init[s][0] for s in states])
     init_upper = np.array([spec.init[s][1] for s in states])
@@ -427,10 +429,35 @@ def _load_demo(
             found=float(x0[i]),
             expected=f"a value in [{init_lower[i]:g}, {init_upper[i]:g}]",
         )
-    demo_path = path.parent / entry.file
+    demo_path = _demo_path(path, index, entry.file)
     bounds = np.array([spec.input_bounds[name] for name in dynamics.input_names])
     us = read_demo_csv(demo_path, dynamics.input_names, Ts, bounds=bounds)
+    T, rate = len(us) * Ts, spec.feedback.rate
+    if rate * T > MAX_DECAY_EXPONENT:  # the tube's e^{-lambda t} would underflow
+        raise ScenarioError(
+            f"demo lasts {T:g} s: its tube shrinks by e^-(rate T) = e^-{rate * T:.0f}, beyond"
+            " float64 (overflow in every stage that scales by e^(rate t))",
+            file=demo_path,
+            expected=f"a flight of at most {MAX_DECAY_EXPONENT / rate:g} s at feedback.rate"
+            f" = {rate:g} 1/s ({MAX_DECAY_EXPONENT:g} / rate)",
+        )
     return Demo(name=Path(entry.file).stem, file=demo_path, x0=x0, us=us)
+
+
+def _demo_path(path: Path, index: int, file: str) -> Path:
+    """``file`` inside the scenario's folder; an absolute path, or one leading out of the folder
+    (``..``, a symbolic link), is refused: a scenario may only read its own files."""
+    folder = path.parent.resolve()
+    target = (folder / file).resolve()
+    if Path(file).is_absolute() or not target.is_relative_to(folder):
+        raise ScenarioError(
+            "demo file outside the scenario folder",
+            file=path,
+            field=f"demos.{index}.file",
+            found=file,
+            expected=f"a path relative to {folder}, inside it (copy the CSV there)",
+        )
+    return path.parent / file
 
 
 def check_demo_flight(scenario: Scenario, demo: Demo) -> None:

@@ -6,6 +6,9 @@ must be valid, sets that must not overlap) are checked in ``pipeline.model.scena
 
 from __future__ import annotations
 
+import types
+import typing
+from collections.abc import Sequence
 from typing import Annotated
 
 from pydantic import (
@@ -116,3 +119,32 @@ class ScenarioSpec(_Strict):
 def json_schema() -> dict[str, object]:
     """The JSON Schema of the scenario file."""
     return ScenarioSpec.model_json_schema()
+
+
+def field_names(location: Sequence[str | int]) -> list[str]:
+    """The YAML keys allowed in the mapping at ``location`` (a pydantic error location such as
+    ``("feedback",)`` or ``("demos", 0)``); empty where any key is allowed."""
+    model: object = ScenarioSpec
+    for part in location:
+        model = _item_type(model, part)
+    if typing.get_origin(model) in (typing.Union, types.UnionType):
+        model = next((a for a in typing.get_args(model) if a is not type(None)), None)
+    if isinstance(model, type) and issubclass(model, BaseModel):
+        return list(model.model_fields)
+    return []
+
+
+def _item_type(annotation: object, part: str | int) -> object:
+    """The type found at ``part`` (a field name, list index or dict key) inside ``annotation``."""
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        field = annotation.model_fields.get(str(part))
+        return None if field is None else field.annotation
+    origin, args = typing.get_origin(annotation), typing.get_args(annotation)
+    if origin is Annotated:
+        return _item_type(args[0], part)
+    if origin in (typing.Union, types.UnionType):
+        models = [a for a in args if isinstance(a, type) and issubclass(a, BaseModel)]
+        return _item_type(models[0], part) if models else None
+    if origin in (list, tuple, dict) and args:
+        return args[-1]
+    return None

@@ -25,7 +25,7 @@ TUBE_TOLERANCE = 1e-6
 INTERPOLATION_SLACK = 2.0  # the reference is interpolated: allow twice its stated error
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class ClosedLoopRun:
     """Closed-loop runs of one batch around one reference trajectory.
 
@@ -84,10 +84,10 @@ def simulate_closed_loop(
     x_ref = np.stack(
         [np.interp(ts, reference.t, reference.x_ref[:, i]) for i in range(x.shape[1])], axis=-1
     )
-    return ClosedLoopRun(ts, xs, x_ref, unclipped)
+    return ClosedLoopRun(ts=ts, xs=xs, x_ref=x_ref, unclipped=unclipped)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class RunChecks:
     """Per-run margins for a batch ``(B,)``; a run fails when any margin is negative."""
 
@@ -192,12 +192,12 @@ def check_runs(
         checks["tube_final"][rows] = ratio[:, -1]
         paths.append(positions)
     result = RunChecks(
-        checks["clearance"],
-        checks["goal_margin"],
-        checks["input_slack"],
-        checks["tube"],
-        checks["tube_final"],
-        finite,
-        covered,
+        clearance=checks["clearance"],
+        goal_margin=checks["goal_margin"],
+        input_slack=checks["input_slack"],
+        tube_tightness=checks["tube"],
+        tube_final=checks["tube_final"],
+        finite=finite,
+        covered=covered,
     )
     return result, paths

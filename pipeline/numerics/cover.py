@@ -77,8 +77,8 @@ def subdivide(
     D = len(free)
     corners = np.array(list(itertools.product((0.0, 1.0), repeat=D)), float).reshape(2**D, D)
     lambda_min = float(np.linalg.eigvalsh(P)[0])
-    usable = radii > 0
-    r2 = np.where(usable, radii, 0.0) ** 2
+    r2 = np.where(radii > 0, radii, 0.0) ** 2
+    usable = r2 > 0  # a radius whose square underflows covers nothing
 
     lower = lower0[None, :].copy()  # (B, n) the boxes still open
     upper = upper0[None, :].copy()

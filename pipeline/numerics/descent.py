@@ -38,7 +38,7 @@ class CostProblem(Protocol):
     def cost_and_gradient(self, u: FloatArray, method: str = ...) -> tuple[float, FloatArray]: ...
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class IterationLog:
     """One row per iteration: ``iteration, cost, step, accepted, seconds`` (all (k,))."""
 
@@ -47,6 +47,17 @@ class IterationLog:
     step: FloatArray
     accepted: np.ndarray
     seconds: FloatArray
+
+    @classmethod
+    def empty(cls) -> IterationLog:
+        """The log of no iterations."""
+        return cls(
+            iteration=np.zeros(0),
+            cost=np.zeros(0),
+            step=np.zeros(0),
+            accepted=np.zeros(0, dtype=bool),
+            seconds=np.zeros(0),
+        )
 
     def table(self) -> str:
         """The log as an aligned text table (printed at ``-v``)."""
@@ -60,7 +71,7 @@ class IterationLog:
         return "\n".join(lines)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class DescentResult:
     """Outcome of one minimisation from a seed.
 
@@ -116,14 +127,14 @@ def gradient_descent(
     seed_cost = J
     if not np.isfinite(J):
         return DescentResult(
-            u,
-            J,
-            J,
-            False,
-            0,
-            _log([]),
-            False,
-            "the seed's cost is not finite (it enters Unsafe); nothing to descend",
+            u=u,
+            cost=J,
+            seed_cost=J,
+            feasible=False,
+            iterations=0,
+            log=_log([]),
+            success=False,
+            message="the seed's cost is not finite (it enters Unsafe); nothing to descend",
         )
     if step is None:
         span = float(np.min(problem.input_upper - problem.input_lower))
@@ -150,7 +161,16 @@ def gradient_descent(
         message = f"step size fell below {eps:g}: a local minimum with J = {J:.3e} > 0"
     else:
         message = f"iteration cap {max_iterations} reached with J = {J:.3e} > 0"
-    return DescentResult(u, J, seed_cost, done, iteration, _log(rows), True, message)
+    return DescentResult(
+        u=u,
+        cost=J,
+        seed_cost=seed_cost,
+        feasible=done,
+        iterations=iteration,
+        log=_log(rows),
+        success=True,
+        message=message,
+    )
 
 
 def lbfgs(
@@ -215,4 +235,13 @@ def lbfgs(
         if best["reached"]
         else (f"L-BFGS-B stopped ({message}) with J = {J:.3e} > 0")
     )
-    return DescentResult(u, J, seed_cost, best["reached"], len(rows) - 1, _log(rows), True, text)
+    return DescentResult(
+        u=u,
+        cost=J,
+        seed_cost=seed_cost,
+        feasible=best["reached"],
+        iterations=len(rows) - 1,
+        log=_log(rows),
+        success=True,
+        message=text,
+    )

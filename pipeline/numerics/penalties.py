@@ -33,6 +33,7 @@ from shapely.geometry.base import BaseGeometry
 
 from pipeline.model import geometry
 from pipeline.model.dynamics import FloatArray
+from pipeline.numerics.settings import EPS_D, EPS_G, EPS_I
 
 if TYPE_CHECKING:
     from pipeline.model.scenario import Scenario
@@ -41,6 +42,11 @@ IntArray = npt.NDArray[np.int64]
 
 # Below this |z| the barrier uses its series, so that b > 0 for every representable r < d'.
 _SERIES_BELOW = 1e-4
+
+
+class MarginError(ValueError):
+    """The margins leave a constraint set empty (inputs, operating region, Goal); the message
+    names the set and the fix."""
 
 
 def box_penalty(
@@ -98,7 +104,7 @@ def polygon_distance(positions: FloatArray, region: BaseGeometry) -> tuple[Float
     return r, gradient
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class Penalized:
     """``J`` and its partial derivatives with respect to each grid state and input.
 
@@ -113,7 +119,7 @@ class Penalized:
     J_u: FloatArray
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(frozen=True, kw_only=True, eq=False)
 class Constraints:
     """The modified constraints of §IV-A, as penalties. Index arrays select state/input entries.
 
@@ -205,9 +211,9 @@ def build_constraints(
     *,
     input_margin: FloatArray | float | None = None,
     region_margin: Mapping[str, float] | None = None,
-    eps_d: float = 0.05,
-    eps_g: float = 0.05,
-    eps_i: float = 0.0,
+    eps_d: float = EPS_D,
+    eps_g: float = EPS_G,
+    eps_i: float = EPS_I,
     clearance: float | None = None,
     goal_margin: Mapping[str, float] | None = None,
 ) -> Constraints:
@@ -228,7 +234,7 @@ def build_constraints(
     input_lower = scenario.input_lower + eps_i + margin
     input_upper = scenario.input_upper - eps_i - margin
     for j in np.flatnonzero(input_lower > input_upper):
-        raise ValueError(
+        raise MarginError(
             f"input bounds of '{scenario.input_names[j]}' are empty after shrinking by eps_i +"
             f" input_margin = {eps_i + np.broadcast_to(margin, (m,))[j]:g}: "
             f"[{input_lower[j]:g}, {input_upper[j]:g}]; use smaller margins"
@@ -247,7 +253,7 @@ def build_constraints(
         if not (np.isfinite(shrink) and shrink >= 0.0):
             raise ValueError(f"region_margin['{name}'] must be a finite number >= 0, got {shrink}")
         if lower + shrink > upper - shrink:
-            raise ValueError(
+            raise MarginError(
                 f"operating region of '{name}' [{lower:g}, {upper:g}] is empty after shrinking by"
                 f" region_margin = {shrink:g}; use a smaller margin"
             )
@@ -259,7 +265,7 @@ def build_constraints(
     for name, (lower, upper) in scenario.goal_bounds.items():
         shrink = float((goal_margin or {}).get(name, 0.0))
         if lower + shrink > upper - shrink:
-            raise ValueError(
+            raise MarginError(
                 f"Goal's bound on '{name}' [{lower:g}, {upper:g}] is empty after shrinking by the"
                 f" tube's extent {shrink:g}; widen the bound or use a smaller clearance"
             )
@@ -268,9 +274,9 @@ def build_constraints(
     goal_shrink = d + eps_g
     goal_region = geometry.shrink(scenario.goal, goal_shrink)
     if goal_region.is_empty:
-        raise ValueError(
-            f"Goal shrunk by d + eps_g = {goal_shrink:g} is empty; use a smaller eps_g or a larger"
-            " Goal"
+        raise MarginError(
+            f"Goal shrunk by d + eps_g = {goal_shrink:g} (d = {d:g}, the tube's position extent)"
+            " is empty; use a smaller clearance or eps_g, or a larger Goal"
         )
 
     def columns(part: list[tuple[int, float, float]]) -> tuple[IntArray, FloatArray, FloatArray]:

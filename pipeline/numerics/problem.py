@@ -31,6 +31,7 @@ from pipeline.numerics.sensitivity import (
     sensitivity_gradient,
     sensitivity_pattern,
 )
+from pipeline.numerics.settings import EPS_D, EPS_G, EPS_I
 
 if TYPE_CHECKING:
     from pipeline.model.scenario import Scenario
@@ -217,9 +218,9 @@ def make_problem(
     u_seed: FloatArray | None = None,
     input_margin: FloatArray | float | None = None,
     region_margin: Mapping[str, float] | None = None,
-    eps_d: float = 0.05,
-    eps_g: float = 0.05,
-    eps_i: float = 0.0,
+    eps_d: float = EPS_D,
+    eps_g: float = EPS_G,
+    eps_i: float = EPS_I,
     clearance: float | None = None,
     goal_margin: Mapping[str, float] | None = None,
     penalty_points: int = DEFAULT_PENALTY_POINTS,

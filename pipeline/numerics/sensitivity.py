@@ -29,7 +29,7 @@ import numpy as np
 from pipeline.model.dynamics import BoolArray, Dynamics, FloatArray
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class SensitivityPattern:
     """Structurally nonzero entries of ``Phi`` (n, n) and ``Gamma`` (n, m) (Remark 3)."""
 
@@ -98,7 +98,7 @@ def _rk4_variational(
     )
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class IntervalSensitivities:
     """Per-interval sensitivities (dense; the NumPy reference).
 

@@ -35,6 +35,7 @@ from pipeline.model import geometry
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import Trajectory
+from pipeline.numerics.tube import Tube
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -65,18 +66,11 @@ def _interval_lower_bound(q: FloatArray, rate: FloatArray, h: float) -> FloatArr
     return np.minimum(np.minimum(q[:-1], q[1:]), (q[:-1] + q[1:] - L * h) / 2)
 
 
-def radius_limits(
-    scenario: Scenario,
-    K: FloatArray,
-    P: FloatArray,
-    rate: float,
-    region: Mapping[str, tuple[float, float]],
-    trajectory: Trajectory,
-) -> RadiusLimits:
+def radius_limits(scenario: Scenario, tube: Tube, trajectory: Trajectory) -> RadiusLimits:
     """Each constraint's largest radius for ``trajectory`` (one, unbatched: ``dense_xs (N s + 1,
-    n)``, ``us (N, m)``) under the feedback ``K (m, n)``, metric ``P (n, n)``, ``rate`` (1/s),
-    certified over the operating ``region``."""
-    P, K, lam = np.asarray(P), np.asarray(K), float(rate)
+    n)``, ``us (N, m)``) in ``tube`` (feedback ``K (m, n)``, metric ``P (n, n)``, ``rate`` (1/s),
+    certified over its operating ``region``)."""
+    lam, region = float(tube.rate), tube.region
     ts, xs, us = trajectory.dense_ts, trajectory.dense_xs, trajectory.us
     if xs.ndim != 2:
         raise ValueError(f"radius: expected one trajectory, got dense_xs of shape {xs.shape}")
@@ -97,9 +91,8 @@ def radius_limits(
         [scenario.dynamics.f(xs[:-1], u_grid), scenario.dynamics.f(xs[1:], u_grid)], axis=1
     )  # (N s, 2, n): dx/dt at both ends of each dense interval
     growth = np.exp(lam * ts[:-1])  # (N s,) e^{lambda t_k}
-    P_inv = np.linalg.inv(P)
-    extent = np.sqrt(np.diag(P_inv))  # (n,)
-    gain = np.sqrt(np.einsum("ji,ik,jk->j", K, P_inv, K))  # (m,)
+    extent = tube.state_extent_per_radius  # (n,) sqrt((P^-1)_ii)
+    gain = tube.input_margin_per_radius  # (m,) ||K_j P^-1/2||
     limits: dict[str, tuple[float, float]] = {}  # name -> (radius, time)
 
     def record(name: str, per_interval: FloatArray, times: FloatArray) -> None:
@@ -107,10 +100,7 @@ def radius_limits(
         limits[name] = (max(float(per_interval[k]), 0.0), float(times[k]))
 
     # 1. Unsafe, in the coordinates where the position ellipse is a disk.
-    c = list(scenario.position_index)
-    Sigma = P_inv[np.ix_(c, c)]  # C P^-1 C^T (2, 2)
-    values, vectors = np.linalg.eigh(Sigma)
-    W = vectors @ np.diag(values**-0.5) @ vectors.T
+    W = tube.position_whitening  # Sigma^-1/2, Sigma = C P^-1 C^T (2, 2)
     positions = scenario.positions(xs)
     Wp = positions @ W.T
     Wv = scenario.positions(rates) @ W.T  # (N s, 2, 2)
@@ -160,7 +150,7 @@ def radius_limits(
     return RadiusLimits(
         limits=limits,
         nominal_clearance=float(nominal_clearance),
-        position_scale=float(np.sqrt(values[-1])),
+        position_scale=tube.position_scale,
     )
 
 

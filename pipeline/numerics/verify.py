@@ -21,7 +21,7 @@ from pipeline.model.simulate import simulate
 VERIFY_SUBSTEPS = 16
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class Verification:
     """What was checked on ``[0, T]``, as continuous-time lower bounds on margins.
 
@@ -73,12 +73,12 @@ def verify_nominal(
     if not np.all(np.isfinite(xs)):
         k = int(np.argmax(~np.all(np.isfinite(xs), axis=-1)))
         return Verification(
-            {},
-            -np.inf,
-            -np.inf,
-            -np.inf,
-            d,
-            (f"non-finite state at t = {trajectory.dense_ts[k]:.2f} s",),
+            clearance={},
+            goal_margin=-np.inf,
+            input_margin=-np.inf,
+            region_margin=-np.inf,
+            required_clearance=d,
+            failures=(f"non-finite state at t = {trajectory.dense_ts[k]:.2f} s",),
         )
     xdot = scenario.dynamics.f(xs[:-1], np.repeat(us, substeps, axis=0))
     positions = scenario.positions(xs)
@@ -122,5 +122,10 @@ def verify_nominal(
         if margin < 0:
             failures.append(f"'{name}' leaves the operating region [{lower:.3g}, {upper:.3g}]")
     return Verification(
-        clearance, goal_margin, input_margin, float(region_margin), d, tuple(failures)
+        clearance=clearance,
+        goal_margin=goal_margin,
+        input_margin=input_margin,
+        region_margin=float(region_margin),
+        required_clearance=d,
+        failures=tuple(failures),
     )

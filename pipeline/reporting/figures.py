@@ -20,6 +20,7 @@ from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import Trajectory, simulate
 from pipeline.numerics.closed_loop import simulate_closed_loop
+from pipeline.numerics.tube import projection_shape, slice_shape
 from pipeline.reporting.content import FigureLike
 from pipeline.reporting.data import ReportData
 from pipeline.reporting.plotting import (
@@ -33,8 +34,6 @@ from pipeline.reporting.plotting import (
     draw_path,
     draw_scenario,
     ellipses,
-    projection_shape,
-    slice_shape,
 )
 
 TUBE_PERIOD = 0.5  # s between the tube ellipses drawn along a path

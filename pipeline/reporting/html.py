@@ -13,15 +13,13 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+import jinja2
 import matplotlib
+from matplotlib.figure import Figure as MplFigure
 
-matplotlib.use("Agg")
-import jinja2  # noqa: E402
-import matplotlib.pyplot as plt  # noqa: E402
-
-from pipeline.io.artifacts import atomic_save  # noqa: E402
-from pipeline.reporting.content import Figure, Section  # noqa: E402
-from pipeline.reporting.plotting import STYLE  # noqa: E402
+from pipeline.io.artifacts import atomic_save
+from pipeline.reporting.content import Figure, Section
+from pipeline.reporting.plotting import STYLE
 
 TEMPLATES = Path(__file__).resolve().parent / "templates"
 BADGES = {
@@ -32,14 +30,14 @@ BADGES = {
 
 
 def _render(figure: Figure, save: Callable[[Any], None]) -> None:
-    """Draw ``figure`` at its size and hand the matplotlib figure to ``save``."""
-    with plt.rc_context({**STYLE, "svg.hashsalt": figure.key}):
-        fig = plt.figure(figsize=figure.size, layout="constrained")
-        try:
-            figure.draw(fig)
-            save(fig)
-        finally:
-            plt.close(fig)
+    """Draw ``figure`` at its size and hand the matplotlib figure to ``save``.
+
+    A bare ``matplotlib.figure.Figure``, not pyplot: no global backend or figure registry is
+    touched, so importing the report modules changes nothing for the caller (e.g. a notebook)."""
+    with matplotlib.rc_context({**STYLE, "svg.hashsalt": figure.key}):
+        fig = MplFigure(figsize=figure.size, layout="constrained")
+        figure.draw(fig)
+        save(fig)
 
 
 def figure_svg(figure: Figure) -> str:

@@ -13,18 +13,15 @@ from functools import lru_cache
 from pathlib import Path
 
 import matplotlib
+from matplotlib.backends.backend_pdf import PdfPages
+from matplotlib.figure import Figure as MplFigure
+from matplotlib.font_manager import FontProperties
+from matplotlib.layout_engine import ConstrainedLayoutEngine
+from matplotlib.lines import Line2D
+from matplotlib.patches import Rectangle
+from matplotlib.textpath import TextToPath
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-from matplotlib.backends.backend_pdf import PdfPages  # noqa: E402
-from matplotlib.figure import Figure as MplFigure  # noqa: E402
-from matplotlib.font_manager import FontProperties  # noqa: E402
-from matplotlib.layout_engine import ConstrainedLayoutEngine  # noqa: E402
-from matplotlib.lines import Line2D  # noqa: E402
-from matplotlib.patches import Rectangle  # noqa: E402
-from matplotlib.textpath import TextToPath  # noqa: E402
-
-from pipeline.reporting.content import (  # noqa: E402
+from pipeline.reporting.content import (
     Block,
     Figure,
     Headlines,
@@ -33,7 +30,7 @@ from pipeline.reporting.content import (  # noqa: E402
     Table,
     Verdict,
 )
-from pipeline.reporting.plotting import STYLE  # noqa: E402
+from pipeline.reporting.plotting import STYLE
 
 PAGE = (11.69, 8.27)  # A4 landscape (in)
 MARGIN = 0.6
@@ -132,7 +129,7 @@ class _Writer:
     def new_page(self, heading: str) -> None:
         self.finish()
         engine = ConstrainedLayoutEngine(w_pad=0.4 * MARGIN, h_pad=0.04)
-        self.page = plt.figure(figsize=PAGE, layout=engine)
+        self.page = MplFigure(figsize=PAGE, layout=engine)  # no pyplot: see html._render
         self.heading = heading
         self._text(MARGIN, MARGIN, heading, HEADING, weight="bold")
         self.y = TOP
@@ -154,7 +151,6 @@ class _Writer:
                     x / PAGE[0], 0.35 / PAGE[1], text, fontsize=SMALL, color="0.45", ha=ha
                 )
             self.pdf.savefig(self.page)
-        plt.close(self.page)
         self.page = None
 
     def room(self, height: float) -> None:
@@ -301,7 +297,7 @@ def write_pdf(path: Path, title: str, sections: Sequence[Section]) -> int:
     """Write the sections to ``path`` (the caller renames it into place); returns the number
     of pages. Every section starts on a new page."""
     metadata = {"Title": title, "Creator": "safety-synthesis", "CreationDate": None}
-    with plt.rc_context(STYLE), PdfPages(path, metadata=metadata) as pdf:
+    with matplotlib.rc_context(STYLE), PdfPages(path, metadata=metadata) as pdf:
         writer = _Writer(pdf, title)
         for section in sections:
             writer.new_page(section.heading)

@@ -9,21 +9,16 @@ Tubes: the set ``{x : ||x - x_ref(t)||_P <= rho}`` projects on the position plan
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import numpy as np
+from matplotlib.axes import Axes
+from matplotlib.collections import EllipseCollection
+from matplotlib.patches import Rectangle
+from shapely.geometry import box
+from shapely.geometry.base import BaseGeometry
 
-import matplotlib
-
-matplotlib.use("Agg")
-import numpy as np  # noqa: E402
-from matplotlib.axes import Axes  # noqa: E402
-from matplotlib.collections import EllipseCollection  # noqa: E402
-from matplotlib.patches import Rectangle  # noqa: E402
-from shapely.geometry import box  # noqa: E402
-from shapely.geometry.base import BaseGeometry  # noqa: E402
-
-from pipeline.model import geometry  # noqa: E402
-from pipeline.model.dynamics import FloatArray  # noqa: E402
-from pipeline.model.scenario import Scenario  # noqa: E402
+from pipeline.model import geometry
+from pipeline.model.dynamics import FloatArray
+from pipeline.model.scenario import Scenario
 
 DEMO = "#4C72B0"
 OPTIMIZED = "#DD8452"
@@ -184,18 +179,6 @@ def draw_path(
             alpha=float(style.get("alpha", 1.0)),  # type: ignore[arg-type]
             zorder=4,
         )
-
-
-def projection_shape(P: FloatArray, index: Sequence[int]) -> FloatArray:
-    """``C P^-1 C^T`` (2, 2): the projection of ``||e||_P <= 1`` on the states ``index``."""
-    c = list(index)
-    return np.linalg.inv(P)[np.ix_(c, c)]
-
-
-def slice_shape(P: FloatArray, index: Sequence[int]) -> FloatArray:
-    """``(S^T P S)^-1`` (2, 2): the slice of ``||e||_P <= 1`` along the states ``index``."""
-    c = list(index)
-    return np.linalg.inv(P[np.ix_(c, c)])
 
 
 def ellipses(

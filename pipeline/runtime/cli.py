@@ -13,16 +13,7 @@ from pathlib import Path
 
 from pipeline.controller import ControllerFormatError
 from pipeline.io.errors import UserError
-
-
-def _positive(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, found {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, found {value}")
-    return value
+from pipeline.runtime.options import RunOptions, add_arguments, from_arguments
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -32,39 +23,7 @@ def _parser() -> argparse.ArgumentParser:
     synthesize = commands.add_parser("synthesize", help="run the synthesis pipeline on a scenario")
     synthesize.add_argument("scenario", help="scenario name (scenarios/NAME) or path to its YAML")
     synthesize.add_argument("--out", type=Path, default=None, help="output folder (reports/NAME)")
-    synthesize.add_argument(
-        "--method",
-        choices=("gd", "lbfgs"),
-        default="gd",
-        help="optimizer: the paper's gradient descent (default) or L-BFGS-B",
-    )
-    synthesize.add_argument(
-        "--samples",
-        type=_positive,
-        default=10_000,
-        help="Monte Carlo closed-loop runs (default 10000)",
-    )
-    synthesize.add_argument(
-        "--search",
-        choices=("continuation", "bisection"),
-        default="continuation",
-        help="how the final time is shortened (bisection: the paper's Remark 4)",
-    )
-    synthesize.add_argument("--jobs", type=_positive, default=1, help="worker processes")
-    synthesize.add_argument(
-        "--executor",
-        default=None,
-        help="where parallel work runs: local (default), dask-local, or dask://HOST:PORT",
-    )
-    synthesize.add_argument("--force", action="store_true", help="rerun every stage")
-    synthesize.add_argument(
-        "--stress",
-        action="store_true",
-        help="also run the stress test (wind, noise; not certified)",
-    )
-    verbosity = synthesize.add_mutually_exclusive_group()
-    verbosity.add_argument("-v", "--verbose", action="store_true", help="print iteration logs")
-    verbosity.add_argument("-q", "--quiet", action="store_true", help="print only the verdict")
+    add_arguments(synthesize, RunOptions)
 
     demos = commands.add_parser("demos", help="regenerate a scenario's synthetic demonstrations")
     demos.add_argument("scenario")
@@ -99,19 +58,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def _run(args: argparse.Namespace) -> int:
     if args.command == "synthesize":
-        from pipeline.runtime.orchestrator import RunOptions, synthesize
+        from pipeline.runtime.orchestrator import synthesize
 
-        options = RunOptions(
-            method=args.method,
-            search=args.search,
-            samples=args.samples,
-            jobs=args.jobs,
-            executor=args.executor,
-            force=args.force,
-            stress=args.stress,
-            verbose=args.verbose,
-            quiet=args.quiet,
-        )
+        options = from_arguments(RunOptions, args)
         return synthesize(args.scenario, out=args.out, options=options)
     if args.command == "demos":
         from pipeline.demonstrations.pilot import regenerate_demos

@@ -23,13 +23,12 @@ import os
 import sys
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from pipeline.io.artifacts import atomic_write_json, file_hash, inputs_key, remove_temporaries
-from pipeline.io.errors import UserError
+from pipeline.io.errors import ScenarioError, UserError
 from pipeline.io.executor import Executor, make_executor
 from pipeline.io.lock import folder_lock
 from pipeline.io.progress import progress_bar
@@ -38,6 +37,7 @@ from pipeline.model.simulate import Trajectory, simulate
 from pipeline.numerics.verify import VERIFY_SUBSTEPS
 from pipeline.reporting.summary import Verdict
 from pipeline.runtime.codekey import code_key
+from pipeline.runtime.options import RunOptions
 from pipeline.runtime.outdir import check_output_folder, clear_stale, mark_failed, stale_name
 from pipeline.runtime.runner import StageRunner
 from pipeline.runtime.stored import load_report_data, write_manifest
@@ -53,7 +53,6 @@ from stages.report import ReportResult, write_reports
 from stages.stress import stress_test
 
 REPORTS_ROOT = Path(__file__).resolve().parents[2] / "reports"
-MONTE_CARLO_SEED = 20261122
 REPORT_FILES = ("report.html", "report.pdf", "scenario.png")
 # the code each cached stage's key covers besides its own module (see pipeline.runtime.codekey)
 RADIUS_CODE = ("stages.radius", "pipeline.model.simulate", "pipeline.numerics.verify")
@@ -70,22 +69,6 @@ REPORT_STAGES = (  # the controller's result is the file itself, keyed by its ha
 )
 
 
-@dataclass(frozen=True)
-class RunOptions:
-    """Command-line choices of ``synthesize``."""
-
-    method: str = "gd"
-    search: str = "continuation"
-    samples: int = 10_000
-    jobs: int = 1
-    executor: str | None = None
-    force: bool = False
-    verbose: bool = False
-    quiet: bool = False
-    stress: bool = False
-    seed: int = MONTE_CARLO_SEED
-
-
 def _trajectories(
     scenario: Scenario, starts: Sequence[np.ndarray], inputs: Sequence[np.ndarray]
 ) -> list[Trajectory]:
@@ -98,7 +81,8 @@ def _trajectories(
 def _radii(
     scenario: Scenario, feedback: FeedbackResult, trajectories: Sequence[Trajectory]
 ) -> tuple[RadiusResult, ...]:
-    return tuple(robustness_radius(scenario, feedback, tr) for tr in trajectories)
+    tube = feedback.certified_tube
+    return tuple(robustness_radius(scenario, tube, tr) for tr in trajectories)
 
 
 def _cover_radii(radii: Sequence[RadiusResult]) -> np.ndarray:
@@ -133,6 +117,14 @@ def synthesize(
     started = time.perf_counter()
     options = options or RunOptions()
     scenario = load_scenario(scenario_name)
+    if not scenario.demos:
+        raise ScenarioError(
+            "no demonstrations to synthesize from",
+            file=scenario.path,
+            field="demos",
+            found=[],
+            expected=f"at least one demo (record one: python -m pipeline record {scenario.name})",
+        )
     out = Path(out) if out is not None else REPORTS_ROOT / scenario.name
     check_output_folder(out, scenario.name)
     with folder_lock(out):
@@ -209,7 +201,7 @@ def _synthesize(
         lambda: covering_radius(scenario, feedback, np.array(demo_starts), upper=upper),
     )
     r_required = covering.kept_radius(r_d)
-    margins = ConstraintMargins.of_tube(feedback, r_required)
+    margins = ConstraintMargins.of_tube(feedback.certified_tube, r_required)
     optimize_options = OptimizeOptions(method=options.method, search=options.search)
     with progress_bar(len(scenario.demos), "demos optimized", options.quiet) as advance:
         optimized: OptimizeResult = runner.run(

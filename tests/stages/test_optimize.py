@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 
 import numpy as np
@@ -29,7 +30,7 @@ def _quadrotor():
     scenario = load_scenario("quadrotor_hill", check_demos=False)
     feedback = design_feedback(scenario)
     r_d = feedback.required_radius(scenario.clearance)
-    margins = ConstraintMargins.of_tube(feedback, r_d)
+    margins = ConstraintMargins.of_tube(feedback.certified_tube, r_d)
     return scenario, margins
 
 
@@ -135,9 +136,7 @@ def test_parallel_equals_serial():
 def test_a_wider_tube_is_kept_away_by_its_own_clearance():
     """``margins.clearance`` (a covering radius above ``r_d``) replaces ``d`` everywhere."""
     scenario, margins = _quadrotor()
-    wider = ConstraintMargins(
-        margins.input_margin, margins.region_margin, margins.gain, clearance=1.2
-    )
+    wider = dataclasses.replace(margins, clearance=1.2)
     result = optimize_demo(scenario, 7, wider, OptimizeOptions(method="lbfgs"))
     assert result.success, result.message
     assert min(result.verification.clearance.values()) >= 1.2

@@ -8,8 +8,6 @@ radius ``y0 / sqrt(Sigma_YY)`` exactly; a moving one loses at most the motion bo
 
 from __future__ import annotations
 
-from types import SimpleNamespace
-
 import numpy as np
 import pytest
 import scipy.linalg
@@ -17,6 +15,7 @@ import scipy.linalg
 from pipeline.model.geometry import distance
 from pipeline.model.scenario import load_scenario
 from pipeline.model.simulate import simulate
+from pipeline.numerics.tube import Tube
 from pipeline.numerics.verify import VERIFY_SUBSTEPS
 from stages.feedback import design_feedback
 from stages.radius import robustness_radius
@@ -37,7 +36,15 @@ W = np.linalg.inv(scipy.linalg.sqrtm(SIGMA).real)
 
 
 def tube(region=None):
-    return SimpleNamespace(K=K, P=P, rate=RATE, region=region or {})
+    return Tube(
+        K=K,
+        P=P,
+        rate=RATE,
+        region=region or {},
+        state_names=("X", "Y", "vX", "vY"),
+        input_names=("aX", "aY"),
+        position_index=(0, 1),
+    )
 
 
 def run(scenario, x0, us, substeps=4, region=None):
@@ -141,7 +148,7 @@ def test_with_a_designed_feedback(double_integrator):
     feedback = design_feedback(scenario)
     assert feedback.success, feedback.message
     trajectory = simulate(scenario.dynamics, np.array([0.5, 2.0, 0, 0]), np.zeros((20, 2)), 0.1)
-    result = robustness_radius(scenario, feedback, trajectory)
+    result = robustness_radius(scenario, feedback.certified_tube, trajectory)
     # Stationary: the wall binds at t = 0 and the position clearance is the height.
     assert result.binding == "unsafe 'wall'"
     sigma_yy = feedback.position_shape[1, 1]
@@ -156,7 +163,7 @@ def test_the_between_grid_bound_holds_on_a_much_finer_grid():
     feedback = design_feedback(scenario)
     for demo in (scenario.demos[3], scenario.demos[7]):
         coarse = simulate(scenario.dynamics, demo.x0, demo.us, scenario.Ts, VERIFY_SUBSTEPS)
-        certified = robustness_radius(scenario, feedback, coarse).nominal_clearance
+        certified = robustness_radius(scenario, feedback.certified_tube, coarse).nominal_clearance
         fine = simulate(scenario.dynamics, demo.x0, demo.us, scenario.Ts, 8 * VERIFY_SUBSTEPS)
         positions = scenario.positions(fine.dense_xs)
         seen = min(float(distance(positions, u).min()) for u in scenario.unsafe.values())

@@ -1,0 +1,75 @@
+"""One source of truth per option: the CLI is derived from ``RunOptions``, the margins' defaults
+come from ``pipeline.numerics.settings``."""
+
+from __future__ import annotations
+
+import dataclasses
+import inspect
+
+import pytest
+
+from pipeline.numerics import settings
+from pipeline.numerics.penalties import build_constraints
+from pipeline.numerics.problem import make_problem
+from pipeline.runtime.cli import _parser
+from pipeline.runtime.options import RunOptions, from_arguments
+from stages.optimize import OptimizeOptions
+
+
+def parse(*argv: str) -> RunOptions:
+    return from_arguments(RunOptions, _parser().parse_args(["synthesize", "NAME", *argv]))
+
+
+def test_cli_defaults_are_the_dataclass_defaults() -> None:
+    assert parse() == RunOptions()
+
+
+def test_every_option_reaches_the_dataclass() -> None:
+    options = parse(
+        "--method", "lbfgs", "--search", "bisection", "--samples", "7", "--jobs", "2",
+        "--executor", "dask-local", "--force", "-q", "--stress", "--seed", "3",
+    )  # fmt: skip
+    assert options == RunOptions(
+        method="lbfgs",
+        search="bisection",
+        samples=7,
+        jobs=2,
+        executor="dask-local",
+        force=True,
+        quiet=True,
+        stress=True,
+        seed=3,
+    )
+    assert {f.name for f in dataclasses.fields(RunOptions)} <= set(vars(_parser().parse_args(
+        ["synthesize", "NAME"]
+    )))  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [["--method", "newton"], ["--search", "linear"], ["--samples", "0"], ["-v", "-q"]],
+    ids=["method", "search", "samples", "verbose and quiet"],
+)
+def test_bad_choices_exit_2(argv: list[str], capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as raised:
+        parse(*argv)
+    assert raised.value.code == 2
+    assert "error:" in capsys.readouterr().err
+
+
+def test_choices_come_from_the_optimizer() -> None:
+    run = {f.name: f.metadata["cli"] for f in dataclasses.fields(RunOptions)}
+    assert run["method"].choices == settings.DESCENT_METHODS
+    assert run["search"].choices == settings.HORIZON_SEARCHES
+    assert RunOptions().method == OptimizeOptions().method
+    assert RunOptions().search == OptimizeOptions().search
+
+
+@pytest.mark.parametrize(
+    ("name", "value"),
+    [("eps_d", settings.EPS_D), ("eps_g", settings.EPS_G), ("eps_i", settings.EPS_I)],
+)
+def test_margin_defaults_have_one_source(name: str, value: float) -> None:
+    assert getattr(OptimizeOptions(), name) == value
+    for function in (build_constraints, make_problem):
+        assert inspect.signature(function).parameters[name].default == value
