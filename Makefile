@@ -16,8 +16,9 @@ $(STAMP): pyproject.toml
 synthesize: $(STAMP)
 	$(PY) -m pipeline synthesize $(SCENARIO)
 
+# two workers; each scenario's session synthesis stays on one (tests/conftest.py)
 test: $(STAMP)
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n 2 --dist loadgroup
 
 bench: $(STAMP)
 	$(PY) -m pip install --quiet -e '.[bench]'

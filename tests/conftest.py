@@ -1,4 +1,9 @@
-"""Shared fixtures: one full synthesis per shipped scenario per test session."""
+"""Shared fixtures: one full synthesis per shipped scenario per test session.
+
+``make test`` runs the suite on two pytest-xdist workers with ``--dist loadgroup``: every test
+that uses ``synthesis`` or ``synthesized`` is put in the group of its scenario
+(``pytest_collection_modifyitems`` below), so each scenario is synthesized once, by one worker.
+"""
 
 from __future__ import annotations
 
@@ -9,6 +14,28 @@ from pipeline.runtime.orchestrator import RunOptions, synthesize
 E2E_SAMPLES = 1000  # quadrotor_hill: the end-to-end tests reuse its run
 CI_SYNTHESIS_SAMPLES = 300  # every other shipped scenario: the CI safety check only
 SAMPLES = {"quadrotor_hill": E2E_SAMPLES}
+SYNTHESIS_FIXTURES = {"synthesis", "synthesized"}
+
+
+def synthesis_group(scenario: str) -> str:
+    """The xdist group of the tests that read ``scenario``'s session synthesis."""
+    return f"synthesis-{scenario}"
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Mark each test that reads a session synthesis with its scenario's ``xdist_group``: the
+    ``name`` parameter for ``synthesis(name)``, quadrotor_hill for ``synthesized``."""
+    for item in items:
+        used = SYNTHESIS_FIXTURES & set(getattr(item, "fixturenames", ()))
+        if not used:
+            continue
+        callspec = getattr(item, "callspec", None)
+        params = callspec.params if callspec is not None else {}
+        if "synthesized" in used or "name" not in params:
+            scenario = "quadrotor_hill"
+        else:
+            scenario = str(params["name"])
+        item.add_marker(pytest.mark.xdist_group(synthesis_group(scenario)))
 
 
 @pytest.fixture(scope="session")

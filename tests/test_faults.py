@@ -30,6 +30,7 @@ from pipeline.runtime.registry import RESULT_TYPES
 
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLES = "100"
+pytestmark = pytest.mark.xdist_group("faults")  # one worker: `finished` runs once
 
 
 @pytest.fixture(scope="module")

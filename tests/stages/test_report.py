@@ -1,4 +1,4 @@
-"""The report stage: built from the artifacts of one small run of quadrotor_hill.
+"""The report stage: built from the artifacts of the session's run of quadrotor_hill.
 
 The HTML parses, is self-contained and holds the headline numbers of summary.json; the PDF has a
 page for every section; a missing input is a clear error; headless Chromium renders the page.
@@ -22,17 +22,20 @@ from pipeline.model.scenario import Scenario, load_scenario
 from pipeline.reporting.sections import headline_items, section_headings
 from pipeline.reporting.summary import Summary
 from pipeline.runtime.cli import main
-from pipeline.runtime.orchestrator import RunOptions, synthesize
 from pipeline.runtime.stored import load_report_data
 
 CHROMIUM = Path("/usr/bin/chromium")
 
 
 @pytest.fixture(scope="module")
-def run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Scenario, Path]:
-    """A finished run (300 Monte Carlo samples); its report written by the orchestrator."""
+def run(
+    synthesized: tuple[int, Path], tmp_path_factory: pytest.TempPathFactory
+) -> tuple[Scenario, Path]:
+    """A finished run, its report written by the orchestrator: a copy of the session's
+    synthesis of quadrotor_hill (tests/conftest.py), so that rebuilding it here changes
+    nothing that other tests read."""
     out = tmp_path_factory.mktemp("report") / "quadrotor_hill"
-    synthesize("quadrotor_hill", out=out, options=RunOptions(samples=300, quiet=True))
+    shutil.copytree(synthesized[1], out)
     return load_scenario("quadrotor_hill"), out
 
 
