@@ -73,12 +73,15 @@ class Table:
 @dataclass(frozen=True)
 class Figure:
     """A figure drawn by ``draw(fig)`` into a matplotlib figure or subfigure of ``size``
-    (width, height) inches; the same drawing serves the HTML (SVG) and the PDF page."""
+    (width, height) inches; the same drawing serves the HTML (SVG) and the PDF page.
+    ``inputs``: a fingerprint of all the data ``draw`` reads (``ReportData.fingerprint``), by
+    which its rendering is kept and reused (``reporting.figure_cache``); "" never reuses it."""
 
     key: str
     caption: str
     draw: Callable[[FigureLike], None]
     size: tuple[float, float] = (10.0, 5.0)
+    inputs: str = ""
     kind: ClassVar[str] = "figure"
 
 

@@ -7,6 +7,7 @@ run for the inputs figure.
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -68,6 +69,18 @@ class ReportData:
     @property
     def controller_path(self) -> Path:
         return self.out / "controller.json"
+
+    def fingerprint(self, *reads: object) -> str:
+        """SHA-256 of what a figure reads: the scenario file, the demonstrations, and for each
+        of ``reads`` the stored key of that stage (a name in ``STAGES``) or the value itself."""
+        digest = hashlib.sha256(self.scenario.source_hash.encode())
+        for demo in self.scenario.demos:
+            digest.update(np.ascontiguousarray(demo.x0, dtype=np.float64).tobytes())
+            digest.update(np.ascontiguousarray(demo.us, dtype=np.float64).tobytes())
+        for item in reads:
+            value = self.keys[item] if isinstance(item, str) and item in STAGES else item
+            digest.update(f"\x00{item}={value}".encode())
+        return digest.hexdigest()
 
 
 def _simulate_all(

@@ -44,7 +44,7 @@ def figure_svg(figure: Figure) -> str:
     """The figure drawn at its size as an inline ``<svg>`` element (no XML prolog, scalable)."""
     buffer = io.StringIO()
     _render(figure, lambda fig: fig.savefig(buffer, format="svg", metadata={"Date": None}))
-    return _inline(buffer.getvalue(), figure.key)
+    return inline_svg(buffer.getvalue(), figure.key)
 
 
 def save_figure_png(figure: Figure, path: Path, dpi: int = 130) -> None:
@@ -52,7 +52,9 @@ def save_figure_png(figure: Figure, path: Path, dpi: int = 130) -> None:
     _render(figure, lambda fig: atomic_save(path, lambda p: fig.savefig(p, dpi=dpi), ".png"))
 
 
-def _inline(svg: str, key: str) -> str:
+def inline_svg(svg: str, key: str) -> str:
+    """An SVG file's text as an inline ``<svg>`` element: ids prefixed with ``key``, no fixed
+    size (CSS scales it with its viewBox)."""
     svg = svg[svg.index("<svg") :]
     svg = re.sub(r"<metadata>.*?</metadata>", "", svg, flags=re.S)
     svg = re.sub(r'\bid="([^"]+)"', rf'id="{key}-\1"', svg)
@@ -69,9 +71,14 @@ def _badge(kind: str) -> str:
 
 
 def render_html(
-    title: str, subtitle: str, sections: Sequence[Section], context: Mapping[str, Any]
+    title: str,
+    subtitle: str,
+    sections: Sequence[Section],
+    context: Mapping[str, Any],
+    svgs: Mapping[str, str] | None = None,
 ) -> str:
-    """The page: ``sections`` in order, each figure inlined, plus ``context`` for the header."""
+    """The page: ``sections`` in order, each figure inlined (from ``svgs``, figure key ->
+    inline SVG, where given; else drawn here), plus ``context`` for the header."""
     environment = jinja2.Environment(
         loader=jinja2.FileSystemLoader(TEMPLATES),
         autoescape=True,
@@ -80,8 +87,9 @@ def render_html(
         lstrip_blocks=True,
     )
     environment.filters["badge"] = _badge
+    given = dict(svgs or {})
     svgs = {
-        block.key: figure_svg(block)  # trusted: drawn here, inserted with |safe
+        block.key: given.get(block.key) or figure_svg(block)  # trusted: drawn here, |safe
         for section in sections
         for block in section.blocks
         if isinstance(block, Figure)

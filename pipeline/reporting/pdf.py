@@ -3,7 +3,9 @@
 A4 landscape pages. Every section starts on a new page with its heading; text, headline numbers,
 tables and figures flow down the page. A table that does not fit continues on the next page
 under its header (one short enough for a page starts on a new page instead); a figure is drawn
-into a subfigure of the page by the same code as the HTML's SVG, scaled to the page width.
+into a subfigure of the page, scaled to the page width, and the HTML's SVG is cut from that
+drawing. Each page is rendered on its own and kept by the digest of what is on it
+(``reporting.figure_cache``): an unchanged page is reused, not drawn; the pages are then joined.
 """
 
 from __future__ import annotations
@@ -13,8 +15,8 @@ from functools import lru_cache
 from pathlib import Path
 
 import matplotlib
-from matplotlib.backends.backend_pdf import PdfPages
 from matplotlib.figure import Figure as MplFigure
+from matplotlib.figure import SubFigure
 from matplotlib.font_manager import FontProperties
 from matplotlib.layout_engine import ConstrainedLayoutEngine
 from matplotlib.lines import Line2D
@@ -30,6 +32,7 @@ from pipeline.reporting.content import (
     Table,
     Verdict,
 )
+from pipeline.reporting.figure_cache import FigureStore, digest_of, figure_digest
 from pipeline.reporting.plotting import STYLE
 
 PAGE = (11.69, 8.27)  # A4 landscape (in)
@@ -97,14 +100,20 @@ def _fit(natural: Sequence[float], total: float) -> list[float]:
 
 
 class _Writer:
-    """Flows blocks down A4 pages; ``y`` is the cursor's distance from the page top (in)."""
+    """Flows blocks down A4 pages; ``y`` is the cursor's distance from the page top (in).
 
-    def __init__(self, pdf: PdfPages, title: str) -> None:
-        self.pdf, self.title = pdf, title
+    Everything put on a page is also recorded in ``ops``, whose digest names the rendered page
+    in ``store``; a page's figure is drawn only when the page is not already there."""
+
+    def __init__(self, store: FigureStore, title: str, png: frozenset[str]) -> None:
+        self.store, self.title, self.png = store, title, png
         self.page: MplFigure | None = None
         self.y = 0.0
         self.count = 0
         self.heading = ""
+        self.ops: list[object] = []
+        self.pending: tuple[Figure, SubFigure] | None = None  # the page's figure, not drawn yet
+        self.files: list[Path] = []
 
     @property
     def width(self) -> float:
@@ -112,10 +121,12 @@ class _Writer:
 
     def _text(self, x: float, y: float, text: str, size: float, **style: object) -> None:
         assert self.page is not None
+        self.ops.append(("text", x, y, text, size, sorted(style.items())))
         self.page.text(x / PAGE[0], 1 - y / PAGE[1], text, fontsize=size, va="top", **style)
 
     def _rule(self, y: float, width: float, colour: str, lw: float) -> None:
         assert self.page is not None
+        self.ops.append(("rule", y, width, colour, lw))
         self.page.add_artist(
             Line2D(
                 [MARGIN / PAGE[0], (MARGIN + width) / PAGE[0]],
@@ -130,6 +141,7 @@ class _Writer:
         self.finish()
         engine = ConstrainedLayoutEngine(w_pad=0.4 * MARGIN, h_pad=0.04)
         self.page = MplFigure(figsize=PAGE, layout=engine)  # no pyplot: see html._render
+        self.ops, self.pending = [], None
         self.heading = heading
         self._text(MARGIN, MARGIN, heading, HEADING, weight="bold")
         self.y = TOP
@@ -138,7 +150,8 @@ class _Writer:
         self.new_page(f"{self.heading.removesuffix(' (continued)')} (continued)")
 
     def finish(self) -> None:
-        """Save the current page with its footer; a page holding only its heading is dropped."""
+        """Save the current page with its footer (or reuse the one saved with the same
+        content); a page holding only its heading is dropped."""
         if self.page is None:
             return
         if self.y > TOP:
@@ -150,8 +163,26 @@ class _Writer:
                 self.page.text(
                     x / PAGE[0], 0.35 / PAGE[1], text, fontsize=SMALL, color="0.45", ha=ha
                 )
-            self.pdf.savefig(self.page)
+            self.ops.append(("footer", self.title, self.count))
+            self._save()
         self.page = None
+
+    def _save(self) -> None:
+        """Render the page into ``store`` (its figure drawn now, its SVG cut from it) unless
+        the page with this digest, and its figure's SVG, are there already."""
+        assert self.page is not None
+        figure = self.pending[0] if self.pending else None
+        cacheable = figure is None or figure_digest(figure) is not None
+        path = self.store.page_file(digest_of("page", PAGE, self.ops) if cacheable else None)
+        png = figure is not None and figure.key in self.png
+        if not self.store.cached(path, figure, png):
+            if self.pending is not None:
+                self.pending[0].draw(self.pending[1])
+            metadata = {"Creator": "safety-synthesis", "CreationDate": None}
+            self.page.savefig(path, format="pdf", metadata=metadata)
+            if self.pending is not None:
+                self.store.save_figure(self.pending[0], self.page, self.pending[1], png)
+        self.files.append(path)
 
     def room(self, height: float) -> None:
         """Start a continuation page unless ``height`` inches still fit."""
@@ -173,6 +204,7 @@ class _Writer:
         height = len(lines) * _line_height(size) + len(reasons) * _line_height(TEXT) + 0.2
         self.room(height)
         assert self.page is not None
+        self.ops.append(("box", self.y, height, block.passed))
         self.page.patches.append(
             Rectangle(
                 (MARGIN / PAGE[0], 1 - (self.y + height) / PAGE[1]),
@@ -267,10 +299,10 @@ class _Writer:
             self.continue_page()
         assert self.page is not None
         body = min(wanted, BOTTOM - self.y - caption_height)
-        _, drawing, _ = self.page.subfigures(
-            3, 1, height_ratios=[self.y, body, PAGE[1] - self.y - body]
-        )
-        block.draw(drawing)
+        ratios = [self.y, body, PAGE[1] - self.y - body]
+        _, drawing, _ = self.page.subfigures(3, 1, height_ratios=ratios)
+        self.ops.append(("figure", block.key, figure_digest(block), ratios))
+        self.pending = (block, drawing)  # drawn by finish() unless the page is reused
         y = self.y + body + 0.1
         for text in caption:
             self._text(MARGIN, y, text, TEXT, color="0.2")
@@ -293,15 +325,26 @@ class _Writer:
             raise TypeError(f"unknown report block {type(block).__name__}")
 
 
-def write_pdf(path: Path, title: str, sections: Sequence[Section]) -> int:
+def write_pdf(
+    path: Path,
+    title: str,
+    sections: Sequence[Section],
+    store: FigureStore | None = None,
+    png: frozenset[str] = frozenset(),
+) -> int:
     """Write the sections to ``path`` (the caller renames it into place); returns the number
-    of pages. Every section starts on a new page."""
-    metadata = {"Title": title, "Creator": "safety-synthesis", "CreationDate": None}
-    with matplotlib.rc_context(STYLE), PdfPages(path, metadata=metadata) as pdf:
-        writer = _Writer(pdf, title)
+    of pages. Every section starts on a new page. Pages and the figures' SVGs (and PNGs of the
+    figures named in ``png``) are kept in ``store`` (default: a temporary one)."""
+    owned = store is None
+    store = store if store is not None else FigureStore(None)
+    with matplotlib.rc_context(STYLE):
+        writer = _Writer(store, title, png)
         for section in sections:
             writer.new_page(section.heading)
             for block in section.blocks:
                 writer.block(block)
         writer.finish()
-        return writer.count
+    store.join(writer.files, path, title)
+    if owned:
+        store.prune()  # only its scratch folder
+    return writer.count

@@ -178,6 +178,7 @@ def _scenario(data: ReportData) -> tuple:
             f"{figures.TUBE_PERIOD:g} s along the path.",
             partial(figures.draw_overview, data=data),
             (10.0, 5.4),
+            data.fingerprint("feedback", "optimize", "radius_optimized"),
         ),
         Figure(
             "bisection",
@@ -189,6 +190,7 @@ def _scenario(data: ReportData) -> tuple:
             f"every {figures.TUBE_PERIOD:g} s.",
             partial(figures.draw_bisection, data=data, index=index),
             (10.0, 4.0),
+            data.fingerprint("feedback", "optimize", "radius_demos", "radius_optimized", index),
         ),
     )
 

@@ -10,6 +10,7 @@ from functools import partial
 import numpy as np
 
 from pipeline.controller import load
+from pipeline.io.artifacts import file_hash
 from pipeline.reporting import figures
 from pipeline.reporting.content import (
     Figure,
@@ -83,6 +84,7 @@ def optimization(data: ReportData) -> tuple:
             "one). Right: the horizons tried, in order (circle: feasible, cross: infeasible).",
             partial(figures.draw_optimization, data=data),
             (10.0, 3.9),
+            data.fingerprint("optimize"),
         ),
         Table(
             (
@@ -236,6 +238,13 @@ def coverage(data: ReportData) -> tuple:
             f"covered; red: boxes not certified covered{projected}.",
             partial(figures.draw_coverage, data=data),
             (10.0, 4.6),
+            data.fingerprint(
+                "feedback",
+                "coverage_demos",
+                "coverage_optimized",
+                "radius_demos",
+                "radius_optimized",
+            ),
         ),
         Table(
             ("trajectories", "covered", "fraction", "boxes", "uncovered", "depth", "message"),
@@ -303,6 +312,7 @@ def montecarlo(data: ReportData) -> tuple:
             "(1 = on the tube's boundary); failures in red beyond the dashed threshold.",
             partial(figures.draw_montecarlo, data=data),
             (10.0, 7.2),
+            data.fingerprint("montecarlo"),
         ),
         Table(
             ("failure kind", "runs"),
@@ -358,5 +368,6 @@ def inputs(data: ReportData) -> tuple:
             "(dashed) and the operating region (dotted).",
             partial(figures.draw_inputs, data=data),
             (10.0, 2.0 + 2.0 * s.m),
+            data.fingerprint("montecarlo", file_hash(data.controller_path)),
         ),
     )
