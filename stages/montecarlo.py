@@ -119,21 +119,39 @@ def falsify(
 
 def _run_chunk(
     scenario: Scenario, controller_path: Path, size: int, stream: np.random.SeedSequence
-) -> tuple[RunChecks, FloatArray, list[FloatArray]]:
+) -> tuple[RunChecks, FloatArray]:
     controller = load(controller_path)
     x0 = _uniform_init(scenario, np.random.default_rng(stream), size)
     checks = check_runs_compiled(scenario, controller, x0)
     failed = np.any(list(checks.failures().values()), axis=0)
-    # the paths drawn in the report: the first two runs around each trajectory, by the oracle
-    index, _ = controller.select(x0)
-    drawn = np.concatenate([np.flatnonzero(index == i)[:2] for i in np.unique(index)])
-    _, paths = check_runs(scenario, controller, x0[np.sort(drawn)])
-    return checks, x0[failed], [group[:, :: max(1, group.shape[1] // 200)] for group in paths]
+    return checks, x0[failed]
+
+
+def _drawn_paths(
+    scenario: Scenario,
+    controller: Controller,
+    chunks: list[int],
+    streams: list[np.random.SeedSequence],
+    count: int,
+) -> list[FloatArray]:
+    """The first ``count`` paths drawn in the report, each ``(K, n)`` thinned to about 200
+    points: the first two runs around each trajectory of chunk 0, then chunk 1, ..., simulated
+    by the NumPy oracle from the same starts the chunks drew (only as many chunks as needed)."""
+    paths: list[FloatArray] = []
+    for size, stream in zip(chunks, streams, strict=True):
+        if len(paths) >= count:
+            break
+        x0 = _uniform_init(scenario, np.random.default_rng(stream), size)
+        index, _ = controller.select(x0)
+        drawn = np.concatenate([np.flatnonzero(index == i)[:2] for i in np.unique(index)])
+        _, groups = check_runs(scenario, controller, x0[np.sort(drawn)])
+        paths += [p for g in groups for p in g[:, :: max(1, g.shape[1] // 200)]]
+    return paths[:count]
 
 
 def _run_chunk_in_worker(
     task: tuple[Path, str, Path, int, np.random.SeedSequence],
-) -> tuple[RunChecks, FloatArray, list[FloatArray]]:
+) -> tuple[RunChecks, FloatArray]:
     path, source_hash, controller_path, size, stream = task
     return _run_chunk(load_scenario_cached(path, source_hash), controller_path, size, stream)
 
@@ -168,7 +186,7 @@ def validate_closed_loop(
     )
     parts = [o[0] for o in outcomes]
     failed = [o[1] for o in outcomes]
-    paths = [path for o in outcomes for group in o[2] for path in group][:drawn_paths]
+    paths = _drawn_paths(scenario, controller, chunks, streams, drawn_paths)
     merged = {
         f: np.concatenate([getattr(p, f) for p in parts]) for f in RunChecks.__dataclass_fields__
     }

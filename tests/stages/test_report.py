@@ -6,6 +6,7 @@ page for every section; a missing input is a clear error; headless Chromium rend
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 import subprocess
@@ -23,6 +24,7 @@ from pipeline.reporting.sections import headline_items, section_headings
 from pipeline.reporting.summary import Summary
 from pipeline.runtime.cli import main
 from pipeline.runtime.stored import load_report_data
+from stages.report import write_reports
 
 CHROMIUM = Path("/usr/bin/chromium")
 
@@ -174,6 +176,36 @@ def test_cli_rebuilds_the_report_from_saved_artifacts(
     assert {p.name: p.stat().st_mtime_ns for p in stages} == before  # nothing recomputed
     assert all(p.stat().st_mtime_ns > t for p, t in reports.items())  # both rewritten
     assert not list(out.glob(".report.*"))  # no temporary files left by the atomic writes
+
+
+def _pdf_text(path: Path) -> list[str]:
+    return [page.extract_text() for page in PdfReader(path).pages]
+
+
+def test_a_rebuild_reuses_exactly_the_figures_whose_inputs_did_not_change(
+    run: tuple[Scenario, Path], tmp_path: Path
+) -> None:
+    scenario, good = run
+    out = tmp_path / "copy"
+    shutil.copytree(good, out)
+    shutil.rmtree(out / "artifacts" / "figures", ignore_errors=True)
+    data = load_report_data(scenario, out)
+    cold = write_reports(data)
+    assert "(6 figures drawn)" in cold.message
+    html, pdf = (out / "report.html").read_text(), _pdf_text(out / "report.pdf")
+    figures = sorted(p.name for p in (out / "artifacts" / "figures").iterdir())
+    assert sum(name.endswith(".svg") for name in figures) == 6
+    assert sum(name.startswith("page-") for name in figures) == len(pdf)
+
+    warm = write_reports(data)  # nothing changed: every page and figure reused, same files
+    assert "(every figure reused)" in warm.message
+    assert (out / "report.html").read_text() == html and _pdf_text(out / "report.pdf") == pdf
+    assert sorted(p.name for p in (out / "artifacts" / "figures").iterdir()) == figures
+
+    # another Monte Carlo result: its figure and the inputs figure (worst start) are redrawn
+    other = dataclasses.replace(data, keys={**data.keys, "montecarlo": "another run"})
+    assert "(2 figures drawn)" in write_reports(other).message
+    assert len(list((out / "artifacts" / "figures").glob("*.svg"))) == 6  # stale ones pruned
 
 
 def test_cli_report_of_a_missing_run_is_one_clear_line(
