@@ -65,7 +65,7 @@ class RunOptions:
         "how the final time is shortened (bisection: the paper's Remark 4)",
         choices=HORIZON_SEARCHES,
     )
-    samples: int = option(10_000, "Monte Carlo closed-loop runs", parse=positive_int)
+    samples: int = option(100_000, "Monte Carlo closed-loop runs", parse=positive_int)
     jobs: int = option(1, "worker processes", parse=positive_int)
     executor: str | None = option(
         None,
