@@ -1,0 +1,426 @@
+"""A time-varying funnel around one nominal trajectory: gains ``K[k]``, metrics ``P[k]``, level rho.
+
+Problem. Nominal ``x_ref``, ``u_ref[k]`` held on ``[t_k, t_k+1)``, ``t_k = k Ts`` (eq. (1)).
+Feedback ``u = u_ref[k] + K[k] e``, ``e = x - x_ref``; funnel
+``E(t) = {x : e^T P(t) e <= rho^2}``. ``Q = P^-1`` is LINEAR in t on each sample interval,
+
+    Q(t) = (1 - s) Q[k] + s Q[k+1],  s = (t - t_k) / Ts,  dQ/dt = (Q[k+1] - Q[k]) / Ts,      (F1)
+
+so between samples ``P(t) = ((1 - s) P[k]^-1 + s P[k+1]^-1)^-1`` (not linear in P).
+
+Error dynamics. ``de/dt = f(x_ref + e, u_ref + K e) - f(x_ref, u_ref) = (Abar + Bbar K) e`` with
+``[Abar Bbar] = int_0^1 [f_x f_u](x_ref + r e, u_ref + r K e) dr``. While ``x`` is in the tube and
+the input in its bounds (no clipping), the segment lies in the box ``Z_k`` holding the tube and the
+inputs on the interval, so ``[Abar Bbar]`` lies in the hull ``conv{[A_v B_v]}`` of ``[f_x f_u]``
+over ``Z_k`` (``pipeline.numerics.hull``; the hull is convex and holds every Jacobian on the
+segment, hence their average).
+
+Certificate. ``V = e^T P e`` has ``dV/dt = e^T (dP/dt + Acl^T P + P Acl) e``, ``Acl = A + B K``, so
+``dV/dt <= -2 lambda V`` follows from ``dP/dt + Acl^T P + P Acl + 2 lambda P <= 0``. Multiply by
+``Q`` on both sides; ``dP/dt = -P (dQ/dt) P`` gives ``Q (dP/dt) Q = -dQ/dt``:
+
+    L(t, J) = -dQ/dt + Acl Q(t) + Q(t) Acl^T + 2 lambda Q(t) <= 0,  Acl = A + B K[k].        (F2)
+
+With ``K[k]`` FIXED (from time-varying LQR) ``Y(t) = K[k] Q(t)`` is affine in t and (F2) is linear
+in the unknowns ``Q[k], Q[k+1]``; no product of unknowns appears. We impose (F2) with margin,
+``+ (2 lambda + eps) Q``, at ``s = 0`` and ``s = 1`` for every vertex ``J_v = [A_v B_v]``:
+
+    L(0, J_v) <= 0,  L(1, J_v) <= 0  for all v.                                             (F3)
+
+Why (F3) implies (F2) for all t in the interval and all J in the hull: for fixed ``s``, ``L`` is
+affine in ``J`` (``Acl`` is linear in ``[A B]`` for fixed ``K``), so ``J = sum_v mu_v J_v`` with
+``mu >= 0, sum mu = 1`` gives ``L(s, J) = sum_v mu_v L(s, J_v)``; for fixed ``J_v``, ``L`` is affine
+in ``s`` by (F1), so ``L(s, J_v) = (1 - s) L(0, J_v) + s L(1, J_v)``. A nonnegative combination of
+negative semidefinite matrices is negative semidefinite. (``L`` is bilinear, not jointly affine,
+in ``(s, J)``; the two steps above need only affinity in each.) ``Q`` is continuous at ``t_k``
+and ``K`` switches there, so ``V`` is continuous and the bound holds across samples.
+Invariance: while ``V <= rho^2`` the state is in ``Z_k`` (the box holds the tube at level rho,
+checked below), so ``V`` cannot grow and no solution starting in ``E(0)`` leaves the funnel.
+
+Design. 1. Seed: discrete Riccati recursion on the zero-order-hold discretisation of the nominal's
+linearisation, weights ``Ts diag(state_weights)``, ``Ts diag(input_weights)`` -> ``K[k]``,
+``P_lqr[k]`` (F4). 2. Boxes: ``Q_seed = c P_lqr^-1`` scaled to contain the required initial
+ellipsoid; the box of each variable the Jacobian depends on is the nominal's enclosure
+(``funnel_bounds``, E1-E2) widened by ``allowance`` times the seed's extent, clipped to the state
+and input bounds (sound: the level keeps the tube inside them). 3. LMIs (F3) plus ``Q[0] >= Q_init``
+and the tube at level 1 inside every box (``Q_ii <= s_i^2`` and ``K_j Q K_j^T <= s_j^2`` at both
+ends: linear), minimising ``sum_k tr(W Q[k])``, ``W`` weighting position by ``1/d^2`` and inputs
+and bounded states by their inverse squared half-ranges; cvxpy + Clarabel. 4. Level:
+``rho = min(1, funnel_limits)`` (``funnel_bounds``). 5. ``check_funnel``: numpy only.
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import cvxpy as cp
+import numpy as np
+from scipy.linalg import expm
+
+from pipeline.model.dynamics import FloatArray
+from pipeline.model.scenario import Scenario
+from pipeline.model.simulate import Trajectory
+from pipeline.numerics.funnel_bounds import (
+    Enclosure,
+    enclosure_range,
+    funnel_limits,
+    grid_range,
+    rate_bound,
+    substeps,
+)
+from pipeline.numerics.hull import HullError, jacobian_hull
+
+EPS = 1e-3
+LEVEL_SLACK = 1e-9  # rho is shrunk by this relative amount so that no bound holds with equality
+INTERPOLATION = "Q = P^-1 linear in t on each sample interval"
+
+
+@dataclass(frozen=True, kw_only=True)
+class Funnel:
+    """A certified (or rejected) funnel around one trajectory of N sample intervals.
+
+    Attributes:
+      K: (N, m, n) gain held on ``[t_k, t_k+1)``.
+      P: (N+1, n, n) metric at ``t_k``; between samples ``P^-1`` is linear in t (INTERPOLATION).
+      rho: funnel level: ``E(t) = {x : (x - x_ref)^T P(t) (x - x_ref) <= rho^2}``.
+      rate: lambda (1/s) in (F2): ``V(t) <= exp(-2 lambda t) V(0)``.
+      margins: (N, 2) largest eigenvalue of ``Q^-1/2 L Q^-1/2`` (F2) over the vertices at each
+        interval's start and end (< 0 for a certificate).
+      boxes: (N, 2, d) the hull's box per interval over ``variables`` (d names).
+      vertices: N arrays (V_k, n, n+m) of hull vertices ``[A_v B_v]``.
+      enclosure: the nominal's sound enclosure (``funnel_bounds.Enclosure``).
+      limits: constraint -> largest level it allows (``design`` is the boxes' level, 1).
+      binding: the constraint that sets rho; seconds: synthesis wall time.
+    """
+
+    K: FloatArray
+    P: FloatArray
+    rho: float
+    rate: float
+    margins: FloatArray = field(repr=False)
+    boxes: FloatArray = field(repr=False)
+    variables: tuple[str, ...]
+    vertices: tuple[FloatArray, ...] = field(repr=False)
+    enclosure: Enclosure = field(repr=False)
+    limits: Mapping[str, float] = field(repr=False)
+    binding: str
+    seconds: float
+    success: bool
+    message: str
+    interpolation: str = INTERPOLATION
+
+    @property
+    def Q(self) -> FloatArray:
+        """(N+1, n, n) ``P^-1`` at the sample times."""
+        return np.linalg.inv(self.P)
+
+
+def lqr_seed(scenario: Scenario, trajectory: Trajectory) -> tuple[FloatArray, FloatArray]:
+    """Time-varying LQR along the nominal: ``K (N, m, n)`` (sign of ``u = u_ref + K e``) and the
+    cost-to-go ``P (N+1, n, n)``, terminal ``P[N] = Ts diag(state_weights)``."""
+    dynamics, Ts = scenario.dynamics, scenario.Ts
+    xs, us = trajectory.xs, trajectory.us
+    n, m, N = scenario.n, scenario.m, us.shape[0]
+    M = np.zeros((N, n + m, n + m))
+    M[:, :n, :n] = dynamics.f_x(xs[:-1], us)
+    M[:, :n, n:] = dynamics.f_u(xs[:-1], us)
+    E = expm(M * Ts)  # zero-order hold: [Ad Bd; 0 I] = expm([A B; 0 0] Ts)
+    Ad, Bd = E[:, :n, :n], E[:, :n, n:]
+    Qw = Ts * np.diag(scenario.feedback.state_weights)
+    Rw = Ts * np.diag(scenario.feedback.input_weights)
+    P = np.empty((N + 1, n, n))
+    K = np.empty((N, m, n))
+    P[N] = Qw
+    for k in range(N - 1, -1, -1):  # eq. (F4): discrete Riccati recursion
+        A, B, S = Ad[k], Bd[k], P[k + 1]
+        K[k] = -np.linalg.solve(Rw + B.T @ S @ B, B.T @ S @ A)
+        Pk = Qw + A.T @ S @ (A + B @ K[k])
+        P[k] = (Pk + Pk.T) / 2
+    return K, P
+
+
+def _bounds_of(scenario: Scenario, state_bounds: Mapping[str, tuple[float, float]], name: str):
+    if name in scenario.input_names:
+        j = scenario.input_names.index(name)
+        return float(scenario.input_lower[j]), float(scenario.input_upper[j])
+    return tuple(map(float, state_bounds.get(name, (-np.inf, np.inf))))
+
+
+def _hulls(scenario, trajectory, Q_seed, K, state_bounds, allowance, segments):
+    """Per interval: box ``(2, d)`` over the Jacobian's variables, hull vertices, enclosure."""
+    dynamics, n = scenario.dynamics, scenario.n
+    variables = dynamics.depends_on()
+    h = scenario.Ts / substeps(trajectory)
+    grid = grid_range(trajectory)  # (N, 2, n)
+    N = len(grid)
+    s_seed = np.sqrt(np.diagonal(Q_seed, axis1=1, axis2=2))  # (N+1, n)
+    g_seed = np.sqrt(np.einsum("kji,kil,kjl->kj", K, Q_seed[:-1], K))  # (N, m)
+    g_next = np.sqrt(np.einsum("kji,kil,kjl->kj", K, Q_seed[1:], K))
+    boxes, vertices = np.empty((N, 2, len(variables))), []
+    pads, F = np.empty((N, n)), np.empty((N, n))
+    for k in range(N):
+        pad = 2 * h * np.abs(dynamics.f(grid[k], trajectory.us[k])).max(axis=0) + 1e-9
+        for _ in range(6):
+            B = grid[k] + np.stack([-pad, pad])  # the a priori box B_k (E1)
+            for d, name in enumerate(variables):
+                lower, upper = _bounds_of(scenario, state_bounds, name)
+                if name in scenario.input_names:
+                    j = scenario.input_names.index(name)
+                    w = allowance * max(g_seed[k, j], g_next[k, j])
+                    centre = (trajectory.us[k, j],) * 2
+                else:
+                    i = scenario.state_names.index(name)
+                    w = allowance * max(s_seed[k, i], s_seed[k + 1, i])
+                    centre = B[:, i]
+                boxes[k, :, d] = max(centre[0] - w, lower), min(centre[1] + w, upper)
+            hull = jacobian_hull(dynamics, dict(zip(variables, boxes[k].T, strict=True)), segments)
+            F[k] = rate_bound(dynamics, trajectory, k, B, hull.A)
+            if np.all(F[k] * h < pad):
+                break
+            pad = np.maximum(pad, 2 * F[k] * h)
+        else:
+            raise HullError(f"funnel: no a priori enclosure of the nominal on interval {k}")
+        pads[k] = pad
+        vertices.append(hull.vertices)
+    enclosure = Enclosure(
+        box=grid + np.stack([-pads, pads], axis=1),
+        rate_bound=F,
+        grid_range=grid,
+        range=enclosure_range(grid, F, h),
+    )
+    return variables, boxes, tuple(vertices), enclosure
+
+
+def _weights(scenario: Scenario, state_bounds: Mapping[str, tuple[float, float]], K):
+    """(N, n, n) ``W[k]`` of the objective ``sum_k tr(W[k] Q[k])``."""
+    n = scenario.n
+    C = np.zeros((2, n))
+    C[0, scenario.position_index[0]] = C[1, scenario.position_index[1]] = 1.0
+    W = np.broadcast_to(C.T @ C / scenario.clearance**2, (len(K), n, n)).copy()
+    for j in range(scenario.m):
+        half = (scenario.input_upper[j] - scenario.input_lower[j]) / 2
+        W += np.einsum("ki,kl->kil", K[:, j], K[:, j]) / half**2
+    for name, (lower, upper) in state_bounds.items():
+        i = scenario.state_names.index(name)
+        W[:, i, i] += 4 / (upper - lower) ** 2
+    return W
+
+
+def _solve_lmis(scenario, us, K, vertices, boxes, variables, enclosure, Q_init, rate):
+    """(F3) with the box and initial-set constraints; returns ``Q (N+1, n, n)`` or a message."""
+    n, N, Ts = scenario.n, len(K), scenario.Ts
+    Q = [cp.Variable((n, n), symmetric=True) for _ in range(N + 1)]
+    floor = 1e-6 * float(np.linalg.eigvalsh(Q_init)[0])
+    constraints = [Q[0] - Q_init >> 0] + [Qk >> floor * np.eye(n) for Qk in Q]
+    W = _weights(scenario, {}, K)
+    for k in range(N):
+        D = (Q[k + 1] - Q[k]) / Ts  # eq. (F1)
+        for J in vertices[k]:
+            Acl = J[:, :n] + J[:, n:] @ K[k]
+            for Qe in (Q[k], Q[k + 1]):
+                M = -D + Acl @ Qe + Qe @ Acl.T + (2 * rate + EPS) * Qe  # eq. (F2)
+                constraints.append((M + M.T) / 2 << 0)  # eq. (F3)
+        for d, name in enumerate(variables):  # the tube at level 1 stays in the box
+            lo, hi = boxes[k, :, d]
+            for Qe in (Q[k], Q[k + 1]):
+                if name in scenario.input_names:
+                    j = scenario.input_names.index(name)
+                    room = min(us[k, j] - lo, hi - us[k, j])
+                    constraints.append(K[k, j] @ Qe @ K[k, j] <= max(room, 0.0) ** 2)
+                else:
+                    i = scenario.state_names.index(name)
+                    room = min(enclosure.range[k, 0, i] - lo, hi - enclosure.range[k, 1, i])
+                    constraints.append(Qe[i, i] <= max(room, 0.0) ** 2)
+    objective = cp.Minimize(sum(cp.trace(W[k] @ Q[k]) for k in range(N)))
+    problem = cp.Problem(objective, constraints)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            problem.solve(solver=cp.CLARABEL)
+    except cp.SolverError as error:
+        return f"solver error ({error})"
+    if problem.status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE) or Q[0].value is None:
+        return f"LMIs {problem.status}"
+    values = np.array([Qk.value for Qk in Q])
+    return (values + np.swapaxes(values, 1, 2)) / 2
+
+
+def certificate_margins(
+    Q: FloatArray, K: FloatArray, vertices: tuple[FloatArray, ...], rate: float, Ts: float
+) -> FloatArray:
+    """(N, 2) largest eigenvalue of ``Lc^-1 L(s, J_v) Lc^-T`` (``Q(s) = Lc Lc^T``) over the
+    vertices at ``s = 0, 1`` of each interval, by numpy alone; ``Q (N+1, n, n)``."""
+    n, N = Q.shape[1], len(K)
+    margins = np.empty((N, 2))
+    for k in range(N):
+        D = (Q[k + 1] - Q[k]) / Ts  # eq. (F1)
+        Acl = vertices[k][:, :, :n] + vertices[k][:, :, n:] @ K[k]  # (V, n, n)
+        for e, Qe in enumerate((Q[k], Q[k + 1])):
+            M = -D + Acl @ Qe + Qe @ np.swapaxes(Acl, 1, 2) + 2 * rate * Qe  # eq. (F2)
+            L_inv = np.linalg.inv(np.linalg.cholesky(Qe))
+            M = L_inv @ M @ L_inv.T
+            margins[k, e] = np.linalg.eigvalsh((M + np.swapaxes(M, 1, 2)) / 2).max()
+    return margins
+
+
+def check_funnel(
+    scenario: Scenario,
+    trajectory: Trajectory,
+    funnel: Funnel,
+    state_bounds: Mapping[str, tuple[float, float]],
+) -> str | None:
+    """Re-verify ``funnel`` with numpy alone; ``None`` if it holds, else what fails.
+
+    Checks: every ``P[k]`` symmetric positive definite; (F3) at every vertex and both ends of
+    every interval; the a priori enclosure (E1: ``F h < pad`` with ``F`` recomputed from the
+    stored vertices) and its box inside the hull box; the tube at level rho inside every hull
+    box; rho within every constraint's limit (funnel_bounds (a)-(d))."""
+    P, K, rho, Ts = funnel.P, funnel.K, funnel.rho, scenario.Ts
+    N, n = len(K), scenario.n
+    if P.shape != (N + 1, n, n) or K.shape != (N, scenario.m, n):
+        return f"shapes P {P.shape}, K {K.shape} do not fit N = {N}, n = {n}, m = {scenario.m}"
+    if not (np.all(np.isfinite(P)) and np.all(np.isfinite(K)) and np.isfinite(rho)):
+        return "non-finite P, K or rho"
+    if np.abs(P - np.swapaxes(P, 1, 2)).max() > 1e-9 * np.abs(P).max():
+        return "P is not symmetric"
+    lowest = np.linalg.eigvalsh(P)[:, 0]
+    if lowest.min() <= 0:
+        return f"P[{int(np.argmin(lowest))}] is not positive definite ({lowest.min():.3g})"
+    Q = np.linalg.inv(P)
+    Q = (Q + np.swapaxes(Q, 1, 2)) / 2
+    margins = certificate_margins(Q, K, funnel.vertices, funnel.rate, Ts)
+    if margins.max() >= 0:
+        k, e = np.unravel_index(int(np.argmax(margins)), margins.shape)
+        worst = margins.max()
+        return f"(F2) fails at t = {Ts * (k + e):.2f} s, interval {k} (eigenvalue {worst:.3g})"
+    h = Ts / substeps(trajectory)
+    enclosure = funnel.enclosure
+    s_ext = np.sqrt(
+        np.maximum(np.diagonal(Q, axis1=1, axis2=2)[:-1], np.diagonal(Q, axis1=1, axis2=2)[1:])
+    )
+    for k in range(N):
+        box = enclosure.box[k]
+        pad = np.minimum(enclosure.grid_range[k, 0] - box[0], box[1] - enclosure.grid_range[k, 1])
+        F = rate_bound(scenario.dynamics, trajectory, k, box, funnel.vertices[k][:, :, :n])
+        if not (np.all(F * h < pad) and np.all(F <= enclosure.rate_bound[k])):
+            return f"the nominal's enclosure (E1) fails on interval {k}"
+        for d, name in enumerate(funnel.variables):
+            lo, hi = funnel.boxes[k, :, d]
+            if name in scenario.input_names:
+                j = scenario.input_names.index(name)
+                g = rho * np.sqrt(max(K[k, j] @ Q[e] @ K[k, j] for e in (k, k + 1)))
+                inner = (trajectory.us[k, j] - g, trajectory.us[k, j] + g)
+            else:
+                i = scenario.state_names.index(name)
+                inner = (
+                    enclosure.range[k, 0, i] - rho * s_ext[k, i],
+                    enclosure.range[k, 1, i] + rho * s_ext[k, i],
+                )
+                if not (lo <= box[0, i] and box[1, i] <= hi):
+                    return f"the enclosure leaves the hull box of '{name}' on interval {k}"
+            if not (lo <= inner[0] and inner[1] <= hi):
+                return f"the tube leaves the hull box of '{name}' on interval {k}"
+    limits = funnel_limits(scenario, trajectory, Q, K, enclosure, state_bounds)
+    name = min(limits, key=lambda key: limits[key][0])
+    if rho > limits[name][0]:
+        return f"rho {rho:.4g} exceeds the limit {limits[name][0]:.4g} of {name}"
+    return None
+
+
+def synthesize_funnel(
+    scenario: Scenario,
+    trajectory: Trajectory,
+    *,
+    state_bounds: Mapping[str, tuple[float, float]] | None = None,
+    initial: FloatArray | None = None,
+    rate: float | None = None,
+    allowance: float = 2.0,
+    segments: int = 2,
+) -> Funnel:
+    """Synthesize and check the funnel around ``trajectory`` (one: ``xs (N+1, n)``, ``us (N, m)``,
+    its dense grid); see the module docstring.
+
+    Args:
+      state_bounds: state name -> (lower, upper) the tube must respect (the physical envelope).
+      initial: (n, n) ``Q_init``: ``E(0)`` at level 1 must hold ``{e : e^T Q_init^-1 e <= 1}``;
+        default the seed's shape with position extent ``scenario.clearance``.
+      rate: lambda of (F2), default ``scenario.feedback.rate``.
+      allowance: the hull boxes are the nominal's enclosure widened by this times the seed tube.
+      segments: pieces per angle-like block of the local hulls.
+    """
+    start = time.perf_counter()
+    state_bounds = dict(state_bounds or {})
+    rate = float(scenario.feedback.rate if rate is None else rate)
+    xs = trajectory.dense_xs
+    if xs.ndim != 2 or trajectory.us.ndim != 2:
+        raise ValueError(f"funnel: expected one trajectory, got dense_xs of shape {xs.shape}")
+    bad = np.argwhere(~np.isfinite(xs))
+    if len(bad):
+        k, i = bad[0]
+        raise ValueError(
+            f"funnel: non-finite state '{scenario.state_names[i]}' at dense index {k} "
+            f"(t = {trajectory.dense_ts[k]:.3f} s)"
+        )
+    for name in state_bounds:
+        if name not in scenario.state_names:
+            raise ValueError(
+                f"funnel: state_bounds names '{name}', not one of {scenario.state_names}"
+            )
+    K, P_lqr = lqr_seed(scenario, trajectory)
+    Q_seed = np.linalg.inv(P_lqr)
+    c = list(scenario.position_index)
+    if initial is None:
+        extent = np.linalg.eigvalsh(Q_seed[0][np.ix_(c, c)])[-1]
+        initial = Q_seed[0] * scenario.clearance**2 / extent
+    Q_init = np.asarray(initial, dtype=np.float64)
+    L_inv = np.linalg.inv(np.linalg.cholesky(Q_seed[0]))
+    Q_seed = Q_seed * np.linalg.eigvalsh(L_inv @ Q_init @ L_inv.T)[-1]  # Q_seed[0] >= Q_init
+    N = len(K)
+
+    def result(success: bool, message: str, **values) -> Funnel:
+        defaults = dict(
+            K=K, P=P_lqr, rho=0.0, rate=rate, margins=np.full((N, 2), np.nan),
+            boxes=np.zeros((N, 2, 0)), variables=(), vertices=(), enclosure=None, limits={},
+            binding="",
+        )  # fmt: skip
+        defaults.update(values)
+        return Funnel(
+            **defaults, seconds=time.perf_counter() - start, success=success, message=message
+        )
+
+    try:
+        variables, boxes, vertices, enclosure = _hulls(
+            scenario, trajectory, Q_seed, K, state_bounds, allowance, segments
+        )
+    except HullError as error:
+        return result(False, f"funnel: {error}")
+    common = dict(boxes=boxes, variables=variables, vertices=vertices, enclosure=enclosure)
+    Q = _solve_lmis(scenario, trajectory.us, K, vertices, boxes, variables, enclosure, Q_init, rate)
+    if isinstance(Q, str):
+        return result(False, f"funnel: {Q} over {N} intervals; try a smaller rate", **common)
+    limits = funnel_limits(scenario, trajectory, Q, K, enclosure, state_bounds)
+    limits["design"] = (1.0, 0.0)
+    binding = min(limits, key=lambda key: limits[key][0])
+    level, when = limits[binding]
+    rho = level * (1 - LEVEL_SLACK)
+    funnel = result(
+        True, "", P=np.linalg.inv(Q), rho=rho, binding=binding,
+        margins=certificate_margins(Q, K, vertices, rate, scenario.Ts),
+        limits={key: value[0] for key, value in limits.items()}, **common,
+    )  # fmt: skip
+    failure = check_funnel(scenario, trajectory, funnel, state_bounds)
+    if rho <= 0:
+        failure = failure or f"the nominal itself violates {binding} at t = {when:.2f} s"
+    if failure:
+        return result(False, f"funnel rejected: {failure}", **common)
+    message = (
+        f"funnel level {rho:.4g} over {N} intervals, bound by {binding} at t = {when:.2f} s "
+        f"(largest eigenvalue {funnel.margins.max():.2e})"
+    )
+    return result(
+        True, message, P=funnel.P, rho=rho, binding=binding, margins=funnel.margins,
+        limits=funnel.limits, **common,
+    )  # fmt: skip
