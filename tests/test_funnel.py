@@ -8,6 +8,7 @@
    Jacobians sampled from its box (LP membership); the nominal stays in its enclosure (E2)
    between grid points (solve_ivp at tight tolerance).
 3. The independent check rejects a funnel whose ``P`` is perturbed.
+4. The hand-built Clarabel program (funnel_lmi) has the optimum of the same program in cvxpy.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from shapely.geometry import box as shapely_box
 from pipeline.model.scenario import load_scenario
 from pipeline.model.simulate import simulate
 from pipeline.numerics.funnel import check_funnel, lqr_seed, synthesize_funnel
+from pipeline.numerics.funnel_lmi import FunnelProgram, basis, solve_clarabel, solve_cvxpy, svec
 
 THETA_BOUNDS = {"theta": (-0.8, 0.8)}
 
@@ -195,3 +197,40 @@ def test_check_rejects_a_perturbed_metric(quadrotor) -> None:
     )
     bigger = dataclasses.replace(funnel, rho=2 * funnel.rho)
     assert check_funnel(scenario, trajectory, bigger, THETA_BOUNDS) is not None
+
+
+def test_svec_is_an_isometry_and_basis_matches_it() -> None:
+    rng = np.random.default_rng(3)
+    M, N = rng.normal(size=(2, 4, 4))
+    M, N = M + M.T, N + N.T
+    assert svec(M) @ svec(N) == pytest.approx(np.trace(M @ N))
+    E = basis(4)
+    q = rng.normal(size=len(E))
+    Q = np.einsum("l,lij->ij", q, E)
+    np.testing.assert_array_equal(Q, Q.T)
+    diagonal = np.isin(np.arange(len(q)), [0, 2, 5, 9])  # column-major upper triangle
+    np.testing.assert_allclose(svec(Q), q * np.where(diagonal, 1.0, np.sqrt(2.0)))
+
+
+def test_clarabel_program_matches_cvxpy() -> None:
+    """A small nonlinear program (quadrotor, 8 intervals, two vertices each, caps active)."""
+    scenario = load_scenario("quadrotor_hill", check_demos=False)
+    demo = scenario.demos[0]
+    trajectory = simulate(scenario.dynamics, demo.x0, demo.us[:8], scenario.Ts)
+    K, P = lqr_seed(scenario, trajectory)
+    x, u = trajectory.xs[:-1], trajectory.us
+    J = np.concatenate([scenario.dynamics.f_x(x, u), scenario.dynamics.f_u(x, u)], axis=2)
+    vertices = tuple(np.stack([Jk, Jk * 1.05]) for Jk in J)
+    Q_seed = np.linalg.inv(P)
+    caps = tuple((k, np.diag(np.eye(6)[2]), 4 * float(Q_seed[0][2, 2])) for k in range(9))
+    W = np.broadcast_to(np.eye(6), (9, 6, 6))
+    program = FunnelProgram(
+        Ts=scenario.Ts, K=K, vertices=vertices, c=0.3, Q_init=Q_seed[0], floor=1e-6, caps=caps,
+        W=W,
+    )  # fmt: skip
+    Q_direct, Q_reference = solve_clarabel(program), solve_cvxpy(program)
+    assert not isinstance(Q_direct, str) and not isinstance(Q_reference, str)
+    objective = [np.einsum("kij,kji->", W, Q) for Q in (Q_direct, Q_reference)]
+    assert objective[0] == pytest.approx(objective[1], rel=1e-5)
+    np.testing.assert_allclose(Q_direct, Q_reference, atol=1e-4 * np.abs(Q_reference).max())
+    assert Q_direct[:, 2, 2].max() <= caps[0][2] * (1 + 1e-6)

@@ -52,11 +52,9 @@ and bounded states by their inverse squared half-ranges; cvxpy + Clarabel. 4. Le
 from __future__ import annotations
 
 import time
-import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
-import cvxpy as cp
 import numpy as np
 from scipy.linalg import expm
 
@@ -71,6 +69,7 @@ from pipeline.numerics.funnel_bounds import (
     rate_bound,
     substeps,
 )
+from pipeline.numerics.funnel_lmi import FunnelProgram, solve_clarabel
 from pipeline.numerics.hull import HullError, jacobian_hull
 
 EPS = 1e-3
@@ -209,43 +208,33 @@ def _weights(scenario: Scenario, state_bounds: Mapping[str, tuple[float, float]]
     return W
 
 
-def _solve_lmis(scenario, us, K, vertices, boxes, variables, enclosure, Q_init, rate):
-    """(F3) with the box and initial-set constraints; returns ``Q (N+1, n, n)`` or a message."""
-    n, N, Ts = scenario.n, len(K), scenario.Ts
-    Q = [cp.Variable((n, n), symmetric=True) for _ in range(N + 1)]
-    floor = 1e-6 * float(np.linalg.eigvalsh(Q_init)[0])
-    constraints = [Q[0] - Q_init >> 0] + [Qk >> floor * np.eye(n) for Qk in Q]
-    W = _weights(scenario, {}, K)
-    for k in range(N):
-        D = (Q[k + 1] - Q[k]) / Ts  # eq. (F1)
-        for J in vertices[k]:
-            Acl = J[:, :n] + J[:, n:] @ K[k]
-            for Qe in (Q[k], Q[k + 1]):
-                M = -D + Acl @ Qe + Qe @ Acl.T + (2 * rate + EPS) * Qe  # eq. (F2)
-                constraints.append((M + M.T) / 2 << 0)  # eq. (F3)
-        for d, name in enumerate(variables):  # the tube at level 1 stays in the box
+def _program(scenario, us, K, vertices, boxes, variables, enclosure, Q_init, rate):
+    """(F3) with the initial set and the tube at level 1 inside every hull box (``funnel_lmi``)."""
+    n = scenario.n
+    caps = []
+    for k in range(len(K)):
+        for d, name in enumerate(variables):
             lo, hi = boxes[k, :, d]
-            for Qe in (Q[k], Q[k + 1]):
-                if name in scenario.input_names:
-                    j = scenario.input_names.index(name)
-                    room = min(us[k, j] - lo, hi - us[k, j])
-                    constraints.append(K[k, j] @ Qe @ K[k, j] <= max(room, 0.0) ** 2)
-                else:
-                    i = scenario.state_names.index(name)
-                    room = min(enclosure.range[k, 0, i] - lo, hi - enclosure.range[k, 1, i])
-                    constraints.append(Qe[i, i] <= max(room, 0.0) ** 2)
-    objective = cp.Minimize(sum(cp.trace(W[k] @ Q[k]) for k in range(N)))
-    problem = cp.Problem(objective, constraints)
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            problem.solve(solver=cp.CLARABEL)
-    except cp.SolverError as error:
-        return f"solver error ({error})"
-    if problem.status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE) or Q[0].value is None:
-        return f"LMIs {problem.status}"
-    values = np.array([Qk.value for Qk in Q])
-    return (values + np.swapaxes(values, 1, 2)) / 2
+            if name in scenario.input_names:  # K_j Q K_j^T <= room^2 at both ends
+                j = scenario.input_names.index(name)
+                C, room = np.outer(K[k, j], K[k, j]), min(us[k, j] - lo, hi - us[k, j])
+            else:  # Q_ii <= room^2 at both ends
+                i = scenario.state_names.index(name)
+                C = np.zeros((n, n))
+                C[i, i] = 1.0
+                room = min(enclosure.range[k, 0, i] - lo, hi - enclosure.range[k, 1, i])
+            caps += [(e, C, max(room, 0.0) ** 2) for e in (k, k + 1)]
+    W = _weights(scenario, {}, K)
+    return FunnelProgram(
+        Ts=scenario.Ts,
+        K=K,
+        vertices=vertices,
+        c=2 * rate + EPS,
+        Q_init=Q_init,
+        floor=1e-6 * float(np.linalg.eigvalsh(Q_init)[0]),
+        caps=tuple(caps),
+        W=np.concatenate([W, W[-1:]]),
+    )
 
 
 def certificate_margins(
@@ -398,7 +387,10 @@ def synthesize_funnel(
     except HullError as error:
         return result(False, f"funnel: {error}")
     common = dict(boxes=boxes, variables=variables, vertices=vertices, enclosure=enclosure)
-    Q = _solve_lmis(scenario, trajectory.us, K, vertices, boxes, variables, enclosure, Q_init, rate)
+    program = _program(
+        scenario, trajectory.us, K, vertices, boxes, variables, enclosure, Q_init, rate
+    )
+    Q = solve_clarabel(program)
     if isinstance(Q, str):
         return result(False, f"funnel: {Q} over {N} intervals; try a smaller rate", **common)
     limits = funnel_limits(scenario, trajectory, Q, K, enclosure, state_bounds)
