@@ -3,8 +3,10 @@
 For each demo: the constant certificate (stages.feedback + stages.radius) gives the ball
 ``||e||_P <= r`` at t = 0; the funnel (pipeline.numerics.funnel) is asked to hold the SAME initial
 ball (``Q_init = r^2 P^-1``) with the scenario's real envelope (theta in [-0.8, 0.8] rad, the input
-bounds) instead of the operating region. Printed per demo: the funnel level rho (>= 1: the
-initial ball is certified with room), what binds it, the largest tube extent along the flight in
+bounds) instead of the operating region. Printed per demo: the funnel level rho (1: the
+initial ball is certified; capped at 1 by the hull boxes), the room (the smallest level that a
+constraint alone allows: how much larger the funnel could be before it touches Unsafe, the
+bounds or Goal's boundary) and which constraint that is, the largest tube extent along the flight in
 position / theta / u1 for both certificates, and the pitch and thrust each lets the nominal use
 (the limit minus the tube's largest extent there). Run: ``python -m bench funnel``.
 """
@@ -38,7 +40,7 @@ def run(scenario_name: str = "quadrotor_hill") -> None:
     lo_u1, hi_u1 = scenario.operating_region["u1"]
     print(f"{scenario_name}: constant certificate {feedback.message} ({t_feedback:.1f} s)")
     header = (
-        f"{'demo':>4} {'r':>6} {'rho':>6} {'funnel bound by':<22} {'pos c/f (m)':>11} "
+        f"{'demo':>4} {'r':>6} {'rho':>6} {'room':>5} {'room bound by':<19} {'pos c/f (m)':>11} "
         f"{'theta c/f':>11} {'u1 c/f (N)':>11} {'|theta| usable c/f':>18} "
         f"{'u1 usable: const':>17} {'funnel':>13} {'time (s)':>8}"
     )
@@ -64,8 +66,10 @@ def run(scenario_name: str = "quadrotor_hill") -> None:
             max(np.einsum("ki,kil,kl->k", gain, Q[e : len(Q) - 1 + e], gain).max() for e in (0, 1))
         )
         lower, upper = scenario.input_lower[j_u1], scenario.input_upper[j_u1]
+        constraints = {k: v for k, v in funnel.limits.items() if k != "design"}
+        tightest = min(constraints, key=constraints.__getitem__)
         print(
-            f"{index:>4} {r:6.3f} {rho:6.3f} {funnel.binding:<22} {pos_c:5.2f}/{pos_f:5.2f} "
+            f"{index:>4} {r:6.3f} {rho:6.3f} {constraints[tightest]:5.2f} {tightest:<19} {pos_c:5.2f}/{pos_f:5.2f} "
             f"{theta_c:5.3f}/{theta_f:5.3f} {u1_c:5.2f}/{u1_f:5.2f} "
             f"{hi_theta - theta_c:8.3f}/{STATE_BOUNDS['theta'][1] - theta_f:<9.3f} "
             f"[{lo_u1 + u1_c:5.2f}, {hi_u1 - u1_c:5.2f}]   "

@@ -222,7 +222,8 @@ def test_clarabel_program_matches_cvxpy() -> None:
     J = np.concatenate([scenario.dynamics.f_x(x, u), scenario.dynamics.f_u(x, u)], axis=2)
     vertices = tuple(np.stack([Jk, Jk * 1.05]) for Jk in J)
     Q_seed = np.linalg.inv(P)
-    caps = tuple((k, np.diag(np.eye(6)[2]), 4 * float(Q_seed[0][2, 2])) for k in range(9))
+    caps = tuple((k, np.eye(6)[2:3], np.full((1, 1), 4 * Q_seed[0][2, 2])) for k in range(9))
+    caps += ((8, np.eye(6)[:2], 1.5 * Q_seed[0][:2, :2]),)  # a 2 x 2 cap
     W = np.broadcast_to(np.eye(6), (9, 6, 6))
     program = FunnelProgram(
         Ts=scenario.Ts, K=K, vertices=vertices, c=0.3, Q_init=Q_seed[0], floor=1e-6, caps=caps,
@@ -233,4 +234,9 @@ def test_clarabel_program_matches_cvxpy() -> None:
     objective = [np.einsum("kij,kji->", W, Q) for Q in (Q_direct, Q_reference)]
     assert objective[0] == pytest.approx(objective[1], rel=1e-5)
     np.testing.assert_allclose(Q_direct, Q_reference, atol=1e-4 * np.abs(Q_reference).max())
-    assert Q_direct[:, 2, 2].max() <= caps[0][2] * (1 + 1e-6)
+    assert Q_direct[:, 2, 2].max() <= caps[0][2][0, 0] * (1 + 1e-6)
+    assert np.linalg.eigvalsh(caps[-1][2] - Q_direct[8, :2, :2]).min() >= -1e-6
+    # A tighter 2 x 2 cap makes the program infeasible for both.
+    tight = caps[:-1] + ((8, np.eye(6)[:2], 0.8 * Q_seed[0][:2, :2]),)
+    program = dataclasses.replace(program, caps=tight)
+    assert isinstance(solve_clarabel(program), str) and isinstance(solve_cvxpy(program), str)

@@ -56,6 +56,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
+import shapely
 from scipy.linalg import expm
 
 from pipeline.model.dynamics import FloatArray
@@ -66,6 +67,7 @@ from pipeline.numerics.funnel_bounds import (
     enclosure_range,
     funnel_limits,
     grid_range,
+    interval_clearance,
     rate_bound,
     substeps,
 )
@@ -208,22 +210,35 @@ def _weights(scenario: Scenario, state_bounds: Mapping[str, tuple[float, float]]
     return W
 
 
-def _program(scenario, us, K, vertices, boxes, variables, enclosure, Q_init, rate):
-    """(F3) with the initial set and the tube at level 1 inside every hull box (``funnel_lmi``)."""
-    n = scenario.n
+def _program(scenario, trajectory, K, vertices, boxes, variables, enclosure, Q_init, rate):
+    """(F3) with the initial set, and the tube at level 1 inside every hull box, clear of Unsafe
+    (a disk bound) and inside Goal (``funnel_lmi``)."""
+    n, us, final_state = scenario.n, trajectory.us, trajectory.dense_xs[-1]
     caps = []
     for k in range(len(K)):
         for d, name in enumerate(variables):
             lo, hi = boxes[k, :, d]
             if name in scenario.input_names:  # K_j Q K_j^T <= room^2 at both ends
                 j = scenario.input_names.index(name)
-                C, room = np.outer(K[k, j], K[k, j]), min(us[k, j] - lo, hi - us[k, j])
+                C, room = K[k, j : j + 1], min(us[k, j] - lo, hi - us[k, j])
             else:  # Q_ii <= room^2 at both ends
                 i = scenario.state_names.index(name)
-                C = np.zeros((n, n))
-                C[i, i] = 1.0
+                C = np.eye(n)[i : i + 1]
                 room = min(enclosure.range[k, 0, i] - lo, hi - enclosure.range[k, 1, i])
-            caps += [(e, C, max(room, 0.0) ** 2) for e in (k, k + 1)]
+            caps += [(e, C, np.full((1, 1), max(room, 0.0) ** 2)) for e in (k, k + 1)]
+    # The position disk of the tube at level 1 clear of Unsafe (funnel_bounds (a)) and in Goal.
+    C = np.eye(n)[list(scenario.position_index)]
+    for k, d in enumerate(interval_clearance(scenario, trajectory, enclosure)):
+        if np.isfinite(d):
+            caps += [(e, C, max(d, 0.0) ** 2 * np.eye(2)) for e in (k, k + 1)]
+    final = scenario.positions(trajectory.dense_xs[-1])
+    inside = shapely.intersects_xy(scenario.goal, *final)
+    g = float(shapely.distance(shapely.Point(final), scenario.goal.boundary)) * inside
+    caps.append((len(K), C, g**2 * np.eye(2)))
+    for name, (lower, upper) in scenario.goal_bounds.items():
+        i = scenario.state_names.index(name)
+        room = max(min(final_state[i] - lower, upper - final_state[i]), 0.0)
+        caps.append((len(K), np.eye(n)[i : i + 1], np.full((1, 1), room**2)))
     W = _weights(scenario, {}, K)
     return FunnelProgram(
         Ts=scenario.Ts,
@@ -325,7 +340,7 @@ def synthesize_funnel(
     *,
     state_bounds: Mapping[str, tuple[float, float]] | None = None,
     initial: FloatArray | None = None,
-    rate: float | None = None,
+    rate: float = 0.0,
     allowance: float = 2.0,
     segments: int = 2,
 ) -> Funnel:
@@ -336,13 +351,15 @@ def synthesize_funnel(
       state_bounds: state name -> (lower, upper) the tube must respect (the physical envelope).
       initial: (n, n) ``Q_init``: ``E(0)`` at level 1 must hold ``{e : e^T Q_init^-1 e <= 1}``;
         default the seed's shape with position extent ``scenario.clearance``.
-      rate: lambda of (F2), default ``scenario.feedback.rate``.
+      rate: lambda of (F2). Default 0: the tube's level is constant and ``Q(t)`` itself shrinks
+        where the closed loop contracts (``Q e^{-2 lambda t}`` would satisfy (F2) with rate 0
+        too, so a positive rate only restricts the shape); the margin ``EPS`` stays.
       allowance: the hull boxes are the nominal's enclosure widened by this times the seed tube.
       segments: pieces per angle-like block of the local hulls.
     """
     start = time.perf_counter()
     state_bounds = dict(state_bounds or {})
-    rate = float(scenario.feedback.rate if rate is None else rate)
+    rate = float(rate)
     xs = trajectory.dense_xs
     if xs.ndim != 2 or trajectory.us.ndim != 2:
         raise ValueError(f"funnel: expected one trajectory, got dense_xs of shape {xs.shape}")
@@ -387,9 +404,7 @@ def synthesize_funnel(
     except HullError as error:
         return result(False, f"funnel: {error}")
     common = dict(boxes=boxes, variables=variables, vertices=vertices, enclosure=enclosure)
-    program = _program(
-        scenario, trajectory.us, K, vertices, boxes, variables, enclosure, Q_init, rate
-    )
+    program = _program(scenario, trajectory, K, vertices, boxes, variables, enclosure, Q_init, rate)
     Q = solve_clarabel(program)
     if isinstance(Q, str):
         return result(False, f"funnel: {Q} over {N} intervals; try a smaller rate", **common)

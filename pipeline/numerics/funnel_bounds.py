@@ -118,6 +118,21 @@ def _interval_distance(d: FloatArray, speed: FloatArray, s: int, h: float) -> Fl
     return low.reshape(-1, s).min(axis=1)
 
 
+def interval_clearance(
+    scenario: Scenario, trajectory: Trajectory, enclosure: Enclosure
+) -> FloatArray:
+    """(N,) lower bound of the nominal position's distance to Unsafe on each sample interval,
+    (a) of the docstring (``inf`` without Unsafe)."""
+    s, h = substeps(trajectory), float(trajectory.dense_ts[1] - trajectory.dense_ts[0])
+    speed = np.linalg.norm(enclosure.rate_bound[:, list(scenario.position_index)], axis=1)
+    positions = scenario.positions(trajectory.dense_xs)
+    clearance = np.full(trajectory.us.shape[0], np.inf)
+    for polygon in scenario.unsafe.values():
+        distance = _interval_distance(geometry.distance(positions, polygon), speed, s, h)
+        clearance = np.minimum(clearance, distance)
+    return clearance
+
+
 def funnel_limits(
     scenario: Scenario,
     trajectory: Trajectory,

@@ -6,7 +6,7 @@ Unknowns ``Q[0..N]`` (n, n symmetric), ``x = (q_0, .., q_N)``, ``q_k`` the upper
     minimise sum_k tr(W[k] Q[k])
     subject to  -(Q[k+1] - Q[k]) / Ts + G_kv(Q[k+e]) <= 0,  G(X) = Acl X + X Acl^T + c X,
                 Acl = A_v + B_v K[k], every vertex v of interval k, e in {0, 1};           (F3)
-                Q[0] >= Q_init;  Q[k] >= floor I;  tr(C Q[k]) <= bound for each cap.
+                Q[0] >= Q_init;  Q[k] >= floor I;  C Q[k] C^T <= bound for each cap.
 
 Why not cvxpy: on quadrotor_hill (150 intervals x 12 vertices x 2 ends = 3,600 6x6 LMIs) cvxpy's
 canonicalisation took 20-40 s per trajectory and added a slack matrix per LMI, so Clarabel's
@@ -35,7 +35,7 @@ class FunnelProgram:
     Attributes:
       Ts: sample time; K: (N, m, n) gains; vertices: N arrays (V_k, n, n+m) of ``[A_v B_v]``.
       c: ``2 lambda + eps`` in ``G``; Q_init: (n, n); floor: smallest eigenvalue of each Q[k].
-      caps: ``(k, C (n, n), bound)``: ``tr(C Q[k]) <= bound``.
+      caps: ``(k, C (r, n), bound (r, r))``: ``C Q[k] C^T <= bound`` (a scalar if r = 1).
       W: (N+1, n, n) objective weights.
     """
 
@@ -91,11 +91,12 @@ def solve_clarabel(program: FunnelProgram) -> FloatArray | str:
             (out.data, (out.row, out.col + k * p)), shape=(len(block), (N + 1) * p)
         )
 
-    # tr(C Q[k]) <= bound.
+    # C Q[k] C^T <= bound: s = svec(bound) - svec(C Q[k] C^T) = b - A x.
     for k, C, bound in program.caps:
-        blocks_A.append(columns(k, np.einsum("ij,lij->l", C, E)[None]))
-        blocks_b.append([bound])
-    cones.append(clarabel.NonnegativeConeT(len(program.caps)))
+        blocks_A.append(columns(k, svec(C @ E @ C.T).T))
+        blocks_b.append(svec(bound))
+        r = len(C)
+        cones.append(clarabel.NonnegativeConeT(1) if r == 1 else clarabel.PSDTriangleConeT(r))
     # Q[0] - Q_init >= 0 and Q[k] - floor I >= 0: s = svec(Q) - svec(Q_lower) = b - A x.
     for k, lower in [(0, program.Q_init)] + [(k, program.floor * np.eye(n)) for k in range(N + 1)]:
         blocks_A.append(columns(k, -sE.T))
@@ -136,7 +137,7 @@ def solve_cvxpy(program: FunnelProgram) -> FloatArray | str:
     N, n = len(K), K.shape[2]
     Q = [cp.Variable((n, n), symmetric=True) for _ in range(N + 1)]
     constraints = [Q[0] - program.Q_init >> 0] + [Qk >> program.floor * np.eye(n) for Qk in Q]
-    constraints += [cp.trace(C @ Q[k]) <= bound for k, C, bound in program.caps]
+    constraints += [bound - C @ Q[k] @ C.T >> 0 for k, C, bound in program.caps]
     for k in range(N):
         D = (Q[k + 1] - Q[k]) / Ts  # eq. (F1)
         for J in program.vertices[k]:
