@@ -227,16 +227,17 @@ def test_clarabel_program_matches_cvxpy() -> None:
     W = np.broadcast_to(np.eye(6), (9, 6, 6))
     program = FunnelProgram(
         Ts=scenario.Ts, K=K, vertices=vertices, c=0.3, Q_init=Q_seed[0], floor=1e-6, caps=caps,
-        W=W,
+        W=W, initial_weight=1e3,
     )  # fmt: skip
-    Q_direct, Q_reference = solve_clarabel(program), solve_cvxpy(program)
-    assert not isinstance(Q_direct, str) and not isinstance(Q_reference, str)
-    objective = [np.einsum("kij,kji->", W, Q) for Q in (Q_direct, Q_reference)]
+    (Q_direct, tau), (Q_reference, tau_reference) = solve_clarabel(program), solve_cvxpy(program)
+    assert tau == pytest.approx(1.0, abs=1e-6) and tau_reference == pytest.approx(1.0, abs=1e-6)
+    objective = [np.einsum("kij,kji->", W, Q) for Q in (Q_direct, Q_reference)]  # tau = 1
     assert objective[0] == pytest.approx(objective[1], rel=1e-5)
     np.testing.assert_allclose(Q_direct, Q_reference, atol=1e-4 * np.abs(Q_reference).max())
     assert Q_direct[:, 2, 2].max() <= caps[0][2][0, 0] * (1 + 1e-6)
     assert np.linalg.eigvalsh(caps[-1][2] - Q_direct[8, :2, :2]).min() >= -1e-6
-    # A tighter 2 x 2 cap makes the program infeasible for both.
+    # A tighter 2 x 2 cap: both hold the same fraction tau < 1 of the initial set.
     tight = caps[:-1] + ((8, np.eye(6)[:2], 0.8 * Q_seed[0][:2, :2]),)
     program = dataclasses.replace(program, caps=tight)
-    assert isinstance(solve_clarabel(program), str) and isinstance(solve_cvxpy(program), str)
+    (_, tau), (_, tau_reference) = solve_clarabel(program), solve_cvxpy(program)
+    assert tau < 0.99 and tau == pytest.approx(tau_reference, rel=1e-4)

@@ -93,7 +93,9 @@ class Funnel:
       boxes: (N, 2, d) the hull's box per interval over ``variables`` (d names).
       vertices: N arrays (V_k, n, n+m) of hull vertices ``[A_v B_v]``.
       enclosure: the nominal's sound enclosure (``funnel_bounds.Enclosure``).
-      limits: constraint -> largest level it allows (``design`` is the boxes' level, 1).
+      limits: constraint -> largest level it allows; ``design`` is the level at which the LMI
+        program's caps (hull boxes, Unsafe, Goal, bounds) hold, ``sqrt(tau)`` (funnel_lmi): 1
+        unless the required initial set could not be held whole.
       binding: the constraint that sets rho; seconds: synthesis wall time.
     """
 
@@ -210,7 +212,7 @@ def _weights(scenario: Scenario, state_bounds: Mapping[str, tuple[float, float]]
     return W
 
 
-def _program(scenario, trajectory, K, vertices, boxes, variables, enclosure, Q_init, rate):
+def _program(scenario, trajectory, K, vertices, boxes, variables, enclosure, Q_init, Q_seed, rate):
     """(F3) with the initial set, and the tube at level 1 inside every hull box, clear of Unsafe
     (a disk bound) and inside Goal (``funnel_lmi``)."""
     n, us, final_state = scenario.n, trajectory.us, trajectory.dense_xs[-1]
@@ -246,9 +248,10 @@ def _program(scenario, trajectory, K, vertices, boxes, variables, enclosure, Q_i
         vertices=vertices,
         c=2 * rate + EPS,
         Q_init=Q_init,
-        floor=1e-6 * float(np.linalg.eigvalsh(Q_init)[0]),
+        floor=1e-6 * float(np.linalg.eigvalsh(Q_init)[-1]),
         caps=tuple(caps),
         W=np.concatenate([W, W[-1:]]),
+        initial_weight=100 * float(np.einsum("kij,kji->", W, Q_seed[:-1])),
     )
 
 
@@ -349,7 +352,8 @@ def synthesize_funnel(
 
     Args:
       state_bounds: state name -> (lower, upper) the tube must respect (the physical envelope).
-      initial: (n, n) ``Q_init``: ``E(0)`` at level 1 must hold ``{e : e^T Q_init^-1 e <= 1}``;
+      initial: (n, n) ``Q_init`` (positive semidefinite): ``E(0)`` at level 1 must hold
+        ``{Q_init^1/2 v : |v| <= 1}`` (degenerate for a slice, e.g. Init's free directions);
         default the seed's shape with position extent ``scenario.clearance``.
       rate: lambda of (F2). Default 0: the tube's level is constant and ``Q(t)`` itself shrinks
         where the closed loop contracts (``Q e^{-2 lambda t}`` would satisfy (F2) with rate 0
@@ -404,12 +408,18 @@ def synthesize_funnel(
     except HullError as error:
         return result(False, f"funnel: {error}")
     common = dict(boxes=boxes, variables=variables, vertices=vertices, enclosure=enclosure)
-    program = _program(scenario, trajectory, K, vertices, boxes, variables, enclosure, Q_init, rate)
-    Q = solve_clarabel(program)
-    if isinstance(Q, str):
-        return result(False, f"funnel: {Q} over {N} intervals; try a smaller rate", **common)
+    program = _program(
+        scenario, trajectory, K, vertices, boxes, variables, enclosure, Q_init, Q_seed, rate
+    )
+    solution = solve_clarabel(program)
+    if isinstance(solution, str):
+        return result(False, f"funnel: {solution} over {N} intervals", **common)
+    Q, tau = solution
+    if tau <= 1e-6:
+        return result(False, f"funnel: no funnel holds any of the initial set (tau {tau:.2g})")
+    Q = Q / tau  # E(0) at level 1 holds the initial set; the caps hold at level sqrt(tau)
     limits = funnel_limits(scenario, trajectory, Q, K, enclosure, state_bounds)
-    limits["design"] = (1.0, 0.0)
+    limits["design"] = (float(np.sqrt(min(tau, 1.0))), 0.0)
     binding = min(limits, key=lambda key: limits[key][0])
     level, when = limits[binding]
     rho = level * (1 - LEVEL_SLACK)
@@ -424,7 +434,8 @@ def synthesize_funnel(
     if failure:
         return result(False, f"funnel rejected: {failure}", **common)
     message = (
-        f"funnel level {rho:.4g} over {N} intervals, bound by {binding} at t = {when:.2f} s "
+        f"funnel level {rho:.4g} (E(0) holds {min(rho, 1.0):.3g} x the required initial set) "
+        f"over {N} intervals, bound by {binding} at t = {when:.2f} s "
         f"(largest eigenvalue {funnel.margins.max():.2e})"
     )
     return result(

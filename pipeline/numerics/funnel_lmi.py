@@ -3,10 +3,13 @@
 Unknowns ``Q[0..N]`` (n, n symmetric), ``x = (q_0, .., q_N)``, ``q_k`` the upper triangle of
 ``Q[k]`` (``Q = sum_l q_l E_l``, ``E_l = e_i e_j^T + e_j e_i^T`` for ``i < j``). Problem:
 
-    minimise sum_k tr(W[k] Q[k])
+    minimise sum_k tr(W[k] Q[k]) - w tau
     subject to  -(Q[k+1] - Q[k]) / Ts + G_kv(Q[k+e]) <= 0,  G(X) = Acl X + X Acl^T + c X,
                 Acl = A_v + B_v K[k], every vertex v of interval k, e in {0, 1};           (F3)
-                Q[0] >= Q_init;  Q[k] >= floor I;  C Q[k] C^T <= bound for each cap.
+                Q[0] >= tau Q_init, tau <= 1;  Q[k] >= floor I;  C Q[k] C^T <= bound (caps).
+
+``tau`` is the fraction of the required initial set held (``w`` large: it is maximised first), so
+a program that cannot hold all of it still returns the funnel that holds the most.
 
 Why not cvxpy: on quadrotor_hill (150 intervals x 12 vertices x 2 ends = 3,600 6x6 LMIs) cvxpy's
 canonicalisation took 20-40 s per trajectory and added a slack matrix per LMI, so Clarabel's
@@ -36,7 +39,7 @@ class FunnelProgram:
       Ts: sample time; K: (N, m, n) gains; vertices: N arrays (V_k, n, n+m) of ``[A_v B_v]``.
       c: ``2 lambda + eps`` in ``G``; Q_init: (n, n); floor: smallest eigenvalue of each Q[k].
       caps: ``(k, C (r, n), bound (r, r))``: ``C Q[k] C^T <= bound`` (a scalar if r = 1).
-      W: (N+1, n, n) objective weights.
+      W: (N+1, n, n) objective weights; initial_weight: ``w``.
     """
 
     Ts: float
@@ -47,6 +50,7 @@ class FunnelProgram:
     floor: float
     caps: tuple[tuple[int, FloatArray, float], ...] = field(repr=False)
     W: FloatArray = field(repr=False)
+    initial_weight: float
 
 
 def _triangle(n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -75,8 +79,8 @@ def unpack(x: FloatArray, n: int) -> FloatArray:
     return np.einsum("kl,lij->kij", x.reshape(-1, n * (n + 1) // 2), basis(n))
 
 
-def solve_clarabel(program: FunnelProgram) -> FloatArray | str:
-    """``Q (N+1, n, n)`` solving (F3), or the solver's status."""
+def solve_clarabel(program: FunnelProgram) -> tuple[FloatArray, float] | str:
+    """``(Q (N+1, n, n), tau)`` solving (F3), or the solver's status."""
     K, Ts = program.K, program.Ts
     N, n = len(K), K.shape[2]
     p = n * (n + 1) // 2
@@ -88,7 +92,7 @@ def solve_clarabel(program: FunnelProgram) -> FloatArray | str:
         """``block (r, p)`` placed on the unknowns of Q[k]."""
         out = sp.coo_matrix(block)
         return sp.coo_matrix(
-            (out.data, (out.row, out.col + k * p)), shape=(len(block), (N + 1) * p)
+            (out.data, (out.row, out.col + k * p)), shape=(len(block), (N + 1) * p + 1)
         )
 
     # C Q[k] C^T <= bound: s = svec(bound) - svec(C Q[k] C^T) = b - A x.
@@ -97,8 +101,17 @@ def solve_clarabel(program: FunnelProgram) -> FloatArray | str:
         blocks_b.append(svec(bound))
         r = len(C)
         cones.append(clarabel.NonnegativeConeT(1) if r == 1 else clarabel.PSDTriangleConeT(r))
-    # Q[0] - Q_init >= 0 and Q[k] - floor I >= 0: s = svec(Q) - svec(Q_lower) = b - A x.
-    for k, lower in [(0, program.Q_init)] + [(k, program.floor * np.eye(n)) for k in range(N + 1)]:
+    # tau <= 1; Q[0] - tau Q_init >= 0: s = svec(Q[0]) - tau svec(Q_init) = b - A x (tau last).
+    tau = sp.coo_matrix(([1.0], ([0], [(N + 1) * p])), shape=(1, (N + 1) * p + 1))
+    blocks_A.append(tau)
+    blocks_b.append([1.0])
+    cones.append(clarabel.NonnegativeConeT(1))
+    initial = sp.coo_matrix(svec(program.Q_init)[:, None])
+    blocks_A.append(columns(0, -sE.T) + sp.hstack([sp.coo_matrix((p, (N + 1) * p)), initial]))
+    blocks_b.append(np.zeros(p))
+    cones.append(clarabel.PSDTriangleConeT(n))
+    # Q[k] - floor I >= 0: s = svec(Q[k]) - svec(floor I) = b - A x.
+    for k, lower in [(k, program.floor * np.eye(n)) for k in range(N + 1)]:
         blocks_A.append(columns(k, -sE.T))
         blocks_b.append(-svec(lower))
         cones.append(clarabel.PSDTriangleConeT(n))
@@ -119,24 +132,29 @@ def solve_clarabel(program: FunnelProgram) -> FloatArray | str:
             cones.extend(clarabel.PSDTriangleConeT(n) for _ in range(V))
     A = sp.vstack(blocks_A).tocsc()
     b = np.concatenate([np.asarray(v, dtype=np.float64) for v in blocks_b])
-    q = np.concatenate([np.einsum("ij,lij->l", W, E) for W in program.W])
+    q = np.concatenate(
+        [np.einsum("ij,lij->l", W, E) for W in program.W] + [[-program.initial_weight]]
+    )
     settings = clarabel.DefaultSettings()
     settings.verbose = False
     solution = clarabel.DefaultSolver(
-        sp.csc_matrix(((N + 1) * p,) * 2), q, A, b, cones, settings
+        sp.csc_matrix(((N + 1) * p + 1,) * 2), q, A, b, cones, settings
     ).solve()
     status = str(solution.status)
     if status not in ("Solved", "AlmostSolved"):
         return f"Clarabel status {status}"
-    return unpack(np.asarray(solution.x), n)
+    x = np.asarray(solution.x)
+    return unpack(x[:-1], n), float(x[-1])
 
 
-def solve_cvxpy(program: FunnelProgram) -> FloatArray | str:
+def solve_cvxpy(program: FunnelProgram) -> tuple[FloatArray, float] | str:
     """The same program through cvxpy + Clarabel (reference for tests; slow on long horizons)."""
     K, Ts = program.K, program.Ts
     N, n = len(K), K.shape[2]
     Q = [cp.Variable((n, n), symmetric=True) for _ in range(N + 1)]
-    constraints = [Q[0] - program.Q_init >> 0] + [Qk >> program.floor * np.eye(n) for Qk in Q]
+    tau = cp.Variable()
+    constraints = [Q[0] - tau * program.Q_init >> 0, tau <= 1]
+    constraints += [Qk >> program.floor * np.eye(n) for Qk in Q]
     constraints += [bound - C @ Q[k] @ C.T >> 0 for k, C, bound in program.caps]
     for k in range(N):
         D = (Q[k + 1] - Q[k]) / Ts  # eq. (F1)
@@ -145,7 +163,8 @@ def solve_cvxpy(program: FunnelProgram) -> FloatArray | str:
             for Qe in (Q[k], Q[k + 1]):
                 M = -D + Acl @ Qe + Qe @ Acl.T + program.c * Qe  # eq. (F2)
                 constraints.append((M + M.T) / 2 << 0)  # eq. (F3)
-    objective = cp.Minimize(sum(cp.trace(W @ Qk) for W, Qk in zip(program.W, Q, strict=True)))
+    cost = sum(cp.trace(W @ Qk) for W, Qk in zip(program.W, Q, strict=True))
+    objective = cp.Minimize(cost - program.initial_weight * tau)
     problem = cp.Problem(objective, constraints)
     try:
         with warnings.catch_warnings():
@@ -156,4 +175,4 @@ def solve_cvxpy(program: FunnelProgram) -> FloatArray | str:
     if problem.status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE) or Q[0].value is None:
         return f"cvxpy status {problem.status}"
     values = np.array([Qk.value for Qk in Q])
-    return (values + np.swapaxes(values, 1, 2)) / 2
+    return (values + np.swapaxes(values, 1, 2)) / 2, float(tau.value)
