@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import sympy
 
-from pipeline.numerics.hull import HullError, _bounds
+from pipeline.numerics.hull import HullError, _bounds, arc_polygon
 
 x = sympy.Symbol("x")
 
@@ -49,3 +49,19 @@ def test_functions_contain_high_precision_values(function, reference) -> None:
 def test_unbounded_expression_is_refused() -> None:
     with pytest.raises(HullError, match="unbounded"):
         _bounds(1 / x, {x: (-1.0, 1.0)})
+
+
+@pytest.mark.parametrize(
+    ("lower", "width", "segments"),
+    [(0.1, 0.05, 1), (-0.8, 0.0001, 1), (0.3, 1e-7, 1), (-3.0, 2.5, 2), (1.0, 0.3, 3)],
+)
+def test_compact_arc_polygon_contains_the_arc_exactly(lower, width, segments) -> None:
+    polygon = arc_polygon(lower, lower + width, segments, compact=True)
+    assert len(polygon) == max(segments, int(np.ceil(max(width, 1e-4) / (np.pi / 4)))) + 2
+    with mpmath.workprec(200):
+        vertices = [(mpmath.mpf(float(a)), mpmath.mpf(float(b))) for a, b in polygon]
+        angles = [mpmath.mpf(lower) + mpmath.mpf(width) * f for f in np.linspace(0, 1, 41)]
+        for (ax, ay), (bx, by) in zip(vertices, vertices[1:] + vertices[:1], strict=True):
+            for angle in angles:  # every arc point on the inner side of every edge (CCW)
+                px, py = mpmath.cos(angle), mpmath.sin(angle)
+                assert (bx - ax) * (py - ay) - (by - ay) * (px - ax) > 0

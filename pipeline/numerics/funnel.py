@@ -179,7 +179,8 @@ def _hulls(scenario, trajectory, Q_seed, K, state_bounds, allowance, segments):
                     w = allowance * max(s_seed[k, i], s_seed[k + 1, i])
                     centre = B[:, i]
                 boxes[k, :, d] = max(centre[0] - w, lower), min(centre[1] + w, upper)
-            hull = jacobian_hull(dynamics, dict(zip(variables, boxes[k].T, strict=True)), segments)
+            region = dict(zip(variables, boxes[k].T, strict=True))
+            hull = jacobian_hull(dynamics, region, segments, compact=True)
             F[k] = rate_bound(dynamics, trajectory, k, B, hull.A)
             if np.all(F[k] * h < pad):
                 break
@@ -345,7 +346,7 @@ def synthesize_funnel(
     initial: FloatArray | None = None,
     rate: float = 0.0,
     allowance: float = 2.0,
-    segments: int = 2,
+    segments: int = 1,
 ) -> Funnel:
     """Synthesize and check the funnel around ``trajectory`` (one: ``xs (N+1, n)``, ``us (N, m)``,
     its dense grid); see the module docstring.

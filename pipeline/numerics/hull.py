@@ -52,6 +52,7 @@ from pipeline.model.dynamics import Dynamics, FloatArray
 PAD = 1e-9
 DEFAULT_SEGMENTS = 8
 MAX_SEGMENT_ANGLE = math.pi / 4
+MARGIN = 1e-12  # outward margin of the compact arc polygon's edges
 MIN_ARC = 1e-4  # narrower arcs are widened to this (rad), so that PAD's margin stays large
 MAX_VERTICES = 4096
 
@@ -87,17 +88,38 @@ class JacobianHull:
         return self.vertices[:, :, n:]
 
 
-def arc_polygon(lower: float, upper: float, segments: int = DEFAULT_SEGMENTS) -> FloatArray:
+def arc_polygon(
+    lower: float, upper: float, segments: int = DEFAULT_SEGMENTS, compact: bool = False
+) -> FloatArray:
     """Vertices (segments+4, 2) of a polygon containing ``{(cos a, sin a) : a in [lower, upper]}``.
 
     The arc's end points and the intersections of the tangents at ``segments + 1`` equally spaced
     angles (at mid-angles, distance ``1 / cos(delta / 2)`` from the origin). Against rounding, the
     arc is widened by ``PAD`` radians at each end (margin along the chord) and the tangent polygon
     is scaled by ``1 + PAD`` (margin along the tangents; the unscaled end points keep the chord).
+
+    ``compact``: ``segments + 2`` vertices instead (a triangle for one segment, as the local
+    hulls of a funnel want): the polygon of the end points and tangent intersections, inflated
+    about its centroid ``c`` by ``1 + max(PAD, MARGIN / min_edge dist(c, edge))``, which moves
+    every edge outward by at least ``MARGIN = 1e-12``, over 1000 times the vertices' rounding.
     """
     if upper <= lower:
         return np.array([[math.cos(lower), math.sin(lower)]])
     middle, half = (lower + upper) / 2, max(upper - lower, MIN_ARC) / 2
+    if compact:
+        lower, upper = middle - half, middle + half
+        segments = max(segments, math.ceil((upper - lower) / MAX_SEGMENT_ANGLE))
+        delta = (upper - lower) / segments
+        mids = lower + delta * (np.arange(segments) + 0.5)
+        tangents = np.column_stack([np.cos(mids), np.sin(mids)]) / math.cos(delta / 2)
+        ends = [[math.cos(lower), math.sin(lower)], [math.cos(upper), math.sin(upper)]]
+        polygon = np.vstack([ends[:1], tangents, ends[1:]])
+        c = polygon.mean(axis=0)
+        a, b = polygon, np.roll(polygon, -1, axis=0)
+        edge = b - a
+        cross = edge[:, 0] * (c - a)[:, 1] - edge[:, 1] * (c - a)[:, 0]
+        distance = np.abs(cross) / np.linalg.norm(edge, axis=1)
+        return c + (1.0 + max(PAD, MARGIN / distance.min())) * (polygon - c)
     lower, upper = middle - half - PAD, middle + half + PAD
     segments = max(segments, math.ceil((upper - lower) / MAX_SEGMENT_ANGLE))
     delta = (upper - lower) / segments
@@ -172,14 +194,19 @@ def _bounds(expression: sympy.Expr, box: Mapping[sympy.Symbol, tuple[float, floa
 
 
 def _block_vertices(
-    z: sympy.Symbol, functions: Sequence[sympy.Expr], lower: float, upper: float, segments: int
+    z: sympy.Symbol,
+    functions: Sequence[sympy.Expr],
+    lower: float,
+    upper: float,
+    segments: int,
+    compact: bool,
 ) -> tuple[FloatArray, str]:
     """Vertices (k, p) of a polytope containing ``{(g_1(z), .., g_p(z)) : z in [lower, upper]}``."""
     if len(functions) == 1:
         interval = _bounds(functions[0], {z: (lower, upper)})
         return interval[:, None], f"{functions[0]} in [{interval[0]:.6g}, {interval[1]:.6g}]"
     if set(functions) == {sympy.cos(z), sympy.sin(z)}:
-        polygon = arc_polygon(lower, upper, segments)
+        polygon = arc_polygon(lower, upper, segments, compact)
         if functions[0] == sympy.sin(z):
             polygon = polygon[:, ::-1]
         return polygon, f"(cos {z}, sin {z}) on [{lower:g}, {upper:g}]: {len(polygon)}-gon"
@@ -198,11 +225,13 @@ def jacobian_hull(
     dynamics: Dynamics,
     region: Mapping[str, tuple[float, float]],
     segments: int = DEFAULT_SEGMENTS,
+    compact: bool = False,
 ) -> JacobianHull:
     """A sound polytope of ``[f_x f_u]`` over the box ``region`` (name -> (lower, upper)).
 
     Every variable the Jacobian depends on must be bounded by ``region``; ``segments`` is the
-    number of pieces per angle-like block (the arc polygon's tangents, or interval boxes).
+    number of pieces per angle-like block (the arc polygon's tangents, or interval boxes);
+    ``compact`` asks for the arc polygon with fewer vertices (``arc_polygon``).
     """
     n, m = dynamics.n, dynamics.m
     symbols = {s.name: s for s in (*dynamics.state_symbols, *dynamics.input_symbols)}
@@ -255,7 +284,7 @@ def jacobian_hull(
     coordinate: dict[tuple[object, sympy.Expr], tuple[int, int]] = {}
     for z, functions in parts.items():
         lower, upper = box[z]
-        vertices, text = _block_vertices(z, functions, lower, upper, segments)
+        vertices, text = _block_vertices(z, functions, lower, upper, segments, compact)
         for p, g in enumerate(functions):
             coordinate[(z, g)] = (len(block_vertices), p)
         block_vertices.append(vertices)
