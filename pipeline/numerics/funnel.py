@@ -56,6 +56,7 @@ holds the whole initial set at level 1 and meets every cap at level ``sqrt(tau)`
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Mapping
 
@@ -76,7 +77,6 @@ from pipeline.numerics.funnel_bounds import (
     substeps,
 )
 from pipeline.numerics.funnel_check import (
-    EPS,
     LEVEL_SLACK,
     Funnel,
     certificate_margins,
@@ -84,6 +84,11 @@ from pipeline.numerics.funnel_check import (
 )
 from pipeline.numerics.funnel_lmi import FunnelProgram, solve_clarabel
 from pipeline.numerics.hull import HullError, jacobian_hull
+
+# The LMIs' margin eps in (2 lambda + eps) Q: a solution that fails the numpy check (the solver
+# meets (F3) only to its tolerance, relative to the largest entries of Q) is solved again with a
+# larger margin.
+MARGINS = (1e-3, 1e-2)
 
 
 def lqr_seed(scenario: Scenario, trajectory: Trajectory) -> tuple[FloatArray, FloatArray]:
@@ -212,9 +217,9 @@ def _program(scenario, trajectory, K, vertices, boxes, variables, enclosure, Q_i
         Ts=scenario.Ts,
         K=K,
         vertices=vertices,
-        c=2 * rate + EPS,
+        c=2 * rate + MARGINS[0],
         Q_init=Q_init,
-        floor=1e-6 * float(np.linalg.eigvalsh(Q_init)[-1]),
+        floor=1e-4 * float(np.linalg.eigvalsh(Q_init)[-1]),
         caps=tuple(caps),
         W=np.concatenate([W, W[-1:]]),
         initial_weight=100 * float(np.einsum("kij,kji->", W, Q_seed[:-1])),
@@ -241,7 +246,7 @@ def synthesize_funnel(
         default the seed's shape with position extent ``scenario.clearance``.
       rate: lambda of (F2). Default 0: the tube's level is constant and ``Q(t)`` itself shrinks
         where the closed loop contracts (``Q e^{-2 lambda t}`` would satisfy (F2) with rate 0
-        too, so a positive rate only restricts the shape); the margin ``EPS`` stays.
+        too, so a positive rate only restricts the shape); the LMI margin stays (``MARGINS``).
       allowance: the hull boxes are the nominal's enclosure widened by this times the seed tube.
       segments: pieces per angle-like block of the local hulls.
     """
@@ -292,35 +297,41 @@ def synthesize_funnel(
     except HullError as error:
         return result(False, f"funnel: {error}")
     common = dict(boxes=boxes, variables=variables, vertices=vertices, enclosure=enclosure)
-    program = _program(
-        scenario, trajectory, K, vertices, boxes, variables, enclosure, Q_init, Q_seed, rate
-    )
-    solution = solve_clarabel(program)
-    if isinstance(solution, str):
-        return result(False, f"funnel: {solution} over {N} intervals", **common)
-    Q, tau = solution
-    if tau <= 1e-6:
-        return result(False, f"funnel: no funnel holds any of the initial set (tau {tau:.2g})")
-    Q = Q / tau  # E(0) at level 1 holds the initial set; the caps hold at level sqrt(tau)
-    limits = funnel_limits(scenario, trajectory, Q, K, enclosure, state_bounds)
-    limits["design"] = (float(np.sqrt(min(tau, 1.0))), 0.0)
-    binding = min(limits, key=lambda key: limits[key][0])
-    level, when = limits[binding]
-    rho = level * (1 - LEVEL_SLACK)
-    funnel = result(
-        True, "", P=np.linalg.inv(Q), rho=rho, binding=binding,
-        margins=certificate_margins(Q, K, vertices, rate, scenario.Ts),
-        limits={key: value[0] for key, value in limits.items()}, **common,
-    )  # fmt: skip
-    failure = check_funnel(scenario, trajectory, funnel, state_bounds)
-    if rho <= 0:
-        failure = failure or f"the nominal itself violates {binding} at t = {when:.2f} s"
-    if failure:
-        return result(False, f"funnel rejected: {failure}", **common)
+    failures = []
+    for margin in MARGINS:  # a solution within the solver's tolerance may still fail the check
+        program = _program(
+            scenario, trajectory, K, vertices, boxes, variables, enclosure, Q_init, Q_seed, rate
+        )
+        program = dataclasses.replace(program, c=2 * rate + margin)
+        solution = solve_clarabel(program)
+        if isinstance(solution, str):
+            return result(False, f"funnel: {solution} over {N} intervals", **common)
+        Q, tau = solution
+        if tau <= 1e-6:
+            return result(False, f"funnel: no funnel holds any of the initial set (tau {tau:.2g})")
+        Q = Q / tau  # E(0) at level 1 holds the initial set; the caps hold at level sqrt(tau)
+        limits = funnel_limits(scenario, trajectory, Q, K, enclosure, state_bounds)
+        limits["design"] = (float(np.sqrt(min(tau, 1.0))), 0.0)
+        binding = min(limits, key=lambda key: limits[key][0])
+        level, when = limits[binding]
+        rho = level * (1 - LEVEL_SLACK)
+        funnel = result(
+            True, "", P=np.linalg.inv(Q), rho=rho, binding=binding,
+            margins=certificate_margins(Q, K, vertices, rate, scenario.Ts),
+            limits={key: value[0] for key, value in limits.items()}, **common,
+        )  # fmt: skip
+        failure = check_funnel(scenario, trajectory, funnel, state_bounds)
+        if rho <= 0:
+            failure = failure or f"the nominal itself violates {binding} at t = {when:.2f} s"
+        if not failure:
+            break
+        failures.append(f"margin {margin:g}: {failure}")
+    else:
+        return result(False, f"funnel rejected: {'; '.join(failures)}", **common)
     message = (
         f"funnel level {rho:.4g} (E(0) holds {min(rho, 1.0):.3g} x the required initial set) "
         f"over {N} intervals, bound by {binding} at t = {when:.2f} s "
-        f"(largest eigenvalue {funnel.margins.max():.2e})"
+        f"(largest eigenvalue {funnel.margins.max():.2e}, LMI margin {margin:g})"
     )
     return result(
         True, message, P=funnel.P, rho=rho, binding=binding, margins=funnel.margins,

@@ -18,7 +18,6 @@ from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import Trajectory
 from pipeline.numerics.funnel_bounds import Enclosure, funnel_limits, rate_bound, substeps
 
-EPS = 1e-3
 LEVEL_SLACK = 1e-9  # rho is shrunk by this relative amount so that no bound holds with equality
 INTERPOLATION = "Q = P^-1 linear in t on each sample interval"
 
