@@ -345,13 +345,20 @@ def test_report_checks_the_demo_values_not_only_the_yaml(run, capsys):
     assert f"demos changed since the run: {demo}" in capsys.readouterr().err
 
 
-def test_an_edited_controller_is_rewritten_from_the_certified_results(run, capsys):
+def _negative_radius(text: str) -> str:
+    document = json.loads(text)
+    document["trajectories"][0]["radius"] = -1.0  # every state would look covered
+    return json.dumps(document)
+
+
+@pytest.mark.parametrize("edit", [_negative_radius, lambda text: text[: len(text) // 2]])
+def test_an_edited_or_truncated_controller_is_rewritten_from_the_certified_results(
+    run, capsys, edit
+):
     _, out = run
     shipped = radii(out)
     path = out / "controller.json"
-    document = json.loads(path.read_text())
-    document["trajectories"][0]["radius"] = -1.0  # every state would look covered
-    path.write_text(json.dumps(document))
+    path.write_text(edit(path.read_text()))
     assert synthesize(run) == 0
     assert "[controller] running" in capsys.readouterr().out
     assert radii(out) == shipped
