@@ -30,8 +30,8 @@ record: $(STAMP)
 	$(PY) -m pipeline record $(SCENARIO)
 
 lint: $(STAMP)
-	$(PY) -m ruff check pipeline stages tests bench
-	$(PY) -m ruff format --check pipeline stages tests bench
+	$(PY) -m ruff check pipeline stages tests bench examples
+	$(PY) -m ruff format --check pipeline stages tests bench examples
 	$(VENV)/bin/lint-imports
 
 clean:

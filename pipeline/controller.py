@@ -3,25 +3,41 @@
 This module needs only NumPy and the standard library, so ``controller.json`` can be run
 without the pipeline installed (copy this file). Control law:
 
-1. ``select(x0)``: choose the trajectory ``i`` minimising ``||x0 - x0_i||_P / radius_i``
-   (``x0`` is covered when that value is ``< 1``);
-2. ``__call__(t, x)``: ``u = clip(u_ref_i[floor(t / Ts)] + K (x - x_ref_i(t)), lower, upper)``
-   with ``x_ref_i`` linearly interpolated on the trajectory's fine grid ``t``.
+1. ``select(x0) -> (index, ratio)``: the trajectory ``i`` minimising ``||x0 - x0_i||_P /
+   radius_i`` and that value (``x0`` is covered when it is ``< 1``);
+2. ``controller(t, x, index)``: ``u = clip(u_ref_i[floor(t / Ts)] + K (x - x_ref_i(t)), lower,
+   upper)`` with ``x_ref_i`` linearly interpolated on the trajectory's fine grid ``t``.
 
-Both accept a batch: ``x0 (B, n)`` selects one trajectory per row, and ``x (B, n)`` is then
-controlled row by row; a single state ``(n,)`` works too.
+Gain convention: ``u = u_ref + K e`` with ``e = x - x_ref``, so a stabilising ``K`` is the
+*negative* of ``control.lqr``'s gain (which is written ``u = -K x``).
+
+The controller is immutable (a frozen dataclass over read-only arrays): nothing is stored by
+``select``, the caller passes the selected ``index`` to every call, and ``with_gain(scale)``
+returns a new controller. Both accept a batch: ``x0 (B, n)`` gives ``index (B,)``, and ``x (B,
+n)`` is then controlled row by row; a single state ``(n,)`` with a scalar index works too.
+
+``load`` validates every field of the file; anything wrong (a missing or mistyped field, a
+shape, a non-positive radius or ``Ts``, ``lower > upper``, ``P`` not positive definite, times
+that do not increase, ``T`` that disagrees with ``t`` and ``u_ref``, bytes that are not UTF-8
+JSON) raises ``ControllerFormatError`` naming the field.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import numpy as np
 
 FORMAT = "safety-controller/1"
+TIME_TOLERANCE = 1e-9  # relative, for t[0] = 0 and t[-1] = T
+SAMPLE_TOLERANCE = 1e-6  # in samples, for T = N Ts
+SYMMETRY_TOLERANCE = 1e-9  # relative, for P = P^T
 
 
 class ControllerFormatError(ValueError):
@@ -30,7 +46,13 @@ class ControllerFormatError(ValueError):
     exit_code = 2
 
 
-@dataclass(frozen=True)
+def _frozen(array: np.ndarray) -> np.ndarray:
+    array = np.array(array, dtype=np.float64)
+    array.flags.writeable = False
+    return array
+
+
+@dataclass(frozen=True, kw_only=True)
 class ReferenceTrajectory:
     """One nominal trajectory: ``x0 (n,)``, ``u_ref (N, m)``, ``t (k,)``, ``x_ref (k, n)``."""
 
@@ -42,61 +64,61 @@ class ReferenceTrajectory:
     x_ref: np.ndarray
 
 
+@dataclass(frozen=True, kw_only=True)
 class Controller:
-    """``u = u_ref_i(t) + K (x - x_ref_i(t))`` around the trajectory selected at the start."""
+    """``u = clip(u_ref_i(t) + K (x - x_ref_i(t)))`` around trajectory ``i`` chosen by ``select``.
 
-    def __init__(self, data: dict[str, Any], source: str = "controller.json") -> None:
-        self.data = data
-        self.source = source
-        self.state_names = list(data["state_names"])
-        self.input_names = list(data["input_names"])
-        self.Ts = float(data["Ts"])
-        self.lower = np.asarray(data["input_bounds"]["lower"], dtype=np.float64)
-        self.upper = np.asarray(data["input_bounds"]["upper"], dtype=np.float64)
-        self.K = np.asarray(data["feedback"]["K"], dtype=np.float64)
-        self.P = np.asarray(data["feedback"]["P"], dtype=np.float64)
-        self.rate = float(data["feedback"]["rate"])
-        self.trajectories = tuple(
-            ReferenceTrajectory(
-                x0=np.asarray(item["x0"], dtype=np.float64),
-                radius=float(item["radius"]),
-                T=float(item["T"]),
-                u_ref=np.asarray(item["u_ref"], dtype=np.float64),
-                t=np.asarray(item["t"], dtype=np.float64),
-                x_ref=np.asarray(item["x_ref"], dtype=np.float64),
-            )
-            for item in data["trajectories"]
-        )
-        self._selected: np.ndarray | None = None
+    Attributes:
+      K: (m, n) gain; P: (n, n) contraction metric; rate: lambda (1/s).
+      lower, upper: (m,) input bounds the law clips to.
+      trajectories: the reference trajectories with their initial balls.
+      interpolation_error: the file's stated P-norm error of interpolating ``x_ref`` (0 if
+        absent).
+    """
+
+    scenario: str
+    state_names: tuple[str, ...]
+    input_names: tuple[str, ...]
+    Ts: float
+    lower: np.ndarray
+    upper: np.ndarray
+    K: np.ndarray
+    P: np.ndarray
+    rate: float
+    trajectories: tuple[ReferenceTrajectory, ...]
+    interpolation_error: float = 0.0
+    source: str = "controller.json"
 
     @property
     def n(self) -> int:
         return len(self.state_names)
 
-    def coverage_ratio(self, x0: np.ndarray) -> np.ndarray:
-        """``min_i ||x0 - x0_i||_P / radius_i`` for ``x0 (..., n)`` -> ``(...)``; < 1 is covered."""
-        return np.min(self._ratios(np.asarray(x0, dtype=np.float64)), axis=-1)
+    @property
+    def m(self) -> int:
+        return len(self.input_names)
 
-    def _ratios(self, x0: np.ndarray) -> np.ndarray:
+    def with_gain(self, scale: float) -> Controller:
+        """A new controller with gain ``scale K`` (e.g. 0: the reference replayed open loop)."""
+        return dataclasses.replace(self, K=_frozen(scale * self.K))
+
+    def ratios(self, x0: np.ndarray) -> np.ndarray:
+        """``||x0 - x0_i||_P / radius_i`` for ``x0 (..., n)`` -> ``(..., k)``."""
         centres = np.stack([tr.x0 for tr in self.trajectories])  # (k, n)
         radii = np.array([tr.radius for tr in self.trajectories])  # (k,)
-        e = x0[..., None, :] - centres  # (..., k, n)
+        e = np.asarray(x0, dtype=np.float64)[..., None, :] - centres  # (..., k, n)
         return np.sqrt(np.einsum("...i,ij,...j->...", e, self.P, e)) / radii
 
-    def select(self, x0: np.ndarray) -> np.ndarray:
-        """Choose the trajectory for each initial state ``x0 (..., n)``; -> indices ``(...)``."""
-        index = np.argmin(self._ratios(np.asarray(x0, dtype=np.float64)), axis=-1)
-        self._selected = index
-        return index
+    def select(self, x0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """For initial states ``x0 (..., n)``: ``(index (...), coverage_ratio (...))``, the
+        trajectory to follow and ``min_i ||x0 - x0_i||_P / radius_i`` (< 1: covered)."""
+        ratios = self.ratios(x0)
+        index = np.argmin(ratios, axis=-1)
+        return index, np.take_along_axis(ratios, index[..., None], axis=-1)[..., 0]
 
-    def follow(self, index: np.ndarray) -> None:
-        """Track trajectories ``index (...)`` without selecting (e.g. to test one trajectory)."""
-        self._selected = np.asarray(index)
-
-    def reference(self, t: float, index: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """``(u_ref (..., m), x_ref (..., n))`` of the selected trajectories at time ``t``."""
-        index = self._require_selection() if index is None else np.asarray(index)
-        u = np.empty((*index.shape, len(self.input_names)))
+    def reference(self, t: float, index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(u_ref (..., m), x_ref (..., n))`` of trajectories ``index (...)`` at time ``t``."""
+        index = np.asarray(index)
+        u = np.empty((*index.shape, self.m))
         x = np.empty((*index.shape, self.n))
         for i, tr in enumerate(self.trajectories):
             rows = index == i
@@ -107,88 +129,218 @@ class Controller:
             x[rows] = [np.interp(t, tr.t, tr.x_ref[:, j]) for j in range(self.n)]
         return u, x
 
-    def unclipped(self, t: float, x: np.ndarray) -> np.ndarray:
+    def unclipped(self, t: float, x: np.ndarray, index: np.ndarray) -> np.ndarray:
         """``u_ref + K (x - x_ref)`` before clipping, ``x (..., n)`` -> ``(..., m)``."""
-        u_ref, x_ref = self.reference(t)
+        u_ref, x_ref = self.reference(t, index)
         return u_ref + (np.asarray(x) - x_ref) @ self.K.T
 
-    def __call__(self, t: float, x: np.ndarray) -> np.ndarray:
-        """The control input at time ``t`` for states ``x (..., n)`` -> ``(..., m)``."""
-        return np.clip(self.unclipped(t, x), self.lower, self.upper)
-
-    def _require_selection(self) -> np.ndarray:
-        if self._selected is None:
-            raise RuntimeError("call select(x0) with the initial state(s) before controlling")
-        return self._selected
+    def __call__(self, t: float, x: np.ndarray, index: np.ndarray) -> np.ndarray:
+        """The control input at time ``t`` for states ``x (..., n)`` following trajectories
+        ``index (...)`` (from ``select``) -> ``(..., m)``."""
+        return np.clip(self.unclipped(t, x, index), self.lower, self.upper)
 
 
-def _check(data: Any, source: str) -> None:
-    def fail(field: str, found: object, expected: str) -> None:
-        raise ControllerFormatError(f"{source}: {field}: found {found!r}; expected {expected}")
+class _Reader:
+    """Validates one decoded document field by field; every failure names the field."""
 
-    if not isinstance(data, dict):
-        fail("(top level)", type(data).__name__, "a JSON object")
-    if data.get("format") != FORMAT:
-        fail("format", data.get("format"), f"'{FORMAT}'")
-    required = [
-        "scenario",
-        "state_names",
-        "input_names",
-        "Ts",
-        "input_bounds",
-        "feedback",
-        "trajectories",
-    ]
-    for key in required:
-        if key not in data:
-            fail(key, "nothing (missing field)", "this required field")
-    n, m = len(data["state_names"]), len(data["input_names"])
+    def __init__(self, source: str) -> None:
+        self.source = source
 
-    def shape(field: str, value: object, expected: tuple[int | None, ...]) -> None:
+    def fail(self, field: str, found: object, expected: str) -> NoReturn:
+        text = repr(found)
+        if len(text) > 80:
+            text = text[:77] + "..."
+        raise ControllerFormatError(f"{self.source}: {field}: found {text}; expected {expected}")
+
+    def mapping(self, field: str, value: object, keys: tuple[str, ...]) -> Mapping[str, Any]:
+        if not isinstance(value, dict):
+            self.fail(field, _kind(value), "a JSON object")
+        for key in keys:
+            if key not in value:
+                self.fail(f"{field}.{key}".lstrip("."), "nothing (missing field)", "this field")
+        return value
+
+    def names(self, field: str, value: object) -> tuple[str, ...]:
+        if not (isinstance(value, list) and value and all(isinstance(v, str) for v in value)):
+            self.fail(field, _scalar_or_kind(value), "a non-empty list of names")
+        if len(set(value)) != len(value):
+            self.fail(field, value, "distinct names")
+        return tuple(value)
+
+    def number(self, field: str, value: object, *, positive: bool = False) -> float:
+        if type(value) not in (int, float):
+            self.fail(field, _scalar_or_kind(value), "a number")
         try:
-            array = np.asarray(value, dtype=np.float64)
-        except (TypeError, ValueError):
-            fail(field, value if not isinstance(value, list) else "ragged list", "numbers")
-        if array.ndim != len(expected) or any(
-            e is not None and s != e for s, e in zip(array.shape, expected, strict=True)
-        ):
-            fail(field, f"shape {array.shape}", f"shape {expected} (None: any length)")
-        if not np.all(np.isfinite(array)):
-            fail(field, "a non-finite value", "finite numbers")
+            x = float(value)  # type: ignore[arg-type]
+        except OverflowError:
+            self.fail(field, "a number too large for float64", "a finite number")
+        if not math.isfinite(x):
+            self.fail(field, x, "a finite number")
+        if positive and not x > 0:
+            self.fail(field, x, "a number > 0")
+        return x
 
-    shape("Ts", data["Ts"], ())
-    for key in ("lower", "upper"):
-        shape(f"input_bounds.{key}", data["input_bounds"].get(key), (m,))
-    for key in ("K", "P", "rate"):
-        if key not in data["feedback"]:
-            fail(f"feedback.{key}", "nothing (missing field)", "this required field")
-    shape("feedback.K", data["feedback"]["K"], (m, n))
-    shape("feedback.P", data["feedback"]["P"], (n, n))
-    shape("feedback.rate", data["feedback"]["rate"], ())
-    if not data["trajectories"]:
-        fail("trajectories", "an empty list", "at least one trajectory")
-    for i, item in enumerate(data["trajectories"]):
-        where = f"trajectories[{i}]"
-        for key in ("x0", "radius", "T", "u_ref", "t", "x_ref"):
-            if key not in item:
-                fail(f"{where}.{key}", "nothing (missing field)", "this required field")
-        shape(f"{where}.x0", item["x0"], (n,))
-        shape(f"{where}.radius", item["radius"], ())
-        shape(f"{where}.u_ref", item["u_ref"], (None, m))
-        shape(f"{where}.t", item["t"], (None,))
-        shape(f"{where}.x_ref", item["x_ref"], (len(item["t"]), n))
+    def array(self, field: str, value: object, shape: tuple[int | None, ...]) -> np.ndarray:
+        """A finite float64 array of ``shape`` (None: any length >= 1) from nested lists."""
+        rows, found = [value], []
+        for depth in range(len(shape)):
+            if not all(isinstance(r, list) for r in rows):
+                what = "a number" if depth else _kind(value)
+                self.fail(field, what, f"nested lists of shape {_shape_text(shape)}")
+            lengths = {len(r) for r in rows}
+            if len(lengths) > 1:
+                self.fail(field, "ragged lists", f"shape {_shape_text(shape)}")
+            found.append(lengths.pop() if lengths else 0)
+            rows = [item for r in rows for item in r]
+        if any(
+            length == 0 or (size is not None and length != size)
+            for length, size in zip(found, shape, strict=True)
+        ):
+            self.fail(field, f"shape {tuple(found)}", f"shape {_shape_text(shape)}")
+        if not all(type(v) in (int, float) for v in rows):
+            bad = next(v for v in rows if type(v) not in (int, float))
+            self.fail(field, _scalar_or_kind(bad), "numbers")
+        try:
+            array = np.array(value, dtype=np.float64)
+        except OverflowError:
+            self.fail(field, "a number too large for float64", "finite numbers")
+        if not np.all(np.isfinite(array)):
+            self.fail(field, "a non-finite value", "finite numbers")
+        return array
+
+
+def _kind(value: object) -> str:
+    return {dict: "an object", list: "a list", str: "a string", type(None): "null"}.get(
+        type(value), type(value).__name__
+    )
+
+
+def _scalar_or_kind(value: object) -> object:
+    """The value itself when it is a scalar (short to quote), else what kind of thing it is."""
+    return value if isinstance(value, str | int | float | None) else _kind(value)
+
+
+def _shape_text(shape: tuple[int | None, ...]) -> str:
+    return (
+        "("
+        + ", ".join("any" if s is None else str(s) for s in shape)
+        + (",)" if len(shape) == 1 else ")")
+    )
+
+
+def _trajectory(
+    read: _Reader, where: str, item: object, n: int, m: int, Ts: float
+) -> ReferenceTrajectory:
+    item = read.mapping(where, item, ("x0", "radius", "T", "u_ref", "t", "x_ref"))
+    x0 = read.array(f"{where}.x0", item["x0"], (n,))
+    radius = read.number(f"{where}.radius", item["radius"], positive=True)
+    T = read.number(f"{where}.T", item["T"], positive=True)
+    u_ref = read.array(f"{where}.u_ref", item["u_ref"], (None, m))
+    t = read.array(f"{where}.t", item["t"], (None,))
+    x_ref = read.array(f"{where}.x_ref", item["x_ref"], (len(t), n))
+    tolerance = TIME_TOLERANCE * max(1.0, T)
+    if len(t) < 2 or not np.all(np.diff(t) > 0):
+        read.fail(f"{where}.t", "times that do not increase", "strictly increasing times")
+    if abs(t[0]) > tolerance or abs(t[-1] - T) > tolerance:
+        read.fail(f"{where}.t", f"[{t[0]:g} .. {t[-1]:g}]", f"times from 0 to T = {T:g}")
+    if abs(len(u_ref) * Ts - T) > SAMPLE_TOLERANCE * Ts:
+        read.fail(
+            f"{where}.u_ref", f"{len(u_ref)} rows", f"T / Ts = {T:g} / {Ts:g} = {T / Ts:g} rows"
+        )
+    return ReferenceTrajectory(
+        x0=_frozen(x0), radius=radius, T=T, u_ref=_frozen(u_ref), t=_frozen(t), x_ref=_frozen(x_ref)
+    )
+
+
+def parse(data: object, source: str = "controller.json") -> Controller:
+    """Validate a decoded ``controller.json`` document and build the controller."""
+    read = _Reader(source)
+    top = read.mapping(
+        "(top level)" if not isinstance(data, dict) else "",
+        data,
+        (
+            "format",
+            "scenario",
+            "state_names",
+            "input_names",
+            "Ts",
+            "input_bounds",
+            "feedback",
+            "trajectories",
+        ),
+    )
+    if top["format"] != FORMAT:
+        read.fail("format", top["format"], f"'{FORMAT}'")
+    if not isinstance(top["scenario"], str):
+        read.fail("scenario", _kind(top["scenario"]), "a string")
+    state_names = read.names("state_names", top["state_names"])
+    input_names = read.names("input_names", top["input_names"])
+    n, m = len(state_names), len(input_names)
+    Ts = read.number("Ts", top["Ts"], positive=True)
+    bounds = read.mapping("input_bounds", top["input_bounds"], ("lower", "upper"))
+    lower = read.array("input_bounds.lower", bounds["lower"], (m,))
+    upper = read.array("input_bounds.upper", bounds["upper"], (m,))
+    if np.any(lower > upper):
+        j = int(np.argmax(lower > upper))
+        read.fail(f"input_bounds.lower[{j}]", float(lower[j]), f"<= upper bound {upper[j]:g}")
+    feedback = read.mapping("feedback", top["feedback"], ("K", "P", "rate"))
+    K = read.array("feedback.K", feedback["K"], (m, n))
+    P = read.array("feedback.P", feedback["P"], (n, n))
+    if np.max(np.abs(P - P.T)) > SYMMETRY_TOLERANCE * np.max(np.abs(P)):
+        read.fail("feedback.P", "a non-symmetric matrix", "a symmetric positive definite matrix")
+    smallest = float(np.linalg.eigvalsh(P)[0])
+    if not smallest > 0:
+        read.fail("feedback.P", f"smallest eigenvalue {smallest:.3g}", "a positive definite matrix")
+    rate = read.number("feedback.rate", feedback["rate"], positive=True)
+    items = top["trajectories"]
+    if not isinstance(items, list):
+        read.fail("trajectories", _scalar_or_kind(items), "a list of trajectories")
+    if not items:
+        read.fail("trajectories", "an empty list", "at least one trajectory")
+    trajectories = tuple(
+        _trajectory(read, f"trajectories[{i}]", item, n, m, Ts) for i, item in enumerate(items)
+    )
+    error = top.get("interpolation_error_P_norm", 0.0)
+    error = read.number("interpolation_error_P_norm", error)
+    if error < 0:
+        read.fail("interpolation_error_P_norm", error, "a number >= 0")
+    return Controller(
+        scenario=top["scenario"],
+        state_names=state_names,
+        input_names=input_names,
+        Ts=Ts,
+        lower=_frozen(lower),
+        upper=_frozen(upper),
+        K=_frozen(K),
+        P=_frozen((P + P.T) / 2),
+        rate=rate,
+        trajectories=trajectories,
+        interpolation_error=error,
+        source=source,
+    )
 
 
 def load(path: str | Path) -> Controller:
     """Read and validate ``controller.json``; a bad file raises ``ControllerFormatError``."""
     path = Path(path)
     try:
-        data = json.loads(path.read_text())
+        text = path.read_bytes().decode("utf-8")
     except OSError as error:
         raise ControllerFormatError(f"{path}: cannot read ({error.strerror})") from None
+    except UnicodeDecodeError as error:
+        raise ControllerFormatError(
+            f"{path}: not UTF-8 text (byte {error.start}); expected a JSON file"
+        ) from None
+    try:
+        data = json.loads(text)
     except json.JSONDecodeError as error:
         raise ControllerFormatError(
             f"{path}: invalid JSON at line {error.lineno}, column {error.colno}: {error.msg}"
         ) from None
-    _check(data, str(path))
-    return Controller(data, str(path))
+    except RecursionError:
+        raise ControllerFormatError(
+            f"{path}: JSON nested too deeply; expected a safety-controller/1 document"
+        ) from None
+    except ValueError as error:  # e.g. an integer with more digits than Python converts
+        raise ControllerFormatError(f"{path}: invalid JSON number ({error})") from None
+    return parse(data, str(path))

@@ -1,18 +1,14 @@
 """Stage ``coverage``: is Init inside the union of the balls ``{x : ||x - x0_i||_P <= r_i}``?
 
-Init is a box; its degenerate intervals (e.g. "at rest") are fixed and drop out, leaving a box of
-dimension ``D`` over the free states. Recursive subdivision: a box is covered when all ``2^D`` of
-its vertices lie in one ball (balls are convex, so the whole box does); a box is certainly not
-covered by ball ``i`` when even its nearest point is outside,
-``lambda_min(P) dist(x0_i, box)^2 > r_i^2``; a box that no ball can cover yet may be split into
-``2^D`` halves, up to ``max_depth`` halvings per side. What remains is reported as uncovered (the
-test is sound, not complete: an uncovered box at the depth limit may still be covered by several
-balls together). The covered boxes with their ball indices form the controller's lookup table.
+Init is a box, covered by sound recursive subdivision (``pipeline.numerics.cover``, which
+the final certificate check, stage ``certify``, uses as well): a box is covered when all its
+vertices lie in one ball; boxes no ball can cover yet are halved up to ``max_depth`` times.
+What remains is reported as uncovered (sound, not complete). The covered boxes with their
+ball indices form the controller's lookup table.
 """
 
 from __future__ import annotations
 
-import itertools
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -20,9 +16,7 @@ import numpy as np
 
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
-
-DEFAULT_DEPTH = 8
-MAX_BOXES = 200_000
+from pipeline.numerics.cover import DEFAULT_DEPTH, subdivide
 
 
 class Metric(Protocol):
@@ -88,75 +82,18 @@ def cover_init(
     with ``centers (k, n)``, ``radii (k,)`` in the metric ``feedback.P (n, n)``."""
     if feedback.P is None:
         raise ValueError("coverage: the feedback has no certified P; run the feedback stage")
-    P = np.asarray(feedback.P, dtype=np.float64)
-    lower0 = np.asarray(scenario.init_lower, dtype=np.float64)
-    upper0 = np.asarray(scenario.init_upper, dtype=np.float64)
-    n = lower0.shape[0]
-    centers = np.asarray(centers, dtype=np.float64).reshape(-1, n)
-    radii = np.asarray(radii, dtype=np.float64).reshape(-1)
-    if radii.shape[0] != centers.shape[0]:
-        raise ValueError(f"coverage: {centers.shape[0]} centers but {radii.shape[0]} radii")
-    if not (np.all(np.isfinite(centers)) and np.all(np.isfinite(radii))):
-        raise ValueError("coverage: non-finite center or radius")
-    free = tuple(int(i) for i in np.flatnonzero(upper0 > lower0))
-    D = len(free)
-    corners = np.array(list(itertools.product((0.0, 1.0), repeat=D)), float).reshape(2**D, D)
-    lambda_min = float(np.linalg.eigvalsh(P)[0])
-    usable = radii > 0
-    r2 = np.where(usable, radii, 0.0) ** 2
-
-    lower = lower0[None, :].copy()  # (B, n) the boxes still open
-    upper = upper0[None, :].copy()
-    covered_boxes, assignment, uncovered = [], [], []
-    covered_volume, depth = 0.0, 0
-    free_index = list(free)
-    total_volume = float(np.prod(upper0[free_index] - lower0[free_index])) if D else 1.0
-    while len(lower):
-        # Vertices (B, 2^D, n): the box's lower corner plus 0/1 of its free widths.
-        vertices = np.repeat(lower[:, None, :], len(corners), axis=1)
-        vertices[:, :, free_index] += corners[None] * (upper - lower)[:, None, free_index]
-        e = vertices[:, :, None, :] - centers[None, None]  # (B, 2^D, k, n)
-        q = np.einsum("bvki,ij,bvkj->bvk", e, P, e)  # ||v - x0_i||_P^2
-        worst = q.max(axis=1)  # (B, k)
-        fits = (worst <= r2[None]) & usable[None]
-        margin = np.where(fits, 1.0 - worst / np.where(usable, r2, 1.0)[None], -np.inf)
-        done = fits.any(axis=1)
-        widths = (upper - lower)[:, free_index]
-        volumes = np.prod(widths, axis=1) if D else np.ones(len(lower))
-        covered_boxes.append(np.stack([lower[done], upper[done]], axis=1))
-        assignment.append(np.argmax(margin[done], axis=1))
-        covered_volume += float(volumes[done].sum())
-        # Boxes that some ball may still cover (nearest point of the box inside the ball).
-        nearest = np.clip(centers[None], lower[:, None], upper[:, None])  # (B, k, n)
-        gap = np.sum((nearest - centers[None]) ** 2, axis=-1)  # (B, k)
-        hopeful = ~done & np.any(usable[None] & (lambda_min * gap <= r2[None]), axis=1)
-        hopeless = ~done & ~hopeful
-        uncovered.append(np.stack([lower[hopeless], upper[hopeless]], axis=1))
-        lower, upper = lower[hopeful], upper[hopeful]
-        if not len(lower):
-            break
-        if D == 0 or depth >= max_depth or len(lower) * len(corners) > MAX_BOXES:
-            uncovered.append(np.stack([lower, upper], axis=1))
-            break
-        # Split every open box into 2^D halves.
-        middle = (lower + upper) / 2
-        children_lower = np.repeat(lower[:, None, :], len(corners), axis=1)
-        children_upper = np.repeat(upper[:, None, :], len(corners), axis=1)
-        children_lower[:, :, free_index] = np.where(
-            corners[None] > 0, middle[:, None, free_index], lower[:, None, free_index]
-        )
-        children_upper[:, :, free_index] = np.where(
-            corners[None] > 0, upper[:, None, free_index], middle[:, None, free_index]
-        )
-        lower, upper = children_lower.reshape(-1, n), children_upper.reshape(-1, n)
-        depth += 1
-
-    boxes = np.concatenate(covered_boxes).reshape(-1, 2, n)
-    gaps = np.concatenate(uncovered).reshape(-1, 2, n) if uncovered else np.zeros((0, 2, n))
-    fraction = covered_volume / total_volume if total_volume > 0 else float(not len(gaps))
-    covered = len(gaps) == 0
+    cover = subdivide(
+        np.asarray(feedback.P, dtype=np.float64),
+        scenario.init_lower,
+        scenario.init_upper,
+        centers,
+        radii,
+        max_depth,
+    )
+    gaps, free_index, depth = cover.uncovered, list(cover.free), cover.depth
+    fraction, covered = cover.fraction, cover.covered
     if covered:
-        used = len(np.unique(np.concatenate(assignment)))
+        used = len(np.unique(cover.assignment))
         message = f"Init is covered by {used} ball{'s' if used > 1 else ''}"
     else:
         names = [scenario.state_names[i] for i in free_index]
@@ -172,10 +109,10 @@ def cover_init(
     return CoverageResult(
         covered=covered,
         covered_fraction=float(fraction),
-        boxes=boxes,
-        assignment=np.concatenate(assignment).astype(np.int64),
+        boxes=cover.boxes,
+        assignment=cover.assignment,
         uncovered_boxes=gaps,
-        free=free,
+        free=cover.free,
         depth=depth,
         success=covered,
         message=message,

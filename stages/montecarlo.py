@@ -6,7 +6,10 @@ the controller read back from ``controller.json``, and each run is checked in co
 (dense grid plus the motion bound between grid points): never in Unsafe, ends in Goal, no input
 clipping, error inside the predicted tube ``||e(t)||_P <= e^{-lambda t} ||e(0)||_P + 2 delta``
 (``delta``: the stated interpolation error of the emitted reference). A
-non-finite state is a failure. The failure probability gets an exact one-sided 95% Clopper-Pearson
+non-finite state is a failure. The runs go through the compiled kernel
+(``pipeline.numerics.rollouts``), which agrees with the NumPy oracle
+(``pipeline.numerics.closed_loop.check_runs``, a test checks 1e-9); the oracle draws the few paths
+the report shows. The failure probability gets an exact one-sided 95% Clopper-Pearson
 upper bound (``scipy.stats.binomtest``), valid because the samples are i.i.d.
 
 A falsification search (Init's corners, a Sobol set, then a local search) is reported
@@ -28,6 +31,7 @@ from pipeline.io.executor import Executor, SerialExecutor
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario, load_scenario_cached
 from pipeline.numerics.closed_loop import RunChecks, check_runs
+from pipeline.numerics.rollouts import check_runs_compiled
 
 FAILURE_KINDS = ("unsafe", "goal", "clipping", "tube", "non_finite", "uncovered")
 
@@ -91,12 +95,12 @@ def falsify(
         x[:, free] = np.clip(z, lo[free], hi[free])
         return x
 
-    margins = check_runs(scenario, controller, full(candidates))[0].margin()
+    margins = check_runs_compiled(scenario, controller, full(candidates)).margin()
     evaluations = len(candidates)
     best_z, best = candidates[np.argmin(margins)], float(np.min(margins))
     for start in candidates[np.argsort(margins)[:local_searches]]:
         outcome = minimize(
-            lambda z: float(check_runs(scenario, controller, full(z[None]))[0].margin()[0]),
+            lambda z: float(check_runs_compiled(scenario, controller, full(z[None])).margin()[0]),
             start,
             method="Nelder-Mead",
             bounds=list(zip(lo[free], hi[free], strict=True)),
@@ -106,7 +110,7 @@ def falsify(
         if outcome.fun < best:
             best_z, best = outcome.x, float(outcome.fun)
     worst = full(best_z[None])
-    binding = check_runs(scenario, controller, worst)[0].binding()[0]
+    binding = check_runs_compiled(scenario, controller, worst).binding()[0]
     return Falsification(worst[0], best, evaluations, binding)
 
 
@@ -115,9 +119,13 @@ def _run_chunk(
 ) -> tuple[RunChecks, FloatArray, list[FloatArray]]:
     controller = load(controller_path)
     x0 = _uniform_init(scenario, np.random.default_rng(stream), size)
-    checks, paths = check_runs(scenario, controller, x0)
+    checks = check_runs_compiled(scenario, controller, x0)
     failed = np.any(list(checks.failures().values()), axis=0)
-    return checks, x0[failed], [group[:2, :: max(1, group.shape[1] // 200)] for group in paths]
+    # the paths drawn in the report: the first two runs around each trajectory, by the oracle
+    index, _ = controller.select(x0)
+    drawn = np.concatenate([np.flatnonzero(index == i)[:2] for i in np.unique(index)])
+    _, paths = check_runs(scenario, controller, x0[np.sort(drawn)])
+    return checks, x0[failed], [group[:, :: max(1, group.shape[1] // 200)] for group in paths]
 
 
 def _run_chunk_in_worker(

@@ -44,7 +44,7 @@ def write_reports(data: ReportData) -> ReportResult:
     start = time.perf_counter()
     scenario, out = data.scenario, data.out
     sections = build_sections(data)
-    verdict = data.summary["verdict"]["text"]
+    verdict = data.summary.text
     title = f"Safety controller synthesis report: {scenario.name}"
     html = render_html(
         title,

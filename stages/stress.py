@@ -43,8 +43,7 @@ def _campaign(
     scenario: Scenario, controller_path: Path, samples: int, seed: int, gain_scale: float
 ) -> StressRun:
     stress = scenario.spec.stress
-    controller = load(controller_path)
-    controller.K = gain_scale * controller.K
+    controller = load(controller_path).with_gain(gain_scale)
     rng = np.random.default_rng(seed)  # the same draws for both campaigns
     lo, hi = scenario.init_lower, scenario.init_upper
     x0 = lo + (hi - lo) * rng.random((samples, scenario.n))

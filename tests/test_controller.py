@@ -3,10 +3,14 @@
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
+import re
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from pipeline.controller import ControllerFormatError, load
 
@@ -52,27 +56,37 @@ def test_selects_the_ball_with_the_smallest_scaled_distance(tmp_path):
     controller = load(_write(tmp_path, _document()))
     x0 = np.array([[0.2, 0.0], [2.9, 0.0], [1.6, 0.0]])
     # ||x0 - x0_i||_P / r_i: row 2 is 1.6*sqrt2/1 = 2.26 from the first, 1.4*sqrt2/0.5 = 3.96
-    np.testing.assert_array_equal(controller.select(x0), [0, 1, 0])
-    np.testing.assert_allclose(
-        controller.coverage_ratio(x0), [0.2 * np.sqrt(2), 0.1 * np.sqrt(2) / 0.5, 1.6 * np.sqrt(2)]
-    )
+    index, ratio = controller.select(x0)
+    np.testing.assert_array_equal(index, [0, 1, 0])
+    np.testing.assert_allclose(ratio, [0.2 * np.sqrt(2), 0.1 * np.sqrt(2) / 0.5, 1.6 * np.sqrt(2)])
+    single, single_ratio = controller.select(x0[1])
+    assert int(single) == 1 and single_ratio == pytest.approx(ratio[1])
 
 
 def test_control_law_interpolates_and_clips(tmp_path):
     controller = load(_write(tmp_path, _document()))
-    controller.select(np.array([[0.0, 0.0]]))
+    index, _ = controller.select(np.array([[0.0, 0.0]]))
     x = np.array([[0.25, 0.5]])  # exactly on the reference at t = 0.25
-    np.testing.assert_allclose(controller(0.25, x), [[0.5]])
-    np.testing.assert_allclose(controller(0.75, np.array([[0.75, 1.5]])), [[-0.5]])
+    np.testing.assert_allclose(controller(0.25, x, index), [[0.5]])
+    np.testing.assert_allclose(controller(0.75, np.array([[0.75, 1.5]]), index), [[-0.5]])
     far = np.array([[0.25 + 2.0, 0.5]])  # K e = -2 -> 0.5 - 2 clipped to -1
-    np.testing.assert_allclose(controller.unclipped(0.25, far), [[-1.5]])
-    np.testing.assert_allclose(controller(0.25, far), [[-1.0]])
+    np.testing.assert_allclose(controller.unclipped(0.25, far, index), [[-1.5]])
+    np.testing.assert_allclose(controller(0.25, far, index), [[-1.0]])
 
 
-def test_calling_before_select_is_an_error(tmp_path):
+def test_the_controller_is_immutable_and_with_gain_builds_a_new_one(tmp_path):
     controller = load(_write(tmp_path, _document()))
-    with pytest.raises(RuntimeError, match="select"):
-        controller(0.0, np.zeros((1, 2)))
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        controller.K = np.zeros((1, 2))  # type: ignore[misc]
+    with pytest.raises(ValueError, match="read-only"):
+        controller.K[0, 0] = 5.0
+    open_loop = controller.with_gain(0.0)
+    np.testing.assert_array_equal(open_loop.K, 0.0)
+    np.testing.assert_array_equal(controller.K, [[-1.0, -2.0]])  # the original is unchanged
+    far, index = np.array([[2.25, 0.5]]), np.array([0])
+    np.testing.assert_allclose(open_loop.unclipped(0.25, far, index), [[0.5]])
+    np.testing.assert_allclose(controller.unclipped(0.25, far, index), [[-1.5]])
+    assert not hasattr(controller, "follow")
 
 
 def _mutations():
@@ -103,8 +117,78 @@ def _mutations():
         (set_(["feedback", "K"], [[1.0, 2.0, 3.0]]), "feedback.K: found 'shape (1, 3)'"),
         (set_(["trajectories", 1, "x0"], [1.0]), "trajectories[1].x0: found 'shape (1,)'"),
         (set_(["trajectories", 0, "x_ref"], [[0.0, 0.0]]), "trajectories[0].x_ref: found"),
-        (set_(["feedback", "rate"], float("nan")), "feedback.rate: found 'a non-finite value'"),
+        (set_(["feedback", "rate"], float("nan")), "feedback.rate: found nan; expected a finite"),
         (set_(["trajectories"], []), "trajectories: found 'an empty list'"),
+        # values of the right type that no valid controller has (issue 14.4)
+        (
+            set_(["trajectories", 0, "radius"], -1.0),
+            "trajectories[0].radius: found -1.0; expected a number > 0",
+        ),
+        (
+            set_(["trajectories", 1, "radius"], 0),
+            "trajectories[1].radius: found 0.0; expected a number > 0",
+        ),
+        (set_(["Ts"], 0.0), "Ts: found 0.0; expected a number > 0"),
+        (set_(["Ts"], -0.1), "Ts: found -0.1; expected a number > 0"),
+        (
+            set_(["input_bounds", "lower"], [2.0]),
+            "input_bounds.lower[0]: found 2.0; expected <= upper",
+        ),
+        (
+            set_(["feedback", "P"], [[1.0, 0.0], [0.0, -1.0]]),
+            "feedback.P: found 'smallest eigenvalue -1'",
+        ),
+        (
+            set_(["feedback", "P"], [[1.0, 0.5], [0.0, 1.0]]),
+            "feedback.P: found 'a non-symmetric matrix'",
+        ),
+        (set_(["feedback", "rate"], -0.5), "feedback.rate: found -0.5; expected a number > 0"),
+        (
+            set_(
+                ["trajectories", 0, "t"], [0.0, 0.1, 0.3, 0.2, *np.linspace(0.4, 1.0, 7).tolist()]
+            ),
+            "trajectories[0].t: found 'times that do not increase'",
+        ),
+        (
+            set_(["trajectories", 0, "T"], 2.0),
+            "trajectories[0].t: found '[0 .. 1]'; expected times from 0 to T = 2",
+        ),
+        (
+            set_(["trajectories", 0, "u_ref"], [[0.5]]),
+            "trajectories[0].u_ref: found '1 rows'; expected T / Ts",
+        ),
+        (
+            set_(["state_names"], "pv"),
+            "state_names: found 'pv'; expected a non-empty list of names",
+        ),
+        (
+            set_(["state_names"], ["p", "p"]),
+            "state_names: found ['p', 'p']; expected distinct names",
+        ),
+        (
+            set_(["trajectories", 0, "radius"], True),
+            "trajectories[0].radius: found True; expected a number",
+        ),
+        # wrong types that used to raise a raw exception
+        (
+            set_(["trajectories", 0, "T"], "abc"),
+            "trajectories[0].T: found 'abc'; expected a number",
+        ),
+        (set_(["state_names"], 4), "state_names: found 4; expected a non-empty list of names"),
+        (set_(["input_bounds"], []), "input_bounds: found 'a list'; expected a JSON object"),
+        (set_(["trajectories"], 3), "trajectories: found 3; expected a list of trajectories"),
+        (
+            set_(["trajectories"], "abc"),
+            "trajectories: found 'abc'; expected a list of trajectories",
+        ),
+        (set_(["trajectories", 0], 7), "trajectories[0]: found 'int'; expected a JSON object"),
+        (set_(["feedback", "K"], [[1.0, "x"]]), "feedback.K: found 'x'; expected numbers"),
+        (set_(["feedback", "K"], [[1.0], [2.0, 3.0]]), "feedback.K: found 'ragged lists'"),
+        (
+            set_(["trajectories", 0, "x0"], [1.0, 10**400]),
+            "trajectories[0].x0: found 'a number too large",
+        ),
+        (set_(["interpolation_error_P_norm"], -1.0), "interpolation_error_P_norm: found -1.0"),
     ]
 
 
@@ -118,8 +202,114 @@ def test_bad_files_are_refused_with_the_field(tmp_path, mutate, message):
     assert "controller.json" in str(error.value)
 
 
+@pytest.mark.parametrize(
+    ("content", "message"),
+    [
+        (b'{"format": "\xff\xfe"}', "not UTF-8 text"),
+        (b"[" * 100_000 + b"]" * 100_000, "nested too deeply"),
+        (b'{"Ts": ' + b"7" * 5000 + b"}", "invalid JSON number"),
+        (b"", "invalid JSON at line 1"),
+        (b"[1, 2]", "(top level): found 'a list'; expected a JSON object"),
+    ],
+)
+def test_bytes_that_are_not_a_controller_document_are_refused(tmp_path, content, message):
+    path = tmp_path / "controller.json"
+    path.write_bytes(content)
+    with pytest.raises(ControllerFormatError, match=re.escape(message)):
+        load(path)
+
+
+def test_a_huge_float_literal_is_refused_as_not_finite(tmp_path):
+    document = _document()
+    text = json.dumps(document).replace('"Ts": 0.5', '"Ts": ' + "9" * 5000 + ".0")
+    path = tmp_path / "controller.json"
+    path.write_text(text)
+    with pytest.raises(ControllerFormatError, match="Ts: found inf; expected a finite number"):
+        load(path)
+
+
 def test_invalid_json_names_line_and_column(tmp_path):
     path = tmp_path / "controller.json"
     path.write_text('{"format": \n oops}')
     with pytest.raises(ControllerFormatError, match="line 2, column 2"):
         load(path)
+
+
+# Property: whatever is done to a valid file, load() either accepts it or raises
+# ControllerFormatError (never a raw exception, never a hang: each example has a deadline).
+
+JSON_VALUES = st.recursive(
+    st.none()
+    | st.booleans()
+    | st.integers()
+    | st.floats(allow_nan=True, allow_infinity=True)
+    | st.text(max_size=6),
+    lambda inner: (
+        st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=6), inner, max_size=4)
+    ),
+    max_leaves=12,
+)
+
+
+def _paths(node, prefix=()):
+    """Every path (tuple of keys and indices) to a node below the document's root."""
+    items = (
+        node.items()
+        if isinstance(node, dict)
+        else enumerate(node)
+        if isinstance(node, list)
+        else ()
+    )
+    for key, child in items:
+        yield (*prefix, key)
+        yield from _paths(child, (*prefix, key))
+
+
+PATHS = list(_paths(_document()))
+
+
+def _parent(document, path):
+    target = document
+    for key in path[:-1]:
+        target = target[key]
+    return target
+
+
+@settings(
+    max_examples=300, deadline=2000, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(
+    path=st.sampled_from(PATHS),
+    action=st.sampled_from(["delete", "replace", "retype", "truncate", "flip"]),
+    value=JSON_VALUES,
+    cut=st.floats(0.0, 1.0),
+)
+def test_mutated_files_raise_nothing_but_controller_format_error(
+    tmp_path, path, action, value, cut
+):
+    document = _document()
+    parent, key = _parent(document, path), path[-1]
+    if action == "delete":
+        del parent[key]
+    elif action == "replace":
+        parent[key] = value
+    elif action == "retype":  # the same content under another JSON type
+        old = parent[key]
+        parent[key] = json.dumps(old) if not isinstance(old, str) else [old]
+    content = json.dumps(document).encode()
+    if action == "truncate":
+        content = content[: int(cut * len(content))]
+    elif action == "flip":
+        position = min(int(cut * len(content)), len(content) - 1)
+        content = content[:position] + bytes([content[position] ^ 0xA5]) + content[position + 1 :]
+    file = tmp_path / "controller.json"
+    file.write_bytes(content)
+    try:
+        controller = load(file)
+    except ControllerFormatError as error:
+        assert "controller.json" in str(error)
+        return
+    # accepted: it must then be a usable controller
+    index, ratio = controller.select(controller.trajectories[0].x0)
+    assert np.isfinite(controller(0.0, controller.trajectories[0].x0, index)).all()
+    assert ratio >= 0

@@ -37,7 +37,7 @@ SHIPPED = available_scenarios()
 
 def _closed_loop_failures(scenario, controller, x0):
     """Count runs that touch Unsafe, end outside Goal or need clipping (independent check)."""
-    index = controller.select(x0)
+    index, _ = controller.select(x0)
     failures = np.zeros(len(x0), dtype=bool)
     for i in np.unique(index):
         rows = np.flatnonzero(index == i)
@@ -90,7 +90,7 @@ def test_ci_closed_loop_safety_from_sampled_initial_states(synthesis, name):
     x0 = scenario.init_lower + (scenario.init_upper - scenario.init_lower) * rng.random(
         (CI_SAMPLES.get(name, CI_SAMPLES_OTHER), scenario.n)
     )
-    assert np.all(controller.coverage_ratio(x0) < 1.0)
+    assert np.all(controller.select(x0)[1] < 1.0)
     assert _closed_loop_failures(scenario, controller, x0) == 0
 
 
@@ -161,8 +161,56 @@ def test_a_rerun_reuses_every_stage(synthesized, capsys):
     code = synthesize("quadrotor_hill", out=out, options=RunOptions(samples=1000))
     printed = capsys.readouterr().out
     assert code == 0
-    for stage in ("feedback", "optimize", "controller", "montecarlo"):
+    for stage in ("feedback", "optimize", "montecarlo"):
         assert f"[{stage}] unchanged inputs: reusing" in printed
+    # controller.json is written on every run from the certified results, then re-verified
+    assert "[controller] running" in printed
+    assert "[certify] controller.json re-verified" in printed
+
+
+def test_a_hand_edited_controller_is_rewritten_and_never_certified(synthesized, tmp_path, capsys):
+    from pipeline.runtime.orchestrator import RunOptions, synthesize
+
+    _, good = synthesized
+    out = tmp_path / "run"
+    subprocess.run(["cp", "-r", str(good), str(out)], check=True)
+    emitted = (out / "controller.json").read_bytes()
+    document = json.loads(emitted)
+    for item in document["trajectories"]:  # every state now looks covered
+        item["radius"] = -abs(item["radius"])
+    (out / "controller.json").write_text(json.dumps(document))
+    code = synthesize("quadrotor_hill", out=out, options=RunOptions(samples=1000))
+    assert code == 0, capsys.readouterr().out
+    assert (out / "controller.json").read_bytes() == emitted  # rewritten from the results
+
+
+def test_the_verdict_comes_from_the_file_as_written(synthesized, tmp_path, monkeypatch, capsys):
+    """A controller stage that writes a file other than its certified results (here: every
+    radius 10x) gives 'not certified', exit 1, although every stage result is unchanged."""
+    import pipeline.runtime.orchestrator as orchestrator
+
+    _, good = synthesized
+    out = tmp_path / "run"
+    subprocess.run(["cp", "-r", str(good), str(out)], check=True)
+    emit = orchestrator.emit_controller
+
+    def emit_inflated(*args, **kwargs):
+        result = emit(*args, **kwargs)
+        document = json.loads(result.path.read_text())
+        for item in document["trajectories"]:
+            item["radius"] *= 10.0
+        result.path.write_text(json.dumps(document))
+        return result
+
+    monkeypatch.setattr(orchestrator, "emit_controller", emit_inflated)
+    code = orchestrator.synthesize(
+        "quadrotor_hill", out=out, options=orchestrator.RunOptions(samples=1000)
+    )
+    printed = capsys.readouterr().out
+    summary = json.loads((out / "summary.json").read_text())
+    assert code == 1
+    assert summary["verdict"]["certified"] is False
+    assert "controller.json is not certified: trajectories[0]: radius" in printed
 
 
 def _start(out, *extra):
@@ -230,7 +278,6 @@ def test_a_killed_run_keeps_the_last_good_output_and_resumes(synthesized, tmp_pa
         text=True,
     )
     assert resumed.returncode == 0, resumed.stdout + resumed.stderr
-    assert "[controller] unchanged inputs: reusing" in resumed.stdout
     assert "[montecarlo] unchanged inputs: reusing" in resumed.stdout
 
 

@@ -22,6 +22,7 @@ from pipeline.model.scenario import Scenario
 
 LEFT_LIMIT = 1e-9
 TUBE_TOLERANCE = 1e-6
+INTERPOLATION_SLACK = 2.0  # the reference is interpolated: allow twice its stated error
 
 
 @dataclass(frozen=True)
@@ -55,7 +56,7 @@ def simulate_closed_loop(
     """
     x = np.array(x0, dtype=np.float64)
     B = x.shape[0]
-    controller.follow(np.full(B, trajectory))
+    index = np.full(B, trajectory)
     reference = controller.trajectories[trajectory]
     N = len(reference.u_ref)
     h = controller.Ts / substeps
@@ -66,7 +67,7 @@ def simulate_closed_loop(
     extra = 0.0 if disturbance is None else disturbance
 
     def field(t: float, state: FloatArray, j: int, stage: int) -> FloatArray:
-        raw = controller.unclipped(t, state if noise is None else state + noise[:, j])
+        raw = controller.unclipped(t, state if noise is None else state + noise[:, j], index)
         unclipped[:, j, stage] = raw
         return dynamics.f(state, np.clip(raw, controller.lower, controller.upper)) + extra
 
@@ -146,8 +147,8 @@ def check_runs(
     names = ("clearance", "goal_margin", "input_slack", "tube", "tube_final")
     checks = {name: np.empty(B) for name in names}
     finite = np.ones(B, dtype=bool)
-    covered = controller.coverage_ratio(x0) < 1.0
-    index = controller.select(x0)
+    index, ratio = controller.select(x0)
+    covered = ratio < 1.0
     paths = []
     P = controller.P
     for i in np.unique(index):
@@ -184,7 +185,7 @@ def check_runs(
         e = xs - run.x_ref
         norm = np.sqrt(np.einsum("btj,jk,btk->bt", e, P, e))
         # the reference is interpolated: allow twice its stated error (P-norm) on top of the tube
-        slack = 2.0 * float(controller.data.get("interpolation_error_P_norm", 0.0)) + 1e-9
+        slack = INTERPOLATION_SLACK * controller.interpolation_error + 1e-9
         decayed = np.maximum(norm - slack, 0.0) * np.exp(controller.rate * run.ts)
         ratio = decayed / np.maximum(norm[:, :1], 1e-12)
         checks["tube"][rows] = np.max(ratio, axis=1)

@@ -10,13 +10,22 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import Trajectory, simulate
+from pipeline.reporting.summary import Summary
+
+if TYPE_CHECKING:  # the stage results, read from artifacts (reporting sits below stages)
+    from stages.controller import ControllerResult
+    from stages.coverage import CoverageResult
+    from stages.feedback import FeedbackResult
+    from stages.montecarlo import MonteCarloResult
+    from stages.optimize import OptimizeResult
+    from stages.radius import RadiusResult
 
 STAGES = (
     "feedback",
@@ -43,15 +52,15 @@ class ReportData:
 
     scenario: Scenario
     out: Path
-    summary: Mapping[str, Any]
-    feedback: Any
-    radius_demos: tuple[Any, ...]
-    coverage_demos: Any
-    optimize: Any
-    radius_optimized: tuple[Any, ...]
-    coverage_optimized: Any
-    controller: Any
-    montecarlo: Any
+    summary: Summary
+    feedback: FeedbackResult
+    radius_demos: tuple[RadiusResult, ...]
+    coverage_demos: CoverageResult
+    optimize: OptimizeResult
+    radius_optimized: tuple[RadiusResult, ...]
+    coverage_optimized: CoverageResult
+    controller: ControllerResult
+    montecarlo: MonteCarloResult
     keys: Mapping[str, str]
     demo_paths: tuple[Trajectory, ...]
     final_paths: tuple[Trajectory, ...]
@@ -86,7 +95,7 @@ def _simulate_all(
 def report_data(
     scenario: Scenario,
     out: Path,
-    summary: Mapping[str, Any],
+    summary: Summary,
     results: Mapping[str, Any],
     keys: Mapping[str, str],
 ) -> ReportData:

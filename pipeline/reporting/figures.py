@@ -90,7 +90,7 @@ def draw_overview(fig: FigureLike, data: ReportData) -> None:
 
 def bisection_demo(data: ReportData) -> int:
     """The demo shown like the paper's Fig. 2: the one flown closest to Unsafe."""
-    clearances = [d["clearance_before"] for d in data.summary["demos"]]
+    clearances = [d.clearance_before for d in data.summary.demos]
     return int(np.argmin(clearances))
 
 
@@ -312,14 +312,14 @@ def inputs_trajectory(data: ReportData) -> tuple[int, FloatArray]:
     s = data.scenario
     worst = np.asarray(data.montecarlo.falsification.worst_x0, dtype=np.float64)
     controller = load(data.controller_path)
-    index = int(controller.select(worst[None])[0])
+    index = int(controller.select(worst[None])[0][0])
     free = np.flatnonzero(s.init_upper > s.init_lower)
     corners = np.tile(s.init_lower, (2 ** len(free), 1))
     for k, i in enumerate(free):
         corners[:, i] = np.where(
             (np.arange(len(corners)) >> k) & 1, s.init_upper[i], s.init_lower[i]
         )
-    corners = corners[controller.select(corners) == index]
+    corners = corners[controller.select(corners)[0] == index]
     return index, np.vstack([worst[None], corners])
 
 

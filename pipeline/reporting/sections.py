@@ -10,7 +10,6 @@ from __future__ import annotations
 import shlex
 from collections.abc import Sequence
 from functools import partial
-from typing import Any
 
 import numpy as np
 
@@ -30,6 +29,8 @@ from pipeline.reporting.content import (
     seconds,
 )
 from pipeline.reporting.data import ReportData
+from pipeline.reporting.summary import Summary
+from pipeline.reporting.summary import Verdict as VerdictKind
 
 PAPER_FASTER_PERCENT = 42  # §IV-B: "The optimal trajectory is 42% faster"
 PAPER_DEMO_CLEARANCE = 0.22  # §IV-B: the human demo's buffer to Unsafe, against d = 1.0
@@ -45,39 +46,39 @@ TITLES = (
 )
 
 
-def headline_items(summary: dict[str, Any]) -> tuple[Headline, ...]:
+def headline_items(summary: Summary) -> tuple[Headline, ...]:
     """The headline numbers of ``summary.json``, formatted as the report shows them."""
-    h = summary["headline"]
-    stages = summary["timings"]
+    h = summary.headline
+    stages = summary.timings
     reused = sum(1 for v in stages.values() if v == 0.0)
     return (
         Headline(
             "Faster (mean over demos)",
-            f"{h['faster_percent_mean']:.0f}%",
-            f"terminal time {seconds(h['T_demo_mean'])} → {seconds(h['T_optimized_mean'])}; "
+            f"{h.faster_percent_mean:.0f}%",
+            f"terminal time {seconds(h.T_demo_mean)} → {seconds(h.T_optimized_mean)}; "
             f"the paper: {PAPER_FASTER_PERCENT}%",
         ),
         Headline(
             "Min clearance to Unsafe",
-            f"{fixed(h['min_clearance_before'])} → {fixed(h['min_clearance_after'])} m",
-            f"demos → optimized; required d = {h['required_clearance']:g} m; "
+            f"{fixed(h.min_clearance_before)} → {fixed(h.min_clearance_after)} m",
+            f"demos → optimized; required d = {h.required_clearance:g} m; "
             f"the paper's demo: {PAPER_DEMO_CLEARANCE}",
         ),
         Headline(
             "Init coverage",
-            f"{percent(h['coverage_before'])} → {percent(h['coverage_after'])}",
+            f"{percent(h.coverage_before)} → {percent(h.coverage_after)}",
             "certified covered after optimization"
-            if h["covered_after"]
+            if h.covered_after
             else "NOT fully covered after optimization",
         ),
         Headline(
             "Monte Carlo failures",
-            f"{h['montecarlo_failures']} / {h['montecarlo_samples']}",
-            f"failure probability ≤ {scientific(h['failure_bound_95'])} (95% one-sided)",
+            f"{h.montecarlo_failures} / {h.montecarlo_samples}",
+            f"failure probability ≤ {scientific(h.failure_bound_95)} (95% one-sided)",
         ),
         Headline(
             "Wall time",
-            seconds(summary["total_seconds"]),
+            seconds(summary.total_seconds),
             "all stages of this run" + (f"; {reused} reused from the cache" if reused else ""),
         ),
     )
@@ -85,30 +86,26 @@ def headline_items(summary: dict[str, Any]) -> tuple[Headline, ...]:
 
 def _summary(data: ReportData) -> tuple:
     s, summary = data.scenario, data.summary
-    verdict = summary["verdict"]
     n = len(s.demos)
     demos = tuple(
         (
-            d["demo"],
-            "("
-            + ", ".join(f"{v:.2f}" for v in np.asarray(d["start"])[list(s.position_index)])
-            + ")",
-            fixed(d["T_demo"], 1),
-            fixed(d["T_optimized"], 1),
-            f"{d['faster_percent']:.0f}%",
-            fixed(d["clearance_before"], 3),
-            fixed(d["clearance_after"], 3),
-            fixed(d["radius_before"], 3),
-            fixed(d["radius_after"], 3),
-            "yes" if d["optimized"] else "no (kept as flown)",
+            d.demo,
+            "(" + ", ".join(f"{v:.2f}" for v in np.asarray(d.start)[list(s.position_index)]) + ")",
+            fixed(d.T_demo, 1),
+            fixed(d.T_optimized, 1),
+            f"{d.faster_percent:.0f}%",
+            fixed(d.clearance_before, 3),
+            fixed(d.clearance_after, 3),
+            fixed(d.radius_before, 3),
+            fixed(d.radius_after, 3),
+            "yes" if d.optimized else "no (kept as flown)",
         )
-        for d in summary["demos"]
+        for d in summary.demos
     )
     timings = [
-        (stage, fixed(t, 2), "reused" if t == 0.0 else "")
-        for stage, t in summary["timings"].items()
+        (stage, fixed(t, 2), "reused" if t == 0.0 else "") for stage, t in summary.timings.items()
     ]
-    timings.append(("total (incl. loading and summary)", fixed(summary["total_seconds"], 2), ""))
+    timings.append(("total (incl. loading and summary)", fixed(summary.total_seconds, 2), ""))
     return (
         Paragraph(
             f"Scenario {s.name}: {s.spec.description or 'no description'} {n} demonstrations, "
@@ -118,14 +115,14 @@ def _summary(data: ReportData) -> tuple:
             "trajectories is certified and validated by simulation."
         ),
         Verdict(
-            bool(verdict["certified"] and verdict["validated"]),
-            verdict["text"],
-            tuple(verdict["reasons"]),
+            summary.verdict is VerdictKind.CERTIFIED_AND_VALIDATED,
+            summary.text,
+            summary.reasons,
         ),
         Headlines(headline_items(summary)),
         Table(
             ("claim", "kind", "how it was established"),
-            tuple((c["claim"], c["kind"], c["how"]) for c in summary["claims"]),
+            tuple((c.claim, c.kind.value, c.how) for c in summary.claims),
             "Claims: certified (proof, re-checked), statistically validated (sampling with a "
             "bound), falsification-searched (search, no bound)",
             badges=1,
@@ -160,7 +157,7 @@ def _scenario(data: ReportData) -> tuple:
     s = data.scenario
     index = figures.bisection_demo(data)
     opt = data.optimize.trajectories[index]
-    before = data.summary["demos"][index]["clearance_before"]
+    before = data.summary.demos[index].clearance_before
     free = ", ".join(
         f"{name} in [{lo:g}, {hi:g}]"
         for name, lo, hi in zip(s.state_names, s.init_lower, s.init_upper, strict=True)
@@ -198,20 +195,20 @@ def _scenario(data: ReportData) -> tuple:
 
 def _reproducibility(data: ReportData) -> tuple:
     summary = data.summary
-    repro = summary["reproducibility"]
-    command = list(repro["command"])
+    repro = summary.reproducibility
+    command = list(repro.command)
     if command and command[0].endswith("__main__.py"):
         command = ["python", "-m", "pipeline", *command[1:]]
-    versions = tuple((name, version) for name, version in repro["versions"].items())
+    versions = tuple((name, version) for name, version in repro.versions.items())
     return (
         Table(
             ("item", "value"),
             (
                 ("command line", shlex.join(command)),
                 ("scenario file", str(data.scenario.path)),
-                ("scenario sha256", repro["scenario_sha256"]),
+                ("scenario sha256", repro.scenario_sha256),
                 ("controller.json sha256", file_hash(data.controller_path)),
-                ("Monte Carlo seed", str(repro["montecarlo_seed"])),
+                ("Monte Carlo seed", str(repro.montecarlo_seed)),
                 ("output folder", str(data.out)),
             ),
             "Run",

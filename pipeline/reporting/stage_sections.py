@@ -6,7 +6,6 @@ Each builder reads ``ReportData`` and returns its section's blocks; ``sections``
 from __future__ import annotations
 
 from functools import partial
-from typing import Any
 
 import numpy as np
 
@@ -24,6 +23,7 @@ from pipeline.reporting.content import (
     vector,
 )
 from pipeline.reporting.data import ReportData
+from pipeline.reporting.summary import Quantiles, StressRunSummary, StressSummary
 
 
 def optimization(data: ReportData) -> tuple:
@@ -113,25 +113,25 @@ def optimization(data: ReportData) -> tuple:
     )
 
 
-def _quantile_text(quantiles: dict[str, float] | None) -> str:
+def _quantile_text(quantiles: Quantiles | None) -> str:
     if quantiles is None:
         return "n/a (re-run synthesize)"
-    return ", ".join(fixed(quantiles[k], 3) for k in ("median", "p95", "max"))
+    return ", ".join(fixed(q, 3) for q in (quantiles.median, quantiles.p95, quantiles.max))
 
 
 def feedback(data: ReportData) -> tuple:
-    s, fb, summary = data.scenario, data.feedback, data.summary["feedback"]
+    s, fb, summary = data.scenario, data.feedback, data.summary.feedback
     K = np.asarray(fb.K)
-    eig = np.asarray(summary["P_eigenvalues"])
-    r_d = summary["required_radius"]
+    eig = np.asarray(summary.P_eigenvalues)
+    r_d = summary.required_radius
     region_rows = []
     for name, (lower, upper) in fb.region.items():
-        extent = summary["region_extent_at_r_d"].get(name, 0.0)
+        extent = summary.region_extent_at_r_d.get(name, 0.0)
         region_rows.append((name, number(lower), number(upper), number(extent)))
     input_rows = tuple(
         (name, number(lo), number(hi), number(margin))
         for name, lo, hi, margin in zip(
-            s.input_names, s.input_lower, s.input_upper, summary["input_margin_at_r_d"], strict=True
+            s.input_names, s.input_lower, s.input_upper, summary.input_margin_at_r_d, strict=True
         )
     )
     quantities = (
@@ -142,13 +142,11 @@ def feedback(data: ReportData) -> tuple:
         ("required radius r_d (position extent d)", number(r_d, 4)),
         (
             "covering radius (smallest common radius of balls at the demo starts covering Init)",
-            "none found"
-            if summary.get("covering_radius") is None
-            else number(summary["covering_radius"], 4),
+            "none found" if summary.covering_radius is None else number(summary.covering_radius, 4),
         ),
         (
             "radius kept by the optimizer, max(r_d, covering radius)",
-            number(summary.get("kept_radius", r_d), 4),
+            number(summary.kept_radius, 4),
         ),
         ("position extent per unit P-radius", number(fb.position_extent(1.0), 4)),
         ("Jacobian hull", f"{len(fb.vertices)} vertices; " + "; ".join(fb.hull)),
@@ -254,39 +252,29 @@ def coverage(data: ReportData) -> tuple:
     )
 
 
-def _stress(stress: Any) -> tuple:
-    """The stress test's table (``summary["stress"]``), if the run made one."""
-    if not isinstance(stress, dict):
+def _stress(stress: StressSummary | None) -> tuple:
+    """The stress test's table (``summary.stress``), if the run made one."""
+    if stress is None:
         return (
             Paragraph(
                 "Stress test (perturbed closed loop): not run (synthesize --stress).", "note"
             ),
         )
-    runs = [stress.get("with_feedback"), stress.get("without_feedback")]
-    if not all(isinstance(r, dict) for r in runs):
-        rows = tuple((str(k), str(v)) for k, v in stress.items())
-        return (Table(("quantity", "value"), rows, "Stress test"),)
+    runs = (stress.with_feedback, stress.without_feedback)
 
-    def failures(run: dict[str, Any]) -> str:
-        counts = {k: v for k, v in run.get("failures", {}).items() if v}
+    def failures(run: StressRunSummary) -> str:
+        counts = {k: v for k, v in run.failures.items() if v}
         return ", ".join(f"{k} {v}" for k, v in counts.items()) or "none"
 
-    kind = stress.get("kind", "not part of the certificate")
     rows = (
-        ("runs", *(str(r.get("samples", "")) for r in runs)),
-        ("failed", *(percent(r.get("failed_fraction", float("nan"))) for r in runs)),
+        ("runs", *(str(r.samples) for r in runs)),
+        ("failed", *(percent(r.failed_fraction) for r in runs)),
         ("failures by kind", *(failures(r) for r in runs)),
-        (
-            "minimum clearance to Unsafe (m)",
-            *(fixed(r.get("min_clearance", float("nan")), 3) for r in runs),
-        ),
-        (
-            "minimum goal margin (m)",
-            *(fixed(r.get("min_goal_margin", float("nan")), 3) for r in runs),
-        ),
+        ("minimum clearance to Unsafe (m)", *(fixed(r.min_clearance, 3) for r in runs)),
+        ("minimum goal margin (m)", *(fixed(r.min_goal_margin, 3) for r in runs)),
     )
     return (
-        Paragraph(f"Stress test ({kind}): {stress.get('message', '')}."),
+        Paragraph(f"Stress test ({stress.kind}): {stress.message}."),
         Table(
             ("", "with the feedback", "without (K = 0)"),
             rows,
@@ -299,7 +287,7 @@ def _stress(stress: Any) -> tuple:
 def montecarlo(data: ReportData) -> tuple:
     mc = data.montecarlo
     f = mc.falsification
-    stress_blocks = _stress(data.summary.get("stress"))
+    stress_blocks = _stress(data.summary.stress)
     return (
         Paragraph(
             f"{mc.samples} initial states drawn i.i.d. uniformly from Init (seed {mc.seed}); each "
@@ -335,7 +323,7 @@ def montecarlo(data: ReportData) -> tuple:
                 (
                     "tube ratio at the final time, ||e(T)||_P e^(λT) / ||e(0)||_P: median, 95%,"
                     " max (1 = the certified bound; below: λ is conservative)",
-                    _quantile_text(data.summary["montecarlo"].get("tube_ratio_at_T")),
+                    _quantile_text(data.summary.montecarlo.tube_ratio_at_T),
                 ),
                 (
                     "falsification: worst margin found",

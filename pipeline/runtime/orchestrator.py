@@ -1,7 +1,12 @@
 """The orchestrator: wires the stages in order and keeps their artifacts under ``reports/NAME``.
 
     load -> feedback -> radius(demos) -> coverage(demos) -> covering radius -> optimize
-         -> radius(optimized) -> coverage(optimized) -> controller -> montecarlo -> report
+         -> radius(optimized) -> coverage(optimized) -> controller -> certify -> montecarlo
+         -> report
+
+The controller stage writes ``controller.json`` on every run, from this run's certified
+results; the certify stage then re-verifies that file as written (never cached), and the
+verdict's "certified" is its result.
 
 The optimizer keeps every tube at the required radius ``max(r_d, covering radius)``: ``r_d`` is
 the radius that the clearance ``d`` certifies, and the covering radius the smallest common one
@@ -14,6 +19,7 @@ reused.
 
 from __future__ import annotations
 
+import os
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -30,11 +36,13 @@ from pipeline.io.progress import progress_bar
 from pipeline.model.scenario import Scenario, load_scenario
 from pipeline.model.simulate import Trajectory, simulate
 from pipeline.numerics.verify import VERIFY_SUBSTEPS
+from pipeline.reporting.summary import Verdict
 from pipeline.runtime.codekey import code_key
-from pipeline.runtime.outdir import check_output_folder, clear_stale, mark_failed
+from pipeline.runtime.outdir import check_output_folder, clear_stale, mark_failed, stale_name
 from pipeline.runtime.runner import StageRunner
-from pipeline.runtime.stored import load_report_data, shipped_controller, write_manifest
-from pipeline.runtime.summary import demo_table, print_summary, stress_summary, summarise
+from pipeline.runtime.stored import load_report_data, write_manifest
+from pipeline.runtime.summary import StageResults, demo_table, print_summary, summarise
+from stages.certify import certify_controller
 from stages.controller import emit_controller
 from stages.coverage import CoverageResult, CoveringRadius, cover_init, covering_radius
 from stages.feedback import FeedbackResult, design_feedback
@@ -234,8 +242,7 @@ def _synthesize(
 
     usable = [i for i, r in enumerate(final_radii) if r.radius > 0]
     controller_path = out / "controller.json"
-    shipped = controller_path.is_file() and file_hash(controller_path) == shipped_controller(out)
-    controller = runner.run(  # reused only while controller.json is the file a run certified
+    controller = runner.run(
         "controller",
         inputs_key(
             code_key("stages.controller"),
@@ -255,8 +262,12 @@ def _synthesize(
             [final_radii[i].radius for i in usable],
             controller_path,
         ),
-        rerun=not shipped,
+        rerun=True,  # always written from this run's certified results
     )
+    started_certify = time.perf_counter()
+    certification = certify_controller(scenario, controller_path)
+    certify_seconds = time.perf_counter() - started_certify
+    say(f"[certify] {certification.message}")
     with progress_bar(options.samples, "closed-loop runs", options.quiet) as advance:
         montecarlo = runner.run(
             "montecarlo",
@@ -289,26 +300,29 @@ def _synthesize(
             lambda: stress_test(scenario, controller_path, seed=options.seed),
         )
 
-    summary = summarise(
-        scenario,
-        feedback,
-        demo_trajectories,
-        demo_radii,
-        demo_coverage,
-        covering,
-        optimized,
-        final_trajectories,
-        final_radii,
-        final_coverage,
-        controller,
-        montecarlo,
-        runner.timings(),
-        time.perf_counter() - started,
-        command=sys.argv,
+    results = StageResults(
+        scenario=scenario,
+        feedback=feedback,
+        demo_trajectories=demo_trajectories,
+        demo_radii=demo_radii,
+        demo_coverage=demo_coverage,
+        covering=covering,
+        optimized=optimized,
+        final_trajectories=final_trajectories,
+        final_radii=final_radii,
+        final_coverage=final_coverage,
+        controller=controller,
+        certification=certification,
+        montecarlo=montecarlo,
     )
-    if stress is not None:
-        summary["stress"] = stress_summary(stress)
-    atomic_write_json(out / "summary.json", summary)
+    summary = summarise(
+        results,
+        timings={**runner.timings(), "certify": certify_seconds},
+        total_seconds=time.perf_counter() - started,
+        command=sys.argv,
+        stress=stress,
+    )
+    atomic_write_json(out / "summary.json", summary.to_json())
     write_manifest(scenario, out, file_hash(controller_path))
     runner.run(  # keyed on what the report shows: never on this run's timings
         "report",
@@ -324,11 +338,14 @@ def _synthesize(
         rerun=not all((out / name).is_file() for name in REPORT_FILES),
     )
     clear_stale(out)
+    if not summary.certified:  # this run did not certify it: no current-looking controller.json
+        os.replace(controller_path, stale_name(controller_path))
+        say(f"controller.json renamed to {stale_name(controller_path).name}: not certified")
     if options.quiet:
-        print(f"verdict: {summary['verdict']['text']}")
+        print(f"verdict: {summary.text}")
     else:
         print_summary(summary)
-    return 0 if summary["verdict"]["certified"] and summary["verdict"]["validated"] else 1
+    return 0 if summary.verdict is Verdict.CERTIFIED_AND_VALIDATED else 1
 
 
 def rebuild_reports(scenario_name: str | Path, out: Path | None = None) -> ReportResult:

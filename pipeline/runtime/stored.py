@@ -15,6 +15,7 @@ from pipeline.io.artifacts import ArtifactError, atomic_write_json, inputs_key, 
 from pipeline.io.errors import UserError
 from pipeline.model.scenario import Scenario
 from pipeline.reporting.data import STAGES, ReportData, report_data
+from pipeline.reporting.summary import Summary
 from pipeline.runtime.registry import RESULT_TYPES
 
 MANIFEST = "inputs.json"
@@ -28,7 +29,7 @@ def demo_fingerprints(scenario: Scenario) -> dict[str, str]:
 
 def write_manifest(scenario: Scenario, out: Path, controller_sha256: str) -> None:
     """Record what the run was made from (for ``report`` to check against the current files)
-    and the hash of the ``controller.json`` it certified (for the next run to reuse)."""
+    and the hash of the ``controller.json`` it certified."""
     atomic_write_json(
         Path(out) / "artifacts" / MANIFEST,
         {
@@ -38,16 +39,6 @@ def write_manifest(scenario: Scenario, out: Path, controller_sha256: str) -> Non
             "controller_sha256": controller_sha256,
         },
     )
-
-
-def shipped_controller(out: Path) -> str | None:
-    """The sha256 of the ``controller.json`` the last finished run wrote, if recorded."""
-    try:
-        manifest = json.loads((Path(out) / "artifacts" / MANIFEST).read_text())
-    except (OSError, UnicodeDecodeError, ValueError, RecursionError):
-        return None
-    found = manifest.get("controller_sha256") if isinstance(manifest, dict) else None
-    return found if isinstance(found, str) else None
 
 
 def _rerun(path: Path, scenario: Scenario, what: str) -> UserError:
@@ -96,8 +87,13 @@ def load_report_data(scenario: Scenario, out: Path) -> ReportData:
     """Read ``out/summary.json`` and ``out/artifacts/<stage>`` into ``ReportData``; a missing,
     unreadable, corrupt or stale file is a ``UserError`` naming it and the fix."""
     out = Path(out)
-    summary = _read_json(out / "summary.json", scenario, "summary.json")
-    _check_inputs(scenario, out, summary)
+    summary_path = out / "summary.json"
+    document = _read_json(summary_path, scenario, "summary.json")
+    _check_inputs(scenario, out, document)
+    try:
+        summary = Summary.from_json(document)
+    except ValueError as error:
+        raise _rerun(summary_path, scenario, f"not a run summary ({error})") from None
     results, keys = {}, {}
     for stage in STAGES:
         stem = out / "artifacts" / stage

@@ -1,21 +1,53 @@
-"""The run's summary: headline numbers, the verdict and the kind of every claim (``summary.json``).
+"""The run's summary, built from the stage results: headline numbers, the verdict and the kind
+of every claim (the typed ``Summary`` of ``pipeline.reporting.summary``, written as
+``summary.json``), and the end-of-run printout.
 
-Claims carry their kind: *certified* (LMI and tube bounds, re-checked independently),
-*statistically validated* (Monte Carlo with its bound), *falsification-searched* (worst case
-found by search, no bound).
+Claims carry their kind: *certified* (LMI and tube bounds, re-verified on controller.json as
+written), *statistically validated* (Monte Carlo with its bound), *falsification-searched*
+(worst case found by search, no bound).
 """
 
 from __future__ import annotations
 
 import platform
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from importlib import metadata
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from pipeline.model import geometry
+from pipeline.model.dynamics import FloatArray
+from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import Trajectory
+from pipeline.reporting.summary import (
+    CertificationSummary,
+    Claim,
+    ClaimKind,
+    ControllerSummary,
+    DemoSummary,
+    FalsificationSummary,
+    FeedbackSummary,
+    Headline,
+    MonteCarloSummary,
+    Quantiles,
+    Reproducibility,
+    StressRunSummary,
+    StressSummary,
+    Summary,
+    Verdict,
+)
+
+if TYPE_CHECKING:  # stage result types: only the orchestrator imports stages
+    from stages.certify import CertificationResult
+    from stages.controller import ControllerResult
+    from stages.coverage import CoverageResult, CoveringRadius
+    from stages.feedback import FeedbackResult
+    from stages.montecarlo import MonteCarloResult
+    from stages.optimize import OptimizeResult
+    from stages.radius import RadiusResult
+    from stages.stress import StressResult, StressRun
 
 KEY_PACKAGES = (
     "numpy",
@@ -40,185 +72,230 @@ def _versions() -> dict[str, str]:
     return versions
 
 
+@dataclass(frozen=True, kw_only=True)
+class StageResults:
+    """The stage results a summary is made from (one entry per demo in the sequences)."""
+
+    scenario: Scenario
+    feedback: FeedbackResult
+    demo_trajectories: Sequence[Trajectory]
+    demo_radii: Sequence[RadiusResult]
+    demo_coverage: CoverageResult
+    covering: CoveringRadius
+    optimized: OptimizeResult
+    final_trajectories: Sequence[Trajectory]
+    final_radii: Sequence[RadiusResult]
+    final_coverage: CoverageResult
+    controller: ControllerResult
+    certification: CertificationResult
+    montecarlo: MonteCarloResult
+
+
+def _demos(run: StageResults) -> tuple[DemoSummary, ...]:
+    demos = []
+    for i, demo in enumerate(run.scenario.demos):
+        opt = run.optimized.trajectories[i]
+        before, after = run.demo_trajectories[i].duration, run.final_trajectories[i].duration
+        radius_before, radius_after = run.demo_radii[i], run.final_radii[i]
+        demos.append(
+            DemoSummary(
+                demo=demo.name,
+                start=tuple(demo.x0.tolist()),
+                T_demo=before,
+                T_optimized=after,
+                faster_percent=100 * (1 - after / before),
+                optimized=bool(opt.success),
+                message=opt.message,
+                iterations=int(sum(t.iterations for t in opt.tries)),
+                horizons_tried=len(opt.tries),
+                seconds=opt.seconds,
+                clearance_before=radius_before.nominal_clearance,
+                clearance_after=radius_after.nominal_clearance,
+                radius_before=radius_before.radius,
+                radius_after=radius_after.radius,
+                binding_before=radius_before.binding,
+                binding_after=radius_after.binding,
+                binding_time_before=radius_before.binding_time,
+                binding_time_after=radius_after.binding_time,
+            )
+        )
+    return tuple(demos)
+
+
+def _reasons(run: StageResults, demos: Sequence[DemoSummary]) -> tuple[str, ...]:
+    """Why the run is not certified and validated (empty when it is)."""
+    reasons = []
+    if not run.final_coverage.covered:
+        gap = run.final_coverage.largest_gap()
+        where = (
+            "" if gap is None else f"; record a new demonstration from {np.round(gap, 3).tolist()}"
+        )
+        reasons.append(f"coverage gap: {run.final_coverage.message}{where}")
+    failed = [d.demo for d in demos if not d.optimized]
+    if failed:
+        reasons.append(f"not optimized (kept as flown): {', '.join(failed)}")
+    if any(r.radius <= 0 for r in run.final_radii):
+        reasons.append("a nominal trajectory has no robustness radius")
+    if not run.certification.success:
+        reasons.append(run.certification.message)
+    if not run.montecarlo.success:
+        reasons.append(f"Monte Carlo failure: {run.montecarlo.message}")
+    return tuple(reasons)
+
+
+def _claims(run: StageResults, certified: bool) -> tuple[Claim, ...]:
+    feedback, check, mc = run.feedback, run.certification, run.montecarlo
+    falsification = mc.falsification
+    contraction = ClaimKind.CERTIFIED if check.contraction_margin < 0 else ClaimKind.NOT_ESTABLISHED
+    return (
+        Claim(
+            claim=f"contraction at rate {feedback.rate:g} over the operating region",
+            kind=contraction,
+            how=f"LMI ({feedback.gain} gain) solved by Clarabel, eigenvalues re-checked at "
+            f"all {len(feedback.vertices)} vertices of a sound Jacobian hull "
+            f"(largest eigenvalue {feedback.certified_margin:.2e} < 0); re-verified on "
+            f"controller.json as written (largest eigenvalue {check.contraction_margin:.2e})",
+        ),
+        Claim(
+            claim="every start in Init lies in a tube that avoids Unsafe and ends in Goal",
+            kind=ClaimKind.CERTIFIED if certified else ClaimKind.NOT_ESTABLISHED,
+            how="robustness radii on a dense grid with a bound between grid points; "
+            f"Init covered by box subdivision ({run.final_coverage.message}); both re-verified "
+            "on controller.json as written",
+        ),
+        Claim(
+            claim=f"failure probability <= {mc.failure_bound:.2e}",
+            kind=ClaimKind.STATISTICALLY_VALIDATED,
+            how=f"{mc.samples} i.i.d. closed-loop runs from controller.json, "
+            "one-sided 95% Clopper-Pearson bound",
+        ),
+        Claim(
+            claim=f"worst safety margin found {falsification.worst_margin:.3f}"
+            + (f" ({falsification.binding})" if falsification.binding else ""),
+            kind=ClaimKind.FALSIFICATION_SEARCHED,
+            how=f"Init corners, Sobol points and Nelder-Mead ({falsification.evaluations} "
+            "closed-loop runs); evidence, not a bound",
+        ),
+    )
+
+
+def _feedback(run: StageResults) -> FeedbackSummary:
+    feedback, covering = run.feedback, run.covering
+    r_d = feedback.required_radius(run.scenario.clearance)
+    return FeedbackSummary(
+        gain=feedback.gain,
+        K=tuple(tuple(row) for row in np.asarray(feedback.K).tolist()),
+        P_eigenvalues=tuple(np.linalg.eigvalsh(feedback.P).tolist()),
+        rate=feedback.rate,
+        region={k: (float(v[0]), float(v[1])) for k, v in feedback.region.items()},
+        required_radius=r_d,
+        covering_radius=covering.radius if covering.covered else None,
+        kept_radius=covering.kept_radius(r_d),
+        input_margin_at_r_d=tuple(feedback.input_margin(r_d).tolist()),
+        region_extent_at_r_d=feedback.region_extent(r_d),
+        vertices=len(feedback.vertices),
+        message=feedback.message,
+    )
+
+
+def _montecarlo(mc: MonteCarloResult) -> MonteCarloSummary:
+    falsification = mc.falsification
+    return MonteCarloSummary(
+        samples=mc.samples,
+        seed=mc.seed,
+        failures=dict(mc.failures),
+        failure_bound_95=mc.failure_bound,
+        min_clearance=mc.min_clearance,
+        min_goal_margin=mc.min_goal_margin,
+        max_tube_tightness=mc.max_tube_tightness,
+        tube_ratio_at_T=_quantiles(mc.tube_final),
+        falsification=FalsificationSummary(
+            worst_x0=tuple(falsification.worst_x0.tolist()),
+            worst_margin=falsification.worst_margin,
+            binding=falsification.binding,
+            evaluations=falsification.evaluations,
+        ),
+        message=mc.message,
+    )
+
+
 def summarise(
-    scenario: Any,
-    feedback: Any,
-    demo_trajectories: Sequence[Trajectory],
-    demo_radii: Sequence[Any],
-    demo_coverage: Any,
-    covering: Any,
-    optimized: Any,
-    final_trajectories: Sequence[Trajectory],
-    final_radii: Sequence[Any],
-    final_coverage: Any,
-    controller: Any,
-    montecarlo: Any,
+    run: StageResults,
+    *,
     timings: Mapping[str, float],
     total_seconds: float,
     command: Sequence[str],
-) -> dict[str, Any]:
-    """Collect the stage results into one JSON-able document."""
-    r_d = feedback.required_radius(scenario.clearance)
-    demos = []
-    for i, demo in enumerate(scenario.demos):
-        opt = optimized.trajectories[i]
-        before, after = demo_trajectories[i].duration, final_trajectories[i].duration
-        demos.append(
-            {
-                "demo": demo.name,
-                "start": demo.x0.tolist(),
-                "T_demo": before,
-                "T_optimized": after,
-                "faster_percent": 100 * (1 - after / before),
-                "optimized": bool(opt.success),
-                "message": opt.message,
-                "iterations": int(sum(t.iterations for t in opt.tries)),
-                "horizons_tried": len(opt.tries),
-                "seconds": opt.seconds,
-                "clearance_before": demo_radii[i].nominal_clearance,
-                "clearance_after": final_radii[i].nominal_clearance,
-                "radius_before": demo_radii[i].radius,
-                "radius_after": final_radii[i].radius,
-                "binding_before": demo_radii[i].binding,
-                "binding_after": final_radii[i].binding,
-                "binding_time_before": demo_radii[i].binding_time,
-                "binding_time_after": final_radii[i].binding_time,
-            }
-        )
-    T_before = np.array([d["T_demo"] for d in demos])
-    T_after = np.array([d["T_optimized"] for d in demos])
-    reasons = []
-    if not final_coverage.covered:
-        gap = final_coverage.largest_gap()
-        where = (
-            ""
-            if gap is None
-            else (f"; record a new demonstration from {np.round(gap, 3).tolist()}")
-        )
-        reasons.append(f"coverage gap: {final_coverage.message}{where}")
-    failed = [d["demo"] for d in demos if not d["optimized"]]
-    if failed:
-        reasons.append(f"not optimized (kept as flown): {', '.join(failed)}")
-    if any(r.radius <= 0 for r in final_radii):
-        reasons.append("a nominal trajectory has no robustness radius")
-    if not montecarlo.success:
-        reasons.append(f"Monte Carlo failure: {montecarlo.message}")
+    stress: StressResult | None = None,
+) -> Summary:
+    """The run's typed summary; "certified" only when the final check of controller.json as
+    written (stage ``certify``) passed and the stages' own results agree."""
+    scenario, mc = run.scenario, run.montecarlo
+    demos = _demos(run)
     certified = bool(
-        feedback.success and final_coverage.covered and all(r.radius > 0 for r in final_radii)
+        run.certification.success
+        and run.feedback.success
+        and run.final_coverage.covered
+        and all(r.radius > 0 for r in run.final_radii)
     )
-    falsification = montecarlo.falsification
-    return {
-        "scenario": scenario.name,
-        "verdict": {
-            "certified": certified,
-            "validated": bool(montecarlo.success),
-            "text": (
-                "certified and validated"
-                if certified and montecarlo.success
-                else "not certified: " + "; ".join(reasons)
-                if not certified
-                else "certified but not validated: " + "; ".join(reasons)
-            ),
-            "reasons": reasons,
-        },
-        "claims": [
-            {
-                "claim": f"contraction at rate {feedback.rate:g} over the operating region",
-                "kind": "certified",
-                "how": f"LMI ({feedback.gain} gain) solved by Clarabel, eigenvalues re-checked at "
-                f"all {len(feedback.vertices)} vertices of a sound Jacobian hull "
-                f"(largest eigenvalue {feedback.certified_margin:.2e} < 0)",
-            },
-            {
-                "claim": "every start in Init lies in a tube that avoids Unsafe and ends in Goal",
-                "kind": "certified" if certified else "not established",
-                "how": "robustness radii on a dense grid with a bound between grid points; "
-                f"Init covered by box subdivision ({final_coverage.message})",
-            },
-            {
-                "claim": f"failure probability <= {montecarlo.failure_bound:.2e}",
-                "kind": "statistically validated",
-                "how": f"{montecarlo.samples} i.i.d. closed-loop runs from controller.json, "
-                "one-sided 95% Clopper-Pearson bound",
-            },
-            {
-                "claim": f"worst safety margin found {falsification.worst_margin:.3f}"
-                + (f" ({falsification.binding})" if falsification.binding else ""),
-                "kind": "falsification-searched",
-                "how": f"Init corners, Sobol points and Nelder-Mead ({falsification.evaluations} "
-                "closed-loop runs); evidence, not a bound",
-            },
-        ],
-        "headline": {
-            "T_demo_mean": float(T_before.mean()),
-            "T_optimized_mean": float(T_after.mean()),
-            "faster_percent_mean": float(100 * np.mean(1 - T_after / T_before)),
-            "min_clearance_before": float(min(d["clearance_before"] for d in demos)),
-            "min_clearance_after": float(min(d["clearance_after"] for d in demos)),
-            "required_clearance": scenario.clearance,
-            "coverage_before": demo_coverage.covered_fraction,
-            "coverage_after": final_coverage.covered_fraction,
-            "covered_before": bool(demo_coverage.covered),
-            "covered_after": bool(final_coverage.covered),
-            "montecarlo_samples": montecarlo.samples,
-            "montecarlo_failures": int(sum(montecarlo.failures.values())),
-            "failure_bound_95": montecarlo.failure_bound,
-        },
-        "feedback": {
-            "gain": feedback.gain,
-            "K": np.asarray(feedback.K).tolist(),
-            "P_eigenvalues": np.linalg.eigvalsh(feedback.P).tolist(),
-            "rate": feedback.rate,
-            "region": {k: list(v) for k, v in feedback.region.items()},
-            "required_radius": r_d,
-            "covering_radius": covering.radius if covering.covered else None,
-            "kept_radius": covering.kept_radius(r_d),
-            "input_margin_at_r_d": feedback.input_margin(r_d).tolist(),
-            "region_extent_at_r_d": feedback.region_extent(r_d),
-            "vertices": len(feedback.vertices),
-            "message": feedback.message,
-        },
-        "demos": demos,
-        "montecarlo": {
-            "samples": montecarlo.samples,
-            "seed": montecarlo.seed,
-            "failures": montecarlo.failures,
-            "failure_bound_95": montecarlo.failure_bound,
-            "min_clearance": montecarlo.min_clearance,
-            "min_goal_margin": montecarlo.min_goal_margin,
-            "max_tube_tightness": montecarlo.max_tube_tightness,
-            "tube_ratio_at_T": _quantiles(montecarlo.tube_final),
-            "falsification": {
-                "worst_x0": falsification.worst_x0.tolist(),
-                "worst_margin": falsification.worst_margin,
-                "binding": falsification.binding,
-                "evaluations": falsification.evaluations,
-            },
-            "message": montecarlo.message,
-        },
-        "controller": {
-            "path": str(controller.path),
-            "trajectories": controller.trajectories,
-            "interpolation_error_P": controller.interpolation_error,
-        },
-        "timings": dict(timings),
-        "total_seconds": total_seconds,
-        "reproducibility": {
-            "versions": _versions(),
-            "scenario_sha256": scenario.source_hash,
-            "montecarlo_seed": montecarlo.seed,
-            "command": list(command),
-        },
-    }
+    T_before = np.array([d.T_demo for d in demos])
+    T_after = np.array([d.T_optimized for d in demos])
+    check = run.certification
+    return Summary(
+        scenario=scenario.name,
+        verdict=Verdict.of(certified=certified, validated=bool(mc.success)),
+        reasons=_reasons(run, demos),
+        claims=_claims(run, certified),
+        headline=Headline(
+            T_demo_mean=float(T_before.mean()),
+            T_optimized_mean=float(T_after.mean()),
+            faster_percent_mean=float(100 * np.mean(1 - T_after / T_before)),
+            min_clearance_before=float(min(d.clearance_before for d in demos)),
+            min_clearance_after=float(min(d.clearance_after for d in demos)),
+            required_clearance=scenario.clearance,
+            coverage_before=run.demo_coverage.covered_fraction,
+            coverage_after=run.final_coverage.covered_fraction,
+            covered_before=bool(run.demo_coverage.covered),
+            covered_after=bool(run.final_coverage.covered),
+            montecarlo_samples=mc.samples,
+            montecarlo_failures=int(sum(mc.failures.values())),
+            failure_bound_95=mc.failure_bound,
+        ),
+        feedback=_feedback(run),
+        demos=demos,
+        montecarlo=_montecarlo(mc),
+        controller=ControllerSummary(
+            path=str(run.controller.path),
+            trajectories=run.controller.trajectories,
+            interpolation_error_P=run.controller.interpolation_error,
+        ),
+        certification=CertificationSummary(
+            certified=check.success,
+            sha256=check.sha256,
+            metric_eigenvalue=check.metric_eigenvalue,
+            contraction_margin=check.contraction_margin,
+            vertices=check.vertices,
+            covered_fraction=check.covered_fraction,
+            message=check.message,
+        ),
+        timings=dict(timings),
+        total_seconds=total_seconds,
+        reproducibility=Reproducibility(
+            versions=_versions(),
+            scenario_sha256=scenario.source_hash,
+            montecarlo_seed=mc.seed,
+            command=tuple(command),
+        ),
+        stress=None if stress is None else stress_summary(stress),
+    )
 
 
-def _quantiles(values: Any) -> dict[str, float] | None:
+def _quantiles(values: FloatArray) -> Quantiles | None:
     """Median, 95th percentile and maximum of ``values (k,)``; None when empty."""
     values = np.asarray(values, dtype=np.float64)
     if values.size == 0:
         return None
     median, p95, top = np.quantile(values, [0.5, 0.95, 1.0])
-    return {"median": float(median), "p95": float(p95), "max": float(top)}
+    return Quantiles(median=float(median), p95=float(p95), max=float(top))
 
 
 def demo_table(scenario: Any, trajectories: Sequence[Trajectory]) -> str:
@@ -241,74 +318,71 @@ def demo_table(scenario: Any, trajectories: Sequence[Trajectory]) -> str:
     return "\n".join(lines)
 
 
-def print_summary(summary: Mapping[str, Any]) -> None:
+def print_summary(summary: Summary) -> None:
     """The end-of-run table."""
     print(
         f"\n{'demo':<9} {'T demo':>7} {'T opt':>6} {'faster':>7} {'clear before':>13}"
         f" {'clear after':>12} {'r before':>9} {'r after':>8} {'iters':>6} {'time':>6}"
     )
-    for d in summary["demos"]:
-        mark = "" if d["optimized"] else "  (kept as flown)"
+    for d in summary.demos:
+        mark = "" if d.optimized else "  (kept as flown)"
         print(
-            f"{d['demo']:<9} {d['T_demo']:>6.1f}s {d['T_optimized']:>5.1f}s "
-            f"{d['faster_percent']:>6.0f}% {d['clearance_before']:>13.3f} "
-            f"{d['clearance_after']:>12.3f} {d['radius_before']:>9.3f} "
-            f"{d['radius_after']:>8.3f} {d['iterations']:>6d} {d['seconds']:>5.1f}s{mark}"
+            f"{d.demo:<9} {d.T_demo:>6.1f}s {d.T_optimized:>5.1f}s "
+            f"{d.faster_percent:>6.0f}% {d.clearance_before:>13.3f} "
+            f"{d.clearance_after:>12.3f} {d.radius_before:>9.3f} "
+            f"{d.radius_after:>8.3f} {d.iterations:>6d} {d.seconds:>5.1f}s{mark}"
         )
     print("\nradius limited by (demonstration -> optimized):")
-    for d in summary["demos"]:
-        before, after = (
-            f"{d[f'binding_{when}']} at {d.get(f'binding_time_{when}', float('nan')):.1f} s"
-            for when in ("before", "after")
-        )
-        print(f"  {d['demo']:<9} {before:<30} -> {after}")
-    h, mc = summary["headline"], summary["montecarlo"]
+    for d in summary.demos:
+        before = f"{d.binding_before} at {d.binding_time_before:.1f} s"
+        after = f"{d.binding_after} at {d.binding_time_after:.1f} s"
+        print(f"  {d.demo:<9} {before:<30} -> {after}")
+    h, mc, fb = summary.headline, summary.montecarlo, summary.feedback
     print(
-        f"\nmean duration {h['T_demo_mean']:.1f} s -> {h['T_optimized_mean']:.1f} s "
-        f"({h['faster_percent_mean']:.0f}% faster); min clearance "
-        f"{h['min_clearance_before']:.2f} -> {h['min_clearance_after']:.2f} m "
-        f"(required {h['required_clearance']:g})"
+        f"\nmean duration {h.T_demo_mean:.1f} s -> {h.T_optimized_mean:.1f} s "
+        f"({h.faster_percent_mean:.0f}% faster); min clearance "
+        f"{h.min_clearance_before:.2f} -> {h.min_clearance_after:.2f} m "
+        f"(required {h.required_clearance:g})"
     )
-    print(f"Init coverage: {h['coverage_before']:.1%} -> {h['coverage_after']:.1%}")
-    fb = summary["feedback"]
-    if fb.get("kept_radius", fb["required_radius"]) > fb["required_radius"]:
+    print(f"Init coverage: {h.coverage_before:.1%} -> {h.coverage_after:.1%}")
+    if fb.kept_radius > fb.required_radius:
         print(
-            f"  tubes kept at the covering radius {fb['kept_radius']:.4g} > r_d = "
-            f"{fb['required_radius']:.4g} (balls of radius r_d about the demo starts miss parts"
+            f"  tubes kept at the covering radius {fb.kept_radius:.4g} > r_d = "
+            f"{fb.required_radius:.4g} (balls of radius r_d about the demo starts miss parts"
             " of Init)"
         )
     print(
-        f"Monte Carlo: {mc['samples']} runs, {h['montecarlo_failures']} failures, "
-        f"failure probability <= {mc['failure_bound_95']:.2e} (95%)"
+        f"Monte Carlo: {mc.samples} runs, {h.montecarlo_failures} failures, "
+        f"failure probability <= {mc.failure_bound_95:.2e} (95%)"
     )
-    if mc.get("tube_ratio_at_T"):
-        q = mc["tube_ratio_at_T"]
+    if mc.tube_ratio_at_T is not None:
+        q = mc.tube_ratio_at_T
         print(
-            f"  tube ratio at the final time: median {q['median']:.3f}, max {q['max']:.3f} "
+            f"  tube ratio at the final time: median {q.median:.3f}, max {q.max:.3f} "
             "(1 = the certified decay e^(-λT); below: the rate is conservative)"
         )
-    for claim in summary["claims"]:
-        print(f"  [{claim['kind']}] {claim['claim']}")
-    if "stress" in summary:
-        print(f"  [stress test, not certified] {summary['stress']['message']}")
-    print(f"\nverdict: {summary['verdict']['text']}")
+    for claim in summary.claims:
+        print(f"  [{claim.kind.value}] {claim.claim}")
+    if summary.stress is not None:
+        print(f"  [stress test, not certified] {summary.stress.message}")
+    print(f"\nverdict: {summary.text}")
 
 
-def stress_summary(stress: Any) -> dict[str, Any]:
+def stress_summary(stress: StressResult) -> StressSummary:
     """The stress test's numbers (reported separately; never part of the certificate)."""
 
-    def run(r: Any) -> dict[str, Any]:
-        return {
-            "samples": r.samples,
-            "failures": r.failures,
-            "failed_fraction": r.failed_fraction,
-            "min_clearance": r.min_clearance,
-            "min_goal_margin": r.min_goal_margin,
-        }
+    def run(r: StressRun) -> StressRunSummary:
+        return StressRunSummary(
+            samples=r.samples,
+            failures=dict(r.failures),
+            failed_fraction=r.failed_fraction,
+            min_clearance=r.min_clearance,
+            min_goal_margin=r.min_goal_margin,
+        )
 
-    return {
-        "kind": "stress test (not part of the certificate)",
-        "message": stress.message,
-        "with_feedback": run(stress.with_feedback),
-        "without_feedback": run(stress.without_feedback),
-    }
+    return StressSummary(
+        kind="stress test (not part of the certificate)",
+        message=stress.message,
+        with_feedback=run(stress.with_feedback),
+        without_feedback=run(stress.without_feedback),
+    )

@@ -20,6 +20,7 @@ from pypdf import PdfReader
 from pipeline.io.errors import UserError
 from pipeline.model.scenario import Scenario, load_scenario
 from pipeline.reporting.sections import headline_items, section_headings
+from pipeline.reporting.summary import Summary
 from pipeline.runtime.cli import main
 from pipeline.runtime.orchestrator import RunOptions, synthesize
 from pipeline.runtime.stored import load_report_data
@@ -110,7 +111,7 @@ def test_html_holds_the_headline_numbers_of_summary_json(run: tuple[Scenario, Pa
         f"≤ {h['failure_bound_95']:.2e}",
         *section_headings(),
     ]
-    for item in headline_items(summary):
+    for item in headline_items(Summary.from_json(summary)):
         expected += [item.label, item.value, item.note]
     for claim in summary["claims"]:
         expected += [claim["claim"], claim["kind"], claim["how"]]

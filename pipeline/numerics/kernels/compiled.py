@@ -1,11 +1,13 @@
-"""Compiled cost and gradients: numba kernels generated from the scenario's sympy expressions.
+"""Compiled cost, gradients and closed-loop rollouts: numba kernels generated from the
+scenario's sympy expressions.
 
 The scalar functions ``f``, ``[f, f_x, f_u]`` (structural nonzeros only) and the vector-Jacobian
 product ``lam -> (lam f_x, lam f_u)`` are printed from the same sympy expressions as
 ``pipeline.model.dynamics`` (common subexpressions eliminated, floats printed exactly), appended to
-the loops of ``pipeline.numerics.kernels.loops`` and written to a cache folder under a name that
-hashes the source, so numba's ``cache=True`` compiles each scenario once per machine. Polygons
-become vertex arrays (``PenaltyData``): shapely cannot run inside numba.
+the loops of ``pipeline.numerics.kernels.loops`` (cost, gradients) and ``.rollout`` (closed
+loop), and written to a cache folder under a name that hashes the source, so numba's
+``cache=True`` compiles each scenario once per machine. Polygons become vertex arrays
+(``PenaltyData``): shapely cannot run inside numba.
 """
 
 from __future__ import annotations
@@ -31,7 +33,7 @@ from pipeline.model.dynamics import Dynamics, FloatArray
 from pipeline.numerics.penalties import Constraints, IntArray
 from pipeline.numerics.sensitivity import SensitivityPattern
 
-_TEMPLATE = Path(__file__).with_name("loops.py")
+_TEMPLATES = tuple(Path(__file__).with_name(name) for name in ("loops.py", "rollout.py"))
 _LOADED: dict[str, ModuleType] = {}
 _BY_DYNAMICS: weakref.WeakKeyDictionary[Dynamics, ModuleType] = weakref.WeakKeyDictionary()
 
@@ -105,7 +107,8 @@ def load_kernels(dynamics: Dynamics) -> ModuleType:
     """The compiled kernel module of ``dynamics`` (generated and imported once per process)."""
     if dynamics in _BY_DYNAMICS:
         return _BY_DYNAMICS[dynamics]
-    source = _TEMPLATE.read_text() + "\n# ---- generated from the scenario's expressions ----\n"
+    source = "\n\n".join(template.read_text() for template in _TEMPLATES)
+    source += "\n# ---- generated from the scenario's expressions ----\n"
     source += dynamics_source(dynamics)
     stamp = f"{numba.__version__} {sys.version}\n{source}"
     key = hashlib.sha256(stamp.encode()).hexdigest()[:20]
@@ -152,7 +155,7 @@ class PenaltyData(NamedTuple):
     goal_upper: FloatArray
 
 
-def _rings(shape: BaseGeometry) -> list[FloatArray]:
+def rings(shape: BaseGeometry) -> list[FloatArray]:
     """Every ring (exterior and holes) of a polygon or multipolygon, without the closing vertex."""
     if isinstance(shape, Polygon):
         polygons = [shape]
@@ -167,7 +170,7 @@ def _rings(shape: BaseGeometry) -> list[FloatArray]:
     return rings
 
 
-def _ring_arrays(rings: list[FloatArray]) -> tuple[FloatArray, IntArray]:
+def ring_arrays(rings: list[FloatArray]) -> tuple[FloatArray, IntArray]:
     start = np.concatenate([[0], np.cumsum([len(r) for r in rings])]).astype(np.int64)
     return np.concatenate(rings, axis=0), start
 
@@ -176,14 +179,14 @@ def penalty_data(constraints: Constraints) -> PenaltyData:
     """Vertex arrays and bounds of ``constraints`` for the kernels."""
     unsafe_rings, set_rings, boxes = [], [0], []
     for region in constraints.unsafe.values():
-        rings = _rings(region)
-        unsafe_rings += rings
-        set_rings.append(set_rings[-1] + len(rings))
+        region_rings = rings(region)
+        unsafe_rings += region_rings
+        set_rings.append(set_rings[-1] + len(region_rings))
         boxes.append(region.bounds)
     unsafe_vertices, unsafe_start = (
-        _ring_arrays(unsafe_rings) if unsafe_rings else (np.zeros((0, 2)), np.zeros(1, np.int64))
+        ring_arrays(unsafe_rings) if unsafe_rings else (np.zeros((0, 2)), np.zeros(1, np.int64))
     )
-    goal_vertices, goal_start = _ring_arrays(_rings(constraints.goal_region))
+    goal_vertices, goal_start = ring_arrays(rings(constraints.goal_region))
     c = constraints
     return PenaltyData(
         position=np.array(c.position_index, dtype=np.int64),

@@ -1,0 +1,138 @@
+"""Sound coverage of a box by P-norm balls ``{x : ||x - x0_i||_P <= r_i}``, by subdivision.
+
+The box's degenerate intervals (e.g. "at rest") are fixed and drop out, leaving a box of
+dimension ``D`` over the free states. A box is covered when all ``2^D`` of its vertices lie in
+one ball (balls are convex, so the whole box does); a box is certainly not covered by ball ``i``
+when even its nearest point is outside, ``lambda_min(P) dist(x0_i, box)^2 > r_i^2``; a box that
+no ball can cover yet is split into ``2^D`` halves, up to ``max_depth`` halvings per side (and
+at most ``MAX_BOXES`` open vertices). What remains is uncovered: the test is sound, not
+complete (an uncovered box at the depth limit may still be covered by several balls together).
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from pipeline.model.dynamics import FloatArray
+
+DEFAULT_DEPTH = 8
+MAX_BOXES = 200_000
+
+
+@dataclass(frozen=True, kw_only=True)
+class Subdivision:
+    """The outcome of ``subdivide``.
+
+    Attributes:
+      boxes: (B, 2, n) covered boxes ``[lower, upper]``; assignment: (B,) the ball covering each.
+      uncovered: (U, 2, n) boxes not certified covered.
+      covered_volume, total_volume: over the free states (1 each if the box is a covered point).
+      free: indices of the box's non-degenerate states; depth: halvings per side reached.
+    """
+
+    boxes: FloatArray = field(repr=False)
+    assignment: np.ndarray = field(repr=False)
+    uncovered: FloatArray = field(repr=False)
+    covered_volume: float
+    total_volume: float
+    free: tuple[int, ...]
+    depth: int
+
+    @property
+    def covered(self) -> bool:
+        return len(self.uncovered) == 0
+
+    @property
+    def fraction(self) -> float:
+        """Covered volume / total volume (a lower bound on the true fraction)."""
+        if self.total_volume > 0:
+            return self.covered_volume / self.total_volume
+        return float(self.covered)
+
+
+def subdivide(
+    P: FloatArray,
+    lower0: FloatArray,
+    upper0: FloatArray,
+    centers: FloatArray,
+    radii: FloatArray,
+    max_depth: int = DEFAULT_DEPTH,
+) -> Subdivision:
+    """Certify that the box ``[lower0, upper0]`` (n,) lies in the union of the balls with
+    ``centers (k, n)``, ``radii (k,)`` (radii <= 0 are ignored) in the metric ``P (n, n)``."""
+    P = np.asarray(P, dtype=np.float64)
+    lower0 = np.asarray(lower0, dtype=np.float64)
+    upper0 = np.asarray(upper0, dtype=np.float64)
+    n = lower0.shape[0]
+    centers = np.asarray(centers, dtype=np.float64).reshape(-1, n)
+    radii = np.asarray(radii, dtype=np.float64).reshape(-1)
+    if radii.shape[0] != centers.shape[0]:
+        raise ValueError(f"coverage: {centers.shape[0]} centers but {radii.shape[0]} radii")
+    if not (np.all(np.isfinite(centers)) and np.all(np.isfinite(radii))):
+        raise ValueError("coverage: non-finite center or radius")
+    free = tuple(int(i) for i in np.flatnonzero(upper0 > lower0))
+    D = len(free)
+    corners = np.array(list(itertools.product((0.0, 1.0), repeat=D)), float).reshape(2**D, D)
+    lambda_min = float(np.linalg.eigvalsh(P)[0])
+    usable = radii > 0
+    r2 = np.where(usable, radii, 0.0) ** 2
+
+    lower = lower0[None, :].copy()  # (B, n) the boxes still open
+    upper = upper0[None, :].copy()
+    covered_boxes, assignment, uncovered = [], [], []
+    covered_volume, depth = 0.0, 0
+    free_index = list(free)
+    total_volume = float(np.prod(upper0[free_index] - lower0[free_index])) if D else 1.0
+    while len(lower):
+        # Vertices (B, 2^D, n): the box's lower corner plus 0/1 of its free widths.
+        vertices = np.repeat(lower[:, None, :], len(corners), axis=1)
+        vertices[:, :, free_index] += corners[None] * (upper - lower)[:, None, free_index]
+        e = vertices[:, :, None, :] - centers[None, None]  # (B, 2^D, k, n)
+        q = np.einsum("bvki,ij,bvkj->bvk", e, P, e)  # ||v - x0_i||_P^2
+        worst = q.max(axis=1)  # (B, k)
+        fits = (worst <= r2[None]) & usable[None]
+        margin = np.where(fits, 1.0 - worst / np.where(usable, r2, 1.0)[None], -np.inf)
+        done = fits.any(axis=1)
+        widths = (upper - lower)[:, free_index]
+        volumes = np.prod(widths, axis=1) if D else np.ones(len(lower))
+        covered_boxes.append(np.stack([lower[done], upper[done]], axis=1))
+        assignment.append(np.argmax(margin[done], axis=1))
+        covered_volume += float(volumes[done].sum())
+        # Boxes that some ball may still cover (nearest point of the box inside the ball).
+        nearest = np.clip(centers[None], lower[:, None], upper[:, None])  # (B, k, n)
+        gap = np.sum((nearest - centers[None]) ** 2, axis=-1)  # (B, k)
+        hopeful = ~done & np.any(usable[None] & (lambda_min * gap <= r2[None]), axis=1)
+        hopeless = ~done & ~hopeful
+        uncovered.append(np.stack([lower[hopeless], upper[hopeless]], axis=1))
+        lower, upper = lower[hopeful], upper[hopeful]
+        if not len(lower):
+            break
+        if D == 0 or depth >= max_depth or len(lower) * len(corners) > MAX_BOXES:
+            uncovered.append(np.stack([lower, upper], axis=1))
+            break
+        # Split every open box into 2^D halves.
+        middle = (lower + upper) / 2
+        children_lower = np.repeat(lower[:, None, :], len(corners), axis=1)
+        children_upper = np.repeat(upper[:, None, :], len(corners), axis=1)
+        children_lower[:, :, free_index] = np.where(
+            corners[None] > 0, middle[:, None, free_index], lower[:, None, free_index]
+        )
+        children_upper[:, :, free_index] = np.where(
+            corners[None] > 0, upper[:, None, free_index], middle[:, None, free_index]
+        )
+        lower, upper = children_lower.reshape(-1, n), children_upper.reshape(-1, n)
+        depth += 1
+
+    gaps = np.concatenate(uncovered).reshape(-1, 2, n) if uncovered else np.zeros((0, 2, n))
+    return Subdivision(
+        boxes=np.concatenate(covered_boxes).reshape(-1, 2, n),
+        assignment=np.concatenate(assignment).astype(np.int64),
+        uncovered=gaps,
+        covered_volume=covered_volume,
+        total_volume=total_volume,
+        free=free,
+        depth=depth,
+    )

@@ -1,0 +1,223 @@
+"""Stage ``certify``: the final, independent check of ``controller.json`` as it ships.
+
+Every "certified" claim of a run comes from here. The file is read back with
+``pipeline.controller.load`` (the reader users run) and re-verified against the scenario, using
+nothing but the file and the scenario (no stage result):
+
+1. the file is for this scenario: state and input names, ``Ts`` and input bounds agree;
+2. the metric: ``P = P^T`` with ``lambda_min(P) > 0``;
+3. the contraction inequality at every vertex ``[A_v B_v]`` of a sound hull of the Jacobians
+   over the operating region (``pipeline.numerics.hull``, rebuilt from the scenario):
+
+       lambda_max((A_v + B_v K)^T P + P (A_v + B_v K) + 2 lambda P) < 0,                (C)
+
+   eigenvalues by numpy (``eigvalsh``), which gives ``||e(t)||_P <= e^{-lambda t} ||e(0)||_P``
+   while the state and input stay in the region;
+4. each trajectory's reference ``x_ref`` is the scenario's dynamics simulated from its ``x0``
+   under its ``u_ref`` (to ``REFERENCE_TOLERANCE`` in P-norm per unit radius), and its radius is
+   at most the largest radius whose tube ``||x - x_ref(t)||_P <= r e^{-lambda t}`` avoids
+   Unsafe, keeps the inputs in their bounds and the tube in the operating region, and ends in
+   Goal, on the dense grid with a bound between grid points (``pipeline.numerics.tube_radius``);
+5. Init is covered by the initial balls ``||x - x0_i||_P <= radius_i`` (sound box subdivision,
+   ``pipeline.numerics.cover``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.controller import Controller, ControllerFormatError, load
+from pipeline.io.artifacts import file_hash
+from pipeline.model.scenario import Scenario
+from pipeline.model.simulate import simulate
+from pipeline.numerics.cover import DEFAULT_DEPTH, subdivide
+from pipeline.numerics.hull import DEFAULT_SEGMENTS, HullError, jacobian_hull
+from pipeline.numerics.tube_radius import radius_limits
+from pipeline.numerics.verify import VERIFY_SUBSTEPS
+
+REFERENCE_TOLERANCE = 1e-9  # ||x_ref - simulated||_P / radius
+RADIUS_TOLERANCE = 1e-12  # relative: a radius may exceed the re-verified one by rounding only
+
+
+@dataclass(frozen=True, kw_only=True)
+class CertificationResult:
+    """What the final check found in the emitted ``controller.json``.
+
+    Attributes:
+      path: the file checked; sha256: its content hash at the time of the check.
+      metric_eigenvalue: ``lambda_min(P)`` (> 0 for a metric).
+      contraction_margin: the largest eigenvalue of (C)'s left side over the hull's vertices
+        (< 0 for a certificate); ``vertices`` how many there were.
+      radii: (k,) the radii the file claims; verified_radii: (k,) the largest the re-check
+        allows for each trajectory (a claim is certified when it is not larger).
+      reference_error: the largest ``||x_ref - simulated||_P / radius`` over the trajectories.
+      covered_fraction: the part of Init certified covered by the file's balls (volume).
+      failures: one line per failed check; empty when the file is certified.
+    """
+
+    path: Path
+    sha256: str
+    metric_eigenvalue: float
+    contraction_margin: float
+    vertices: int
+    radii: tuple[float, ...]
+    verified_radii: tuple[float, ...]
+    reference_error: float
+    covered_fraction: float
+    failures: tuple[str, ...] = field(default=())
+    success: bool
+    message: str
+
+
+def _same_scenario(scenario: Scenario, controller: Controller) -> list[str]:
+    """Where the file's names, ``Ts`` and input bounds disagree with the scenario's."""
+    problems = []
+    if controller.state_names != tuple(scenario.state_names):
+        problems.append(f"state_names {list(controller.state_names)} != {scenario.state_names}")
+    if controller.input_names != tuple(scenario.input_names):
+        problems.append(f"input_names {list(controller.input_names)} != {scenario.input_names}")
+    if controller.Ts != scenario.Ts:
+        problems.append(f"Ts {controller.Ts:g} != the scenario's sampling_time {scenario.Ts:g}")
+    if not (
+        np.array_equal(controller.lower, scenario.input_lower)
+        and np.array_equal(controller.upper, scenario.input_upper)
+    ):
+        problems.append("input_bounds differ from the scenario's")
+    return [f"the file is not for this scenario: {p}" for p in problems]
+
+
+def _contraction_margin(controller: Controller, A: np.ndarray, B: np.ndarray) -> float:
+    """Largest eigenvalue of ``A_cl^T P + P A_cl + 2 lambda P`` over ``A (V, n, n)``,
+    ``B (V, n, m)`` with ``A_cl = A + B K`` (eq. (C) of the module docstring)."""
+    P, K = controller.P, controller.K
+    A_cl = A + B @ K  # (V, n, n)
+    M = np.swapaxes(A_cl, 1, 2) @ P + P @ A_cl + 2.0 * controller.rate * P
+    return float(np.linalg.eigvalsh((M + np.swapaxes(M, 1, 2)) / 2).max())
+
+
+def certify_controller(
+    scenario: Scenario,
+    path: Path,
+    *,
+    segments: int = DEFAULT_SEGMENTS,
+    max_depth: int = DEFAULT_DEPTH,
+) -> CertificationResult:
+    """Re-verify the emitted ``controller.json`` at ``path`` against ``scenario`` (steps 1-5 of
+    the module docstring); ``success`` only when every check passes."""
+    path = Path(path)
+    nothing = dict(
+        path=path,
+        metric_eigenvalue=float("nan"),
+        contraction_margin=float("nan"),
+        vertices=0,
+        radii=(),
+        verified_radii=(),
+        reference_error=float("nan"),
+        covered_fraction=0.0,
+        success=False,
+    )
+    try:
+        controller = load(path)
+        sha256 = file_hash(path)
+    except (OSError, ControllerFormatError) as error:
+        message = f"controller.json cannot be certified: {error}"
+        return CertificationResult(sha256="", failures=(message,), message=message, **nothing)
+    failures = _same_scenario(scenario, controller)
+    if failures:
+        message = "; ".join(failures)
+        return CertificationResult(
+            sha256=sha256, failures=tuple(failures), message=message, **nothing
+        )
+
+    # 2. The metric.
+    metric = float(np.linalg.eigvalsh(controller.P)[0])
+    if not metric > 0:
+        failures.append(f"P is not positive definite (smallest eigenvalue {metric:.3g})")
+
+    # 3. Contraction (C) at every vertex of a sound Jacobian hull over the operating region.
+    try:
+        hull = jacobian_hull(scenario.dynamics, scenario.operating_region, segments)
+        margin, vertices = _contraction_margin(controller, hull.A, hull.B), len(hull.vertices)
+    except HullError as error:
+        margin, vertices = float("nan"), 0
+        failures.append(f"no Jacobian hull over the operating region: {error}")
+    if not margin < 0:
+        failures.append(
+            f"the contraction inequality fails at rate {controller.rate:g}: largest eigenvalue "
+            f"{margin:.3g} >= 0 over {vertices} hull vertices"
+        )
+
+    # 4. Each reference and its radius.
+    verified, reference_error = [], 0.0
+    for i, tr in enumerate(controller.trajectories):
+        N = len(tr.u_ref)
+        substeps = (len(tr.t) - 1) // N
+        fine = simulate(scenario.dynamics, tr.x0, tr.u_ref, scenario.Ts, substeps=max(substeps, 1))
+        if substeps * N + 1 != len(tr.t) or not np.allclose(fine.dense_ts, tr.t, rtol=0, atol=1e-9):
+            failures.append(f"trajectories[{i}]: t is not a uniform RK4 grid of the samples")
+            verified.append(0.0)
+            continue
+        e = tr.x_ref - fine.dense_xs
+        error = float(np.sqrt(np.einsum("ki,ij,kj->k", e, controller.P, e)).max()) / tr.radius
+        reference_error = max(reference_error, error)
+        if not error <= REFERENCE_TOLERANCE:
+            failures.append(
+                f"trajectories[{i}]: x_ref is not the dynamics under u_ref from x0 "
+                f"(P-norm error {error:.3g} radius)"
+            )
+        nominal = simulate(scenario.dynamics, tr.x0, tr.u_ref, scenario.Ts, VERIFY_SUBSTEPS)
+        limits = radius_limits(
+            scenario,
+            controller.K,
+            controller.P,
+            controller.rate,
+            scenario.operating_region,
+            nominal,
+        )
+        verified.append(limits.radius)
+        if not tr.radius <= limits.radius * (1 + RADIUS_TOLERANCE):
+            binding = min(limits.limits, key=lambda key: limits.limits[key][0])
+            failures.append(
+                f"trajectories[{i}]: radius {tr.radius:.6g} > {limits.radius:.6g}, the largest "
+                f"the tube allows ({binding} binds at t = {limits.limits[binding][1]:.2f} s)"
+            )
+
+    # 5. Coverage of Init by the file's initial balls.
+    cover = subdivide(
+        controller.P,
+        scenario.init_lower,
+        scenario.init_upper,
+        np.stack([tr.x0 for tr in controller.trajectories]),
+        np.array([tr.radius for tr in controller.trajectories]),
+        max_depth,
+    )
+    if not cover.covered:
+        failures.append(
+            f"Init is not covered by the file's balls ({cover.fraction:.1%} certified covered)"
+        )
+
+    success = not failures
+    message = (
+        f"controller.json re-verified: P > 0, contraction at rate {controller.rate:g} on "
+        f"{vertices} hull vertices (margin {margin:.2e}), {len(verified)} radii within their "
+        "tubes, Init covered"
+        if success
+        else "controller.json is not certified: " + "; ".join(failures)
+    )
+    return CertificationResult(
+        path=path,
+        sha256=sha256,
+        metric_eigenvalue=metric,
+        contraction_margin=margin,
+        vertices=vertices,
+        radii=tuple(tr.radius for tr in controller.trajectories),
+        verified_radii=tuple(verified),
+        reference_error=reference_error,
+        covered_fraction=cover.fraction,
+        failures=tuple(failures),
+        success=success,
+        message=message,
+    )

@@ -1,0 +1,147 @@
+"""Stage ``certify``: the emitted controller.json is re-verified as written; tampering is caught.
+
+A double integrator at rest (four references covering Init, exact hull: one vertex) is emitted
+by the controller stage and must certify; the same file with a negative or 10x radius, a
+perturbed metric or gain, a moved reference or another scenario's sampling time must not.
+The quadrotor's shipped controller (the session's synthesis) is checked the same way, where the
+hull has many vertices and the contraction margin is tight.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from pipeline.model.simulate import simulate
+from pipeline.numerics.verify import VERIFY_SUBSTEPS
+from stages.certify import certify_controller
+from stages.controller import emit_controller
+from stages.feedback import design_feedback
+from stages.radius import robustness_radius
+
+STARTS = [np.array([x, y, 0.0, 0.0]) for x in (0.25, 0.75) for y in (2.25, 2.75)]
+
+
+@pytest.fixture
+def emitted(double_integrator, tmp_path):
+    """``(scenario, path)``: a certified controller.json for the double integrator at rest."""
+    scenario = double_integrator()
+    feedback = design_feedback(scenario)
+    us = np.zeros((10, 2))
+    radii = [
+        robustness_radius(
+            scenario, feedback, simulate(scenario.dynamics, x0, us, scenario.Ts, VERIFY_SUBSTEPS)
+        ).radius
+        for x0 in STARTS
+    ]
+    path = tmp_path / "controller.json"
+    emit_controller(scenario, feedback.K, feedback.P, feedback.rate, STARTS, [us] * 4, radii, path)
+    return scenario, path
+
+
+def _tamper(path, change):
+    document = json.loads(path.read_text())
+    change(document)
+    path.write_text(json.dumps(document))
+
+
+def test_the_emitted_file_certifies(emitted):
+    scenario, path = emitted
+    result = certify_controller(scenario, path)
+    assert result.success, result.message
+    assert result.metric_eigenvalue > 0 and result.contraction_margin < 0 and result.vertices == 1
+    assert result.radii == pytest.approx(result.verified_radii)
+    assert result.covered_fraction == 1.0 and result.reference_error < 1e-12
+
+
+def _scale_radius(factor):
+    def change(document):
+        document["trajectories"][1]["radius"] *= factor
+
+    return change
+
+
+def _perturb_P(document):
+    P = np.array(document["feedback"]["P"])
+    P[0, 2] = P[2, 0] = P[0, 2] + 0.3 * np.sqrt(P[0, 0] * P[2, 2])
+    document["feedback"]["P"] = P.tolist()
+
+
+def _perturb_K(document):
+    K = np.array(document["feedback"]["K"])
+    K[0, 2] = -0.2 * K[0, 2]  # the velocity gain, almost removed and of the wrong sign
+    document["feedback"]["K"] = K.tolist()
+
+
+def _scale_K(factor):
+    def change(document):
+        document["feedback"]["K"] = (factor * np.array(document["feedback"]["K"])).tolist()
+
+    return change
+
+
+def _move_reference(document):
+    document["trajectories"][0]["x_ref"][5][1] += 0.01
+
+
+def _other_sampling_time(document):
+    document["Ts"] = 0.05
+    for item in document["trajectories"]:
+        item["T"] = 0.05 * len(item["u_ref"])
+        item["t"] = (np.asarray(item["t"]) / 2).tolist()
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        (_scale_radius(-1.0), "trajectories[1].radius: found -"),
+        (_scale_radius(10.0), "trajectories[1]: radius"),
+        (_scale_radius(1.001), "the largest the tube allows"),
+        (_perturb_P, "the contraction inequality fails"),
+        (_perturb_K, "the contraction inequality fails"),
+        (_move_reference, "trajectories[0]: x_ref is not the dynamics under u_ref"),
+        (_other_sampling_time, "the file is not for this scenario: Ts 0.05"),
+    ],
+)
+def test_a_tampered_file_is_not_certified(emitted, change, message):
+    scenario, path = emitted
+    _tamper(path, change)
+    result = certify_controller(scenario, path)
+    assert not result.success
+    assert message in result.message, result.message
+
+
+def test_a_shrunk_radius_that_leaves_init_uncovered_is_caught(emitted):
+    scenario, path = emitted
+
+    def shrink(document):
+        for item in document["trajectories"]:
+            item["radius"] *= 0.1
+
+    _tamper(path, shrink)
+    result = certify_controller(scenario, path)
+    assert not result.success and "Init is not covered" in result.message
+
+
+def test_a_missing_file_is_not_certified(double_integrator, tmp_path):
+    result = certify_controller(double_integrator(), tmp_path / "controller.json")
+    assert not result.success and "cannot read" in result.message
+
+
+@pytest.mark.parametrize(
+    "change",
+    [_scale_radius(-1.0), _scale_radius(10.0), _perturb_P, _scale_K(1.05), _scale_K(0.95)],
+    ids=["negative radius", "10x radius", "perturbed P", "K 5% larger", "K 5% smaller"],
+)
+def test_the_quadrotor_controller_certifies_and_tampering_is_caught(synthesized, tmp_path, change):
+    from pipeline import load_scenario
+
+    _, out = synthesized
+    scenario = load_scenario("quadrotor_hill", check_demos=False)
+    assert certify_controller(scenario, out / "controller.json").success
+    path = tmp_path / "controller.json"
+    path.write_bytes((out / "controller.json").read_bytes())
+    _tamper(path, change)
+    assert not certify_controller(scenario, path).success

@@ -1,0 +1,83 @@
+"""The typed run summary: the verdict table, summary.json as valid JSON, and the round trip."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import pytest
+
+from pipeline.reporting.summary import ClaimKind, Summary, Verdict
+
+
+@pytest.mark.parametrize(
+    ("certified", "validated", "verdict"),
+    [
+        (True, True, Verdict.CERTIFIED_AND_VALIDATED),
+        (True, False, Verdict.CERTIFIED_NOT_VALIDATED),
+        (False, True, Verdict.NOT_CERTIFIED),
+        (False, False, Verdict.NOT_CERTIFIED),
+    ],
+)
+def test_the_verdict_of_a_finished_run(certified, validated, verdict):
+    assert Verdict.of(certified=certified, validated=validated) is verdict
+
+
+@pytest.fixture
+def summary(synthesized) -> Summary:
+    _, out = synthesized
+    return Summary.from_json(json.loads((out / "summary.json").read_text()))
+
+
+def test_summary_json_round_trips_through_the_typed_summary(synthesized, summary):
+    _, out = synthesized
+    document = json.loads((out / "summary.json").read_text())
+    assert summary.to_json() == document
+    assert summary.verdict is Verdict.CERTIFIED_AND_VALIDATED and summary.certified
+    assert summary.certification.certified and summary.certification.contraction_margin < 0
+    assert {c.kind for c in summary.claims} >= {
+        ClaimKind.CERTIFIED,
+        ClaimKind.STATISTICALLY_VALIDATED,
+        ClaimKind.FALSIFICATION_SEARCHED,
+    }
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        summary.verdict = Verdict.FAILED  # type: ignore[misc]
+
+
+def test_non_finite_numbers_are_written_as_null(summary):
+    montecarlo = dataclasses.replace(
+        summary.montecarlo, min_clearance=float("-inf"), min_goal_margin=float("nan")
+    )
+    broken = dataclasses.replace(
+        summary,
+        montecarlo=montecarlo,
+        verdict=Verdict.CERTIFIED_NOT_VALIDATED,
+        reasons=("Monte Carlo failure: 1 of 1000 closed-loop runs failed: non_finite 1",),
+    )
+    text = json.dumps(broken.to_json(), allow_nan=False)  # strict JSON: raises on NaN/inf
+    document = json.loads(text)
+    assert document["montecarlo"]["min_clearance"] is None
+    assert document["verdict"]["text"] == (
+        "certified but not validated: Monte Carlo failure: 1 of 1000 closed-loop runs failed: "
+        "non_finite 1"
+    )
+    assert document["verdict"]["certified"] and not document["verdict"]["validated"]
+    back = Summary.from_json(document)
+    assert back.montecarlo.min_clearance != back.montecarlo.min_clearance  # NaN: unknown
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        (lambda d: d["verdict"].update(kind="fine"), "verdict: 'fine' is not one of"),
+        (lambda d: d["headline"].pop("montecarlo_samples"), "headline.montecarlo_samples: missing"),
+        (lambda d: d["demos"][0].update(T_demo="3"), "demos[0].T_demo: expected a number"),
+        (lambda d: d["claims"][1].update(kind="proved"), "claims[1].kind: 'proved'"),
+        (lambda d: d.pop("verdict"), "verdict: missing"),
+    ],
+)
+def test_a_wrong_summary_json_names_the_field(summary, change, message):
+    document = summary.to_json()
+    change(document)
+    with pytest.raises(ValueError, match=message.replace("[", r"\[").replace("]", r"\]")):
+        Summary.from_json(document)
