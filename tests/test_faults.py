@@ -333,8 +333,9 @@ def test_fully_cached_rerun_and_csv_comment_edit_recompute_nothing(run, capsys):
     demo.write_text("# a comment added by hand\n" + demo.read_text().replace(",", ", "))
     assert synthesize(run) == 0
     printed = capsys.readouterr().out
-    assert "] running" not in printed
-    assert mtimes(out) == before
+    ran = {line.split("]")[0][1:] for line in printed.splitlines() if line.endswith("] running")}
+    assert ran == {"controller"}  # always written from this run's results (the same bytes)
+    assert mtimes(out) == {**before, "controller.json": mtimes(out)["controller.json"]}
     assert (out / "report.html").stat().st_mtime_ns == report  # timings are not in its key
 
 
@@ -362,6 +363,14 @@ def test_an_edited_or_truncated_controller_is_rewritten_from_the_certified_resul
     assert synthesize(run) == 0
     assert "[controller] running" in capsys.readouterr().out
     assert radii(out) == shipped
+
+
+def test_report_refuses_a_controller_the_run_did_not_write(run, capsys):
+    scenario, out = run
+    path = out / "controller.json"
+    path.write_text(_negative_radius(path.read_text()))
+    assert main(["report", str(scenario), "--out", str(out)]) == 2
+    assert f"{path}: controller.json is not the file the run wrote" in capsys.readouterr().err
 
 
 def _copy_project(destination: Path) -> Path:
