@@ -124,7 +124,11 @@ class FigureStore:
     def copy_png(self, figure: Figure, target: Path) -> None:
         """The figure's PNG (cut from its page) to ``target``, atomically."""
         source = self.figure_file(figure, ".png")
-        atomic_save(target, lambda p: shutil.copyfile(source, p), ".png")
+
+        def copy(path: Path) -> None:
+            shutil.copyfile(source, path)
+
+        atomic_save(target, copy, ".png")
 
     def join(self, pages: Sequence[Path], path: Path, title: str) -> None:
         """The one-page PDFs ``pages`` joined, in order, into ``path``."""
