@@ -56,30 +56,33 @@ def write_reports(data: ReportData) -> ReportResult:
     verdict = data.summary.text
     title = f"Safety controller synthesis report: {scenario.name}"
     store = FigureStore(out / "artifacts" / FIGURES)
-    pages: list[int] = []
-    atomic_save(
-        out / "report.pdf",
-        lambda path: pages.append(write_pdf(path, title, sections, store, frozenset([OVERVIEW]))),
-        suffix=".pdf",
-    )
-    html = render_html(
-        title,
-        f"Verdict: {verdict}. Winn & Julius, Optimization of Human Generated Trajectories for "
-        "Safety Controller Synthesis.",
-        sections,
-        {"version": _version(), "out": str(out), "scenario": scenario.name},
-        store.svgs,
-    )
-    atomic_write_text(out / "report.html", html)
-    overview = [
-        block
-        for section in sections
-        for block in section.blocks
-        if isinstance(block, Figure) and block.key == OVERVIEW
-    ]
-    for figure in overview:  # the scenario figure on its own, for slides and notes
-        store.copy_png(figure, out / "scenario.png")
-    store.prune()
+    try:
+        pages: list[int] = []
+
+        def pdf(path: Path) -> None:
+            pages.append(write_pdf(path, title, sections, store, frozenset([OVERVIEW])))
+
+        atomic_save(out / "report.pdf", pdf, suffix=".pdf")
+        html = render_html(
+            title,
+            f"Verdict: {verdict}. Winn & Julius, Optimization of Human Generated Trajectories for "
+            "Safety Controller Synthesis.",
+            sections,
+            {"version": _version(), "out": str(out), "scenario": scenario.name},
+            store.svgs,
+        )
+        atomic_write_text(out / "report.html", html)
+        overview = [
+            block
+            for section in sections
+            for block in section.blocks
+            if isinstance(block, Figure) and block.key == OVERVIEW
+        ]
+        for figure in overview:  # the scenario figure on its own, for slides and notes
+            store.copy_png(figure, out / "scenario.png")
+        store.prune()
+    finally:
+        store.close()
     seconds = time.perf_counter() - start
     drawn = f"{len(store.drawn)} figures drawn" if store.drawn else "every figure reused"
     return ReportResult(

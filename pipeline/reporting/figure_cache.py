@@ -130,21 +130,39 @@ class FigureStore:
 
         atomic_save(target, copy, ".png")
 
-    def join(self, pages: Sequence[Path], path: Path, title: str) -> None:
-        """The one-page PDFs ``pages`` joined, in order, into ``path``."""
-        from pypdf import PdfWriter
+    def scratch_file(self, suffix: str) -> Path:
+        """A new file name in the private temporary folder."""
+        return self._file(None, suffix)
 
+    def join(
+        self, pages: Sequence[tuple[Path, int | None]], fresh: Path, path: Path, title: str
+    ) -> None:
+        """The report's pages, in order, into ``path``: ``(file, None)`` a kept page,
+        ``(file, k)`` page ``k`` of ``fresh`` (rendered now), also kept as ``file``."""
+        from pypdf import PdfReader, PdfWriter
+
+        reader = PdfReader(fresh) if any(k is not None for _, k in pages) else None
         writer = PdfWriter()
-        for page in pages:
-            writer.append(str(page))
+        for file, k in pages:
+            if k is None:
+                writer.append(str(file))
+                continue
+            assert reader is not None
+            single = PdfWriter()
+            single.add_page(reader.pages[k])
+            atomic_save(file, single.write, ".pdf")
+            writer.add_page(reader.pages[k])
         writer.add_metadata({"/Title": title, "/Creator": "safety-synthesis"})
         with open(path, "wb") as handle:
             writer.write(handle)
 
     def prune(self) -> None:
-        """Delete this folder's cached files that this report did not use, and the scratch."""
+        """Delete this folder's cached files that this report did not use."""
         if self.folder != self._scratch:
             for path in self.folder.iterdir():
                 if path.is_file() and path not in self.used and not path.name.startswith("."):
                     path.unlink(missing_ok=True)
+
+    def close(self) -> None:
+        """Delete the private temporary folder (after the report is written, or failed)."""
         shutil.rmtree(self._scratch, ignore_errors=True)

@@ -15,6 +15,7 @@ from functools import lru_cache
 from pathlib import Path
 
 import matplotlib
+from matplotlib.backends.backend_pdf import PdfPages
 from matplotlib.figure import Figure as MplFigure
 from matplotlib.figure import SubFigure
 from matplotlib.font_manager import FontProperties
@@ -113,7 +114,10 @@ class _Writer:
         self.heading = ""
         self.ops: list[object] = []
         self.pending: tuple[Figure, SubFigure] | None = None  # the page's figure, not drawn yet
-        self.files: list[Path] = []
+        self.files: list[tuple[Path, int | None]] = []  # page file, index among fresh pages
+        self.fresh: PdfPages | None = None  # the pages rendered now, in one document
+        self.fresh_path = store.scratch_file(".pdf")
+        self.fresh_count = 0
 
     @property
     def width(self) -> float:
@@ -175,14 +179,19 @@ class _Writer:
         cacheable = figure is None or figure_digest(figure) is not None
         path = self.store.page_file(digest_of("page", PAGE, self.ops) if cacheable else None)
         png = figure is not None and figure.key in self.png
-        if not self.store.cached(path, figure, png):
-            if self.pending is not None:
-                self.pending[0].draw(self.pending[1])
+        if self.store.cached(path, figure, png):
+            self.files.append((path, None))
+            return
+        if self.pending is not None:
+            self.pending[0].draw(self.pending[1])
+        if self.fresh is None:  # one document: each font is embedded once, not once a page
             metadata = {"Creator": "safety-synthesis", "CreationDate": None}
-            self.page.savefig(path, format="pdf", metadata=metadata)
-            if self.pending is not None:
-                self.store.save_figure(self.pending[0], self.page, self.pending[1], png)
-        self.files.append(path)
+            self.fresh = PdfPages(self.fresh_path, metadata=metadata)
+        self.fresh.savefig(self.page)
+        self.files.append((path, self.fresh_count))
+        self.fresh_count += 1
+        if self.pending is not None:
+            self.store.save_figure(self.pending[0], self.page, self.pending[1], png)
 
     def room(self, height: float) -> None:
         """Start a continuation page unless ``height`` inches still fit."""
@@ -335,8 +344,12 @@ def write_pdf(
     """Write the sections to ``path`` (the caller renames it into place); returns the number
     of pages. Every section starts on a new page. Pages and the figures' SVGs (and PNGs of the
     figures named in ``png``) are kept in ``store`` (default: a temporary one)."""
-    owned = store is None
-    store = store if store is not None else FigureStore(None)
+    if store is None:
+        store = FigureStore(None)
+        try:
+            return write_pdf(path, title, sections, store, png)
+        finally:
+            store.close()
     with matplotlib.rc_context(STYLE):
         writer = _Writer(store, title, png)
         for section in sections:
@@ -344,7 +357,7 @@ def write_pdf(
             for block in section.blocks:
                 writer.block(block)
         writer.finish()
-    store.join(writer.files, path, title)
-    if owned:
-        store.prune()  # only its scratch folder
+        if writer.fresh is not None:
+            writer.fresh.close()
+    store.join(writer.files, writer.fresh_path, path, title)
     return writer.count
