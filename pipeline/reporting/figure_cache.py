@@ -152,6 +152,7 @@ class FigureStore:
             single.add_page(reader.pages[k])
             atomic_save(file, single.write, ".pdf")
             writer.add_page(reader.pages[k])
+        writer.compress_identical_objects()  # the fonts each kept page carries, once
         writer.add_metadata({"/Title": title, "/Creator": "safety-synthesis"})
         with open(path, "wb") as handle:
             writer.write(handle)
