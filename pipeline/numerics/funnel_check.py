@@ -61,7 +61,7 @@ class Funnel:
     @property
     def Q(self) -> FloatArray:
         """(N+1, n, n) ``P^-1`` at the sample times."""
-        return np.linalg.inv(self.P)
+        return np.linalg.inv(self.P).astype(np.float64, copy=False)
 
 
 def certificate_margins(
@@ -109,7 +109,7 @@ def check_funnel(
     Q = (Q + np.swapaxes(Q, 1, 2)) / 2
     margins = certificate_margins(Q, K, funnel.vertices, funnel.rate, Ts)
     if margins.max() >= 0:
-        k, e = np.unravel_index(int(np.argmax(margins)), margins.shape)
+        k, e = map(int, np.unravel_index(int(np.argmax(margins)), margins.shape))
         worst = margins.max()
         return f"(F2) fails at t = {Ts * (k + e):.2f} s, interval {k} (eigenvalue {worst:.3g})"
     h = Ts / substeps(trajectory)

@@ -7,6 +7,7 @@ feasible trajectories purple, closed loop teal, failures and gaps red.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 from matplotlib import colormaps
@@ -55,7 +56,7 @@ def _tube_along(
     s, feedback = data.scenario, data.feedback
     if radius <= 0:
         return
-    shape = projection_shape(feedback.P, s.position_index)
+    shape = projection_shape(feedback.certified_tube.P, s.position_index)
     t = np.arange(0.0, path.duration + 1e-9, TUBE_PERIOD) if along else np.zeros(1)
     p = s.positions(path.dense_xs)
     centres = np.stack([np.interp(t, path.dense_ts, p[:, 0]), np.interp(t, path.dense_ts, p[:, 1])])
@@ -182,8 +183,10 @@ def draw_optimization(fig: FigureLike, data: ReportData) -> None:
     )
 
 
-def _box(ax: Axes, lower: FloatArray, upper: FloatArray, **style: object) -> None:
-    ax.add_patch(Rectangle(lower, *(np.asarray(upper) - lower), **style))
+def _box(ax: Axes, lower: FloatArray, upper: FloatArray, **style: Any) -> None:
+    """The box ``[lower, upper]`` (2,); ``style``: matplotlib's (``Any``-typed) patch properties."""
+    width, height = np.asarray(upper) - lower
+    ax.add_patch(Rectangle((lower[0], lower[1]), width, height, **style))
 
 
 def _state_label(scenario: Scenario, index: int) -> str:
@@ -213,11 +216,11 @@ def draw_coverage(fig: FigureLike, data: ReportData) -> None:
         for lower, upper in coverage.uncovered_boxes[:, :, pair]:
             _box(ax, lower, upper, facecolor=FAILURE, alpha=0.6, lw=0, zorder=2)
         if len(free) >= 2:
-            shape = slice_shape(data.feedback.P, pair)
+            shape = slice_shape(data.feedback.certified_tube.P, pair)
             ellipses(ax, shape, starts[:, pair], r, colour, filled=True, alpha=0.08, lw=0)
             ellipses(ax, shape, starts[:, pair], r, colour, lw=1.0)
         else:
-            half = r / np.sqrt(data.feedback.P[free[0], free[0]])
+            half = r / np.sqrt(data.feedback.certified_tube.P[free[0], free[0]])
             for c, h in zip(starts[:, free[0]], half, strict=True):
                 ax.plot([c - h, c + h], [c, c], color=colour, lw=2)
         ax.plot(*starts[:, pair].T, "o", color=colour, ms=3, zorder=4)
