@@ -293,7 +293,7 @@ def _histogram(
     bad = failed(finite)  # type: ignore[operator]
     low = min(float(finite.min()), threshold) if len(finite) else threshold
     high = max(float(finite.max()), threshold) if len(finite) else threshold + 1
-    bins = np.linspace(low, high + 1e-12, 41)
+    bins = np.linspace(low, high + 1e-12, 41).tolist()  # a list: matplotlib's stub wants one
     ax.hist(finite[~bad], bins=bins, color=CLOSED_LOOP, alpha=0.8, label="passed")
     if bad.any():
         ax.hist(finite[bad], bins=bins, color=FAILURE, label=f"failed ({int(bad.sum())})")

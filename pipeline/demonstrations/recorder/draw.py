@@ -11,6 +11,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
+import numpy.typing as npt
 import pygame
 
 from pipeline.demonstrations.recorder.config import RecorderConfig
@@ -58,7 +59,7 @@ class Scene:
         self.fonts = {size: pygame.font.Font(None, size) for size in (18, 22, 28, 44, 120)}
         self.background = self._background()
 
-    def to_screen(self, points: FloatArray) -> FloatArray:
+    def to_screen(self, points: npt.ArrayLike) -> FloatArray:
         """Positions ``(..., 2)`` in m -> pixels ``(..., 2)`` (y up on the map)."""
         p = (np.asarray(points, dtype=np.float64) - self.lower) * self.scale
         return np.stack([p[..., 0], self.map_size[1] - p[..., 1]], axis=-1)
@@ -169,11 +170,13 @@ class Scene:
             along = np.array([np.cos(a), np.sin(a)])
             up = np.array([-np.sin(a), np.cos(a)])
             ends = self.to_screen([position - BODY * along, position + BODY * along])
-            pygame.draw.line(surface, VEHICLE, *ends.tolist(), 5)
-            pygame.draw.line(surface, VEHICLE, centre, self.to_screen(position + STUB * up), 2)
+            back, front = ends.tolist()
+            pygame.draw.line(surface, VEHICLE, back, front, 5)
+            stub = self.to_screen(position + STUB * up)
+            pygame.draw.line(surface, VEHICLE, centre.tolist(), stub.tolist(), 2)
             for end in ends:
                 pygame.draw.circle(surface, VEHICLE, end, 7, 2)
-        pygame.draw.circle(surface, VEHICLE, centre, 7)
+        pygame.draw.circle(surface, VEHICLE, centre.tolist(), 7)
 
     def _bars(self, surface: pygame.Surface, u: FloatArray | None) -> None:
         scenario = self.scenario
