@@ -146,7 +146,7 @@ def _decode(value: Any, arrays: Mapping[str, np.ndarray], registry: Mapping[str,
         if cls is None:
             raise ArtifactError(f"names type {name!r}, which is not a registered result type")
         stored = value.get("fields")
-        declared = {f.name for f in dataclasses.fields(cls) if f.init}  # type: ignore[arg-type]
+        declared = {f.name for f in dataclasses.fields(cls) if f.init}
         if not isinstance(stored, dict) or set(stored) != declared:
             found = sorted(stored) if isinstance(stored, dict) else stored
             raise ArtifactError(

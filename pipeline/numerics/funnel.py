@@ -88,7 +88,7 @@ from pipeline.numerics.hull import HullError, jacobian_hull
 
 
 class _Parts(TypedDict, total=False):
-    """The fields of a ``Funnel`` that ``funnel`` has found so far (``result`` defaults the rest)."""
+    """The ``Funnel`` fields that ``funnel`` has found so far (``result`` defaults the rest)."""
 
     P: FloatArray
     rho: float

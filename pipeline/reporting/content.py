@@ -7,7 +7,7 @@ formats cannot drift apart. Numbers are formatted here, once.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import ClassVar
 

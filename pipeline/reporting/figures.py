@@ -6,10 +6,11 @@ feasible trajectories purple, closed loop teal, failures and gaps red.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 from matplotlib import colormaps
 from matplotlib.axes import Axes
 from matplotlib.lines import Line2D
@@ -283,14 +284,14 @@ def draw_montecarlo(fig: FigureLike, data: ReportData) -> None:
 def _histogram(
     ax: Axes,
     values: FloatArray,
-    failed: object,
+    failed: Callable[[FloatArray], npt.NDArray[np.bool_]],
     threshold: float,
     reference: tuple[float, str] | None,
     xlabel: str,
     log: bool = False,
 ) -> None:
     finite = values[np.isfinite(values)]
-    bad = failed(finite)  # type: ignore[operator]
+    bad = failed(finite)
     low = min(float(finite.min()), threshold) if len(finite) else threshold
     high = max(float(finite.max()), threshold) if len(finite) else threshold + 1
     bins = np.linspace(low, high + 1e-12, 41).tolist()  # a list: matplotlib's stub wants one

@@ -13,6 +13,7 @@ from collections.abc import Sequence
 import numpy as np
 import numpy.typing as npt
 import pygame
+from shapely.geometry.base import BaseGeometry
 
 from pipeline.demonstrations.recorder.config import RecorderConfig
 from pipeline.model import geometry
@@ -90,7 +91,13 @@ class Scene:
             surface.blit(box, rect.inflate(10, 4).topleft)
         surface.blit(image, rect)
 
-    def _polygon(self, surface, shape, fill, width=0) -> None:  # type: ignore[no-untyped-def]
+    def _polygon(
+        self,
+        surface: pygame.Surface,
+        shape: BaseGeometry,
+        fill: tuple[int, int, int],
+        width: int = 0,
+    ) -> None:
         points = self.to_screen(np.asarray(shape.exterior.coords)[:-1])
         pygame.draw.polygon(surface, fill, points.tolist(), width)
 
@@ -125,7 +132,7 @@ class Scene:
         pygame.draw.line(surface, INK, (0, self.map_size[1]), (self.size[0], self.map_size[1]))
         return surface
 
-    def _label_at(self, shape) -> FloatArray:  # type: ignore[no-untyped-def]
+    def _label_at(self, shape: BaseGeometry) -> FloatArray:
         (x0, y0), (x1, y1) = self.lower, self.upper
         view = geometry.polygon([[x0, y0], [x1, y0], [x1, y1], [x0, y1]])
         point = shape.intersection(view).representative_point()
