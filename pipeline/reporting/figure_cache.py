@@ -150,7 +150,11 @@ class FigureStore:
             assert reader is not None
             single = PdfWriter()
             single.add_page(reader.pages[k])
-            atomic_save(file, single.write, ".pdf")
+
+            def keep(target: Path, single: PdfWriter = single) -> None:
+                single.write(target)
+
+            atomic_save(file, keep, ".pdf")
             writer.add_page(reader.pages[k])
         writer.compress_identical_objects()  # the fonts each kept page carries, once
         writer.add_metadata({"/Title": title, "/Creator": "safety-synthesis"})

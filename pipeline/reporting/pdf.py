@@ -13,6 +13,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from functools import lru_cache
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 from matplotlib.backends.backend_pdf import PdfPages
@@ -123,7 +124,8 @@ class _Writer:
     def width(self) -> float:
         return PAGE[0] - 2 * MARGIN
 
-    def _text(self, x: float, y: float, text: str, size: float, **style: object) -> None:
+    def _text(self, x: float, y: float, text: str, size: float, **style: Any) -> None:
+        """``text`` at ``(x, y)`` from the top left; ``style``: matplotlib text properties."""
         assert self.page is not None
         self.ops.append(("text", x, y, text, size, sorted(style.items())))
         self.page.text(x / PAGE[0], 1 - y / PAGE[1], text, fontsize=size, va="top", **style)
@@ -309,7 +311,7 @@ class _Writer:
         assert self.page is not None
         body = min(wanted, BOTTOM - self.y - caption_height)
         ratios = [self.y, body, PAGE[1] - self.y - body]
-        _, drawing, _ = self.page.subfigures(3, 1, height_ratios=ratios)
+        _, drawing, _ = self.page.subfigures(3, 1, squeeze=False, height_ratios=ratios)[:, 0]
         self.ops.append(("figure", block.key, figure_digest(block), ratios))
         self.pending = (block, drawing)  # drawn by finish() unless the page is reused
         y = self.y + body + 0.1
