@@ -22,7 +22,8 @@ def synthesis_group(scenario: str) -> str:
     return f"synthesis-{scenario}"
 
 
-def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+@pytest.hookimpl(tryfirst=True)  # before xdist's own hook reads the groups in each worker
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """Mark each test that reads a session synthesis with its scenario's ``xdist_group``: the
     ``name`` parameter for ``synthesis(name)``, quadrotor_hill for ``synthesized``."""
     for item in items:
@@ -36,6 +37,21 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
         else:
             scenario = str(params["name"])
         item.add_marker(pytest.mark.xdist_group(synthesis_group(scenario)))
+    if getattr(config.option, "loadgroup", False):
+        _suffix_groups(items)
+
+
+def _suffix_groups(items: list[pytest.Item]) -> None:
+    """In an xdist worker under ``--dist loadgroup``: append ``@GROUP`` to each grouped test's
+    node id, which is what the scheduler groups by. xdist's own hook does it by setting
+    ``Node._nodeid``, which pytest 9 no longer reads (the id is ``Node._id``), so without this
+    ``loadgroup`` schedules like ``load`` and each worker repeats the session syntheses."""
+    from _pytest.nodeid import coerce_node_id
+
+    for item in items:
+        groups = sorted({str(m.args[0]) for m in item.iter_markers("xdist_group") if m.args})
+        if groups and "@" not in item.nodeid and hasattr(item, "_id"):
+            item._id = coerce_node_id(f"{item.nodeid}@{'_'.join(groups)}")
 
 
 @pytest.fixture(scope="session")
