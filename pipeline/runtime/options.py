@@ -78,6 +78,17 @@ class RunOptions:
     stress: bool = option(False, "also run the stress test (wind, noise; not certified)")
     seed: int = option(MONTE_CARLO_SEED, "seed of the Monte Carlo and stress runs", parse=int)
 
+    def __post_init__(self) -> None:
+        """The command line checks these while parsing; the Python API (``pipeline.synthesize``)
+        relies on this: a value outside its choices, or a count below 1, is a ``ValueError``."""
+        for item in self.__dataclass_fields__.values():
+            spec: CommandLine = item.metadata["cli"]
+            value = getattr(self, item.name)
+            if spec.choices is not None and value not in spec.choices:
+                raise ValueError(f"{item.name}={value!r}; expected one of {spec.choices}")
+            if spec.parse is positive_int and (type(value) is not int or value < 1):
+                raise ValueError(f"{item.name}={value!r}; expected a whole number >= 1")
+
 
 def add_arguments(parser: argparse.ArgumentParser, options: type) -> None:
     """One argument per field of the dataclass ``options`` that has a ``CommandLine``."""
