@@ -79,13 +79,13 @@ def _run(args: argparse.Namespace) -> int:
         from pipeline.runtime.terminal import format_result, show_progress
 
         options = from_arguments(RunOptions, args)
-        show_progress(verbose=options.verbose, quiet=options.quiet)
         computed = {  # every option but how much to print
             name: getattr(options, name)
             for name in RunOptions.__dataclass_fields__
             if name not in ("verbose", "quiet")
         }
-        result = synthesize(args.scenario, out=args.out, **computed)
+        with show_progress(verbose=options.verbose, quiet=options.quiet):
+            result = synthesize(args.scenario, out=args.out, **computed)
         print(format_result(result, quiet=options.quiet))
         return result.exit_code
     if args.command == "demos":

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import logging
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 
 from pipeline.reporting.summary import Summary
 from pipeline.runtime.synthesis import Synthesis
@@ -17,24 +19,27 @@ from pipeline.runtime.synthesis import Synthesis
 LOGGER = "pipeline"
 
 
-def show_progress(*, verbose: bool = False, quiet: bool = False) -> None:
-    """Print the ``pipeline`` logger's messages on stdout: each stage's line (INFO), with
-    ``verbose`` the optimizer's iteration logs (DEBUG), with ``quiet`` warnings only."""
+@contextmanager
+def show_progress(*, verbose: bool = False, quiet: bool = False) -> Iterator[None]:
+    """While open, print the ``pipeline`` logger's messages: each stage's line (INFO) on stdout,
+    with ``verbose`` the optimizer's iteration logs (DEBUG), with ``quiet`` warnings only (on
+    stderr). The logger is left as it was found."""
     logger = logging.getLogger(LOGGER)
-    level = logging.DEBUG if verbose else logging.WARNING if quiet else logging.INFO
-    logger.setLevel(level)
-    if not any(getattr(h, "_pipeline_cli", False) for h in logger.handlers):
-        handler = _StdoutHandler()
-        handler.setFormatter(logging.Formatter("%(message)s"))
-        logger.addHandler(handler)
-    logger.propagate = False  # the user's root logger configuration does not print them twice
+    handler = _StdoutHandler()
+    handler.setFormatter(logging.Formatter("%(message)s"))
+    level = logger.level
+    logger.setLevel(logging.DEBUG if verbose else logging.WARNING if quiet else logging.INFO)
+    logger.addHandler(handler)
+    try:
+        yield
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(level)
 
 
 class _StdoutHandler(logging.StreamHandler):  # type: ignore[type-arg]
     """Warnings on stderr, everything else on stdout (``sys.stdout`` looked up per message, so
     that pytest's capture and redirections see it)."""
-
-    _pipeline_cli = True
 
     def emit(self, record: logging.LogRecord) -> None:
         self.stream = sys.stderr if record.levelno >= logging.WARNING else sys.stdout
@@ -43,12 +48,11 @@ class _StdoutHandler(logging.StreamHandler):  # type: ignore[type-arg]
 
 def format_result(result: Synthesis, *, quiet: bool = False) -> str:
     """The end of the run: the summary (or only the verdict with ``quiet``) and the files."""
-    if result.summary is None:  # failed before a summary
-        return f"{result.message}"
-    text = f"verdict: {result.message}" if quiet else format_summary(result.summary)
+    if result.summary is None:  # failed before a summary: the stage and the error
+        return result.message
     if quiet:
-        return text
-    return f"{text}\n\n{format_outputs(result)}"
+        return f"verdict: {result.message}"
+    return f"{format_summary(result.summary)}\n\n{format_outputs(result)}"
 
 
 def format_outputs(result: Synthesis) -> str:
