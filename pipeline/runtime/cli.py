@@ -96,8 +96,8 @@ def _run(args: argparse.Namespace) -> int:
     if args.command == "report":
         from pipeline.runtime.orchestrator import rebuild_reports
 
-        result = rebuild_reports(args.scenario, source=args.source, out=args.out)
-        print(f"{result.message}:\n  {result.html}\n  {result.pdf}")
+        written = rebuild_reports(args.scenario, source=args.source, out=args.out)
+        print(f"{written.message}:\n  {written.html}\n  {written.pdf}")
         return 0
     if args.command == "schema":
         from pipeline.model.schema import json_schema
