@@ -54,6 +54,7 @@ from pipeline.runtime.runner import StageRunner
 from pipeline.runtime.stored import load_report_data, write_manifest
 from pipeline.runtime.summary import StageResults, demo_table, summarise
 from pipeline.runtime.synthesis import Outputs, Synthesis
+from pipeline.runtime.terminal import describe_coverage, describe_radii, optimization_logs
 from stages.certify import certify_controller
 from stages.controller import emit_controller
 from stages.coverage import CoverageResult, CoveringRadius, cover_init, covering_radius
@@ -206,13 +207,13 @@ def _synthesize(
         "radius_demos",
         inputs_key(code_key(*RADIUS_CODE), tube, demos),
         lambda: _radii(scenario, feedback, demo_trajectories),
-        describe=_describe_radii,
+        describe=describe_radii,
     )
     demo_coverage = runner.run(
         "coverage_demos",
         inputs_key(code_key("stages.coverage"), tube, *demo_starts, _cover_radii(demo_radii)),
         lambda: _coverage(scenario, feedback, demo_starts, demo_radii),
-        describe=_describe_coverage,
+        describe=describe_coverage,
     )
 
     r_d = feedback.required_radius(scenario.clearance)
@@ -238,7 +239,7 @@ def _synthesize(
             describe=lambda result: result.message,
         )
     if log.isEnabledFor(logging.DEBUG):
-        log.debug(_optimization_logs(optimized))
+        log.debug(optimization_logs(optimized))
     # a demo whose optimisation failed keeps its own (valid) nominal trajectory
     final_inputs = [
         t.u if t.success else d.us
@@ -249,13 +250,13 @@ def _synthesize(
         "radius_optimized",
         inputs_key(code_key(*RADIUS_CODE), tube, *demo_starts, *final_inputs),
         lambda: _radii(scenario, feedback, final_trajectories),
-        describe=_describe_radii,
+        describe=describe_radii,
     )
     final_coverage = runner.run(
         "coverage_optimized",
         inputs_key(code_key("stages.coverage"), tube, *demo_starts, _cover_radii(final_radii)),
         lambda: _coverage(scenario, feedback, demo_starts, final_radii),
-        describe=_describe_coverage,
+        describe=describe_coverage,
     )
 
     usable = [i for i, r in enumerate(final_radii) if r.radius > 0]
@@ -374,29 +375,6 @@ def _synthesize(
         summary=summary,
         outputs=Outputs.of(out),
     )
-
-
-def _describe_radii(radii: Sequence[RadiusResult]) -> str:
-    values = [r.radius for r in radii]
-    return f"robustness radii {min(values):.3g} to {max(values):.3g} (P-norm)"
-
-
-def _describe_coverage(coverage: CoverageResult) -> str:
-    return f"Init {coverage.covered_fraction:.1%} covered" + ("" if coverage.covered else " (gap)")
-
-
-def _optimization_logs(optimized: OptimizeResult) -> str:
-    lines = []
-    for trajectory in optimized.trajectories:
-        lines.append(f"\n{trajectory.demo}: horizons tried (N', feasible, iterations, final J)")
-        lines += [
-            f"  N'={attempt.N:4d}  {'feasible  ' if attempt.feasible else 'infeasible'}"
-            f"  {attempt.iterations:4d}  {attempt.cost:.3e}"
-            for attempt in trajectory.tries
-        ]
-        lines.append(f"{trajectory.demo}: descent log at N' = {trajectory.N}")
-        lines.append(trajectory.log.table())
-    return "\n".join(lines)
 
 
 def rebuild_reports(

@@ -10,11 +10,17 @@ from __future__ import annotations
 
 import logging
 import sys
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
+from typing import TYPE_CHECKING
 
 from pipeline.reporting.summary import Summary
 from pipeline.runtime.synthesis import Synthesis
+
+if TYPE_CHECKING:  # stage result types: only the orchestrator imports stages
+    from stages.coverage import CoverageResult
+    from stages.optimize import OptimizeResult
+    from stages.radius import RadiusResult
 
 LOGGER = "pipeline"
 
@@ -135,4 +141,30 @@ def format_summary(summary: Summary) -> str:
     if summary.stress is not None:
         lines.append(f"  [stress test, not certified] {summary.stress.message}")
     lines.append(f"\nverdict: {summary.text}")
+    return "\n".join(lines)
+
+
+def describe_radii(radii: Sequence[RadiusResult]) -> str:
+    """A radius stage's line: the smallest and largest radius."""
+    values = [r.radius for r in radii]
+    return f"robustness radii {min(values):.3g} to {max(values):.3g} (P-norm)"
+
+
+def describe_coverage(coverage: CoverageResult) -> str:
+    """A coverage stage's line: the fraction of Init covered."""
+    return f"Init {coverage.covered_fraction:.1%} covered" + ("" if coverage.covered else " (gap)")
+
+
+def optimization_logs(optimized: OptimizeResult) -> str:
+    """Each demo's horizons tried and descent log (``-v``)."""
+    lines = []
+    for trajectory in optimized.trajectories:
+        lines.append(f"\n{trajectory.demo}: horizons tried (N', feasible, iterations, final J)")
+        lines += [
+            f"  N'={attempt.N:4d}  {'feasible  ' if attempt.feasible else 'infeasible'}"
+            f"  {attempt.iterations:4d}  {attempt.cost:.3e}"
+            for attempt in trajectory.tries
+        ]
+        lines.append(f"{trajectory.demo}: descent log at N' = {trajectory.N}")
+        lines.append(trajectory.log.table())
     return "\n".join(lines)
