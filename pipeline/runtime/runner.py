@@ -85,7 +85,7 @@ class StageRunner:
                     name=name, key=key, sha256=stored.sha256, seconds=0.0, cached=True
                 )
                 _say(name, "reused (inputs unchanged)", stored.result, describe)
-                return stored.result  # type: ignore[no-any-return]
+                return stored.result
         start = time.perf_counter()
         result = compute()
         seconds = time.perf_counter() - start
