@@ -19,7 +19,13 @@ nothing but the file and the scenario (no stage result):
    Unsafe, keeps the inputs in their bounds and the tube in the operating region, and ends in
    Goal, on the dense grid with a bound between grid points (``pipeline.numerics.tube_radius``);
 5. Init is covered by the initial balls ``||x - x0_i||_P <= radius_i`` (sound box subdivision,
-   ``pipeline.numerics.cover``).
+   ``pipeline.numerics.cover``);
+6. the optional ``terminal`` block (``pipeline.numerics.terminal``): ``V = e^T P_T e`` decreases
+   on ``V <= level`` at every vertex of a sound hull over its bounding box (numpy eigenvalues,
+   (T1) with the equilibrium's residual), the law does not clip there, the ellipsoid lies in
+   Goal, and it holds every end tube ``||x - x_ref(T)||_P <= radius e^{-lambda T}`` (exact
+   S-procedure containment). Then "safe for all time" is certified; without the block the law
+   refuses ``t > T``.
 """
 
 from __future__ import annotations
@@ -35,6 +41,7 @@ from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import simulate
 from pipeline.numerics.cover import DEFAULT_DEPTH, subdivide
 from pipeline.numerics.hull import DEFAULT_SEGMENTS, HullError, jacobian_hull
+from pipeline.numerics.terminal import check_level, end_levels
 from pipeline.numerics.tube import Tube
 from pipeline.numerics.tube_radius import radius_limits
 from pipeline.numerics.verify import VERIFY_SUBSTEPS
@@ -56,6 +63,8 @@ class CertificationResult:
         allows for each trajectory (a claim is certified when it is not larger).
       reference_error: the largest ``||x_ref - simulated||_P / radius`` over the trajectories.
       covered_fraction: the part of Init certified covered by the file's balls (volume).
+      terminal: the file has a terminal block; terminal_decay: its certified ``alpha`` (1/s);
+        terminal_fit: the largest end tube's share of the ellipsoid's radius (<= 1 to fit).
       failures: one line per failed check; empty when the file is certified.
     """
 
@@ -71,6 +80,30 @@ class CertificationResult:
     failures: tuple[str, ...] = field(default=())
     success: bool
     message: str
+    terminal: bool = False
+    terminal_decay: float = float("nan")
+    terminal_fit: float = float("nan")
+
+
+def verify_terminal(scenario: Scenario, controller: Controller) -> tuple[float, float, list[str]]:
+    """Step 6: ``(decay, fit, failures)`` of the file's terminal block."""
+    terminal = controller.terminal
+    assert terminal is not None
+    check = check_level(
+        scenario, terminal.x_eq, terminal.u_eq, terminal.K, terminal.P, terminal.level
+    )
+    ends = [tr.x_ref[-1] for tr in controller.trajectories]
+    radii = [tr.radius * float(np.exp(-controller.rate * tr.T)) for tr in controller.trajectories]
+    needed = end_levels(terminal.P, terminal.x_eq, controller.P, ends, radii)
+    fit = float(np.sqrt(needed.max() / terminal.level))
+    failures = [f"terminal: {failure}" for failure in check.failures]
+    if not fit <= 1:
+        i = int(np.argmax(needed))
+        failures.append(
+            f"terminal: trajectories[{i}]'s end tube is not inside the terminal ellipsoid (it "
+            f"needs level {needed[i]:.4g} > {terminal.level:.4g})"
+        )
+    return check.decay, fit, failures
 
 
 def _same_scenario(scenario: Scenario, controller: Controller) -> list[str]:
@@ -202,11 +235,23 @@ def certify_controller(
             f"Init is not covered by the file's balls ({cover.fraction:.1%} certified covered)"
         )
 
+    # 6. The terminal controller, when the file has one.
+    decay = fit = float("nan")
+    if controller.terminal is not None:
+        decay, fit, problems = verify_terminal(scenario, controller)
+        failures += problems
+    after = (
+        f"; after T: terminal ellipsoid invariant (decay {decay:.3g}/s) and holding every end "
+        f"tube (at most {fit:.0%} of its radius)"
+        if controller.terminal is not None
+        else "; no terminal controller (the law refuses t > T)"
+    )
+
     success = not failures
     message = (
         f"controller.json re-verified: P > 0, contraction at rate {controller.rate:g} on "
         f"{vertices} hull vertices (margin {margin:.2e}), {len(verified)} radii within their "
-        "tubes, Init covered"
+        "tubes, Init covered" + after
         if success
         else "controller.json is not certified: " + "; ".join(failures)
     )
@@ -223,4 +268,7 @@ def certify_controller(
         failures=tuple(failures),
         success=success,
         message=message,
+        terminal=controller.terminal is not None,
+        terminal_decay=decay,
+        terminal_fit=fit,
     )

@@ -4,6 +4,11 @@ Format ``safety-controller/1`` (documented in the README and read by ``pipeline.
 the feedback ``K``, metric ``P`` and rate, and for every nominal trajectory its start ``x0``,
 robustness radius, duration ``T``, held inputs ``u_ref (N, m)`` and states ``x_ref`` on a fine
 grid ``t`` (RK4 substeps), so that linear interpolation error is negligible against the tube.
+
+The law after ``T`` (``pipeline.numerics.terminal``): an equilibrium at Goal's centre, its LQR
+gain and the largest certified invariant ellipsoid. The ``terminal`` block is written only when
+that ellipsoid holds every trajectory's end tube ``||x - x_ref(T)||_P <= radius e^{-lambda T}``;
+otherwise the file has none, the law refuses ``t > T``, and the message says why.
 """
 
 from __future__ import annotations
@@ -19,6 +24,13 @@ from pipeline.io.artifacts import atomic_write_json
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import simulate
+from pipeline.numerics.terminal import (
+    TerminalError,
+    end_levels,
+    equilibrium,
+    largest_level,
+    lqr_terminal,
+)
 
 REFERENCE_SUBSTEPS = 20
 
@@ -30,6 +42,54 @@ class ControllerResult:
     interpolation_error: float
     success: bool
     message: str
+    terminal: bool = False  # a certified terminal controller was written
+    terminal_message: str = ""  # what it is, or why there is none
+
+
+def terminal_block(
+    scenario: Scenario,
+    P: FloatArray,
+    ends: Sequence[FloatArray],
+    end_radii: Sequence[float],
+) -> tuple[dict | None, str]:
+    """The ``terminal`` block (None when there is none) and a sentence saying why.
+
+    Args:
+      P: (n, n) tube metric; ends: ``x_ref_i(T_i) (n,)`` each; end_radii: ``radius_i
+        e^{-lambda T_i}``, the end tubes' P-norm radii.
+    """
+    try:
+        x_eq, u_eq = equilibrium(scenario)
+        K_T, P_T = lqr_terminal(scenario, x_eq, u_eq)
+    except TerminalError as error:
+        return None, f"no terminal controller: {error}; the law refuses t > T"
+    check = largest_level(scenario, x_eq, u_eq, K_T, P_T)
+    if not check.success:
+        return None, (
+            "no terminal controller: no invariant ellipsoid certified around the equilibrium "
+            f"({'; '.join(check.failures)}); the law refuses t > T"
+        )
+    needed = end_levels(P_T, x_eq, P, ends, end_radii)
+    worst = float(np.sqrt(needed.max() / check.level))
+    if worst > 1:
+        return None, (
+            f"no terminal controller: the end tubes do not fit its certified invariant ellipsoid "
+            f"at the equilibrium {np.round(x_eq, 3).tolist()} (the worst needs {worst:.3g}x its "
+            "radius: the trajectories reach Goal too fast to be held; bound the speed at T with "
+            "goal.bounds); the law refuses t > T"
+        )
+    block = {
+        "x_eq": x_eq.tolist(),
+        "u_eq": u_eq.tolist(),
+        "K": K_T.tolist(),
+        "P": P_T.tolist(),
+        "level": check.level,
+    }
+    return block, (
+        f"terminal controller at {np.round(x_eq, 3).tolist()}: invariant ellipsoid certified "
+        f"(decay {check.decay:.3g}/s on {check.vertices} hull vertices) holding every end tube "
+        f"(at most {worst:.0%} of its radius)"
+    )
 
 
 def emit_controller(
@@ -49,7 +109,7 @@ def emit_controller(
       starts: ``(n,)`` each; inputs: ``(N_i, m)`` each; radii: P-norm robustness radii.
       K: (m, n) feedback gain; P: (n, n) contraction metric; rate: lambda (1/s).
     """
-    trajectories, worst = [], 0.0
+    trajectories, worst, ends, end_radii = [], 0.0, [], []
     for x0, us, radius in zip(starts, inputs, radii, strict=True):
         fine = simulate(scenario.dynamics, x0, us, scenario.Ts, substeps=substeps)
         # interpolation error: the fine grid's midpoints against a 2x finer simulation
@@ -57,6 +117,8 @@ def emit_controller(
         mid = 0.5 * (fine.dense_xs[:-1] + fine.dense_xs[1:])
         error = mid - finer.dense_xs[1::2]
         worst = max(worst, float(np.sqrt(np.einsum("ki,ij,kj->k", error, P, error)).max()))
+        ends.append(fine.dense_xs[-1])
+        end_radii.append(float(radius) * float(np.exp(-rate * fine.duration)))
         trajectories.append(
             {
                 "x0": np.asarray(x0).tolist(),
@@ -80,7 +142,11 @@ def emit_controller(
         "feedback": {"K": np.asarray(K).tolist(), "P": np.asarray(P).tolist(), "rate": rate},
         "trajectories": trajectories,
         "interpolation_error_P_norm": worst,
+        "feedback_period": 0.0,
     }
+    terminal, terminal_message = terminal_block(scenario, P, ends, end_radii)
+    if terminal is not None:
+        document["terminal"] = terminal
     atomic_write_json(path, document)
     load(path)  # the file as emitted must validate
     return ControllerResult(
@@ -89,4 +155,6 @@ def emit_controller(
         worst,
         True,
         f"{len(trajectories)} trajectories; x_ref interpolation error <= {worst:.1e} in P-norm",
+        terminal=terminal is not None,
+        terminal_message=terminal_message,
     )

@@ -201,3 +201,99 @@ def check_runs(
         covered=covered,
     )
     return result, paths
+
+
+@dataclass(frozen=True, kw_only=True)
+class HoldChecks:
+    """Runs continued past ``T`` under the terminal law, per run ``(B,)``.
+
+    Attributes:
+      goal_margin: the smallest signed distance of the position to Goal's boundary over the
+        continuation, less half the longest step (negative: left Goal); in_bounds: Goal's extra
+        bounds held at every grid point; level_ratio: ``max_t V(x(t)) / level`` (<= 1: stayed
+        in the certified ellipsoid); input_slack: as in ``RunChecks``.
+    """
+
+    goal_margin: FloatArray
+    in_bounds: np.ndarray
+    level_ratio: FloatArray
+    input_slack: FloatArray
+
+    def failures(self) -> np.ndarray:
+        """``(B,)`` True where a continued run left Goal or its ellipsoid, or clipped."""
+        return (
+            (self.goal_margin < 0)
+            | ~self.in_bounds
+            | (self.level_ratio > 1 + TUBE_TOLERANCE)
+            | (self.input_slack < 0)
+        )
+
+
+def continue_runs(
+    scenario: Scenario,
+    controller: Controller,
+    x_end: FloatArray,
+    index: np.ndarray,
+    duration: float = 10.0,
+    substeps: int = 4,
+) -> HoldChecks:
+    """Continue runs that reached their ``T_i`` in ``x_end (B, n)`` (trajectories ``index
+    (B,)``) for ``duration`` seconds under the law after ``T`` (``controller(t, x, index)``,
+    the terminal controller), by RK4 with step ``Ts / substeps``."""
+    terminal = controller.terminal
+    if terminal is None:
+        raise ValueError("continue_runs: the controller has no terminal law to continue with")
+    x = np.array(x_end, dtype=np.float64)
+    T = controller.horizons(index)  # (B,)
+    h = controller.Ts / substeps
+    steps = int(np.ceil(duration / h))
+    level = np.asarray(terminal.value(x)) / terminal.level
+    slack = np.full(len(x), np.inf)
+    states = [x]
+
+    def field(t: float, state: FloatArray) -> FloatArray:
+        nonlocal slack
+        raw = terminal.unclipped(state)
+        slack = np.minimum(
+            slack, np.min(np.minimum(raw - controller.lower, controller.upper - raw), axis=-1)
+        )
+        return scenario.dynamics.f(state, controller(float(T.max()) + t + h, state, index))
+
+    for j in range(steps):
+        t = j * h
+        k1 = field(t, x)
+        k2 = field(t + h / 2, x + h / 2 * k1)
+        k3 = field(t + h / 2, x + h / 2 * k2)
+        k4 = field(t + h, x + h * k3)
+        x = x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+        states.append(x)
+        level = np.maximum(level, terminal.value(x) / terminal.level)
+    xs = np.stack(states, axis=1)  # (B, steps + 1, n)
+    positions = scenario.positions(xs)
+    step = np.linalg.norm(np.diff(positions, axis=1), axis=-1).max(axis=1)
+    inside = scenario.in_goal(xs)  # (B, steps + 1)
+    to_edge = geometry.boundary_distance(positions, scenario.goal)
+    signed = np.where(inside, to_edge, -to_edge).min(axis=1)
+    in_bounds = np.ones(len(x), dtype=bool)
+    for name, (lower, upper) in scenario.goal_bounds.items():
+        i = scenario.state_names.index(name)
+        in_bounds &= np.all((lower <= xs[..., i]) & (xs[..., i] <= upper), axis=1)
+    return HoldChecks(
+        goal_margin=signed - step / 2,
+        in_bounds=in_bounds,
+        level_ratio=level,
+        input_slack=slack,
+    )
+
+
+def hold_runs(
+    scenario: Scenario, controller: Controller, x0: FloatArray, duration: float = 10.0
+) -> HoldChecks:
+    """Fly ``x0 (B, n)`` to their ``T`` with the oracle, then ``duration`` s more past it."""
+    index, _ = controller.select(x0)
+    x_end = np.empty_like(np.asarray(x0, dtype=np.float64))
+    for i in np.unique(index):
+        rows = np.flatnonzero(index == i)
+        run = simulate_closed_loop(scenario.dynamics, controller, x0[rows], int(i))
+        x_end[rows] = run.xs[:, -1]
+    return continue_runs(scenario, controller, x_end, index, duration)
