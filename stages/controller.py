@@ -24,13 +24,7 @@ from pipeline.io.artifacts import atomic_write_json
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import simulate
-from pipeline.numerics.terminal import (
-    TerminalError,
-    end_levels,
-    equilibrium,
-    largest_level,
-    lqr_terminal,
-)
+from pipeline.numerics.terminal import TerminalError, design_terminal
 
 REFERENCE_SUBSTEPS = 20
 
@@ -48,47 +42,48 @@ class ControllerResult:
 
 def terminal_block(
     scenario: Scenario,
+    K: FloatArray,
     P: FloatArray,
     ends: Sequence[FloatArray],
     end_radii: Sequence[float],
-) -> tuple[dict | None, str]:
-    """The ``terminal`` block (None when there is none) and a sentence saying why.
+) -> tuple[dict | None, float, str]:
+    """The ``terminal`` block (None when there is none), the end tubes' fit and a sentence.
 
     Args:
-      P: (n, n) tube metric; ends: ``x_ref_i(T_i) (n,)`` each; end_radii: ``radius_i
-        e^{-lambda T_i}``, the end tubes' P-norm radii.
+      K: (m, n) tube gain; P: (n, n) tube metric; ends: ``x_ref_i(T_i) (n,)`` each; end_radii:
+        ``radius_i e^{-lambda T_i}``, the end tubes' P-norm radii.
     """
     try:
-        x_eq, u_eq = equilibrium(scenario)
-        K_T, P_T = lqr_terminal(scenario, x_eq, u_eq)
+        design = design_terminal(scenario, K, P, ends, end_radii)
     except TerminalError as error:
-        return None, f"no terminal controller: {error}; the law refuses t > T"
-    check = largest_level(scenario, x_eq, u_eq, K_T, P_T)
-    if not check.success:
-        return None, (
-            "no terminal controller: no invariant ellipsoid certified around the equilibrium "
-            f"({'; '.join(check.failures)}); the law refuses t > T"
-        )
-    needed = end_levels(P_T, x_eq, P, ends, end_radii)
-    worst = float(np.sqrt(needed.max() / check.level))
-    if worst > 1:
-        return None, (
-            f"no terminal controller: the end tubes do not fit its certified invariant ellipsoid "
-            f"at the equilibrium {np.round(x_eq, 3).tolist()} (the worst needs {worst:.3g}x its "
-            "radius: the trajectories reach Goal too fast to be held; bound the speed at T with "
-            "goal.bounds); the law refuses t > T"
+        return None, np.inf, f"no terminal controller ({error}); the law refuses t > T"
+    where = np.round(design.x_eq, 3).tolist()
+    if design.fit > 1:
+        return (
+            None,
+            design.fit,
+            (
+                f"no terminal controller: the end tubes do not fit the certified invariant "
+                f"ellipsoid at the equilibrium {where} (the worst needs {design.fit:.3g}x its "
+                "radius; e.g. a fast arrival cannot be held in Goal: bound the speed at T with "
+                "goal.bounds); the law refuses t > T"
+            ),
         )
     block = {
-        "x_eq": x_eq.tolist(),
-        "u_eq": u_eq.tolist(),
-        "K": K_T.tolist(),
-        "P": P_T.tolist(),
-        "level": check.level,
+        "x_eq": design.x_eq.tolist(),
+        "u_eq": design.u_eq.tolist(),
+        "K": design.K.tolist(),
+        "P": design.P.tolist(),
+        "level": design.check.level,
     }
-    return block, (
-        f"terminal controller at {np.round(x_eq, 3).tolist()}: invariant ellipsoid certified "
-        f"(decay {check.decay:.3g}/s on {check.vertices} hull vertices) holding every end tube "
-        f"(at most {worst:.0%} of its radius)"
+    return (
+        block,
+        design.fit,
+        (
+            f"terminal controller ({design.gain} gain) at {where}: invariant ellipsoid certified "
+            f"(decay {design.check.decay:.3g}/s on {design.check.vertices} hull vertices) holding "
+            f"every end tube (at most {design.fit:.0%} of its radius)"
+        ),
     )
 
 
@@ -102,12 +97,16 @@ def emit_controller(
     radii: Sequence[float],
     path: Path,
     substeps: int = REFERENCE_SUBSTEPS,
+    radius_floor: float | None = None,
 ) -> ControllerResult:
     """Write ``controller.json`` and read it back.
 
     Args:
       starts: ``(n,)`` each; inputs: ``(N_i, m)`` each; radii: P-norm robustness radii.
       K: (m, n) feedback gain; P: (n, n) contraction metric; rate: lambda (1/s).
+      radius_floor: the radius that covers Init (the covering radius kept by the optimizer).
+        When the end tubes do not fit the terminal ellipsoid, the radii are lowered to it
+        (smaller balls, still covering Init: the certify stage re-checks) if that makes them fit.
     """
     trajectories, worst, ends, end_radii = [], 0.0, [], []
     for x0, us, radius in zip(starts, inputs, radii, strict=True):
@@ -144,7 +143,18 @@ def emit_controller(
         "interpolation_error_P_norm": worst,
         "feedback_period": 0.0,
     }
-    terminal, terminal_message = terminal_block(scenario, P, ends, end_radii)
+    terminal, fit, terminal_message = terminal_block(scenario, K, P, ends, end_radii)
+    if terminal is None and np.isfinite(fit) and radius_floor is not None:
+        lowered = [min(float(r), radius_floor) for r in radii]
+        decay = [np.exp(-rate * item["T"]) for item in trajectories]
+        retry, _, message = terminal_block(
+            scenario, K, P, ends, [r * d for r, d in zip(lowered, decay, strict=True)]
+        )
+        if retry is not None:
+            for item, radius in zip(trajectories, lowered, strict=True):
+                item["radius"] = radius
+            terminal = retry
+            terminal_message = f"{message}; radii lowered to the covering radius {radius_floor:.4g}"
     if terminal is not None:
         document["terminal"] = terminal
     atomic_write_json(path, document)

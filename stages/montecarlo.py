@@ -12,6 +12,10 @@ non-finite state is a failure. The runs go through the compiled kernel
 the report shows. The failure probability gets an exact one-sided 95% Clopper-Pearson
 upper bound (``scipy.stats.binomtest``), valid because the samples are i.i.d.
 
+When the file has a terminal controller, the first ``HOLD_RUNS`` starts are also flown to
+``T + HOLD_SECONDS`` (the NumPy oracle to ``T``, then the law after ``T``): each must stay in
+Goal and in the terminal ellipsoid without clipping ("after T" failures).
+
 A falsification search (Init's corners, a Sobol set, then a local search) is reported
 separately: it is evidence, not a bound.
 """
@@ -30,10 +34,12 @@ from pipeline.controller import Controller, load
 from pipeline.io.executor import Executor, SerialExecutor
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario, load_scenario_cached
-from pipeline.numerics.closed_loop import RunChecks, check_runs
+from pipeline.numerics.closed_loop import RunChecks, check_runs, hold_runs
 from pipeline.numerics.rollouts import check_runs_compiled
 
-FAILURE_KINDS = ("unsafe", "goal", "clipping", "tube", "non_finite", "uncovered")
+FAILURE_KINDS = ("unsafe", "goal", "clipping", "tube", "non_finite", "uncovered", "after_T")
+HOLD_RUNS = 200
+HOLD_SECONDS = 10.0
 
 
 @dataclass(frozen=True)
@@ -64,6 +70,8 @@ class MonteCarloResult:
     message: str
     # ||e(T)||_P e^(lambda T) / ||e(0)||_P per run: how much of the certified decay is used
     tube_final: FloatArray = field(default_factory=lambda: np.zeros(0), repr=False)
+    hold_runs: int = 0  # runs continued to T + HOLD_SECONDS under the terminal law
+    hold_min_goal_margin: float = float("nan")  # their smallest distance inside Goal (m)
 
 
 def _uniform_init(scenario: Scenario, rng: np.random.Generator, count: int) -> FloatArray:
@@ -175,13 +183,26 @@ def validate_closed_loop(
     checks = RunChecks(**merged)
     counts = {kind: int(mask.sum()) for kind, mask in checks.failures().items()}
     failing = int(np.any(list(checks.failures().values()), axis=0).sum())
+    held, hold_margin = 0, float("nan")
+    if controller.terminal is not None:
+        x0 = _uniform_init(scenario, np.random.default_rng(streams[0]), min(HOLD_RUNS, samples))
+        covered = controller.select(x0)[1] < 1.0
+        hold = hold_runs(scenario, controller, x0[covered], HOLD_SECONDS)
+        held, hold_margin = int(covered.sum()), float(hold.goal_margin.min())
+        counts["after_T"] = int(hold.failures().sum())
+        failing += counts["after_T"]
     bound = float(binomtest(failing, samples, alternative="less").proportion_ci(0.95).high)
     falsification = falsify(scenario, controller, seed=seed)
     success = failing == 0
+    after = (
+        f"; {held} of them continued to T + {HOLD_SECONDS:g} s stayed in Goal"
+        if held and not counts.get("after_T")
+        else ""
+    )
     message = (
         (
             f"{samples} closed-loop runs, 0 failures; failure probability <= {bound:.2e} "
-            "(95% Clopper-Pearson)"
+            f"(95% Clopper-Pearson){after}"
         )
         if success
         else (
@@ -205,4 +226,6 @@ def validate_closed_loop(
         success=success,
         message=message,
         tube_final=checks.tube_final,
+        hold_runs=held,
+        hold_min_goal_margin=hold_margin,
     )

@@ -88,21 +88,23 @@ def goal_centre(scenario: Scenario) -> FloatArray:
     return np.array([point.x, point.y])
 
 
-def equilibrium(scenario: Scenario) -> tuple[FloatArray, FloatArray]:
-    """``(x_eq (n,), u_eq (m,))`` with ``f = 0``, the position at ``goal_centre``, the other states
-    in Goal's bounds and the operating region and the inputs strictly inside their bounds;
-    ``TerminalError`` when the least-squares search finds none."""
+def equilibrium(
+    scenario: Scenario, position: FloatArray | None = None
+) -> tuple[FloatArray, FloatArray]:
+    """``(x_eq (n,), u_eq (m,))`` with ``f = 0``, the position at ``position (2,)`` (default
+    ``goal_centre``), the other states in Goal's bounds and the operating region and the inputs
+    within their bounds; ``TerminalError`` when the least-squares search finds none."""
     dynamics, spec = scenario.dynamics, scenario.feedback
     n, m = len(scenario.state_names), len(scenario.input_names)
-    position = list(scenario.position_index)
-    free = [i for i in range(n) if i not in position]
+    position_index = list(scenario.position_index)
+    free = [i for i in range(n) if i not in position_index]
     lower = np.concatenate([np.full(n, -np.inf), scenario.input_lower])
     upper = np.concatenate([np.full(n, np.inf), scenario.input_upper])
     for name, (lo, hi) in {**scenario.operating_region, **scenario.goal_bounds}.items():
         k = (scenario.state_names + scenario.input_names).index(name)
         lower[k], upper[k] = max(lower[k], lo), min(upper[k], hi)
     z0 = np.concatenate([np.array(spec.reference_state, float), np.array(spec.reference_input)])
-    z0[position] = goal_centre(scenario)
+    z0[position_index] = goal_centre(scenario) if position is None else position
     keep = np.array(free + list(range(n, n + m)))
     lo, hi = lower[keep], upper[keep]
     if np.any(lo > hi):
@@ -121,7 +123,7 @@ def equilibrium(scenario: Scenario) -> tuple[FloatArray, FloatArray]:
     error = float(np.linalg.norm(residual(found.x)))
     if not error <= EQUILIBRIUM_TOLERANCE:
         raise TerminalError(
-            f"no equilibrium with the position at Goal's centre {np.round(z0[position], 3)}: "
+            f"no equilibrium with the position at {np.round(z0[position_index], 3).tolist()}: "
             f"smallest |f(x, u)| found {error:.2g} within the bounds"
         )
     return z[:n], z[n:]
@@ -295,3 +297,70 @@ def end_levels(
     return np.array(
         [containing_level(terminal_P, a - x_eq, P, rho) for a, rho in zip(ends, radii, strict=True)]
     )
+
+
+@dataclass(frozen=True, kw_only=True)
+class TerminalDesign:
+    """The kept terminal controller and how well the end tubes fit its ellipsoid.
+
+    Attributes:
+      x_eq: (n,); u_eq: (m,); K: (m, n); P: (n, n); check: its certified level and decay.
+      gain: "lqr" (``control.lqr`` at the equilibrium) or "tube" (the tube's ``K`` and ``P``).
+      fit: ``sqrt(max_i c_i / level)``: the largest end tube's share of the ellipsoid (<= 1).
+    """
+
+    x_eq: FloatArray
+    u_eq: FloatArray
+    K: FloatArray
+    P: FloatArray
+    check: TerminalCheck
+    gain: str
+    fit: float
+
+
+def design_terminal(
+    scenario: Scenario,
+    K: FloatArray,
+    P: FloatArray,
+    ends: Sequence[FloatArray],
+    end_radii: Sequence[float],
+) -> TerminalDesign:
+    """The best-fitting certified terminal controller for end tubes ``||x - ends[i]||_P <=
+    end_radii[i]`` (tube gain ``K (m, n)``, metric ``P (n, n)``).
+
+    Candidates: equilibria at Goal's centre and at the mean end position (when in Goal), each
+    with the LQR gain and Riccati matrix there and with the tube's own ``K`` and ``P``; the
+    certified one with the smallest ``fit`` is kept. ``TerminalError`` when none certifies.
+    """
+    positions = [goal_centre(scenario)]
+    mean = np.mean([scenario.positions(a) for a in ends], axis=0)
+    if shapely.intersects_xy(scenario.goal, *mean):
+        positions.append(mean)
+    best: TerminalDesign | None = None
+    reasons = []
+    for position in positions:
+        try:
+            x_eq, u_eq = equilibrium(scenario, position)
+        except TerminalError as error:
+            reasons.append(str(error))
+            continue
+        gains = [("tube", np.asarray(K), np.asarray(P))]
+        try:
+            gains.insert(0, ("lqr", *lqr_terminal(scenario, x_eq, u_eq)))
+        except TerminalError as error:
+            reasons.append(str(error))
+        for gain, K_T, P_T in gains:
+            check = largest_level(scenario, x_eq, u_eq, K_T, P_T)
+            if not check.success:
+                reasons.append(
+                    f"{gain} gain at {np.round(position, 3).tolist()}: " + "; ".join(check.failures)
+                )
+                continue
+            fit = float(np.sqrt(end_levels(P_T, x_eq, P, ends, end_radii).max() / check.level))
+            if best is None or fit < best.fit:
+                best = TerminalDesign(
+                    x_eq=x_eq, u_eq=u_eq, K=K_T, P=P_T, check=check, gain=gain, fit=fit
+                )
+    if best is None:
+        raise TerminalError("; ".join(dict.fromkeys(reasons)))
+    return best

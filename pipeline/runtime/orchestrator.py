@@ -243,6 +243,7 @@ def _synthesize(
             *demo_starts,
             *final_inputs,
             [final_radii[i].radius for i in usable],
+            r_required,
         ),
         lambda: emit_controller(
             scenario,
@@ -253,6 +254,7 @@ def _synthesize(
             [final_inputs[i] for i in usable],
             [final_radii[i].radius for i in usable],
             controller_path,
+            radius_floor=r_required,
         ),
         rerun=True,  # always written from this run's certified results
     )

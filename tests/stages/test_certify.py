@@ -32,7 +32,9 @@ def emitted(double_integrator, tmp_path):
     us = np.zeros((10, 2))
     radii = [
         robustness_radius(
-            scenario, feedback, simulate(scenario.dynamics, x0, us, scenario.Ts, VERIFY_SUBSTEPS)
+            scenario,
+            feedback.certified_tube,
+            simulate(scenario.dynamics, x0, us, scenario.Ts, VERIFY_SUBSTEPS),
         ).radius
         for x0 in STARTS
     ]
