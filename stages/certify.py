@@ -12,7 +12,10 @@ nothing but the file and the scenario (no stage result):
        lambda_max((A_v + B_v K)^T P + P (A_v + B_v K) + 2 lambda P) < 0,                (C)
 
    eigenvalues by numpy (``eigvalsh``), which gives ``||e(t)||_P <= e^{-lambda t} ||e(0)||_P``
-   while the state and input stay in the region;
+   while the state and input stay in the region. With ``feedback_period h > 0`` (the law held
+   for ``h`` seconds) the file's rate must instead be at most ``lambda_h``, the held law's rate
+   (``pipeline.numerics.sampled``) from the largest rate (C) certifies at the vertices, and
+   ``h`` must divide ``Ts``;
 4. each trajectory's reference ``x_ref`` is the scenario's dynamics simulated from its ``x0``
    under its ``u_ref`` (to ``REFERENCE_TOLERANCE`` in P-norm per unit radius), and its radius is
    at most the largest radius whose tube ``||x - x_ref(t)||_P <= r e^{-lambda t}`` avoids
@@ -41,6 +44,7 @@ from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import simulate
 from pipeline.numerics.cover import DEFAULT_DEPTH, subdivide
 from pipeline.numerics.hull import DEFAULT_SEGMENTS, HullError, jacobian_hull
+from pipeline.numerics.sampled import contraction_rate, held_rate
 from pipeline.numerics.terminal import check_level, end_levels
 from pipeline.numerics.tube import Tube
 from pipeline.numerics.tube_radius import radius_limits
@@ -85,12 +89,36 @@ class CertificationResult:
     terminal_fit: float = float("nan")
 
 
+def _held(controller: Controller, A: np.ndarray, B: np.ndarray) -> list[str]:
+    """Step 3 for held feedback: ``h`` divides ``Ts`` and the file's rate is at most
+    ``lambda_h`` (from the largest rate (C) certifies at the vertices ``A (V, n, n)``, ``B (V, n,
+    m)``)."""
+    h = controller.feedback_period
+    steps = controller.Ts / h
+    if abs(steps - round(steps)) > 1e-9 * steps or steps < 1 - 1e-9:
+        return [f"feedback_period {h:g} s does not divide Ts {controller.Ts:g} s"]
+    rate = contraction_rate(controller.P, controller.K, A, B)
+    held = held_rate(controller.P, controller.K, A, B, rate, h)
+    if not controller.rate <= held.held_rate:
+        return [
+            f"the rate {controller.rate:g} exceeds {held.held_rate:.4g}, the tube rate of the "
+            f"law held every {h:g} s (continuous rate {rate:.4g})"
+        ]
+    return []
+
+
 def verify_terminal(scenario: Scenario, controller: Controller) -> tuple[float, float, list[str]]:
     """Step 6: ``(decay, fit, failures)`` of the file's terminal block."""
     terminal = controller.terminal
     assert terminal is not None
     check = check_level(
-        scenario, terminal.x_eq, terminal.u_eq, terminal.K, terminal.P, terminal.level
+        scenario,
+        terminal.x_eq,
+        terminal.u_eq,
+        terminal.K,
+        terminal.P,
+        terminal.level,
+        period=controller.feedback_period,
     )
     ends = [tr.x_ref[-1] for tr in controller.trajectories]
     radii = [tr.radius * float(np.exp(-controller.rate * tr.T)) for tr in controller.trajectories]
@@ -178,6 +206,8 @@ def certify_controller(
     except HullError as error:
         margin, vertices = float("nan"), 0
         failures.append(f"no Jacobian hull over the operating region: {error}")
+    if controller.feedback_period > 0 and vertices:
+        failures += _held(controller, hull.A, hull.B)
     if not margin < 0:
         failures.append(
             f"the contraction inequality fails at rate {controller.rate:g}: largest eigenvalue "
@@ -248,8 +278,13 @@ def certify_controller(
     )
 
     success = not failures
+    held = (
+        f" with the law held every {controller.feedback_period:g} s"
+        if controller.feedback_period > 0
+        else ""
+    )
     message = (
-        f"controller.json re-verified: P > 0, contraction at rate {controller.rate:g} on "
+        f"controller.json re-verified: P > 0, contraction at rate {controller.rate:g}{held} on "
         f"{vertices} hull vertices (margin {margin:.2e}), {len(verified)} radii within their "
         "tubes, Init covered" + after
         if success

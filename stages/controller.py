@@ -46,6 +46,7 @@ def terminal_block(
     P: FloatArray,
     ends: Sequence[FloatArray],
     end_radii: Sequence[float],
+    period: float = 0.0,
 ) -> tuple[dict | None, float, str]:
     """The ``terminal`` block (None when there is none), the end tubes' fit and a sentence.
 
@@ -54,7 +55,7 @@ def terminal_block(
         ``radius_i e^{-lambda T_i}``, the end tubes' P-norm radii.
     """
     try:
-        design = design_terminal(scenario, K, P, ends, end_radii)
+        design = design_terminal(scenario, K, P, ends, end_radii, period)
     except TerminalError as error:
         return None, np.inf, f"no terminal controller ({error}); the law refuses t > T"
     where = np.round(design.x_eq, 3).tolist()
@@ -98,6 +99,7 @@ def emit_controller(
     path: Path,
     substeps: int = REFERENCE_SUBSTEPS,
     radius_floor: float | None = None,
+    feedback_period: float = 0.0,
 ) -> ControllerResult:
     """Write ``controller.json`` and read it back.
 
@@ -107,6 +109,8 @@ def emit_controller(
       radius_floor: the radius that covers Init (the covering radius kept by the optimizer).
         When the end tubes do not fit the terminal ellipsoid, the radii are lowered to it
         (smaller balls, still covering Init: the certify stage re-checks) if that makes them fit.
+      feedback_period: the zero-order-hold period ``h`` (s) the tube's ``rate`` was certified
+        for (``pipeline.numerics.sampled``; 0: continuous feedback).
     """
     trajectories, worst, ends, end_radii = [], 0.0, [], []
     for x0, us, radius in zip(starts, inputs, radii, strict=True):
@@ -141,14 +145,21 @@ def emit_controller(
         "feedback": {"K": np.asarray(K).tolist(), "P": np.asarray(P).tolist(), "rate": rate},
         "trajectories": trajectories,
         "interpolation_error_P_norm": worst,
-        "feedback_period": 0.0,
+        "feedback_period": feedback_period,
     }
-    terminal, fit, terminal_message = terminal_block(scenario, K, P, ends, end_radii)
+    terminal, fit, terminal_message = terminal_block(
+        scenario, K, P, ends, end_radii, feedback_period
+    )
     if terminal is None and np.isfinite(fit) and radius_floor is not None:
         lowered = [min(float(r), radius_floor) for r in radii]
         decay = [np.exp(-rate * item["T"]) for item in trajectories]
         retry, _, message = terminal_block(
-            scenario, K, P, ends, [r * d for r, d in zip(lowered, decay, strict=True)]
+            scenario,
+            K,
+            P,
+            ends,
+            [r * d for r, d in zip(lowered, decay, strict=True)],
+            feedback_period,
         )
         if retry is not None:
             for item, radius in zip(trajectories, lowered, strict=True):

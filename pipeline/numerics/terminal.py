@@ -47,6 +47,7 @@ from shapely.ops import polylabel
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
 from pipeline.numerics.hull import DEFAULT_SEGMENTS, HullError, jacobian_hull
+from pipeline.numerics.sampled import held_rate
 from pipeline.numerics.tube import Tube
 
 EQUILIBRIUM_TOLERANCE = 1e-9  # ||f(x_eq, u_eq)|| accepted as an equilibrium
@@ -166,9 +167,12 @@ def check_level(
     level: float,
     segments: int = DEFAULT_SEGMENTS,
     min_decay: float = 0.0,
+    period: float = 0.0,
 ) -> TerminalCheck:
     """Check (T1) and the bounds for ``E_c``, ``c = level`` (module docstring), from scratch:
-    hull over ``Z_c``, decay by ``numpy.linalg.eigvalsh``, no clipping, inside Goal."""
+    hull over ``Z_c``, decay by ``numpy.linalg.eigvalsh``, no clipping, inside Goal. With a
+    feedback ``period > 0`` (the law held) the decay is that of the held law: ``2 lambda_h`` of
+    ``pipeline.numerics.sampled`` at the continuous rate ``alpha / 2``."""
     tube, r = _tube(scenario, K, P), float(np.sqrt(level))
     failures = []
     # no clipping: u_eq +- r ||K_j P^-1/2|| inside the bounds
@@ -201,6 +205,8 @@ def check_level(
     try:
         hull = jacobian_hull(scenario.dynamics, box, segments)
         decay, vertices = decay_rate(P, K, hull.A, hull.B), len(hull.vertices)
+        if period > 0:
+            decay = 2 * held_rate(P, K, hull.A, hull.B, decay / 2, period).held_rate
     except HullError as error:
         decay, vertices = -np.inf, 0
         failures.append(f"no Jacobian hull over E_c's bounding box: {error}")
@@ -231,25 +237,33 @@ def decay_rate(P: FloatArray, K: FloatArray, A: FloatArray, B: FloatArray) -> fl
 
 
 def largest_level(
-    scenario: Scenario, x_eq: FloatArray, u_eq: FloatArray, K: FloatArray, P: FloatArray
+    scenario: Scenario,
+    x_eq: FloatArray,
+    u_eq: FloatArray,
+    K: FloatArray,
+    P: FloatArray,
+    period: float = 0.0,
 ) -> TerminalCheck:
     """The largest level ``c`` certified with at least ``DECAY_FRACTION`` of the linearisation's
     decay (bisection on ``sqrt(c)``; the input and Goal bounds give the top)."""
     A0, B0 = scenario.dynamics.f_x(x_eq, u_eq), scenario.dynamics.f_u(x_eq, u_eq)
-    need = DECAY_FRACTION * decay_rate(P, K, A0[None], B0[None])
+    linear = decay_rate(P, K, A0[None], B0[None])
+    if period > 0:
+        linear = 2 * held_rate(P, K, A0[None], B0[None], linear / 2, period).held_rate
+    need = DECAY_FRACTION * linear
     tube = _tube(scenario, K, P)
     room = np.minimum(u_eq - scenario.input_lower, scenario.input_upper - u_eq)  # (m,)
     gain = tube.input_margin_per_radius  # (m,)
     by_input = np.where(gain > 0, np.maximum(room, 0.0) / np.where(gain > 0, gain, 1.0), np.inf)
     by_goal = check_level(scenario, x_eq, u_eq, K, P, 1.0).goal_margin + 1.0  # room in Goal
     hi = float(min(np.min(by_input), max(by_goal, 0.0)))
-    best = check_level(scenario, x_eq, u_eq, K, P, hi**2, min_decay=need)
+    best = check_level(scenario, x_eq, u_eq, K, P, hi**2, min_decay=need, period=period)
     if best.success:
         return best
     lo = 0.0
     for _ in range(LEVEL_BISECTIONS):
         mid = 0.5 * (lo + hi)
-        trial = check_level(scenario, x_eq, u_eq, K, P, mid**2, min_decay=need)
+        trial = check_level(scenario, x_eq, u_eq, K, P, mid**2, min_decay=need, period=period)
         if trial.success:
             lo, best = mid, trial
         else:
@@ -324,13 +338,15 @@ def design_terminal(
     P: FloatArray,
     ends: Sequence[FloatArray],
     end_radii: Sequence[float],
+    period: float = 0.0,
 ) -> TerminalDesign:
     """The best-fitting certified terminal controller for end tubes ``||x - ends[i]||_P <=
     end_radii[i]`` (tube gain ``K (m, n)``, metric ``P (n, n)``).
 
     Candidates: equilibria at Goal's centre and at the mean end position (when in Goal), each
     with the LQR gain and Riccati matrix there and with the tube's own ``K`` and ``P``; the
-    certified one with the smallest ``fit`` is kept. ``TerminalError`` when none certifies.
+    certified one with the smallest ``fit`` is kept (for the law held every ``period`` s when
+    it is > 0). ``TerminalError`` when none certifies.
     """
     positions = [goal_centre(scenario)]
     mean = np.mean([scenario.positions(a) for a in ends], axis=0)
@@ -350,7 +366,7 @@ def design_terminal(
         except TerminalError as error:
             reasons.append(str(error))
         for gain, K_T, P_T in gains:
-            check = largest_level(scenario, x_eq, u_eq, K_T, P_T)
+            check = largest_level(scenario, x_eq, u_eq, K_T, P_T, period)
             if not check.success:
                 reasons.append(
                     f"{gain} gain at {np.round(position, 3).tolist()}: " + "; ".join(check.failures)

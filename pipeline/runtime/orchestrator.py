@@ -19,6 +19,7 @@ reused.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import sys
 import time
@@ -34,6 +35,7 @@ from pipeline.io.lock import folder_lock
 from pipeline.io.progress import progress_bar
 from pipeline.model.scenario import Scenario, load_scenario
 from pipeline.model.simulate import Trajectory, simulate
+from pipeline.numerics.sampled import HeldRate, held_rate
 from pipeline.numerics.verify import VERIFY_SUBSTEPS
 from pipeline.reporting.summary import Verdict
 from pipeline.runtime.codekey import code_key
@@ -99,6 +101,31 @@ def _coverage(
     return cover_init(scenario, feedback, np.array(starts), _cover_radii(radii))
 
 
+def _held_feedback(
+    scenario: Scenario, feedback: FeedbackResult, period: float
+) -> tuple[FeedbackResult, HeldRate]:
+    """The feedback with its tube at the held law's rate ``lambda_h`` (``--feedback-period``)."""
+    n = len(scenario.state_names)
+    A, B = feedback.vertices[:, :, :n], feedback.vertices[:, :, n:]
+    held = held_rate(feedback.P, feedback.K, A, B, feedback.rate, period)
+    if not held.success:
+        return feedback, held
+    tube = dataclasses.replace(feedback.certified_tube, rate=held.held_rate)
+    return dataclasses.replace(feedback, rate=held.held_rate, tube=tube), held
+
+
+def _check_period(scenario: Scenario, period: float) -> None:
+    """``--feedback-period`` must divide the sampling time (``u_ref`` switches at samples)."""
+    if period == 0:
+        return
+    steps = scenario.Ts / period
+    if steps < 1 - 1e-9 or abs(steps - round(steps)) > 1e-9 * steps:
+        raise UserError(
+            f"--feedback-period: found {period:g} s; expected a period that divides the "
+            f"scenario's sampling_time {scenario.Ts:g} s (e.g. {scenario.Ts / 10:g})"
+        )
+
+
 def _spec_key(scenario: Scenario, *exclude: str) -> str:
     """A hash of the scenario's parsed values (not the file's bytes), without ``exclude``."""
     spec = scenario.spec.model_dump(mode="json", exclude={"demos", *exclude})
@@ -125,6 +152,7 @@ def synthesize(
             found=[],
             expected=f"at least one demo (record one: python -m pipeline record {scenario.name})",
         )
+    _check_period(scenario, options.feedback_period)
     out = Path(out) if out is not None else REPORTS_ROOT / scenario.name
     check_output_folder(out, scenario.name)
     with folder_lock(out):
@@ -181,7 +209,20 @@ def _synthesize(
     if not feedback.success:
         reason = f"the feedback could not be certified: {feedback.message}"
         return _failed(out, scenario, "feedback", reason)
-    tube = inputs_key(core, runner.digest("feedback"))
+    if options.feedback_period > 0:
+        feedback, held = _held_feedback(scenario, feedback, options.feedback_period)
+        if not held.success:
+            reason = (
+                f"zero-order-hold feedback every {held.period:g} s cannot be certified: the "
+                f"held tube's rate {held.held_rate:.3g}/s is not > 0 (continuous rate "
+                f"{held.rate:.3g}/s, C1 = {held.C1:.3g}); use a shorter --feedback-period"
+            )
+            return _failed(out, scenario, "feedback", reason)
+        say(
+            f"[feedback] held every {held.period:g} s: tube rate {held.held_rate:.4g}/s "
+            f"(continuous {held.rate:.4g}/s; pipeline.numerics.sampled)"
+        )
+    tube = inputs_key(core, runner.digest("feedback"), options.feedback_period)
     demo_radii = runner.run(
         "radius_demos",
         inputs_key(code_key(*RADIUS_CODE), tube, demos),
@@ -255,6 +296,7 @@ def _synthesize(
             [final_radii[i].radius for i in usable],
             controller_path,
             radius_floor=r_required,
+            feedback_period=options.feedback_period,
         ),
         rerun=True,  # always written from this run's certified results
     )

@@ -109,7 +109,7 @@ def test_runs_continued_ten_seconds_past_T_stay_in_goal(held):
     assert len(x0) > 10
     checks = hold_runs(scenario, controller, x0, duration=10.0)
     assert not checks.failures().any()
-    assert checks.level_ratio.max() <= 1 and checks.goal_margin.min() > 0
+    assert checks.level_ratio.max() <= 1 and checks.path_goal_margin.min() > 0
 
 
 def test_without_a_fit_there_is_no_terminal_block_and_the_law_refuses_past_T(
