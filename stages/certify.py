@@ -28,7 +28,7 @@ nothing but the file and the scenario (no stage result):
    (T1) with the equilibrium's residual), the law does not clip there, the ellipsoid lies in
    Goal, and it holds every end tube ``||x - x_ref(T)||_P <= radius e^{-lambda T}`` (exact
    S-procedure containment). Then "safe for all time" is certified; without the block the law
-   refuses ``t > T``.
+   refuses ``t > T``, and a scenario with ``terminal: hold`` is not certified.
 """
 
 from __future__ import annotations
@@ -270,6 +270,12 @@ def certify_controller(
     if controller.terminal is not None:
         decay, fit, problems = verify_terminal(scenario, controller)
         failures += problems
+    elif scenario.terminal == "hold":
+        failures.append(
+            "the scenario asks terminal: hold but controller.json has no terminal controller "
+            "(the end tubes do not fit a certified invariant ellipsoid in Goal: tighten the "
+            "speed bounds at T in goal.bounds)"
+        )
     after = (
         f"; after T: terminal ellipsoid invariant (decay {decay:.3g}/s) and holding every end "
         f"tube (at most {fit:.0%} of its radius)"

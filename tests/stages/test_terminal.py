@@ -159,3 +159,20 @@ def test_quadrotor_hover_is_the_equilibrium_and_has_a_certified_ellipsoid():
     assert u_eq[0] == pytest.approx(np.hypot(9.81, 0.25), rel=1e-9)
     design = design_terminal(scenario, np.zeros((2, 6)), np.eye(6), [x_eq], [0.0])
     assert design.check.success and design.check.level > 0 and design.fit == 0
+
+
+def test_a_hold_scenario_certifies_only_with_a_terminal_controller(tmp_path):
+    from tests.stages.conftest import DOUBLE_INTEGRATOR
+
+    path = tmp_path / "hold" / "scenario.yaml"
+    path.parent.mkdir()
+    text = DOUBLE_INTEGRATOR % {"goal": GOAL, "region": "{aX: [-100.0, 100.0]}", "rate": 0.5}
+    path.write_text(text + "terminal: hold\n")
+    scenario = load_scenario(path, check_demos=False)
+    assert scenario.terminal == "hold"
+    without = _emit(scenario, tmp_path / "without.json", floor=None)
+    assert not without.terminal
+    result = certify_controller(scenario, tmp_path / "without.json")
+    assert not result.success and "terminal: hold" in result.message
+    assert _emit(scenario, tmp_path / "with.json", floor=1.2).terminal
+    assert certify_controller(scenario, tmp_path / "with.json").success
