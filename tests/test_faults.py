@@ -333,8 +333,9 @@ def test_fully_cached_rerun_and_csv_comment_edit_recompute_nothing(run, capsys):
     demo.write_text("# a comment added by hand\n" + demo.read_text().replace(",", ", "))
     assert synthesize(run) == 0
     printed = capsys.readouterr().out
-    assert "] running" not in printed
-    assert mtimes(out) == before
+    ran = {line.split("]")[0][1:] for line in printed.splitlines() if line.endswith("] running")}
+    assert ran == {"controller"}  # always written from this run's results (the same bytes)
+    assert mtimes(out) == {**before, "controller.json": mtimes(out)["controller.json"]}
     assert (out / "report.html").stat().st_mtime_ns == report  # timings are not in its key
 
 
@@ -345,16 +346,31 @@ def test_report_checks_the_demo_values_not_only_the_yaml(run, capsys):
     assert f"demos changed since the run: {demo}" in capsys.readouterr().err
 
 
-def test_an_edited_controller_is_rewritten_from_the_certified_results(run, capsys):
+def _negative_radius(text: str) -> str:
+    document = json.loads(text)
+    document["trajectories"][0]["radius"] = -1.0  # every state would look covered
+    return json.dumps(document)
+
+
+@pytest.mark.parametrize("edit", [_negative_radius, lambda text: text[: len(text) // 2]])
+def test_an_edited_or_truncated_controller_is_rewritten_from_the_certified_results(
+    run, capsys, edit
+):
     _, out = run
     shipped = radii(out)
     path = out / "controller.json"
-    document = json.loads(path.read_text())
-    document["trajectories"][0]["radius"] = -1.0  # every state would look covered
-    path.write_text(json.dumps(document))
+    path.write_text(edit(path.read_text()))
     assert synthesize(run) == 0
     assert "[controller] running" in capsys.readouterr().out
     assert radii(out) == shipped
+
+
+def test_report_refuses_a_controller_the_run_did_not_write(run, capsys):
+    scenario, out = run
+    path = out / "controller.json"
+    path.write_text(_negative_radius(path.read_text()))
+    assert main(["report", str(scenario), "--out", str(out)]) == 2
+    assert f"{path}: controller.json is not the file the run wrote" in capsys.readouterr().err
 
 
 def _copy_project(destination: Path) -> Path:

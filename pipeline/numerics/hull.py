@@ -21,33 +21,47 @@ is not sound; this construction is.
    the map is affine in it). So ``J(Z) in conv{J_0 + sum_k phi_k(v) M_k : v in prod_z V_z}``.
    Linear dynamics have no features and give one vertex, the exact Jacobian.
 
-Interval bounds use ``sympy.AccumBounds`` and are widened outward by ``PAD`` relative units to
-cover floating-point rounding.
+Floating point. Interval bounds use outward-rounded interval arithmetic (``mpmath.iv``); their
+end points are rounded outward again when converted to floats, so they hold exactly. The arc
+polygon's vertices come from ``math.cos``/``math.sin``, whose error is below 1 ulp (< 2.3e-16 on
+the unit circle). Scaling the tangent polygon by ``1 + PAD`` (``PAD = 1e-9``) moves the tangent
+edges out by ``PAD``; widening the arc by ``PAD`` rad at each end puts the chord at least
+``PAD sin(alpha / 2)`` beyond the arc's end points, alpha >= ``MIN_ARC = 1e-4`` rad its width
+(narrower arcs are widened): >= 5e-14, over 200 times that error. (A degenerate interval,
+``upper <= lower``, gives the rounded point ``(cos a, sin a)`` alone.) The
+vertex sums ``J_0 + sum_k phi_k M_k`` are rounded to nearest (relative 1e-16 of the largest term);
+the certificates that use the hull keep a margin (``EPS = 1e-3`` in their LMIs) far above that.
 
 ``abs``: the Jacobian of ``|h(z)|`` is ``sign(h) h_z`` with ``sign(0) = 0``. Its range over an
-interval ``[a, b]`` of ``h`` is ``[sign a, sign b]``, which holds the generalised (Clarke)
-derivative ``[-1, 1]`` at the kink whenever ``a < 0 < b``. The certificate's argument integrates
-the Jacobian along the segment between two states; ``f`` is Lipschitz there and the integral is
-exact with the a.e. Jacobian (where the segment runs inside the kink, ``h`` is constant along it
-and the term is zero, as ``sign(0) = 0`` gives). So the hull of these ranges is sound.
+interval ``[a, b]`` of ``h`` is ``[sign a, sign b]`` (exact in the interval arithmetic above),
+which holds the generalised (Clarke) derivative ``[-1, 1]`` at the kink whenever ``a < 0 < b``.
+The certificate's argument integrates the Jacobian along the segment between two states; ``f`` is
+Lipschitz there and the integral is exact with the a.e. Jacobian (where the segment runs inside
+the kink, ``h`` is constant along it and the term is zero, as ``sign(0) = 0`` gives). So the hull
+of these ranges is sound.
 """
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
+import operator
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
+import mpmath
 import numpy as np
 import sympy
-from sympy import AccumBounds
+from mpmath import iv
 
 from pipeline.model.dynamics import Dynamics, FloatArray
 
 PAD = 1e-9
 DEFAULT_SEGMENTS = 8
 MAX_SEGMENT_ANGLE = math.pi / 4
+MARGIN = 1e-12  # outward margin of the compact arc polygon's edges
+MIN_ARC = 1e-4  # narrower arcs are widened to this (rad), so that PAD's margin stays large
 MAX_VERTICES = 4096
 
 
@@ -82,17 +96,39 @@ class JacobianHull:
         return self.vertices[:, :, n:]
 
 
-def arc_polygon(lower: float, upper: float, segments: int = DEFAULT_SEGMENTS) -> FloatArray:
+def arc_polygon(
+    lower: float, upper: float, segments: int = DEFAULT_SEGMENTS, compact: bool = False
+) -> FloatArray:
     """Vertices (segments+4, 2) of a polygon containing ``{(cos a, sin a) : a in [lower, upper]}``.
 
     The arc's end points and the intersections of the tangents at ``segments + 1`` equally spaced
     angles (at mid-angles, distance ``1 / cos(delta / 2)`` from the origin). Against rounding, the
     arc is widened by ``PAD`` radians at each end (margin along the chord) and the tangent polygon
     is scaled by ``1 + PAD`` (margin along the tangents; the unscaled end points keep the chord).
+
+    ``compact``: ``segments + 2`` vertices instead (a triangle for one segment, as the local
+    hulls of a funnel want): the polygon of the end points and tangent intersections, inflated
+    about its centroid ``c`` by ``1 + max(PAD, MARGIN / min_edge dist(c, edge))``, which moves
+    every edge outward by at least ``MARGIN = 1e-12``, over 1000 times the vertices' rounding.
     """
     if upper <= lower:
         return np.array([[math.cos(lower), math.sin(lower)]])
-    lower, upper = lower - PAD, upper + PAD
+    middle, half = (lower + upper) / 2, max(upper - lower, MIN_ARC) / 2
+    if compact:
+        lower, upper = middle - half, middle + half
+        segments = max(segments, math.ceil((upper - lower) / MAX_SEGMENT_ANGLE))
+        delta = (upper - lower) / segments
+        mids = lower + delta * (np.arange(segments) + 0.5)
+        tangents = np.column_stack([np.cos(mids), np.sin(mids)]) / math.cos(delta / 2)
+        ends = [[math.cos(lower), math.sin(lower)], [math.cos(upper), math.sin(upper)]]
+        polygon = np.vstack([ends[:1], tangents, ends[1:]])
+        c = polygon.mean(axis=0)
+        a, b = polygon, np.roll(polygon, -1, axis=0)
+        edge = b - a
+        cross = edge[:, 0] * (c - a)[:, 1] - edge[:, 1] * (c - a)[:, 0]
+        distance = np.abs(cross) / np.linalg.norm(edge, axis=1)
+        return c + (1.0 + max(PAD, MARGIN / distance.min())) * (polygon - c)
+    lower, upper = middle - half - PAD, middle + half + PAD
     segments = max(segments, math.ceil((upper - lower) / MAX_SEGMENT_ANGLE))
     delta = (upper - lower) / segments
     mids = lower + delta * (np.arange(segments) + 0.5)
@@ -102,59 +138,85 @@ def arc_polygon(lower: float, upper: float, segments: int = DEFAULT_SEGMENTS) ->
     return np.vstack([ends[:1], scaled, ends[1:]])
 
 
-def _interval(expression: sympy.Expr, box: Mapping[sympy.Symbol, sympy.Expr]) -> sympy.Expr:
-    """``expression`` with every symbol replaced by its ``box`` value (an ``AccumBounds`` or a
-    number), evaluated bottom-up. sympy leaves ``Abs`` and ``sign`` of an ``AccumBounds``
-    unevaluated; here they get their exact ranges: ``|[a, b]|`` and ``[sign a, sign b]``
-    (``sign`` is non-decreasing)."""
-    if expression in box:
-        return box[expression]
-    if not expression.args:
-        return expression
-    args = [_interval(arg, box) for arg in expression.args]
-    inner = args[0]
-    if isinstance(expression, sympy.sign) and isinstance(inner, AccumBounds):
-        return AccumBounds(sympy.sign(inner.min), sympy.sign(inner.max))
-    if isinstance(expression, sympy.Abs) and isinstance(inner, AccumBounds):
-        a, b = inner.min, inner.max
-        lowest = 0 if a <= 0 <= b else sympy.Min(abs(a), abs(b))
-        return AccumBounds(lowest, sympy.Max(abs(a), abs(b)))
-    return expression.func(*args)
+def _monotone(function: str, x: mpmath.ctx_iv.ivmpf) -> mpmath.ctx_iv.ivmpf:
+    """``function`` (increasing) of the interval ``x``: end points at 120 bits, widened by
+    2^-100 relative (far above the 120-bit error), rounded outward to 53 bits by ``iv.mpf``."""
+    with mpmath.workprec(120):
+        ends = [getattr(mpmath, function)(end) for end in (x.a, x.b)]
+        widen = mpmath.mpf(2) ** -100
+        ends = [ends[0] - abs(ends[0]) * widen, ends[1] + abs(ends[1]) * widen]
+    return iv.mpf(ends)
+
+
+def _interval(expression: sympy.Expr, box: Mapping[sympy.Symbol, tuple[float, float]]):
+    """``expression`` over ``box`` in outward-rounded interval arithmetic (``mpmath.iv``)."""
+    args = [_interval(a, box) for a in expression.args]
+    if expression.is_Symbol:
+        return iv.mpf(list(box[expression]))
+    if expression.is_Integer:
+        return iv.mpf(int(expression))
+    if expression.is_Rational:
+        return iv.mpf(int(expression.p)) / iv.mpf(int(expression.q))
+    if expression.is_Float:
+        return iv.mpf(mpmath.mpf(expression._mpf_))  # the constant's exact binary value
+    if expression in (sympy.pi, sympy.E):
+        return iv.pi if expression == sympy.pi else iv.e
+    if expression.is_Add:
+        return functools.reduce(operator.add, args)
+    if expression.is_Mul:
+        return functools.reduce(operator.mul, args)
+    if expression.is_Pow:
+        base, exponent = expression.args
+        if exponent.is_Integer:
+            return args[0] ** int(exponent)  # even powers are nonnegative
+        if exponent == sympy.Rational(1, 2):
+            return iv.sqrt(args[0])
+        return iv.exp(args[1] * iv.log(args[0]))
+    if isinstance(expression, sympy.Abs):
+        return abs(args[0])
+    if isinstance(expression, sympy.sign):  # non-decreasing: [sign a, sign b]
+        return iv.mpf([int(mpmath.sign(args[0].a)), int(mpmath.sign(args[0].b))])
+    if isinstance(expression, (sympy.tanh, sympy.atan)):
+        return _monotone(type(expression).__name__, args[0])
+    name = type(expression).__name__
+    if name in ("sin", "cos", "tan", "exp", "log", "atan2"):
+        return getattr(iv, name)(*args)
+    raise HullError(f"cannot bound '{expression}' by interval arithmetic ({name})")
 
 
 def _bounds(expression: sympy.Expr, box: Mapping[sympy.Symbol, tuple[float, float]]) -> FloatArray:
-    """Sound ``[lower, upper]`` of ``expression`` over ``box`` by interval arithmetic."""
-    values = {
-        s: (AccumBounds(lo, hi) if hi > lo else sympy.Float(lo)) for s, (lo, hi) in box.items()
-    }
-    if expression.has(sympy.Abs, sympy.sign):
-        value = _interval(expression, values)
-    else:
-        value = expression.subs(values)
-    if isinstance(value, AccumBounds):
-        lower, upper = value.min, value.max
-    else:
-        lower = upper = value
+    """Sound ``[lower, upper]`` of ``expression`` over ``box``: outward-rounded interval
+    arithmetic (``mpmath.iv``, 53 bits), end points rounded outward again when made floats."""
     try:
-        lower, upper = float(lower), float(upper)
-    except TypeError:
-        raise HullError(
-            f"cannot bound '{expression}' over {dict(box)} by interval arithmetic (got {value})"
-        ) from None
+        value = _interval(expression, {s: tuple(map(float, b)) for s, b in box.items()})
+    except (ZeroDivisionError, ValueError) as error:
+        if isinstance(error, HullError):
+            raise
+        raise HullError(f"cannot bound '{expression}' over {dict(box)}: {error}") from None
+    lower, upper = float(value.a), float(value.b)
+    if mpmath.mpf(lower) > value.a:
+        lower = float(np.nextafter(lower, -np.inf))
+    if mpmath.mpf(upper) < value.b:
+        upper = float(np.nextafter(upper, np.inf))
     if not (math.isfinite(lower) and math.isfinite(upper)):
         raise HullError(f"'{expression}' is unbounded over {dict(box)}: [{lower}, {upper}]")
-    return np.array([lower - PAD * (1 + abs(lower)), upper + PAD * (1 + abs(upper))])
+    return np.array([lower, upper])
 
 
 def _block_vertices(
-    z: sympy.Symbol, functions: Sequence[sympy.Expr], lower: float, upper: float, segments: int
+    z: sympy.Symbol,
+    functions: Sequence[sympy.Expr],
+    lower: float,
+    upper: float,
+    segments: int,
+    compact: bool,
 ) -> tuple[FloatArray, str]:
     """Vertices (k, p) of a polytope containing ``{(g_1(z), .., g_p(z)) : z in [lower, upper]}``."""
     if len(functions) == 1:
         interval = _bounds(functions[0], {z: (lower, upper)})
         return interval[:, None], f"{functions[0]} in [{interval[0]:.6g}, {interval[1]:.6g}]"
     if set(functions) == {sympy.cos(z), sympy.sin(z)}:
-        polygon = arc_polygon(lower, upper, segments)
+        polygon = arc_polygon(lower, upper, segments, compact)
         if functions[0] == sympy.sin(z):
             polygon = polygon[:, ::-1]
         return polygon, f"(cos {z}, sin {z}) on [{lower:g}, {upper:g}]: {len(polygon)}-gon"
@@ -173,11 +235,13 @@ def jacobian_hull(
     dynamics: Dynamics,
     region: Mapping[str, tuple[float, float]],
     segments: int = DEFAULT_SEGMENTS,
+    compact: bool = False,
 ) -> JacobianHull:
     """A sound polytope of ``[f_x f_u]`` over the box ``region`` (name -> (lower, upper)).
 
     Every variable the Jacobian depends on must be bounded by ``region``; ``segments`` is the
-    number of pieces per angle-like block (the arc polygon's tangents, or interval boxes).
+    number of pieces per angle-like block (the arc polygon's tangents, or interval boxes);
+    ``compact`` asks for the arc polygon with fewer vertices (``arc_polygon``).
     """
     n, m = dynamics.n, dynamics.m
     symbols = {s.name: s for s in (*dynamics.state_symbols, *dynamics.input_symbols)}
@@ -230,7 +294,7 @@ def jacobian_hull(
     coordinate: dict[tuple[object, sympy.Expr], tuple[int, int]] = {}
     for z, functions in parts.items():
         lower, upper = box[z]
-        vertices, text = _block_vertices(z, functions, lower, upper, segments)
+        vertices, text = _block_vertices(z, functions, lower, upper, segments, compact)
         for p, g in enumerate(functions):
             coordinate[(z, g)] = (len(block_vertices), p)
         block_vertices.append(vertices)

@@ -13,6 +13,7 @@ from __future__ import annotations
 import ast
 import hashlib
 import importlib.util
+from collections.abc import Iterator
 from functools import cache
 from importlib import metadata
 from pathlib import Path
@@ -47,21 +48,24 @@ def _is_type_checking(test: ast.expr) -> bool:
     )
 
 
+def _runtime_nodes(tree: ast.AST) -> Iterator[ast.AST]:
+    """Every node of ``tree`` except the bodies of ``if TYPE_CHECKING:`` (never run)."""
+    pending = [tree]
+    while pending:
+        node = pending.pop()
+        yield node
+        if isinstance(node, ast.If) and _is_type_checking(node.test):
+            pending.extend(node.orelse)
+            continue
+        pending.extend(ast.iter_child_nodes(node))
+
+
 def _imported(module: str, source: str, is_package: bool) -> set[str]:
-    """Project modules named by the imports in ``source`` (and their parent packages)."""
+    """Project modules named by the imports in ``source`` (and their parent packages) that run:
+    imports under ``if TYPE_CHECKING:`` only name types for the checker."""
     names: set[str] = set()
     package = module if is_package else module.rpartition(".")[0]
-    tree = ast.parse(source)
-    typing_only = {  # ``if TYPE_CHECKING:`` imports never run: they cannot change a result
-        id(inner)
-        for node in ast.walk(tree)
-        if isinstance(node, ast.If) and _is_type_checking(node.test)
-        for statement in node.body
-        for inner in ast.walk(statement)
-    }
-    for node in ast.walk(tree):
-        if id(node) in typing_only:
-            continue
+    for node in _runtime_nodes(ast.parse(source)):
         if isinstance(node, ast.Import):
             names.update(alias.name for alias in node.names)
         elif isinstance(node, ast.ImportFrom):

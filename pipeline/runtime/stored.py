@@ -11,7 +11,13 @@ import json
 from pathlib import Path
 from typing import Any
 
-from pipeline.io.artifacts import ArtifactError, atomic_write_json, inputs_key, read_stored
+from pipeline.io.artifacts import (
+    ArtifactError,
+    atomic_write_json,
+    file_hash,
+    inputs_key,
+    read_stored,
+)
 from pipeline.io.errors import UserError
 from pipeline.model.scenario import Scenario
 from pipeline.reporting.data import STAGES, ReportData, report_data
@@ -105,8 +111,12 @@ def load_report_data(scenario: Scenario, out: Path) -> ReportData:
             what = f"artifact of stage '{stage}' not found"
             raise _rerun(stem.with_suffix(".json"), scenario, what)
         results[stage], keys[stage] = stored.result, stored.key
-    if not (out / "controller.json").is_file():
-        raise _rerun(out / "controller.json", scenario, "controller.json not found")
+    controller = out / "controller.json"
+    if not controller.is_file():
+        raise _rerun(controller, scenario, "controller.json not found")
+    manifest = json.loads((out / "artifacts" / MANIFEST).read_text())  # read by _check_inputs
+    if file_hash(controller) != manifest.get("controller_sha256"):
+        raise _rerun(controller, scenario, "controller.json is not the file the run wrote")
     if len(results["optimize"].trajectories) != len(scenario.demos):
         raise _rerun(
             out / "artifacts" / "optimize.json",

@@ -1,0 +1,339 @@
+"""A time-varying funnel around one nominal trajectory: gains ``K[k]``, metrics ``P[k]``, level rho.
+
+Problem. Nominal ``x_ref``, ``u_ref[k]`` held on ``[t_k, t_k+1)``, ``t_k = k Ts`` (eq. (1)).
+Feedback ``u = u_ref[k] + K[k] e``, ``e = x - x_ref``; funnel
+``E(t) = {x : e^T P(t) e <= rho^2}``. ``Q = P^-1`` is LINEAR in t on each sample interval,
+
+    Q(t) = (1 - s) Q[k] + s Q[k+1],  s = (t - t_k) / Ts,  dQ/dt = (Q[k+1] - Q[k]) / Ts,      (F1)
+
+so between samples ``P(t) = ((1 - s) P[k]^-1 + s P[k+1]^-1)^-1`` (not linear in P).
+
+Error dynamics. ``de/dt = f(x_ref + e, u_ref + K e) - f(x_ref, u_ref) = (Abar + Bbar K) e`` with
+``[Abar Bbar] = int_0^1 [f_x f_u](x_ref + r e, u_ref + r K e) dr``. While ``x`` is in the tube and
+the input in its bounds (no clipping), the segment lies in the box ``Z_k`` holding the tube and the
+inputs on the interval, so ``[Abar Bbar]`` lies in the hull ``conv{[A_v B_v]}`` of ``[f_x f_u]``
+over ``Z_k`` (``pipeline.numerics.hull``; the hull is convex and holds every Jacobian on the
+segment, hence their average).
+
+Certificate. ``V = e^T P e`` has ``dV/dt = e^T (dP/dt + Acl^T P + P Acl) e``, ``Acl = A + B K``, so
+``dV/dt <= -2 lambda V`` follows from ``dP/dt + Acl^T P + P Acl + 2 lambda P <= 0``. Multiply by
+``Q`` on both sides; ``dP/dt = -P (dQ/dt) P`` gives ``Q (dP/dt) Q = -dQ/dt``:
+
+    L(t, J) = -dQ/dt + Acl Q(t) + Q(t) Acl^T + 2 lambda Q(t) <= 0,  Acl = A + B K[k].        (F2)
+
+With ``K[k]`` FIXED (from time-varying LQR) ``Y(t) = K[k] Q(t)`` is affine in t and (F2) is linear
+in the unknowns ``Q[k], Q[k+1]``; no product of unknowns appears. We impose (F2) with margin,
+``+ (2 lambda + eps) Q``, at ``s = 0`` and ``s = 1`` for every vertex ``J_v = [A_v B_v]``:
+
+    L(0, J_v) <= 0,  L(1, J_v) <= 0  for all v.                                             (F3)
+
+Why (F3) implies (F2) for all t in the interval and all J in the hull: for fixed ``s``, ``L`` is
+affine in ``J`` (``Acl`` is linear in ``[A B]`` for fixed ``K``), so ``J = sum_v mu_v J_v`` with
+``mu >= 0, sum mu = 1`` gives ``L(s, J) = sum_v mu_v L(s, J_v)``; for fixed ``J_v``, ``L`` is affine
+in ``s`` by (F1), so ``L(s, J_v) = (1 - s) L(0, J_v) + s L(1, J_v)``. A nonnegative combination of
+negative semidefinite matrices is negative semidefinite. (``L`` is bilinear, not jointly affine,
+in ``(s, J)``; the two steps above need only affinity in each.) ``Q`` is continuous at ``t_k``
+and ``K`` switches there, so ``V`` is continuous and the bound holds across samples.
+Invariance: while ``V <= rho^2`` the state is in ``Z_k`` (the box holds the tube at level rho,
+checked below), so ``V`` cannot grow and no solution starting in ``E(0)`` leaves the funnel.
+
+Design. 1. Seed: discrete Riccati recursion on the zero-order-hold discretisation of the nominal's
+linearisation, weights ``Ts diag(state_weights)``, ``Ts diag(input_weights)`` -> ``K[k]``,
+``P_lqr[k]`` (F4). 2. Boxes: ``Q_seed = c P_lqr^-1`` scaled to contain the required initial
+ellipsoid; the box of each variable the Jacobian depends on is the nominal's enclosure
+(``funnel_bounds``, E1-E2) widened by ``allowance`` times the seed's extent, clipped to the state
+and input bounds (sound: the level keeps the tube inside them). 3. LMIs (F3) plus
+``Q[0] >= tau Q_init`` and, at level 1, the tube inside every box (``Q_ii <= s_i^2``,
+``K_j Q K_j^T <= s_j^2`` at both ends), its position disk clear of Unsafe
+(``C Q C^T <= d_k^2 I``, ``d_k`` the nominal's sound clearance on the interval) and inside Goal
+at T; all linear in Q. Maximise ``tau <= 1`` first, then minimise ``sum_k tr(W Q[k])``, ``W``
+weighting position by ``1/d^2`` and inputs by their inverse squared half-ranges; Clarabel, the
+program assembled by ``funnel_lmi`` (cvxpy states the same program for the tests). ``Q / tau``
+holds the whole initial set at level 1 and meets every cap at level ``sqrt(tau)``. 4. Level:
+``rho = min(sqrt(tau), funnel_limits)`` (``funnel_bounds``; Goal there is the exact ellipse).
+5. ``funnel_check.check_funnel``: numpy only; a funnel that fails it is rejected.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Mapping
+
+import numpy as np
+import shapely
+from scipy.linalg import expm
+
+from pipeline.model.dynamics import FloatArray
+from pipeline.model.scenario import Scenario
+from pipeline.model.simulate import Trajectory
+from pipeline.numerics.funnel_bounds import (
+    Enclosure,
+    enclosure_range,
+    funnel_limits,
+    grid_range,
+    interval_clearance,
+    rate_bound,
+    substeps,
+)
+from pipeline.numerics.funnel_check import (
+    LEVEL_SLACK,
+    Funnel,
+    certificate_margins,
+    check_funnel,
+)
+from pipeline.numerics.funnel_lmi import FunnelProgram, solve_clarabel
+from pipeline.numerics.hull import HullError, jacobian_hull
+
+# The LMIs' margin eps in (2 lambda + eps) Q: a solution that fails the numpy check (the solver
+# meets (F3) only to its tolerance, relative to the largest entries of Q) is solved again with a
+# larger margin.
+MARGINS = (1e-3, 1e-2)
+
+
+def lqr_seed(scenario: Scenario, trajectory: Trajectory) -> tuple[FloatArray, FloatArray]:
+    """Time-varying LQR along the nominal: ``K (N, m, n)`` (sign of ``u = u_ref + K e``) and the
+    cost-to-go ``P (N+1, n, n)``, terminal ``P[N] = Ts diag(state_weights)``."""
+    dynamics, Ts = scenario.dynamics, scenario.Ts
+    xs, us = trajectory.xs, trajectory.us
+    n, m, N = scenario.n, scenario.m, us.shape[0]
+    M = np.zeros((N, n + m, n + m))
+    M[:, :n, :n] = dynamics.f_x(xs[:-1], us)
+    M[:, :n, n:] = dynamics.f_u(xs[:-1], us)
+    E = expm(M * Ts)  # zero-order hold: [Ad Bd; 0 I] = expm([A B; 0 0] Ts)
+    Ad, Bd = E[:, :n, :n], E[:, :n, n:]
+    Qw = Ts * np.diag(scenario.feedback.state_weights)
+    Rw = Ts * np.diag(scenario.feedback.input_weights)
+    P = np.empty((N + 1, n, n))
+    K = np.empty((N, m, n))
+    P[N] = Qw
+    for k in range(N - 1, -1, -1):  # eq. (F4): discrete Riccati recursion
+        A, B, S = Ad[k], Bd[k], P[k + 1]
+        K[k] = -np.linalg.solve(Rw + B.T @ S @ B, B.T @ S @ A)
+        Pk = Qw + A.T @ S @ (A + B @ K[k])
+        P[k] = (Pk + Pk.T) / 2
+    return K, P
+
+
+def _bounds_of(scenario: Scenario, state_bounds: Mapping[str, tuple[float, float]], name: str):
+    if name in scenario.input_names:
+        j = scenario.input_names.index(name)
+        return float(scenario.input_lower[j]), float(scenario.input_upper[j])
+    return tuple(map(float, state_bounds.get(name, (-np.inf, np.inf))))
+
+
+def _hulls(scenario, trajectory, Q_seed, K, state_bounds, allowance, segments):
+    """Per interval: box ``(2, d)`` over the Jacobian's variables, hull vertices, enclosure."""
+    dynamics, n = scenario.dynamics, scenario.n
+    variables = dynamics.depends_on()
+    h = scenario.Ts / substeps(trajectory)
+    grid = grid_range(trajectory)  # (N, 2, n)
+    N = len(grid)
+    s_seed = np.sqrt(np.diagonal(Q_seed, axis1=1, axis2=2))  # (N+1, n)
+    g_seed = np.sqrt(np.einsum("kji,kil,kjl->kj", K, Q_seed[:-1], K))  # (N, m)
+    g_next = np.sqrt(np.einsum("kji,kil,kjl->kj", K, Q_seed[1:], K))
+    boxes, vertices = np.empty((N, 2, len(variables))), []
+    pads, F = np.empty((N, n)), np.empty((N, n))
+    for k in range(N):
+        pad = 2 * h * np.abs(dynamics.f(grid[k], trajectory.us[k])).max(axis=0) + 1e-9
+        for _ in range(6):
+            B = grid[k] + np.stack([-pad, pad])  # the a priori box B_k (E1)
+            for d, name in enumerate(variables):
+                lower, upper = _bounds_of(scenario, state_bounds, name)
+                if name in scenario.input_names:
+                    j = scenario.input_names.index(name)
+                    w = allowance * max(g_seed[k, j], g_next[k, j])
+                    centre = (trajectory.us[k, j],) * 2
+                else:
+                    i = scenario.state_names.index(name)
+                    w = allowance * max(s_seed[k, i], s_seed[k + 1, i])
+                    centre = B[:, i]
+                boxes[k, :, d] = max(centre[0] - w, lower), min(centre[1] + w, upper)
+            region = dict(zip(variables, boxes[k].T, strict=True))
+            hull = jacobian_hull(dynamics, region, segments, compact=True)
+            F[k] = rate_bound(dynamics, trajectory, k, B, hull.A)
+            if np.all(F[k] * h < pad):
+                break
+            pad = np.maximum(pad, 2 * F[k] * h)
+        else:
+            raise HullError(f"funnel: no a priori enclosure of the nominal on interval {k}")
+        pads[k] = pad
+        vertices.append(hull.vertices)
+    enclosure = Enclosure(
+        box=grid + np.stack([-pads, pads], axis=1),
+        rate_bound=F,
+        grid_range=grid,
+        range=enclosure_range(grid, F, h),
+    )
+    return variables, boxes, tuple(vertices), enclosure
+
+
+def _weights(scenario: Scenario, state_bounds: Mapping[str, tuple[float, float]], K):
+    """(N, n, n) ``W[k]`` of the objective ``sum_k tr(W[k] Q[k])``."""
+    n = scenario.n
+    C = np.zeros((2, n))
+    C[0, scenario.position_index[0]] = C[1, scenario.position_index[1]] = 1.0
+    W = np.broadcast_to(C.T @ C / scenario.clearance**2, (len(K), n, n)).copy()
+    for j in range(scenario.m):
+        half = (scenario.input_upper[j] - scenario.input_lower[j]) / 2
+        W += np.einsum("ki,kl->kil", K[:, j], K[:, j]) / half**2
+    for name, (lower, upper) in state_bounds.items():
+        i = scenario.state_names.index(name)
+        W[:, i, i] += 4 / (upper - lower) ** 2
+    return W
+
+
+def _program(scenario, trajectory, K, vertices, boxes, variables, enclosure, Q_init, Q_seed, rate):
+    """(F3) with the initial set, and the tube at level 1 inside every hull box, clear of Unsafe
+    (a disk bound) and inside Goal (``funnel_lmi``)."""
+    n, us, final_state = scenario.n, trajectory.us, trajectory.dense_xs[-1]
+    caps = []
+    for k in range(len(K)):
+        for d, name in enumerate(variables):
+            lo, hi = boxes[k, :, d]
+            if name in scenario.input_names:  # K_j Q K_j^T <= room^2 at both ends
+                j = scenario.input_names.index(name)
+                C, room = K[k, j : j + 1], min(us[k, j] - lo, hi - us[k, j])
+            else:  # Q_ii <= room^2 at both ends
+                i = scenario.state_names.index(name)
+                C = np.eye(n)[i : i + 1]
+                room = min(enclosure.range[k, 0, i] - lo, hi - enclosure.range[k, 1, i])
+            caps += [(e, C, np.full((1, 1), max(room, 0.0) ** 2)) for e in (k, k + 1)]
+    # The position disk of the tube at level 1 clear of Unsafe (funnel_bounds (a)) and in Goal.
+    C = np.eye(n)[list(scenario.position_index)]
+    for k, d in enumerate(interval_clearance(scenario, trajectory, enclosure)):
+        if np.isfinite(d):
+            caps += [(e, C, max(d, 0.0) ** 2 * np.eye(2)) for e in (k, k + 1)]
+    final = scenario.positions(trajectory.dense_xs[-1])
+    inside = shapely.intersects_xy(scenario.goal, *final)
+    g = float(shapely.distance(shapely.Point(final), scenario.goal.boundary)) * inside
+    caps.append((len(K), C, g**2 * np.eye(2)))
+    for name, (lower, upper) in scenario.goal_bounds.items():
+        i = scenario.state_names.index(name)
+        room = max(min(final_state[i] - lower, upper - final_state[i]), 0.0)
+        caps.append((len(K), np.eye(n)[i : i + 1], np.full((1, 1), room**2)))
+    W = _weights(scenario, {}, K)
+    return FunnelProgram(
+        Ts=scenario.Ts,
+        K=K,
+        vertices=vertices,
+        c=2 * rate + MARGINS[0],
+        Q_init=Q_init,
+        floor=1e-4 * float(np.linalg.eigvalsh(Q_init)[-1]),
+        caps=tuple(caps),
+        W=np.concatenate([W, W[-1:]]),
+        initial_weight=100 * float(np.einsum("kij,kji->", W, Q_seed[:-1])),
+    )
+
+
+def synthesize_funnel(
+    scenario: Scenario,
+    trajectory: Trajectory,
+    *,
+    state_bounds: Mapping[str, tuple[float, float]] | None = None,
+    initial: FloatArray | None = None,
+    rate: float = 0.0,
+    allowance: float = 2.0,
+    segments: int = 1,
+) -> Funnel:
+    """Synthesize and check the funnel around ``trajectory`` (one: ``xs (N+1, n)``, ``us (N, m)``,
+    its dense grid); see the module docstring.
+
+    Args:
+      state_bounds: state name -> (lower, upper) the tube must respect (the physical envelope).
+      initial: (n, n) ``Q_init`` (positive semidefinite): ``E(0)`` at level 1 must hold
+        ``{Q_init^1/2 v : |v| <= 1}`` (degenerate for a slice, e.g. Init's free directions);
+        default the seed's shape with position extent ``scenario.clearance``.
+      rate: lambda of (F2). Default 0: the tube's level is constant and ``Q(t)`` itself shrinks
+        where the closed loop contracts (``Q e^{-2 lambda t}`` would satisfy (F2) with rate 0
+        too, so a positive rate only restricts the shape); the LMI margin stays (``MARGINS``).
+      allowance: the hull boxes are the nominal's enclosure widened by this times the seed tube.
+      segments: pieces per angle-like block of the local hulls.
+    """
+    start = time.perf_counter()
+    state_bounds = dict(state_bounds or {})
+    rate = float(rate)
+    xs = trajectory.dense_xs
+    if xs.ndim != 2 or trajectory.us.ndim != 2:
+        raise ValueError(f"funnel: expected one trajectory, got dense_xs of shape {xs.shape}")
+    bad = np.argwhere(~np.isfinite(xs))
+    if len(bad):
+        k, i = bad[0]
+        raise ValueError(
+            f"funnel: non-finite state '{scenario.state_names[i]}' at dense index {k} "
+            f"(t = {trajectory.dense_ts[k]:.3f} s)"
+        )
+    for name in state_bounds:
+        if name not in scenario.state_names:
+            raise ValueError(
+                f"funnel: state_bounds names '{name}', not one of {scenario.state_names}"
+            )
+    K, P_lqr = lqr_seed(scenario, trajectory)
+    Q_seed = np.linalg.inv(P_lqr)
+    c = list(scenario.position_index)
+    if initial is None:
+        extent = np.linalg.eigvalsh(Q_seed[0][np.ix_(c, c)])[-1]
+        initial = Q_seed[0] * scenario.clearance**2 / extent
+    Q_init = np.asarray(initial, dtype=np.float64)
+    L_inv = np.linalg.inv(np.linalg.cholesky(Q_seed[0]))
+    Q_seed = Q_seed * np.linalg.eigvalsh(L_inv @ Q_init @ L_inv.T)[-1]  # Q_seed[0] >= Q_init
+    N = len(K)
+
+    def result(success: bool, message: str, **values) -> Funnel:
+        defaults = dict(
+            K=K, P=P_lqr, rho=0.0, rate=rate, margins=np.full((N, 2), np.nan),
+            boxes=np.zeros((N, 2, 0)), variables=(), vertices=(), enclosure=None, limits={},
+            binding="",
+        )  # fmt: skip
+        defaults.update(values)
+        return Funnel(
+            **defaults, seconds=time.perf_counter() - start, success=success, message=message
+        )
+
+    try:
+        variables, boxes, vertices, enclosure = _hulls(
+            scenario, trajectory, Q_seed, K, state_bounds, allowance, segments
+        )
+    except HullError as error:
+        return result(False, f"funnel: {error}")
+    common = dict(boxes=boxes, variables=variables, vertices=vertices, enclosure=enclosure)
+    failures = []
+    for margin in MARGINS:  # a solution within the solver's tolerance may still fail the check
+        program = _program(
+            scenario, trajectory, K, vertices, boxes, variables, enclosure, Q_init, Q_seed, rate
+        )
+        program = dataclasses.replace(program, c=2 * rate + margin)
+        solution = solve_clarabel(program)
+        if isinstance(solution, str):
+            return result(False, f"funnel: {solution} over {N} intervals", **common)
+        Q, tau = solution
+        if tau <= 1e-6:
+            return result(False, f"funnel: no funnel holds any of the initial set (tau {tau:.2g})")
+        Q = Q / tau  # E(0) at level 1 holds the initial set; the caps hold at level sqrt(tau)
+        limits = funnel_limits(scenario, trajectory, Q, K, enclosure, state_bounds)
+        limits["design"] = (float(np.sqrt(min(tau, 1.0))), 0.0)
+        binding = min(limits, key=lambda key: limits[key][0])
+        level, when = limits[binding]
+        rho = level * (1 - LEVEL_SLACK)
+        funnel = result(
+            True, "", P=np.linalg.inv(Q), rho=rho, binding=binding,
+            margins=certificate_margins(Q, K, vertices, rate, scenario.Ts),
+            limits={key: value[0] for key, value in limits.items()}, **common,
+        )  # fmt: skip
+        failure = check_funnel(scenario, trajectory, funnel, state_bounds)
+        if rho <= 0:
+            failure = failure or f"the nominal itself violates {binding} at t = {when:.2f} s"
+        if not failure:
+            break
+        failures.append(f"margin {margin:g}: {failure}")
+    else:
+        return result(False, f"funnel rejected: {'; '.join(failures)}", **common)
+    message = (
+        f"funnel level {rho:.4g} (E(0) holds {min(rho, 1.0):.3g} x the required initial set) "
+        f"over {N} intervals, bound by {binding} at t = {when:.2f} s "
+        f"(largest eigenvalue {funnel.margins.max():.2e}, LMI margin {margin:g})"
+    )
+    return result(
+        True, message, P=funnel.P, rho=rho, binding=binding, margins=funnel.margins,
+        limits=funnel.limits, **common,
+    )  # fmt: skip

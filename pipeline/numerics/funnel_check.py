@@ -1,0 +1,146 @@
+"""The funnel result and its independent check (pipeline.numerics.funnel's (F1)-(F3), E1-E3).
+
+``check_funnel`` re-verifies a funnel with numpy alone, independently of the solver that built it:
+positive definite metrics, the vertex inequalities (F3) at both ends of every interval, the
+nominal's enclosure (E1), the tube inside every hull box, and the level within every constraint
+(``funnel_bounds.funnel_limits``). A funnel that fails it is rejected.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from pipeline.model.dynamics import FloatArray
+from pipeline.model.scenario import Scenario
+from pipeline.model.simulate import Trajectory
+from pipeline.numerics.funnel_bounds import Enclosure, funnel_limits, rate_bound, substeps
+
+LEVEL_SLACK = 1e-9  # rho is shrunk by this relative amount so that no bound holds with equality
+INTERPOLATION = "Q = P^-1 linear in t on each sample interval"
+
+
+@dataclass(frozen=True, kw_only=True)
+class Funnel:
+    """A certified (or rejected) funnel around one trajectory of N sample intervals.
+
+    Attributes:
+      K: (N, m, n) gain held on ``[t_k, t_k+1)``.
+      P: (N+1, n, n) metric at ``t_k``; between samples ``P^-1`` is linear in t (INTERPOLATION).
+      rho: funnel level: ``E(t) = {x : (x - x_ref)^T P(t) (x - x_ref) <= rho^2}``.
+      rate: lambda (1/s) in (F2): ``V(t) <= exp(-2 lambda t) V(0)``.
+      margins: (N, 2) largest eigenvalue of ``Q^-1/2 L Q^-1/2`` (F2) over the vertices at each
+        interval's start and end (< 0 for a certificate).
+      boxes: (N, 2, d) the hull's box per interval over ``variables`` (d names).
+      vertices: N arrays (V_k, n, n+m) of hull vertices ``[A_v B_v]``.
+      enclosure: the nominal's sound enclosure (``funnel_bounds.Enclosure``).
+      limits: constraint -> largest level it allows; ``design`` is the level at which the LMI
+        program's caps (hull boxes, Unsafe, Goal, bounds) hold, ``sqrt(tau)`` (funnel_lmi): 1
+        unless the required initial set could not be held whole.
+      binding: the constraint that sets rho; seconds: synthesis wall time.
+    """
+
+    K: FloatArray
+    P: FloatArray
+    rho: float
+    rate: float
+    margins: FloatArray = field(repr=False)
+    boxes: FloatArray = field(repr=False)
+    variables: tuple[str, ...]
+    vertices: tuple[FloatArray, ...] = field(repr=False)
+    enclosure: Enclosure = field(repr=False)
+    limits: Mapping[str, float] = field(repr=False)
+    binding: str
+    seconds: float
+    success: bool
+    message: str
+    interpolation: str = INTERPOLATION
+
+    @property
+    def Q(self) -> FloatArray:
+        """(N+1, n, n) ``P^-1`` at the sample times."""
+        return np.linalg.inv(self.P)
+
+
+def certificate_margins(
+    Q: FloatArray, K: FloatArray, vertices: tuple[FloatArray, ...], rate: float, Ts: float
+) -> FloatArray:
+    """(N, 2) largest eigenvalue of ``Lc^-1 L(s, J_v) Lc^-T`` (``Q(s) = Lc Lc^T``) over the
+    vertices at ``s = 0, 1`` of each interval, by numpy alone; ``Q (N+1, n, n)``."""
+    n, N = Q.shape[1], len(K)
+    margins = np.empty((N, 2))
+    for k in range(N):
+        D = (Q[k + 1] - Q[k]) / Ts  # eq. (F1)
+        Acl = vertices[k][:, :, :n] + vertices[k][:, :, n:] @ K[k]  # (V, n, n)
+        for e, Qe in enumerate((Q[k], Q[k + 1])):
+            M = -D + Acl @ Qe + Qe @ np.swapaxes(Acl, 1, 2) + 2 * rate * Qe  # eq. (F2)
+            L_inv = np.linalg.inv(np.linalg.cholesky(Qe))
+            M = L_inv @ M @ L_inv.T
+            margins[k, e] = np.linalg.eigvalsh((M + np.swapaxes(M, 1, 2)) / 2).max()
+    return margins
+
+
+def check_funnel(
+    scenario: Scenario,
+    trajectory: Trajectory,
+    funnel: Funnel,
+    state_bounds: Mapping[str, tuple[float, float]],
+) -> str | None:
+    """Re-verify ``funnel`` with numpy alone; ``None`` if it holds, else what fails.
+
+    Checks: every ``P[k]`` symmetric positive definite; (F3) at every vertex and both ends of
+    every interval; the a priori enclosure (E1: ``F h < pad`` with ``F`` recomputed from the
+    stored vertices) and its box inside the hull box; the tube at level rho inside every hull
+    box; rho within every constraint's limit (funnel_bounds (a)-(d))."""
+    P, K, rho, Ts = funnel.P, funnel.K, funnel.rho, scenario.Ts
+    N, n = len(K), scenario.n
+    if P.shape != (N + 1, n, n) or K.shape != (N, scenario.m, n):
+        return f"shapes P {P.shape}, K {K.shape} do not fit N = {N}, n = {n}, m = {scenario.m}"
+    if not (np.all(np.isfinite(P)) and np.all(np.isfinite(K)) and np.isfinite(rho)):
+        return "non-finite P, K or rho"
+    if np.abs(P - np.swapaxes(P, 1, 2)).max() > 1e-9 * np.abs(P).max():
+        return "P is not symmetric"
+    lowest = np.linalg.eigvalsh(P)[:, 0]
+    if lowest.min() <= 0:
+        return f"P[{int(np.argmin(lowest))}] is not positive definite ({lowest.min():.3g})"
+    Q = np.linalg.inv(P)
+    Q = (Q + np.swapaxes(Q, 1, 2)) / 2
+    margins = certificate_margins(Q, K, funnel.vertices, funnel.rate, Ts)
+    if margins.max() >= 0:
+        k, e = np.unravel_index(int(np.argmax(margins)), margins.shape)
+        worst = margins.max()
+        return f"(F2) fails at t = {Ts * (k + e):.2f} s, interval {k} (eigenvalue {worst:.3g})"
+    h = Ts / substeps(trajectory)
+    enclosure = funnel.enclosure
+    s_ext = np.sqrt(
+        np.maximum(np.diagonal(Q, axis1=1, axis2=2)[:-1], np.diagonal(Q, axis1=1, axis2=2)[1:])
+    )
+    for k in range(N):
+        box = enclosure.box[k]
+        pad = np.minimum(enclosure.grid_range[k, 0] - box[0], box[1] - enclosure.grid_range[k, 1])
+        F = rate_bound(scenario.dynamics, trajectory, k, box, funnel.vertices[k][:, :, :n])
+        if not (np.all(F * h < pad) and np.all(F <= enclosure.rate_bound[k])):
+            return f"the nominal's enclosure (E1) fails on interval {k}"
+        for d, name in enumerate(funnel.variables):
+            lo, hi = funnel.boxes[k, :, d]
+            if name in scenario.input_names:
+                j = scenario.input_names.index(name)
+                g = rho * np.sqrt(max(K[k, j] @ Q[e] @ K[k, j] for e in (k, k + 1)))
+                inner = (trajectory.us[k, j] - g, trajectory.us[k, j] + g)
+            else:
+                i = scenario.state_names.index(name)
+                inner = (
+                    enclosure.range[k, 0, i] - rho * s_ext[k, i],
+                    enclosure.range[k, 1, i] + rho * s_ext[k, i],
+                )
+                if not (lo <= box[0, i] and box[1, i] <= hi):
+                    return f"the enclosure leaves the hull box of '{name}' on interval {k}"
+            if not (lo <= inner[0] and inner[1] <= hi):
+                return f"the tube leaves the hull box of '{name}' on interval {k}"
+    limits = funnel_limits(scenario, trajectory, Q, K, enclosure, state_bounds)
+    name = min(limits, key=lambda key: limits[key][0])
+    if rho > limits[name][0]:
+        return f"rho {rho:.4g} exceeds the limit {limits[name][0]:.4g} of {name}"
+    return None
