@@ -130,7 +130,9 @@ def equilibrium(
     return z[:n], z[n:]
 
 
-def lqr_terminal(scenario: Scenario, x_eq: FloatArray, u_eq: FloatArray) -> tuple[FloatArray, ...]:
+def lqr_terminal(
+    scenario: Scenario, x_eq: FloatArray, u_eq: FloatArray
+) -> tuple[FloatArray, FloatArray]:
     """``(K_T (m, n), P_T (n, n))``: ``control.lqr`` at the equilibrium with the scenario's
     feedback weights, ``K_T = -K_lqr`` (sign of ``u = u_eq + K_T e``), ``P_T`` the Riccati
     solution (``A_cl^T P_T + P_T A_cl = -(Q + K^T R K)`` at the equilibrium)."""

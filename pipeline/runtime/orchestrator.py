@@ -107,11 +107,12 @@ def _held_feedback(
     """The feedback with its tube at the held law's rate ``lambda_h`` (``--feedback-period``)."""
     n = len(scenario.state_names)
     A, B = feedback.vertices[:, :, :n], feedback.vertices[:, :, n:]
-    held = held_rate(feedback.P, feedback.K, A, B, feedback.rate, period)
+    tube = feedback.certified_tube
+    held = held_rate(tube.P, tube.K, A, B, feedback.rate, period)
     if not held.success:
         return feedback, held
-    tube = dataclasses.replace(feedback.certified_tube, rate=held.held_rate)
-    return dataclasses.replace(feedback, rate=held.held_rate, tube=tube), held
+    held_tube = dataclasses.replace(tube, rate=held.held_rate)
+    return dataclasses.replace(feedback, rate=held.held_rate, tube=held_tube), held
 
 
 def _check_period(scenario: Scenario, period: float) -> None:
