@@ -33,6 +33,7 @@ lint: $(STAMP)
 	$(PY) -m ruff check pipeline stages tests bench examples
 	$(PY) -m ruff format --check pipeline stages tests bench examples
 	$(VENV)/bin/lint-imports
+	$(VENV)/bin/mypy
 
 clean:
 	rm -rf $(VENV) reports/*/ .pytest_cache build *.egg-info

@@ -266,16 +266,18 @@ class _Reader:
 
     def array(self, field: str, value: object, shape: tuple[int | None, ...]) -> np.ndarray:
         """A finite float64 array of ``shape`` (None: any length >= 1) from nested lists."""
-        rows, found = [value], []
+        rows: list[object] = [value]
+        found: list[int] = []
         for depth in range(len(shape)):
-            if not all(isinstance(r, list) for r in rows):
+            lists = [r for r in rows if isinstance(r, list)]
+            if len(lists) < len(rows):
                 what = "a number" if depth else _kind(value)
                 self.fail(field, what, f"nested lists of shape {_shape_text(shape)}")
-            lengths = {len(r) for r in rows}
+            lengths = {len(r) for r in lists}
             if len(lengths) > 1:
                 self.fail(field, "ragged lists", f"shape {_shape_text(shape)}")
             found.append(lengths.pop() if lengths else 0)
-            rows = [item for r in rows for item in r]
+            rows = [item for r in lists for item in r]
         if any(
             length == 0 or (size is not None and length != size)
             for length, size in zip(found, shape, strict=True)

@@ -170,29 +170,31 @@ def certify_controller(
     """Re-verify the emitted ``controller.json`` at ``path`` against ``scenario`` (steps 1-5 of
     the module docstring); ``success`` only when every check passes."""
     path = Path(path)
-    nothing = dict(
-        path=path,
-        metric_eigenvalue=float("nan"),
-        contraction_margin=float("nan"),
-        vertices=0,
-        radii=(),
-        verified_radii=(),
-        reference_error=float("nan"),
-        covered_fraction=0.0,
-        success=False,
-    )
+
+    def refused(sha256: str, failures: list[str]) -> CertificationResult:
+        return CertificationResult(
+            path=path,
+            sha256=sha256,
+            metric_eigenvalue=float("nan"),
+            contraction_margin=float("nan"),
+            vertices=0,
+            radii=(),
+            verified_radii=(),
+            reference_error=float("nan"),
+            covered_fraction=0.0,
+            failures=tuple(failures),
+            success=False,
+            message="; ".join(failures),
+        )
+
     try:
         controller = load(path)
         sha256 = file_hash(path)
     except (OSError, ControllerFormatError) as error:
-        message = f"controller.json cannot be certified: {error}"
-        return CertificationResult(sha256="", failures=(message,), message=message, **nothing)
+        return refused("", [f"controller.json cannot be certified: {error}"])
     failures = _same_scenario(scenario, controller)
     if failures:
-        message = "; ".join(failures)
-        return CertificationResult(
-            sha256=sha256, failures=tuple(failures), message=message, **nothing
-        )
+        return refused(sha256, failures)
 
     # 2. The metric.
     metric = float(np.linalg.eigvalsh(controller.P)[0])
@@ -234,12 +236,12 @@ def certify_controller(
             verified.append(0.0)
             continue
         e = tr.x_ref - fine.dense_xs
-        error = float(np.sqrt(np.einsum("ki,ij,kj->k", e, controller.P, e)).max()) / tr.radius
-        reference_error = max(reference_error, error)
-        if not error <= REFERENCE_TOLERANCE:
+        mismatch = float(np.sqrt(np.einsum("ki,ij,kj->k", e, controller.P, e)).max()) / tr.radius
+        reference_error = max(reference_error, mismatch)
+        if not mismatch <= REFERENCE_TOLERANCE:
             failures.append(
                 f"trajectories[{i}]: x_ref is not the dynamics under u_ref from x0 "
-                f"(P-norm error {error:.3g} radius)"
+                f"(P-norm error {mismatch:.3g} radius)"
             )
         nominal = simulate(scenario.dynamics, tr.x0, tr.u_ref, scenario.Ts, VERIFY_SUBSTEPS)
         limits = radius_limits(scenario, tube, nominal)

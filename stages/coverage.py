@@ -24,7 +24,9 @@ MAX_BISECTIONS = 200  # covering_radius: tries of a radius (about 10 suffice in 
 class Metric(Protocol):
     """What this stage reads from the feedback stage's result."""
 
-    P: FloatArray | None  # (n, n)
+    @property
+    def P(self) -> FloatArray | None:  # (n, n)
+        ...
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -203,7 +203,7 @@ def _solve_lqr_design(
         constraints.append(cp.bmat([[P, e], [e.T, _scalar(g)]]) >> 0)
         penalty = penalty + g / h**2
     problem = cp.Problem(cp.Minimize(t + weight * d2 * penalty), constraints)
-    return _solve(problem, lambda: (K, P.value))
+    return _solve(problem, lambda: (K, _value(P)))
 
 
 def _solve_joint_design(
@@ -234,10 +234,18 @@ def _solve_joint_design(
     problem = cp.Problem(cp.Minimize(t + weight * d2 * penalty), constraints)
 
     def design() -> tuple[FloatArray, FloatArray]:
-        Qv = (Q.value + Q.value.T) / 2
-        return Y.value @ np.linalg.inv(Qv), np.linalg.inv(Qv)
+        Qv = (_value(Q) + _value(Q).T) / 2
+        Q_inv = np.linalg.inv(Qv).astype(np.float64, copy=False)
+        return _value(Y) @ Q_inv, Q_inv
 
     return _solve(problem, design)
+
+
+def _value(variable: cp.Variable) -> FloatArray:
+    """The solved value of ``variable``; a TypeError (``_solve``: no usable solution) if none."""
+    if variable.value is None:
+        raise TypeError(f"the solver left {variable} without a value")
+    return variable.value
 
 
 def _solve(

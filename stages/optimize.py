@@ -346,12 +346,13 @@ def optimize_demo(
             message=f"demo '{name}' could not be made feasible at its own length "
             f"({first.message}); record a demonstration with more clearance",
         )
-    nearest = {"u": first.u, "log": first.log}  # the shortest feasible solution so far
+    nearest = first  # the shortest feasible solution so far
 
     def feasible(N: int) -> bool:
-        outcome = attempt(N, reseed(nearest["u"], N, options.seed_mode))
+        nonlocal nearest
+        outcome = attempt(N, reseed(nearest.u, N, options.seed_mode))
         if outcome.feasible:
-            nearest.update(u=outcome.u, log=outcome.log)
+            nearest = outcome
         return outcome.feasible
 
     if options.search == "bisection":
@@ -360,7 +361,7 @@ def optimize_demo(
         hi = shortest_by_continuation(feasible, N_demo, options.step_fraction)
     else:
         raise ValueError(f"search must be one of {SEARCHES}, got {options.search!r}")
-    best, best_log = nearest["u"], nearest["log"]
+    best, best_log = nearest.u, nearest.log
     verification = verify_nominal(
         scenario,
         problem.x0,

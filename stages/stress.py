@@ -43,6 +43,8 @@ def _campaign(
     scenario: Scenario, controller_path: Path, samples: int, seed: int, gain_scale: float
 ) -> StressRun:
     stress = scenario.spec.stress
+    if stress is None:  # stress_test returns before any campaign without a 'stress' section
+        raise ValueError(f"{scenario.name}: no 'stress' section to run a stress campaign from")
     controller = load(controller_path).with_gain(gain_scale)
     rng = np.random.default_rng(seed)  # the same draws for both campaigns
     lo, hi = scenario.init_lower, scenario.init_upper

@@ -405,3 +405,20 @@ def test_editing_a_stage_recomputes_that_stage_and_nothing_unrelated(run, tmp_pa
     ran = _stages_run(project, scenario, out)
     assert {"radius_demos", "radius_optimized", "montecarlo"} <= ran
     assert not {"feedback", "covering_radius", "optimize"} & ran
+
+
+def test_a_full_disk_is_one_line_and_exit_2(monkeypatch, capsys, tmp_path):
+    """ENOSPC while writing (simulated where the output folder is prepared): no traceback."""
+    import errno
+
+    from pipeline.runtime import cli, orchestrator
+
+    def full(*_args, **_kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device", str(tmp_path / "summary.json"))
+
+    monkeypatch.setattr(orchestrator, "check_output_folder", full)
+    code = cli.main(["synthesize", "double_integrator", "--out", str(tmp_path), "-q"])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert "No space left on device" in err and "summary.json" in err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1

@@ -146,7 +146,7 @@ def _decode(value: Any, arrays: Mapping[str, np.ndarray], registry: Mapping[str,
         if cls is None:
             raise ArtifactError(f"names type {name!r}, which is not a registered result type")
         stored = value.get("fields")
-        declared = {f.name for f in dataclasses.fields(cls) if f.init}  # type: ignore[arg-type]
+        declared = {f.name for f in dataclasses.fields(cls) if f.init}
         if not isinstance(stored, dict) or set(stored) != declared:
             found = sorted(stored) if isinstance(stored, dict) else stored
             raise ArtifactError(
@@ -191,7 +191,9 @@ def save_result(stem: Path, key: str, result: Any) -> str:
     sha256 = content_hash(key, tree, arrays)
     npz = stem.with_suffix(".npz")
     atomic_save(
-        npz, lambda p: np.savez_compressed(p, __key__=np.array(key), **arrays), suffix=".npz"
+        npz,
+        lambda p: np.savez_compressed(p, allow_pickle=True, __key__=np.array(key), **arrays),
+        suffix=".npz",
     )
     document = {"format": FORMAT, "key": key, "sha256": sha256, "result": tree}
     atomic_write_text(stem.with_suffix(".json"), json.dumps(document, indent=1) + "\n")

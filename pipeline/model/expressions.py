@@ -11,11 +11,11 @@ from __future__ import annotations
 
 import ast
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 
 import sympy
 
-ALLOWED_FUNCTIONS: Mapping[str, object] = {
+ALLOWED_FUNCTIONS: Mapping[str, Callable[..., sympy.Expr]] = {
     "sin": sympy.sin,
     "cos": sympy.cos,
     "tan": sympy.tan,
@@ -108,7 +108,7 @@ def _translate(node: ast.AST, symbols: Mapping[str, sympy.Symbol]) -> sympy.Expr
                 f"{'s' if arity > 1 else ''}, got {len(node.args)}"
             )
         args = [_translate(arg, symbols) for arg in node.args]
-        return ALLOWED_FUNCTIONS[node.func.id](*args)  # type: ignore[operator]
+        return ALLOWED_FUNCTIONS[node.func.id](*args)
     raise ExpressionError(
         f"'{ast.unparse(node)}' is not allowed (numbers, names, + - * / **, calls)"
     )

@@ -102,7 +102,7 @@ def simulate_closed_loop(
         k4 = field(t_end, x + h * k3, j, 3)
         x = x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
         xs[:, j + 1] = x
-    ts = h * np.arange(K + 1)
+    ts = h * np.arange(K + 1, dtype=np.float64)
     x_ref = np.stack(
         [np.interp(ts, reference.t, reference.x_ref[:, i]) for i in range(x.shape[1])], axis=-1
     )

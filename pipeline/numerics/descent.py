@@ -19,7 +19,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Protocol, TypedDict
 
 import numpy as np
 from scipy.optimize import minimize
@@ -173,6 +173,14 @@ def gradient_descent(
     )
 
 
+class _Best(TypedDict):
+    """The best point L-BFGS-B has evaluated: inputs ``u`` (N*m,), cost ``J``, goal ``reached``."""
+
+    u: FloatArray
+    J: float
+    reached: bool
+
+
 def lbfgs(
     problem: CostProblem,
     u0: FloatArray,
@@ -192,7 +200,7 @@ def lbfgs(
     u0 = np.clip(np.asarray(u0, dtype=np.float64).ravel(), lower, upper)
     seed_cost = problem.cost(np.asarray(u0).reshape(shape))
     rows: list[tuple[int, float, float, bool, float]] = [(0, seed_cost, np.nan, True, 0.0)]
-    best = {"u": u0.copy(), "J": seed_cost, "reached": reached(u0.reshape(shape), seed_cost)}
+    best: _Best = {"u": u0.copy(), "J": seed_cost, "reached": reached(u0.reshape(shape), seed_cost)}
 
     class _Feasible(Exception):
         pass
@@ -201,7 +209,7 @@ def lbfgs(
         J, q = problem.cost_and_gradient(flat.reshape(shape), method=gradient_method)
         accepted = bool(J < best["J"])
         if accepted:
-            best.update(u=flat.copy(), J=J, reached=reached(flat.reshape(shape), J))
+            best.update({"u": flat.copy(), "J": J, "reached": reached(flat.reshape(shape), J)})
         rows.append((len(rows), best["J"], np.nan, accepted, time.perf_counter() - start))
         if best["reached"]:
             raise _Feasible

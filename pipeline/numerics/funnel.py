@@ -59,6 +59,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from collections.abc import Mapping
+from typing import TypedDict, Unpack
 
 import numpy as np
 import shapely
@@ -84,6 +85,30 @@ from pipeline.numerics.funnel_check import (
 )
 from pipeline.numerics.funnel_lmi import FunnelProgram, solve_clarabel
 from pipeline.numerics.hull import HullError, jacobian_hull
+
+
+class _Parts(TypedDict, total=False):
+    """The ``Funnel`` fields that ``funnel`` has found so far (``result`` defaults the rest)."""
+
+    P: FloatArray
+    rho: float
+    margins: FloatArray
+    boxes: FloatArray
+    variables: tuple[str, ...]
+    vertices: tuple[FloatArray, ...]
+    enclosure: Enclosure | None
+    limits: Mapping[str, float]
+    binding: str
+
+
+class _Hulls(TypedDict):
+    """The ``Funnel`` fields fixed once the hulls are built (``_hulls``)."""
+
+    boxes: FloatArray
+    variables: tuple[str, ...]
+    vertices: tuple[FloatArray, ...]
+    enclosure: Enclosure | None
+
 
 # The LMIs' margin eps in (2 lambda + eps) Q: a solution that fails the numpy check (the solver
 # meets (F3) only to its tolerance, relative to the largest entries of Q) is solved again with a
@@ -279,16 +304,17 @@ def synthesize_funnel(
     Q_seed = Q_seed * np.linalg.eigvalsh(L_inv @ Q_init @ L_inv.T)[-1]  # Q_seed[0] >= Q_init
     N = len(K)
 
-    def result(success: bool, message: str, **values) -> Funnel:
-        defaults = dict(
-            K=K, P=P_lqr, rho=0.0, rate=rate, margins=np.full((N, 2), np.nan),
-            boxes=np.zeros((N, 2, 0)), variables=(), vertices=(), enclosure=None, limits={},
-            binding="",
-        )  # fmt: skip
+    def result(success: bool, message: str, **values: Unpack[_Parts]) -> Funnel:
+        defaults: _Parts = {
+            "P": P_lqr, "rho": 0.0, "margins": np.full((N, 2), np.nan),
+            "boxes": np.zeros((N, 2, 0)), "variables": (), "vertices": (), "enclosure": None,
+            "limits": {}, "binding": "",
+        }  # fmt: skip
         defaults.update(values)
         return Funnel(
-            **defaults, seconds=time.perf_counter() - start, success=success, message=message
-        )
+            K=K, rate=rate, **defaults, seconds=time.perf_counter() - start, success=success,
+            message=message,
+        )  # fmt: skip
 
     try:
         variables, boxes, vertices, enclosure = _hulls(
@@ -296,7 +322,9 @@ def synthesize_funnel(
         )
     except HullError as error:
         return result(False, f"funnel: {error}")
-    common = dict(boxes=boxes, variables=variables, vertices=vertices, enclosure=enclosure)
+    common: _Hulls = {
+        "boxes": boxes, "variables": variables, "vertices": vertices, "enclosure": enclosure
+    }  # fmt: skip
     failures = []
     for margin in MARGINS:  # a solution within the solver's tolerance may still fail the check
         program = _program(
@@ -316,7 +344,7 @@ def synthesize_funnel(
         level, when = limits[binding]
         rho = level * (1 - LEVEL_SLACK)
         funnel = result(
-            True, "", P=np.linalg.inv(Q), rho=rho, binding=binding,
+            True, "", P=np.linalg.inv(Q).astype(np.float64, copy=False), rho=rho, binding=binding,
             margins=certificate_margins(Q, K, vertices, rate, scenario.Ts),
             limits={key: value[0] for key, value in limits.items()}, **common,
         )  # fmt: skip

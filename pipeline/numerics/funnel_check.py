@@ -35,7 +35,8 @@ class Funnel:
         interval's start and end (< 0 for a certificate).
       boxes: (N, 2, d) the hull's box per interval over ``variables`` (d names).
       vertices: N arrays (V_k, n, n+m) of hull vertices ``[A_v B_v]``.
-      enclosure: the nominal's sound enclosure (``funnel_bounds.Enclosure``).
+      enclosure: the nominal's sound enclosure (``funnel_bounds.Enclosure``); None if the hulls
+        failed before it was found.
       limits: constraint -> largest level it allows; ``design`` is the level at which the LMI
         program's caps (hull boxes, Unsafe, Goal, bounds) hold, ``sqrt(tau)`` (funnel_lmi): 1
         unless the required initial set could not be held whole.
@@ -50,7 +51,7 @@ class Funnel:
     boxes: FloatArray = field(repr=False)
     variables: tuple[str, ...]
     vertices: tuple[FloatArray, ...] = field(repr=False)
-    enclosure: Enclosure = field(repr=False)
+    enclosure: Enclosure | None = field(repr=False)
     limits: Mapping[str, float] = field(repr=False)
     binding: str
     seconds: float
@@ -61,7 +62,7 @@ class Funnel:
     @property
     def Q(self) -> FloatArray:
         """(N+1, n, n) ``P^-1`` at the sample times."""
-        return np.linalg.inv(self.P)
+        return np.linalg.inv(self.P).astype(np.float64, copy=False)
 
 
 def certificate_margins(
@@ -109,11 +110,13 @@ def check_funnel(
     Q = (Q + np.swapaxes(Q, 1, 2)) / 2
     margins = certificate_margins(Q, K, funnel.vertices, funnel.rate, Ts)
     if margins.max() >= 0:
-        k, e = np.unravel_index(int(np.argmax(margins)), margins.shape)
+        k, e = map(int, np.unravel_index(int(np.argmax(margins)), margins.shape))
         worst = margins.max()
         return f"(F2) fails at t = {Ts * (k + e):.2f} s, interval {k} (eigenvalue {worst:.3g})"
     h = Ts / substeps(trajectory)
     enclosure = funnel.enclosure
+    if enclosure is None:
+        return "no enclosure of the nominal (the funnel's hulls failed)"
     s_ext = np.sqrt(
         np.maximum(np.diagonal(Q, axis1=1, axis2=2)[:-1], np.diagonal(Q, axis1=1, axis2=2)[1:])
     )

@@ -48,7 +48,7 @@ class FunnelProgram:
     c: float
     Q_init: FloatArray
     floor: float
-    caps: tuple[tuple[int, FloatArray, float], ...] = field(repr=False)
+    caps: tuple[tuple[int, FloatArray, FloatArray], ...] = field(repr=False)
     W: FloatArray = field(repr=False)
     initial_weight: float
 
@@ -104,7 +104,7 @@ def solve_clarabel(program: FunnelProgram) -> tuple[FloatArray, float] | str:
     # tau <= 1; Q[0] - tau Q_init >= 0: s = svec(Q[0]) - tau svec(Q_init) = b - A x (tau last).
     tau = sp.coo_matrix(([1.0], ([0], [(N + 1) * p])), shape=(1, (N + 1) * p + 1))
     blocks_A.append(tau)
-    blocks_b.append([1.0])
+    blocks_b.append(np.ones(1))
     cones.append(clarabel.NonnegativeConeT(1))
     initial = sp.coo_matrix(svec(program.Q_init)[:, None])
     blocks_A.append(columns(0, -sE.T) + sp.hstack([sp.coo_matrix((p, (N + 1) * p)), initial]))
@@ -172,7 +172,11 @@ def solve_cvxpy(program: FunnelProgram) -> tuple[FloatArray, float] | str:
             problem.solve(solver=cp.CLARABEL)
     except cp.SolverError as error:
         return f"solver error ({error})"
-    if problem.status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE) or Q[0].value is None:
+    if (
+        problem.status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE)
+        or Q[0].value is None
+        or tau.value is None
+    ):
         return f"cvxpy status {problem.status}"
     values = np.array([Qk.value for Qk in Q])
     return (values + np.swapaxes(values, 1, 2)) / 2, float(tau.value)

@@ -120,7 +120,7 @@ def arc_polygon(
         delta = (upper - lower) / segments
         mids = lower + delta * (np.arange(segments) + 0.5)
         tangents = np.column_stack([np.cos(mids), np.sin(mids)]) / math.cos(delta / 2)
-        ends = [[math.cos(lower), math.sin(lower)], [math.cos(upper), math.sin(upper)]]
+        ends = np.array([[math.cos(lower), math.sin(lower)], [math.cos(upper), math.sin(upper)]])
         polygon = np.vstack([ends[:1], tangents, ends[1:]])
         c = polygon.mean(axis=0)
         a, b = polygon, np.roll(polygon, -1, axis=0)
@@ -188,7 +188,7 @@ def _bounds(expression: sympy.Expr, box: Mapping[sympy.Symbol, tuple[float, floa
     """Sound ``[lower, upper]`` of ``expression`` over ``box``: outward-rounded interval
     arithmetic (``mpmath.iv``, 53 bits), end points rounded outward again when made floats."""
     try:
-        value = _interval(expression, {s: tuple(map(float, b)) for s, b in box.items()})
+        value = _interval(expression, {s: (float(b[0]), float(b[1])) for s, b in box.items()})
     except (ZeroDivisionError, ValueError) as error:
         if isinstance(error, HullError):
             raise
@@ -221,7 +221,7 @@ def _block_vertices(
             polygon = polygon[:, ::-1]
         return polygon, f"(cos {z}, sin {z}) on [{lower:g}, {upper:g}]: {len(polygon)}-gon"
     edges = np.linspace(lower, upper, segments + 1)
-    corners = []
+    corners: list[tuple[float, ...]] = []
     for a, b in itertools.pairwise(edges):
         intervals = [_bounds(g, {z: (a, b)}) for g in functions]
         corners.extend(itertools.product(*intervals))
@@ -251,7 +251,10 @@ def jacobian_hull(
             f"the Jacobian depends on {missing} but the operating region does not bound them; "
             f"add them to operating_region (it has {sorted(region)})"
         )
-    box = {symbols[name]: tuple(map(float, region[name])) for name in dynamics.depends_on()}
+    box = {
+        symbols[name]: (float(region[name][0]), float(region[name][1]))
+        for name in dynamics.depends_on()
+    }
     entries = sympy.Matrix.hstack(dynamics.jacobian_x, dynamics.jacobian_u)
 
     # 1. J(z) = J_0 + sum_k phi_k(z) M_k.

@@ -126,10 +126,10 @@ class Problem:
         dense = np.empty((self.N * self.substeps + 1, self.x0.size))
         kernels.simulate_kernel(self.x0, u, self.Ts / self.substeps, self.substeps, dense)
         return Trajectory(
-            ts=self.Ts * np.arange(self.N + 1),
+            ts=self.Ts * np.arange(self.N + 1, dtype=np.float64),
             xs=dense[:: self.substeps],
             us=u.copy(),
-            dense_ts=(self.Ts / self.substeps) * np.arange(dense.shape[0]),
+            dense_ts=(self.Ts / self.substeps) * np.arange(dense.shape[0], dtype=np.float64),
             dense_xs=dense,
         )
 

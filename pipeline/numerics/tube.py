@@ -28,13 +28,13 @@ from pipeline.model.dynamics import FloatArray
 def projection_shape(P: FloatArray, index: Sequence[int]) -> FloatArray:
     """``C P^-1 C^T`` (k, k): the projection of ``||e||_P <= 1`` on the states ``index`` (k,)."""
     c = list(index)
-    return np.linalg.inv(P)[np.ix_(c, c)]
+    return np.linalg.inv(P).astype(np.float64, copy=False)[np.ix_(c, c)]
 
 
 def slice_shape(P: FloatArray, index: Sequence[int]) -> FloatArray:
     """``(S^T P S)^-1`` (k, k): the slice of ``||e||_P <= 1`` along the states ``index`` (k,)."""
     c = list(index)
-    return np.linalg.inv(P[np.ix_(c, c)])
+    return np.linalg.inv(P[np.ix_(c, c)]).astype(np.float64, copy=False)
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -60,7 +60,7 @@ class Tube:
     @functools.cached_property
     def P_inv(self) -> FloatArray:
         """(n, n) ``P^-1``."""
-        return np.linalg.inv(self.P)
+        return np.linalg.inv(self.P).astype(np.float64, copy=False)
 
     @functools.cached_property
     def input_margin_per_radius(self) -> FloatArray:

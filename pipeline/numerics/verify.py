@@ -83,14 +83,14 @@ def verify_nominal(
     xdot = scenario.dynamics.f(xs[:-1], np.repeat(us, substeps, axis=0))
     positions = scenario.positions(xs)
     speed = float(np.max(np.linalg.norm(scenario.positions(xdot), axis=-1)))
-    clearance = {}
+    clearances: dict[str, float] = {}
     for name, unsafe in scenario.unsafe.items():
         distances = geometry.distance(positions, unsafe)
-        clearance[name] = float(distances.min() - speed * h / 2)
-        if clearance[name] < d:
+        clearances[name] = float(distances.min() - speed * h / 2)
+        if clearances[name] < d:
             k = int(np.argmin(distances))
             failures.append(
-                f"clearance to '{name}' is {clearance[name]:.3f} < d = {d:g} "
+                f"clearance to '{name}' is {clearances[name]:.3f} < d = {d:g} "
                 f"near t = {trajectory.dense_ts[k]:.2f} s"
             )
     mod_goal = geometry.shrink(scenario.goal, d)
@@ -122,7 +122,7 @@ def verify_nominal(
         if margin < 0:
             failures.append(f"'{name}' leaves the operating region [{lower:.3g}, {upper:.3g}]")
     return Verification(
-        clearance=clearance,
+        clearance=clearances,
         goal_margin=goal_margin,
         input_margin=input_margin,
         region_margin=float(region_margin),

@@ -7,7 +7,7 @@ formats cannot drift apart. Numbers are formatted here, once.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -126,7 +126,7 @@ def scientific(value: float) -> str:
     return f"{value:.2e}"
 
 
-def vector(values: Sequence[float], digits: int = 3) -> str:
+def vector(values: Iterable[float], digits: int = 3) -> str:
     return "[" + ", ".join(number(float(v), digits) for v in values) + "]"
 
 

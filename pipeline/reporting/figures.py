@@ -6,9 +6,11 @@ feasible trajectories purple, closed loop teal, failures and gaps red.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 from matplotlib import colormaps
 from matplotlib.axes import Axes
 from matplotlib.lines import Line2D
@@ -55,7 +57,7 @@ def _tube_along(
     s, feedback = data.scenario, data.feedback
     if radius <= 0:
         return
-    shape = projection_shape(feedback.P, s.position_index)
+    shape = projection_shape(feedback.certified_tube.P, s.position_index)
     t = np.arange(0.0, path.duration + 1e-9, TUBE_PERIOD) if along else np.zeros(1)
     p = s.positions(path.dense_xs)
     centres = np.stack([np.interp(t, path.dense_ts, p[:, 0]), np.interp(t, path.dense_ts, p[:, 1])])
@@ -182,8 +184,10 @@ def draw_optimization(fig: FigureLike, data: ReportData) -> None:
     )
 
 
-def _box(ax: Axes, lower: FloatArray, upper: FloatArray, **style: object) -> None:
-    ax.add_patch(Rectangle(lower, *(np.asarray(upper) - lower), **style))
+def _box(ax: Axes, lower: FloatArray, upper: FloatArray, **style: Any) -> None:
+    """The box ``[lower, upper]`` (2,); ``style``: matplotlib's (``Any``-typed) patch properties."""
+    width, height = np.asarray(upper) - lower
+    ax.add_patch(Rectangle((lower[0], lower[1]), width, height, **style))
 
 
 def _state_label(scenario: Scenario, index: int) -> str:
@@ -213,11 +217,11 @@ def draw_coverage(fig: FigureLike, data: ReportData) -> None:
         for lower, upper in coverage.uncovered_boxes[:, :, pair]:
             _box(ax, lower, upper, facecolor=FAILURE, alpha=0.6, lw=0, zorder=2)
         if len(free) >= 2:
-            shape = slice_shape(data.feedback.P, pair)
+            shape = slice_shape(data.feedback.certified_tube.P, pair)
             ellipses(ax, shape, starts[:, pair], r, colour, filled=True, alpha=0.08, lw=0)
             ellipses(ax, shape, starts[:, pair], r, colour, lw=1.0)
         else:
-            half = r / np.sqrt(data.feedback.P[free[0], free[0]])
+            half = r / np.sqrt(data.feedback.certified_tube.P[free[0], free[0]])
             for c, h in zip(starts[:, free[0]], half, strict=True):
                 ax.plot([c - h, c + h], [c, c], color=colour, lw=2)
         ax.plot(*starts[:, pair].T, "o", color=colour, ms=3, zorder=4)
@@ -280,17 +284,17 @@ def draw_montecarlo(fig: FigureLike, data: ReportData) -> None:
 def _histogram(
     ax: Axes,
     values: FloatArray,
-    failed: object,
+    failed: Callable[[FloatArray], npt.NDArray[np.bool_]],
     threshold: float,
     reference: tuple[float, str] | None,
     xlabel: str,
     log: bool = False,
 ) -> None:
     finite = values[np.isfinite(values)]
-    bad = failed(finite)  # type: ignore[operator]
+    bad = failed(finite)
     low = min(float(finite.min()), threshold) if len(finite) else threshold
     high = max(float(finite.max()), threshold) if len(finite) else threshold + 1
-    bins = np.linspace(low, high + 1e-12, 41)
+    bins = np.linspace(low, high + 1e-12, 41).tolist()  # a list: matplotlib's stub wants one
     ax.hist(finite[~bad], bins=bins, color=CLOSED_LOOP, alpha=0.8, label="passed")
     if bad.any():
         ax.hist(finite[bad], bins=bins, color=FAILURE, label=f"failed ({int(bad.sum())})")

@@ -11,6 +11,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from functools import lru_cache
 from pathlib import Path
+from typing import Any
 
 import matplotlib
 from matplotlib.backends.backend_pdf import PdfPages
@@ -110,7 +111,8 @@ class _Writer:
     def width(self) -> float:
         return PAGE[0] - 2 * MARGIN
 
-    def _text(self, x: float, y: float, text: str, size: float, **style: object) -> None:
+    def _text(self, x: float, y: float, text: str, size: float, **style: Any) -> None:
+        """``text`` at ``(x, y)`` from the top left; ``style``: matplotlib text properties."""
         assert self.page is not None
         self.page.text(x / PAGE[0], 1 - y / PAGE[1], text, fontsize=size, va="top", **style)
 
@@ -268,8 +270,8 @@ class _Writer:
         assert self.page is not None
         body = min(wanted, BOTTOM - self.y - caption_height)
         _, drawing, _ = self.page.subfigures(
-            3, 1, height_ratios=[self.y, body, PAGE[1] - self.y - body]
-        )
+            3, 1, squeeze=False, height_ratios=[self.y, body, PAGE[1] - self.y - body]
+        )[:, 0]
         block.draw(drawing)
         y = self.y + body + 0.1
         for text in caption:

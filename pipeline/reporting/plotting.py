@@ -9,6 +9,8 @@ Tubes: the set ``{x : ||x - x_ref(t)||_P <= rho}`` projects on the position plan
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, Any
+
 import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.collections import EllipseCollection
@@ -20,6 +22,9 @@ from pipeline.model import geometry
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
 
+if TYPE_CHECKING:
+    from matplotlib.typing import RcKeyType
+
 DEMO = "#4C72B0"
 OPTIMIZED = "#DD8452"
 CLOSED_LOOP = "#2A9D8F"
@@ -30,7 +35,7 @@ UNSAFE = "0.62"
 BOUND = "#8C1C13"
 INTERMEDIATE = "Purples"
 
-STYLE = {
+STYLE: dict[RcKeyType, object] = {
     "font.size": 9,
     "axes.titlesize": 10,
     "axes.labelsize": 9,
@@ -47,7 +52,8 @@ STYLE = {
 }
 
 
-def _fill(ax: Axes, shape: BaseGeometry, **style: object) -> None:
+# ``**style``: matplotlib artist properties, ``Any`` as matplotlib's own stubs type them.
+def _fill(ax: Axes, shape: BaseGeometry, **style: Any) -> None:
     for poly in getattr(shape, "geoms", [shape]):
         if not poly.is_empty:
             x, y = poly.exterior.xy
@@ -55,7 +61,7 @@ def _fill(ax: Axes, shape: BaseGeometry, **style: object) -> None:
             style.pop("label", None)  # one legend entry per set
 
 
-def _outline(ax: Axes, shape: BaseGeometry, **style: object) -> None:
+def _outline(ax: Axes, shape: BaseGeometry, **style: Any) -> None:
     for poly in getattr(shape, "geoms", [shape]):
         if not poly.is_empty:
             ax.plot(*poly.exterior.xy, **style)
@@ -162,7 +168,7 @@ def draw_path(
     label: str | None = None,
     marker_period: float | None = 1.0,
     marker: str = "o",
-    **style: object,
+    **style: Any,
 ) -> None:
     """One trajectory ``xs (K, n)`` at times ``ts (K,)``; markers every ``marker_period``
     seconds (evenly spaced in time, so their spacing shows the speed)."""
@@ -176,7 +182,7 @@ def draw_path(
             marker,
             ms=2.6,
             color=color,
-            alpha=float(style.get("alpha", 1.0)),  # type: ignore[arg-type]
+            alpha=float(style.get("alpha", 1.0)),
             zorder=4,
         )
 

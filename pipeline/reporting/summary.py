@@ -270,7 +270,7 @@ def _decode(kind: Any, value: Any, where: str) -> Any:
             return None
         (kind,) = [a for a in args if a is not type(None)]
         return _decode(kind, value, where)
-    if dataclasses.is_dataclass(kind):
+    if isinstance(kind, type) and dataclasses.is_dataclass(kind):
         if not isinstance(value, Mapping):
             raise ValueError(f"{where or '(top level)'}: expected an object")
         hints = typing.get_type_hints(kind)

@@ -6,6 +6,7 @@ User mistakes (``UserError``) print one line on stderr and exit with code 2, no 
 from __future__ import annotations
 
 import argparse
+import errno
 import json
 import sys
 from collections.abc import Sequence
@@ -42,6 +43,9 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
+WRITE_FAILURES = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     try:
@@ -51,6 +55,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         return error.exit_code
     except BrokenPipeError:
         return 0
+    except OSError as error:  # the machine, not the input: a full disk, a folder gone read-only
+        if error.errno not in WRITE_FAILURES:
+            raise
+        where = f" {error.filename}" if error.filename else ""
+        print(
+            f"error: cannot write{where}: {error.strerror}; free space or choose another --out "
+            "(finished artifacts are kept; re-run to resume)",
+            file=sys.stderr,
+        )
+        return 2
     except KeyboardInterrupt:
         print("interrupted: finished artifacts are kept; re-run to resume", file=sys.stderr)
         return 130

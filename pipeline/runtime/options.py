@@ -10,9 +10,12 @@ from __future__ import annotations
 import argparse
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from pipeline.numerics.settings import DESCENT_METHODS, HORIZON_SEARCHES
+
+if TYPE_CHECKING:
+    from _typeshed import DataclassInstance
 
 MONTE_CARLO_SEED = 20261122
 
@@ -96,7 +99,7 @@ class RunOptions:
     )
 
 
-def add_arguments(parser: argparse.ArgumentParser, options: type) -> None:
+def add_arguments(parser: argparse.ArgumentParser, options: type[DataclassInstance]) -> None:
     """One argument per field of the dataclass ``options`` that has a ``CommandLine``."""
     groups: dict[str, Any] = {}
     for item in options.__dataclass_fields__.values():
@@ -124,7 +127,10 @@ def add_arguments(parser: argparse.ArgumentParser, options: type) -> None:
         )
 
 
-def from_arguments(options: type, arguments: argparse.Namespace) -> Any:
+Options = TypeVar("Options", bound="DataclassInstance")
+
+
+def from_arguments(options: type[Options], arguments: argparse.Namespace) -> Options:
     """An ``options`` instance from the parsed ``arguments`` (its fields' names)."""
     values: Mapping[str, Any] = vars(arguments)
     return options(**{name: values[name] for name in options.__dataclass_fields__})

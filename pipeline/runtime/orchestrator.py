@@ -289,8 +289,8 @@ def _synthesize(
         ),
         lambda: emit_controller(
             scenario,
-            feedback.K,
-            feedback.P,
+            feedback.certified_tube.K,
+            feedback.certified_tube.P,
             feedback.rate,
             [demo_starts[i] for i in usable],
             [final_inputs[i] for i in usable],

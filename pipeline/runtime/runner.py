@@ -73,7 +73,7 @@ class StageRunner:
                     name=name, key=key, sha256=stored.sha256, seconds=0.0, cached=True
                 )
                 self.log(f"[{name}] unchanged inputs: reusing {stem.name}.json")
-                return stored.result  # type: ignore[no-any-return]
+                return stored.result
         self.log(f"[{name}] running")
         start = time.perf_counter()
         result = compute()

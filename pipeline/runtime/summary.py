@@ -206,7 +206,7 @@ def _feedback(run: StageResults) -> FeedbackSummary:
     return FeedbackSummary(
         gain=feedback.gain,
         K=tuple(tuple(row) for row in np.asarray(feedback.K).tolist()),
-        P_eigenvalues=tuple(np.linalg.eigvalsh(feedback.P).tolist()),
+        P_eigenvalues=tuple(np.linalg.eigvalsh(feedback.certified_tube.P).tolist()),
         rate=feedback.rate,
         region={k: (float(v[0]), float(v[1])) for k, v in feedback.region.items()},
         required_radius=r_d,

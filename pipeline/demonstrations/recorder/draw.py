@@ -11,7 +11,9 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
+import numpy.typing as npt
 import pygame
+from shapely.geometry.base import BaseGeometry
 
 from pipeline.demonstrations.recorder.config import RecorderConfig
 from pipeline.model import geometry
@@ -58,7 +60,7 @@ class Scene:
         self.fonts = {size: pygame.font.Font(None, size) for size in (18, 22, 28, 44, 120)}
         self.background = self._background()
 
-    def to_screen(self, points: FloatArray) -> FloatArray:
+    def to_screen(self, points: npt.ArrayLike) -> FloatArray:
         """Positions ``(..., 2)`` in m -> pixels ``(..., 2)`` (y up on the map)."""
         p = (np.asarray(points, dtype=np.float64) - self.lower) * self.scale
         return np.stack([p[..., 0], self.map_size[1] - p[..., 1]], axis=-1)
@@ -89,7 +91,13 @@ class Scene:
             surface.blit(box, rect.inflate(10, 4).topleft)
         surface.blit(image, rect)
 
-    def _polygon(self, surface, shape, fill, width=0) -> None:  # type: ignore[no-untyped-def]
+    def _polygon(
+        self,
+        surface: pygame.Surface,
+        shape: BaseGeometry,
+        fill: tuple[int, int, int],
+        width: int = 0,
+    ) -> None:
         points = self.to_screen(np.asarray(shape.exterior.coords)[:-1])
         pygame.draw.polygon(surface, fill, points.tolist(), width)
 
@@ -124,7 +132,7 @@ class Scene:
         pygame.draw.line(surface, INK, (0, self.map_size[1]), (self.size[0], self.map_size[1]))
         return surface
 
-    def _label_at(self, shape) -> FloatArray:  # type: ignore[no-untyped-def]
+    def _label_at(self, shape: BaseGeometry) -> FloatArray:
         (x0, y0), (x1, y1) = self.lower, self.upper
         view = geometry.polygon([[x0, y0], [x1, y0], [x1, y1], [x0, y1]])
         point = shape.intersection(view).representative_point()
@@ -169,11 +177,13 @@ class Scene:
             along = np.array([np.cos(a), np.sin(a)])
             up = np.array([-np.sin(a), np.cos(a)])
             ends = self.to_screen([position - BODY * along, position + BODY * along])
-            pygame.draw.line(surface, VEHICLE, *ends.tolist(), 5)
-            pygame.draw.line(surface, VEHICLE, centre, self.to_screen(position + STUB * up), 2)
+            back, front = ends.tolist()
+            pygame.draw.line(surface, VEHICLE, back, front, 5)
+            stub = self.to_screen(position + STUB * up)
+            pygame.draw.line(surface, VEHICLE, centre.tolist(), stub.tolist(), 2)
             for end in ends:
                 pygame.draw.circle(surface, VEHICLE, end, 7, 2)
-        pygame.draw.circle(surface, VEHICLE, centre, 7)
+        pygame.draw.circle(surface, VEHICLE, centre.tolist(), 7)
 
     def _bars(self, surface: pygame.Surface, u: FloatArray | None) -> None:
         scenario = self.scenario

@@ -180,7 +180,7 @@ class Recorder:
             x0=self.x0,
             us=np.array(self.us).reshape(-1, m),
             xs=np.array(self.xs),
-            dense_ts=h * np.arange(dense.shape[0]),
+            dense_ts=h * np.arange(dense.shape[0], dtype=np.float64),
             dense_xs=dense,
             status=self.status,
             message=self.message,

@@ -237,7 +237,11 @@ def pattern_data(pattern: SensitivityPattern, sparsity_x: np.ndarray) -> Pattern
                     a.append(i * n + k)
                     src.append(at[(k, j)])
             ptr.append(len(a))
-        return tuple(np.array(v, dtype=np.int64) for v in (ptr, a, src))  # type: ignore[return-value]
+        return (
+            np.array(ptr, dtype=np.int64),
+            np.array(a, dtype=np.int64),
+            np.array(src, dtype=np.int64),
+        )
 
     phi_terms = terms(phi_rows, phi_cols, phi_at)
     gamma_terms = terms(gamma_rows, gamma_cols, gamma_at)
