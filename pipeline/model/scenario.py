@@ -73,6 +73,8 @@ class Scenario:
       unsafe: name -> polygon over position; goal: polygon over position.
       goal_bounds: state name -> (lower, upper) extra bounds at the final time.
       operating_region: state or input name -> (lower, upper).
+      terminal: "reach" (the paper's Goal) or "hold" (certified only with a terminal controller
+        holding the state in Goal after ``T``).
     """
 
     name: str
@@ -93,6 +95,7 @@ class Scenario:
     feedback: FeedbackSpec = field(repr=False)
     demos: tuple[Demo, ...] = field(repr=False)
     source_hash: str = ""
+    terminal: str = "reach"
 
     @property
     def state_names(self) -> tuple[str, ...]:
@@ -388,6 +391,7 @@ def _build(path: Path, spec: ScenarioSpec) -> Scenario:
         feedback=spec.feedback,
         demos=demos,
         source_hash=file_hash(path),
+        terminal=spec.terminal,
     )
 
 

@@ -21,6 +21,7 @@ outcome is the returned ``Synthesis``; the command line prints both.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import sys
@@ -39,6 +40,7 @@ from pipeline.io.lock import folder_lock
 from pipeline.io.progress import progress_bar
 from pipeline.model.scenario import Scenario, load_scenario
 from pipeline.model.simulate import Trajectory, simulate
+from pipeline.numerics.sampled import HeldRate, held_rate
 from pipeline.numerics.verify import VERIFY_SUBSTEPS
 from pipeline.reporting.summary import Verdict
 from pipeline.runtime.codekey import code_key
@@ -112,6 +114,32 @@ def _coverage(
     return cover_init(scenario, feedback, np.array(starts), _cover_radii(radii))
 
 
+def _held_feedback(
+    scenario: Scenario, feedback: FeedbackResult, period: float
+) -> tuple[FeedbackResult, HeldRate]:
+    """The feedback with its tube at the held law's rate ``lambda_h`` (``--feedback-period``)."""
+    n = len(scenario.state_names)
+    A, B = feedback.vertices[:, :, :n], feedback.vertices[:, :, n:]
+    tube = feedback.certified_tube
+    held = held_rate(tube.P, tube.K, A, B, feedback.rate, period)
+    if not held.success:
+        return feedback, held
+    held_tube = dataclasses.replace(tube, rate=held.held_rate)
+    return dataclasses.replace(feedback, rate=held.held_rate, tube=held_tube), held
+
+
+def _check_period(scenario: Scenario, period: float) -> None:
+    """``--feedback-period`` must divide the sampling time (``u_ref`` switches at samples)."""
+    if period == 0:
+        return
+    steps = scenario.Ts / period
+    if steps < 1 - 1e-9 or abs(steps - round(steps)) > 1e-9 * steps:
+        raise UserError(
+            f"--feedback-period: found {period:g} s; expected a period that divides the "
+            f"scenario's sampling_time {scenario.Ts:g} s (e.g. {scenario.Ts / 10:g})"
+        )
+
+
 def _spec_key(scenario: Scenario, *exclude: str) -> str:
     """A hash of the scenario's parsed values (not the file's bytes), without ``exclude``."""
     spec = scenario.spec.model_dump(mode="json", exclude={"demos", *exclude})
@@ -139,6 +167,7 @@ def run_synthesis(
             found=[],
             expected=f"at least one demo (record one: python -m pipeline record {scenario.name})",
         )
+    _check_period(scenario, options.feedback_period)
     out = (Path(out) if out is not None else default_output_folder(scenario.name)).absolute()
     check_output_folder(out, scenario.name)
     log.info(f"outputs: {out}")
@@ -202,7 +231,20 @@ def _synthesize(
     if not feedback.success:
         reason = f"the feedback could not be certified: {feedback.message}"
         return _failed(out, scenario, "feedback", reason)
-    tube = inputs_key(core, runner.digest("feedback"))
+    if options.feedback_period > 0:
+        feedback, held = _held_feedback(scenario, feedback, options.feedback_period)
+        if not held.success:
+            reason = (
+                f"zero-order-hold feedback every {held.period:g} s cannot be certified: the "
+                f"held tube's rate {held.held_rate:.3g}/s is not > 0 (continuous rate "
+                f"{held.rate:.3g}/s, C1 = {held.C1:.3g}); use a shorter --feedback-period"
+            )
+            return _failed(out, scenario, "feedback", reason)
+        log.info(
+            f"[feedback] held every {held.period:g} s: tube rate {held.held_rate:.4g}/s "
+            f"(continuous {held.rate:.4g}/s; pipeline.numerics.sampled)"
+        )
+    tube = inputs_key(core, runner.digest("feedback"), options.feedback_period)
     demo_radii = runner.run(
         "radius_demos",
         inputs_key(code_key(*RADIUS_CODE), tube, demos),
@@ -270,6 +312,7 @@ def _synthesize(
             *demo_starts,
             *final_inputs,
             [final_radii[i].radius for i in usable],
+            r_required,
         ),
         lambda: emit_controller(
             scenario,
@@ -280,6 +323,8 @@ def _synthesize(
             [final_inputs[i] for i in usable],
             [final_radii[i].radius for i in usable],
             controller_path,
+            radius_floor=r_required,
+            feedback_period=options.feedback_period,
         ),
         rerun=True,  # always written from this run's certified results
         describe=lambda result: result.message,

@@ -163,6 +163,7 @@ def _claims(run: StageResults, certified: bool) -> tuple[Claim, ...]:
             f"Init covered by box subdivision ({run.final_coverage.message}); both re-verified "
             "on controller.json as written",
         ),
+        _after_horizon(run, certified),
         Claim(
             claim=f"failure probability <= {mc.failure_bound:.2e}",
             kind=ClaimKind.STATISTICALLY_VALIDATED,
@@ -176,6 +177,26 @@ def _claims(run: StageResults, certified: bool) -> tuple[Claim, ...]:
             how=f"Init corners, Sobol points and Nelder-Mead ({falsification.evaluations} "
             "closed-loop runs); evidence, not a bound",
         ),
+    )
+
+
+def _after_horizon(run: StageResults, certified: bool) -> Claim:
+    """After ``T``: safe for all time when the file's terminal controller is certified; else
+    not established (the law refuses ``t > T``), with the reason."""
+    check = run.certification
+    if check.terminal and certified:
+        return Claim(
+            claim="after T every covered start stays in Goal for all time (terminal controller)",
+            kind=ClaimKind.CERTIFIED,
+            how=f"invariant ellipsoid of the terminal law re-verified on controller.json "
+            f"(decay {check.terminal_decay:.3g}/s at every hull vertex over its bounding box, "
+            f"inside Goal, no clipping) holding every end tube (at most {check.terminal_fit:.0%} "
+            "of its radius, exact S-procedure test)",
+        )
+    return Claim(
+        claim="after T: nothing (the law refuses t > T)",
+        kind=ClaimKind.NOT_ESTABLISHED,
+        how=run.controller.terminal_message or "no terminal controller",
     )
 
 
