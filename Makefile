@@ -5,7 +5,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: synthesize test bench demos record lint clean
+.PHONY: synthesize test readme bench demos record lint clean
 
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -19,6 +19,11 @@ synthesize: $(STAMP)
 # two workers; each scenario's session synthesis stays on one (tests/conftest.py)
 test: $(STAMP)
 	$(PY) -m pytest -q -n 2 --dist loadgroup
+
+# the README's results blocks, from the runs in reports/ (run `make synthesize` for each first)
+readme: $(STAMP)
+	$(PY) -m pipeline.runtime.readme_results reports/quadrotor_hill --write README.md
+	$(PY) -m pipeline.runtime.readme_results reports/double_integrator --write README.md
 
 bench: $(STAMP)
 	$(PY) -m pip install --quiet -e '.[bench]'

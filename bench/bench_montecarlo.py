@@ -35,11 +35,12 @@ from scipy.integrate import solve_ivp
 
 from pipeline.controller import Controller, load
 from pipeline.io.executor import make_executor
+from pipeline.io.folders import default_output_folder
 from pipeline.model import geometry
 from pipeline.model.scenario import Scenario, load_scenario
 from pipeline.numerics.closed_loop import check_runs
 from pipeline.numerics.rollouts import check_runs_compiled
-from pipeline.runtime.orchestrator import REPORTS_ROOT, RunOptions, synthesize
+from pipeline.runtime.api import synthesize
 from stages.montecarlo import falsify, validate_closed_loop
 
 SCENARIO = "quadrotor_hill"
@@ -56,18 +57,17 @@ SEED = 0
 
 def _controller_file(folder: Path) -> tuple[Path, str]:
     """A private copy of the controller and where it came from (synthesized if missing)."""
-    shipped = REPORTS_ROOT / SCENARIO / "controller.json"
+    shipped = default_output_folder(SCENARIO) / "controller.json"  # ./reports/NAME
     target = folder / "controller.json"
     if shipped.is_file():
         shutil.copyfile(shipped, target)
-        return target, str(shipped.relative_to(REPORTS_ROOT.parent))
+        return target, str(shipped.relative_to(Path.cwd()))
     print(f"{shipped} is missing: synthesizing {SCENARIO} into a temporary folder (1000 samples)")
-    code = synthesize(SCENARIO, folder / "out", RunOptions(samples=1000, quiet=True))
-    generated = folder / "out" / "controller.json"
-    if not generated.is_file():
-        raise RuntimeError(f"synthesize {SCENARIO} exited with {code} and wrote no controller")
-    shutil.copyfile(generated, target)
-    return target, f"freshly synthesized (exit code {code})"
+    result = synthesize(SCENARIO, out=folder / "out", samples=1000)
+    if result.outputs.controller is None:
+        raise RuntimeError(f"synthesize {SCENARIO}: {result.message}; no controller written")
+    shutil.copyfile(result.outputs.controller, target)
+    return target, f"freshly synthesized ({result.verdict.value})"
 
 
 def rollout_solve_ivp(

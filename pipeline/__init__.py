@@ -13,7 +13,16 @@ The package is layered; a module imports only from its own layer or the ones bel
 
 ``pipeline.controller`` stands apart: NumPy and the standard library only, so users can copy it.
 
-The names below are imported lazily, so ``import pipeline.controller`` stays light.
+The public API (documented in the README, "Python API")::
+
+    import pipeline
+    result = pipeline.synthesize("double_integrator")    # -> pipeline.Synthesis
+    scenario = pipeline.load_scenario("quadrotor_hill")  # name or path
+    controller = pipeline.load_controller("reports/double_integrator/controller.json")
+
+The names are imported lazily: ``import pipeline`` loads none of the numerics, and
+``import pipeline.controller`` stays light. The library prints nothing; it logs on the
+``pipeline`` logger (``logging``).
 """
 
 from __future__ import annotations
@@ -22,21 +31,60 @@ import importlib
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
+    from pipeline.controller import Controller, ControllerFormatError
+    from pipeline.controller import load as load_controller
     from pipeline.io.errors import ScenarioError, UserError
     from pipeline.model.scenario import Scenario, available_scenarios, load_scenario
+    from pipeline.reporting.summary import Claim, ClaimKind, DemoSummary, Summary, Verdict
+    from pipeline.runtime.api import synthesize
+    from pipeline.runtime.synthesis import Outputs, Synthesis
 
-__all__ = ["Scenario", "ScenarioError", "UserError", "available_scenarios", "load_scenario"]
+__all__ = [
+    "Claim",
+    "ClaimKind",
+    "Controller",
+    "ControllerFormatError",
+    "DemoSummary",
+    "Outputs",
+    "Scenario",
+    "ScenarioError",
+    "Summary",
+    "Synthesis",
+    "UserError",
+    "Verdict",
+    "available_scenarios",
+    "load_controller",
+    "load_scenario",
+    "synthesize",
+]
 
+# name -> (module, attribute)
 _WHERE = {
-    "Scenario": "pipeline.model.scenario",
-    "available_scenarios": "pipeline.model.scenario",
-    "load_scenario": "pipeline.model.scenario",
-    "ScenarioError": "pipeline.io.errors",
-    "UserError": "pipeline.io.errors",
+    "synthesize": ("pipeline.runtime.api", "synthesize"),
+    "Synthesis": ("pipeline.runtime.synthesis", "Synthesis"),
+    "Outputs": ("pipeline.runtime.synthesis", "Outputs"),
+    "Summary": ("pipeline.reporting.summary", "Summary"),
+    "Verdict": ("pipeline.reporting.summary", "Verdict"),
+    "Claim": ("pipeline.reporting.summary", "Claim"),
+    "ClaimKind": ("pipeline.reporting.summary", "ClaimKind"),
+    "DemoSummary": ("pipeline.reporting.summary", "DemoSummary"),
+    "load_controller": ("pipeline.controller", "load"),
+    "Controller": ("pipeline.controller", "Controller"),
+    "ControllerFormatError": ("pipeline.controller", "ControllerFormatError"),
+    "Scenario": ("pipeline.model.scenario", "Scenario"),
+    "available_scenarios": ("pipeline.model.scenario", "available_scenarios"),
+    "load_scenario": ("pipeline.model.scenario", "load_scenario"),
+    "ScenarioError": ("pipeline.io.errors", "ScenarioError"),
+    "UserError": ("pipeline.io.errors", "UserError"),
 }
 
 
 def __getattr__(name: str) -> Any:
     if name in _WHERE:
-        return getattr(importlib.import_module(_WHERE[name]), name)
+        module, attribute = _WHERE[name]
+        return getattr(importlib.import_module(module), attribute)
     raise AttributeError(f"module 'pipeline' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted([*globals(), *__all__])

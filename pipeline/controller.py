@@ -4,9 +4,15 @@ This module needs only NumPy and the standard library, so ``controller.json`` ca
 without the pipeline installed (copy this file). Control law:
 
 1. ``select(x0) -> (index, ratio)``: the trajectory ``i`` minimising ``||x0 - x0_i||_P /
-   radius_i`` and that value (``x0`` is covered when it is ``< 1``);
-2. ``controller(t, x, index)``: ``u = clip(u_ref_i[floor(t / Ts)] + K (x - x_ref_i(t)), lower,
-   upper)`` with ``x_ref_i`` linearly interpolated on the trajectory's fine grid ``t``.
+   radius_i`` and that value. ``x0`` is covered (inside the certificate) when the ratio is
+   ``< 1``; a start with ratio ``>= 1`` is outside every certified ball and nothing is claimed
+   for it (``select(x0, strict=True)`` raises ``UncoveredStartError`` instead);
+2. ``controller(t, x, index)``: for ``t <= T_i``, ``u = clip(u_ref_i[floor(t / Ts)] + K (x -
+   x_ref_i(t)), lower, upper)`` with ``x_ref_i`` linearly interpolated on the trajectory's fine
+   grid ``t``; for ``t > T_i`` the terminal law ``u = clip(u_eq + K_T (x - x_eq))`` of the
+   optional ``terminal`` block (its certified invariant ellipsoid ``(x - x_eq)^T P_T (x - x_eq)
+   <= level`` lies in Goal and holds every end tube), or ``BeyondHorizonError`` when the file
+   has none: the law is never extrapolated past ``T``.
 
 Gain convention: ``u = u_ref + K e`` with ``e = x - x_ref``, so a stabilising ``K`` is the
 *negative* of ``control.lqr``'s gain (which is written ``u = -K x``).
@@ -19,7 +25,9 @@ n)`` is then controlled row by row; a single state ``(n,)`` with a scalar index 
 ``load`` validates every field of the file; anything wrong (a missing or mistyped field, a
 shape, a non-positive radius or ``Ts``, ``lower > upper``, ``P`` not positive definite, times
 that do not increase, ``T`` that disagrees with ``t`` and ``u_ref``, bytes that are not UTF-8
-JSON) raises ``ControllerFormatError`` naming the field.
+JSON) raises ``ControllerFormatError`` naming the field. The optional fields (``terminal``,
+``feedback_period``, ``interpolation_error_P_norm``) may be absent: files written before they
+existed still load.
 """
 
 from __future__ import annotations
@@ -46,6 +54,14 @@ class ControllerFormatError(ValueError):
     exit_code = 2
 
 
+class UncoveredStartError(ValueError):
+    """``select(x0, strict=True)`` on a start outside every certified initial ball."""
+
+
+class BeyondHorizonError(ValueError):
+    """The law was asked for ``t > T`` and the file has no certified terminal controller."""
+
+
 def _frozen(array: np.ndarray) -> np.ndarray:
     array = np.array(array, dtype=np.float64)
     array.flags.writeable = False
@@ -65,6 +81,32 @@ class ReferenceTrajectory:
 
 
 @dataclass(frozen=True, kw_only=True)
+class TerminalController:
+    """The law after ``T``: ``u = clip(u_eq + K (x - x_eq))``, certified on its ellipsoid.
+
+    Attributes:
+      x_eq: (n,) and u_eq: (m,) an equilibrium, ``f(x_eq, u_eq) = 0``, inside Goal.
+      K: (m, n) gain (sign of ``u = u_eq + K e``); P: (n, n) Lyapunov matrix.
+      level: the certified invariant set is ``(x - x_eq)^T P (x - x_eq) <= level``.
+    """
+
+    x_eq: np.ndarray
+    u_eq: np.ndarray
+    K: np.ndarray
+    P: np.ndarray
+    level: float
+
+    def value(self, x: np.ndarray) -> np.ndarray:
+        """``V(x) = (x - x_eq)^T P (x - x_eq)`` for ``x (..., n)`` -> ``(...)``."""
+        e = np.asarray(x, dtype=np.float64) - self.x_eq
+        return np.einsum("...i,ij,...j->...", e, self.P, e)
+
+    def unclipped(self, x: np.ndarray) -> np.ndarray:
+        """``u_eq + K (x - x_eq)`` for ``x (..., n)`` -> ``(..., m)``."""
+        return self.u_eq + (np.asarray(x, dtype=np.float64) - self.x_eq) @ self.K.T
+
+
+@dataclass(frozen=True, kw_only=True)
 class Controller:
     """``u = clip(u_ref_i(t) + K (x - x_ref_i(t)))`` around trajectory ``i`` chosen by ``select``.
 
@@ -74,6 +116,9 @@ class Controller:
       trajectories: the reference trajectories with their initial balls.
       interpolation_error: the file's stated P-norm error of interpolating ``x_ref`` (0 if
         absent).
+      terminal: the certified law after ``T`` (None: the law refuses ``t > T``).
+      feedback_period: the feedback period ``h`` (s) the certificate assumes: the state is
+        measured and ``u`` recomputed every ``h`` seconds and held in between (0: continuous).
     """
 
     scenario: str
@@ -87,6 +132,8 @@ class Controller:
     rate: float
     trajectories: tuple[ReferenceTrajectory, ...]
     interpolation_error: float = 0.0
+    terminal: TerminalController | None = None
+    feedback_period: float = 0.0
     source: str = "controller.json"
 
     @property
@@ -108,12 +155,27 @@ class Controller:
         e = np.asarray(x0, dtype=np.float64)[..., None, :] - centres  # (..., k, n)
         return np.sqrt(np.einsum("...i,ij,...j->...", e, self.P, e)) / radii
 
-    def select(self, x0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def select(self, x0: np.ndarray, *, strict: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """For initial states ``x0 (..., n)``: ``(index (...), coverage_ratio (...))``, the
-        trajectory to follow and ``min_i ||x0 - x0_i||_P / radius_i`` (< 1: covered)."""
+        trajectory to follow and ``min_i ||x0 - x0_i||_P / radius_i``.
+
+        A ratio ``< 1`` means covered. A start with ratio ``>= 1`` lies outside every certified
+        ball: it still gets the nearest trajectory (in the ratio), with no guarantee; with
+        ``strict=True`` such a start raises ``UncoveredStartError`` instead.
+        """
         ratios = self.ratios(x0)
         index = np.argmin(ratios, axis=-1)
-        return index, np.take_along_axis(ratios, index[..., None], axis=-1)[..., 0]
+        ratio = np.take_along_axis(ratios, index[..., None], axis=-1)[..., 0]
+        if strict and np.any(ratio >= 1.0):
+            flat = np.ravel(ratio)
+            k = int(np.argmax(flat >= 1.0))
+            start = np.asarray(x0, dtype=np.float64).reshape(-1, self.n)[k]
+            raise UncoveredStartError(
+                f"start {np.round(start, 6).tolist()} is not covered by the certificate "
+                f"(coverage ratio {flat[k]:.3g} >= 1; nothing is claimed for it): start inside "
+                "Init, or pass strict=False to fly the nearest trajectory without a guarantee"
+            )
+        return index, ratio
 
     def reference(self, t: float, index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(u_ref (..., m), x_ref (..., n))`` of trajectories ``index (...)`` at time ``t``."""
@@ -134,10 +196,32 @@ class Controller:
         u_ref, x_ref = self.reference(t, index)
         return u_ref + (np.asarray(x) - x_ref) @ self.K.T
 
+    def horizons(self, index: np.ndarray) -> np.ndarray:
+        """``T_i`` (s) of trajectories ``index (...)`` -> ``(...)``."""
+        return np.array([tr.T for tr in self.trajectories])[np.asarray(index)]
+
     def __call__(self, t: float, x: np.ndarray, index: np.ndarray) -> np.ndarray:
         """The control input at time ``t`` for states ``x (..., n)`` following trajectories
-        ``index (...)`` (from ``select``) -> ``(..., m)``."""
-        return np.clip(self.unclipped(t, x, index), self.lower, self.upper)
+        ``index (...)`` (from ``select``) -> ``(..., m)``.
+
+        Past a trajectory's ``T`` the terminal law applies; without a terminal controller
+        ``t > T`` raises ``BeyondHorizonError`` (the certificate ends at ``T``).
+        """
+        x = np.asarray(x, dtype=np.float64)
+        T = self.horizons(index)
+        after = t > T * (1 + TIME_TOLERANCE)  # (...)
+        if not np.any(after):
+            return np.clip(self.unclipped(t, x, index), self.lower, self.upper)
+        if self.terminal is None:
+            raise BeyondHorizonError(
+                f"t = {t:g} s is past the trajectory's horizon T = {float(np.min(T)):g} s and "
+                f"{self.source} has no terminal controller (no certified capture in Goal): the "
+                "law is certified on [0, T] only"
+            )
+        raw = self.terminal.unclipped(x)
+        if not np.all(after):
+            raw = np.where(after[..., None], raw, self.unclipped(t, x, index))
+        return np.clip(raw, self.lower, self.upper)
 
 
 class _Reader:
@@ -254,6 +338,28 @@ def _trajectory(
     )
 
 
+def _terminal(read: _Reader, item: object, n: int, m: int) -> TerminalController:
+    item = read.mapping("terminal", item, ("x_eq", "u_eq", "K", "P", "level"))
+    P = read.array("terminal.P", item["P"], (n, n))
+    _metric(read, "terminal.P", P)
+    return TerminalController(
+        x_eq=_frozen(read.array("terminal.x_eq", item["x_eq"], (n,))),
+        u_eq=_frozen(read.array("terminal.u_eq", item["u_eq"], (m,))),
+        K=_frozen(read.array("terminal.K", item["K"], (m, n))),
+        P=_frozen((P + P.T) / 2),
+        level=read.number("terminal.level", item["level"], positive=True),
+    )
+
+
+def _metric(read: _Reader, field: str, P: np.ndarray) -> None:
+    """``P`` must be symmetric positive definite."""
+    if np.max(np.abs(P - P.T)) > SYMMETRY_TOLERANCE * np.max(np.abs(P)):
+        read.fail(field, "a non-symmetric matrix", "a symmetric positive definite matrix")
+    smallest = float(np.linalg.eigvalsh((P + P.T) / 2)[0])
+    if not smallest > 0:
+        read.fail(field, f"smallest eigenvalue {smallest:.3g}", "a positive definite matrix")
+
+
 def parse(data: object, source: str = "controller.json") -> Controller:
     """Validate a decoded ``controller.json`` document and build the controller."""
     read = _Reader(source)
@@ -288,11 +394,7 @@ def parse(data: object, source: str = "controller.json") -> Controller:
     feedback = read.mapping("feedback", top["feedback"], ("K", "P", "rate"))
     K = read.array("feedback.K", feedback["K"], (m, n))
     P = read.array("feedback.P", feedback["P"], (n, n))
-    if np.max(np.abs(P - P.T)) > SYMMETRY_TOLERANCE * np.max(np.abs(P)):
-        read.fail("feedback.P", "a non-symmetric matrix", "a symmetric positive definite matrix")
-    smallest = float(np.linalg.eigvalsh(P)[0])
-    if not smallest > 0:
-        read.fail("feedback.P", f"smallest eigenvalue {smallest:.3g}", "a positive definite matrix")
+    _metric(read, "feedback.P", P)
     rate = read.number("feedback.rate", feedback["rate"], positive=True)
     items = top["trajectories"]
     if not isinstance(items, list):
@@ -306,6 +408,11 @@ def parse(data: object, source: str = "controller.json") -> Controller:
     error = read.number("interpolation_error_P_norm", error)
     if error < 0:
         read.fail("interpolation_error_P_norm", error, "a number >= 0")
+    period = read.number("feedback_period", top.get("feedback_period", 0.0))
+    if period < 0:
+        read.fail("feedback_period", period, "a number >= 0 (0: continuous feedback)")
+    terminal = top.get("terminal")
+    terminal = None if terminal is None else _terminal(read, terminal, n, m)
     return Controller(
         scenario=top["scenario"],
         state_names=state_names,
@@ -318,6 +425,8 @@ def parse(data: object, source: str = "controller.json") -> Controller:
         rate=rate,
         trajectories=trajectories,
         interpolation_error=error,
+        terminal=terminal,
+        feedback_period=period,
         source=source,
     )
 

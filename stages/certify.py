@@ -12,14 +12,23 @@ nothing but the file and the scenario (no stage result):
        lambda_max((A_v + B_v K)^T P + P (A_v + B_v K) + 2 lambda P) < 0,                (C)
 
    eigenvalues by numpy (``eigvalsh``), which gives ``||e(t)||_P <= e^{-lambda t} ||e(0)||_P``
-   while the state and input stay in the region;
+   while the state and input stay in the region. With ``feedback_period h > 0`` (the law held
+   for ``h`` seconds) the file's rate must instead be at most ``lambda_h``, the held law's rate
+   (``pipeline.numerics.sampled``) from the largest rate (C) certifies at the vertices, and
+   ``h`` must divide ``Ts``;
 4. each trajectory's reference ``x_ref`` is the scenario's dynamics simulated from its ``x0``
    under its ``u_ref`` (to ``REFERENCE_TOLERANCE`` in P-norm per unit radius), and its radius is
    at most the largest radius whose tube ``||x - x_ref(t)||_P <= r e^{-lambda t}`` avoids
    Unsafe, keeps the inputs in their bounds and the tube in the operating region, and ends in
    Goal, on the dense grid with a bound between grid points (``pipeline.numerics.tube_radius``);
 5. Init is covered by the initial balls ``||x - x0_i||_P <= radius_i`` (sound box subdivision,
-   ``pipeline.numerics.cover``).
+   ``pipeline.numerics.cover``);
+6. the optional ``terminal`` block (``pipeline.numerics.terminal``): ``V = e^T P_T e`` decreases
+   on ``V <= level`` at every vertex of a sound hull over its bounding box (numpy eigenvalues,
+   (T1) with the equilibrium's residual), the law does not clip there, the ellipsoid lies in
+   Goal, and it holds every end tube ``||x - x_ref(T)||_P <= radius e^{-lambda T}`` (exact
+   S-procedure containment). Then "safe for all time" is certified; without the block the law
+   refuses ``t > T``, and a scenario with ``terminal: hold`` is not certified.
 """
 
 from __future__ import annotations
@@ -35,6 +44,8 @@ from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import simulate
 from pipeline.numerics.cover import DEFAULT_DEPTH, subdivide
 from pipeline.numerics.hull import DEFAULT_SEGMENTS, HullError, jacobian_hull
+from pipeline.numerics.sampled import contraction_rate, held_rate
+from pipeline.numerics.terminal import check_level, end_levels
 from pipeline.numerics.tube import Tube
 from pipeline.numerics.tube_radius import radius_limits
 from pipeline.numerics.verify import VERIFY_SUBSTEPS
@@ -56,6 +67,8 @@ class CertificationResult:
         allows for each trajectory (a claim is certified when it is not larger).
       reference_error: the largest ``||x_ref - simulated||_P / radius`` over the trajectories.
       covered_fraction: the part of Init certified covered by the file's balls (volume).
+      terminal: the file has a terminal block; terminal_decay: its certified ``alpha`` (1/s);
+        terminal_fit: the largest end tube's share of the ellipsoid's radius (<= 1 to fit).
       failures: one line per failed check; empty when the file is certified.
     """
 
@@ -71,6 +84,54 @@ class CertificationResult:
     failures: tuple[str, ...] = field(default=())
     success: bool
     message: str
+    terminal: bool = False
+    terminal_decay: float = float("nan")
+    terminal_fit: float = float("nan")
+
+
+def _held(controller: Controller, A: np.ndarray, B: np.ndarray) -> list[str]:
+    """Step 3 for held feedback: ``h`` divides ``Ts`` and the file's rate is at most
+    ``lambda_h`` (from the largest rate (C) certifies at the vertices ``A (V, n, n)``, ``B (V, n,
+    m)``)."""
+    h = controller.feedback_period
+    steps = controller.Ts / h
+    if abs(steps - round(steps)) > 1e-9 * steps or steps < 1 - 1e-9:
+        return [f"feedback_period {h:g} s does not divide Ts {controller.Ts:g} s"]
+    rate = contraction_rate(controller.P, controller.K, A, B)
+    held = held_rate(controller.P, controller.K, A, B, rate, h)
+    if not controller.rate <= held.held_rate:
+        return [
+            f"the rate {controller.rate:g} exceeds {held.held_rate:.4g}, the tube rate of the "
+            f"law held every {h:g} s (continuous rate {rate:.4g})"
+        ]
+    return []
+
+
+def verify_terminal(scenario: Scenario, controller: Controller) -> tuple[float, float, list[str]]:
+    """Step 6: ``(decay, fit, failures)`` of the file's terminal block."""
+    terminal = controller.terminal
+    assert terminal is not None
+    check = check_level(
+        scenario,
+        terminal.x_eq,
+        terminal.u_eq,
+        terminal.K,
+        terminal.P,
+        terminal.level,
+        period=controller.feedback_period,
+    )
+    ends = [tr.x_ref[-1] for tr in controller.trajectories]
+    radii = [tr.radius * float(np.exp(-controller.rate * tr.T)) for tr in controller.trajectories]
+    needed = end_levels(terminal.P, terminal.x_eq, controller.P, ends, radii)
+    fit = float(np.sqrt(needed.max() / terminal.level))
+    failures = [f"terminal: {failure}" for failure in check.failures]
+    if not fit <= 1:
+        i = int(np.argmax(needed))
+        failures.append(
+            f"terminal: trajectories[{i}]'s end tube is not inside the terminal ellipsoid (it "
+            f"needs level {needed[i]:.4g} > {terminal.level:.4g})"
+        )
+    return check.decay, fit, failures
 
 
 def _same_scenario(scenario: Scenario, controller: Controller) -> list[str]:
@@ -147,6 +208,8 @@ def certify_controller(
     except HullError as error:
         margin, vertices = float("nan"), 0
         failures.append(f"no Jacobian hull over the operating region: {error}")
+    if controller.feedback_period > 0 and vertices:
+        failures += _held(controller, hull.A, hull.B)
     if not margin < 0:
         failures.append(
             f"the contraction inequality fails at rate {controller.rate:g}: largest eigenvalue "
@@ -204,11 +267,34 @@ def certify_controller(
             f"Init is not covered by the file's balls ({cover.fraction:.1%} certified covered)"
         )
 
+    # 6. The terminal controller, when the file has one.
+    decay = fit = float("nan")
+    if controller.terminal is not None:
+        decay, fit, problems = verify_terminal(scenario, controller)
+        failures += problems
+    elif scenario.terminal == "hold":
+        failures.append(
+            "the scenario asks terminal: hold but controller.json has no terminal controller "
+            "(the end tubes do not fit a certified invariant ellipsoid in Goal: tighten the "
+            "speed bounds at T in goal.bounds)"
+        )
+    after = (
+        f"; after T: terminal ellipsoid invariant (decay {decay:.3g}/s) and holding every end "
+        f"tube (at most {fit:.0%} of its radius)"
+        if controller.terminal is not None
+        else "; no terminal controller (the law refuses t > T)"
+    )
+
     success = not failures
+    held = (
+        f" with the law held every {controller.feedback_period:g} s"
+        if controller.feedback_period > 0
+        else ""
+    )
     message = (
-        f"controller.json re-verified: P > 0, contraction at rate {controller.rate:g} on "
+        f"controller.json re-verified: P > 0, contraction at rate {controller.rate:g}{held} on "
         f"{vertices} hull vertices (margin {margin:.2e}), {len(verified)} radii within their "
-        "tubes, Init covered"
+        "tubes, Init covered" + after
         if success
         else "controller.json is not certified: " + "; ".join(failures)
     )
@@ -225,4 +311,7 @@ def certify_controller(
         failures=tuple(failures),
         success=success,
         message=message,
+        terminal=controller.terminal is not None,
+        terminal_decay=decay,
+        terminal_fit=fit,
     )

@@ -12,6 +12,12 @@ non-finite state is a failure. The runs go through the compiled kernel
 the report shows. The failure probability gets an exact one-sided 95% Clopper-Pearson
 upper bound (``scipy.stats.binomtest``), valid because the samples are i.i.d.
 
+When the file has a terminal controller, every covered run is continued to ``T +
+HOLD_SECONDS`` on the kernel (``hold_runs_compiled``, which agrees with the oracle
+``hold_runs``): each must stay in its terminal ellipsoid (which lies in Goal), end in Goal, never
+clip and never come near Unsafe ("after_T" failures). A file with ``feedback_period > 0`` is flown
+with the law held for that period (both the oracle and the kernel).
+
 A falsification search (Init's corners, a Sobol set, then a local search) is reported
 separately: it is evidence, not a bound.
 """
@@ -31,9 +37,10 @@ from pipeline.io.executor import Executor, SerialExecutor
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario, load_scenario_cached
 from pipeline.numerics.closed_loop import RunChecks, check_runs
-from pipeline.numerics.rollouts import check_runs_compiled
+from pipeline.numerics.rollouts import check_runs_compiled, hold_runs_compiled
 
-FAILURE_KINDS = ("unsafe", "goal", "clipping", "tube", "non_finite", "uncovered")
+FAILURE_KINDS = ("unsafe", "goal", "clipping", "tube", "non_finite", "uncovered", "after_T")
+HOLD_SECONDS = 10.0
 
 
 @dataclass(frozen=True)
@@ -64,6 +71,8 @@ class MonteCarloResult:
     message: str
     # ||e(T)||_P e^(lambda T) / ||e(0)||_P per run: how much of the certified decay is used
     tube_final: FloatArray = field(default_factory=lambda: np.zeros(0), repr=False)
+    hold_runs: int = 0  # runs continued to T + HOLD_SECONDS under the terminal law
+    hold_max_level_ratio: float = float("nan")  # their largest V(x) / level after T
 
 
 def _uniform_init(scenario: Scenario, rng: np.random.Generator, count: int) -> FloatArray:
@@ -117,14 +126,23 @@ def falsify(
     return Falsification(worst[0], best, evaluations, binding)
 
 
+Hold = tuple[int, FloatArray, float]  # runs continued, failed (B,), largest V / level
+
+
 def _run_chunk(
     scenario: Scenario, controller_path: Path, size: int, stream: np.random.SeedSequence
-) -> tuple[RunChecks, FloatArray]:
+) -> tuple[RunChecks, FloatArray, Hold]:
     controller = load(controller_path)
     x0 = _uniform_init(scenario, np.random.default_rng(stream), size)
     checks = check_runs_compiled(scenario, controller, x0)
-    failed = np.any(list(checks.failures().values()), axis=0)
-    return checks, x0[failed]
+    hold: Hold = (0, np.zeros(size, dtype=bool), float("nan"))
+    if controller.terminal is not None:
+        after = hold_runs_compiled(scenario, controller, x0[checks.covered], HOLD_SECONDS)
+        failures = np.zeros(size, dtype=bool)
+        failures[checks.covered] = after.failures()
+        hold = (int(checks.covered.sum()), failures, float(np.max(after.level_ratio, initial=0)))
+    failed = np.any([*checks.failures().values(), hold[1]], axis=0)
+    return checks, x0[failed], hold
 
 
 def _drawn_paths(
@@ -151,7 +169,7 @@ def _drawn_paths(
 
 def _run_chunk_in_worker(
     task: tuple[Path, str, Path, int, np.random.SeedSequence],
-) -> tuple[RunChecks, FloatArray]:
+) -> tuple[RunChecks, FloatArray, Hold]:
     path, source_hash, controller_path, size, stream = task
     return _run_chunk(load_scenario_cached(path, source_hash), controller_path, size, stream)
 
@@ -191,15 +209,25 @@ def validate_closed_loop(
         f: np.concatenate([getattr(p, f) for p in parts]) for f in RunChecks.__dataclass_fields__
     }
     checks = RunChecks(**merged)
+    after_T = np.concatenate([o[2][1] for o in outcomes])
+    held = sum(o[2][0] for o in outcomes)
+    hold_level = max((o[2][2] for o in outcomes if o[2][0]), default=float("nan"))
     counts = {kind: int(mask.sum()) for kind, mask in checks.failures().items()}
-    failing = int(np.any(list(checks.failures().values()), axis=0).sum())
+    counts["after_T"] = int(after_T.sum())
+    failing = int(np.any([*checks.failures().values(), after_T], axis=0).sum())
     bound = float(binomtest(failing, samples, alternative="less").proportion_ci(0.95).high)
     falsification = falsify(scenario, controller, seed=seed)
     success = failing == 0
+    after = (
+        f"; {held} continued to T + {HOLD_SECONDS:g} s stayed in Goal (V / level <= "
+        f"{hold_level:.3g})"
+        if held and not counts.get("after_T")
+        else ""
+    )
     message = (
         (
             f"{samples} closed-loop runs, 0 failures; failure probability <= {bound:.2e} "
-            "(95% Clopper-Pearson)"
+            f"(95% Clopper-Pearson){after}"
         )
         if success
         else (
@@ -223,4 +251,6 @@ def validate_closed_loop(
         success=success,
         message=message,
         tube_final=checks.tube_final,
+        hold_runs=held,
+        hold_max_level_ratio=hold_level,
     )

@@ -55,7 +55,8 @@ def write_reports(data: ReportData) -> ReportResult:
     sections = build_sections(data)
     verdict = data.summary.text
     title = f"Safety controller synthesis report: {scenario.name}"
-    store = FigureStore(out / "artifacts" / FIGURES)
+    # kept beside the run's artifacts; not when writing elsewhere (the run is only read)
+    store = FigureStore(out / "artifacts" / FIGURES if data.source is None else None)
     try:
         pages: list[int] = []
 

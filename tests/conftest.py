@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import pytest
 
-from pipeline.runtime.orchestrator import RunOptions, synthesize
+from pipeline.runtime.api import synthesize
 
 E2E_SAMPLES = 1000  # quadrotor_hill: the end-to-end tests reuse its run
 CI_SYNTHESIS_SAMPLES = 300  # every other shipped scenario: the CI safety check only
@@ -63,8 +63,8 @@ def synthesis(tmp_path_factory):
     def run(name: str):
         if name not in runs:
             out = tmp_path_factory.mktemp(name)
-            options = RunOptions(samples=SAMPLES.get(name, CI_SYNTHESIS_SAMPLES), quiet=True)
-            runs[name] = (synthesize(name, out=out, options=options), out)
+            result = synthesize(name, out=out, samples=SAMPLES.get(name, CI_SYNTHESIS_SAMPLES))
+            runs[name] = (result.exit_code, out)
         return runs[name]
 
     return run

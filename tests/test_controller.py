@@ -12,10 +12,30 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from pipeline.controller import ControllerFormatError, load
+from pipeline.controller import (
+    BeyondHorizonError,
+    ControllerFormatError,
+    UncoveredStartError,
+    load,
+)
+
+TERMINAL = {
+    "x_eq": [3.0, 0.0],
+    "u_eq": [0.0],
+    "K": [[-1.0, -2.0]],
+    "P": [[1.5, 0.5], [0.5, 1.0]],
+    "level": 0.5,
+}
 
 
-def _document() -> dict:
+def _document(terminal: bool = False) -> dict:
+    """A toy file; ``terminal``: with today's optional fields (else as files before them)."""
+    return _base() | (
+        {"terminal": copy.deepcopy(TERMINAL), "feedback_period": 0.0} if terminal else {}
+    )
+
+
+def _base() -> dict:
     t = np.linspace(0.0, 1.0, 11)
     return {
         "format": "safety-controller/1",
@@ -265,7 +285,7 @@ def _paths(node, prefix=()):
         yield from _paths(child, (*prefix, key))
 
 
-PATHS = list(_paths(_document()))
+PATHS = list(_paths(_document(terminal=True)))
 
 
 def _parent(document, path):
@@ -287,7 +307,7 @@ def _parent(document, path):
 def test_mutated_files_raise_nothing_but_controller_format_error(
     tmp_path, path, action, value, cut
 ):
-    document = _document()
+    document = _document(terminal=True)
     parent, key = _parent(document, path), path[-1]
     if action == "delete":
         del parent[key]
@@ -313,3 +333,56 @@ def test_mutated_files_raise_nothing_but_controller_format_error(
     index, ratio = controller.select(controller.trajectories[0].x0)
     assert np.isfinite(controller(0.0, controller.trajectories[0].x0, index)).all()
     assert ratio >= 0
+
+
+def test_files_without_the_optional_fields_still_load(tmp_path):
+    controller = load(_write(tmp_path, _document()))
+    assert controller.terminal is None and controller.feedback_period == 0.0
+
+
+def test_select_strict_refuses_uncovered_starts(tmp_path):
+    controller = load(_write(tmp_path, _document()))
+    index, ratio = controller.select(np.array([[0.2, 0.0], [1.6, 0.0]]))
+    assert ratio[0] < 1 <= ratio[1]  # the second start is outside every ball
+    controller.select(np.array([0.2, 0.0]), strict=True)  # covered: accepted
+    with pytest.raises(UncoveredStartError, match=r"start \[1.6, 0.0\] .* ratio 2.26 >= 1"):
+        controller.select(np.array([[0.2, 0.0], [1.6, 0.0]]), strict=True)
+
+
+def test_past_T_the_law_switches_to_the_terminal_controller_or_refuses(tmp_path):
+    x = np.array([[3.2, 0.1], [0.5, 0.5]])
+    index = np.array([1, 0])
+    without = load(_write(tmp_path, _document()))
+    with pytest.raises(BeyondHorizonError, match="no terminal controller"):
+        without(1.5, x, index)
+    with_terminal = load(_write(tmp_path, _document(terminal=True)))
+    u = with_terminal(1.5, x, index)
+    expected = np.clip(0.0 + (x - [3.0, 0.0]) @ np.array([[-1.0, -2.0]]).T, -1.0, 1.0)
+    np.testing.assert_allclose(u, expected)
+    # up to T both laws agree
+    np.testing.assert_allclose(with_terminal(1.0, x, index), without(1.0, x, index))
+
+
+@pytest.mark.parametrize(
+    ("mutate", "message"),
+    [
+        (
+            lambda d: d["terminal"].update(level=0.0),
+            r"terminal.level: found 0.0; expected a number > 0",
+        ),
+        (
+            lambda d: d["terminal"].update(P=[[1.0, 0.0], [0.0, -1.0]]),
+            "terminal.P: found 'smallest eigenvalue",
+        ),
+        (lambda d: d["terminal"].pop("u_eq"), "terminal.u_eq: found 'nothing"),
+        (
+            lambda d: d.update(feedback_period=-0.01),
+            "feedback_period: found -0.01; expected a number >= 0",
+        ),
+    ],
+)
+def test_bad_terminal_blocks_are_refused(tmp_path, mutate, message):
+    document = _document(terminal=True)
+    mutate(document)
+    with pytest.raises(ControllerFormatError, match=re.escape(message)):
+        load(_write(tmp_path, document))

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -21,7 +22,7 @@ import numpy as np
 import pytest
 import shapely
 
-from pipeline import available_scenarios, load_scenario
+from pipeline import Verdict, available_scenarios, load_scenario
 from pipeline.controller import load
 from pipeline.model.simulate import simulate
 from pipeline.numerics.closed_loop import RunChecks, check_runs, simulate_closed_loop
@@ -155,21 +156,23 @@ def test_an_inflated_radius_is_caught(synthesized, tmp_path):
 
 
 def test_a_rerun_reuses_every_stage(synthesized, capsys):
-    from pipeline.runtime.orchestrator import RunOptions, synthesize
+    from pipeline.runtime.cli import main
 
     _, out = synthesized
-    code = synthesize("quadrotor_hill", out=out, options=RunOptions(samples=1000))
+    code = main(["synthesize", "quadrotor_hill", "--out", str(out), "--samples", "1000"])
     printed = capsys.readouterr().out
     assert code == 0
     for stage in ("feedback", "optimize", "montecarlo"):
-        assert f"[{stage}] unchanged inputs: reusing" in printed
+        assert f"[{stage}] reused (inputs unchanged)" in printed
     # controller.json is written on every run from the certified results, then re-verified
-    assert "[controller] running" in printed
-    assert "[certify] controller.json re-verified" in printed
+    assert re.search(r"^\[controller\] \d+\.\d s: ", printed, flags=re.MULTILINE)
+    assert re.search(r"^\[certify\] \d+\.\d s: controller.json re-verified", printed, re.M)
+    assert "running" not in printed and "done in" not in printed  # one line per stage
+    assert f"outputs in {out}" in printed
 
 
 def test_a_hand_edited_controller_is_rewritten_and_never_certified(synthesized, tmp_path, capsys):
-    from pipeline.runtime.orchestrator import RunOptions, synthesize
+    from pipeline.runtime.api import synthesize
 
     _, good = synthesized
     out = tmp_path / "run"
@@ -179,8 +182,8 @@ def test_a_hand_edited_controller_is_rewritten_and_never_certified(synthesized, 
     for item in document["trajectories"]:  # every state now looks covered
         item["radius"] = -abs(item["radius"])
     (out / "controller.json").write_text(json.dumps(document))
-    code = synthesize("quadrotor_hill", out=out, options=RunOptions(samples=1000))
-    assert code == 0, capsys.readouterr().out
+    result = synthesize("quadrotor_hill", out=out, samples=1000)
+    assert result.exit_code == 0, result.message
     assert (out / "controller.json").read_bytes() == emitted  # rewritten from the results
 
 
@@ -188,6 +191,7 @@ def test_the_verdict_comes_from_the_file_as_written(synthesized, tmp_path, monke
     """A controller stage that writes a file other than its certified results (here: every
     radius 10x) gives 'not certified', exit 1, although every stage result is unchanged."""
     import pipeline.runtime.orchestrator as orchestrator
+    from pipeline.runtime.api import synthesize
 
     _, good = synthesized
     out = tmp_path / "run"
@@ -203,14 +207,12 @@ def test_the_verdict_comes_from_the_file_as_written(synthesized, tmp_path, monke
         return result
 
     monkeypatch.setattr(orchestrator, "emit_controller", emit_inflated)
-    code = orchestrator.synthesize(
-        "quadrotor_hill", out=out, options=orchestrator.RunOptions(samples=1000)
-    )
-    printed = capsys.readouterr().out
+    result = synthesize("quadrotor_hill", out=out, samples=1000)
     summary = json.loads((out / "summary.json").read_text())
-    assert code == 1
+    assert result.exit_code == 1 and result.verdict is Verdict.NOT_CERTIFIED
+    assert result.controller is None and result.outputs.controller is None
     assert summary["verdict"]["certified"] is False
-    assert "controller.json is not certified: trajectories[0]: radius" in printed
+    assert "controller.json is not certified: trajectories[0]: radius" in result.message
 
 
 def _start(out, *extra):
@@ -256,7 +258,7 @@ def test_a_killed_run_keeps_the_last_good_output_and_resumes(synthesized, tmp_pa
     subprocess.run(["cp", "-r", str(good), str(out)], check=True)
     before = {p.name: p.read_bytes() for p in [out / "controller.json", out / "summary.json"]}
     # --force reruns every stage; kill it while it computes the Monte Carlo stage
-    _kill_when(_start(out, "--force"), "[montecarlo] running")
+    _kill_when(_start(out, "--force"), "[certify]")  # the Monte Carlo stage comes next
     for name, content in before.items():  # same inputs, so the rewritten files are identical
         assert (out / name).read_bytes() == content, name
     load(out / "controller.json")
@@ -278,7 +280,7 @@ def test_a_killed_run_keeps_the_last_good_output_and_resumes(synthesized, tmp_pa
         text=True,
     )
     assert resumed.returncode == 0, resumed.stdout + resumed.stderr
-    assert "[montecarlo] unchanged inputs: reusing" in resumed.stdout
+    assert "[montecarlo] reused (inputs unchanged)" in resumed.stdout
 
 
 def test_the_smallest_margin_names_its_kind():

@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -57,6 +58,12 @@ def synthesize(run: tuple[Path, Path], *extra: str) -> int:
     return main(["synthesize", str(run[0]), "--out", str(run[1]), "--samples", SAMPLES, *extra])
 
 
+def computed(printed: str) -> set[str]:
+    """The stages a run computed: their line shows the time (``[optimize] 6.6 s: ...``); a
+    reused stage says ``[optimize] reused (inputs unchanged)``."""
+    return set(re.findall(r"^\[(\w+)\] \d+\.\d s", printed, flags=re.MULTILINE))
+
+
 def mtimes(out: Path) -> dict[str, int]:
     """Modification times of the stage artifacts (the input manifest is rewritten every run)."""
     stems = (out / "artifacts").glob("*.json")
@@ -85,7 +92,7 @@ def test_artifact_naming_a_callable_is_refused_and_recomputed(run, capsys):
     document["sha256"] = content_hash(document["key"], document["result"], arrays)
     path.write_text(json.dumps(document))
 
-    assert main(["report", str(scenario), "--out", str(out)]) == 2
+    assert main(["report", str(scenario), "--from", str(out)]) == 2
     error = capsys.readouterr().err
     assert "'subprocess:call', which is not a registered result type" in error
     assert error.count("\n") == 1 and str(path) in error
@@ -156,7 +163,7 @@ def test_failed_stage_writes_a_failed_summary_and_stales_old_outputs(run, capsys
     assert not (out / "controller.json").exists() and (out / "controller.stale.json").is_file()
     assert not (out / "report.html").exists() and (out / "report.stale.html").is_file()
 
-    assert main(["report", str(scenario), "--out", str(out)]) == 2
+    assert main(["report", str(scenario), "--from", str(out)]) == 2
     assert "the last run failed at stage 'montecarlo'" in capsys.readouterr().err
 
     monkeypatch.undo()  # the next good run clears the stale files
@@ -208,7 +215,7 @@ def test_report_on_a_corrupt_artifact_is_exit_2_naming_it(run, capsys, case):
     name, damage = DAMAGE[case]
     path = out / "artifacts" / name
     path.write_bytes(damage(path.read_bytes()))
-    assert main(["report", str(scenario), "--out", str(out)]) == 2
+    assert main(["report", str(scenario), "--from", str(out)]) == 2
     error = capsys.readouterr().err
     assert error.startswith("error: ") and error.count("\n") == 1
     assert str(path.with_suffix(".json")) in error and "synthesize" in error
@@ -334,8 +341,7 @@ def test_fully_cached_rerun_and_csv_comment_edit_recompute_nothing(run, capsys):
     demo.write_text("# a comment added by hand\n" + demo.read_text().replace(",", ", "))
     assert synthesize(run) == 0
     printed = capsys.readouterr().out
-    ran = {line.split("]")[0][1:] for line in printed.splitlines() if line.endswith("] running")}
-    assert ran == {"controller"}  # always written from this run's results (the same bytes)
+    assert computed(printed) == {"controller", "certify"}  # both always run: the file itself
     assert mtimes(out) == {**before, "controller.json": mtimes(out)["controller.json"]}
     assert (out / "report.html").stat().st_mtime_ns == report  # timings are not in its key
 
@@ -343,7 +349,7 @@ def test_fully_cached_rerun_and_csv_comment_edit_recompute_nothing(run, capsys):
 def test_report_checks_the_demo_values_not_only_the_yaml(run, capsys):
     scenario, out = run
     demo = nudge_demo(scenario, "demo_02", 1e-3)
-    assert main(["report", str(scenario), "--out", str(out)]) == 2
+    assert main(["report", str(scenario), "--from", str(out)]) == 2
     assert f"demos changed since the run: {demo}" in capsys.readouterr().err
 
 
@@ -362,7 +368,7 @@ def test_an_edited_or_truncated_controller_is_rewritten_from_the_certified_resul
     path = out / "controller.json"
     path.write_text(edit(path.read_text()))
     assert synthesize(run) == 0
-    assert "[controller] running" in capsys.readouterr().out
+    assert "controller" in computed(capsys.readouterr().out)
     assert radii(out) == shipped
 
 
@@ -370,7 +376,7 @@ def test_report_refuses_a_controller_the_run_did_not_write(run, capsys):
     scenario, out = run
     path = out / "controller.json"
     path.write_text(_negative_radius(path.read_text()))
-    assert main(["report", str(scenario), "--out", str(out)]) == 2
+    assert main(["report", str(scenario), "--from", str(out)]) == 2
     assert f"{path}: controller.json is not the file the run wrote" in capsys.readouterr().err
 
 
@@ -393,7 +399,7 @@ def _stages_run(project: Path, scenario: Path, out: Path) -> set[str]:
         timeout=300,
     )
     assert done.returncode == 0, done.stdout + done.stderr
-    return {line.split("]")[0][1:] for line in done.stdout.splitlines() if "] running" in line}
+    return computed(done.stdout)
 
 
 @pytest.mark.slow

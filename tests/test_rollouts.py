@@ -59,3 +59,55 @@ def test_compiled_rollouts_report_the_same_failures_of_a_broken_gain(synthesized
     numpy_checks = check_runs(scenario, controller, x0)[0]
     _assert_same(numpy_checks, check_runs_compiled(scenario, controller, x0))
     assert any(mask.any() for mask in numpy_checks.failures().values())
+
+
+def _variant(out, tmp_path, change):
+    document = json.loads((out / "controller.json").read_text())
+    change(document)
+    path = tmp_path / "controller.json"
+    path.write_text(json.dumps(document))
+    return load(path)
+
+
+def test_held_feedback_matches_the_numpy_oracle(synthesized, tmp_path):
+    """The law held every 0.01 s (zero-order hold): kernel and oracle agree to 1e-9, and the
+    held runs differ from the continuous ones (the hold is simulated, not ignored)."""
+    _, out = synthesized
+    scenario = load_scenario("quadrotor_hill", check_demos=False)
+    controller = _variant(out, tmp_path, lambda d: d.update(feedback_period=0.01))
+    x0 = _starts(scenario, 60, seed=11, widen=0.2)
+    held = check_runs(scenario, controller, x0)[0]
+    _assert_same(held, check_runs_compiled(scenario, controller, x0))
+    continuous = check_runs_compiled(scenario, load(out / "controller.json"), x0)
+    assert np.abs(held.input_slack - continuous.input_slack).max() > 1e-6
+
+
+@pytest.mark.parametrize("period", [0.0, 0.02])
+def test_runs_continued_past_T_match_the_numpy_oracle(synthesized, tmp_path, period):
+    """A terminal law at hover added to the quadrotor's file: the continuation 10 s past T on
+    the kernel agrees with the oracle's (final state, V / level, slack, clearance, Goal)."""
+    from pipeline.numerics.closed_loop import hold_runs
+    from pipeline.numerics.rollouts import hold_runs_compiled
+    from pipeline.numerics.terminal import design_terminal, equilibrium
+
+    _, out = synthesized
+    scenario = load_scenario("quadrotor_hill", check_demos=False)
+    x_eq, _ = equilibrium(scenario)
+    design = design_terminal(scenario, np.zeros((2, 6)), np.eye(6), [x_eq], [0.0])
+    block = {
+        "x_eq": design.x_eq.tolist(),
+        "u_eq": design.u_eq.tolist(),
+        "K": design.K.tolist(),
+        "P": design.P.tolist(),
+        "level": 1e4 * design.check.level,  # large: most continuations stay inside
+    }
+    controller = _variant(out, tmp_path, lambda d: d.update(terminal=block, feedback_period=period))
+    x0 = _starts(scenario, 24, seed=5)
+    oracle = hold_runs(scenario, controller, x0, duration=10.0)
+    compiled = hold_runs_compiled(scenario, controller, x0, duration=10.0)
+    np.testing.assert_allclose(compiled.final_state, oracle.final_state, rtol=0, atol=1e-9)
+    for name in ("level_ratio", "input_slack", "clearance", "final_goal_margin"):
+        np.testing.assert_allclose(
+            getattr(compiled, name), getattr(oracle, name), rtol=1e-9, atol=1e-9, err_msg=name
+        )
+    assert np.isfinite(oracle.final_state).all()

@@ -43,9 +43,18 @@ from pipeline.model.safe_yaml import load_yaml
 from pipeline.model.schema import FeedbackSpec, ScenarioSpec, field_names
 from pipeline.model.simulate import simulate
 
-SCENARIOS_ROOT = Path(
-    os.environ.get("SAFETY_SCENARIOS", Path(__file__).resolve().parents[2] / "scenarios")
-)
+
+def _shipped_scenarios() -> Path:
+    """The scenarios shipped with the package: ``pipeline/scenarios`` when installed (package
+    data, see ``pyproject.toml``), the repository's ``scenarios/`` in a source checkout."""
+    package = Path(__file__).resolve().parents[1]
+    installed = package / "scenarios"
+    return installed if installed.is_dir() else package.parent / "scenarios"
+
+
+# A scenario name is looked up in ./scenarios (the user's own), then here; a path works anywhere.
+SCENARIOS_ROOT = Path(os.environ.get("SAFETY_SCENARIOS", _shipped_scenarios()))
+LOCAL_SCENARIOS = "scenarios"
 
 
 # The largest lambda T of a demo: e^{lambda T} stays far below float64's limit e^709.78 (room for
@@ -64,6 +73,8 @@ class Scenario:
       unsafe: name -> polygon over position; goal: polygon over position.
       goal_bounds: state name -> (lower, upper) extra bounds at the final time.
       operating_region: state or input name -> (lower, upper).
+      terminal: "reach" (the paper's Goal) or "hold" (certified only with a terminal controller
+        holding the state in Goal after ``T``).
     """
 
     name: str
@@ -84,6 +95,7 @@ class Scenario:
     feedback: FeedbackSpec = field(repr=False)
     demos: tuple[Demo, ...] = field(repr=False)
     source_hash: str = ""
+    terminal: str = "reach"
 
     @property
     def state_names(self) -> tuple[str, ...]:
@@ -119,23 +131,32 @@ def available_scenarios(root: Path = SCENARIOS_ROOT) -> list[str]:
     return sorted(p.parent.name for p in Path(root).glob("*/scenario.yaml"))
 
 
-def resolve_scenario_path(name_or_path: str | Path, root: Path = SCENARIOS_ROOT) -> Path:
-    """A scenario name, folder or YAML path -> the YAML path; unknown names list the known ones."""
+def resolve_scenario_path(name_or_path: str | Path, root: Path | None = None) -> Path:
+    """A scenario name, folder or YAML path -> the YAML path.
+
+    A path (file, or folder holding ``scenario.yaml``) is used as is. A name is looked up in
+    ``./scenarios/NAME`` under the current directory, then in ``root`` (default: the shipped
+    scenarios, ``SCENARIOS_ROOT``); an unknown name lists the known ones.
+    """
     candidate = Path(name_or_path)
     if candidate.is_file():
         return candidate
     if (candidate / "scenario.yaml").is_file():
         return candidate / "scenario.yaml"
-    if (Path(root) / str(name_or_path) / "scenario.yaml").is_file():
-        return Path(root) / str(name_or_path) / "scenario.yaml"
-    known = ", ".join(available_scenarios(root)) or "none"
+    roots = [Path.cwd() / LOCAL_SCENARIOS, Path(root if root is not None else SCENARIOS_ROOT)]
+    for folder in roots:
+        if (folder / str(name_or_path) / "scenario.yaml").is_file():
+            return folder / str(name_or_path) / "scenario.yaml"
+    known = ", ".join(sorted({name for folder in roots for name in available_scenarios(folder)}))
     raise ScenarioError(
-        f"unknown scenario '{name_or_path}'", expected=f"one of: {known} (or a path to a YAML file)"
+        f"unknown scenario '{name_or_path}'",
+        expected=f"one of: {known or 'none'} (or a path to a scenario folder or YAML file)",
     )
 
 
 def load_scenario(name_or_path: str | Path, check_demos: bool = True) -> Scenario:
-    """Load and validate a scenario by name (``scenarios/NAME``) or path.
+    """Load and validate a scenario by name (``./scenarios/NAME``, else the shipped one) or by
+    path (a folder holding ``scenario.yaml``, or the YAML file).
 
     With ``check_demos`` every demo is simulated and must avoid Unsafe and end in Goal.
     """
@@ -370,6 +391,7 @@ def _build(path: Path, spec: ScenarioSpec) -> Scenario:
         feedback=spec.feedback,
         demos=demos,
         source_hash=file_hash(path),
+        terminal=spec.terminal,
     )
 
 

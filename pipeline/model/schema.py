@@ -9,7 +9,7 @@ from __future__ import annotations
 import types
 import typing
 from collections.abc import Sequence
-from typing import Annotated
+from typing import Annotated, Literal
 
 from pydantic import (
     AfterValidator,
@@ -112,6 +112,13 @@ class ScenarioSpec(_Strict):
         description="box over the states and inputs the Jacobian depends on"
     )
     feedback: FeedbackSpec
+    terminal: Literal["reach", "hold"] = Field(
+        default="reach",
+        description="after T: 'reach' (the paper's Goal; a terminal controller is emitted when "
+        "the end tubes fit, else the law stops at T) or 'hold' (the run certifies only with a "
+        "terminal controller holding it in Goal for all time; bound the speeds at T in "
+        "goal.bounds so that it can)",
+    )
     stress: StressSpec | None = Field(default=None, description="optional stress-test settings")
     demos: list[DemoSpec] = Field(default_factory=list)
 

@@ -2,7 +2,9 @@
 
 The feedback acts in continuous time, so the controller is evaluated at every RK4 stage. Its
 reference input is piecewise constant, so each sample interval is integrated on its own and the
-stage at an interval's right end uses the left limit of the input.
+stage at an interval's right end uses the left limit of the input. A file with
+``feedback_period h > 0`` is flown with the law it certifies: ``u`` computed from the state at
+``t_k = k h`` and held on ``[t_k, t_k + h)`` (``held_steps``: RK4 steps aligned with the windows).
 
 ``check_runs`` measures each run's margins in continuous time (dense grid plus the motion bound
 between grid points): clearance to Unsafe, Goal at ``T``, input slack before clipping, and the
@@ -40,6 +42,16 @@ class ClosedLoopRun:
     unclipped: FloatArray
 
 
+def held_steps(controller: Controller, substeps: int) -> tuple[int, int]:
+    """``(RK4 steps per sample interval, steps per held window)`` for at least ``substeps``
+    steps per sample; the window is 0 for continuous feedback (``feedback_period == 0``)."""
+    if controller.feedback_period == 0:
+        return substeps, 0
+    windows = round(controller.Ts / controller.feedback_period)
+    per_window = max(1, -(-substeps // windows))
+    return windows * per_window, per_window
+
+
 def simulate_closed_loop(
     dynamics: Dynamics,
     controller: Controller,
@@ -48,8 +60,12 @@ def simulate_closed_loop(
     substeps: int = 4,
     disturbance: FloatArray | None = None,
     noise: FloatArray | None = None,
+    hold: int = 0,
 ) -> ClosedLoopRun:
     """Run the batch ``x0 (B, n)`` around trajectory number ``trajectory`` until its end ``T``.
+
+    ``hold > 0``: the input is computed every ``hold`` RK4 steps (at the window's first stage)
+    and held in between (zero-order-hold feedback); 0: at every stage.
 
     Stress tests only: ``disturbance (B, n)`` is added to ``xdot``; ``noise (B, K, n)`` is added
     to the state the controller measures on RK4 step ``j`` (``K = N * substeps``).
@@ -66,8 +82,14 @@ def simulate_closed_loop(
     xs[:, 0] = x
     extra = 0.0 if disturbance is None else disturbance
 
+    held = np.empty((B, len(controller.input_names)))
+
     def field(t: float, state: FloatArray, j: int, stage: int) -> FloatArray:
-        raw = controller.unclipped(t, state if noise is None else state + noise[:, j], index)
+        if hold and (stage > 0 or j % hold):
+            raw = held
+        else:
+            raw = controller.unclipped(t, state if noise is None else state + noise[:, j], index)
+            held[:] = raw
         unclipped[:, j, stage] = raw
         return dynamics.f(state, np.clip(raw, controller.lower, controller.upper)) + extra
 
@@ -144,6 +166,7 @@ def check_runs(
     used, the runs' positions ``(b, K+1, 2)``.
     """
     B = len(x0)
+    substeps, hold = held_steps(controller, substeps)
     names = ("clearance", "goal_margin", "input_slack", "tube", "tube_final")
     checks = {name: np.empty(B) for name in names}
     finite = np.ones(B, dtype=bool)
@@ -166,6 +189,7 @@ def check_runs(
             substeps,
             disturbance=None if disturbance is None else disturbance[rows],
             noise=noise,
+            hold=hold,
         )
         xs = run.xs
         finite[rows] = np.all(np.isfinite(xs), axis=(1, 2))
@@ -201,3 +225,112 @@ def check_runs(
         covered=covered,
     )
     return result, paths
+
+
+@dataclass(frozen=True, kw_only=True)
+class HoldChecks:
+    """Runs continued past ``T`` under the terminal law, per run ``(B,)``.
+
+    Attributes:
+      final_goal_margin: signed distance of the final position to Goal's boundary (negative:
+        outside Goal or its extra bounds); level_ratio: ``max_t V(x(t)) / level`` (<= 1: stayed
+        in the certified ellipsoid, which lies in Goal); input_slack: as in ``RunChecks``;
+        clearance: to Unsafe over the continuation, less half the longest step; final_state:
+        ``(B, n)``; path_goal_margin: the smallest signed Goal margin over the grid less half
+        the longest step (the oracle only; None from the kernel).
+    """
+
+    final_goal_margin: FloatArray
+    level_ratio: FloatArray
+    input_slack: FloatArray
+    clearance: FloatArray
+    final_state: FloatArray
+    path_goal_margin: FloatArray | None = None
+
+    def failures(self) -> np.ndarray:
+        """``(B,)`` True where a continued run left Goal or its ellipsoid, or clipped."""
+        failed = (
+            (self.final_goal_margin < 0)
+            | (self.level_ratio > 1 + TUBE_TOLERANCE)
+            | (self.input_slack < 0)
+            | (self.clearance <= 0)
+        )
+        return failed if self.path_goal_margin is None else failed | (self.path_goal_margin < 0)
+
+
+def continue_runs(
+    scenario: Scenario,
+    controller: Controller,
+    x_end: FloatArray,
+    index: np.ndarray,
+    duration: float = 10.0,
+    substeps: int = 4,
+) -> HoldChecks:
+    """Continue runs that reached their ``T_i`` in ``x_end (B, n)`` (trajectories ``index
+    (B,)``) for ``duration`` seconds under the law after ``T`` (``controller(t, x, index)``,
+    the terminal controller), by RK4 with about ``substeps`` steps per ``Ts`` (held every
+    ``feedback_period`` when the file says so)."""
+    terminal = controller.terminal
+    if terminal is None:
+        raise ValueError("continue_runs: the controller has no terminal law to continue with")
+    x = np.array(x_end, dtype=np.float64)
+    T = controller.horizons(index)  # (B,)
+    substeps, hold = held_steps(controller, substeps)
+    h = controller.Ts / substeps
+    steps = int(np.ceil(duration / h))
+    level = np.asarray(terminal.value(x)) / terminal.level
+    slack = np.full(len(x), np.inf)
+    states = [x]
+
+    u = np.empty((len(x), len(controller.input_names)))
+
+    def field(t: float, state: FloatArray, fresh: bool) -> FloatArray:
+        nonlocal slack
+        if fresh:
+            raw = terminal.unclipped(state)
+            slack = np.minimum(
+                slack, np.min(np.minimum(raw - controller.lower, controller.upper - raw), axis=-1)
+            )
+            u[:] = controller(float(T.max()) + t + h, state, index)
+        return scenario.dynamics.f(state, u)
+
+    for j in range(steps):
+        t = j * h
+        k1 = field(t, x, not hold or j % hold == 0)
+        k2 = field(t + h / 2, x + h / 2 * k1, not hold)
+        k3 = field(t + h / 2, x + h / 2 * k2, not hold)
+        k4 = field(t + h, x + h * k3, not hold)
+        x = x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+        states.append(x)
+        level = np.maximum(level, terminal.value(x) / terminal.level)
+    xs = np.stack(states, axis=1)  # (B, steps + 1, n)
+    positions = scenario.positions(xs)
+    step = np.linalg.norm(np.diff(positions, axis=1), axis=-1).max(axis=1)
+    inside = scenario.in_goal(xs)  # (B, steps + 1), with Goal's extra bounds
+    to_edge = geometry.boundary_distance(positions, scenario.goal)
+    signed = np.where(inside, to_edge, -to_edge)
+    distances = np.min([geometry.distance(positions, u) for u in scenario.unsafe.values()], axis=0)
+    return HoldChecks(
+        final_goal_margin=signed[:, -1],
+        level_ratio=level,
+        input_slack=slack,
+        clearance=distances.min(axis=1) - step / 2,
+        final_state=xs[:, -1],
+        path_goal_margin=signed.min(axis=1) - step / 2,
+    )
+
+
+def hold_runs(
+    scenario: Scenario, controller: Controller, x0: FloatArray, duration: float = 10.0
+) -> HoldChecks:
+    """Fly ``x0 (B, n)`` to their ``T`` with the oracle, then ``duration`` s more past it."""
+    index, _ = controller.select(x0)
+    x_end = np.empty_like(np.asarray(x0, dtype=np.float64))
+    for i in np.unique(index):
+        rows = np.flatnonzero(index == i)
+        substeps, hold = held_steps(controller, 4)
+        run = simulate_closed_loop(
+            scenario.dynamics, controller, x0[rows], int(i), substeps, hold=hold
+        )
+        x_end[rows] = run.xs[:, -1]
+    return continue_runs(scenario, controller, x_end, index, duration)

@@ -4,18 +4,20 @@
 NumPy oracle ``pipeline.numerics.closed_loop.check_runs`` (same integration, same law, same
 continuous-time checks; see ``pipeline.numerics.kernels.rollout``), without materialising the
 ``(runs, steps, n)`` paths: memory stays ``O(runs)`` and a rollout costs one pass of scalar code.
+``hold_runs_compiled`` continues the runs past ``T`` under the terminal law, as ``hold_runs``.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
 from pipeline.controller import Controller
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
-from pipeline.numerics.closed_loop import INTERPOLATION_SLACK, RunChecks
+from pipeline.numerics.closed_loop import INTERPOLATION_SLACK, HoldChecks, RunChecks, held_steps
 from pipeline.numerics.kernels.compiled import load_kernels, ring_arrays, rings
 from pipeline.numerics.penalties import IntArray
 
@@ -73,19 +75,96 @@ def check_runs_compiled(
     scenario: Scenario, controller: Controller, x0: FloatArray, substeps: int = 4
 ) -> RunChecks:
     """The margins of every closed-loop run from ``x0 (B, n)``, as ``check_runs`` computes them."""
-    x0 = np.ascontiguousarray(x0, dtype=np.float64)
-    kernels = load_kernels(scenario.dynamics)
+    kernels, out = _rollouts(scenario, controller, x0, substeps)
+    return _checks(kernels, out, controller.select(x0)[1] < 1.0)
+
+
+def hold_runs_compiled(
+    scenario: Scenario,
+    controller: Controller,
+    x0: FloatArray,
+    duration: float = 10.0,
+    substeps: int = 4,
+) -> HoldChecks:
+    """``hold_runs`` on the kernel: fly ``x0 (B, n)`` to their ``T``, then ``duration`` s more
+    under the terminal law ``u_eq + K_T (x - x_eq)``, which is the kernel's law around the
+    constant reference ``x_eq`` with inputs ``u_eq`` (metric ``P_T / level``, rate 0: the tube
+    ratio times the start's norm is ``max_t sqrt(V / level)``)."""
+    terminal = controller.terminal
+    if terminal is None:
+        raise ValueError("hold_runs_compiled: the controller has no terminal law")
+    kernels, out = _rollouts(scenario, controller, x0, substeps)
+    x_end = np.ascontiguousarray(out[:, kernels.CHECKS :])
+    N = int(round(duration / controller.Ts))
+    law = (
+        controller.Ts,
+        np.ascontiguousarray(np.tile(terminal.u_eq, (N, 1))),
+        np.ascontiguousarray(np.broadcast_to(terminal.K, (N, *terminal.K.shape))),
+        controller.lower,
+        controller.upper,
+    )
+    steps, hold = held_steps(controller, substeps)
+    after = np.empty_like(out)
+    kernels.rollout_kernel(
+        x_end,
+        steps,
+        hold,
+        law,
+        np.array([0.0, N * controller.Ts]),
+        np.ascontiguousarray(np.stack([terminal.x_eq, terminal.x_eq])),
+        np.ascontiguousarray(terminal.P / terminal.level),
+        0.0,
+        0.0,
+        *_scene(scenario),
+        after,
+    )
+    start = np.maximum(np.sqrt(terminal.value(x_end) / terminal.level), 1e-12)
+    return HoldChecks(
+        final_goal_margin=after[:, kernels.GOAL],
+        level_ratio=(after[:, kernels.TUBE] * start) ** 2,
+        input_slack=after[:, kernels.SLACK],
+        clearance=after[:, kernels.CLEARANCE],
+        final_state=after[:, kernels.CHECKS :],
+    )
+
+
+def _scene(scenario: Scenario) -> tuple:
+    """``(position, unsafe, goal)`` arguments of the kernel."""
     scene = SceneArrays.of(scenario)
-    out = np.empty((len(x0), kernels.CHECKS))
-    index, ratio = controller.select(x0)
-    covered = ratio < 1.0
+    return (
+        scene.position,
+        (
+            scene.unsafe_vertices,
+            scene.unsafe_ring_start,
+            scene.unsafe_set_rings,
+            scene.unsafe_boxes,
+        ),
+        (
+            scene.goal_vertices,
+            scene.goal_ring_start,
+            scene.goal_index,
+            scene.goal_lower,
+            scene.goal_upper,
+        ),
+    )
+
+
+def _rollouts(
+    scenario: Scenario, controller: Controller, x0: FloatArray, substeps: int
+) -> tuple[Any, FloatArray]:
+    """``(kernels, out (B, CHECKS + n))``: each run's checks and final state."""
+    x0 = np.ascontiguousarray(x0, dtype=np.float64)
+    substeps, hold = held_steps(controller, substeps)
+    kernels = load_kernels(scenario.dynamics)
+    out = np.empty((len(x0), kernels.CHECKS + x0.shape[1]))
     slack = INTERPOLATION_SLACK * controller.interpolation_error
+    index, _ = controller.select(x0)
     for i in np.unique(index):
         rows = np.flatnonzero(index == i)
         reference = controller.trajectories[int(i)]
         N = len(reference.u_ref)
         gains = np.ascontiguousarray(np.broadcast_to(controller.K, (N, *controller.K.shape)))
-        checks = np.empty((len(rows), kernels.CHECKS))
+        checks = np.empty((len(rows), out.shape[1]))
         law = (
             controller.Ts,
             np.ascontiguousarray(reference.u_ref),
@@ -96,29 +175,21 @@ def check_runs_compiled(
         kernels.rollout_kernel(
             np.ascontiguousarray(x0[rows]),
             substeps,
+            hold,
             law,
             np.ascontiguousarray(reference.t),
             np.ascontiguousarray(reference.x_ref),
             np.ascontiguousarray(controller.P),
             controller.rate,
             slack + 1e-9,
-            scene.position,
-            (
-                scene.unsafe_vertices,
-                scene.unsafe_ring_start,
-                scene.unsafe_set_rings,
-                scene.unsafe_boxes,
-            ),
-            (
-                scene.goal_vertices,
-                scene.goal_ring_start,
-                scene.goal_index,
-                scene.goal_lower,
-                scene.goal_upper,
-            ),
+            *_scene(scenario),
             checks,
         )
         out[rows] = checks
+    return kernels, out
+
+
+def _checks(kernels: Any, out: FloatArray, covered: np.ndarray) -> RunChecks:
     return RunChecks(
         clearance=out[:, kernels.CLEARANCE],
         goal_margin=out[:, kernels.GOAL],

@@ -65,10 +65,16 @@ class ReportData:
     keys: Mapping[str, str]
     demo_paths: tuple[Trajectory, ...]
     final_paths: tuple[Trajectory, ...]
+    source: Path | None = None  # the run's folder when the report is written elsewhere
+
+    @property
+    def run_folder(self) -> Path:
+        """The folder of the run (``summary.json``, ``controller.json``, ``artifacts/``)."""
+        return self.out if self.source is None else self.source
 
     @property
     def controller_path(self) -> Path:
-        return self.out / "controller.json"
+        return self.run_folder / "controller.json"
 
     def fingerprint(self, *reads: object) -> str:
         """SHA-256 of what a figure reads: the scenario file, the demonstrations, and for each
@@ -111,6 +117,7 @@ def report_data(
     summary: Summary,
     results: Mapping[str, Any],
     keys: Mapping[str, str],
+    source: Path | None = None,
 ) -> ReportData:
     """``ReportData`` from a run's summary and stage ``results`` (stage name -> result, as read by
     the stage cache, ``pipeline.runtime.stored``); re-simulates the nominal trajectories."""
@@ -129,5 +136,6 @@ def report_data(
         keys=keys,
         demo_paths=tuple(demo_paths),
         final_paths=tuple(final_paths),
+        source=None if source is None else Path(source),
         **{stage: results[stage] for stage in STAGES},
     )

@@ -211,7 +211,7 @@ def _reproducibility(data: ReportData) -> tuple:
                 ("scenario sha256", repro.scenario_sha256),
                 ("controller.json sha256", file_hash(data.controller_path)),
                 ("Monte Carlo seed", str(repro.montecarlo_seed)),
-                ("output folder", str(data.out)),
+                ("output folder", str(data.run_folder)),
             ),
             "Run",
         ),
@@ -223,7 +223,7 @@ def _reproducibility(data: ReportData) -> tuple:
         ),
         Paragraph(
             f"Rebuild this report from the saved artifacts: python -m pipeline report "
-            f"{data.scenario.name} --out {data.out}",
+            f"{data.scenario.name} --from {data.run_folder}",
             "note",
         ),
     )

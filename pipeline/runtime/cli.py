@@ -1,6 +1,8 @@
-"""Command line: ``python -m pipeline COMMAND ...``.
+"""Command line: ``python -m pipeline COMMAND ...``, a thin layer over the Python API
+(``pipeline.synthesize``): it shows the ``pipeline`` logger's lines and prints the result.
 
 User mistakes (``UserError``) print one line on stderr and exit with code 2, no traceback.
+Outputs go to ``./reports/NAME`` under the current directory unless ``--out DIR``.
 """
 
 from __future__ import annotations
@@ -16,14 +18,20 @@ from pipeline.controller import ControllerFormatError
 from pipeline.io.errors import UserError
 from pipeline.runtime.options import RunOptions, add_arguments, from_arguments
 
+SCENARIO_HELP = (
+    "scenario name (./scenarios/NAME, else the shipped one) or the path of its folder or YAML"
+)
+
 
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m pipeline", description=__doc__)
     commands = parser.add_subparsers(dest="command", required=True)
 
     synthesize = commands.add_parser("synthesize", help="run the synthesis pipeline on a scenario")
-    synthesize.add_argument("scenario", help="scenario name (scenarios/NAME) or path to its YAML")
-    synthesize.add_argument("--out", type=Path, default=None, help="output folder (reports/NAME)")
+    synthesize.add_argument("scenario", help=SCENARIO_HELP)
+    synthesize.add_argument(
+        "--out", type=Path, default=None, help="output folder (default: ./reports/NAME)"
+    )
     add_arguments(synthesize, RunOptions)
 
     demos = commands.add_parser("demos", help="regenerate a scenario's synthetic demonstrations")
@@ -32,8 +40,17 @@ def _parser() -> argparse.ArgumentParser:
     report = commands.add_parser(
         "report", help="rebuild report.html and report.pdf from a finished run's artifacts"
     )
-    report.add_argument("scenario", help="scenario name (scenarios/NAME) or path to its YAML")
-    report.add_argument("--out", type=Path, default=None, help="the run's folder (reports/NAME)")
+    report.add_argument("scenario", help=SCENARIO_HELP)
+    report.add_argument(
+        "--from",
+        dest="source",
+        type=Path,
+        default=None,
+        help="the finished run's folder to read (default: ./reports/NAME)",
+    )
+    report.add_argument(
+        "--out", type=Path, default=None, help="where to write the reports (default: --from)"
+    )
 
     commands.add_parser("schema", help="print the scenario file's JSON Schema")
 
@@ -72,10 +89,19 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def _run(args: argparse.Namespace) -> int:
     if args.command == "synthesize":
-        from pipeline.runtime.orchestrator import synthesize
+        from pipeline.runtime.api import synthesize
+        from pipeline.runtime.terminal import format_result, show_progress
 
         options = from_arguments(RunOptions, args)
-        return synthesize(args.scenario, out=args.out, options=options)
+        computed = {  # every option but how much to print
+            name: getattr(options, name)
+            for name in RunOptions.__dataclass_fields__
+            if name not in ("verbose", "quiet")
+        }
+        with show_progress(verbose=options.verbose, quiet=options.quiet):
+            result = synthesize(args.scenario, out=args.out, **computed)
+        print(format_result(result, quiet=options.quiet))
+        return result.exit_code
     if args.command == "demos":
         from pipeline.demonstrations.pilot import regenerate_demos
 
@@ -84,8 +110,8 @@ def _run(args: argparse.Namespace) -> int:
     if args.command == "report":
         from pipeline.runtime.orchestrator import rebuild_reports
 
-        result = rebuild_reports(args.scenario, args.out)
-        print(f"{result.message}:\n  {result.html}\n  {result.pdf}")
+        written = rebuild_reports(args.scenario, source=args.source, out=args.out)
+        print(f"{written.message}:\n  {written.html}\n  {written.pdf}")
         return 0
     if args.command == "schema":
         from pipeline.model.schema import json_schema

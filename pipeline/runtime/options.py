@@ -54,6 +54,17 @@ def positive_int(text: str) -> int:
     return value
 
 
+def period(text: str) -> float:
+    """``text`` as a feedback period in seconds, a finite number >= 0 (an ``argparse`` type)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number of seconds, found {text!r}") from None
+    if not (value >= 0 and value < float("inf")):
+        raise argparse.ArgumentTypeError(f"expected a finite number of seconds >= 0, found {text}")
+    return value
+
+
 @dataclass(frozen=True, kw_only=True)
 class RunOptions:
     """Command-line choices of ``synthesize``."""
@@ -80,6 +91,23 @@ class RunOptions:
     quiet: bool = option(False, "print only the verdict", flags=("-q", "--quiet"), group="say")
     stress: bool = option(False, "also run the stress test (wind, noise; not certified)")
     seed: int = option(MONTE_CARLO_SEED, "seed of the Monte Carlo and stress runs", parse=int)
+    feedback_period: float = option(
+        0.0,
+        "certify zero-order-hold feedback recomputed every h seconds (must divide the sampling "
+        "time; 0: continuous feedback)",
+        parse=period,
+    )
+
+    def __post_init__(self) -> None:
+        """The command line checks these while parsing; the Python API (``pipeline.synthesize``)
+        relies on this: a value outside its choices, or a count below 1, is a ``ValueError``."""
+        for item in self.__dataclass_fields__.values():
+            spec: CommandLine = item.metadata["cli"]
+            value = getattr(self, item.name)
+            if spec.choices is not None and value not in spec.choices:
+                raise ValueError(f"{item.name}={value!r}; expected one of {spec.choices}")
+            if spec.parse is positive_int and (type(value) is not int or value < 1):
+                raise ValueError(f"{item.name}={value!r}; expected a whole number >= 1")
 
 
 def add_arguments(parser: argparse.ArgumentParser, options: type[DataclassInstance]) -> None:

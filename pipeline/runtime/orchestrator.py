@@ -1,4 +1,5 @@
-"""The orchestrator: wires the stages in order and keeps their artifacts under ``reports/NAME``.
+"""The orchestrator: wires the stages in order and keeps their artifacts under the output folder
+(``./reports/NAME`` under the current directory unless given ``out``).
 
     load -> feedback -> radius(demos) -> coverage(demos) -> covering radius -> optimize
          -> radius(optimized) -> coverage(optimized) -> controller -> certify -> montecarlo
@@ -14,34 +15,48 @@ whose balls around the demo starts cover Init, so that coverage survives the opt
 
 It holds no numerics: each stage is a function from typed inputs to a frozen result, stored by
 ``pipeline.runtime.runner.StageRunner`` with a hash of its inputs so that unchanged stages are
-reused.
+reused. It prints nothing: progress goes to the ``pipeline`` logger (one line per stage), the
+outcome is the returned ``Synthesis``; the command line prints both.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import logging
 import os
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
+from pipeline.controller import load as load_controller
 from pipeline.io.artifacts import atomic_write_json, file_hash, inputs_key, remove_temporaries
 from pipeline.io.errors import ScenarioError, UserError
 from pipeline.io.executor import Executor, make_executor
+from pipeline.io.folders import default_output_folder
 from pipeline.io.lock import folder_lock
 from pipeline.io.progress import progress_bar
 from pipeline.model.scenario import Scenario, load_scenario
 from pipeline.model.simulate import Trajectory, simulate
+from pipeline.numerics.sampled import HeldRate, held_rate
 from pipeline.numerics.verify import VERIFY_SUBSTEPS
 from pipeline.reporting.summary import Verdict
 from pipeline.runtime.codekey import code_key
 from pipeline.runtime.options import RunOptions
-from pipeline.runtime.outdir import check_output_folder, clear_stale, mark_failed, stale_name
+from pipeline.runtime.outdir import (
+    check_output_folder,
+    check_report_folder,
+    clear_stale,
+    mark_failed,
+    stale_name,
+)
 from pipeline.runtime.runner import StageRunner
 from pipeline.runtime.stored import load_report_data, write_manifest
-from pipeline.runtime.summary import StageResults, demo_table, print_summary, summarise
+from pipeline.runtime.summary import StageResults, demo_table, summarise
+from pipeline.runtime.synthesis import Outputs, Synthesis
+from pipeline.runtime.terminal import describe_coverage, describe_radii, optimization_logs
 from stages.certify import certify_controller
 from stages.controller import emit_controller
 from stages.coverage import CoverageResult, CoveringRadius, cover_init, covering_radius
@@ -52,7 +67,7 @@ from stages.radius import RadiusResult, robustness_radius
 from stages.report import ReportResult, write_reports
 from stages.stress import stress_test
 
-REPORTS_ROOT = Path(__file__).resolve().parents[2] / "reports"
+log = logging.getLogger(__name__)
 REPORT_FILES = ("report.html", "report.pdf", "scenario.png")
 # the code each cached stage's key covers besides its own module (see pipeline.runtime.codekey)
 RADIUS_CODE = ("stages.radius", "pipeline.model.simulate", "pipeline.numerics.verify")
@@ -99,20 +114,47 @@ def _coverage(
     return cover_init(scenario, feedback, np.array(starts), _cover_radii(radii))
 
 
+def _held_feedback(
+    scenario: Scenario, feedback: FeedbackResult, period: float
+) -> tuple[FeedbackResult, HeldRate]:
+    """The feedback with its tube at the held law's rate ``lambda_h`` (``--feedback-period``)."""
+    n = len(scenario.state_names)
+    A, B = feedback.vertices[:, :, :n], feedback.vertices[:, :, n:]
+    tube = feedback.certified_tube
+    held = held_rate(tube.P, tube.K, A, B, feedback.rate, period)
+    if not held.success:
+        return feedback, held
+    held_tube = dataclasses.replace(tube, rate=held.held_rate)
+    return dataclasses.replace(feedback, rate=held.held_rate, tube=held_tube), held
+
+
+def _check_period(scenario: Scenario, period: float) -> None:
+    """``--feedback-period`` must divide the sampling time (``u_ref`` switches at samples)."""
+    if period == 0:
+        return
+    steps = scenario.Ts / period
+    if steps < 1 - 1e-9 or abs(steps - round(steps)) > 1e-9 * steps:
+        raise UserError(
+            f"--feedback-period: found {period:g} s; expected a period that divides the "
+            f"scenario's sampling_time {scenario.Ts:g} s (e.g. {scenario.Ts / 10:g})"
+        )
+
+
 def _spec_key(scenario: Scenario, *exclude: str) -> str:
     """A hash of the scenario's parsed values (not the file's bytes), without ``exclude``."""
     spec = scenario.spec.model_dump(mode="json", exclude={"demos", *exclude})
     return inputs_key(scenario.name, spec)
 
 
-def synthesize(
+def run_synthesis(
     scenario_name: str | Path, out: Path | None = None, options: RunOptions | None = None
-) -> int:
-    """Run every stage on a scenario; returns the exit code (0 certified and validated, 1 not).
+) -> Synthesis:
+    """Run every stage on a scenario (the public form is ``pipeline.synthesize``).
 
     Bad input (the scenario, the output folder, a folder in use) raises ``UserError`` before any
-    work. A run that fails writes ``summary.json`` saying so and renames the previous
-    ``controller.json`` and reports to ``*.stale.*`` (``pipeline.runtime.outdir``).
+    work. A run that fails writes ``summary.json`` saying so, renames the previous
+    ``controller.json`` and reports to ``*.stale.*`` (``pipeline.runtime.outdir``) and returns a
+    ``Synthesis`` with ``Verdict.FAILED``.
     """
     started = time.perf_counter()
     options = options or RunOptions()
@@ -125,12 +167,14 @@ def synthesize(
             found=[],
             expected=f"at least one demo (record one: python -m pipeline record {scenario.name})",
         )
-    out = Path(out) if out is not None else REPORTS_ROOT / scenario.name
+    _check_period(scenario, options.feedback_period)
+    out = (Path(out) if out is not None else default_output_folder(scenario.name)).absolute()
     check_output_folder(out, scenario.name)
+    log.info(f"outputs: {out}")
     with folder_lock(out):
         for folder in (out, out / "artifacts"):
             remove_temporaries(folder)  # left by killed writers; none can be active now
-        runner = StageRunner(out, force=options.force, log=_say(options))
+        runner = StageRunner(out, force=options.force)
         executor = make_executor(options.executor, options.jobs)
         try:
             return _synthesize(scenario, out, options, executor, runner, started)
@@ -142,16 +186,21 @@ def synthesize(
             executor.close()
 
 
-def _say(options: RunOptions) -> Callable[[str], None]:
-    return (lambda _text: None) if options.quiet else print
-
-
-def _failed(out: Path, scenario: Scenario, stage: str, reason: str) -> int:
-    """Record a failed run (``summary.json``, stale outputs renamed) and say so; exit code 1."""
+def _failed(out: Path, scenario: Scenario, stage: str, reason: str) -> Synthesis:
+    """Record a failed run (``summary.json``, stale outputs renamed); its ``Synthesis``."""
     stale = mark_failed(out, scenario.name, stage, reason)
     renamed = f"; previous outputs renamed: {', '.join(p.name for p in stale)}" if stale else ""
-    print(f"failed: stage {stage}: {reason} ({out / 'summary.json'}{renamed})")
-    return 1
+    return Synthesis(
+        scenario=scenario.name,
+        verdict=Verdict.FAILED,
+        success=False,
+        message=f"failed: stage {stage}: {reason} ({out / 'summary.json'}{renamed})",
+        claims=(),
+        controller=None,
+        demos=(),
+        summary=None,
+        outputs=Outputs.of(out),
+    )
 
 
 def _synthesize(
@@ -161,36 +210,52 @@ def _synthesize(
     executor: Executor,
     runner: StageRunner,
     started: float,
-) -> int:
-    say = _say(options)
+) -> Synthesis:
     core = _spec_key(scenario, "description", "stress")  # what the numerical stages read
     demo_starts = [d.x0 for d in scenario.demos]
     demo_inputs = [d.us for d in scenario.demos]
     demos = inputs_key([d.name for d in scenario.demos], *demo_starts, *demo_inputs)
     demo_trajectories = _trajectories(scenario, demo_starts, demo_inputs)
-    say(
+    log.info(
         f"scenario {scenario.name}: {len(scenario.demos)} demos, all valid "
         f"(never in Unsafe, end in Goal)\n{demo_table(scenario, demo_trajectories)}\n"
     )
+    quiet = not log.isEnabledFor(logging.INFO)  # progress bars only where lines are shown
 
     feedback = runner.run(
         "feedback",
         inputs_key(code_key("stages.feedback"), core),
         lambda: design_feedback(scenario),
+        describe=lambda result: result.message,
     )
     if not feedback.success:
         reason = f"the feedback could not be certified: {feedback.message}"
         return _failed(out, scenario, "feedback", reason)
-    tube = inputs_key(core, runner.digest("feedback"))
+    if options.feedback_period > 0:
+        feedback, held = _held_feedback(scenario, feedback, options.feedback_period)
+        if not held.success:
+            reason = (
+                f"zero-order-hold feedback every {held.period:g} s cannot be certified: the "
+                f"held tube's rate {held.held_rate:.3g}/s is not > 0 (continuous rate "
+                f"{held.rate:.3g}/s, C1 = {held.C1:.3g}); use a shorter --feedback-period"
+            )
+            return _failed(out, scenario, "feedback", reason)
+        log.info(
+            f"[feedback] held every {held.period:g} s: tube rate {held.held_rate:.4g}/s "
+            f"(continuous {held.rate:.4g}/s; pipeline.numerics.sampled)"
+        )
+    tube = inputs_key(core, runner.digest("feedback"), options.feedback_period)
     demo_radii = runner.run(
         "radius_demos",
         inputs_key(code_key(*RADIUS_CODE), tube, demos),
         lambda: _radii(scenario, feedback, demo_trajectories),
+        describe=describe_radii,
     )
     demo_coverage = runner.run(
         "coverage_demos",
         inputs_key(code_key("stages.coverage"), tube, *demo_starts, _cover_radii(demo_radii)),
         lambda: _coverage(scenario, feedback, demo_starts, demo_radii),
+        describe=describe_coverage,
     )
 
     r_d = feedback.required_radius(scenario.clearance)
@@ -199,11 +264,12 @@ def _synthesize(
         "covering_radius",
         inputs_key(code_key("stages.coverage"), tube, *demo_starts, upper),
         lambda: covering_radius(scenario, feedback, np.array(demo_starts), upper=upper),
+        describe=lambda result: result.message,
     )
     r_required = covering.kept_radius(r_d)
     margins = ConstraintMargins.of_tube(feedback.certified_tube, r_required)
     optimize_options = OptimizeOptions(method=options.method, search=options.search)
-    with progress_bar(len(scenario.demos), "demos optimized", options.quiet) as advance:
+    with progress_bar(len(scenario.demos), "demos optimized", quiet) as advance:
         optimized: OptimizeResult = runner.run(
             "optimize",
             inputs_key(
@@ -212,9 +278,10 @@ def _synthesize(
             lambda: optimize(
                 scenario, margins, optimize_options, executor=executor, progress=advance
             ),
+            describe=lambda result: result.message,
         )
-    if options.verbose:
-        _print_optimization_logs(optimized)
+    if log.isEnabledFor(logging.DEBUG):
+        log.debug(optimization_logs(optimized))
     # a demo whose optimisation failed keeps its own (valid) nominal trajectory
     final_inputs = [
         t.u if t.success else d.us
@@ -225,11 +292,13 @@ def _synthesize(
         "radius_optimized",
         inputs_key(code_key(*RADIUS_CODE), tube, *demo_starts, *final_inputs),
         lambda: _radii(scenario, feedback, final_trajectories),
+        describe=describe_radii,
     )
     final_coverage = runner.run(
         "coverage_optimized",
         inputs_key(code_key("stages.coverage"), tube, *demo_starts, _cover_radii(final_radii)),
         lambda: _coverage(scenario, feedback, demo_starts, final_radii),
+        describe=describe_coverage,
     )
 
     usable = [i for i, r in enumerate(final_radii) if r.radius > 0]
@@ -243,6 +312,7 @@ def _synthesize(
             *demo_starts,
             *final_inputs,
             [final_radii[i].radius for i in usable],
+            r_required,
         ),
         lambda: emit_controller(
             scenario,
@@ -253,14 +323,17 @@ def _synthesize(
             [final_inputs[i] for i in usable],
             [final_radii[i].radius for i in usable],
             controller_path,
+            radius_floor=r_required,
+            feedback_period=options.feedback_period,
         ),
         rerun=True,  # always written from this run's certified results
+        describe=lambda result: result.message,
     )
     started_certify = time.perf_counter()
     certification = certify_controller(scenario, controller_path)
     certify_seconds = time.perf_counter() - started_certify
-    say(f"[certify] {certification.message}")
-    with progress_bar(options.samples, "closed-loop runs", options.quiet) as advance:
+    log.info(f"[certify] {certify_seconds:.1f} s: {certification.message}")
+    with progress_bar(options.samples, "closed-loop runs", quiet) as advance:
         montecarlo = runner.run(
             "montecarlo",
             inputs_key(
@@ -278,6 +351,7 @@ def _synthesize(
                 executor=executor,
                 progress=advance,
             ),
+            describe=lambda result: result.message,
         )
     stress = None
     if options.stress:
@@ -290,6 +364,7 @@ def _synthesize(
                 options.seed,
             ),
             lambda: stress_test(scenario, controller_path, seed=options.seed),
+            describe=lambda result: result.message,
         )
 
     results = StageResults(
@@ -328,36 +403,38 @@ def _synthesize(
         ),
         lambda: write_reports(load_report_data(scenario, out)),
         rerun=not all((out / name).is_file() for name in REPORT_FILES),
+        describe=lambda result: result.message,
     )
     clear_stale(out)
     if not summary.certified:  # this run did not certify it: no current-looking controller.json
         os.replace(controller_path, stale_name(controller_path))
-        say(f"controller.json renamed to {stale_name(controller_path).name}: not certified")
-    if options.quiet:
-        print(f"verdict: {summary.text}")
-    else:
-        print_summary(summary)
-    return 0 if summary.verdict is Verdict.CERTIFIED_AND_VALIDATED else 1
+        log.info(f"controller.json renamed to {stale_name(controller_path).name}: not certified")
+    return Synthesis(
+        scenario=scenario.name,
+        verdict=summary.verdict,
+        success=summary.verdict is Verdict.CERTIFIED_AND_VALIDATED,
+        message=summary.text,
+        claims=summary.claims,
+        controller=load_controller(controller_path) if summary.certified else None,
+        demos=summary.demos,
+        summary=summary,
+        outputs=Outputs.of(out),
+    )
 
 
-def rebuild_reports(scenario_name: str | Path, out: Path | None = None) -> ReportResult:
-    """The report stage alone, from a finished run's saved artifacts (``python -m pipeline
-    report``); a missing, corrupt or stale artifact is a ``UserError`` naming it."""
+def rebuild_reports(
+    scenario_name: str | Path, source: Path | None = None, out: Path | None = None
+) -> ReportResult:
+    """The report stage alone (``python -m pipeline report``): reads a finished run's saved
+    artifacts in ``source`` (default ``./reports/NAME``) and writes ``report.html``,
+    ``report.pdf`` and ``scenario.png`` into ``out`` (default: ``source``). A missing, corrupt or
+    stale artifact is a ``UserError`` naming it."""
     scenario = load_scenario(scenario_name)
-    out = Path(out) if out is not None else REPORTS_ROOT / scenario.name
-    if not out.is_dir():  # nothing to lock: the loader names the missing file and its fix
-        return write_reports(load_report_data(scenario, out))
-    with folder_lock(out):
-        return write_reports(load_report_data(scenario, out))
-
-
-def _print_optimization_logs(optimized: OptimizeResult) -> None:
-    for trajectory in optimized.trajectories:
-        print(f"\n{trajectory.demo}: horizons tried (N', feasible, iterations, final J)")
-        for attempt in trajectory.tries:
-            print(
-                f"  N'={attempt.N:4d}  {'feasible  ' if attempt.feasible else 'infeasible'}"
-                f"  {attempt.iterations:4d}  {attempt.cost:.3e}"
-            )
-        print(f"{trajectory.demo}: descent log at N' = {trajectory.N}")
-        print(trajectory.log.table())
+    source = Path(source) if source is not None else default_output_folder(scenario.name)
+    out = Path(out) if out is not None else source
+    if not source.is_dir():  # nothing to lock: the loader names the missing file and its fix
+        return write_reports(load_report_data(scenario, source))
+    if out != source:
+        check_report_folder(out)
+    with folder_lock(source):
+        return write_reports(load_report_data(scenario, source, write_to=out))

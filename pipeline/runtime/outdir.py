@@ -1,8 +1,9 @@
 """The output folder of a run: checked before computing, locked while running, and marked when a
 run fails so that nothing it did not certify looks current.
 
-- ``check_output_folder``: ``--out`` must be a folder we can write, and must not hold another
-  scenario's ``controller.json``; each mistake is a ``UserError`` (exit 2) before any work.
+- ``check_output_folder``: ``--out`` must be a folder we can write (``check_report_folder``),
+  and must not hold another scenario's ``controller.json``; each mistake is a ``UserError``
+  (exit 2) before any work.
 - ``mark_failed``: a run that fails writes ``summary.json`` saying so (stage and reason) and
   renames the previous ``controller.json`` and reports to ``*.stale.*``.
 """
@@ -36,19 +37,8 @@ def _owner(controller: Path) -> object:
 
 def check_output_folder(out: Path, scenario_name: str) -> None:
     """Create ``out`` if needed and check, before any computing, that a run can use it."""
-    if out.exists() and not out.is_dir():
-        raise UserError("--out names a file", file=out, expected="a folder (or a new path)")
-    try:
-        (out / "artifacts").mkdir(parents=True, exist_ok=True)
-        for folder in (out, out / "artifacts"):
-            with tempfile.TemporaryFile(dir=folder):
-                pass
-    except OSError as error:
-        raise UserError(
-            f"output folder is not writable ({error.strerror})",
-            file=out,
-            expected="a folder this user can write; choose another --out",
-        ) from None
+    check_report_folder(out / "artifacts", named=out)
+    check_report_folder(out)
     owner = _owner(out / "controller.json")
     if owner is not None and owner != scenario_name:
         raise UserError(
@@ -57,6 +47,24 @@ def check_output_folder(out: Path, scenario_name: str) -> None:
             found=owner,
             expected=f"'{scenario_name}'; choose another --out or remove that folder",
         )
+
+
+def check_report_folder(out: Path, named: Path | None = None) -> None:
+    """Create ``out`` if needed and check that this user can write there (``named``: the folder
+    the user gave, when ``out`` is inside it)."""
+    named = out if named is None else named
+    if named.exists() and not named.is_dir():
+        raise UserError("--out names a file", file=named, expected="a folder (or a new path)")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=out):
+            pass
+    except OSError as error:
+        raise UserError(
+            f"output folder is not writable ({error.strerror})",
+            file=named,
+            expected="a folder this user can write; choose another --out",
+        ) from None
 
 
 def mark_failed(out: Path, scenario_name: str, stage: str, reason: str) -> list[Path]:

@@ -6,11 +6,14 @@ a content hash. An artifact that is corrupt, edited, or names a type outside
 ``pipeline.runtime.registry.RESULT_TYPES`` is refused in one line and recomputed. A run
 interrupted at any point leaves the last good artifacts in place (every write is atomic) and the
 next run resumes from them.
+
+Each stage says one line on the ``pipeline`` logger when it ends: its wall time (or that it was
+reused) and what it found.
 """
 
 from __future__ import annotations
 
-import sys
+import logging
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -21,11 +24,12 @@ from pipeline.io.artifacts import ArtifactError, Stored, read_stored, save_resul
 from pipeline.runtime.registry import RESULT_TYPES
 
 T = TypeVar("T")
+log = logging.getLogger(__name__)
 
 
 def warn(text: str) -> None:
-    """One line on stderr (shown even with ``-q``)."""
-    print(text, file=sys.stderr)
+    """One warning line (shown even with ``-q``)."""
+    log.warning(text)
 
 
 def read_checked(
@@ -58,12 +62,20 @@ class StageRunner:
 
     out: Path
     force: bool = False
-    log: Callable[[str], None] = print
     records: dict[str, StageRecord] = field(default_factory=dict)
     current: str = "load"
 
-    def run(self, name: str, key: str, compute: Callable[[], T], rerun: bool = False) -> T:
-        """``compute()``'s result, or the stored one when its key matches (``rerun`` forces)."""
+    def run(
+        self,
+        name: str,
+        key: str,
+        compute: Callable[[], T],
+        rerun: bool = False,
+        describe: Callable[[T], str] | None = None,
+    ) -> T:
+        """``compute()``'s result, or the stored one when its key matches (``rerun`` forces).
+
+        Logs one line: ``[name] 1.2 s: what describe(result) says`` (or ``reused``)."""
         stem = self.out / "artifacts" / name
         self.current = name
         if not (self.force or rerun):
@@ -72,9 +84,8 @@ class StageRunner:
                 self.records[name] = StageRecord(
                     name=name, key=key, sha256=stored.sha256, seconds=0.0, cached=True
                 )
-                self.log(f"[{name}] unchanged inputs: reusing {stem.name}.json")
+                _say(name, "reused (inputs unchanged)", stored.result, describe)
                 return stored.result
-        self.log(f"[{name}] running")
         start = time.perf_counter()
         result = compute()
         seconds = time.perf_counter() - start
@@ -82,7 +93,7 @@ class StageRunner:
         self.records[name] = StageRecord(
             name=name, key=key, sha256=sha256, seconds=seconds, cached=False
         )
-        self.log(f"[{name}] done in {seconds:.1f} s")
+        _say(name, f"{seconds:.1f} s", result, describe)
         return result
 
     def digest(self, name: str) -> str:
@@ -92,3 +103,8 @@ class StageRunner:
     def timings(self) -> dict[str, float]:
         """Wall time per stage in this run (0 for reused results)."""
         return {record.name: record.seconds for record in self.records.values()}
+
+
+def _say(name: str, how: str, result: T, describe: Callable[[T], str] | None) -> None:
+    what = "" if describe is None else describe(result)
+    log.info(f"[{name}] {how}" + (f": {what}" if what else ""))

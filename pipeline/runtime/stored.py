@@ -48,8 +48,9 @@ def write_manifest(scenario: Scenario, out: Path, controller_sha256: str) -> Non
 
 
 def _rerun(path: Path, scenario: Scenario, what: str) -> UserError:
+    folder = path.parent.parent if path.parent.name == "artifacts" else path.parent
     return UserError(
-        f"{what}; run `python -m pipeline synthesize {scenario.name} --out {path.parent}` "
+        f"{what}; run `python -m pipeline synthesize {scenario.name} --out {folder}` "
         "first (the report is built from a finished run's output folder)",
         file=path,
     )
@@ -89,9 +90,10 @@ def _check_inputs(scenario: Scenario, out: Path, summary: Any) -> None:
         raise _rerun(manifest_path, scenario, f"demos changed since the run: {', '.join(files)}")
 
 
-def load_report_data(scenario: Scenario, out: Path) -> ReportData:
-    """Read ``out/summary.json`` and ``out/artifacts/<stage>`` into ``ReportData``; a missing,
-    unreadable, corrupt or stale file is a ``UserError`` naming it and the fix."""
+def load_report_data(scenario: Scenario, out: Path, write_to: Path | None = None) -> ReportData:
+    """Read ``out/summary.json`` and ``out/artifacts/<stage>`` into ``ReportData`` (whose reports
+    go to ``write_to``, default ``out``); a missing, unreadable, corrupt or stale file is a
+    ``UserError`` naming it and the fix."""
     out = Path(out)
     summary_path = out / "summary.json"
     document = _read_json(summary_path, scenario, "summary.json")
@@ -124,4 +126,6 @@ def load_report_data(scenario: Scenario, out: Path) -> ReportData:
             f"artifact holds {len(results['optimize'].trajectories)} trajectories for "
             f"{len(scenario.demos)} demos",
         )
-    return report_data(scenario, out, summary, results, keys)
+    if write_to is None or Path(write_to) == out:
+        return report_data(scenario, out, summary, results, keys)
+    return report_data(scenario, Path(write_to), summary, results, keys, source=out)

@@ -1,6 +1,6 @@
 """The run's summary, built from the stage results: headline numbers, the verdict and the kind
 of every claim (the typed ``Summary`` of ``pipeline.reporting.summary``, written as
-``summary.json``), and the end-of-run printout.
+``summary.json``); ``pipeline.runtime.terminal`` prints it.
 
 Claims carry their kind: *certified* (LMI and tube bounds, re-verified on controller.json as
 written), *statistically validated* (Monte Carlo with its bound), *falsification-searched*
@@ -163,6 +163,7 @@ def _claims(run: StageResults, certified: bool) -> tuple[Claim, ...]:
             f"Init covered by box subdivision ({run.final_coverage.message}); both re-verified "
             "on controller.json as written",
         ),
+        _after_horizon(run, certified),
         Claim(
             claim=f"failure probability <= {mc.failure_bound:.2e}",
             kind=ClaimKind.STATISTICALLY_VALIDATED,
@@ -176,6 +177,26 @@ def _claims(run: StageResults, certified: bool) -> tuple[Claim, ...]:
             how=f"Init corners, Sobol points and Nelder-Mead ({falsification.evaluations} "
             "closed-loop runs); evidence, not a bound",
         ),
+    )
+
+
+def _after_horizon(run: StageResults, certified: bool) -> Claim:
+    """After ``T``: safe for all time when the file's terminal controller is certified; else
+    not established (the law refuses ``t > T``), with the reason."""
+    check = run.certification
+    if check.terminal and certified:
+        return Claim(
+            claim="after T every covered start stays in Goal for all time (terminal controller)",
+            kind=ClaimKind.CERTIFIED,
+            how=f"invariant ellipsoid of the terminal law re-verified on controller.json "
+            f"(decay {check.terminal_decay:.3g}/s at every hull vertex over its bounding box, "
+            f"inside Goal, no clipping) holding every end tube (at most {check.terminal_fit:.0%} "
+            "of its radius, exact S-procedure test)",
+        )
+    return Claim(
+        claim="after T: nothing (the law refuses t > T)",
+        kind=ClaimKind.NOT_ESTABLISHED,
+        how=run.controller.terminal_message or "no terminal controller",
     )
 
 
@@ -316,56 +337,6 @@ def demo_table(scenario: Any, trajectories: Sequence[Trajectory]) -> str:
         ends = "yes" if bool(scenario.in_goal(trajectory.dense_xs[-1])) else "NO"
         lines.append(f"{demo.name:<12} {start:<22} {trajectory.duration:>6.1f}{clearance}  {ends}")
     return "\n".join(lines)
-
-
-def print_summary(summary: Summary) -> None:
-    """The end-of-run table."""
-    print(
-        f"\n{'demo':<9} {'T demo':>7} {'T opt':>6} {'faster':>7} {'clear before':>13}"
-        f" {'clear after':>12} {'r before':>9} {'r after':>8} {'iters':>6} {'time':>6}"
-    )
-    for d in summary.demos:
-        mark = "" if d.optimized else "  (kept as flown)"
-        print(
-            f"{d.demo:<9} {d.T_demo:>6.1f}s {d.T_optimized:>5.1f}s "
-            f"{d.faster_percent:>6.0f}% {d.clearance_before:>13.3f} "
-            f"{d.clearance_after:>12.3f} {d.radius_before:>9.3f} "
-            f"{d.radius_after:>8.3f} {d.iterations:>6d} {d.seconds:>5.1f}s{mark}"
-        )
-    print("\nradius limited by (demonstration -> optimized):")
-    for d in summary.demos:
-        before = f"{d.binding_before} at {d.binding_time_before:.1f} s"
-        after = f"{d.binding_after} at {d.binding_time_after:.1f} s"
-        print(f"  {d.demo:<9} {before:<30} -> {after}")
-    h, mc, fb = summary.headline, summary.montecarlo, summary.feedback
-    print(
-        f"\nmean duration {h.T_demo_mean:.1f} s -> {h.T_optimized_mean:.1f} s "
-        f"({h.faster_percent_mean:.0f}% faster); min clearance "
-        f"{h.min_clearance_before:.2f} -> {h.min_clearance_after:.2f} m "
-        f"(required {h.required_clearance:g})"
-    )
-    print(f"Init coverage: {h.coverage_before:.1%} -> {h.coverage_after:.1%}")
-    if fb.kept_radius > fb.required_radius:
-        print(
-            f"  tubes kept at the covering radius {fb.kept_radius:.4g} > r_d = "
-            f"{fb.required_radius:.4g} (balls of radius r_d about the demo starts miss parts"
-            " of Init)"
-        )
-    print(
-        f"Monte Carlo: {mc.samples} runs, {h.montecarlo_failures} failures, "
-        f"failure probability <= {mc.failure_bound_95:.2e} (95%)"
-    )
-    if mc.tube_ratio_at_T is not None:
-        q = mc.tube_ratio_at_T
-        print(
-            f"  tube ratio at the final time: median {q.median:.3f}, max {q.max:.3f} "
-            "(1 = the certified decay e^(-λT); below: the rate is conservative)"
-        )
-    for claim in summary.claims:
-        print(f"  [{claim.kind.value}] {claim.claim}")
-    if summary.stress is not None:
-        print(f"  [stress test, not certified] {summary.stress.message}")
-    print(f"\nverdict: {summary.text}")
 
 
 def stress_summary(stress: StressResult) -> StressSummary:

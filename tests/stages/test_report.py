@@ -170,7 +170,7 @@ def test_cli_rebuilds_the_report_from_saved_artifacts(
     stages = sorted((out / "artifacts").glob("*.npz"))
     before = {p.name: p.stat().st_mtime_ns for p in stages}
     reports = {p: p.stat().st_mtime_ns for p in (out / "report.html", out / "report.pdf")}
-    assert main(["report", "quadrotor_hill", "--out", str(out)]) == 0
+    assert main(["report", "quadrotor_hill", "--from", str(out)]) == 0
     printed = capsys.readouterr().out
     assert str(out / "report.html") in printed and str(out / "report.pdf") in printed
     assert {p.name: p.stat().st_mtime_ns for p in stages} == before  # nothing recomputed
@@ -208,10 +208,36 @@ def test_a_rebuild_reuses_exactly_the_figures_whose_inputs_did_not_change(
     assert len(list((out / "artifacts" / "figures").glob("*.svg"))) == 6  # stale ones pruned
 
 
+def test_cli_report_writes_into_out_and_reads_from_from(
+    run: tuple[Scenario, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``report NAME --from RUN --out DIR``: reads the run, writes the reports into DIR only."""
+    source, target = run[1], tmp_path / "elsewhere"
+
+    def files() -> dict[Path, int]:  # the run's files (its lock is taken while reading)
+        return {p: p.stat().st_mtime_ns for p in source.rglob("*") if p.name != ".lock"}
+
+    before = files()
+    assert main(["report", "quadrotor_hill", "--from", str(source), "--out", str(target)]) == 0
+    assert str(target / "report.html") in capsys.readouterr().out
+    assert {p.name for p in target.iterdir()} == {"report.html", "report.pdf", "scenario.png"}
+    assert files() == before
+    assert str(source) in (target / "report.html").read_text()  # names the run it shows
+
+
+def test_cli_report_reads_reports_name_under_the_current_directory(
+    run: tuple[Scenario, Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:  # fmt: skip
+    monkeypatch.chdir(tmp_path)
+    assert main(["report", "quadrotor_hill"]) == 2  # no ./reports/quadrotor_hill here
+    assert str(tmp_path / "reports" / "quadrotor_hill" / "summary.json") in capsys.readouterr().err
+
+
 def test_cli_report_of_a_missing_run_is_one_clear_line(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    assert main(["report", "quadrotor_hill", "--out", str(tmp_path / "empty")]) == 2
+    assert main(["report", "quadrotor_hill", "--from", str(tmp_path / "empty")]) == 2
     error = capsys.readouterr().err
     assert error.startswith("error: ") and "summary.json not found" in error
     assert "python -m pipeline synthesize quadrotor_hill" in error

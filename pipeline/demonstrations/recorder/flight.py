@@ -24,15 +24,11 @@ import numpy as np
 
 from pipeline.io.artifacts import ArtifactError, read_stored
 from pipeline.io.errors import UserError
+from pipeline.io.folders import default_output_folder
 from pipeline.model import geometry
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import DEFAULT_SUBSTEPS, simulate
-
-# Where ``python -m pipeline synthesize`` keeps its results
-# (pipeline.runtime.orchestrator.REPORTS_ROOT; not imported, to keep the recorder free of the
-# stages).
-REPORTS_ROOT = Path(__file__).resolve().parents[3] / "reports"
 
 
 class FlightStatus(enum.Enum):
@@ -225,10 +221,11 @@ def suggested_start(
     scenario: Scenario, reports: Path | None = None, registry: Mapping[str, type] | None = None
 ) -> tuple[FloatArray, str]:
     """Where to start the next flight, and why: the centre of the largest box of Init that the
-    last ``synthesize`` run left uncovered (``reports/NAME/artifacts/coverage_optimized``, read
+    last ``synthesize`` run left uncovered (``./reports/NAME/artifacts/coverage_optimized``, read
     with the stage cache's ``registry`` of result types), else the middle of Init.
     -> ``(x0 (n,), reason)``."""
-    stem = (reports or REPORTS_ROOT / scenario.name) / "artifacts" / "coverage_optimized"
+    folder = reports or default_output_folder(scenario.name)
+    stem = folder / "artifacts" / "coverage_optimized"
     middle = 0.5 * (scenario.init_lower + scenario.init_upper)
     try:
         stored = read_stored(stem, registry or {})

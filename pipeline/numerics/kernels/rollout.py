@@ -8,11 +8,12 @@ scenario's generated ``f_eval``. The maths is that of the NumPy oracle
 
 integrated by RK4 with ``s`` substeps per sample interval, the controller evaluated at every RK4
 stage (the stage at an interval's right end uses the left limit of the input), ``x_ref``
-linearly interpolated on the emitted grid ``t_ref``. Per run it returns, without storing the path:
-clearance to Unsafe minus half the longest grid step (the motion bound between grid points),
-the signed distance of the final position to Goal's boundary, the smallest input slack before
-clipping, the tube ratio ``max_t max(|e(t)|_P - slack, 0) e^(rate t) / |e(0)|_P`` and its value
-at ``T``, and whether every state stayed finite.
+linearly interpolated on the emitted grid ``t_ref``; with ``hold > 0`` the input is computed at the
+first stage of every ``hold``-th step and held (zero-order-hold feedback). Per run it returns,
+without storing the path: clearance to Unsafe minus half the longest grid step (the motion bound
+between grid points), the signed distance of the final position to Goal's boundary, the smallest
+input slack before clipping, the tube ratio ``max_t max(|e(t)|_P - slack, 0) e^(rate t) / |e(0)|_P``
+and its value at ``T``, whether every state stayed finite, and the final state.
 
 Shapes: ``B`` runs, ``n`` states, ``m`` inputs, ``N`` sample intervals, ``r`` reference points.
 """
@@ -106,11 +107,12 @@ def metric_norm(x, xr, M):
 
 
 @njit(cache=True)
-def rollout_kernel(x0, s, law, t_ref, x_ref, M, rate, slack, position, scene, goal, out):
+def rollout_kernel(x0, s, hold, law, t_ref, x_ref, M, rate, slack, position, scene, goal, out):
     """Roll out every ``x0[b] (n,)`` around one reference; write its checks into
-    ``out (B, CHECKS)``.
+    ``out (B, CHECKS + n)``: the checks, then the final state.
 
-    Args: ``law`` as in ``closed_loop_slope`` (``K[k]`` held on sample interval ``k``),
+    Args: ``hold``: RK4 steps per zero-order-hold window (0: the law at every stage); ``law`` as
+    in ``closed_loop_slope`` (``K[k]`` held on sample interval ``k``),
     ``t_ref (r,)`` and ``x_ref (r, n)`` the reference grid, ``M (n, n)`` the tube metric and
     ``rate`` its decay, ``slack`` the allowed interpolation error, ``position (2,)`` the position
     state indices, ``scene`` Unsafe as in ``unsafe_distance``, ``goal = (V, ring_start, index,
@@ -148,17 +150,33 @@ def rollout_kernel(x0, s, law, t_ref, x_ref, M, rate, slack, position, scene, go
             t_end = (j + 1) * h - (LEFT_LIMIT if (j + 1) % s == 0 else 0.0)
             reference_state(t + h / 2, t_ref, x_ref, xr_mid)
             reference_state(t_end, t_ref, x_ref, xr_end)
-            slack_1 = closed_loop_slope(t, x, xr_now, law, raw, u, k1)
-            for i in range(n):
-                y[i] = x[i] + 0.5 * h * k1[i]
-            slack_2 = closed_loop_slope(t + h / 2, y, xr_mid, law, raw, u, k2)
-            for i in range(n):
-                y[i] = x[i] + 0.5 * h * k2[i]
-            slack_3 = closed_loop_slope(t + h / 2, y, xr_mid, law, raw, u, k3)
-            for i in range(n):
-                y[i] = x[i] + h * k3[i]
-            slack_4 = closed_loop_slope(t_end, y, xr_end, law, raw, u, k4)
-            input_slack = min(input_slack, slack_1, slack_2, slack_3, slack_4)
+            if hold == 0:
+                slack_1 = closed_loop_slope(t, x, xr_now, law, raw, u, k1)
+                for i in range(n):
+                    y[i] = x[i] + 0.5 * h * k1[i]
+                slack_2 = closed_loop_slope(t + h / 2, y, xr_mid, law, raw, u, k2)
+                for i in range(n):
+                    y[i] = x[i] + 0.5 * h * k2[i]
+                slack_3 = closed_loop_slope(t + h / 2, y, xr_mid, law, raw, u, k3)
+                for i in range(n):
+                    y[i] = x[i] + h * k3[i]
+                slack_4 = closed_loop_slope(t_end, y, xr_end, law, raw, u, k4)
+                input_slack = min(input_slack, slack_1, slack_2, slack_3, slack_4)
+            else:  # zero-order hold: u from the window's first state, held for hold steps
+                if j % hold == 0:
+                    slack_1 = closed_loop_slope(t, x, xr_now, law, raw, u, k1)
+                    input_slack = min(input_slack, slack_1)
+                else:
+                    f_eval(x, u, k1)
+                for i in range(n):
+                    y[i] = x[i] + 0.5 * h * k1[i]
+                f_eval(y, u, k2)
+                for i in range(n):
+                    y[i] = x[i] + 0.5 * h * k2[i]
+                f_eval(y, u, k3)
+                for i in range(n):
+                    y[i] = x[i] + h * k3[i]
+                f_eval(y, u, k4)
             px = x[p0]
             py = x[p1]
             for i in range(n):
@@ -183,3 +201,5 @@ def rollout_kernel(x0, s, law, t_ref, x_ref, M, rate, slack, position, scene, go
         out[b, TUBE] = tube
         out[b, TUBE_FINAL] = ratio
         out[b, FINITE] = 1.0 if finite else 0.0
+        for i in range(n):
+            out[b, CHECKS + i] = x[i]

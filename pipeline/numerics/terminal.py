@@ -1,0 +1,381 @@
+"""The terminal controller: an equilibrium in Goal, its LQR law and a certified invariant ellipsoid.
+
+After the horizon ``T`` the law becomes ``u = u_eq + K_T e``, ``e = x - x_eq``, with
+``f(x_eq, u_eq) = 0`` and the position of ``x_eq`` inside Goal. With ``V(e) = e^T P_T e`` the
+candidate set is ``E_c = {e : V(e) <= c}``. Along a solution in ``E_c`` (mean value theorem on the
+segment from ``x_eq`` to ``x``, which lies in ``E_c``'s bounding box ``Z_c``):
+
+    e' = f(x, u_eq + K_T e) - f(x_eq, u_eq) + f(x_eq, u_eq)
+       = (A + B K_T) e + r,      [A B] in conv{[A_v B_v]} = a sound hull over Z_c,
+                                   r = f(x_eq, u_eq) (the equilibrium's residual)
+
+so with ``M_v = (A_v + B_v K_T)^T P_T + P_T (A_v + B_v K_T) <= -alpha P_T`` at every vertex,
+
+    V' <= -alpha V + 2 sqrt(V) ||r||_{P_T}                                          (T1)
+
+which is negative on the boundary ``V = c`` when ``alpha sqrt(c) > 2 ||r||_{P_T}``: ``E_c`` is
+invariant. It is certified when, in addition, ``E_c`` keeps ``u_eq + K_T e`` inside the input
+bounds (no clipping, so the law is the linear one), its position projection lies in Goal (the
+disk test of ``pipeline.numerics.tube``) and its states in Goal's extra bounds. ``Z_c`` holds the
+states ``x_eq +- sqrt(c (P_T^-1)_ii)`` and inputs ``u_eq +- sqrt(c) ||K_j P_T^-1/2||``.
+
+End tubes. Trajectory ``i`` ends in ``{x : ||x - a||_P <= rho}``, ``a = x_ref_i(T_i)``, ``rho =
+r_i e^{-lambda T_i}``. The smallest level ``c_i`` whose ``E_c`` holds it is ``max_{||y||_P <= rho}
+(y + d)^T Q (y + d)`` with ``d = a - x_eq``, ``Q = P_T``. By the S-procedure (lossless for one
+constraint) containment in ``E_c`` holds iff some ``tau >= 0`` makes
+
+    [[tau P - Q, -Q d], [-d^T Q, c - d^T Q d - tau rho^2]] >= 0,
+
+i.e. (Schur complement, ``tau > sigma_max``) ``c >= phi(tau) = d^T Q d + tau rho^2 + sum_k w_k^2 /
+(tau - sigma_k)`` with ``sigma_k`` the generalized eigenvalues of ``(Q, P)`` and ``w = U^T P^-1/2 Q
+d`` in their eigenbasis. ``phi`` is convex; its minimum is ``c_i`` and any ``tau`` gives a sound
+upper bound.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import control
+import numpy as np
+import shapely
+from scipy.optimize import brentq, least_squares
+from shapely.affinity import affine_transform
+from shapely.ops import polylabel
+
+from pipeline.model.dynamics import FloatArray
+from pipeline.model.scenario import Scenario
+from pipeline.numerics.hull import DEFAULT_SEGMENTS, HullError, jacobian_hull
+from pipeline.numerics.sampled import contraction_rate, held_rate
+from pipeline.numerics.tube import Tube
+
+EQUILIBRIUM_TOLERANCE = 1e-9  # ||f(x_eq, u_eq)|| accepted as an equilibrium
+LEVEL_BISECTIONS = 24
+DECAY_FRACTION = 0.5  # the level kept leaves V' <= -alpha V with half the linearisation's alpha
+
+
+class TerminalError(ValueError):
+    """No terminal controller: no equilibrium in Goal, or its linearisation not stabilisable."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class TerminalCheck:
+    """What the certificate (T1) of one terminal ellipsoid found.
+
+    Attributes:
+      level: ``c``; decay: ``alpha`` (1/s, > 0 for a certificate, ``-inf`` without a hull);
+      residual: ``||f(x_eq, u_eq)||_{P_T}``; input_slack: smallest room (input units) between
+      ``u_eq + K_T e`` over ``E_c`` and the bounds; goal_margin: smallest room (P_T-norm radius)
+      between ``E_c`` and Goal's boundary and extra bounds; failures: one line per failed check.
+    """
+
+    level: float
+    decay: float
+    residual: float
+    input_slack: float
+    goal_margin: float
+    vertices: int
+    failures: tuple[str, ...]
+
+    @property
+    def success(self) -> bool:
+        return not self.failures
+
+
+def goal_centre(scenario: Scenario) -> FloatArray:
+    """(2,) the point of Goal farthest from its boundary (the pole of inaccessibility)."""
+    point = polylabel(scenario.goal, tolerance=1e-6)
+    return np.array([point.x, point.y])
+
+
+def equilibrium(
+    scenario: Scenario, position: FloatArray | None = None
+) -> tuple[FloatArray, FloatArray]:
+    """``(x_eq (n,), u_eq (m,))`` with ``f = 0``, the position at ``position (2,)`` (default
+    ``goal_centre``), the other states in Goal's bounds and the operating region and the inputs
+    within their bounds; ``TerminalError`` when the least-squares search finds none."""
+    dynamics, spec = scenario.dynamics, scenario.feedback
+    n, m = len(scenario.state_names), len(scenario.input_names)
+    position_index = list(scenario.position_index)
+    free = [i for i in range(n) if i not in position_index]
+    lower = np.concatenate([np.full(n, -np.inf), scenario.input_lower])
+    upper = np.concatenate([np.full(n, np.inf), scenario.input_upper])
+    for name, (lo, hi) in {**scenario.operating_region, **scenario.goal_bounds}.items():
+        k = (scenario.state_names + scenario.input_names).index(name)
+        lower[k], upper[k] = max(lower[k], lo), min(upper[k], hi)
+    z0 = np.concatenate([np.array(spec.reference_state, float), np.array(spec.reference_input)])
+    z0[position_index] = goal_centre(scenario) if position is None else position
+    keep = np.array(free + list(range(n, n + m)))
+    lo, hi = lower[keep], upper[keep]
+    if np.any(lo > hi):
+        raise TerminalError("Goal's bounds and the operating region leave no state to hold")
+    span = np.where(np.isfinite(hi - lo), hi - lo, 1.0)
+    start = np.clip(z0[keep], lo + 1e-6 * span, hi - 1e-6 * span)
+
+    def residual(z: FloatArray) -> FloatArray:
+        full = z0.copy()
+        full[keep] = z
+        return dynamics.f(full[:n], full[n:])
+
+    found = least_squares(residual, start, bounds=(lo, hi), xtol=1e-15, ftol=1e-15, gtol=1e-15)
+    z = z0.copy()
+    z[keep] = found.x
+    error = float(np.linalg.norm(residual(found.x)))
+    if not error <= EQUILIBRIUM_TOLERANCE:
+        raise TerminalError(
+            f"no equilibrium with the position at {np.round(z0[position_index], 3).tolist()}: "
+            f"smallest |f(x, u)| found {error:.2g} within the bounds"
+        )
+    return z[:n], z[n:]
+
+
+def lqr_terminal(
+    scenario: Scenario, x_eq: FloatArray, u_eq: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """``(K_T (m, n), P_T (n, n))``: ``control.lqr`` at the equilibrium with the scenario's
+    feedback weights, ``K_T = -K_lqr`` (sign of ``u = u_eq + K_T e``), ``P_T`` the Riccati
+    solution (``A_cl^T P_T + P_T A_cl = -(Q + K^T R K)`` at the equilibrium)."""
+    spec = scenario.feedback
+    A, B = scenario.dynamics.f_x(x_eq, u_eq), scenario.dynamics.f_u(x_eq, u_eq)
+    try:
+        K, S, _ = control.lqr(A, B, np.diag(spec.state_weights), np.diag(spec.input_weights))
+    except (ValueError, np.linalg.LinAlgError, control.ControlArgument) as error:
+        raise TerminalError(
+            f"the linearisation at the equilibrium is not stabilisable ({error})"
+        ) from None
+    S = np.asarray(S, dtype=np.float64)
+    return -np.asarray(K, dtype=np.float64), (S + S.T) / 2
+
+
+def _tube(scenario: Scenario, K: FloatArray, P: FloatArray) -> Tube:
+    return Tube(
+        K=K,
+        P=P,
+        rate=1.0,
+        region={},
+        state_names=scenario.state_names,
+        input_names=scenario.input_names,
+        position_index=scenario.position_index,
+    )
+
+
+def check_level(
+    scenario: Scenario,
+    x_eq: FloatArray,
+    u_eq: FloatArray,
+    K: FloatArray,
+    P: FloatArray,
+    level: float,
+    segments: int = DEFAULT_SEGMENTS,
+    min_decay: float = 0.0,
+    period: float = 0.0,
+) -> TerminalCheck:
+    """Check (T1) and the bounds for ``E_c``, ``c = level`` (module docstring), from scratch:
+    hull over ``Z_c``, decay by ``numpy.linalg.eigvalsh``, no clipping, inside Goal. With a
+    feedback ``period > 0`` (the law held) the decay is that of the held law: ``2 lambda_h`` of
+    ``pipeline.numerics.sampled`` at the continuous rate ``alpha / 2``."""
+    tube, r = _tube(scenario, K, P), float(np.sqrt(level))
+    failures = []
+    # no clipping: u_eq +- r ||K_j P^-1/2|| inside the bounds
+    reach = tube.input_margin(r)
+    slack = float(
+        np.min(np.minimum(u_eq - reach - scenario.input_lower, scenario.input_upper - u_eq - reach))
+    )
+    if not slack >= 0:
+        failures.append(f"the terminal law clips its inputs on E_c (slack {slack:.3g})")
+    # inside Goal: the position disk in the whitened coordinates, and the extra bounds
+    W = tube.position_whitening
+    goal = affine_transform(scenario.goal, [W[0, 0], W[0, 1], W[1, 0], W[1, 1], 0.0, 0.0])
+    centre = W @ x_eq[list(scenario.position_index)]
+    inside = shapely.intersects_xy(goal, *centre)
+    room = float(shapely.distance(shapely.points(centre), goal.boundary)) if inside else 0.0
+    extent = tube.state_extent_per_radius
+    for name, (lo, hi) in scenario.goal_bounds.items():
+        i = scenario.state_names.index(name)
+        room = min(room, (x_eq[i] - lo) / extent[i], (hi - x_eq[i]) / extent[i])
+    margin = room - r
+    if not margin >= 0:
+        failures.append(f"E_c leaves Goal (radius {r:.3g} > room {room:.3g} in P_T-norm)")
+    # decay (T1) at every vertex of a sound hull over the bounding box Z_c
+    centre_z = np.concatenate([x_eq, u_eq])  # (n + m,)
+    half = np.concatenate([r * extent, reach])  # (n + m,)
+    names = scenario.state_names + scenario.input_names
+    box = {k: (float(c - w), float(c + w)) for k, c, w in zip(names, centre_z, half, strict=True)}
+    residual = scenario.dynamics.f(x_eq, u_eq)
+    residual_norm = float(np.sqrt(residual @ P @ residual))
+    try:
+        hull = jacobian_hull(scenario.dynamics, box, segments)
+        decay, vertices = decay_rate(P, K, hull.A, hull.B), len(hull.vertices)
+        if period > 0:
+            decay = 2 * held_rate(P, K, hull.A, hull.B, decay / 2, period).held_rate
+    except HullError as error:
+        decay, vertices = -np.inf, 0
+        failures.append(f"no Jacobian hull over E_c's bounding box: {error}")
+    if vertices and not (decay * r > 2 * residual_norm and decay >= min_decay):
+        failures.append(
+            f"V does not decrease on the boundary of E_c (decay {decay:.3g}/s, required "
+            f"{min_decay:.3g}/s; residual {residual_norm:.2g})"
+        )
+    return TerminalCheck(
+        level=float(level),
+        decay=float(decay),
+        residual=residual_norm,
+        input_slack=slack,
+        goal_margin=float(margin),
+        vertices=vertices,
+        failures=tuple(failures),
+    )
+
+
+def decay_rate(P: FloatArray, K: FloatArray, A: FloatArray, B: FloatArray) -> float:
+    """``alpha = min_v -lambda_max(P^-1/2 M_v P^-1/2)``, ``M_v = A_cl^T P + P A_cl``,
+    ``A_cl = A_v + B_v K``, over ``A (V, n, n)``, ``B (V, n, m)``: ``V' <= -alpha V`` (twice the
+    contraction rate of ``pipeline.numerics.sampled.contraction_rate``)."""
+    return 2.0 * contraction_rate(P, K, A, B)
+
+
+def largest_level(
+    scenario: Scenario,
+    x_eq: FloatArray,
+    u_eq: FloatArray,
+    K: FloatArray,
+    P: FloatArray,
+    period: float = 0.0,
+) -> TerminalCheck:
+    """The largest level ``c`` certified with at least ``DECAY_FRACTION`` of the linearisation's
+    decay (bisection on ``sqrt(c)``; the input and Goal bounds give the top)."""
+    A0, B0 = scenario.dynamics.f_x(x_eq, u_eq), scenario.dynamics.f_u(x_eq, u_eq)
+    linear = decay_rate(P, K, A0[None], B0[None])
+    if period > 0:
+        linear = 2 * held_rate(P, K, A0[None], B0[None], linear / 2, period).held_rate
+    need = DECAY_FRACTION * linear
+    tube = _tube(scenario, K, P)
+    room = np.minimum(u_eq - scenario.input_lower, scenario.input_upper - u_eq)  # (m,)
+    gain = tube.input_margin_per_radius  # (m,)
+    by_input = np.where(gain > 0, np.maximum(room, 0.0) / np.where(gain > 0, gain, 1.0), np.inf)
+    by_goal = check_level(scenario, x_eq, u_eq, K, P, 1.0).goal_margin + 1.0  # room in Goal
+    hi = float(min(np.min(by_input), max(by_goal, 0.0)))
+    best = check_level(scenario, x_eq, u_eq, K, P, hi**2, min_decay=need, period=period)
+    if best.success:
+        return best
+    lo = 0.0
+    for _ in range(LEVEL_BISECTIONS):
+        mid = 0.5 * (lo + hi)
+        trial = check_level(scenario, x_eq, u_eq, K, P, mid**2, min_decay=need, period=period)
+        if trial.success:
+            lo, best = mid, trial
+        else:
+            hi = mid
+    return best
+
+
+def containing_level(Q: FloatArray, centre: FloatArray, P: FloatArray, rho: float) -> float:
+    """The smallest ``c`` with ``{x : ||x - a||_P <= rho} in {e : e^T Q e <= c}`` for ``d =
+    centre = a - x_eq (n,)``: ``min_tau phi(tau)`` of the module docstring (an upper bound at any
+    ``tau``, exact at the minimum)."""
+    d = np.asarray(centre, dtype=np.float64)
+    values, vectors = np.linalg.eigh(P)
+    P_inv_half = vectors @ np.diag(values**-0.5) @ vectors.T
+    sigma, U = np.linalg.eigh(P_inv_half @ Q @ P_inv_half)
+    w = U.T @ (P_inv_half @ (Q @ d))
+    base = float(d @ Q @ d)
+    if rho <= 0:
+        return base
+    top = float(sigma[-1])
+
+    def phi(tau: float) -> float:
+        return base + tau * rho**2 + float(np.sum(w**2 / (tau - sigma)))
+
+    def slope(tau: float) -> float:
+        return rho**2 - float(np.sum(w**2 / (tau - sigma) ** 2))
+
+    near = top + 1e-12 * max(1.0, abs(top))
+    if slope(near) >= 0:  # the hard case: the infimum is at the pole
+        return phi(near)
+    far = top + 1.0
+    while slope(far) < 0:
+        far = top + 2 * (far - top)
+    return phi(brentq(slope, near, far, xtol=1e-14 * far, rtol=1e-14))
+
+
+def end_levels(
+    terminal_P: FloatArray,
+    x_eq: FloatArray,
+    P: FloatArray,
+    ends: Sequence[FloatArray],
+    radii: Sequence[float],
+) -> FloatArray:
+    """(k,) the smallest level holding each end tube ``||x - ends[i]||_P <= radii[i]``."""
+    return np.array(
+        [containing_level(terminal_P, a - x_eq, P, rho) for a, rho in zip(ends, radii, strict=True)]
+    )
+
+
+@dataclass(frozen=True, kw_only=True)
+class TerminalDesign:
+    """The kept terminal controller and how well the end tubes fit its ellipsoid.
+
+    Attributes:
+      x_eq: (n,); u_eq: (m,); K: (m, n); P: (n, n); check: its certified level and decay.
+      gain: "lqr" (``control.lqr`` at the equilibrium) or "tube" (the tube's ``K`` and ``P``).
+      fit: ``sqrt(max_i c_i / level)``: the largest end tube's share of the ellipsoid (<= 1).
+    """
+
+    x_eq: FloatArray
+    u_eq: FloatArray
+    K: FloatArray
+    P: FloatArray
+    check: TerminalCheck
+    gain: str
+    fit: float
+
+
+def design_terminal(
+    scenario: Scenario,
+    K: FloatArray,
+    P: FloatArray,
+    ends: Sequence[FloatArray],
+    end_radii: Sequence[float],
+    period: float = 0.0,
+) -> TerminalDesign:
+    """The best-fitting certified terminal controller for end tubes ``||x - ends[i]||_P <=
+    end_radii[i]`` (tube gain ``K (m, n)``, metric ``P (n, n)``).
+
+    Candidates: equilibria at Goal's centre and at the mean end position (when in Goal), each
+    with the LQR gain and Riccati matrix there and with the tube's own ``K`` and ``P``; the
+    certified one with the smallest ``fit`` is kept (for the law held every ``period`` s when
+    it is > 0). ``TerminalError`` when none certifies.
+    """
+    positions = [goal_centre(scenario)]
+    mean = np.mean([scenario.positions(a) for a in ends], axis=0)
+    if shapely.intersects_xy(scenario.goal, *mean):
+        positions.append(mean)
+    best: TerminalDesign | None = None
+    reasons = []
+    for position in positions:
+        try:
+            x_eq, u_eq = equilibrium(scenario, position)
+        except TerminalError as error:
+            reasons.append(str(error))
+            continue
+        gains = [("tube", np.asarray(K), np.asarray(P))]
+        try:
+            gains.insert(0, ("lqr", *lqr_terminal(scenario, x_eq, u_eq)))
+        except TerminalError as error:
+            reasons.append(str(error))
+        for gain, K_T, P_T in gains:
+            check = largest_level(scenario, x_eq, u_eq, K_T, P_T, period)
+            if not check.success:
+                reasons.append(
+                    f"{gain} gain at {np.round(position, 3).tolist()}: " + "; ".join(check.failures)
+                )
+                continue
+            fit = float(np.sqrt(end_levels(P_T, x_eq, P, ends, end_radii).max() / check.level))
+            if best is None or fit < best.fit:
+                best = TerminalDesign(
+                    x_eq=x_eq, u_eq=u_eq, K=K_T, P=P_T, check=check, gain=gain, fit=fit
+                )
+    if best is None:
+        raise TerminalError("; ".join(dict.fromkeys(reasons)))
+    return best

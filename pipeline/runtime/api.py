@@ -1,0 +1,73 @@
+"""The Python API: ``pipeline.synthesize`` (re-exported lazily by ``pipeline/__init__.py``)::
+
+    import pipeline
+    result = pipeline.synthesize("double_integrator", samples=1000)
+    result.verdict, result.outputs.folder
+    index, ratio = result.controller.select(x0)  # the certified controller
+
+The library prints nothing: each stage logs one line on the ``pipeline`` logger (``logging``
+INFO; the optimizer's iteration logs at DEBUG). ``logging.basicConfig(level=logging.INFO)``
+shows them; the command line (``pipeline.runtime.cli``) is this function plus that.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pipeline.runtime.options import RunOptions
+from pipeline.runtime.synthesis import Synthesis
+
+CERTIFICATES = ("constant",)  # the constant-metric tube of the paper (eq. (10)-(12))
+
+
+def synthesize(
+    scenario: str | Path,
+    *,
+    out: str | Path | None = None,
+    certificate: str | None = None,
+    samples: int = RunOptions.samples,
+    seed: int = RunOptions.seed,
+    executor: str | None = RunOptions.executor,
+    jobs: int = RunOptions.jobs,
+    method: str = RunOptions.method,
+    search: str = RunOptions.search,
+    stress: bool = RunOptions.stress,
+    force: bool = RunOptions.force,
+) -> Synthesis:
+    """Synthesize and certify a safety controller for ``scenario``, then validate it.
+
+    Args:
+      scenario: a name (``./scenarios/NAME``, else the shipped scenario of that name) or the
+        path of a scenario folder or its ``scenario.yaml``.
+      out: the output folder (default ``./reports/NAME`` under the current directory); stages
+        whose inputs did not change since the last run there are reused.
+      certificate: ``"constant"`` (the default: one contraction metric ``P`` for all of time).
+      samples, seed: the Monte Carlo closed-loop runs and their seed.
+      executor, jobs: where parallel work runs (``None``/``"local"``, ``"dask-local"``,
+        ``"dask://HOST:PORT"``) and with how many worker processes.
+      method, search: the optimizer (``"gd"``, ``"lbfgs"``) and horizon search.
+      stress: also run the stress test (wind, noise; reported, never certified).
+      force: rerun every stage.
+
+    Returns a ``Synthesis`` (verdict, claims, controller, per-demo table, files written). Bad
+    input raises ``pipeline.UserError`` (``ScenarioError`` for the scenario) before any work;
+    a stage that fails gives ``Verdict.FAILED`` with the stage and the error in ``message``.
+    """
+    if certificate not in (None, *CERTIFICATES):
+        raise ValueError(
+            f"certificate={certificate!r} is not available; expected one of {CERTIFICATES} "
+            "(the constant-metric tube of the paper)"
+        )
+    options = RunOptions(
+        samples=samples,
+        seed=seed,
+        executor=executor,
+        jobs=jobs,
+        method=method,
+        search=search,
+        stress=stress,
+        force=force,
+    )
+    from pipeline.runtime.orchestrator import run_synthesis  # heavy: numerics and stages
+
+    return run_synthesis(scenario, out=None if out is None else Path(out), options=options)

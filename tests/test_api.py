@@ -1,0 +1,174 @@
+"""The Python API (``pipeline.synthesize``, ``load_scenario``, ``load_controller``): a frozen
+result, no printing, outputs under the current directory, and its options kept in step with the
+command line's."""
+
+from __future__ import annotations
+
+import dataclasses
+import inspect
+import io
+import json
+import logging
+import re
+import shutil
+import subprocess
+import sys
+from contextlib import redirect_stderr, redirect_stdout
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import pipeline
+from pipeline.runtime.cli import main
+from pipeline.runtime.options import RunOptions
+from pipeline.runtime.terminal import format_outputs, format_summary
+
+ROOT = Path(__file__).resolve().parents[1]
+SAMPLES = 200
+
+
+@pytest.fixture(scope="module")
+def synthesized(tmp_path_factory: pytest.TempPathFactory):
+    """``pipeline.synthesize("double_integrator")`` run from an empty directory ->
+    ``(result, that directory, the pipeline logger's records, what it printed)``."""
+    where = tmp_path_factory.mktemp("user")
+    records: list[logging.LogRecord] = []
+    handler = logging.Handler()
+    handler.emit = records.append  # type: ignore[method-assign]
+    logger = logging.getLogger("pipeline")
+    logger.addHandler(handler)
+    logger.setLevel(logging.INFO)
+    printed = io.StringIO()
+    with pytest.MonkeyPatch.context() as patch, redirect_stdout(printed), redirect_stderr(printed):
+        patch.chdir(where)
+        result = pipeline.synthesize("double_integrator", samples=SAMPLES)
+    logger.removeHandler(handler)
+    logger.setLevel(logging.NOTSET)
+    return result, where, records, printed.getvalue()
+
+
+def test_public_names_are_listed_and_resolve():
+    assert sorted(pipeline.__all__) == pipeline.__all__
+    for name in pipeline.__all__:
+        assert getattr(pipeline, name) is not None, name
+    assert {"synthesize", "load_scenario", "load_controller", "Synthesis"} <= set(pipeline.__all__)
+    with pytest.raises(AttributeError, match="no attribute 'nothing'"):
+        pipeline.nothing  # noqa: B018
+
+
+def test_importing_the_api_loads_no_numerics():
+    code = (
+        "import sys; from pipeline import synthesize, Synthesis, load_controller, Verdict; "
+        "heavy = {'sympy', 'scipy', 'cvxpy', 'numba', 'shapely', 'pydantic', 'stages'}; "
+        "print(sorted(heavy & set(sys.modules)))"
+    )
+    run = subprocess.run(
+        [sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True
+    )
+    assert run.stdout.strip() == "[]"
+
+
+def test_synthesize_takes_every_computing_option_with_its_default():
+    """Each ``RunOptions`` field (the command line's source) is a keyword of ``synthesize``
+    with the same default, except how much the command line prints."""
+    parameters = inspect.signature(pipeline.synthesize).parameters
+    for field in dataclasses.fields(RunOptions):
+        if field.name in ("verbose", "quiet"):
+            assert field.name not in parameters
+            continue
+        assert parameters[field.name].kind is inspect.Parameter.KEYWORD_ONLY, field.name
+        assert parameters[field.name].default == field.default, field.name
+
+
+@pytest.mark.parametrize(
+    ("keywords", "message"),
+    [
+        ({"certificate": "funnel"}, "certificate='funnel' is not available; expected one of"),
+        ({"samples": 0}, "samples=0; expected a whole number >= 1"),
+        ({"jobs": 1.5}, "jobs=1.5; expected a whole number >= 1"),
+        ({"method": "newton"}, "method='newton'; expected one of ('gd', 'lbfgs')"),
+    ],
+)
+def test_bad_arguments_raise_before_any_work(keywords, message, tmp_path):
+    with pytest.raises(ValueError, match=re.escape(message)):
+        pipeline.synthesize("double_integrator", out=tmp_path / "out", **keywords)
+    assert not (tmp_path / "out").exists()
+
+
+def test_synthesis_is_a_frozen_result_with_the_run_in_it(synthesized):
+    result, where, _, printed = synthesized
+    assert isinstance(result, pipeline.Synthesis)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        result.verdict = None  # type: ignore[misc]
+    assert result.verdict is pipeline.Verdict.CERTIFIED_AND_VALIDATED and result.success
+    assert result.exit_code == 0 and result.message == "certified and validated"
+    kinds = {claim.kind for claim in result.claims}
+    assert pipeline.ClaimKind.CERTIFIED in kinds
+    assert pipeline.ClaimKind.STATISTICALLY_VALIDATED in kinds
+    assert pipeline.ClaimKind.FALSIFICATION_SEARCHED in kinds
+    scenario = pipeline.load_scenario("double_integrator")
+    assert [d.demo for d in result.demos] == [d.name for d in scenario.demos]
+    assert all(d.T_optimized < d.T_demo for d in result.demos)
+    assert result.summary is not None and result.summary.montecarlo.samples == SAMPLES
+
+    files = result.outputs
+    assert files.folder == where / "reports" / "double_integrator"  # under the cwd
+    for path in (files.summary, files.controller, files.report_html, files.report_pdf):
+        assert path is not None and path.is_file() and path.parent == files.folder
+    assert files.artifacts.is_dir()
+    assert json.loads(files.summary.read_text())["verdict"]["kind"] == result.verdict.value
+
+    controller = pipeline.load_controller(files.controller)
+    assert isinstance(result.controller, pipeline.Controller)
+    np.testing.assert_array_equal(result.controller.K, controller.K)
+    index, ratio = result.controller.select(scenario.demos[0].x0)
+    assert int(index) == 0 and float(ratio) < 1  # the demo's own start is covered
+    assert printed == ""  # the library prints nothing (it logs)
+
+
+def test_the_library_logs_one_line_per_stage(synthesized):
+    _, where, records, _ = synthesized
+    lines = [r.getMessage() for r in records]
+    assert lines[0] == f"outputs: {where / 'reports' / 'double_integrator'}"
+    stages = [m.group(1) for line in lines if (m := re.match(r"\[(\w+)\] ", line))]
+    assert len(stages) == len(set(stages))  # one line each, no running/done pairs
+    assert {"feedback", "optimize", "certify", "montecarlo", "report"} <= set(stages)
+    assert all(r.name.startswith("pipeline.") for r in records)
+
+
+def test_the_terminal_explains_its_terms(synthesized):
+    result, _, _, _ = synthesized
+    text = format_summary(result.summary)
+    assert "radius limited by (the constraint the tube touches first;" in text
+    assert "tube ratio at the final time (closed-loop error / its certified bound;" in text
+    assert f"closed loop {result.summary.montecarlo.min_clearance:.2f} m" in text
+    if "input slack" in text:
+        assert "(input slack: how far the feedback's input stays from its bounds" in text
+    outputs = format_outputs(result)
+    assert outputs.startswith(f"outputs in {result.outputs.folder}:")
+    assert "report.html" in outputs and "controller.json" in outputs
+
+
+def test_the_command_line_is_quiet_with_q_and_says_where_outputs_went(tmp_path, capsys):
+    out = tmp_path / "out"
+    argv = ["synthesize", "double_integrator", "--out", str(out), "--samples", "20"]
+    assert main([*argv, "-q"]) in (0, 1)
+    assert capsys.readouterr().out.startswith("verdict: ")
+    assert main(argv) in (0, 1)  # every stage reused
+    printed = capsys.readouterr().out
+    assert printed.startswith(f"outputs: {out}\n")
+    assert "[optimize] reused (inputs unchanged)" in printed
+    assert printed.rstrip().splitlines()[-1].strip().startswith("artifacts/")
+
+
+def test_a_scenario_name_is_looked_up_in_the_current_directory_first(tmp_path, monkeypatch):
+    shipped = pipeline.load_scenario("double_integrator").path.parent
+    own = tmp_path / "scenarios" / "double_integrator"
+    shutil.copytree(shipped, own)
+    monkeypatch.chdir(tmp_path)
+    assert pipeline.load_scenario("double_integrator").path == own / "scenario.yaml"
+    shutil.rmtree(own)
+    assert pipeline.load_scenario("double_integrator").path == shipped / "scenario.yaml"
+    with pytest.raises(pipeline.ScenarioError, match="unknown scenario 'nope'; expected one of"):
+        pipeline.load_scenario("nope")
