@@ -33,6 +33,7 @@ def synthesize(
     search: str = RunOptions.search,
     stress: bool = RunOptions.stress,
     force: bool = RunOptions.force,
+    feedback_period: float = RunOptions.feedback_period,
 ) -> Synthesis:
     """Synthesize and certify a safety controller for ``scenario``, then validate it.
 
@@ -48,6 +49,8 @@ def synthesize(
       method, search: the optimizer (``"gd"``, ``"lbfgs"``) and horizon search.
       stress: also run the stress test (wind, noise; reported, never certified).
       force: rerun every stage.
+      feedback_period: the period ``h`` (s) of a zero-order-hold feedback to certify (0: the
+        feedback acts continuously); must divide the scenario's sampling time.
 
     Returns a ``Synthesis`` (verdict, claims, controller, per-demo table, files written). Bad
     input raises ``pipeline.UserError`` (``ScenarioError`` for the scenario) before any work;
@@ -67,6 +70,7 @@ def synthesize(
         search=search,
         stress=stress,
         force=force,
+        feedback_period=feedback_period,
     )
     from pipeline.runtime.orchestrator import run_synthesis  # heavy: numerics and stages
 
