@@ -28,8 +28,11 @@ from pathlib import Path
 from bench.timing import best_time
 from pipeline.io.errors import UserError
 from pipeline.io.executor import make_executor
+from pipeline.io.folders import default_output_folder
 from pipeline.model.scenario import load_scenario
-from pipeline.runtime.orchestrator import REPORTS_ROOT, RunOptions, rebuild_reports, synthesize
+from pipeline.runtime.api import synthesize
+from pipeline.runtime.options import RunOptions
+from pipeline.runtime.orchestrator import rebuild_reports
 from pipeline.runtime.stored import load_report_data
 from stages.montecarlo import validate_closed_loop
 from stages.report import write_reports
@@ -43,20 +46,20 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def _finished_run(folder: Path) -> tuple[Path, str]:
     """A private copy of a finished run of ``SCENARIO`` and where it came from."""
-    shipped = REPORTS_ROOT / SCENARIO
+    shipped = default_output_folder(SCENARIO)  # ./reports/NAME
     target = folder / SCENARIO
     if (shipped / "summary.json").is_file() and (shipped / "artifacts").is_dir():
         shutil.copytree(shipped, target)
         try:
             rebuild_reports(SCENARIO, target)  # the run must be current to be reported
-            return target, str(shipped.relative_to(ROOT))
+            return target, str(shipped)
         except UserError as error:  # stale or failed run: make a fresh one below
             print(f"{shipped} cannot be reported ({error}); synthesizing a fresh run")
             shutil.rmtree(target)
-    code = synthesize(SCENARIO, target, RunOptions(samples=1000, quiet=True))
+    result = synthesize(SCENARIO, out=target, samples=1000)
     if not (target / "summary.json").is_file():
-        raise RuntimeError(f"synthesize {SCENARIO} exited with {code} and wrote no summary")
-    return target, f"freshly synthesized (exit code {code})"
+        raise RuntimeError(f"synthesize {SCENARIO}: {result.message}; no summary written")
+    return target, f"freshly synthesized ({result.verdict.value})"
 
 
 def _row(what: str, seconds: float, limit: float) -> None:
