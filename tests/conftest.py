@@ -25,10 +25,11 @@ def synthesis_group(scenario: str) -> str:
 @pytest.hookimpl(tryfirst=True)  # before xdist's own hook reads the groups in each worker
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """Mark each test that reads a session synthesis with its scenario's ``xdist_group``: the
-    ``name`` parameter for ``synthesis(name)``, quadrotor_hill for ``synthesized``."""
+    ``name`` parameter for ``synthesis(name)``, quadrotor_hill for ``synthesized`` (a test that
+    calls ``synthesis("other")`` says so with its own ``xdist_group(synthesis_group("other"))``)."""
     for item in items:
         used = SYNTHESIS_FIXTURES & set(getattr(item, "fixturenames", ()))
-        if not used:
+        if not used or item.get_closest_marker("xdist_group"):  # a test may name its group
             continue
         callspec = getattr(item, "callspec", None)
         params = callspec.params if callspec is not None else {}

@@ -42,6 +42,7 @@ def test_readme_results_block_is_the_scripts_output_for_a_fresh_run(name, synthe
     assert sha is not None and load_scenario(name).source_hash.startswith(sha.group(1))
 
 
+@pytest.mark.xdist_group("synthesis-double_integrator")  # with its session run (conftest)
 def test_the_script_replaces_only_its_block(synthesis, tmp_path, capsys):
     _, out = synthesis("double_integrator")
     block = results_block(read_summary(out))
@@ -58,6 +59,7 @@ def test_the_script_replaces_only_its_block(synthesis, tmp_path, capsys):
     assert "summary.json: cannot read" in capsys.readouterr().err
 
 
+@pytest.mark.xdist_group("synthesis-double_integrator")  # with its session run (conftest)
 def test_the_load_and_fly_example_runs_and_reaches_goal(synthesis, tmp_path):
     """The README's complete example, run as written where ``reports/double_integrator`` holds
     a fresh controller: it covers its start and ends in Goal."""
