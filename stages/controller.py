@@ -29,7 +29,7 @@ from pipeline.numerics.terminal import TerminalError, design_terminal
 REFERENCE_SUBSTEPS = 20
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class ControllerResult:
     path: Path
     trajectories: int
@@ -171,11 +171,12 @@ def emit_controller(
     atomic_write_json(path, document)
     load(path)  # the file as emitted must validate
     return ControllerResult(
-        path,
-        len(trajectories),
-        worst,
-        True,
-        f"{len(trajectories)} trajectories; x_ref interpolation error <= {worst:.1e} in P-norm",
+        path=path,
+        trajectories=len(trajectories),
+        interpolation_error=worst,
+        success=True,
+        message=f"{len(trajectories)} trajectories; x_ref interpolation error <= {worst:.1e} in "
+        "P-norm",
         terminal=terminal is not None,
         terminal_message=terminal_message,
     )

@@ -43,7 +43,7 @@ FAILURE_KINDS = ("unsafe", "goal", "clipping", "tube", "non_finite", "uncovered"
 HOLD_SECONDS = 10.0
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class Falsification:
     """The worst initial state found by search and its margin (evidence, not a bound)."""
 
@@ -53,7 +53,7 @@ class Falsification:
     binding: str = ""  # which margin is the smallest there, with its unit
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class MonteCarloResult:
     samples: int
     seed: int
@@ -93,7 +93,12 @@ def falsify(
     free = np.flatnonzero(hi > lo)
     if free.size == 0:  # Init is a single state: the only start there is to try
         checks = check_runs(scenario, controller, lo[None])[0]
-        return Falsification(lo.copy(), float(checks.margin()[0]), 1, checks.binding()[0])
+        return Falsification(
+            worst_x0=lo.copy(),
+            worst_margin=float(checks.margin()[0]),
+            evaluations=1,
+            binding=checks.binding()[0],
+        )
     corners = (
         np.array(np.meshgrid(*[[lo[i], hi[i]] for i in free], indexing="ij"))
         .reshape(len(free), -1)
@@ -123,7 +128,9 @@ def falsify(
             best_z, best = outcome.x, float(outcome.fun)
     worst = full(best_z[None])
     binding = check_runs_compiled(scenario, controller, worst).binding()[0]
-    return Falsification(worst[0], best, evaluations, binding)
+    return Falsification(
+        worst_x0=worst[0], worst_margin=best, evaluations=evaluations, binding=binding
+    )
 
 
 Hold = tuple[int, FloatArray, float]  # runs continued, failed (B,), largest V / level

@@ -28,7 +28,7 @@ FIGURES = "figures"  # out/artifacts/figures: rendered pages and figures, by dig
 OVERVIEW = "overview"  # the figure also written as scenario.png
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class ReportResult:
     html: Path
     pdf: Path | None
@@ -87,9 +87,9 @@ def write_reports(data: ReportData) -> ReportResult:
     seconds = time.perf_counter() - start
     drawn = f"{len(store.drawn)} figures drawn" if store.drawn else "every figure reused"
     return ReportResult(
-        out / "report.html",
-        out / "report.pdf",
-        True,
-        f"report.html ({len(html) // 1024} KiB) and report.pdf ({pages[0]} pages) written "
+        html=out / "report.html",
+        pdf=out / "report.pdf",
+        success=True,
+        message=f"report.html ({len(html) // 1024} KiB) and report.pdf ({pages[0]} pages) written "
         f"in {seconds:.1f} s ({drawn})",
     )

@@ -19,7 +19,7 @@ from pipeline.model.scenario import Scenario
 from pipeline.numerics.closed_loop import check_runs
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class StressRun:
     """One stress campaign: with the feedback (``gain_scale = 1``) or without (``0``)."""
 
@@ -31,7 +31,7 @@ class StressRun:
     min_goal_margin: float
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class StressResult:
     with_feedback: StressRun
     without_feedback: StressRun
@@ -60,12 +60,12 @@ def _campaign(
     masks.pop("uncovered")
     failed = np.any(list(masks.values()), axis=0)
     return StressRun(
-        gain_scale,
-        samples,
-        {k: int(v.sum()) for k, v in masks.items()},
-        float(failed.mean()),
-        float(checks.clearance.min()),
-        float(checks.goal_margin.min()),
+        gain_scale=gain_scale,
+        samples=samples,
+        failures={k: int(v.sum()) for k, v in masks.items()},
+        failed_fraction=float(failed.mean()),
+        min_clearance=float(checks.clearance.min()),
+        min_goal_margin=float(checks.goal_margin.min()),
     )
 
 
@@ -75,7 +75,10 @@ def stress_test(
     """Closed loop under the scenario's stress perturbations, with and without the feedback."""
     if scenario.spec.stress is None:
         return StressResult(
-            _empty(), _empty(), False, f"scenario '{scenario.name}' declares no 'stress' section"
+            with_feedback=_empty(),
+            without_feedback=_empty(),
+            success=False,
+            message=f"scenario '{scenario.name}' declares no 'stress' section",
         )
     with_feedback = _campaign(scenario, controller_path, samples, seed, 1.0)
     without = _campaign(scenario, controller_path, samples, seed, 0.0)
@@ -85,8 +88,18 @@ def stress_test(
         f"{without.failed_fraction:.1%} with K = 0 (min clearance "
         f"{without.min_clearance:.2f} m)"
     )
-    return StressResult(with_feedback, without, True, message)
+    return StressResult(
+        with_feedback=with_feedback, without_feedback=without, success=True, message=message
+    )
 
 
 def _empty() -> StressRun:
-    return StressRun(1.0, 0, {}, float("nan"), float("nan"), float("nan"))
+    nan = float("nan")
+    return StressRun(
+        gain_scale=1.0,
+        samples=0,
+        failures={},
+        failed_fraction=nan,
+        min_clearance=nan,
+        min_goal_margin=nan,
+    )

@@ -40,7 +40,7 @@ STAGES = (
 )
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class ReportData:
     """The run's summary and stage results (as the stages returned them).
 
