@@ -17,7 +17,10 @@ nothing but the file and the scenario (no stage result):
    (``pipeline.numerics.sampled``) from the largest rate (C) certifies at the vertices, and
    ``h`` must divide ``Ts``;
 4. each trajectory's reference ``x_ref`` is the scenario's dynamics simulated from its ``x0``
-   under its ``u_ref`` (to ``REFERENCE_TOLERANCE`` in P-norm per unit radius), and its radius is
+   under its ``u_ref`` (to ``REFERENCE_TOLERANCE`` in P-norm per unit radius), its linear
+   interpolation (what the law tracks) is within ``INTERPOLATION_TOLERANCE`` radius of the
+   dynamics on a finer grid, the file's ``interpolation_error_P_norm`` (the Monte Carlo's slack)
+   agrees with that measurement within ``STATED_ERROR_RANGE``, and its radius is
    at most the largest radius whose tube ``||x - x_ref(t)||_P <= r e^{-lambda t}`` avoids
    Unsafe, keeps the inputs in their bounds and the tube in the operating region, and ends in
    Goal, on the dense grid with a bound between grid points (``pipeline.numerics.tube_radius``);
@@ -52,6 +55,8 @@ from pipeline.numerics.verify import VERIFY_SUBSTEPS
 
 REFERENCE_TOLERANCE = 1e-9  # ||x_ref - simulated||_P / radius
 RADIUS_TOLERANCE = 1e-12  # relative: a radius may exceed the re-verified one by rounding only
+INTERPOLATION_TOLERANCE = 1e-2  # ||interpolated x_ref - dynamics||_P / radius
+STATED_ERROR_RANGE = (0.5, 4.0)  # the file's interpolation_error_P_norm / the one measured here
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -226,7 +231,7 @@ def certify_controller(
         input_names=scenario.input_names,
         position_index=scenario.position_index,
     )
-    verified, reference_error = [], 0.0
+    verified, reference_error, interpolation = [], 0.0, 0.0
     for i, tr in enumerate(controller.trajectories):
         N = len(tr.u_ref)
         substeps = (len(tr.t) - 1) // N
@@ -244,6 +249,26 @@ def certify_controller(
                 f"(P-norm error {mismatch:.3g} radius)"
             )
         nominal = simulate(scenario.dynamics, tr.x0, tr.u_ref, scenario.Ts, VERIFY_SUBSTEPS)
+        # The law tracks the file's x_ref interpolated linearly: measure that against a grid
+        # finer than both the file's and the verification's (midpoints included).
+        finer = simulate(
+            scenario.dynamics,
+            tr.x0,
+            tr.u_ref,
+            scenario.Ts,
+            2 * max(substeps, VERIFY_SUBSTEPS),
+        )
+        tracked = np.stack(
+            [np.interp(finer.dense_ts, tr.t, tr.x_ref[:, j]) for j in range(controller.n)], -1
+        )
+        gap = tracked - finer.dense_xs
+        measured = float(np.sqrt(np.einsum("ki,ij,kj->k", gap, controller.P, gap)).max())
+        interpolation = max(interpolation, measured)
+        if not measured <= INTERPOLATION_TOLERANCE * tr.radius:
+            failures.append(
+                f"trajectories[{i}]: the interpolated x_ref is {measured / tr.radius:.3g} radius "
+                f"from the dynamics (> {INTERPOLATION_TOLERANCE:g}); emit it on a finer grid"
+            )
         limits = radius_limits(scenario, tube, nominal)
         verified.append(limits.radius)
         if not tr.radius <= limits.radius * (1 + RADIUS_TOLERANCE):
@@ -252,6 +277,16 @@ def certify_controller(
                 f"trajectories[{i}]: radius {tr.radius:.6g} > {limits.radius:.6g}, the largest "
                 f"the tube allows ({binding} binds at t = {limits.limits[binding][1]:.2f} s)"
             )
+
+    # The Monte Carlo allows twice the stated interpolation error as tube slack: it must be
+    # the error this check measures, neither understated nor inflated.
+    low, high = STATED_ERROR_RANGE
+    stated = controller.interpolation_error
+    if not low * interpolation - 1e-12 <= stated <= high * interpolation + 1e-9:
+        failures.append(
+            f"interpolation_error_P_norm: the file states {stated:.3g}, measured "
+            f"{interpolation:.3g} (expected {low:g}x to {high:g}x of it)"
+        )
 
     # 5. Coverage of Init by the file's initial balls.
     cover = subdivide(

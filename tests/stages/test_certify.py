@@ -147,3 +147,42 @@ def test_the_quadrotor_controller_certifies_and_tampering_is_caught(synthesized,
     path.write_bytes((out / "controller.json").read_bytes())
     _tamper(path, change)
     assert not certify_controller(scenario, path).success
+
+
+def _coarse_reference(document):
+    """Re-emit every reference on the sample times only (one RK4 step per sample): still the
+    dynamics on its own grid, but its linear interpolation is far from the flight."""
+    from pipeline.model.scenario import load_scenario as load
+
+    scenario = load("quadrotor_hill", check_demos=False)
+    for item in document["trajectories"]:
+        us = np.asarray(item["u_ref"])  # (N, m)
+        coarse = simulate(scenario.dynamics, np.asarray(item["x0"]), us, scenario.Ts, substeps=1)
+        item["t"] = coarse.dense_ts.tolist()
+        item["x_ref"] = coarse.dense_xs.tolist()
+
+
+def _inflate_interpolation_error(document):
+    document["interpolation_error_P_norm"] = 0.5  # would loosen the Monte Carlo's tube check
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        (_coarse_reference, "the interpolated x_ref is"),
+        (_inflate_interpolation_error, "interpolation_error_P_norm: the file states 0.5"),
+    ],
+    ids=["reference on a coarse grid", "inflated interpolation error"],
+)
+def test_the_tracked_reference_is_measured_not_trusted(synthesized, tmp_path, change, message):
+    """The law tracks the file's x_ref interpolated linearly: certify measures that against the
+    dynamics on a finer grid, and the stated interpolation error against its measurement."""
+    from pipeline import load_scenario
+
+    _, out = synthesized
+    scenario = load_scenario("quadrotor_hill", check_demos=False)
+    path = tmp_path / "controller.json"
+    path.write_bytes((out / "controller.json").read_bytes())
+    _tamper(path, change)
+    result = certify_controller(scenario, path)
+    assert not result.success and message in result.message
