@@ -55,6 +55,7 @@ from pipeline.numerics.verify import VERIFY_SUBSTEPS
 
 REFERENCE_TOLERANCE = 1e-9  # ||x_ref - simulated||_P / radius
 RADIUS_TOLERANCE = 1e-12  # relative: a radius may exceed the re-verified one by rounding only
+ROUNDING_MARGIN = 1e-9  # times ||P||: the contraction eigenvalue must clear rounding
 INTERPOLATION_TOLERANCE = 1e-2  # ||interpolated x_ref - dynamics||_P / radius
 STATED_ERROR_RANGE = (0.5, 4.0)  # the file's interpolation_error_P_norm / the one measured here
 
@@ -215,10 +216,12 @@ def certify_controller(
         failures.append(f"no Jacobian hull over the operating region: {error}")
     if controller.feedback_period > 0 and vertices:
         failures += _held(controller, hull.A, hull.B)
-    if not margin < 0:
+    # strictly below zero by more than floating-point rounding of M and of the hull's vertices
+    rounding = ROUNDING_MARGIN * max(1.0, float(np.linalg.norm(controller.P, 2)))
+    if not margin < -rounding:
         failures.append(
             f"the contraction inequality fails at rate {controller.rate:g}: largest eigenvalue "
-            f"{margin:.3g} >= 0 over {vertices} hull vertices"
+            f"{margin:.3g} >= -{rounding:.1g} over {vertices} hull vertices"
         )
 
     # 4. Each reference and its radius, in the file's tube.
