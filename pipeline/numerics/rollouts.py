@@ -18,7 +18,12 @@ from pipeline.controller import Controller
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
 from pipeline.numerics.closed_loop import INTERPOLATION_SLACK, HoldChecks, RunChecks, held_steps
-from pipeline.numerics.kernels.compiled import load_kernels, ring_arrays, rings
+from pipeline.numerics.kernels.compiled import (
+    load_kernels,
+    ring_arrays,
+    rings,
+    unsafe_ring_arrays,
+)
 from pipeline.numerics.penalties import IntArray
 
 
@@ -47,22 +52,15 @@ class SceneArrays:
 
     @classmethod
     def of(cls, scenario: Scenario) -> SceneArrays:
-        unsafe: list[FloatArray] = []
-        set_rings = [0]
-        for region in scenario.unsafe.values():
-            unsafe += rings(region)
-            set_rings.append(set_rings[-1] + len(rings(region)))
-        vertices, start = ring_arrays(unsafe) if unsafe else (np.zeros((0, 2)), np.zeros(1))
+        vertices, start, set_rings, boxes = unsafe_ring_arrays(list(scenario.unsafe.values()))
         goal_vertices, goal_start = ring_arrays(rings(scenario.goal))
         names = list(scenario.goal_bounds)
         return cls(
             position=np.array(scenario.position_index, dtype=np.int64),
             unsafe_vertices=vertices,
-            unsafe_ring_start=start.astype(np.int64),
-            unsafe_set_rings=np.array(set_rings, dtype=np.int64),
-            unsafe_boxes=np.array(
-                [region.bounds for region in scenario.unsafe.values()], dtype=np.float64
-            ).reshape(-1, 4),
+            unsafe_ring_start=start,
+            unsafe_set_rings=set_rings,
+            unsafe_boxes=boxes,
             goal_vertices=goal_vertices,
             goal_ring_start=goal_start,
             goal_index=np.array([scenario.state_names.index(k) for k in names], dtype=np.int64),

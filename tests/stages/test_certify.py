@@ -15,31 +15,16 @@ import numpy as np
 import pytest
 
 from pipeline.model.simulate import simulate
-from pipeline.numerics.verify import VERIFY_SUBSTEPS
 from stages.certify import certify_controller
-from stages.controller import emit_controller
-from stages.feedback import design_feedback
-from stages.radius import robustness_radius
-
-STARTS = [np.array([x, y, 0.0, 0.0]) for x in (0.25, 0.75) for y in (2.25, 2.75)]
+from tests.stages.conftest import emit_at_rest
 
 
 @pytest.fixture
 def emitted(double_integrator, tmp_path):
     """``(scenario, path)``: a certified controller.json for the double integrator at rest."""
     scenario = double_integrator()
-    feedback = design_feedback(scenario)
-    us = np.zeros((10, 2))
-    radii = [
-        robustness_radius(
-            scenario,
-            feedback.certified_tube,
-            simulate(scenario.dynamics, x0, us, scenario.Ts, VERIFY_SUBSTEPS),
-        ).radius
-        for x0 in STARTS
-    ]
     path = tmp_path / "controller.json"
-    emit_controller(scenario, feedback.K, feedback.P, feedback.rate, STARTS, [us] * 4, radii, path)
+    emit_at_rest(scenario, path)
     return scenario, path
 
 

@@ -17,32 +17,16 @@ import pytest
 
 from pipeline.controller import BeyondHorizonError, load
 from pipeline.model.scenario import load_scenario
-from pipeline.model.simulate import simulate
 from pipeline.numerics.closed_loop import hold_runs
 from pipeline.numerics.terminal import containing_level, design_terminal, equilibrium
-from pipeline.numerics.verify import VERIFY_SUBSTEPS
 from stages.certify import certify_controller, verify_terminal
-from stages.controller import emit_controller
-from stages.feedback import design_feedback
-from stages.radius import robustness_radius
+from tests.stages.conftest import AT_REST_STARTS, emit_at_rest
 
-STARTS = [np.array([x, y, 0.0, 0.0]) for x in (0.25, 0.75) for y in (2.25, 2.75)]
 GOAL = "[[-1, 1], [2, 1], [2, 4], [-1, 4]]"
 
 
 def _emit(scenario, path, floor):
-    feedback = design_feedback(scenario)
-    us = np.zeros((10, 2))
-    radii = [
-        robustness_radius(
-            scenario,
-            feedback.certified_tube,
-            simulate(scenario.dynamics, x0, us, scenario.Ts, VERIFY_SUBSTEPS),
-        ).radius
-        for x0 in STARTS
-    ]
-    K, P, rate = feedback.K, feedback.P, feedback.rate
-    return emit_controller(scenario, K, P, rate, STARTS, [us] * 4, radii, path, radius_floor=floor)
+    return emit_at_rest(scenario, path, radius_floor=floor)
 
 
 @pytest.fixture
@@ -121,10 +105,10 @@ def test_without_a_fit_there_is_no_terminal_block_and_the_law_refuses_past_T(
     assert not result.terminal and "do not fit" in result.terminal_message
     controller = load(path)
     assert controller.terminal is None
-    index, _ = controller.select(STARTS[0])
-    controller(1.0, STARTS[0], index)  # up to T: fine
+    index, _ = controller.select(AT_REST_STARTS[0])
+    controller(1.0, AT_REST_STARTS[0], index)  # up to T: fine
     with pytest.raises(BeyondHorizonError):
-        controller(1.01, STARTS[0], index)
+        controller(1.01, AT_REST_STARTS[0], index)
     assert "no terminal controller" in certify_controller(scenario, path).message
 
 

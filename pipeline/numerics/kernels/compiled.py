@@ -175,16 +175,29 @@ def ring_arrays(rings: list[FloatArray]) -> tuple[FloatArray, IntArray]:
     return np.concatenate(rings, axis=0), start
 
 
-def penalty_data(constraints: Constraints) -> PenaltyData:
-    """Vertex arrays and bounds of ``constraints`` for the kernels."""
-    unsafe_rings, set_rings, boxes = [], [0], []
-    for region in constraints.unsafe.values():
+def unsafe_ring_arrays(
+    regions: list[BaseGeometry],
+) -> tuple[FloatArray, IntArray, IntArray, FloatArray]:
+    """The Unsafe sets as the kernels read them: ``vertices (v, 2)``, ``ring_start (rings + 1,)``,
+    ``set_rings (sets + 1,)`` (set ``S`` owns rings ``set_rings[S]:set_rings[S+1]``) and bounding
+    ``boxes (sets, 4)`` (xmin, ymin, xmax, ymax)."""
+    unsafe_rings: list[FloatArray] = []
+    set_rings = [0]
+    for region in regions:
         region_rings = rings(region)
         unsafe_rings += region_rings
         set_rings.append(set_rings[-1] + len(region_rings))
-        boxes.append(region.bounds)
-    unsafe_vertices, unsafe_start = (
+    vertices, start = (
         ring_arrays(unsafe_rings) if unsafe_rings else (np.zeros((0, 2)), np.zeros(1, np.int64))
+    )
+    boxes = np.array([region.bounds for region in regions], dtype=np.float64).reshape(-1, 4)
+    return vertices, start, np.array(set_rings, dtype=np.int64), boxes
+
+
+def penalty_data(constraints: Constraints) -> PenaltyData:
+    """Vertex arrays and bounds of ``constraints`` for the kernels."""
+    unsafe_vertices, unsafe_start, set_rings, boxes = unsafe_ring_arrays(
+        list(constraints.unsafe.values())
     )
     goal_vertices, goal_start = ring_arrays(rings(constraints.goal_region))
     c = constraints
@@ -193,8 +206,8 @@ def penalty_data(constraints: Constraints) -> PenaltyData:
         unsafe_margin=float(c.unsafe_margin),
         unsafe_vertices=unsafe_vertices,
         unsafe_ring_start=unsafe_start,
-        unsafe_set_rings=np.array(set_rings, dtype=np.int64),
-        unsafe_box=np.array(boxes, dtype=np.float64).reshape(-1, 4),
+        unsafe_set_rings=set_rings,
+        unsafe_box=boxes,
         goal_vertices=goal_vertices,
         goal_ring_start=goal_start,
         input_lower=c.input_lower,
