@@ -165,6 +165,24 @@ BAD_INPUTS: list[tuple[str, Mutation, str | None, list[str]]] = [
         ["not a mapping", "found 'NoneType'", "expected a YAML mapping"],
     ),
     (
+        "unknown name in state_bounds",
+        yaml_replace("clearance: 0.25\n", "clearance: 0.25\nstate_bounds: {aX: [-1, 1]}\n"),
+        YAML,
+        ["state_bounds", "unknown name 'aX'", "names from ['X', 'Y', 'vX', 'vY']"],
+    ),
+    (
+        "unknown certificate kind",
+        yaml_replace("clearance: 0.25\n", "clearance: 0.25\ncertificate: tube\n"),
+        YAML,
+        ["certificate", "'constant' or 'funnel'"],
+    ),
+    (
+        "unit of an unknown name",
+        yaml_replace("clearance: 0.25\n", "clearance: 0.25\nunits: {speed: m/s}\n"),
+        YAML,
+        ["units", "unknown name 'speed'"],
+    ),
+    (
         "missing field",
         yaml_replace("sampling_time: 0.1\n", ""),
         YAML,
@@ -667,3 +685,14 @@ def test_schema_command_prints_the_schema(capsys: pytest.CaptureFixture[str]) ->
 def test_shipped_scenarios_load_without_demos(name: str) -> None:
     scenario = load_scenario(name, check_demos=False)
     assert scenario.name == name
+
+
+def test_labels_and_units_name_quantities_for_people() -> None:
+    scenario = load_scenario("quadrotor_hill", check_demos=False)
+    assert scenario.label("u1") == "u1 (thrust) [N]"
+    assert scenario.label("theta", unit=False) == "theta (pitch)"
+    assert scenario.unit("u2") == "rad/s^2"
+    assert scenario.state_bounds["theta"] == (-0.8, 0.8)
+    plain = load_scenario("double_integrator", check_demos=False)
+    assert plain.label("vx") == "vx [m/s]"
+    assert plain.certificate == "constant"

@@ -75,6 +75,10 @@ class Scenario:
       operating_region: state or input name -> (lower, upper).
       terminal: "reach" (the paper's Goal) or "hold" (certified only with a terminal controller
         holding the state in Goal after ``T``).
+      certificate: "constant" (one P, K over operating_region) or "funnel" (K[k], P[k] per
+        trajectory).
+      state_bounds: state name -> (lower, upper), the physical envelope (not a certificate region).
+      units, labels: state or input name -> unit / human name (optional; see ``label``).
     """
 
     name: str
@@ -96,6 +100,10 @@ class Scenario:
     demos: tuple[Demo, ...] = field(repr=False)
     source_hash: str = ""
     terminal: str = "reach"
+    certificate: str = "constant"
+    state_bounds: Mapping[str, tuple[float, float]] = field(default_factory=dict)
+    units: Mapping[str, str] = field(default_factory=dict)
+    labels: Mapping[str, str] = field(default_factory=dict)
 
     @property
     def state_names(self) -> tuple[str, ...]:
@@ -112,6 +120,20 @@ class Scenario:
     @property
     def m(self) -> int:
         return self.dynamics.m
+
+    def label(self, name: str, *, unit: bool = True) -> str:
+        """A state or input name for people: ``"u1 (thrust) [N]"``, or ``"u1"`` when the scenario
+        declares neither a label nor a unit for it."""
+        text = name
+        if name in self.labels:
+            text += f" ({self.labels[name]})"
+        if unit and name in self.units:
+            text += f" [{self.units[name]}]"
+        return text
+
+    def unit(self, name: str) -> str:
+        """The unit of a state or input (``""`` when undeclared)."""
+        return self.units.get(name, "")
 
     def positions(self, xs: FloatArray) -> FloatArray:
         """Position coordinates of states: ``(..., n)`` -> ``(..., 2)``."""
@@ -314,6 +336,9 @@ def _build(path: Path, spec: ScenarioSpec) -> Scenario:
     _require_names(
         path, "operating_region", list(spec.operating_region), states + inputs, exact=False
     )
+    _require_names(path, "state_bounds", list(spec.state_bounds), states, exact=False)
+    _require_names(path, "units", list(spec.units), states + inputs, exact=False)
+    _require_names(path, "labels", list(spec.labels), states + inputs, exact=False)
     for key, values, size in [
         ("feedback.reference_state", spec.feedback.reference_state, len(states)),
         ("feedback.reference_input", spec.feedback.reference_input, len(inputs)),
@@ -392,6 +417,10 @@ def _build(path: Path, spec: ScenarioSpec) -> Scenario:
         demos=demos,
         source_hash=file_hash(path),
         terminal=spec.terminal,
+        certificate=spec.certificate,
+        state_bounds=dict(spec.state_bounds),
+        units=dict(spec.units),
+        labels=dict(spec.labels),
     )
 
 

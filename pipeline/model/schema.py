@@ -119,6 +119,24 @@ class ScenarioSpec(_Strict):
         "terminal controller holding it in Goal for all time; bound the speeds at T in "
         "goal.bounds so that it can)",
     )
+    certificate: Literal["constant", "funnel"] = Field(
+        default="constant",
+        description="'constant' (one metric P and gain K over operating_region, the paper's "
+        "certificate) or 'funnel' (per-trajectory time-varying K[k], P[k] over each tube)",
+    )
+    state_bounds: dict[str, Interval] = Field(
+        default_factory=dict,
+        description="the physical envelope of the states (e.g. a small-angle limit), apart from "
+        "any certificate region; the funnel certificate and the uncertified comparison use it",
+    )
+    units: dict[str, str] = Field(
+        default_factory=dict,
+        description="optional unit of a state or input (e.g. u1: N), shown in reports and the HUD",
+    )
+    labels: dict[str, str] = Field(
+        default_factory=dict,
+        description="optional human name of a state or input (e.g. u1: thrust)",
+    )
     stress: StressSpec | None = Field(default=None, description="optional stress-test settings")
     demos: list[DemoSpec] = Field(default_factory=list)
 
