@@ -135,6 +135,12 @@ class Scenario:
         """The unit of a state or input (``""`` when undeclared)."""
         return self.units.get(name, "")
 
+    def position_unit(self) -> str:
+        """The position states' common unit: of clearances, distances and ``d`` (``""`` when
+        undeclared or when the two differ)."""
+        units = {self.unit(self.state_names[i]) for i in self.position_index}
+        return units.pop() if len(units) == 1 else ""
+
     def positions(self, xs: FloatArray) -> FloatArray:
         """Position coordinates of states: ``(..., n)`` -> ``(..., 2)``."""
         return np.asarray(xs)[..., list(self.position_index)]

@@ -242,11 +242,8 @@ def _bound(
 
 
 def length_unit(scenario: Scenario | None) -> str:
-    """The position states' common unit ("" when undeclared or when they differ)."""
-    if scenario is None:
-        return ""
-    units = {scenario.unit(scenario.state_names[i]) for i in scenario.position_index}
-    return units.pop() if len(units) == 1 else ""
+    """The position states' common unit (``""`` without a scenario, undeclared or mixed)."""
+    return "" if scenario is None else scenario.position_unit()
 
 
 def _input_units(scenario: Scenario | None) -> str:
