@@ -4,14 +4,17 @@ with its bound and unit, and the outputs listing (the run-based checks are in te
 from __future__ import annotations
 
 import dataclasses
+import logging
+import sys
 from pathlib import Path
 
 import pytest
+from tqdm import tqdm
 
 from pipeline.model.scenario import load_scenario
 from pipeline.reporting.summary import Verdict
 from pipeline.runtime.synthesis import Outputs, Synthesis
-from pipeline.runtime.terminal import explain_binding, format_outputs, length_unit
+from pipeline.runtime.terminal import explain_binding, format_outputs, length_unit, show_progress
 
 
 @pytest.fixture(scope="module")
@@ -98,3 +101,17 @@ def test_the_outputs_name_the_folder_and_each_main_file(tmp_path):
     (tmp_path / "controller.stale.json").write_text("{}")  # a run that did not certify it
     stale = format_outputs(_synthesis(tmp_path)).splitlines()[3]
     assert stale.split()[0] == "controller.stale.json" and "NOT certified" in stale
+
+
+def test_a_stage_line_starts_its_own_line_while_a_progress_bar_is_open(capsys):
+    """On a terminal the stage's bar (stderr) and its line (stdout) share the screen: the bar is
+    cleared for the line, not followed by it."""
+    with show_progress():
+        bar = tqdm(total=3, file=sys.stdout, ncols=60, mininterval=0)  # stdout: one capture
+        bar.update(1)
+        logging.getLogger("pipeline.runtime.test").info("[stage] 1.0 s: done")
+        bar.close()
+    out = capsys.readouterr().out
+    before, after = out.split("[stage] 1.0 s: done\n")
+    assert "1/3" in before and before.endswith("\r")  # the bar was wiped, the cursor at column 0
+    assert "1/3" in after  # and drawn again under the line

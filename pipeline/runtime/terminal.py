@@ -19,6 +19,8 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from tqdm import tqdm
+
 from pipeline.io.errors import UserError
 from pipeline.reporting.summary import Summary
 from pipeline.runtime.outdir import stale_name
@@ -67,11 +69,14 @@ def show_progress(*, verbose: bool = False, quiet: bool = False) -> Iterator[Non
 
 class _StdoutHandler(logging.StreamHandler):  # type: ignore[type-arg]
     """Warnings on stderr, everything else on stdout (``sys.stdout`` looked up per message, so
-    that pytest's capture and redirections see it)."""
+    that pytest's capture and redirections see it). A progress bar on the terminal
+    (``pipeline.io.progress``) is cleared for the line and redrawn under it: a stage's line,
+    logged while its bar is open, starts its own line instead of following the bar's text."""
 
     def emit(self, record: logging.LogRecord) -> None:
         self.stream = sys.stderr if record.levelno >= logging.WARNING else sys.stdout
-        super().emit(record)
+        with tqdm.external_write_mode(file=self.stream):
+            super().emit(record)
 
 
 def format_result(
