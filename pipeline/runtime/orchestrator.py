@@ -246,7 +246,7 @@ def _synthesize(
             )
             return _failed(out, scenario, "feedback", reason)
         log.info(
-            f"[feedback] held every {held.period:g} s: tube rate {held.held_rate:.4g}/s "
+            f"[held feedback] every {held.period:g} s: tube rate {held.held_rate:.4g}/s "
             f"(continuous {held.rate:.4g}/s; pipeline.numerics.sampled)"
         )
     tube = inputs_key(core, runner.digest("feedback"), options.feedback_period)
