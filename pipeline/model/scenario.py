@@ -122,8 +122,8 @@ class Scenario:
         return self.dynamics.m
 
     def label(self, name: str, *, unit: bool = True) -> str:
-        """A state or input name for people: ``"u1 (thrust) [N]"``, or ``"u1"`` when the scenario
-        declares neither a label nor a unit for it."""
+        """A state or input name for people: ``"force (thrust) [N]"``, or ``"force"`` when the
+        scenario declares neither a label nor a unit for it."""
         text = name
         if name in self.labels:
             text += f" ({self.labels[name]})"

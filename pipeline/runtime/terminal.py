@@ -203,7 +203,7 @@ def explain_binding(
 ) -> str:
     """What a "radius limited by" constraint is, in a few words, with its bound and unit when
     known (from ``region``, the feedback's operating region, else ``scenario``):
-    ``"region 'u1' upper: u1 (thrust) <= 14.9 N, the edge of the operating region, ..."``."""
+    ``"region 'force' upper: force (thrust) <= 14.9 N, the operating region's edge ..."``."""
     if binding == "goal":
         return f"goal: {MEANING['goal']}"
     found = BINDING.match(binding)
@@ -252,7 +252,7 @@ def length_unit(scenario: Scenario | None) -> str:
 
 
 def _input_units(scenario: Scenario | None) -> str:
-    """`` (u1: N, u2: rad/s^2)`` for the inputs with a declared unit ("" for none)."""
+    """`` (force: N, torque: N m)`` for the inputs with a declared unit ("" for none)."""
     if scenario is None:
         return ""
     known = [

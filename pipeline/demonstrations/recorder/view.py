@@ -131,7 +131,7 @@ def hud_lines(
 
 
 def input_rows(scenario: Scenario, u: FloatArray | None) -> list[tuple[str, str]]:
-    """Per input: its label (``"u1 (thrust) [N]"``) and its value with unit and bounds
+    """Per input: its label (``"force (thrust) [N]"``) and its value with unit and bounds
     (``"+9.81 N   in [0, 14.9]"``; ``"-"`` for the value when ``u`` is ``None``)."""
     rows = []
     for k, name in enumerate(scenario.input_names):
