@@ -79,7 +79,6 @@ def test_a_rejected_funnel_has_no_margins(quadrotor):
 
 
 def _profile(values: np.ndarray) -> MarginProfile:
-    M = len(values)
     return MarginProfile(
         clearance=values,
         input=np.stack([values, 2 * values], axis=1),
