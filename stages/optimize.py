@@ -14,6 +14,12 @@ as soon as the problem's own cost is zero: a descent that approaches ``J = 0`` f
 reaches it in the limit (measured: most failed tries ended at J ~ 1e-10 after the iteration cap).
 The result is re-verified in continuous time independently of the cost
 (``pipeline.numerics.verify``).
+
+Funnels (issue 16 part 4): ``reoptimize_with_funnels`` runs the same search from each optimized
+nominal again, with the margins of the funnel synthesized around it (per sample interval,
+``pipeline.numerics.margins``; ``ConstraintMargins.of_funnel``) in place of the constant tube's,
+and the scenario's ``state_bounds`` in place of the operating region. One call is one round of
+the alternation nominal -> funnel -> nominal; the caller synthesizes and checks the new funnels.
 """
 
 from __future__ import annotations
@@ -30,23 +36,24 @@ import numpy as np
 from pipeline.io.executor import Executor, SerialExecutor
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario, load_scenario_cached
-from pipeline.numerics.descent import DescentResult, IterationLog, gradient_descent, lbfgs
+from pipeline.numerics.descent import DescentResult, IterationLog
 from pipeline.numerics.footprint import ConstraintMargins, verify_within
 from pipeline.numerics.funnel_check import Funnel
 from pipeline.numerics.horizon import (
+    PARAMETERIZATIONS,
     SEED_MODES,
+    minimise,
     reseed,
     shortest_by_continuation,
     smallest_feasible,
+    warm_up,
 )
 from pipeline.numerics.penalties import MarginError
 from pipeline.numerics.problem import Problem, make_problem
 from pipeline.numerics.settings import DESCENT_METHODS, EPS_D, EPS_G, EPS_I, HORIZON_SEARCHES
-from pipeline.numerics.shooting import StabilisedProblem
 from pipeline.numerics.verify import Verification
 
 METHODS = DESCENT_METHODS
-PARAMETERIZATIONS = ("feedback", "open_loop")
 SEARCHES = HORIZON_SEARCHES
 
 
@@ -130,69 +137,11 @@ class OptimizeResult:
     message: str
 
 
-def _minimise(
-    problem: Problem,
-    tightened: Problem,
-    seed: FloatArray,
-    gain: FloatArray,
-    options: OptimizeOptions,
-) -> tuple[DescentResult, FloatArray]:
-    """Drive ``problem``'s cost to zero from ``seed (N, m)`` by descending on ``tightened``'s
-    (the same problem with larger margins); returns the outcome, whose ``cost`` is
-    ``problem``'s, and its nominal input ``(N, m)``.
-
-    With ``parameterization="feedback"`` the descent runs over ``v`` of
-    ``pipeline.numerics.shooting`` (the same cost, better conditioned); ``"open_loop"`` is the
-    paper's literal ``u``.
-    """
-    if options.parameterization == "feedback":
-        target: Any = StabilisedProblem.around(tightened, gain, seed)
-        check: Any = dataclasses.replace(target, problem=problem)
-    elif options.parameterization == "open_loop":
-        target, check = tightened, problem
-    else:
-        raise ValueError(f"parameterization must be one of {PARAMETERIZATIONS}")
-    gate = max(options.overshoot, 1e-6) ** 2  # evaluate the real cost only once this close
-
-    def reached(v: FloatArray, J_tightened: float) -> bool:
-        return J_tightened == 0.0 or (J_tightened <= gate and check.cost(v) == 0.0)
-
-    if options.method == "gd":
-        outcome = gradient_descent(
-            target, seed, max_iterations=options.max_iterations, reached=reached
-        )
-    elif options.method == "lbfgs":
-        outcome = lbfgs(
-            target,
-            seed,
-            max_iterations=options.max_iterations,
-            box=options.parameterization == "open_loop",
-            reached=reached,
-        )
-    else:
-        raise ValueError(f"method must be one of {METHODS}, got {options.method!r}")
-    cost = check.cost(outcome.u)
-    outcome = dataclasses.replace(outcome, cost=cost, feasible=cost == 0.0)
-    u = target.inputs(outcome.u) if options.parameterization == "feedback" else outcome.u
-    return outcome, u
-
-
-def _warm_up(problem: Problem, gain: FloatArray, options: OptimizeOptions) -> None:
-    """Compile (or load from numba's disk cache) the kernels one descent step uses, on a
-    two-sample horizon, so that per-demo wall times measure the optimization only."""
-    seed = np.asarray(problem.u_seed[:2], dtype=np.float64)
-    short = problem.with_horizon(2, seed)
-    short.cost(seed)
-    short.cost_and_gradient(seed)
-    if options.parameterization == "feedback":
-        StabilisedProblem.around(short, gain, seed).cost_and_gradient(seed)
-
-
 def optimize_demo(
     scenario: Scenario, demo: int, margins: ConstraintMargins, options: OptimizeOptions
 ) -> TrajectoryOptimization:
     """Minimum-time search (Remark 4) for demo number ``demo``; its ``seconds`` exclude the
-    one-off compilation of the scenario's kernels (``_warm_up``)."""
+    one-off compilation of the scenario's kernels (``warm_up``)."""
     chosen = scenario.demos[demo]
     return optimize_from(
         scenario, chosen.name, chosen.x0, chosen.us, margins, options, N_demo=len(chosen.us)
@@ -247,7 +196,7 @@ def optimize_from(
         problem, tightened = constrained(0.0), constrained(options.overshoot)
     except MarginError as error:  # e.g. a tube too wide for Goal: this demo cannot be optimized
         return unchanged(0.0, f"demo '{name}' was not optimized: {error}")
-    _warm_up(problem, margins.gain, options)
+    warm_up(problem, margins.gain, options)
     start = time.perf_counter()
     N_start = problem.N
     tries: list[BisectionTry] = []
@@ -255,7 +204,7 @@ def optimize_from(
 
     def attempt(N: int, seed: FloatArray) -> DescentResult:
         t0 = time.perf_counter()
-        outcome, u = _minimise(
+        outcome, u = minimise(
             problem.with_horizon(N, seed),
             tightened.with_horizon(N, seed),
             seed,

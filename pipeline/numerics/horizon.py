@@ -1,18 +1,36 @@
-"""Shortening the horizon of a feasible flight (paper Remark 4): the searches and their seeds.
+"""Shortening the horizon of a feasible flight (paper Remark 4): the searches, their seeds, and
+the descent that decides one horizon.
 
-``feasible(N)`` is one optimisation of the horizon ``N`` (``stages.optimize``); these functions
-only decide which horizons to try and how to seed them.
+``feasible(N)`` is one optimisation of the horizon ``N`` (``stages.optimize``): ``minimise``
+drives the cost to zero; ``smallest_feasible`` and ``shortest_by_continuation`` decide which
+horizons to try and ``reseed`` how to seed them.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
+from typing import Any, Protocol
 
 import numpy as np
 
 from pipeline.model.dynamics import FloatArray
+from pipeline.numerics.descent import DescentResult, gradient_descent, lbfgs
+from pipeline.numerics.problem import Problem
+from pipeline.numerics.settings import DESCENT_METHODS
+from pipeline.numerics.shooting import StabilisedProblem
 
 SEED_MODES = ("compress", "truncate")
+PARAMETERIZATIONS = ("feedback", "open_loop")
+
+
+class DescentOptions(Protocol):
+    """The options ``minimise`` reads (``stages.optimize.OptimizeOptions``)."""
+
+    method: str
+    parameterization: str
+    overshoot: float
+    max_iterations: int
 
 
 def reseed(u: FloatArray, N: int, mode: str) -> FloatArray:
@@ -55,3 +73,61 @@ def shortest_by_continuation(feasible: Callable[[int], bool], N: int, fraction: 
         else:
             step //= 2
     return N
+
+
+def minimise(
+    problem: Problem,
+    tightened: Problem,
+    seed: FloatArray,
+    gain: FloatArray,
+    options: DescentOptions,
+) -> tuple[DescentResult, FloatArray]:
+    """Drive ``problem``'s cost to zero from ``seed (N, m)`` by descending on ``tightened``'s
+    (the same problem with larger margins); returns the outcome, whose ``cost`` is
+    ``problem``'s, and its nominal input ``(N, m)``.
+
+    With ``parameterization="feedback"`` the descent runs over ``v`` of
+    ``pipeline.numerics.shooting`` (the same cost, better conditioned); ``"open_loop"`` is the
+    paper's literal ``u``.
+    """
+    if options.parameterization == "feedback":
+        target: Any = StabilisedProblem.around(tightened, gain, seed)
+        check: Any = dataclasses.replace(target, problem=problem)
+    elif options.parameterization == "open_loop":
+        target, check = tightened, problem
+    else:
+        raise ValueError(f"parameterization must be one of {PARAMETERIZATIONS}")
+    gate = max(options.overshoot, 1e-6) ** 2  # evaluate the real cost only once this close
+
+    def reached(v: FloatArray, J_tightened: float) -> bool:
+        return J_tightened == 0.0 or (J_tightened <= gate and check.cost(v) == 0.0)
+
+    if options.method == "gd":
+        outcome = gradient_descent(
+            target, seed, max_iterations=options.max_iterations, reached=reached
+        )
+    elif options.method == "lbfgs":
+        outcome = lbfgs(
+            target,
+            seed,
+            max_iterations=options.max_iterations,
+            box=options.parameterization == "open_loop",
+            reached=reached,
+        )
+    else:
+        raise ValueError(f"method must be one of {DESCENT_METHODS}, got {options.method!r}")
+    cost = check.cost(outcome.u)
+    outcome = dataclasses.replace(outcome, cost=cost, feasible=cost == 0.0)
+    u = target.inputs(outcome.u) if options.parameterization == "feedback" else outcome.u
+    return outcome, u
+
+
+def warm_up(problem: Problem, gain: FloatArray, options: DescentOptions) -> None:
+    """Compile (or load from numba's disk cache) the kernels one descent step uses, on a
+    two-sample horizon, so that per-demo wall times measure the optimization only."""
+    seed = np.asarray(problem.u_seed[:2], dtype=np.float64)
+    short = problem.with_horizon(2, seed)
+    short.cost(seed)
+    short.cost_and_gradient(seed)
+    if options.parameterization == "feedback":
+        StabilisedProblem.around(short, gain, seed).cost_and_gradient(seed)

@@ -75,12 +75,17 @@ class Problem:
 
     @property
     def input_lower(self) -> FloatArray:
-        """(N, m) input bounds per sample, shrunk by ``eps_i + input_margin`` and the margin
-        profile on this horizon (the box for L-BFGS-B)."""
+        """Input bounds shrunk by ``eps_i + input_margin`` (the box for L-BFGS-B): (m,) when the
+        margins are constant, else (N, m) per sample with the margin profile on this horizon;
+        either broadcasts against ``u (N, m)``."""
+        if self.constraints.profile.M == 1:
+            return self.constraints.grid(1, 1).input_lower[0]
         return self.constraints.grid(self.N, self.substeps).input_lower
 
     @property
     def input_upper(self) -> FloatArray:
+        if self.constraints.profile.M == 1:
+            return self.constraints.grid(1, 1).input_upper[0]
         return self.constraints.grid(self.N, self.substeps).input_upper
 
     @property
