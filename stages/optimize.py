@@ -157,10 +157,12 @@ def optimize_from(
     options: OptimizeOptions,
     *,
     N_demo: int,
+    infeasible_hint: str = "record a demonstration with more clearance",
 ) -> TrajectoryOptimization:
     """Minimum-time search from the flight ``x0 (n,)``, ``us (N, m)`` (a demo, or an optimized
     nominal to optimize again under new margins): first made feasible at its own ``N``, then
-    shortened. ``N_demo``: the demonstration's length, for the speedup."""
+    shortened. ``N_demo``: the demonstration's length, for the speedup; ``infeasible_hint``: what
+    to do when the flight cannot be made feasible at its own length."""
     box = scenario.operating_region if margins.region is None else margins.region
 
     def constrained(extra: float) -> Problem:
@@ -229,7 +231,7 @@ def optimize_from(
         return unchanged(
             time.perf_counter() - start,
             f"demo '{name}' could not be made feasible at its own length "
-            f"({first.message}); record a demonstration with more clearance",
+            f"({first.message}); {infeasible_hint}",
             tries=tuple(tries),
             log=first.log,
         )
@@ -320,6 +322,7 @@ def _reoptimize_in_worker(
         margins,
         options,
         N_demo=previous.N_demo,
+        infeasible_hint="its funnel's margins leave it no room: keep the previous round",
     )
 
 

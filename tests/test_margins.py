@@ -9,19 +9,22 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from pipeline import load_scenario
+from pipeline.numerics.funnel_bounds import Enclosure
 from pipeline.numerics.funnel_check import Funnel
 from pipeline.numerics.margins import MarginProfile, funnel_margins, per_point
 from pipeline.numerics.problem import make_problem
 from pipeline.numerics.tube import Tube
 
 
-def _funnel(K: np.ndarray, P: np.ndarray, rho: float, success: bool = True) -> Funnel:
+def _funnel(
+    K: np.ndarray, P: np.ndarray, rho: float, success: bool = True, enclosure=None
+) -> Funnel:
     """A funnel with gains ``K (N, m, n)`` and metrics ``P (N+1, n, n)`` (no hull data: the
-    margins read only K, P and rho)."""
+    margins read only K, P, rho and the enclosure)."""
     N = len(K)
     return Funnel(
         K=K, P=P, rho=rho, rate=0.0, margins=np.full((N, 2), -1.0), boxes=np.zeros((N, 2, 0)),
-        variables=(), vertices=(), enclosure=None, limits={}, binding="", seconds=0.0,
+        variables=(), vertices=(), enclosure=enclosure, limits={}, binding="", seconds=0.0,
         success=success, message="" if success else "rejected for the test",
     )  # fmt: skip
 
@@ -69,6 +72,30 @@ def test_a_growing_funnel_takes_each_intervals_larger_end(quadrotor):
     assert funnel_margins(quadrotor, _funnel(K, np.linalg.inv(Q), rho), level=1.0).clearance[
         0
     ] == pytest.approx(np.sqrt(2.0))
+
+
+def test_the_nominals_enclosure_widens_the_state_margins(quadrotor):
+    """Box = grid +- 0.1 (E1), range = grid +- (0.03, 0.04, 0.02, ...) (E2), tube extent
+    ``rho sqrt(Q_ii)`` 0.05 on the first interval and 0.2 on the second: the state margin is the
+    larger of the box and range + tube; the clearance gains the position's drift |(0.03, 0.04)|."""
+    n, m, N, rho = quadrotor.n, quadrotor.m, 2, 0.5
+    Q = np.array([0.01, 0.01, 0.16])[:, None, None] * np.eye(n)  # extents 0.05, 0.2
+    grid = np.zeros((N, 2, n))
+    drift = np.full(n, 0.02)
+    drift[list(quadrotor.position_index)] = (0.03, 0.04)
+    enclosure = Enclosure(
+        box=grid + np.array([-0.1, 0.1])[None, :, None],
+        rate_bound=np.zeros((N, n)),
+        grid_range=grid,
+        range=grid + np.stack([-drift, drift])[None],
+    )
+    funnel = _funnel(np.zeros((N, m, n)), np.linalg.inv(Q), rho, enclosure=enclosure)
+    plain = funnel_margins(quadrotor, funnel, enclosure=False)
+    np.testing.assert_allclose(plain.state[:, 2], [0.05, 0.2])
+    wide = funnel_margins(quadrotor, funnel)
+    np.testing.assert_allclose(wide.state[:, 2], [0.1, 0.22])
+    np.testing.assert_allclose(wide.clearance, plain.clearance + 0.05)
+    assert wide.final_clearance == plain.final_clearance
 
 
 def test_a_rejected_funnel_has_no_margins(quadrotor):

@@ -140,10 +140,18 @@ def per_point(values: FloatArray, substeps: int) -> FloatArray:
 
 
 def funnel_margins(
-    scenario: Scenario, funnel: Funnel, *, level: float | None = None
+    scenario: Scenario, funnel: Funnel, *, level: float | None = None, enclosure: bool = True
 ) -> MarginProfile:
     """The extents of ``funnel``'s tube at ``level`` (default its certified ``rho``) per sample
-    interval of its nominal (module docstring, from (E3)); raises if the funnel was rejected."""
+    interval of its nominal (module docstring, from (E3)); raises if the funnel was rejected.
+
+    ``enclosure``: the state extents also hold the nominal's a priori enclosure, which the
+    funnel's check requires inside the hull boxes, themselves clipped to the state bounds
+    (``funnel_bounds`` (E1)-(E2): on interval ``k`` the box ``grid +- pad`` and the range
+    ``grid +- F h / 2`` widened by the tube): ``state[k, i] = max(pad, F h / 2 + rho s)``,
+    measured from the nominal's grid points, so that a nominal kept that far inside the state
+    bounds leaves the next funnel the room its enclosure needs; likewise the clearance gains the
+    position's motion between grid points, ``|F_XY| h / 2`` ((a) of ``funnel_bounds``)."""
     if not funnel.success:
         raise ValueError(f"funnel_margins: the funnel was not certified ({funnel.message})")
     rho = funnel.rho if level is None else float(level)
@@ -155,10 +163,19 @@ def funnel_margins(
     diagonal = np.diagonal(Q, axis1=1, axis2=2)  # (N+1, n)
     position = np.linalg.eigvalsh(Q[:, c][:, :, c])[:, -1]  # (N+1,) lambda_max(C Q C^T)
     gains = [np.einsum("kji,kil,kjl->kj", K, Q[e : len(Q) - 1 + e], K) for e in (0, 1)]
+    state = rho * np.sqrt(np.maximum(diagonal[:-1], diagonal[1:]))  # (N, n)
+    clearance = rho * np.sqrt(np.maximum(position[:-1], position[1:]))  # (E3)
+    if enclosure and funnel.enclosure is not None:
+        box, grid, reach = funnel.enclosure.box, funnel.enclosure.grid_range, funnel.enclosure.range
+        pad = np.maximum(grid[:, 0] - box[:, 0], box[:, 1] - grid[:, 1])  # (E1)
+        drift = np.maximum(grid[:, 0] - reach[:, 0], reach[:, 1] - grid[:, 1])  # (E2): F h / 2
+        state = np.maximum(np.maximum(pad, drift + state), 0.0)
+        # (a) of funnel_bounds: between grid points the position moves V h / 2, V = |F_XY|
+        clearance = clearance + np.hypot(*drift[:, list(scenario.position_index)].T)
     return MarginProfile(
-        clearance=rho * np.sqrt(np.maximum(position[:-1], position[1:])),  # (E3)
+        clearance=clearance,
         input=rho * np.sqrt(np.maximum(np.maximum(*gains), 0.0)),
-        state=rho * np.sqrt(np.maximum(diagonal[:-1], diagonal[1:])),
+        state=state,
         final_clearance=float(rho * np.sqrt(position[-1])),
         final_state=rho * np.sqrt(diagonal[-1]),
     )
