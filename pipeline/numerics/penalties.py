@@ -151,7 +151,8 @@ class Constraints:
 
     Attributes:
       input_lower, input_upper: (m,) input bounds shrunk by ``eps_i + input_margin``.
-      region: name -> shrunk (lower, upper) operating-region box (states and inputs).
+      region: name -> (lower, upper) box the nominal stays in (the operating region, or the
+        box given to ``build_constraints``) shrunk by region_margin (states and inputs).
       region_state_index, region_state_lower, region_state_upper: (a,) the state part.
       region_input_index, region_input_lower, region_input_upper: (b,) the input part.
       goal_region: ModGoal (polygon over position); goal_index, goal_lower, goal_upper: (c,)
@@ -160,7 +161,7 @@ class Constraints:
       position_index: (2,) position states.
       profile: the margins that vary along the trajectory, on top of the bounds above
         (``MarginProfile.zero`` for constant margins); ``grid(N, s)`` combines the two.
-    Without ``profile`` the bounds above are the constant margins' and hold at every time.
+    With ``MarginProfile.zero`` the bounds above hold at every time.
     """
 
     input_lower: FloatArray
