@@ -298,9 +298,16 @@ def optimize(
     results = executor.map(
         _optimize_in_worker, tasks, done=None if progress is None else lambda _i: progress(1)
     )
+    return _result(results, options, "optimized and verified")
+
+
+def _result(
+    results: Sequence[TrajectoryOptimization], options: OptimizeOptions, done: str
+) -> OptimizeResult:
+    """The stage's result: successful iff every trajectory is; the message lists the failures."""
     failed = [r for r in results if not r.success]
     message = (
-        f"all {len(results)} trajectories optimized and verified"
+        f"all {len(results)} trajectories {done}"
         if not failed
         else "; ".join(r.message for r in failed)
     )
@@ -384,12 +391,4 @@ def reoptimize_with_funnels(
     results = [by_index[i] for i in range(len(trajectories))]
     if progress is not None:
         progress(len(kept))
-    failed = [r for r in results if not r.success]
-    message = (
-        f"all {len(results)} trajectories optimized again within their funnels and verified"
-        if not failed
-        else "; ".join(r.message for r in failed)
-    )
-    return OptimizeResult(
-        trajectories=tuple(results), options=options, success=not failed, message=message
-    )
+    return _result(results, options, "optimized again within their funnels and verified")
