@@ -29,7 +29,6 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -186,12 +185,16 @@ def optimize_from(
             profile=margins.profile,
         )
 
-    def unchanged(seconds: float, message: str, **found: Any) -> TrajectoryOptimization:
-        values = {"tries": (), "log": IterationLog.empty()} | found
+    def unchanged(
+        seconds: float,
+        message: str,
+        tries: tuple[BisectionTry, ...] = (),
+        log: IterationLog | None = None,
+    ) -> TrajectoryOptimization:
         return TrajectoryOptimization(
             demo=name, x0=np.asarray(x0, dtype=np.float64), N_demo=N_demo, N=len(us), u=us,
-            Ts=scenario.Ts, feasible_inputs=(), verification=None, seconds=seconds,
-            success=False, message=message, **values,
+            Ts=scenario.Ts, tries=tries, feasible_inputs=(), log=log or IterationLog.empty(),
+            verification=None, seconds=seconds, success=False, message=message,
         )  # fmt: skip
 
     try:

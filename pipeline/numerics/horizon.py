@@ -27,10 +27,17 @@ PARAMETERIZATIONS = ("feedback", "open_loop")
 class DescentOptions(Protocol):
     """The options ``minimise`` reads (``stages.optimize.OptimizeOptions``)."""
 
-    method: str
-    parameterization: str
-    overshoot: float
-    max_iterations: int
+    @property
+    def method(self) -> str: ...
+
+    @property
+    def parameterization(self) -> str: ...
+
+    @property
+    def overshoot(self) -> float: ...
+
+    @property
+    def max_iterations(self) -> int: ...
 
 
 def reseed(u: FloatArray, N: int, mode: str) -> FloatArray:

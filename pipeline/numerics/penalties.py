@@ -69,7 +69,7 @@ def box_penalty(
     return np.sum(excess**2, axis=-1), 2.0 * excess
 
 
-def barrier(r: FloatArray, d: float) -> tuple[FloatArray, FloatArray]:
+def barrier(r: FloatArray, d: float | FloatArray) -> tuple[FloatArray, FloatArray]:
     """The Unsafe barrier of eq. (42), corrected, and its slope ``db/dr``.
 
     (42) as printed, ``-log(r - d) + (r - d)/d`` on ``r <= d``, takes the log of a non-positive
@@ -80,7 +80,8 @@ def barrier(r: FloatArray, d: float) -> tuple[FloatArray, FloatArray]:
     that it is positive for every ``r < d``.
 
     Args:
-      r: (...) distances (>= 0). Returns value (...), slope (...) (0 where the value is inf).
+      r: (...) distances (>= 0); d: d', a number or (...) per distance. Returns value (...),
+        slope (...) (0 where the value is inf).
     """
     r = np.asarray(r, dtype=np.float64)
     z = np.minimum(r - d, 0.0) / d

@@ -79,7 +79,7 @@ def verify_nominal(
         np.asarray(scenario.clearance if clearance is None else clearance, float), (N,)
     )
     if goal_clearance is None:
-        if np.ndim(clearance) != 0:
+        if clearance is not None and np.ndim(clearance) != 0:
             raise ValueError("verify_nominal: a clearance per interval needs goal_clearance")
         goal_clearance = float(d_k[0])
     d = float(d_k.max())
@@ -129,8 +129,8 @@ def verify_nominal(
     input_margin = float(np.min(np.minimum(us - input_lower, input_upper - us)))
     if input_margin < 0:
         failures.append(f"input outside its bounds by {-input_margin:.3g}")
-    region_margin = np.inf
-    for name, (lower, upper) in region.items():
+    region_margin = float(np.inf)
+    for name, (floor, ceiling) in region.items():  # numbers, or (N,) per interval
         if name in scenario.state_names:
             i = scenario.state_names.index(name)
             slack = float(np.max(np.abs(xdot[:, i]))) * h / 2
@@ -139,12 +139,12 @@ def verify_nominal(
         else:
             low = high = us[:, scenario.input_names.index(name)]
             slack = 0.0
-        room = np.minimum(low - lower, upper - high) - slack  # (N,)
+        room = np.minimum(low - floor, ceiling - high) - slack  # (N,)
         margin = float(np.min(room))
         region_margin = min(region_margin, margin)
         if margin < 0:
             k = int(np.argmin(room))
-            lo, hi = (float(np.broadcast_to(bound, (N,))[k]) for bound in (lower, upper))
+            lo, hi = (float(np.broadcast_to(bound, (N,))[k]) for bound in (floor, ceiling))
             failures.append(
                 f"'{name}' leaves the region [{lo:.3g}, {hi:.3g}] near t = {k * scenario.Ts:.2f} s"
             )
