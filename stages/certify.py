@@ -112,6 +112,7 @@ def _held(controller: Controller, A: np.ndarray, B: np.ndarray) -> list[str]:
     """Step 3 for held feedback: ``h`` divides ``Ts`` and the file's rate is at most
     ``lambda_h`` (from the largest rate (C) certifies at the vertices ``A (V, n, n)``, ``B (V, n,
     m)``)."""
+    assert controller.P is not None and controller.K is not None and controller.rate is not None
     h = controller.feedback_period
     steps = controller.Ts / h
     if abs(steps - round(steps)) > 1e-9 * steps or steps < 1 - 1e-9:
@@ -175,6 +176,7 @@ def _contraction_margin(controller: Controller, A: np.ndarray, B: np.ndarray) ->
     """Largest eigenvalue of ``A_cl^T P + P A_cl + 2 lambda P`` over ``A (V, n, n)``,
     ``B (V, n, m)`` with ``A_cl = A + B K`` (eq. (C) of the module docstring)."""
     P, K = controller.P, controller.K
+    assert P is not None and K is not None and controller.rate is not None  # a /1 file
     A_cl = A + B @ K  # (V, n, n)
     M = np.swapaxes(A_cl, 1, 2) @ P + P @ A_cl + 2.0 * controller.rate * P
     return float(np.linalg.eigvalsh((M + np.swapaxes(M, 1, 2)) / 2).max())

@@ -120,3 +120,23 @@ def funnel_artifact(tmp_path_factory):
     path = tmp_path_factory.mktemp("funnel") / "controller.json"
     emit_funnel_controller(scenario, trajectories, funnels, path)
     return scenario, path
+
+
+@pytest.fixture(scope="session")
+def quadrotor_funnel_artifact(tmp_path_factory):
+    """``(scenario, path)``: a ``safety-controller/2`` file for quadrotor_hill from one real
+    funnel (demo 0 in full, the scenario's state bounds; about 20-25 s), the shipped scenario
+    unchanged (its Init is not all covered by one funnel)."""
+    from pipeline.model.scenario import load_scenario
+    from pipeline.model.simulate import simulate
+    from pipeline.numerics.funnel import synthesize_funnel
+    from stages.controller import emit_funnel_controller
+
+    scenario = load_scenario("quadrotor_hill", check_demos=False)
+    demo = scenario.demos[0]
+    trajectory = simulate(scenario.dynamics, demo.x0, demo.us, scenario.Ts)
+    funnel = synthesize_funnel(scenario, trajectory, state_bounds=scenario.state_bounds)
+    assert funnel.success, funnel.message
+    path = tmp_path_factory.mktemp("quadrotor_funnel") / "controller.json"
+    emit_funnel_controller(scenario, [trajectory], [funnel], path)
+    return scenario, path
