@@ -16,8 +16,11 @@ import json
 import numpy as np
 import pytest
 
+from pipeline.model.scenario import load_scenario
 from pipeline.model.simulate import simulate
+from pipeline.numerics.funnel import synthesize_funnel
 from stages.certify import certify_controller
+from stages.controller import emit_funnel_controller
 from tests.stages.conftest import emit_at_rest
 
 
@@ -266,3 +269,31 @@ def test_a_funnel_level_is_certified_up_to_its_limit_and_not_beyond(funnel_artif
         assert result.success == certified, result.message
         if not certified:
             assert "exceeds the limit" in result.message
+
+
+def test_a_funnel_file_with_a_terminal_controller_holds_each_end_funnel(tmp_path):
+    """A full double-integrator demo's funnel ends slowly in Goal: the terminal block is written
+    against the end funnel ``E(T)`` (its own ``P[N]``), re-verified, and refused when the end
+    funnel is made to stick out (a larger level)."""
+    scenario = load_scenario("double_integrator", check_demos=False)
+    demo = scenario.demos[0]
+    trajectory = simulate(scenario.dynamics, demo.x0, demo.us, scenario.Ts)
+    funnel = synthesize_funnel(scenario, trajectory)
+    assert funnel.success, funnel.message
+    path = tmp_path / "controller.json"
+    written = emit_funnel_controller(scenario, [trajectory], [funnel], path)
+    assert written.terminal, written.terminal_message
+    result = certify_controller(scenario, path)
+    assert result.terminal and 0 < result.terminal_fit <= 1
+    assert not [f for f in result.failures if f.startswith("terminal")], result.failures
+    # E(T) is small (the fit is mostly x_ref(T)'s offset from x_eq): P[N] / 1e4 makes it 100x
+    # larger, past the terminal ellipsoid
+
+    def bulge(document):
+        P = np.asarray(document["trajectories"][0]["P"])
+        P[-1] *= 1e-4
+        document["trajectories"][0]["P"] = P.tolist()
+
+    _tamper(path, bulge)
+    result = certify_controller(scenario, path)
+    assert "end tube is not inside the terminal ellipsoid" in result.message
