@@ -424,6 +424,10 @@ def test_funnel_file_selects_in_each_initial_metric_and_flies_the_gain_of_the_in
     open_loop = controller.with_gain(0.0)
     np.testing.assert_allclose(open_loop.unclipped(0.75, x, [0]), [[-0.5]])
     np.testing.assert_allclose(controller.trajectories[0].K, FUNNEL_K)  # unchanged
+    with pytest.raises(UncoveredStartError, match="coverage ratio 2.26"):
+        controller.select(np.array([1.6, 0.0]), strict=True)  # sqrt(2 * 1.6^2) from ball 0
+    with pytest.raises(BeyondHorizonError, match="no terminal controller"):
+        controller(1.5, x, np.array([0]))  # no terminal block: the law refuses t > T
 
 
 def test_funnel_metric_is_inverse_linear_between_samples(tmp_path):
