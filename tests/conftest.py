@@ -7,6 +7,11 @@ that uses ``synthesis`` or ``synthesized`` is put in the group of its scenario
 
 from __future__ import annotations
 
+import os
+import resource
+import time
+from collections import defaultdict
+
 import pytest
 
 from pipeline.runtime.api import synthesize
@@ -20,6 +25,101 @@ SYNTHESIS_FIXTURES = {"synthesis", "synthesized"}
 def synthesis_group(scenario: str) -> str:
     """The xdist group of the tests that read ``scenario``'s session synthesis."""
     return f"synthesis-{scenario}"
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption(
+        "--cpu-durations",
+        type=int,
+        default=None,
+        metavar="N",
+        help="after the run, list the N tests with the most CPU time (setup, call and teardown "
+        "of the worker plus its finished subprocesses; 0: all) and each worker's totals",
+    )
+
+
+CPU_TIME = pytest.StashKey[dict[str, float]]()
+
+
+def _cpu_seconds() -> float:
+    """CPU time of this process plus that of its subprocesses waited for so far (s)."""
+    children = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return time.process_time() + children.ru_utime + children.ru_stime
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_setup(item: pytest.Item):
+    return (yield from _timed(item, "setup"))
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_call(item: pytest.Item):
+    return (yield from _timed(item, "call"))
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_teardown(item: pytest.Item):
+    return (yield from _timed(item, "teardown"))
+
+
+def _timed(item: pytest.Item, when: str):
+    start = _cpu_seconds()
+    try:
+        return (yield)
+    finally:
+        item.stash.setdefault(CPU_TIME, {})[when] = _cpu_seconds() - start
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo):
+    """Carry each phase's CPU time and worker in the report (xdist sends it to the controller)."""
+    report = yield
+    seconds = item.stash.get(CPU_TIME, {}).get(call.when)
+    if seconds is not None:
+        worker = os.environ.get("PYTEST_XDIST_WORKER", "main")
+        report.user_properties.extend([("cpu_seconds", seconds), ("worker", worker)])
+    return report
+
+
+class _CpuTally:
+    """Per test: CPU and wall seconds summed over its phases, and the worker that ran it."""
+
+    def __init__(self) -> None:
+        self.cpu: dict[str, float] = defaultdict(float)
+        self.wall: dict[str, float] = defaultdict(float)
+        self.worker: dict[str, str] = {}
+
+
+_TALLY = _CpuTally()
+
+
+def pytest_runtest_logreport(report: pytest.TestReport) -> None:
+    properties = dict(report.user_properties)
+    if "cpu_seconds" in properties:
+        _TALLY.cpu[report.nodeid] += float(properties["cpu_seconds"])
+        _TALLY.wall[report.nodeid] += report.duration
+        _TALLY.worker[report.nodeid] = str(properties["worker"])
+
+
+def pytest_terminal_summary(terminalreporter, config: pytest.Config) -> None:
+    count = config.getoption("cpu_durations")
+    if count is None or not _TALLY.cpu:
+        return
+    write = terminalreporter.write_line
+    terminalreporter.section("CPU time per test (s; worker plus finished subprocesses)")
+    ranked = sorted(_TALLY.cpu, key=_TALLY.cpu.__getitem__, reverse=True)
+    for nodeid in ranked[: count or None]:
+        write(
+            f"{_TALLY.cpu[nodeid]:8.2f} cpu {_TALLY.wall[nodeid]:8.2f} wall "
+            f"{_TALLY.worker[nodeid]:>5}  {nodeid}"
+        )
+    for worker in sorted(set(_TALLY.worker.values())):
+        tests = [n for n in _TALLY.cpu if _TALLY.worker[n] == worker]
+        cpu = sum(_TALLY.cpu[n] for n in tests)
+        wall = sum(_TALLY.wall[n] for n in tests)
+        write(f"worker {worker}: {len(tests)} tests, {cpu:.1f} s cpu, {wall:.1f} s wall")
+    cpu, wall = sum(_TALLY.cpu.values()), sum(_TALLY.wall.values())
+    write(f"all tests: {cpu:.1f} s cpu, {wall:.1f} s wall")
 
 
 @pytest.hookimpl(tryfirst=True)  # before xdist's own hook reads the groups in each worker
