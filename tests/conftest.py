@@ -1,25 +1,138 @@
 """Shared fixtures: one full synthesis per shipped scenario per test session.
 
 ``make test`` runs the suite on two pytest-xdist workers with ``--dist loadgroup``: every test
-that uses ``synthesis`` or ``synthesized`` is put in the group of its scenario
-(``pytest_collection_modifyitems`` below), so each scenario is synthesized once, by one worker.
+that uses ``synthesis_run``, ``synthesis`` or ``synthesized`` is put in the group of its scenario
+(``pytest_collection_modifyitems`` below), so each scenario is synthesized once, by one worker;
+the groups and the slow tests are handed out first (``SCHEDULE``), so that the two workers start
+with the long syntheses and end together.
 """
 
 from __future__ import annotations
 
+import logging
+import os
+import resource
+import time
+from collections import defaultdict
+from contextlib import redirect_stderr, redirect_stdout
+from dataclasses import dataclass
+from io import StringIO
+from pathlib import Path
+
 import pytest
 
-from pipeline.runtime.api import synthesize
+import pipeline
+from pipeline.runtime.synthesis import Synthesis
 
 E2E_SAMPLES = 1000  # quadrotor_hill: the end-to-end tests reuse its run
 CI_SYNTHESIS_SAMPLES = 300  # every other shipped scenario: the CI safety check only
 SAMPLES = {"quadrotor_hill": E2E_SAMPLES}
-SYNTHESIS_FIXTURES = {"synthesis", "synthesized"}
+SYNTHESIS_FIXTURES = {"synthesis_run", "synthesis", "synthesized"}
+# The order in which the scheduler hands out work: these groups, then the tests marked slow,
+# then the rest. With two workers the first goes to one, the second to the other, and the third
+# (its worker has only the first group's two tests left) again to the first: the unicycle's
+# synthesis (the longest) runs beside the quadrotor's group from the start.
+SCHEDULE = ("unicycle_slalom", "quadrotor_hill", "double_integrator")
 
 
 def synthesis_group(scenario: str) -> str:
     """The xdist group of the tests that read ``scenario``'s session synthesis."""
     return f"synthesis-{scenario}"
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption(
+        "--cpu-durations",
+        type=int,
+        default=None,
+        metavar="N",
+        help="after the run, list the N tests with the most CPU time (setup, call and teardown "
+        "of the worker plus its finished subprocesses; 0: all) and each worker's totals",
+    )
+
+
+CPU_TIME = pytest.StashKey[dict[str, float]]()
+
+
+def _cpu_seconds() -> float:
+    """CPU time of this process plus that of its subprocesses waited for so far (s)."""
+    children = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return time.process_time() + children.ru_utime + children.ru_stime
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_setup(item: pytest.Item):
+    return (yield from _timed(item, "setup"))
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_call(item: pytest.Item):
+    return (yield from _timed(item, "call"))
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_teardown(item: pytest.Item):
+    return (yield from _timed(item, "teardown"))
+
+
+def _timed(item: pytest.Item, when: str):
+    start = _cpu_seconds()
+    try:
+        return (yield)
+    finally:
+        item.stash.setdefault(CPU_TIME, {})[when] = _cpu_seconds() - start
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo):
+    """Carry each phase's CPU time and worker in the report (xdist sends it to the controller)."""
+    report = yield
+    seconds = item.stash.get(CPU_TIME, {}).get(call.when)
+    if seconds is not None:
+        worker = os.environ.get("PYTEST_XDIST_WORKER", "main")
+        report.user_properties.extend([("cpu_seconds", seconds), ("worker", worker)])
+    return report
+
+
+class _CpuTally:
+    """Per test: CPU and wall seconds summed over its phases, and the worker that ran it."""
+
+    def __init__(self) -> None:
+        self.cpu: dict[str, float] = defaultdict(float)
+        self.wall: dict[str, float] = defaultdict(float)
+        self.worker: dict[str, str] = {}
+
+
+_TALLY = _CpuTally()
+
+
+def pytest_runtest_logreport(report: pytest.TestReport) -> None:
+    properties = dict(report.user_properties)
+    if "cpu_seconds" in properties:
+        _TALLY.cpu[report.nodeid] += float(properties["cpu_seconds"])
+        _TALLY.wall[report.nodeid] += report.duration
+        _TALLY.worker[report.nodeid] = str(properties["worker"])
+
+
+def pytest_terminal_summary(terminalreporter, config: pytest.Config) -> None:
+    count = config.getoption("cpu_durations")
+    if count is None or not _TALLY.cpu:
+        return
+    write = terminalreporter.write_line
+    terminalreporter.section("CPU time per test (s; worker plus finished subprocesses)")
+    ranked = sorted(_TALLY.cpu, key=_TALLY.cpu.__getitem__, reverse=True)
+    for nodeid in ranked[: count or None]:
+        write(
+            f"{_TALLY.cpu[nodeid]:8.2f} cpu {_TALLY.wall[nodeid]:8.2f} wall "
+            f"{_TALLY.worker[nodeid]:>5}  {nodeid}"
+        )
+    for worker in sorted(set(_TALLY.worker.values())):
+        tests = [n for n in _TALLY.cpu if _TALLY.worker[n] == worker]
+        cpu = sum(_TALLY.cpu[n] for n in tests)
+        wall = sum(_TALLY.wall[n] for n in tests)
+        write(f"worker {worker}: {len(tests)} tests, {cpu:.1f} s cpu, {wall:.1f} s wall")
+    cpu, wall = sum(_TALLY.cpu.values()), sum(_TALLY.wall.values())
+    write(f"all tests: {cpu:.1f} s cpu, {wall:.1f} s wall")
 
 
 @pytest.hookimpl(tryfirst=True)  # before xdist's own hook reads the groups in each worker
@@ -42,6 +155,31 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
         _suffix_groups(items)
 
 
+def pytest_configure(config: pytest.Config) -> None:
+    if getattr(config.option, "loadscopereorder", False):
+        # xdist would hand out the groups largest first; ``_Schedule`` orders them instead
+        config.option.loadscopereorder = False
+    config.pluginmanager.register(_Schedule(), "schedule")
+
+
+class _Schedule:
+    """Collection order = the order the scheduler hands work out (``--dist loadgroup`` without
+    xdist's reordering by size): the groups of ``SCHEDULE``, then tests marked ``slow``, then the
+    rest, each in collection order (a stable sort)."""
+
+    @pytest.hookimpl(trylast=True)  # after pytest's own reordering by parametrized fixtures
+    def pytest_collection_modifyitems(self, items: list[pytest.Item]) -> None:
+        first = {synthesis_group(name): rank for rank, name in enumerate(SCHEDULE)}
+
+        def rank(item: pytest.Item) -> int:
+            for marker in item.iter_markers("xdist_group"):
+                if marker.args and str(marker.args[0]) in first:
+                    return first[str(marker.args[0])]
+            return len(SCHEDULE) + (0 if item.get_closest_marker("slow") else 1)
+
+        items.sort(key=rank)
+
+
 def _suffix_groups(items: list[pytest.Item]) -> None:
     """In an xdist worker under ``--dist loadgroup``: append ``@GROUP`` to each grouped test's
     node id, which is what the scheduler groups by. xdist's own hook does it by setting
@@ -55,18 +193,73 @@ def _suffix_groups(items: list[pytest.Item]) -> None:
             item._id = coerce_node_id(f"{item.nodeid}@{'_'.join(groups)}")
 
 
-@pytest.fixture(scope="session")
-def synthesis(tmp_path_factory):
-    """Factory: ``synthesis(name)`` -> ``(exit_code, out)`` of ``synthesize name`` with
-    ``SAMPLES.get(name, CI_SYNTHESIS_SAMPLES)`` Monte Carlo samples, run once per session."""
-    runs: dict[str, tuple[int, object]] = {}
+@dataclass(frozen=True, kw_only=True)
+class SessionRun:
+    """``pipeline.synthesize(name, samples=samples)`` as a user runs it: from the empty directory
+    ``cwd`` (outputs in ``cwd/reports/NAME``), with the records the ``pipeline`` logger emitted
+    at INFO and all the library printed (it should print nothing)."""
 
-    def run(name: str):
+    result: Synthesis
+    samples: int
+    cwd: Path
+    records: tuple[logging.LogRecord, ...]
+    printed: str
+
+    @property
+    def out(self) -> Path:
+        return self.cwd / "reports" / self.result.scenario
+
+
+def _synthesize_from_empty_directory(name: str, where: Path, samples: int) -> SessionRun:
+    records: list[logging.LogRecord] = []
+    handler = logging.Handler()
+    handler.emit = records.append  # type: ignore[method-assign]
+    logger = logging.getLogger("pipeline")
+    logger.addHandler(handler)
+    logger.setLevel(logging.INFO)
+    printed = StringIO()
+    try:
+        with pytest.MonkeyPatch.context() as patch, redirect_stdout(printed):
+            with redirect_stderr(printed):
+                patch.chdir(where)
+                result = pipeline.synthesize(name, samples=samples)
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(logging.NOTSET)
+    return SessionRun(
+        result=result,
+        samples=samples,
+        cwd=where,
+        records=tuple(records),
+        printed=printed.getvalue(),
+    )
+
+
+@pytest.fixture(scope="session")
+def synthesis_run(tmp_path_factory: pytest.TempPathFactory):
+    """Factory: ``synthesis_run(name)`` -> the ``SessionRun`` of ``name`` with
+    ``SAMPLES.get(name, CI_SYNTHESIS_SAMPLES)`` Monte Carlo samples, run once per session.
+    Tests that only read it share it; a test that changes files works on a copy of ``out``."""
+    runs: dict[str, SessionRun] = {}
+
+    def run(name: str) -> SessionRun:
         if name not in runs:
-            out = tmp_path_factory.mktemp(name)
-            result = synthesize(name, out=out, samples=SAMPLES.get(name, CI_SYNTHESIS_SAMPLES))
-            runs[name] = (result.exit_code, out)
+            where = tmp_path_factory.mktemp(name)
+            runs[name] = _synthesize_from_empty_directory(
+                name, where, SAMPLES.get(name, CI_SYNTHESIS_SAMPLES)
+            )
         return runs[name]
+
+    return run
+
+
+@pytest.fixture(scope="session")
+def synthesis(synthesis_run):
+    """Factory: ``synthesis(name)`` -> ``(exit_code, out)`` of ``synthesis_run(name)``."""
+
+    def run(name: str) -> tuple[int, Path]:
+        session = synthesis_run(name)
+        return session.result.exit_code, session.out
 
     return run
 

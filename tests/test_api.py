@@ -6,14 +6,11 @@ from __future__ import annotations
 
 import dataclasses
 import inspect
-import io
 import json
-import logging
 import re
 import shutil
 import subprocess
 import sys
-from contextlib import redirect_stderr, redirect_stdout
 from pathlib import Path
 
 import numpy as np
@@ -25,27 +22,17 @@ from pipeline.runtime.options import RunOptions
 from pipeline.runtime.terminal import format_outputs, format_summary
 
 ROOT = Path(__file__).resolve().parents[1]
-SAMPLES = 200
+# the tests read the session's run of double_integrator (conftest): one worker runs it once
+pytestmark = pytest.mark.xdist_group("synthesis-double_integrator")
 
 
 @pytest.fixture(scope="module")
-def synthesized(tmp_path_factory: pytest.TempPathFactory):
-    """``pipeline.synthesize("double_integrator")`` run from an empty directory ->
-    ``(result, that directory, the pipeline logger's records, what it printed)``."""
-    where = tmp_path_factory.mktemp("user")
-    records: list[logging.LogRecord] = []
-    handler = logging.Handler()
-    handler.emit = records.append  # type: ignore[method-assign]
-    logger = logging.getLogger("pipeline")
-    logger.addHandler(handler)
-    logger.setLevel(logging.INFO)
-    printed = io.StringIO()
-    with pytest.MonkeyPatch.context() as patch, redirect_stdout(printed), redirect_stderr(printed):
-        patch.chdir(where)
-        result = pipeline.synthesize("double_integrator", samples=SAMPLES)
-    logger.removeHandler(handler)
-    logger.setLevel(logging.NOTSET)
-    return result, where, records, printed.getvalue()
+def synthesized(synthesis_run):
+    """``pipeline.synthesize("double_integrator")`` run from an empty directory (the session's
+    run, ``conftest.synthesis_run``) -> ``(result, that directory, the pipeline logger's
+    records, what it printed)``."""
+    run = synthesis_run("double_integrator")
+    return run.result, run.cwd, list(run.records), run.printed
 
 
 def test_public_names_are_listed_and_resolve():
@@ -96,7 +83,7 @@ def test_bad_arguments_raise_before_any_work(keywords, message, tmp_path):
     assert not (tmp_path / "out").exists()
 
 
-def test_synthesis_is_a_frozen_result_with_the_run_in_it(synthesized):
+def test_synthesis_is_a_frozen_result_with_the_run_in_it(synthesized, synthesis_run):
     result, where, _, printed = synthesized
     assert isinstance(result, pipeline.Synthesis)
     with pytest.raises(dataclasses.FrozenInstanceError):
@@ -110,7 +97,8 @@ def test_synthesis_is_a_frozen_result_with_the_run_in_it(synthesized):
     scenario = pipeline.load_scenario("double_integrator")
     assert [d.demo for d in result.demos] == [d.name for d in scenario.demos]
     assert all(d.T_optimized < d.T_demo for d in result.demos)
-    assert result.summary is not None and result.summary.montecarlo.samples == SAMPLES
+    samples = synthesis_run("double_integrator").samples
+    assert result.summary is not None and result.summary.montecarlo.samples == samples
 
     files = result.outputs
     assert files.folder == where / "reports" / "double_integrator"  # under the cwd
@@ -172,8 +160,11 @@ def test_the_terminal_explains_its_terms_in_the_scenarios_units(synthesized):
     assert "report.html" in outputs and "controller.json" in outputs
 
 
-def test_the_command_line_is_quiet_with_q_and_says_where_outputs_went(tmp_path, capsys):
+def test_the_command_line_is_quiet_with_q_and_says_where_outputs_went(
+    synthesized, tmp_path, capsys
+):
     out = tmp_path / "out"
+    shutil.copytree(synthesized[0].outputs.folder, out)  # the session's run, at other samples
     argv = ["synthesize", "double_integrator", "--out", str(out), "--samples", "20"]
     assert main([*argv, "-q"]) in (0, 1)
     assert capsys.readouterr().out.startswith("verdict: ")

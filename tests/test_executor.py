@@ -1,4 +1,9 @@
-"""Executors: identical results on any of them, retries, and failures reported by chunk."""
+"""Executors: identical results on any of them, retries, and failures reported by chunk.
+
+The worker processes are spawned and import this module to find the functions they run: it
+imports only the executor at the top (the stages, ~2 s of imports per worker, only where a test
+needs them).
+"""
 
 from __future__ import annotations
 
@@ -8,13 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline import load_scenario
-from pipeline.io.artifacts import read_stored
 from pipeline.io.errors import UserError
 from pipeline.io.executor import ChunkFailed, ProcessExecutor, SerialExecutor, make_executor
-from pipeline.runtime.registry import RESULT_TYPES
-from stages.montecarlo import validate_closed_loop
-from stages.optimize import ConstraintMargins, OptimizeOptions, optimize
 
 
 def _square(x):
@@ -80,6 +80,12 @@ def test_unknown_executor_is_a_user_error():
 
 
 def test_monte_carlo_and_optimization_are_identical_on_every_executor(synthesized):
+    from pipeline import load_scenario
+    from pipeline.io.artifacts import read_stored
+    from pipeline.runtime.registry import RESULT_TYPES
+    from stages.montecarlo import validate_closed_loop
+    from stages.optimize import ConstraintMargins, OptimizeOptions, optimize
+
     _, out = synthesized
     scenario = load_scenario("quadrotor_hill", check_demos=False)
     feedback = read_stored(out / "artifacts" / "feedback", RESULT_TYPES).result

@@ -1,10 +1,10 @@
 """Fault injection on the stage cache and the output folder (issue 14: 1, 2, 5, 6, 7, 8, 9).
 
-One short run of ``double_integrator`` (100 Monte Carlo samples) is copied for each test, which
-then tampers with, corrupts, locks or kills it and checks the next run's behaviour: nothing read
-from disk chooses code to run, an edited or damaged artifact is refused in one line and
-recomputed, a failed run says so and leaves no controller it did not certify, and the cache keys
-follow the code and the parsed inputs.
+The session's run of ``double_integrator`` (conftest; 300 Monte Carlo samples) is copied for
+each test, with a copy of the scenario folder, which then tampers with, corrupts, locks or kills
+it and checks the next run's behaviour: nothing read from disk chooses code to run, an edited or
+damaged artifact is refused in one line and recomputed, a failed run says so and leaves no
+controller it did not certify, and the cache keys follow the code and the parsed inputs.
 """
 
 from __future__ import annotations
@@ -30,17 +30,21 @@ from pipeline.runtime.cli import main
 from pipeline.runtime.registry import RESULT_TYPES
 
 ROOT = Path(__file__).resolve().parents[1]
-SAMPLES = "100"
-pytestmark = pytest.mark.xdist_group("faults")  # one worker: `finished` runs once
+SAMPLES = "300"  # the session run's (conftest.CI_SYNTHESIS_SAMPLES): a rerun reuses its stages
+pytestmark = pytest.mark.xdist_group("synthesis-double_integrator")  # with its session run
 
 
 @pytest.fixture(scope="module")
-def finished(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
-    """``(scenario folder, output folder)`` of one finished run on a copy of the scenario."""
+def finished(synthesis_run, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """``(scenario folder, output folder)`` of one finished run on a copy of the scenario: the
+    session's run (its stage keys hash the parsed scenario, not where its file is)."""
+    session = synthesis_run("double_integrator")
+    assert session.result.exit_code == 0 and session.samples == int(SAMPLES)
     base = tmp_path_factory.mktemp("faults")
     scenario = base / "double_integrator"
     shutil.copytree(ROOT / "scenarios" / "double_integrator", scenario)
     out = base / "out"
+    shutil.copytree(session.out, out)
     assert main(["synthesize", str(scenario), "--out", str(out), "--samples", SAMPLES, "-q"]) == 0
     return scenario, out
 

@@ -64,6 +64,20 @@ def run_cli(*args: str, timeout: float = CLI_TIME_LIMIT) -> subprocess.Completed
     )
 
 
+def synthesize_in_process(
+    capsys: pytest.CaptureFixture[str], *args: str
+) -> subprocess.CompletedProcess[str]:
+    """``python -m pipeline synthesize ARGS`` run in this process under ``CLI_TIME_LIMIT`` (a
+    hang fails the test): the same exit code and output as ``run_cli`` without starting Python
+    and importing the pipeline again; an exception that ``main`` does not turn into exit 2
+    fails the test with its traceback."""
+    capsys.readouterr()
+    with time_limit(CLI_TIME_LIMIT):
+        code = main(["synthesize", *args])
+    printed = capsys.readouterr()
+    return subprocess.CompletedProcess(["synthesize", *args], code, printed.out, printed.err)
+
+
 def assert_one_line_exit_2(result: subprocess.CompletedProcess[str], *parts: str) -> None:
     assert result.returncode == 2, result.stderr
     assert "Traceback" not in result.stderr
@@ -183,7 +197,7 @@ def test_covering_radius_bisection_is_bounded(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
-def test_single_point_init_synthesizes(tmp_path: Path) -> None:
+def test_single_point_init_synthesizes(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """The shipped double integrator with Init shrunk to its first demo's start."""
     folder = tmp_path / "point"
     shutil.copytree(SHIPPED / "double_integrator", folder)
@@ -195,7 +209,7 @@ def test_single_point_init_synthesizes(tmp_path: Path) -> None:
         "".join(line for line in text.splitlines(True) if "demo_0" not in line or "demo_01" in line)
     )
     out = tmp_path / "out"
-    result = run_cli("synthesize", str(path), "--out", str(out), "--samples", "20", "-q")
+    result = synthesize_in_process(capsys, str(path), "--out", str(out), "--samples", "20", "-q")
     assert result.returncode == 0, result.stdout + result.stderr
     assert "certified and validated" in result.stdout
 
@@ -218,13 +232,15 @@ def test_no_demos_exits_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) ->
 
 
 @pytest.mark.slow
-def test_goal_too_small_for_the_covering_tubes_finishes_with_a_summary(tmp_path: Path) -> None:
+def test_goal_too_small_for_the_covering_tubes_finishes_with_a_summary(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     """Clearance 0.45 fits Goal (a 1 m square), but the tube that covers Init from one start
     is wider: the optimizer keeps the demo as flown and says why; no traceback."""
     path = write_scenario(tmp_path / "scenario")
     yaml_replace("clearance: 0.25", "clearance: 0.45")(path)
     out = tmp_path / "out"
-    result = run_cli("synthesize", str(path), "--out", str(out), "--samples", "20", "-q")
+    result = synthesize_in_process(capsys, str(path), "--out", str(out), "--samples", "20", "-q")
     assert result.returncode in (0, 1) and "Traceback" not in result.stderr, result.stderr
     summary = (out / "summary.json").read_text()
     assert "was not optimized: Goal shrunk by d + eps_g" in summary
@@ -256,7 +272,9 @@ def test_hull_of_abs_holds_every_jacobian_including_the_kink() -> None:
 
 
 @pytest.mark.slow
-def test_abs_in_the_dynamics_is_certified(tmp_path: Path) -> None:
+def test_abs_in_the_dynamics_is_certified(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     """A drag ``-0.1 |vY|`` (the demo flies at vY = 0, on the kink)."""
     path = write_scenario(tmp_path / "scenario")
     yaml_replace("vY: k*aY", "vY: k*aY - 0.1*abs(vY)")(path)
@@ -265,7 +283,7 @@ def test_abs_in_the_dynamics_is_certified(tmp_path: Path) -> None:
         "operating_region:\n  aX: [-2.0, 2.0]\n  vY: [-3.0, 3.0]",
     )(path)
     out = tmp_path / "out"
-    result = run_cli("synthesize", str(path), "--out", str(out), "--samples", "20", "-q")
+    result = synthesize_in_process(capsys, str(path), "--out", str(out), "--samples", "20", "-q")
     assert "Traceback" not in result.stderr, result.stderr
     assert result.returncode == 0 and "certified and validated" in result.stdout, result.stdout
     summary = (out / "summary.json").read_text()
