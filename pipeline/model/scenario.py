@@ -122,7 +122,7 @@ class Scenario:
         return self.dynamics.m
 
     def label(self, name: str, *, unit: bool = True) -> str:
-        """A state or input name for people: ``"u1 (thrust) [N]"``, or ``"u1"`` when the scenario
+        """A state or input name for people: ``"f (thrust) [N]"``, or ``"f"`` when the scenario
         declares neither a label nor a unit for it."""
         text = name
         if name in self.labels:
