@@ -156,9 +156,9 @@ def solve_clarabel(program: FunnelProgram) -> tuple[FloatArray, float] | str:
     sG = np.swapaxes(svec(G), 1, 2)  # (T, p rows, p unknowns)
     D = sE.T / Ts[k_of][:, None, None]  # (T, p, p): the unknowns of Q[k] in -dQ/dt
     for e in (0, 1):  # A = svec(M(E_l)) on the unknowns of Q[k] and Q[k+1], b = 0
-        r = rows(len(J), p)
-        triplets.append(_block(r, of(k_of), D + (sG if e == 0 else 0.0)))
-        triplets.append(_block(r, of(k_of + 1), -D + (sG if e == 1 else 0.0)))
+        lmi_rows = rows(len(J), p)
+        triplets.append(_block(lmi_rows, of(k_of), D + (sG if e == 0 else 0.0)))
+        triplets.append(_block(lmi_rows, of(k_of + 1), -D + (sG if e == 1 else 0.0)))
         cones.extend(clarabel.PSDTriangleConeT(n) for _ in range(len(J)))
     b_parts.append(np.zeros(2 * len(J) * p))
     rows_, cols_, vals_ = (np.concatenate(part) for part in zip(*triplets, strict=True))

@@ -121,7 +121,9 @@ def piece_hulls(
                     w = min(w, arc_cap(centre[1] - centre[0]))
                 lower, upper = _limits_of(scenario, state_bounds, name)
                 box[:, d] = max(centre[0] - w, lower), min(centre[1] + w, upper)
-            region = dict(zip(variables, box.T, strict=True))
+            region = {
+                name: (float(box[0, d]), float(box[1, d])) for d, name in enumerate(variables)
+            }
             hull = jacobian_hull(dynamics, region, segments, compact=True)
             for k in range(a, b):
                 F[k] = rate_bound(dynamics, trajectory, k, B[k - a], hull.A)  # eq. (E1)
