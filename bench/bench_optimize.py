@@ -38,6 +38,12 @@ ModGoal (a convex polygon; a box here) is ``A p <= b`` from its edges. The NLP's
 tightened by ``NLP_MARGIN`` so that IPOPT's solution, to its tolerance, also has our cost
 ``J == 0`` exactly; it is then checked with ``J`` and ``pipeline.numerics.verify.verify_nominal``.
 
+Certification's cost (issue 16): ``T_unc`` is IPOPT's minimum time from the same start with no
+tube at all (``bench.uncertified``: clearance d, Goal itself, the full input bounds and the
+scenario's ``state_bounds``), and ``cert/unc`` is ``T_certified / T_unc`` with ``T_certified`` the
+optimized T of the synthesized run's method (``OptimizeOptions().method``, the constant
+certificate's tube: what the optimize stage returns for that demo).
+
 Wall times: ours is ``optimize_demo`` (the whole search, after the numba kernels are loaded);
 IPOPT's is every NLP build and solve of phases 1 and 2. Runs on all 9 demos (about a minute).
 """
@@ -50,6 +56,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from bench.uncertified import uncertified_constraints
 from pipeline.model.scenario import Scenario, load_scenario
 from pipeline.model.simulate import simulate
 from pipeline.numerics.penalties import Constraints
@@ -345,10 +352,14 @@ def run() -> None:
     if casadi is not None:
         header += (
             f" {'T*_free':>7} {'T_ipopt':>7} {'gd/ip':>6} {'lb/ip':>6} {'t_gd':>6} {'t_lbfgs':>7}"
-            f" {'t_ipopt':>7} {'NLPs':>4} {'iters':>5} {'tgd/ip':>6} {'tlb/ip':>6}  IPOPT solution"
+            f" {'t_ipopt':>7} {'NLPs':>4} {'iters':>5} {'tgd/ip':>6} {'tlb/ip':>6}"
+            f" {'T_unc':>5} {'cert/unc':>8}  IPOPT solution"
         )
     print(header)
     rows: list[tuple[dict[str, tuple[float, float]], float, float]] = []
+    certified = OptimizeOptions().method  # the synthesized run's method
+    uncertified = uncertified_constraints(scenario)
+    costs: list[float] = []
     for i, demo in enumerate(scenario.demos):
         ours = {}
         for method, option in options.items():
@@ -374,15 +385,25 @@ def run() -> None:
         check = _ipopt_check(scenario, problem, ipopt, verify_region)
         T_ip = ipopt.N * Ts if ipopt.U is not None else np.nan
         rows.append((ours, T_ip, ipopt.seconds))
+        free = ipopt_minimum_time(scenario, i, uncertified)
+        T_unc = free.N * Ts if free.U is not None else np.nan
+        costs.append(ours[certified][0] / T_unc)
         print(
             f"{line} {ipopt.T_free:>7.2f} {T_ip:>7.1f} {ours['gd'][0] / T_ip:>6.2f}"
             f" {ours['lbfgs'][0] / T_ip:>6.2f} {ours['gd'][1]:>6.2f} {ours['lbfgs'][1]:>7.2f}"
             f" {ipopt.seconds:>7.2f} {ipopt.nlps:>4} {ipopt.iterations:>5}"
             f" {ours['gd'][1] / ipopt.seconds:>6.2f} {ours['lbfgs'][1] / ipopt.seconds:>6.2f}"
-            f"  {check}"
+            f" {T_unc:>5.1f} {costs[-1]:>8.2f}  {check}"
+            + ("" if free.U is not None else f"; uncertified IPOPT FAILED ({free.message})")
         )
     if rows:
         _summary(rows)
+        print(
+            f"  (issue 16) T_certified / T_uncertified ({certified}, constant certificate):"
+            f" {np.nanmin(costs):.2f}-{np.nanmax(costs):.2f}, median {np.nanmedian(costs):.2f};"
+            " T_unc: IPOPT with no tube, clearance d, Goal, full input bounds, state_bounds"
+            f" {dict(scenario.state_bounds)}"
+        )
 
 
 def _summary(rows: list[tuple[dict[str, tuple[float, float]], float, float]]) -> None:

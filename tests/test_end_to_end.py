@@ -26,6 +26,7 @@ from pipeline import Verdict, available_scenarios, load_scenario
 from pipeline.controller import load
 from pipeline.model.simulate import simulate
 from pipeline.numerics.closed_loop import RunChecks, check_runs, simulate_closed_loop
+from pipeline.runtime.api import synthesize
 from pipeline.runtime.summary import demo_table
 from stages.montecarlo import falsify, validate_closed_loop
 
@@ -33,7 +34,10 @@ ROOT = Path(__file__).resolve().parents[1]
 CI_SAMPLES = {"quadrotor_hill": 1000}  # closed-loop runs per scenario; others: CI_SAMPLES_OTHER
 CI_SAMPLES_OTHER = 300
 CI_SEED = 987654321  # not the pipeline's Monte Carlo seed
-SHIPPED = available_scenarios()
+# quadrotor_hill_gusty's synthesis takes minutes (its coverage of a 5-dimensional Init), too long
+# for ``make test``: ``test_gusty_synthesis_runs`` below runs it when PIPELINE_SLOW_TESTS=1.
+NOT_IN_MAKE_TEST = ("quadrotor_hill_gusty",)
+SHIPPED = [name for name in available_scenarios() if name not in NOT_IN_MAKE_TEST]
 
 
 def _closed_loop_failures(scenario, controller, x0):
@@ -309,3 +313,19 @@ def test_the_demo_table_lists_each_unsafe_set_and_the_goal_check():
         for t in trajectories
     )
     assert f"{closest:.3f}" in "\n".join(lines) and all(line.endswith("yes") for line in lines[1:])
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(
+    os.environ.get("PIPELINE_SLOW_TESTS") != "1",
+    reason="minutes of synthesis: set PIPELINE_SLOW_TESTS=1 (not part of make test)",
+)
+@pytest.mark.parametrize("name", NOT_IN_MAKE_TEST)
+def test_gusty_synthesis_runs(tmp_path, name):
+    """The gusty scenario synthesizes end to end with the constant certificate, and its summary
+    states the verdict (it may not certify: issue 16 expects the funnel to be needed)."""
+    result = synthesize(name, out=tmp_path, samples=2000)
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert result.exit_code in (0, 1), summary
+    assert set(summary["verdict"]) >= {"certified", "validated"}
+    assert len(summary["demos"]) == len(load_scenario(name).demos)

@@ -8,7 +8,8 @@
    Jacobians sampled from its box (LP membership); the nominal stays in its enclosure (E2)
    between grid points (solve_ivp at tight tolerance).
 3. The independent check rejects a funnel whose ``P`` is perturbed.
-4. The hand-built Clarabel program (funnel_lmi) has the optimum of the same program in cvxpy.
+4. The hand-built Clarabel program (funnel_lmi) has the optimum of the same program in cvxpy,
+   also with intervals of different durations (the LMI pieces of funnel.HOLD samples).
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from pipeline.model.scenario import load_scenario
 from pipeline.model.simulate import simulate
 from pipeline.numerics.funnel import check_funnel, lqr_seed, synthesize_funnel
 from pipeline.numerics.funnel_lmi import FunnelProgram, basis, solve_clarabel, solve_cvxpy, svec
+from pipeline.numerics.funnel_pieces import pieces
 
 THETA_BOUNDS = {"theta": (-0.8, 0.8)}
 
@@ -212,16 +214,22 @@ def test_svec_is_an_isometry_and_basis_matches_it() -> None:
     np.testing.assert_allclose(svec(Q), q * np.where(diagonal, 1.0, np.sqrt(2.0)))
 
 
-def test_clarabel_program_matches_cvxpy() -> None:
-    """A small nonlinear program (quadrotor, 8 intervals, two vertices each, caps active)."""
+def _demo_start(samples: int):
+    """quadrotor_hill, the LQR seed ``K (N, m, n)``, ``Q_seed (N+1, n, n)`` and the nominal's
+    Jacobians ``J (N, n, n+m)`` over the first ``samples`` of demo 1."""
     scenario = load_scenario("quadrotor_hill", check_demos=False)
     demo = scenario.demos[0]
-    trajectory = simulate(scenario.dynamics, demo.x0, demo.us[:8], scenario.Ts)
+    trajectory = simulate(scenario.dynamics, demo.x0, demo.us[:samples], scenario.Ts)
     K, P = lqr_seed(scenario, trajectory)
     x, u = trajectory.xs[:-1], trajectory.us
     J = np.concatenate([scenario.dynamics.f_x(x, u), scenario.dynamics.f_u(x, u)], axis=2)
+    return scenario, K, np.linalg.inv(P), J
+
+
+def test_clarabel_program_matches_cvxpy() -> None:
+    """A small nonlinear program (quadrotor, 8 intervals, two vertices each, caps active)."""
+    scenario, K, Q_seed, J = _demo_start(8)
     vertices = tuple(np.stack([Jk, Jk * 1.05]) for Jk in J)
-    Q_seed = np.linalg.inv(P)
     caps = tuple((k, np.eye(6)[2:3], np.full((1, 1), 4 * Q_seed[0][2, 2])) for k in range(9))
     caps += ((8, np.eye(6)[:2], 1.5 * Q_seed[0][:2, :2]),)  # a 2 x 2 cap
     W = np.broadcast_to(np.eye(6), (9, 6, 6))
@@ -241,3 +249,23 @@ def test_clarabel_program_matches_cvxpy() -> None:
     program = dataclasses.replace(program, caps=tight)
     (_, tau), (_, tau_reference) = solve_clarabel(program), solve_cvxpy(program)
     assert tau < 0.99 and tau == pytest.approx(tau_reference, rel=1e-4)
+
+
+def test_clarabel_matches_cvxpy_with_pieces_of_different_length() -> None:
+    """The program on pieces of 4 and 2 samples (durations per interval) as cvxpy solves it."""
+    scenario, K, Q_seed, J = _demo_start(6)
+    bounds = pieces(6, 4)
+    vertices = tuple(np.stack([J[a], J[a] * 1.05]) for a in bounds[:-1])
+    caps = tuple((k, np.eye(6)[2:3], np.full((1, 1), 4 * Q_seed[0][2, 2])) for k in range(3))
+    program = FunnelProgram(
+        Ts=scenario.Ts * np.diff(bounds).astype(np.float64), K=K[bounds[:-1]], vertices=vertices,
+        c=0.3, Q_init=Q_seed[0], floor=1e-6, caps=caps, W=np.broadcast_to(np.eye(6), (3, 6, 6)),
+        initial_weight=1e3,
+    )  # fmt: skip
+    (Q_direct, tau), (Q_reference, tau_reference) = solve_clarabel(program), solve_cvxpy(program)
+    assert tau == pytest.approx(tau_reference, rel=1e-4)
+    np.testing.assert_allclose(Q_direct, Q_reference, atol=1e-4 * np.abs(Q_reference).max())
+    # The durations matter: the same program with one duration for all has another optimum.
+    uniform = FunnelProgram(**{**program.__dict__, "Ts": scenario.Ts})
+    Q_uniform, _ = solve_clarabel(uniform)
+    assert np.abs(Q_uniform - Q_direct).max() > 1e-3 * np.abs(Q_direct).max()

@@ -37,12 +37,32 @@ and ``K`` switches there, so ``V`` is continuous and the bound holds across samp
 Invariance: while ``V <= rho^2`` the state is in ``Z_k`` (the box holds the tube at level rho,
 checked below), so ``V`` cannot grow and no solution starting in ``E(0)`` leaves the funnel.
 
+Pieces (HOLD). The LMIs are imposed on pieces of ``HOLD`` sample intervals ``[t_a, t_b)``: ``K``
+is held (``K[k] = K[a]``, the LQR gain at the piece's start), ``Q`` is linear in t over the whole
+piece, and the hull is one polytope over a box ``Z_a`` holding every sample interval's box of the
+piece. (F3) at the piece's two ends then implies (F2) on the whole piece by the argument above
+(``s = (t - t_a) / (t_b - t_a)``), hence on each of its sample intervals; the funnel is stored
+per sample interval (``Q[k]`` interpolated by (F1), the piece's ``K`` and hull repeated), and
+``check_funnel`` re-checks (F3) at both ends of every SAMPLE interval: at a sample time inside a
+piece ``L`` is the convex combination of the piece's end LMIs, so nothing it proves is weaker.
+Every feasible point of the piecewise program is feasible for the per-sample program with the
+same held gain (a tighter program); it has ``HOLD`` times fewer LMIs (the solver's time is
+proportional to their number), at the price of a slightly wider funnel (``python -m bench
+funnel``: position extent +5%, thrust extent +8% on quadrotor_hill with ``HOLD = 2``).
+
 Design. 1. Seed: discrete Riccati recursion on the zero-order-hold discretisation of the nominal's
 linearisation, weights ``Ts diag(state_weights)``, ``Ts diag(input_weights)`` -> ``K[k]``,
 ``P_lqr[k]`` (F4). 2. Boxes: ``Q_seed = c P_lqr^-1`` scaled to contain the required initial
 ellipsoid; the box of each variable the Jacobian depends on is the nominal's enclosure
 (``funnel_bounds``, E1-E2) widened by ``allowance`` times the seed's extent, clipped to the state
-and input bounds (sound: the level keeps the tube inside them). 3. LMIs (F3) plus
+and input bounds (sound: the level keeps the tube inside them). The seed over-estimates the
+funnel (quadrotor_hill: pitch 4-5x, thrust 1.7x), so ``allowance = 1``: with 2 the pitch box was
+the whole envelope on every interval, the hull so wide that the program was nearly infeasible
+(Clarabel stopped at 200 iterations, "AlmostSolved", with (F3) violated: demo 3 rejected, demo 9
+held 0.916 of its set after a second solve, ~60 s each). An angle's box is also capped to whole
+arc segments of the hull (``funnel_pieces``: 6 hull vertices instead of 10 on quadrotor_hill,
+and a tighter hull); if the capped boxes cannot hold the whole initial set, the uncapped ones
+are tried and the better funnel kept. 3. LMIs (F3) plus
 ``Q[0] >= tau Q_init`` and, at level 1, the tube inside every box (``Q_ii <= s_i^2``,
 ``K_j Q K_j^T <= s_j^2`` at both ends), its position disk clear of Unsafe
 (``C Q C^T <= d_k^2 I``, ``d_k`` the nominal's sound clearance on the interval) and inside Goal
@@ -57,6 +77,7 @@ holds the whole initial set at level 1 and meets every cap at level ``sqrt(tau)`
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import time
 from collections.abc import Mapping
 from typing import TypedDict, Unpack
@@ -70,12 +91,8 @@ from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import Trajectory
 from pipeline.numerics.funnel_bounds import (
     Enclosure,
-    enclosure_range,
     funnel_limits,
-    grid_range,
     interval_clearance,
-    rate_bound,
-    substeps,
 )
 from pipeline.numerics.funnel_check import (
     LEVEL_SLACK,
@@ -84,7 +101,8 @@ from pipeline.numerics.funnel_check import (
     check_funnel,
 )
 from pipeline.numerics.funnel_lmi import FunnelProgram, solve_clarabel
-from pipeline.numerics.hull import HullError, jacobian_hull
+from pipeline.numerics.funnel_pieces import interpolate, piece_hulls, pieces
+from pipeline.numerics.hull import HullError
 
 
 class _Parts(TypedDict, total=False):
@@ -114,6 +132,9 @@ class _Hulls(TypedDict):
 # meets (F3) only to its tolerance, relative to the largest entries of Q) is solved again with a
 # larger margin.
 MARGINS = (1e-3, 1e-2)
+# Sample intervals per LMI piece: K is held and Q = P^-1 linear in t over each piece (see HOLD in
+# the module docstring).
+HOLD = 2
 
 
 def lqr_seed(scenario: Scenario, trajectory: Trajectory) -> tuple[FloatArray, FloatArray]:
@@ -140,59 +161,6 @@ def lqr_seed(scenario: Scenario, trajectory: Trajectory) -> tuple[FloatArray, Fl
     return K, P
 
 
-def _bounds_of(scenario: Scenario, state_bounds: Mapping[str, tuple[float, float]], name: str):
-    if name in scenario.input_names:
-        j = scenario.input_names.index(name)
-        return float(scenario.input_lower[j]), float(scenario.input_upper[j])
-    return tuple(map(float, state_bounds.get(name, (-np.inf, np.inf))))
-
-
-def _hulls(scenario, trajectory, Q_seed, K, state_bounds, allowance, segments):
-    """Per interval: box ``(2, d)`` over the Jacobian's variables, hull vertices, enclosure."""
-    dynamics, n = scenario.dynamics, scenario.n
-    variables = dynamics.depends_on()
-    h = scenario.Ts / substeps(trajectory)
-    grid = grid_range(trajectory)  # (N, 2, n)
-    N = len(grid)
-    s_seed = np.sqrt(np.diagonal(Q_seed, axis1=1, axis2=2))  # (N+1, n)
-    g_seed = np.sqrt(np.einsum("kji,kil,kjl->kj", K, Q_seed[:-1], K))  # (N, m)
-    g_next = np.sqrt(np.einsum("kji,kil,kjl->kj", K, Q_seed[1:], K))
-    boxes, vertices = np.empty((N, 2, len(variables))), []
-    pads, F = np.empty((N, n)), np.empty((N, n))
-    for k in range(N):
-        pad = 2 * h * np.abs(dynamics.f(grid[k], trajectory.us[k])).max(axis=0) + 1e-9
-        for _ in range(6):
-            B = grid[k] + np.stack([-pad, pad])  # the a priori box B_k (E1)
-            for d, name in enumerate(variables):
-                lower, upper = _bounds_of(scenario, state_bounds, name)
-                if name in scenario.input_names:
-                    j = scenario.input_names.index(name)
-                    w = allowance * max(g_seed[k, j], g_next[k, j])
-                    centre = (trajectory.us[k, j],) * 2
-                else:
-                    i = scenario.state_names.index(name)
-                    w = allowance * max(s_seed[k, i], s_seed[k + 1, i])
-                    centre = B[:, i]
-                boxes[k, :, d] = max(centre[0] - w, lower), min(centre[1] + w, upper)
-            region = dict(zip(variables, boxes[k].T, strict=True))
-            hull = jacobian_hull(dynamics, region, segments, compact=True)
-            F[k] = rate_bound(dynamics, trajectory, k, B, hull.A)
-            if np.all(F[k] * h < pad):
-                break
-            pad = np.maximum(pad, 2 * F[k] * h)
-        else:
-            raise HullError(f"funnel: no a priori enclosure of the nominal on interval {k}")
-        pads[k] = pad
-        vertices.append(hull.vertices)
-    enclosure = Enclosure(
-        box=grid + np.stack([-pads, pads], axis=1),
-        rate_bound=F,
-        grid_range=grid,
-        range=enclosure_range(grid, F, h),
-    )
-    return variables, boxes, tuple(vertices), enclosure
-
-
 def _weights(scenario: Scenario, state_bounds: Mapping[str, tuple[float, float]], K):
     """(N, n, n) ``W[k]`` of the objective ``sum_k tr(W[k] Q[k])``."""
     n = scenario.n
@@ -208,46 +176,56 @@ def _weights(scenario: Scenario, state_bounds: Mapping[str, tuple[float, float]]
     return W
 
 
-def _program(scenario, trajectory, K, vertices, boxes, variables, enclosure, Q_init, Q_seed, rate):
-    """(F3) with the initial set, and the tube at level 1 inside every hull box, clear of Unsafe
-    (a disk bound) and inside Goal (``funnel_lmi``)."""
+def _program(
+    scenario, trajectory, K, vertices, boxes, variables, enclosure, Q_init, Q_seed, c, bounds
+):
+    """(F3) on the LMI pieces ``bounds`` (unknowns: ``Q`` at the piece ends), with the initial set
+    and the tube at level 1 inside every hull box, clear of Unsafe (a disk bound) and inside Goal
+    (``funnel_lmi``). On a piece ``Q`` is linear and ``K`` held, so the tube's extents are largest
+    at its ends (E3): the caps there hold on every sample interval of the piece."""
     n, us, final_state = scenario.n, trajectory.us, trajectory.dense_xs[-1]
+    S = len(bounds) - 1
+    clearance = interval_clearance(scenario, trajectory, enclosure)
+    C_pos = np.eye(n)[list(scenario.position_index)]
     caps = []
-    for k in range(len(K)):
+    for j, (a, b) in enumerate(itertools.pairwise(bounds)):
         for d, name in enumerate(variables):
-            lo, hi = boxes[k, :, d]
+            lo, hi = boxes[a, :, d]
             if name in scenario.input_names:  # K_j Q K_j^T <= room^2 at both ends
-                j = scenario.input_names.index(name)
-                C, room = K[k, j : j + 1], min(us[k, j] - lo, hi - us[k, j])
+                i = scenario.input_names.index(name)
+                C = K[a, i : i + 1]
+                room = min((us[a:b, i] - lo).min(), (hi - us[a:b, i]).min())
             else:  # Q_ii <= room^2 at both ends
                 i = scenario.state_names.index(name)
                 C = np.eye(n)[i : i + 1]
-                room = min(enclosure.range[k, 0, i] - lo, hi - enclosure.range[k, 1, i])
-            caps += [(e, C, np.full((1, 1), max(room, 0.0) ** 2)) for e in (k, k + 1)]
-    # The position disk of the tube at level 1 clear of Unsafe (funnel_bounds (a)) and in Goal.
-    C = np.eye(n)[list(scenario.position_index)]
-    for k, d in enumerate(interval_clearance(scenario, trajectory, enclosure)):
+                room = min(
+                    (enclosure.range[a:b, 0, i] - lo).min(), (hi - enclosure.range[a:b, 1, i]).min()
+                )
+            caps += [(e, C, np.full((1, 1), max(room, 0.0) ** 2)) for e in (j, j + 1)]
+        # The position disk of the tube at level 1 clear of Unsafe (funnel_bounds (a)).
+        d = clearance[a:b].min()
         if np.isfinite(d):
-            caps += [(e, C, max(d, 0.0) ** 2 * np.eye(2)) for e in (k, k + 1)]
+            caps += [(e, C_pos, max(d, 0.0) ** 2 * np.eye(2)) for e in (j, j + 1)]
     final = scenario.positions(trajectory.dense_xs[-1])
     inside = shapely.intersects_xy(scenario.goal, *final)
     g = float(shapely.distance(shapely.Point(final), scenario.goal.boundary)) * inside
-    caps.append((len(K), C, g**2 * np.eye(2)))
+    caps.append((S, C_pos, g**2 * np.eye(2)))
     for name, (lower, upper) in scenario.goal_bounds.items():
         i = scenario.state_names.index(name)
         room = max(min(final_state[i] - lower, upper - final_state[i]), 0.0)
-        caps.append((len(K), np.eye(n)[i : i + 1], np.full((1, 1), room**2)))
+        caps.append((S, np.eye(n)[i : i + 1], np.full((1, 1), room**2)))
     W = _weights(scenario, {}, K)
+    W = np.concatenate([W, W[-1:]])[bounds]  # (S+1, n, n) at the piece ends
     return FunnelProgram(
-        Ts=scenario.Ts,
-        K=K,
-        vertices=vertices,
-        c=2 * rate + MARGINS[0],
+        Ts=scenario.Ts * np.diff(bounds).astype(np.float64),
+        K=K[bounds[:-1]],
+        vertices=tuple(vertices[a] for a in bounds[:-1]),
+        c=c,
         Q_init=Q_init,
         floor=1e-4 * float(np.linalg.eigvalsh(Q_init)[-1]),
         caps=tuple(caps),
-        W=np.concatenate([W, W[-1:]]),
-        initial_weight=100 * float(np.einsum("kij,kji->", W, Q_seed[:-1])),
+        W=W,
+        initial_weight=100 * float(np.einsum("kij,kji->", W, Q_seed[bounds])),
     )
 
 
@@ -258,7 +236,7 @@ def synthesize_funnel(
     state_bounds: Mapping[str, tuple[float, float]] | None = None,
     initial: FloatArray | None = None,
     rate: float = 0.0,
-    allowance: float = 2.0,
+    allowance: float = 1.0,
     segments: int = 1,
 ) -> Funnel:
     """Synthesize and check the funnel around ``trajectory`` (one: ``xs (N+1, n)``, ``us (N, m)``,
@@ -294,6 +272,9 @@ def synthesize_funnel(
                 f"funnel: state_bounds names '{name}', not one of {scenario.state_names}"
             )
     K, P_lqr = lqr_seed(scenario, trajectory)
+    N = len(K)
+    bounds = pieces(N, HOLD)
+    K = K[np.repeat(bounds[:-1], np.diff(bounds))]  # each piece holds its first gain
     Q_seed = np.linalg.inv(P_lqr)
     c = list(scenario.position_index)
     if initial is None:
@@ -302,7 +283,6 @@ def synthesize_funnel(
     Q_init = np.asarray(initial, dtype=np.float64)
     L_inv = np.linalg.inv(np.linalg.cholesky(Q_seed[0]))
     Q_seed = Q_seed * np.linalg.eigvalsh(L_inv @ Q_init @ L_inv.T)[-1]  # Q_seed[0] >= Q_init
-    N = len(K)
 
     def result(success: bool, message: str, **values: Unpack[_Parts]) -> Funnel:
         defaults: _Parts = {
@@ -316,52 +296,64 @@ def synthesize_funnel(
             message=message,
         )  # fmt: skip
 
-    try:
-        variables, boxes, vertices, enclosure = _hulls(
-            scenario, trajectory, Q_seed, K, state_bounds, allowance, segments
+    def attempt(tight: bool) -> Funnel:
+        """Hulls (capped angle boxes if ``tight``), the program, its check (``MARGINS``)."""
+        try:
+            variables, boxes, vertices, enclosure = piece_hulls(
+                scenario, trajectory, Q_seed, K, state_bounds, allowance, segments, bounds, tight
+            )
+        except HullError as error:
+            return result(False, f"funnel: {error}")
+        common: _Hulls = {
+            "boxes": boxes, "variables": variables, "vertices": vertices, "enclosure": enclosure
+        }  # fmt: skip
+        failures = []
+        for margin in MARGINS:  # a solution within the solver's tolerance may fail the check
+            program = _program(
+                scenario, trajectory, K, vertices, boxes, variables, enclosure, Q_init, Q_seed,
+                2 * rate + margin, bounds,
+            )  # fmt: skip
+            solution = solve_clarabel(program)
+            if isinstance(solution, str):
+                return result(False, f"funnel: {solution} over {N} intervals", **common)
+            Q_ends, tau = solution
+            if tau <= 1e-6:
+                return result(
+                    False, f"funnel: no funnel holds any of the initial set (tau {tau:.2g})",
+                    **common,
+                )  # fmt: skip
+            # eq. (P1) at every sample time; E(0) at level 1 holds the initial set, the caps
+            # hold at level sqrt(tau)
+            Q = interpolate(Q_ends, bounds) / tau
+            limits = funnel_limits(scenario, trajectory, Q, K, enclosure, state_bounds)
+            limits["design"] = (float(np.sqrt(min(tau, 1.0))), 0.0)
+            binding = min(limits, key=lambda key: limits[key][0])
+            level, when = limits[binding]
+            rho = level * (1 - LEVEL_SLACK)
+            funnel = result(
+                True, "", P=np.linalg.inv(Q).astype(np.float64, copy=False), rho=rho,
+                binding=binding, margins=certificate_margins(Q, K, vertices, rate, scenario.Ts),
+                limits={key: value[0] for key, value in limits.items()}, **common,
+            )  # fmt: skip
+            failure = check_funnel(scenario, trajectory, funnel, state_bounds)
+            if rho <= 0:
+                failure = failure or f"the nominal itself violates {binding} at t = {when:.2f} s"
+            if not failure:
+                break
+            failures.append(f"margin {margin:g}: {failure}")
+        else:
+            return result(False, f"funnel rejected: {'; '.join(failures)}", **common)
+        message = (
+            f"funnel level {rho:.4g} (E(0) holds {min(rho, 1.0):.3g} x the required initial "
+            f"set) over {N} intervals ({len(bounds) - 1} pieces, K held over {HOLD}), bound by "
+            f"{binding} at t = {when:.2f} s (largest eigenvalue {funnel.margins.max():.2e}, LMI "
+            f"margin {margin:g}, {'capped' if tight else 'uncapped'} angle boxes)"
         )
-    except HullError as error:
-        return result(False, f"funnel: {error}")
-    common: _Hulls = {
-        "boxes": boxes, "variables": variables, "vertices": vertices, "enclosure": enclosure
-    }  # fmt: skip
-    failures = []
-    for margin in MARGINS:  # a solution within the solver's tolerance may still fail the check
-        program = _program(
-            scenario, trajectory, K, vertices, boxes, variables, enclosure, Q_init, Q_seed, rate
-        )
-        program = dataclasses.replace(program, c=2 * rate + margin)
-        solution = solve_clarabel(program)
-        if isinstance(solution, str):
-            return result(False, f"funnel: {solution} over {N} intervals", **common)
-        Q, tau = solution
-        if tau <= 1e-6:
-            return result(False, f"funnel: no funnel holds any of the initial set (tau {tau:.2g})")
-        Q = Q / tau  # E(0) at level 1 holds the initial set; the caps hold at level sqrt(tau)
-        limits = funnel_limits(scenario, trajectory, Q, K, enclosure, state_bounds)
-        limits["design"] = (float(np.sqrt(min(tau, 1.0))), 0.0)
-        binding = min(limits, key=lambda key: limits[key][0])
-        level, when = limits[binding]
-        rho = level * (1 - LEVEL_SLACK)
-        funnel = result(
-            True, "", P=np.linalg.inv(Q).astype(np.float64, copy=False), rho=rho, binding=binding,
-            margins=certificate_margins(Q, K, vertices, rate, scenario.Ts),
-            limits={key: value[0] for key, value in limits.items()}, **common,
-        )  # fmt: skip
-        failure = check_funnel(scenario, trajectory, funnel, state_bounds)
-        if rho <= 0:
-            failure = failure or f"the nominal itself violates {binding} at t = {when:.2f} s"
-        if not failure:
-            break
-        failures.append(f"margin {margin:g}: {failure}")
-    else:
-        return result(False, f"funnel rejected: {'; '.join(failures)}", **common)
-    message = (
-        f"funnel level {rho:.4g} (E(0) holds {min(rho, 1.0):.3g} x the required initial set) "
-        f"over {N} intervals, bound by {binding} at t = {when:.2f} s "
-        f"(largest eigenvalue {funnel.margins.max():.2e}, LMI margin {margin:g})"
-    )
-    return result(
-        True, message, P=funnel.P, rho=rho, binding=binding, margins=funnel.margins,
-        limits=funnel.limits, **common,
-    )  # fmt: skip
+        return dataclasses.replace(funnel, message=message)
+
+    funnel = attempt(tight=True)
+    if not funnel.success or funnel.limits["design"] < 1.0:
+        # The capped boxes could not hold the whole initial set: the seed's boxes, keep the better.
+        wide = attempt(tight=False)
+        funnel = max(funnel, wide, key=lambda f: (f.success, f.rho))
+    return dataclasses.replace(funnel, seconds=time.perf_counter() - start)

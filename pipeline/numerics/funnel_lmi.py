@@ -4,7 +4,7 @@ Unknowns ``Q[0..N]`` (n, n symmetric), ``x = (q_0, .., q_N)``, ``q_k`` the upper
 ``Q[k]`` (``Q = sum_l q_l E_l``, ``E_l = e_i e_j^T + e_j e_i^T`` for ``i < j``). Problem:
 
     minimise sum_k tr(W[k] Q[k]) - w tau
-    subject to  -(Q[k+1] - Q[k]) / Ts + G_kv(Q[k+e]) <= 0,  G(X) = Acl X + X Acl^T + c X,
+    subject to  -(Q[k+1] - Q[k]) / Ts_k + G_kv(Q[k+e]) <= 0,  G(X) = Acl X + X Acl^T + c X,
                 Acl = A_v + B_v K[k], every vertex v of interval k, e in {0, 1};           (F3)
                 Q[0] >= tau Q_init, tau <= 1;  Q[k] >= floor I;  C Q[k] C^T <= bound (caps).
 
@@ -14,7 +14,10 @@ a program that cannot hold all of it still returns the funnel that holds the mos
 Why not cvxpy: on quadrotor_hill (150 intervals x 12 vertices x 2 ends = 3,600 6x6 LMIs) cvxpy's
 canonicalisation took 20-40 s per trajectory and added a slack matrix per LMI, so Clarabel's
 solve took 10-20 s more. Here each LMI is one ``PSDTriangleConeT`` row block ``s = b - A x``
-(upper triangle in column-major order, off-diagonal entries times sqrt 2), assembled with numpy.
+(upper triangle in column-major order, off-diagonal entries times sqrt 2); all of them are
+assembled at once as COO triplets with numpy. Clarabel's time grows with the number of LMIs (about
+50 us per 6x6 LMI per interior-point iteration on this machine), which is why
+``pipeline.numerics.funnel`` imposes them per piece of ``HOLD`` samples on few-vertex hulls.
 ``solve_cvxpy`` states the same problem in cvxpy as the reference the tests compare against.
 """
 
@@ -30,19 +33,25 @@ import scipy.sparse as sp
 
 from pipeline.model.dynamics import FloatArray
 
+# Clarabel's stopping tolerances (defaults 1e-8). The solution is re-checked with numpy eigenvalues
+# against the LMI margin eps >= 1e-3 (pipeline.numerics.funnel), five orders above these, so a
+# looser stop saves interior-point iterations without weakening anything that is proven.
+TOLERANCES = {"tol_gap_abs": 1e-7, "tol_gap_rel": 1e-7, "tol_feas": 1e-7}
+
 
 @dataclass(frozen=True, kw_only=True)
 class FunnelProgram:
     """The data of (F3).
 
     Attributes:
-      Ts: sample time; K: (N, m, n) gains; vertices: N arrays (V_k, n, n+m) of ``[A_v B_v]``.
+      Ts: the intervals' durations, one for all or (N,); K: (N, m, n) gains held on each;
+        vertices: N arrays (V_k, n, n+m) of ``[A_v B_v]``.
       c: ``2 lambda + eps`` in ``G``; Q_init: (n, n); floor: smallest eigenvalue of each Q[k].
       caps: ``(k, C (r, n), bound (r, r))``: ``C Q[k] C^T <= bound`` (a scalar if r = 1).
       W: (N+1, n, n) objective weights; initial_weight: ``w``.
     """
 
-    Ts: float
+    Ts: float | FloatArray
     K: FloatArray
     vertices: tuple[FloatArray, ...] = field(repr=False)
     c: float
@@ -79,66 +88,90 @@ def unpack(x: FloatArray, n: int) -> FloatArray:
     return np.einsum("kl,lij->kij", x.reshape(-1, n * (n + 1) // 2), basis(n))
 
 
+def _block(rows: np.ndarray, columns: np.ndarray, values: FloatArray) -> tuple[np.ndarray, ...]:
+    """COO triplets of dense ``values (B, r, c)`` at ``rows (B, r)`` x ``columns (B, c)``."""
+    B, r, c = values.shape
+    return (
+        np.broadcast_to(rows[:, :, None], (B, r, c)).ravel(),
+        np.broadcast_to(columns[:, None, :], (B, r, c)).ravel(),
+        values.ravel(),
+    )
+
+
 def solve_clarabel(program: FunnelProgram) -> tuple[FloatArray, float] | str:
-    """``(Q (N+1, n, n), tau)`` solving (F3), or the solver's status."""
-    K, Ts = program.K, program.Ts
+    """``(Q (N+1, n, n), tau)`` solving (F3), or the solver's status.
+
+    The constraint matrix is assembled as one set of COO triplets (every LMI of (F3) at once);
+    rows are ``s = b - A x`` in the cone order of ``cones``."""
+    K = program.K
     N, n = len(K), K.shape[2]
+    Ts = np.broadcast_to(np.asarray(program.Ts, dtype=np.float64), (N,))
     p = n * (n + 1) // 2
+    unknowns = (N + 1) * p + 1  # q_0 .. q_N, tau
     E = basis(n)
     sE = svec(E)  # (p, p): column l is svec(E_l)
-    blocks_A, blocks_b, cones = [], [], []
+    triplets: list[tuple[np.ndarray, ...]] = []
+    b_parts: list[FloatArray] = []
+    cones: list = []
+    row = 0
 
-    def columns(k: int, block: FloatArray) -> sp.coo_matrix:
-        """``block (r, p)`` placed on the unknowns of Q[k]."""
-        out = sp.coo_matrix(block)
-        return sp.coo_matrix(
-            (out.data, (out.row, out.col + k * p)), shape=(len(block), (N + 1) * p + 1)
-        )
+    def rows(count: int, size: int) -> np.ndarray:
+        """(count, size) row indices of the next ``count`` cones of ``size`` rows each."""
+        nonlocal row
+        out = row + np.arange(count * size).reshape(count, size)
+        row += count * size
+        return out
+
+    def of(k: np.ndarray) -> np.ndarray:
+        """(len(k), p) columns of the unknowns of ``Q[k]``."""
+        return np.asarray(k)[:, None] * p + np.arange(p)
 
     # C Q[k] C^T <= bound: s = svec(bound) - svec(C Q[k] C^T) = b - A x.
     for k, C, bound in program.caps:
-        blocks_A.append(columns(k, svec(C @ E @ C.T).T))
-        blocks_b.append(svec(bound))
         r = len(C)
+        block = svec(C @ E @ C.T).T  # (r (r+1) / 2, p)
+        triplets.append(_block(rows(1, len(block)), of(np.array([k])), block[None]))
+        b_parts.append(svec(np.asarray(bound, dtype=np.float64)))
         cones.append(clarabel.NonnegativeConeT(1) if r == 1 else clarabel.PSDTriangleConeT(r))
-    # tau <= 1; Q[0] - tau Q_init >= 0: s = svec(Q[0]) - tau svec(Q_init) = b - A x (tau last).
-    tau = sp.coo_matrix(([1.0], ([0], [(N + 1) * p])), shape=(1, (N + 1) * p + 1))
-    blocks_A.append(tau)
-    blocks_b.append(np.ones(1))
+    # tau <= 1: s = 1 - tau.
+    triplets.append((rows(1, 1).ravel(), np.array([unknowns - 1]), np.ones(1)))
+    b_parts.append(np.ones(1))
     cones.append(clarabel.NonnegativeConeT(1))
-    initial = sp.coo_matrix(svec(program.Q_init)[:, None])
-    blocks_A.append(columns(0, -sE.T) + sp.hstack([sp.coo_matrix((p, (N + 1) * p)), initial]))
-    blocks_b.append(np.zeros(p))
+    # Q[0] - tau Q_init >= 0: s = svec(Q[0]) - tau svec(Q_init) = b - A x.
+    r0 = rows(1, p)
+    triplets.append(_block(r0, of(np.array([0])), -sE.T[None]))
+    triplets.append((r0.ravel(), np.full(p, unknowns - 1), svec(program.Q_init)))
+    b_parts.append(np.zeros(p))
     cones.append(clarabel.PSDTriangleConeT(n))
     # Q[k] - floor I >= 0: s = svec(Q[k]) - svec(floor I) = b - A x.
-    for k, lower in [(k, program.floor * np.eye(n)) for k in range(N + 1)]:
-        blocks_A.append(columns(k, -sE.T))
-        blocks_b.append(-svec(lower))
-        cones.append(clarabel.PSDTriangleConeT(n))
-    # (F3): s = -M(x), M(Q[k], Q[k+1]) = -(Q[k+1] - Q[k]) / Ts + G(Q[k+e]).
-    for k in range(N):
-        J = program.vertices[k]
-        Acl = J[:, :, :n] + J[:, :, n:] @ K[k]  # (V, n, n)
-        G = Acl[:, None] @ E[None] + E[None] @ np.swapaxes(Acl, 1, 2)[:, None] + program.c * E
-        sG = np.swapaxes(svec(G), 1, 2)  # (V, p rows, p unknowns)
-        V = len(J)
-        for e in (0, 1):  # A = svec(M(E_l)) on the unknowns of Q[k] and Q[k+1], b = 0
-            A_k = sE.T / Ts + (sG if e == 0 else 0.0)  # (V, p, p) after broadcasting
-            A_next = -sE.T / Ts + (sG if e == 1 else 0.0)
-            A_k = np.broadcast_to(A_k, (V, p, p)).reshape(V * p, p)
-            A_next = np.broadcast_to(A_next, (V, p, p)).reshape(V * p, p)
-            blocks_A.append(columns(k, A_k) + columns(k + 1, A_next))
-            blocks_b.append(np.zeros(V * p))
-            cones.extend(clarabel.PSDTriangleConeT(n) for _ in range(V))
-    A = sp.vstack(blocks_A).tocsc()
-    b = np.concatenate([np.asarray(v, dtype=np.float64) for v in blocks_b])
-    q = np.concatenate(
-        [np.einsum("ij,lij->l", W, E) for W in program.W] + [[-program.initial_weight]]
-    )
+    everyone = np.arange(N + 1)
+    triplets.append(_block(rows(N + 1, p), of(everyone), np.broadcast_to(-sE.T, (N + 1, p, p))))
+    b_parts.append(np.tile(-svec(program.floor * np.eye(n)), N + 1))
+    cones.extend(clarabel.PSDTriangleConeT(n) for _ in range(N + 1))
+    # (F3): s = -M(x), M(Q[k], Q[k+1]) = -(Q[k+1] - Q[k]) / Ts[k] + G(Q[k+e]), every vertex.
+    J = np.concatenate(program.vertices)  # (T, n, n+m), T = sum_k V_k
+    k_of = np.repeat(np.arange(N), [len(v) for v in program.vertices])  # (T,)
+    Acl = J[:, :, :n] + J[:, :, n:] @ K[k_of]  # (T, n, n)
+    G = Acl[:, None] @ E[None] + E[None] @ np.swapaxes(Acl, 1, 2)[:, None] + program.c * E
+    sG = np.swapaxes(svec(G), 1, 2)  # (T, p rows, p unknowns)
+    D = sE.T / Ts[k_of][:, None, None]  # (T, p, p): the unknowns of Q[k] in -dQ/dt
+    for e in (0, 1):  # A = svec(M(E_l)) on the unknowns of Q[k] and Q[k+1], b = 0
+        lmi_rows = rows(len(J), p)
+        triplets.append(_block(lmi_rows, of(k_of), D + (sG if e == 0 else 0.0)))
+        triplets.append(_block(lmi_rows, of(k_of + 1), -D + (sG if e == 1 else 0.0)))
+        cones.extend(clarabel.PSDTriangleConeT(n) for _ in range(len(J)))
+    b_parts.append(np.zeros(2 * len(J) * p))
+    rows_, cols_, vals_ = (np.concatenate(part) for part in zip(*triplets, strict=True))
+    keep = vals_ != 0.0
+    A = sp.csc_matrix((vals_[keep], (rows_[keep], cols_[keep])), shape=(row, unknowns))
+    b = np.concatenate(b_parts)
+    q = np.concatenate([np.einsum("kij,lij->kl", program.W, E).ravel(), [-program.initial_weight]])
     settings = clarabel.DefaultSettings()
     settings.verbose = False
+    for name, value in TOLERANCES.items():
+        setattr(settings, name, value)
     solution = clarabel.DefaultSolver(
-        sp.csc_matrix(((N + 1) * p + 1,) * 2), q, A, b, cones, settings
+        sp.csc_matrix((unknowns,) * 2), q, A, b, cones, settings
     ).solve()
     status = str(solution.status)
     if status not in ("Solved", "AlmostSolved"):
@@ -149,15 +182,16 @@ def solve_clarabel(program: FunnelProgram) -> tuple[FloatArray, float] | str:
 
 def solve_cvxpy(program: FunnelProgram) -> tuple[FloatArray, float] | str:
     """The same program through cvxpy + Clarabel (reference for tests; slow on long horizons)."""
-    K, Ts = program.K, program.Ts
+    K = program.K
     N, n = len(K), K.shape[2]
+    Ts = np.broadcast_to(np.asarray(program.Ts, dtype=np.float64), (N,))
     Q = [cp.Variable((n, n), symmetric=True) for _ in range(N + 1)]
     tau = cp.Variable()
     constraints = [Q[0] - tau * program.Q_init >> 0, tau <= 1]
     constraints += [Qk >> program.floor * np.eye(n) for Qk in Q]
     constraints += [bound - C @ Q[k] @ C.T >> 0 for k, C, bound in program.caps]
     for k in range(N):
-        D = (Q[k + 1] - Q[k]) / Ts  # eq. (F1)
+        D = (Q[k + 1] - Q[k]) / Ts[k]  # eq. (F1)
         for J in program.vertices[k]:
             Acl = J[:, :n] + J[:, n:] @ K[k]
             for Qe in (Q[k], Q[k + 1]):

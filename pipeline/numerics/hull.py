@@ -32,6 +32,13 @@ edges out by ``PAD``; widening the arc by ``PAD`` rad at each end puts the chord
 vertex sums ``J_0 + sum_k phi_k M_k`` are rounded to nearest (relative 1e-16 of the largest term);
 the certificates that use the hull keep a margin (``EPS = 1e-3`` in their LMIs) far above that.
 
+Speed. Steps 1-2 are symbolic and depend on the dynamics alone; they are computed once per
+``Dynamics`` object (``_structure``, cached by identity: ``Dynamics`` is frozen, and a scenario
+loaded again or modified is a new object with its own entry). Only the interval bounds of the
+blocks over the given box and step 3 run per call, exactly as before, so caching changes no
+number: every bound is still evaluated in outward-rounded ``mpmath.iv`` arithmetic over the box
+it is asked for (``tests/test_hull_rounding.py``).
+
 ``abs``: the Jacobian of ``|h(z)|`` is ``sign(h) h_z`` with ``sign(0) = 0``. Its range over an
 interval ``[a, b]`` of ``h`` is ``[sign a, sign b]`` (exact in the interval arithmetic above),
 which holds the generalised (Clarke) derivative ``[-1, 1]`` at the kink whenever ``a < 0 < b``.
@@ -231,30 +238,28 @@ def _block_vertices(
     )
 
 
-def jacobian_hull(
-    dynamics: Dynamics,
-    region: Mapping[str, tuple[float, float]],
-    segments: int = DEFAULT_SEGMENTS,
-    compact: bool = False,
-) -> JacobianHull:
-    """A sound polytope of ``[f_x f_u]`` over the box ``region`` (name -> (lower, upper)).
+@dataclass(frozen=True, kw_only=True)
+class _Structure:
+    """Steps 1-2 of the module docstring for one ``Dynamics`` (symbolic; cached per object).
 
-    Every variable the Jacobian depends on must be bounded by ``region``; ``segments`` is the
-    number of pieces per angle-like block (the arc polygon's tangents, or interval boxes);
-    ``compact`` asks for the arc polygon with fewer vertices (``arc_polygon``).
+    Attributes:
+      depends_on: names of the variables the Jacobian depends on; J0: (n, n+m) constant part.
+      features: (feature, M (n, n+m), its factorisation: (variable or None, part) keys).
+      parts: variable -> its single-variable parts g_z; whole: features that do not factor.
     """
+
+    depends_on: tuple[str, ...]
+    J0: FloatArray
+    features: tuple[tuple[sympy.Expr, FloatArray, tuple[tuple[object, sympy.Expr], ...]], ...]
+    parts: Mapping[sympy.Symbol, tuple[sympy.Expr, ...]]
+    whole: tuple[sympy.Expr, ...]
+
+
+@functools.lru_cache(maxsize=16)
+def _structure(dynamics: Dynamics) -> _Structure:
+    """The symbolic decomposition of ``[f_x f_u]`` (``Dynamics`` is frozen and hashed by
+    identity, so the cache holds one entry per loaded scenario)."""
     n, m = dynamics.n, dynamics.m
-    symbols = {s.name: s for s in (*dynamics.state_symbols, *dynamics.input_symbols)}
-    missing = [name for name in dynamics.depends_on() if name not in region]
-    if missing:
-        raise HullError(
-            f"the Jacobian depends on {missing} but the operating region does not bound them; "
-            f"add them to operating_region (it has {sorted(region)})"
-        )
-    box = {
-        symbols[name]: (float(region[name][0]), float(region[name][1]))
-        for name in dynamics.depends_on()
-    }
     entries = sympy.Matrix.hstack(dynamics.jacobian_x, dynamics.jacobian_u)
 
     # 1. J(z) = J_0 + sum_k phi_k(z) M_k.
@@ -271,7 +276,7 @@ def jacobian_hull(
     # 2. Split each feature into single-variable parts g_z (or keep it whole).
     parts: dict[sympy.Symbol, list[sympy.Expr]] = {}
     whole: list[sympy.Expr] = []
-    factorisation: list[list[tuple[object, sympy.Expr]]] = []
+    factorisation: list[tuple[tuple[object, sympy.Expr], ...]] = []
     for feature in features:
         by_variable: dict[sympy.Symbol, sympy.Expr] = {}
         separable = True
@@ -283,13 +288,64 @@ def jacobian_hull(
             (z,) = free
             by_variable[z] = by_variable.get(z, sympy.Integer(1)) * factor
         if separable:
-            factorisation.append(list(by_variable.items()))
+            factorisation.append(tuple(by_variable.items()))
             for z, g in by_variable.items():
                 if g not in parts.setdefault(z, []):
                     parts[z].append(g)
         else:
-            factorisation.append([(None, feature)])
+            factorisation.append(((None, feature),))
             whole.append(feature)
+    J0.flags.writeable = False
+    for M in features.values():
+        M.flags.writeable = False
+    return _Structure(
+        depends_on=dynamics.depends_on(),
+        J0=J0,
+        features=tuple(
+            (feature, M, keys)
+            for (feature, M), keys in zip(features.items(), factorisation, strict=True)
+        ),
+        parts={z: tuple(functions) for z, functions in parts.items()},
+        whole=tuple(whole),
+    )
+
+
+def arc_variables(dynamics: Dynamics) -> tuple[str, ...]:
+    """Names of the variables whose block is ``(cos z, sin z)`` (enclosed by ``arc_polygon``:
+    ``ceil(width / MAX_SEGMENT_ANGLE)`` segments at least, so a wider box costs vertices)."""
+    return tuple(
+        z.name
+        for z, functions in _structure(dynamics).parts.items()
+        if set(functions) == {sympy.cos(z), sympy.sin(z)}
+    )
+
+
+def jacobian_hull(
+    dynamics: Dynamics,
+    region: Mapping[str, tuple[float, float]],
+    segments: int = DEFAULT_SEGMENTS,
+    compact: bool = False,
+) -> JacobianHull:
+    """A sound polytope of ``[f_x f_u]`` over the box ``region`` (name -> (lower, upper)).
+
+    Every variable the Jacobian depends on must be bounded by ``region``; ``segments`` is the
+    number of pieces per angle-like block (the arc polygon's tangents, or interval boxes);
+    ``compact`` asks for the arc polygon with fewer vertices (``arc_polygon``).
+    """
+    n, m = dynamics.n, dynamics.m
+    structure = _structure(dynamics)
+    symbols = {s.name: s for s in (*dynamics.state_symbols, *dynamics.input_symbols)}
+    missing = [name for name in structure.depends_on if name not in region]
+    if missing:
+        raise HullError(
+            f"the Jacobian depends on {missing} but the operating region does not bound them; "
+            f"add them to operating_region (it has {sorted(region)})"
+        )
+    box = {
+        symbols[name]: (float(region[name][0]), float(region[name][1]))
+        for name in structure.depends_on
+    }
+    J0, parts, whole = structure.J0, structure.parts, structure.whole
 
     # Blocks: vertices (k_b, p_b) and the coordinate of each (variable, g) or whole feature.
     block_vertices: list[FloatArray] = []
@@ -318,8 +374,7 @@ def jacobian_hull(
     grids = np.meshgrid(*[np.arange(len(v)) for v in block_vertices], indexing="ij")
     choice = [g.ravel() for g in grids]  # block b -> (count,) vertex index
     vertices = np.broadcast_to(J0, (count, n, n + m)).copy()
-    for (feature, M), parts_of in zip(features.items(), factorisation, strict=True):
-        del feature
+    for _, M, parts_of in structure.features:
         value = np.ones(count)
         for key in parts_of:
             b, p = coordinate[key]

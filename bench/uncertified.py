@@ -1,0 +1,47 @@
+"""The uncertified minimum time from a demo's start: CasADi + IPOPT with no tube (issue 16).
+
+The same minimum-time NLP as ``bench_optimize`` (direct multiple shooting, RK4 with 4 substeps,
+the hold Ts, phases 1 and 2 of its docstring), but with the scenario's real limits and nothing
+reserved for a certificate:
+
+    dist(p(x_i), Unsafe_j) >= d              at every grid point (the clearance d, no tube)
+    p(x_{N s}) in Goal                        (Goal itself, not shrunk)
+    u[k] in the full input bounds
+    x_i in state_bounds                       (the physical envelope; quadrotor_hill |theta| <= 0.8)
+
+``T_certified / T_uncertified`` is then the time the certificate costs on that start.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline.model.scenario import Scenario
+from pipeline.numerics.penalties import Constraints
+
+
+def uncertified_constraints(scenario: Scenario) -> Constraints:
+    """The constraints above in the ``Constraints`` form ``MinimumTimeNLP`` reads."""
+    names = list(scenario.state_bounds)
+    index = np.array([scenario.state_names.index(name) for name in names], dtype=np.int64)
+    lower = np.array([scenario.state_bounds[name][0] for name in names], dtype=np.float64)
+    upper = np.array([scenario.state_bounds[name][1] for name in names], dtype=np.float64)
+    goal = list(scenario.goal_bounds)
+    return Constraints(
+        input_lower=np.asarray(scenario.input_lower, dtype=np.float64),
+        input_upper=np.asarray(scenario.input_upper, dtype=np.float64),
+        region=dict(scenario.state_bounds),
+        region_state_index=index,
+        region_state_lower=lower,
+        region_state_upper=upper,
+        region_input_index=np.zeros(0, dtype=np.int64),
+        region_input_lower=np.zeros(0),
+        region_input_upper=np.zeros(0),
+        goal_region=scenario.goal,
+        goal_index=np.array([scenario.state_names.index(n) for n in goal], dtype=np.int64),
+        goal_lower=np.array([scenario.goal_bounds[n][0] for n in goal], dtype=np.float64),
+        goal_upper=np.array([scenario.goal_bounds[n][1] for n in goal], dtype=np.float64),
+        unsafe=dict(scenario.unsafe),
+        unsafe_margin=float(scenario.clearance),
+        position_index=tuple(scenario.position_index),
+    )

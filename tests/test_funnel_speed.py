@@ -1,0 +1,89 @@
+"""What makes the funnel fast keeps it sound (pipeline.numerics.funnel_pieces, funnel_lmi, hull).
+
+1. Pieces: ``Q`` interpolated linearly over each piece (P1), the gain held over it.
+2. The angle cap fills whole arc segments and never goes below a quarter segment.
+3. The hull's symbolic structure is cached per ``Dynamics`` object: two dynamics that differ
+   only in a coefficient get their own hulls, each containing its own Jacobians.
+4. quadrotor_hill demo 3 (rejected before: the hull boxes spanned the whole pitch envelope and
+   the program was nearly infeasible) is certified, with the gain held over each piece.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import sympy
+
+from pipeline.model.dynamics import Dynamics
+from pipeline.model.scenario import load_scenario
+from pipeline.model.simulate import simulate
+from pipeline.numerics.funnel import HOLD, check_funnel, synthesize_funnel
+from pipeline.numerics.funnel_pieces import ARC, arc_cap, interpolate, pieces
+from pipeline.numerics.hull import MAX_SEGMENT_ANGLE, arc_polygon, arc_variables, jacobian_hull
+
+THETA_BOUNDS = {"theta": (-0.8, 0.8)}
+
+
+def test_pieces_and_interpolation() -> None:
+    np.testing.assert_array_equal(pieces(7, 2), [0, 2, 4, 6, 7])
+    np.testing.assert_array_equal(pieces(6, 3), [0, 3, 6])
+    rng = np.random.default_rng(0)
+    Q_ends = rng.normal(size=(5, 3, 3))
+    Q = interpolate(Q_ends, pieces(7, 2))
+    assert Q.shape == (8, 3, 3)
+    np.testing.assert_array_equal(Q[[0, 2, 4, 6, 7]], Q_ends)
+    np.testing.assert_allclose(Q[1], (Q_ends[0] + Q_ends[1]) / 2)
+    np.testing.assert_allclose(Q[5], (Q_ends[2] + Q_ends[3]) / 2)
+
+
+@pytest.mark.parametrize("spread", [0.0, 0.1, 0.3, 0.5, 0.7, 0.77, 1.0, 2.0])
+def test_arc_cap_fills_whole_segments(spread: float) -> None:
+    w = arc_cap(spread)
+    assert w >= ARC / 4 - 1e-12
+    width = spread + 2 * w
+    segments = round(width / ARC)
+    assert width == pytest.approx(segments * ARC)
+    # The arc polygon of the capped box has exactly that many segments (none added by rounding).
+    assert len(arc_polygon(0.0, width, 1, compact=True)) == segments + 2
+    assert math.ceil(width / MAX_SEGMENT_ANGLE) == segments
+
+
+def test_hull_structure_is_cached_per_dynamics() -> None:
+    x, theta = sympy.symbols("x theta")
+    u = sympy.Symbol("u")
+    made = [
+        Dynamics.from_expressions([x, theta], [u], [c * u * sympy.sin(theta), u])
+        for c in (1.0, -3.0)
+    ]
+    assert arc_variables(made[0]) == ("theta",)  # f_theta has cos, f_u has sin
+    region = {"theta": (0.2, 0.5), "u": (1.0, 2.0)}
+    hulls = [jacobian_hull(D, region, 1, compact=True) for D in made]
+    again = jacobian_hull(made[0], region, 1, compact=True)
+    np.testing.assert_array_equal(again.vertices, hulls[0].vertices)
+    for D, hull in zip(made, hulls, strict=True):  # each holds its own Jacobians
+        for t in np.linspace(0.2, 0.5, 7):
+            for v in (1.0, 1.5, 2.0):
+                J = np.hstack([D.f_x(np.array([0.0, t]), np.array([v])),
+                               D.f_u(np.array([0.0, t]), np.array([v]))])  # fmt: skip
+                low = hull.vertices.min(axis=0)
+                high = hull.vertices.max(axis=0)
+                assert np.all(J >= low - 1e-12) and np.all(J <= high + 1e-12)
+    assert np.sign(hulls[0].vertices[:, 0, 1].max()) != np.sign(hulls[1].vertices[:, 0, 1].max())
+    quadrotor = load_scenario("quadrotor_hill", check_demos=False)
+    assert arc_variables(quadrotor.dynamics) == ("theta",)
+
+
+def test_demo_3_is_certified_with_held_gains() -> None:
+    scenario = load_scenario("quadrotor_hill", check_demos=False)
+    demo = scenario.demos[2]
+    trajectory = simulate(scenario.dynamics, demo.x0, demo.us, scenario.Ts)
+    funnel = synthesize_funnel(scenario, trajectory, state_bounds=THETA_BOUNDS)
+    assert funnel.success, funnel.message
+    assert funnel.rho == pytest.approx(1.0, abs=1e-6)  # holds the whole required initial set
+    assert check_funnel(scenario, trajectory, funnel, THETA_BOUNDS) is None
+    held = funnel.K[0::HOLD]
+    for offset in range(1, HOLD):  # the gain is held over each piece
+        np.testing.assert_array_equal(funnel.K[offset::HOLD], held[: len(funnel.K[offset::HOLD])])
+    assert max(len(v) for v in funnel.vertices) == 6  # pitch boxes within one arc segment
