@@ -89,7 +89,7 @@ class ReportData:
         return digest.hexdigest()
 
 
-def _simulate_all(
+def simulate_all(
     scenario: Scenario, starts: Sequence[FloatArray], inputs: Sequence[FloatArray]
 ) -> list[Trajectory]:
     """Simulate every ``(x0 (n,), us (N_i, m))`` in one batch: inputs padded to the longest
@@ -125,7 +125,7 @@ def report_data(
         opt.u if opt.success else demo.us
         for demo, opt in zip(scenario.demos, results["optimize"].trajectories, strict=True)
     ]
-    paths = _simulate_all(
+    paths = simulate_all(
         scenario, [d.x0 for d in scenario.demos] * 2, [d.us for d in scenario.demos] + final_inputs
     )
     demo_paths, final_paths = paths[: len(scenario.demos)], paths[len(scenario.demos) :]
