@@ -108,6 +108,7 @@ class FigureStore:
             svg = inline_svg(buffer.getvalue(), figure.key)
             atomic_write_text(svg_file, svg)
             if png_file is not None:
+                fig.set_layout_engine("none")  # keep the SVG's layout: not computed again
                 atomic_save(png_file, lambda p: fig.savefig(p, format="png", dpi=PNG_DPI), ".png")
         self.svgs[figure.key] = svg
         self.drawn.append(figure.key)
