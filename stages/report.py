@@ -22,7 +22,7 @@ from pipeline.reporting.content import Figure
 from pipeline.reporting.data import ReportData
 from pipeline.reporting.figure_cache import FigureStore
 from pipeline.reporting.html import render_html
-from pipeline.reporting.pdf import write_pdf
+from pipeline.reporting.pdf import PdfJob
 from pipeline.reporting.sections import build_sections
 
 FIGURES = "figures"  # out/artifacts/figures: rendered pages and figures, by digest
@@ -59,10 +59,13 @@ def write_reports(data: ReportData) -> ReportResult:
     title = f"Safety controller synthesis report: {scenario.name}"
     # kept beside the run's artifacts; not when writing elsewhere (the run is only read)
     store = FigureStore(out / "artifacts" / FIGURES if data.source is None else None)
+    figures = [
+        block for section in sections for block in section.blocks if isinstance(block, Figure)
+    ]
+    # the browser starts while the figures are drawn (not when they are all reused: then the
+    # PDF printed from the same page is most likely kept too)
+    pdf = PdfJob(store, early=not all(store.cached(figure) for figure in figures))
     try:
-        figures = [
-            block for section in sections for block in section.blocks if isinstance(block, Figure)
-        ]
         for figure in figures:
             store.svg(figure, png=figure.key == OVERVIEW)
         html = render_html(
@@ -77,9 +80,10 @@ def write_reports(data: ReportData) -> ReportResult:
         for figure in figures:  # the scenario figure on its own, for slides and notes
             if figure.key == OVERVIEW:
                 store.copy_png(figure, out / "scenario.png")
-        printed = write_pdf(out / "report.html", out / "report.pdf", store)
+        printed = pdf.finish(out / "report.html", out / "report.pdf")
         store.prune()
     finally:
+        pdf.close()
         store.close()
     seconds = time.perf_counter() - start
     drawn = f"{len(store.drawn)} figures drawn" if store.drawn else "every figure reused"

@@ -90,6 +90,11 @@ class FigureStore:
         folder.mkdir()
         return folder
 
+    def cached(self, figure: Figure) -> bool:
+        """Is ``figure``'s SVG kept from an earlier report (its inputs unchanged)?"""
+        path = self.figure_file(figure, ".svg")
+        return path.parent != self._scratch and path.is_file()
+
     def svg(self, figure: Figure, png: bool = False) -> str:
         """``figure`` as an inline SVG (and its PNG on disk if ``png``): read back when its
         inputs did not change, else drawn once at its size and saved in both formats."""

@@ -5,19 +5,21 @@ title on page 1, sections flowing on without half-empty pages, no figure or tabl
 two. The browser is a system program, not a Python package: where none is found (``chromium``,
 ``chromium-browser``, ``google-chrome`` on ``PATH``) or it fails, no PDF is written, an older
 ``report.pdf`` is removed (never left looking current) and the outcome's message says why and
-how to get one. A PDF printed from the same HTML is reused (kept by the HTML's digest).
+how to get one. The browser is started before the figures are drawn and driven over a pipe
+(``reporting.browser``), so that its start-up overlaps the drawing. A PDF printed from the same
+HTML is reused (kept by the HTML's digest).
 """
 
 from __future__ import annotations
 
 import hashlib
 import shutil
-import subprocess
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
 
 from pipeline.io.artifacts import atomic_save
+from pipeline.reporting.browser import BrowserError, Printer
 from pipeline.reporting.figure_cache import FigureStore, digest_of
 
 BROWSERS = ("chromium", "chromium-browser", "google-chrome", "google-chrome-stable")
@@ -44,29 +46,6 @@ def find_browser() -> Path | None:
     return None
 
 
-def _print(browser: Path, html: Path, target: Path, profile: Path) -> None:
-    """``html`` printed to ``target`` by ``browser`` (headless; no network, no profile kept)."""
-    command = [
-        str(browser),
-        "--headless",
-        "--no-sandbox",  # as root (CI, containers) Chromium refuses to start otherwise
-        "--disable-gpu",
-        "--no-first-run",
-        "--disable-extensions",
-        "--disable-background-networking",
-        "--disable-component-update",
-        "--disable-sync",
-        "--no-pdf-header-footer",
-        f"--user-data-dir={profile}",
-        f"--print-to-pdf={target}",
-        html.resolve().as_uri(),
-    ]
-    done = subprocess.run(command, capture_output=True, text=True, timeout=TIMEOUT, check=False)
-    if done.returncode != 0 or not target.is_file() or target.stat().st_size == 0:
-        last = (done.stderr.strip().splitlines() or ["no output"])[-1]
-        raise RuntimeError(f"{browser.name} exited with code {done.returncode}: {last}")
-
-
 def _copy(source: Path, target: Path) -> None:
     shutil.copyfile(source, target)
 
@@ -77,42 +56,66 @@ def _pages(path: Path) -> int:
     return len(PdfReader(path).pages)
 
 
-def write_pdf(html: Path, target: Path, store: FigureStore) -> PdfOutcome:
-    """Print the written ``html`` file to ``target``; see the module docstring for a missing
-    or failing browser."""
-    browser = find_browser()
-    if browser is None:
-        target.unlink(missing_ok=True)
+class PdfJob:
+    """``report.pdf`` for one report: made before the figures are drawn, so that the browser
+    starts meanwhile (``early``); ``finish`` prints the written HTML; ``close`` ends the browser.
+    """
+
+    def __init__(self, store: FigureStore, early: bool) -> None:
+        self.store = store
+        self.browser = find_browser()
+        self.printer: Printer | None = None
+        self.error = ""
+        if self.browser is not None and early:
+            self._start(self.browser)
+
+    def _start(self, browser: Path) -> Printer | None:
+        try:
+            self.printer = Printer(browser, self.store.scratch_folder(), TIMEOUT)
+        except OSError as error:
+            self.error = f"{browser.name} could not be started: {error}"
+        return self.printer
+
+    def finish(self, html: Path, target: Path) -> PdfOutcome:
+        """Print the written ``html`` file to ``target`` (or reuse the PDF of the same HTML);
+        see the module docstring for a missing or failing browser."""
+        if self.browser is None:
+            target.unlink(missing_ok=True)
+            return PdfOutcome(
+                path=None,
+                pages=0,
+                reused=False,
+                message=f"report.pdf not written: no Chromium on PATH to print report.html "
+                f"({INSTALL}; or print report.html from any browser)",
+            )
+        stat = self.browser.resolve().stat()
+        text = hashlib.sha256(html.read_bytes()).hexdigest()
+        kept = self.store.pdf_file(digest_of("pdf", text, str(self.browser), stat.st_mtime_ns))
+        reused = kept.is_file()
+        try:
+            if not reused:
+                printer = self.printer or self._start(self.browser)
+                if printer is None:
+                    raise BrowserError(self.error)
+                printed = printer.print_pdf(html)
+                atomic_save(kept, lambda path: path.write_bytes(printed), ".pdf")
+            atomic_save(target, partial(_copy, kept), ".pdf")
+        except (OSError, BrowserError) as error:
+            target.unlink(missing_ok=True)
+            kept.unlink(missing_ok=True)
+            return PdfOutcome(
+                path=None, pages=0, reused=False, message=f"report.pdf not written: {error}"
+            )
+        finally:
+            self.close()
+        pages = _pages(target)
         return PdfOutcome(
-            path=None,
-            pages=0,
-            reused=False,
-            message=f"report.pdf not written: no Chromium on PATH to print report.html "
-            f"({INSTALL}; or print report.html from any browser)",
+            path=target,
+            pages=pages,
+            reused=reused,
+            message=f"report.pdf ({pages} pages{', reused' if reused else ''})",
         )
-    text = html.read_bytes()
-    stat = browser.resolve().stat()
-    digest = digest_of("pdf", hashlib.sha256(text).hexdigest(), str(browser), stat.st_mtime_ns)
-    kept = store.pdf_file(digest)
-    reused = kept.is_file()
-    try:
-        if not reused:
-            printed = store.scratch_folder() / "report.pdf"
-            _print(browser, html, printed, store.scratch_folder())
-            atomic_save(kept, partial(_copy, printed), ".pdf")
-        atomic_save(target, partial(_copy, kept), ".pdf")
-    except (OSError, RuntimeError, subprocess.TimeoutExpired) as error:
-        target.unlink(missing_ok=True)
-        kept.unlink(missing_ok=True)
-        timed_out = isinstance(error, subprocess.TimeoutExpired)
-        reason = f"Chromium timed out after {TIMEOUT:g} s" if timed_out else str(error)
-        return PdfOutcome(
-            path=None, pages=0, reused=False, message=f"report.pdf not written: {reason}"
-        )
-    pages = _pages(target)
-    return PdfOutcome(
-        path=target,
-        pages=pages,
-        reused=reused,
-        message=f"report.pdf ({pages} pages{', reused' if reused else ''})",
-    )
+
+    def close(self) -> None:
+        if self.printer is not None:
+            self.printer.close()
