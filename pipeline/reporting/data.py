@@ -7,6 +7,7 @@ run for the inputs figure.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -15,6 +16,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from pipeline.controller import Controller, load
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import Trajectory, simulate
@@ -75,6 +77,12 @@ class ReportData:
     @property
     def controller_path(self) -> Path:
         return self.run_folder / "controller.json"
+
+    @functools.cached_property
+    def law(self) -> Controller:
+        """controller.json as written (its tube ``rate`` is the held law's with a feedback
+        period; ``feedback.rate`` is the continuous design's)."""
+        return load(self.controller_path)
 
     def fingerprint(self, *reads: object) -> str:
         """SHA-256 of what a figure reads: the scenario file, the demonstrations, and for each

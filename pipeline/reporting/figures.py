@@ -20,7 +20,6 @@ from matplotlib.lines import Line2D
 from matplotlib.patches import Patch, Rectangle
 from matplotlib.ticker import MaxNLocator
 
-from pipeline.controller import load
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.simulate import Trajectory
 from pipeline.numerics.closed_loop import simulate_closed_loop
@@ -67,15 +66,15 @@ class TubeSections:
 
 def constant_tube(data: ReportData, path: Trajectory, radius: float, t: FloatArray) -> TubeSections:
     """The tube ``||x - x_ref(t)||_P <= radius e^(-λt)`` about ``path`` at times ``t (k,)``."""
-    s, feedback = data.scenario, data.feedback
-    shape = projection_shape(feedback.certified_tube.P, s.position_index)
+    s = data.scenario
+    shape = projection_shape(data.feedback.certified_tube.P, s.position_index)
     p = s.positions(path.dense_xs)
     centres = np.stack([np.interp(t, path.dense_ts, p[:, 0]), np.interp(t, path.dense_ts, p[:, 1])])
     return TubeSections(
         t=t,
         centres=centres.T,
         shapes=np.broadcast_to(shape, (len(t), 2, 2)),
-        radii=max(radius, 0.0) * np.exp(-feedback.rate * t),  # the tube's P-radius at t
+        radii=max(radius, 0.0) * np.exp(-data.law.rate * t),  # the tube's P-radius at t
     )
 
 
@@ -336,7 +335,7 @@ def inputs_trajectory(data: ReportData) -> tuple[int, FloatArray]:
     assigns to the same trajectory."""
     s = data.scenario
     worst = np.asarray(data.montecarlo.falsification.worst_x0, dtype=np.float64)
-    controller = load(data.controller_path)
+    controller = data.law
     index = int(controller.select(worst[None])[0][0])
     free = np.flatnonzero(s.init_upper > s.init_lower)
     corners = np.tile(s.init_lower, (2 ** len(free), 1))
@@ -352,7 +351,7 @@ def draw_inputs(fig: FigureLike, data: ReportData) -> None:
     """``u_ref`` of one reference trajectory and the closed-loop inputs (before clipping)
     against the input bounds and the operating region."""
     s = data.scenario
-    controller = load(data.controller_path)
+    controller = data.law
     index, starts = inputs_trajectory(data)
     reference = controller.trajectories[index]
     run = simulate_closed_loop(s.dynamics, controller, starts, index)

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.controller import load
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
 from pipeline.reporting.content import Headline, Table, number
@@ -14,7 +13,7 @@ from pipeline.reporting.data import ReportData
 
 def law_items(data: ReportData) -> tuple[Headline, ...]:
     """What the controller does after ``T`` and at which feedback period (controller.json)."""
-    period = load(data.controller_path).feedback_period
+    period = data.law.feedback_period
     after = data.controller
     return (
         Headline(
@@ -64,14 +63,14 @@ def gain_table(s: Scenario, K: FloatArray, caption: str) -> Table:
 def law(data: ReportData) -> tuple:
     """The feedback period (zero-order hold) and the law after ``T`` (controller.json)."""
     s, result = data.scenario, data.controller
-    controller = load(data.controller_path)
+    controller = data.law
     h = controller.feedback_period
     period = (
         "continuous: the certificate assumes u = u_ref + K e recomputed continuously"
         if h == 0
         else f"zero-order hold: the state measured and u recomputed every h = {h:g} s "
-        f"({1 / h:.4g} Hz) and held in between; the tube's rate λ = {data.feedback.rate:g} 1/s "
-        "is certified for the held law"
+        f"({1 / h:.4g} Hz) and held in between; the tube's rate λ = {controller.rate:.4g} 1/s "
+        f"is certified for the held law (continuous: {data.feedback.rate:g} 1/s)"
     )
     rows: list[tuple[str, str]] = [
         ("feedback period", period),

@@ -46,6 +46,10 @@ def find_browser() -> Path | None:
     return None
 
 
+def _write(content: bytes, target: Path) -> None:
+    target.write_bytes(content)
+
+
 def _copy(source: Path, target: Path) -> None:
     shutil.copyfile(source, target)
 
@@ -98,7 +102,7 @@ class PdfJob:
                 if printer is None:
                     raise BrowserError(self.error)
                 printed = printer.print_pdf(html)
-                atomic_save(kept, lambda path: path.write_bytes(printed), ".pdf")
+                atomic_save(kept, partial(_write, printed), ".pdf")
             atomic_save(target, partial(_copy, kept), ".pdf")
         except (OSError, BrowserError) as error:
             target.unlink(missing_ok=True)

@@ -9,7 +9,6 @@ from functools import partial
 
 import numpy as np
 
-from pipeline.controller import load
 from pipeline.io.artifacts import file_hash
 from pipeline.reporting import figures
 from pipeline.reporting.content import (
@@ -139,7 +138,13 @@ def feedback(data: ReportData) -> tuple:
         )
     )
     quantities = (
-        ("contraction rate λ", f"{fb.rate:g} 1/s"),
+        (
+            "contraction rate λ",
+            f"{fb.rate:g} 1/s"
+            if data.law.feedback_period == 0
+            else f"{fb.rate:g} 1/s continuous; {data.law.rate:.4g} 1/s with the law held every "
+            f"{data.law.feedback_period:g} s (the tube's rate)",
+        ),
         ("gain design", f"{fb.gain} (solver status: {fb.solver_status})"),
         ("P eigenvalues", vector(eig, 4)),
         ("P condition number", number(float(eig[-1] / eig[0]), 4)),
@@ -360,7 +365,7 @@ def montecarlo(data: ReportData) -> tuple:
 def inputs(data: ReportData) -> tuple:
     s = data.scenario
     index, starts = figures.inputs_trajectory(data)
-    x0 = load(data.controller_path).trajectories[index].x0
+    x0 = data.law.trajectories[index].x0
     demo = next((d.name for d in s.demos if np.allclose(d.x0, x0)), "no demonstration")
     return (
         Paragraph(

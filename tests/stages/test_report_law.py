@@ -45,18 +45,22 @@ def _data(tmp_path: Path, period: float) -> Any:
     document = json.loads(path.read_text())
     document["feedback_period"] = period
     path.write_text(json.dumps(document))
-    feedback = SimpleNamespace(rate=0.5)
     return SimpleNamespace(
-        scenario=scenario, controller=result, controller_path=path, feedback=feedback
+        scenario=scenario,
+        controller=result,
+        controller_path=path,
+        law=load(path),
+        feedback=SimpleNamespace(rate=0.5),
     )
 
 
 def test_the_terminal_controller_and_the_held_rate_are_shown_with_units(tmp_path: Path) -> None:
     data = _data(tmp_path, period=0.05)
-    terminal = load(data.controller_path).terminal
+    terminal = data.law.terminal
     table, gains = law(data)
     rows = dict(table.rows)
     assert "every h = 0.05 s (20 Hz)" in rows["feedback period"]
+    assert f"rate λ = {load(data.controller_path).rate:.4g} 1/s" in rows["feedback period"]
     assert rows["after T"] == data.controller.terminal_message
     x = terminal.x_eq
     assert rows["terminal equilibrium x_eq"].startswith(f"X = {x[0]:.4g} m, Y = {x[1]:.4g} m")
@@ -75,6 +79,7 @@ def test_continuous_feedback_and_no_terminal_block(tmp_path: Path) -> None:
     document = json.loads(data.controller_path.read_text())
     del document["terminal"]
     data.controller_path.write_text(json.dumps(document))
+    data.law = load(data.controller_path)
     data.controller = SimpleNamespace(terminal=False, terminal_message="")
     (table,) = law(data)
     rows = dict(table.rows)
