@@ -39,6 +39,7 @@ from pipeline.reporting.plotting import (
     draw_path,
     draw_scenario,
     ellipses,
+    log_axis,
     scenario_frame,
 )
 
@@ -197,6 +198,8 @@ def draw_optimization(fig: FigureLike, data: ReportData) -> None:
     )
     step.set(yscale="log", xlabel="iteration", ylabel="step size λ", title="step size λ")
     tries.set(xlabel="try", ylabel="horizon T' (s)", title="horizons tried")
+    log_axis(cost.yaxis)
+    log_axis(step.yaxis)
     tries.legend(
         handles=[
             Line2D([], [], color="0.3", marker="o", ls="", label="feasible (J = 0)"),
@@ -326,6 +329,7 @@ def _histogram(
     ax.xaxis.set_major_locator(MaxNLocator(6))
     if log:
         ax.set_yscale("log")
+        log_axis(ax.yaxis)
     ax.legend(loc="best", frameon=False)
 
 

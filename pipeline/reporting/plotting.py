@@ -13,8 +13,10 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from matplotlib.axes import Axes
+from matplotlib.axis import Axis
 from matplotlib.collections import EllipseCollection
 from matplotlib.patches import Rectangle
+from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 from shapely.geometry import box
 from shapely.geometry.base import BaseGeometry
 
@@ -53,6 +55,26 @@ STYLE: dict[RcKeyType, object] = {
     "svg.fonttype": "none",
     "pdf.fonttype": 42,
 }
+
+
+SUPERSCRIPT = str.maketrans("-0123456789", "⁻⁰¹²³⁴⁵⁶⁷⁸⁹")
+
+
+def _power_of_ten(value: float, _: object = None) -> str:
+    """A decade as ``10⁻²`` (plain text, not mathtext: building its parser costs ~1 s)."""
+    if value <= 0:
+        return ""
+    exponent = round(float(np.log10(value)))
+    if abs(value / 10.0**exponent - 1) > 1e-9:
+        return ""
+    return {0: "1", 1: "10"}.get(exponent, "10" + str(exponent).translate(SUPERSCRIPT))
+
+
+def log_axis(axis: Axis) -> None:
+    """A log-scaled ``axis`` labelled at decades in plain text (call after ``set_yscale``)."""
+    axis.set_major_locator(LogLocator(base=10, numticks=6))
+    axis.set_major_formatter(FuncFormatter(_power_of_ten))
+    axis.set_minor_formatter(NullFormatter())
 
 
 # ``**style``: matplotlib artist properties, ``Any`` as matplotlib's own stubs type them.
