@@ -120,6 +120,9 @@ def test_html_holds_the_headline_numbers_of_summary_json(run: tuple[Scenario, Pa
         "the paper: 42%",
         f"{h['min_clearance_before']:.2f} → {h['min_clearance_after']:.2f} m",
         "the paper's demo: 0.22",
+        "Closed-loop clearance (Monte Carlo)",  # beside the nominal one, each labelled
+        f"{summary['montecarlo']['min_clearance']:.2f} m",
+        f"closest of the {summary['montecarlo']['samples']} closed-loop runs",
         f"{h['coverage_before']:.1%} → {h['coverage_after']:.1%}",
         f"{h['montecarlo_failures']} / {h['montecarlo_samples']}",
         f"≤ {h['failure_bound_95']:.2e}",
@@ -191,6 +194,23 @@ def test_a_failing_browser_is_a_message_not_a_crash(
     assert result.pdf is None and not (out / "report.pdf").exists()
     assert "report.pdf not written: chromium exited with code 3" in result.message
     assert result.message.endswith(": cannot open display")  # the browser's last words
+
+
+def test_units_and_labels_in_tables_and_figures(run: tuple[Scenario, Path]) -> None:
+    """quadrotor_hill declares units and labels: the K table, margins, the inputs figure's axes
+    and the scenario figure's axes carry them; radii say they are P-norms and give metres."""
+    html = (run[1] / "report.html").read_text()
+    text = " ".join(" ".join(_parse(html).text).split())
+    scenario = run[0]
+    for name in scenario.input_names:  # K table rows, input margins, inputs figure titles
+        assert text.count(scenario.label(name)) >= 3, scenario.label(name)
+    for name in scenario.state_names:  # K table header
+        assert f"{scenario.label(name)}" in text
+    assert "u1 (thrust) [N]" in text and "X (horizontal position) [m]" in text
+    assert "[unit of u_j] per [unit of x_i]" in text
+    assert "Robustness radii in the P-norm" in text and "extent after (m)" in text
+    inputs = html[html.index('id="figure-inputs"') :]
+    assert ">u2 (pitch acceleration) [rad/s^2]<" in inputs[: inputs.index("</figure>")]
 
 
 def test_the_scenario_figure_is_written_beside_the_report(run: tuple[Scenario, Path]) -> None:
