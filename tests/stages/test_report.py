@@ -31,7 +31,7 @@ from pipeline.reporting.sections import headline_items, section_headings
 from pipeline.reporting.summary import Summary
 from pipeline.runtime.cli import main
 from pipeline.runtime.stored import load_report_data
-from stages.report import write_reports
+from stages.report import ReportResult, write_reports
 
 CHROMIUM = Path("/usr/bin/chromium")
 BROWSER = pdf_module.find_browser()  # what the report prints its PDF with
@@ -164,34 +164,36 @@ def test_pdf_has_the_title_first_and_every_section_in_order(run: tuple[Scenario,
     assert all(len(text) > 600 for text in texts[:-1]), [len(t) for t in texts]
 
 
+def _with_browser(
+    run: tuple[Scenario, Path], out: Path, browser: Path | None, monkeypatch: pytest.MonkeyPatch
+) -> ReportResult:
+    """The report of a copy of the run in ``out`` (with an old report.pdf) printed by
+    ``browser`` (None: no browser found)."""
+    shutil.copytree(run[1], out)
+    (out / "report.pdf").write_bytes(b"%PDF- an old report")
+    monkeypatch.setattr(pdf_module, "find_browser", lambda: browser)
+    result = write_reports(load_report_data(run[0], out))
+    assert result.success and result.pdf is None
+    assert not (out / "report.pdf").exists()  # never a stale PDF beside a new HTML
+    assert (out / "report.html").stat().st_size > 0
+    return result
+
+
 def test_without_a_browser_no_pdf_is_written_and_an_old_one_is_removed(
     run: tuple[Scenario, Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    scenario, good = run
-    out = tmp_path / "copy"
-    shutil.copytree(good, out)
-    (out / "report.pdf").write_bytes(b"%PDF- an old report")
-    monkeypatch.setattr(pdf_module, "find_browser", lambda: None)
-    result = write_reports(load_report_data(scenario, out))
-    assert result.success and result.pdf is None
+    result = _with_browser(run, tmp_path / "copy", None, monkeypatch)
     assert "report.pdf not written: no Chromium on PATH" in result.message
     assert "apt-get install chromium" in result.message
-    assert not (out / "report.pdf").exists()  # never a stale PDF beside a new HTML
-    assert (out / "report.html").stat().st_size > 0
 
 
 def test_a_failing_browser_is_a_message_not_a_crash(
     run: tuple[Scenario, Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    scenario, good = run
-    out = tmp_path / "copy"
-    shutil.copytree(good, out)
     broken = tmp_path / "chromium"
     broken.write_text("#!/bin/sh\necho 'cannot open display' >&2\nexit 3\n")
     broken.chmod(0o755)
-    monkeypatch.setattr(pdf_module, "find_browser", lambda: broken)
-    result = write_reports(load_report_data(scenario, out))
-    assert result.pdf is None and not (out / "report.pdf").exists()
+    result = _with_browser(run, tmp_path / "copy", broken, monkeypatch)
     assert "report.pdf not written: chromium exited with code 3" in result.message
     assert result.message.endswith(": cannot open display")  # the browser's last words
 
