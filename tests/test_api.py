@@ -115,8 +115,8 @@ def test_synthesis_is_a_frozen_result_with_the_run_in_it(synthesized):
 
     files = result.outputs
     assert files.folder == where / "reports" / "double_integrator"  # under the cwd
-    printed = (files.report_pdf,) if find_browser() else ()  # report.html printed by Chromium
-    for path in (files.summary, files.controller, files.report_html, *printed):
+    pdf = (files.report_pdf,) if find_browser() else ()  # report.html printed by Chromium
+    for path in (files.summary, files.controller, files.report_html, *pdf):
         assert path is not None and path.is_file() and path.parent == files.folder
     assert files.artifacts.is_dir()
     assert json.loads(files.summary.read_text())["verdict"]["kind"] == result.verdict.value

@@ -98,8 +98,8 @@ def test_a_non_editable_install_synthesizes_from_another_directory(tmp_path: Pat
     assert run.returncode == 0, run.stdout + run.stderr
     out = elsewhere / "reports" / "double_integrator"
     assert f"outputs in {out}" in run.stdout
-    printed = ("report.pdf",) if find_browser() else ()  # report.html printed by Chromium
-    for name in ("summary.json", "controller.json", "report.html", *printed):
+    pdf = ("report.pdf",) if find_browser() else ()  # report.html printed by Chromium
+    for name in ("summary.json", "controller.json", "report.html", *pdf):
         assert (out / name).is_file(), name
     summary = json.loads((out / "summary.json").read_text())
     assert summary["verdict"]["kind"] == "certified and validated"
