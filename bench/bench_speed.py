@@ -5,9 +5,11 @@ folder (so that a concurrent ``make synthesize`` cannot change it mid-run); if i
 the pipeline is run into the temporary folder first (``--samples 1000``).
 
 (a) Report stage, as ``synthesize`` runs it (``write_reports(load_report_data(...))``: read the
-    artifacts, write report.html, report.pdf and scenario.png; the scenario loaded before): with
-    an empty figure cache (every page and figure drawn) and again with the cache of the first
-    (nothing changed: every page reused); limit 3 s.
+    artifacts, write report.html, scenario.png and report.pdf (printed by Chromium where it is
+    installed; the message says whether it was); the scenario loaded before): with an empty
+    figure cache (every figure drawn, the PDF printed) and again with the cache of the first
+    (nothing changed: every figure and the PDF reused); limit 3 s. ``bench_report`` runs the
+    same stage side by side with the code before the report rework.
 (b) Monte Carlo stage at the default size (``RunOptions().samples``) with 2 worker processes,
     as ``synthesize --jobs 2`` runs it (pool start-up and the falsification search included);
     limit 10 s. The rollouts/s against the flop anchor and the 10^6-run wall time are in
@@ -44,7 +46,7 @@ STARTUP_LIMIT = 0.5  # s
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _finished_run(folder: Path) -> tuple[Path, str]:
+def finished_run(folder: Path) -> tuple[Path, str]:
     """A private copy of a finished run of ``SCENARIO`` and where it came from."""
     shipped = default_output_folder(SCENARIO)  # ./reports/NAME
     target = folder / SCENARIO
@@ -71,10 +73,10 @@ def _row(what: str, seconds: float, limit: float) -> None:
 def run() -> None:
     print(f"{os.cpu_count()} cores, load average {os.getloadavg()[0]:.1f}")
     with tempfile.TemporaryDirectory(prefix="bench_speed_") as tmp:
-        out, source = _finished_run(Path(tmp))
+        out, source = finished_run(Path(tmp))
         print(f"(a) report stage of {SCENARIO}, run {source}:")
         scenario = load_scenario(SCENARIO)
-        for case in ("empty figure cache", "nothing changed (pages reused)"):
+        for case in ("empty figure cache", "nothing changed (figures and PDF reused)"):
             if case.startswith("empty"):
                 shutil.rmtree(out / "artifacts" / "figures", ignore_errors=True)
             start = time.perf_counter()

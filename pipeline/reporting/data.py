@@ -7,6 +7,7 @@ run for the inputs figure.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -15,6 +16,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from pipeline.controller import Controller, load
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import Trajectory, simulate
@@ -76,6 +78,12 @@ class ReportData:
     def controller_path(self) -> Path:
         return self.run_folder / "controller.json"
 
+    @functools.cached_property
+    def law(self) -> Controller:
+        """controller.json as written (its tube ``rate`` is the held law's with a feedback
+        period; ``feedback.rate`` is the continuous design's)."""
+        return load(self.controller_path)
+
     def fingerprint(self, *reads: object) -> str:
         """SHA-256 of what a figure reads: the scenario file, the demonstrations, and for each
         of ``reads`` the stored key of that stage (a name in ``STAGES``) or the value itself."""
@@ -89,7 +97,7 @@ class ReportData:
         return digest.hexdigest()
 
 
-def _simulate_all(
+def simulate_all(
     scenario: Scenario, starts: Sequence[FloatArray], inputs: Sequence[FloatArray]
 ) -> list[Trajectory]:
     """Simulate every ``(x0 (n,), us (N_i, m))`` in one batch: inputs padded to the longest
@@ -125,7 +133,7 @@ def report_data(
         opt.u if opt.success else demo.us
         for demo, opt in zip(scenario.demos, results["optimize"].trajectories, strict=True)
     ]
-    paths = _simulate_all(
+    paths = simulate_all(
         scenario, [d.x0 for d in scenario.demos] * 2, [d.us for d in scenario.demos] + final_inputs
     )
     demo_paths, final_paths = paths[: len(scenario.demos)], paths[len(scenario.demos) :]

@@ -1,12 +1,12 @@
-"""Rendered report pages and figures, kept under ``OUT/artifacts/figures/`` by what they draw.
+"""Rendered figures and the printed PDF, kept under ``OUT/artifacts/figures/`` by what they draw.
 
-Each PDF page is rendered once into its own one-page PDF named by the SHA-256 of everything on
-it (texts with their positions and styles, rules, boxes, and the digest of its figure); the
-report is these pages joined. A figure's digest hashes its key, size and ``inputs`` (the
-fingerprint of the data it reads, ``ReportData.fingerprint``) with the reporting code and the
-matplotlib version, so a figure whose data did not change is neither drawn nor rendered again.
-A figure is drawn once, into its PDF page; its SVG (for the HTML) and PNG (``scenario.png``) are
-cut from that same drawing. Files this report did not use are deleted at the end (``prune``).
+A figure's digest hashes its key, size and ``inputs`` (the fingerprint of the data it reads,
+``ReportData.fingerprint``) with the reporting code and the matplotlib version, so a figure whose
+data did not change is not drawn again: its SVG (for the HTML, ``KEY-DIGEST.svg``) and PNG
+(``scenario.png``, ``KEY-DIGEST.png``) are read back. Each figure is drawn once; the PNG is saved
+from the same drawing as the SVG. The PDF printed from the HTML is kept as ``report-DIGEST.pdf``
+by the digest of the HTML (``reporting.pdf``). Files this report did not use are deleted at the
+end (``prune``).
 """
 
 from __future__ import annotations
@@ -17,20 +17,17 @@ import io
 import json
 import shutil
 import tempfile
-from collections.abc import Sequence
 from pathlib import Path
 
 import matplotlib
 from matplotlib.figure import Figure as MplFigure
-from matplotlib.figure import SubFigure
-from matplotlib.transforms import Bbox
 
 from pipeline.io.artifacts import atomic_save, atomic_write_text
 from pipeline.reporting.content import Figure
 from pipeline.reporting.html import inline_svg
 from pipeline.reporting.plotting import STYLE
 
-PNG_DPI = 130
+PNG_DPI = 160
 
 
 @functools.cache
@@ -57,12 +54,12 @@ def figure_digest(figure: Figure) -> str | None:
 
 
 class FigureStore:
-    """Pages (``page-DIGEST.pdf``), SVGs (``KEY-DIGEST.svg``) and PNGs (``KEY-DIGEST.png``) in
-    ``folder``; with ``folder=None`` (or for a figure without a digest) a private temporary
-    folder, nothing reused."""
+    """SVGs (``KEY-DIGEST.svg``), PNGs (``KEY-DIGEST.png``) and printed PDFs
+    (``report-DIGEST.pdf``) in ``folder``; with ``folder=None`` (or for a figure without a
+    digest) a private temporary folder, nothing reused."""
 
     def __init__(self, folder: Path | None) -> None:
-        self._scratch = Path(tempfile.mkdtemp(prefix="report_pages_"))
+        self._scratch = Path(tempfile.mkdtemp(prefix="report_figures_"))
         self.folder = Path(folder) if folder is not None else self._scratch
         self.folder.mkdir(parents=True, exist_ok=True)
         self.used: set[Path] = set()
@@ -78,88 +75,58 @@ class FigureStore:
         self.used.add(path)
         return path
 
-    def page_file(self, digest: str | None) -> Path:
-        return self._file(None if digest is None else f"page-{digest}", ".pdf")
-
     def figure_file(self, figure: Figure, suffix: str) -> Path:
         digest = figure_digest(figure)
         return self._file(None if digest is None else f"{figure.key}-{digest}", suffix)
 
-    def cached(self, page: Path, figure: Figure | None, png: bool) -> bool:
-        """Are ``page`` and its figure's SVG (and PNG if ``png``) all on disk?"""
-        if not page.is_file() or page.parent == self._scratch:
-            return False
-        if figure is None:
-            return True
-        svg = self.figure_file(figure, ".svg")
-        if not svg.is_file() or (png and not self.figure_file(figure, ".png").is_file()):
-            return False
-        self.svgs[figure.key] = svg.read_text()
-        return True
+    def pdf_file(self, digest: str) -> Path:
+        """Where the PDF printed from the HTML of ``digest`` is kept."""
+        return self._file(f"report-{digest}", ".pdf")
 
-    def save_figure(self, figure: Figure, page: MplFigure, drawing: SubFigure, png: bool) -> None:
-        """Cut ``figure``'s SVG (and PNG) from ``page``, where it was drawn into ``drawing``
-        and the page already saved: everything else on the page is hidden, the layout kept."""
-        page.set_layout_engine("none")  # keep the positions of the PDF page's layout
-        for artist in [*page.texts, *page.artists, *page.patches, *page.lines]:
-            artist.set_visible(False)
-        for other in page.subfigs:
-            if other is not drawing:
-                other.set_visible(False)
-        box = Bbox(drawing.bbox.get_points() / page.dpi)  # inches
-        buffer = io.StringIO()
+    def scratch_folder(self) -> Path:
+        """A new empty folder in the private temporary folder (e.g. a browser profile)."""
+        self._count += 1
+        folder = self._scratch / f"folder-{self._count}"
+        folder.mkdir()
+        return folder
+
+    def cached(self, figure: Figure) -> bool:
+        """Is ``figure``'s SVG kept from an earlier report (its inputs unchanged)?"""
+        path = self.figure_file(figure, ".svg")
+        return path.parent != self._scratch and path.is_file()
+
+    def svg(self, figure: Figure, png: bool = False) -> str:
+        """``figure`` as an inline SVG (and its PNG on disk if ``png``): read back when its
+        inputs did not change, else drawn once at its size and saved in both formats."""
+        svg_file = self.figure_file(figure, ".svg")
+        png_file = self.figure_file(figure, ".png") if png else None
+        if svg_file.parent != self._scratch and svg_file.is_file():
+            if png_file is None or png_file.is_file():
+                self.svgs[figure.key] = svg_file.read_text()
+                return self.svgs[figure.key]
         with matplotlib.rc_context({**STYLE, "svg.hashsalt": figure.key}):
-            page.savefig(buffer, format="svg", bbox_inches=box, metadata={"Date": None})
+            # a bare Figure, not pyplot: no global backend or figure registry is touched
+            fig = MplFigure(figsize=figure.size, layout="constrained")
+            figure.draw(fig)
+            buffer = io.StringIO()
+            fig.savefig(buffer, format="svg", metadata={"Date": None})
             svg = inline_svg(buffer.getvalue(), figure.key)
-            atomic_write_text(self.figure_file(figure, ".svg"), svg)
-            if png:
-                atomic_save(
-                    self.figure_file(figure, ".png"),
-                    lambda p: page.savefig(p, format="png", dpi=PNG_DPI, bbox_inches=box),
-                    ".png",
-                )
+            atomic_write_text(svg_file, svg)
+            if png_file is not None:
+                fig.set_layout_engine("none")  # keep the SVG's layout: not computed again
+                atomic_save(png_file, lambda p: fig.savefig(p, format="png", dpi=PNG_DPI), ".png")
         self.svgs[figure.key] = svg
         self.drawn.append(figure.key)
+        return svg
 
     def copy_png(self, figure: Figure, target: Path) -> None:
-        """The figure's PNG (cut from its page) to ``target``, atomically."""
+        """The figure's PNG (saved with its SVG) to ``target``, atomically."""
         source = self.figure_file(figure, ".png")
 
         def copy(path: Path) -> None:
             shutil.copyfile(source, path)
 
         atomic_save(target, copy, ".png")
-
-    def scratch_file(self, suffix: str) -> Path:
-        """A new file name in the private temporary folder."""
-        return self._file(None, suffix)
-
-    def join(
-        self, pages: Sequence[tuple[Path, int | None]], fresh: Path, path: Path, title: str
-    ) -> None:
-        """The report's pages, in order, into ``path``: ``(file, None)`` a kept page,
-        ``(file, k)`` page ``k`` of ``fresh`` (rendered now), also kept as ``file``."""
-        from pypdf import PdfReader, PdfWriter
-
-        reader = PdfReader(fresh) if any(k is not None for _, k in pages) else None
-        writer = PdfWriter()
-        for file, k in pages:
-            if k is None:
-                writer.append(str(file))
-                continue
-            assert reader is not None
-            single = PdfWriter()
-            single.add_page(reader.pages[k])
-
-            def keep(target: Path, single: PdfWriter = single) -> None:
-                single.write(target)
-
-            atomic_save(file, keep, ".pdf")
-            writer.add_page(reader.pages[k])
-        writer.compress_identical_objects()  # the fonts each kept page carries, once
-        writer.add_metadata({"/Title": title, "/Creator": "safety-synthesis"})
-        with open(path, "wb") as handle:
-            writer.write(handle)
 
     def prune(self) -> None:
         """Delete this folder's cached files that this report did not use."""

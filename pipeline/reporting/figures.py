@@ -7,64 +7,97 @@ feasible trajectories purple, closed loop teal, failures and gaps red.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 from matplotlib import colormaps
 from matplotlib.axes import Axes
+from matplotlib.cm import ScalarMappable
+from matplotlib.colors import ListedColormap, Normalize
 from matplotlib.lines import Line2D
 from matplotlib.patches import Patch, Rectangle
 from matplotlib.ticker import MaxNLocator
 
-from pipeline.controller import load
 from pipeline.model.dynamics import FloatArray
-from pipeline.model.scenario import Scenario
-from pipeline.model.simulate import Trajectory, simulate
+from pipeline.model.simulate import Trajectory
 from pipeline.numerics.closed_loop import simulate_closed_loop
 from pipeline.numerics.tube import projection_shape, slice_shape
 from pipeline.reporting.content import FigureLike
-from pipeline.reporting.data import ReportData
+from pipeline.reporting.data import ReportData, simulate_all
 from pipeline.reporting.plotting import (
     BOUND,
     CLOSED_LOOP,
     DEMO,
     FAILURE,
+    FIGURE_WIDTH,
     INIT,
     INTERMEDIATE,
     OPTIMIZED,
+    axis_label,
     draw_path,
     draw_scenario,
     ellipses,
+    log_axis,
+    scenario_frame,
 )
 
 TUBE_PERIOD = 0.5  # s between the tube ellipses drawn along a path
 MARKER_PERIOD = 1.0  # s between the time markers on a path
 
 
-def _legend_below(fig: FigureLike, ax: Axes, handles: Sequence[object] | None = None) -> None:
-    entries = ax.get_legend_handles_labels() if handles is None else (handles, None)
-    if handles is None:
-        fig.legend(*entries, loc="outside lower center", ncols=4, frameon=False)
-    else:
-        fig.legend(handles=handles, loc="outside lower center", ncols=4, frameon=False)
+def _legend_below(fig: FigureLike, handles: Sequence[object], ncols: int = 2) -> None:
+    """One legend under the axes, inside the figure (constrained layout makes room for it)."""
+    fig.legend(handles=handles, loc="outside lower center", ncols=ncols, frameon=False)
 
 
-def _tube_along(
-    ax: Axes, data: ReportData, path: Trajectory, radius: float, color: str, along: bool
-) -> None:
-    """The tube's position projection at the start (outlined) and every ``TUBE_PERIOD`` s."""
-    s, feedback = data.scenario, data.feedback
-    if radius <= 0:
-        return
-    shape = projection_shape(feedback.certified_tube.P, s.position_index)
-    t = np.arange(0.0, path.duration + 1e-9, TUBE_PERIOD) if along else np.zeros(1)
+@dataclass(frozen=True, kw_only=True)
+class TubeSections:
+    """A tube's position projection at times ``t (k,)``: the ellipses
+    ``{p : (p - centres_k)^T shapes_k^-1 (p - centres_k) <= radii_k^2}``, ``centres (k, 2)``,
+    ``shapes (k, 2, 2)``, ``radii (k,)``. The constant-metric tube builds it here; a funnel
+    certificate (``E_i(t)``) gives its own shapes per time and draws with the same code."""
+
+    t: FloatArray
+    centres: FloatArray
+    shapes: FloatArray
+    radii: FloatArray
+
+
+def constant_tube(data: ReportData, path: Trajectory, radius: float, t: FloatArray) -> TubeSections:
+    """The tube ``||x - x_ref(t)||_P <= radius e^(-λt)`` about ``path`` at times ``t (k,)``."""
+    s = data.scenario
+    shape = projection_shape(data.feedback.certified_tube.P, s.position_index)
     p = s.positions(path.dense_xs)
     centres = np.stack([np.interp(t, path.dense_ts, p[:, 0]), np.interp(t, path.dense_ts, p[:, 1])])
-    rho = radius * np.exp(-feedback.rate * t)  # the tube's P-radius at t
-    if along:
-        ellipses(ax, shape, centres.T, rho, color, filled=True, alpha=0.06, lw=0)
-    ellipses(ax, shape, centres.T[:1], rho[:1], color, lw=0.8, alpha=0.8)
+    return TubeSections(
+        t=t,
+        centres=centres.T,
+        shapes=np.broadcast_to(shape, (len(t), 2, 2)),
+        radii=max(radius, 0.0) * np.exp(-data.law.rate * t),  # the tube's P-radius at t
+    )
+
+
+def draw_tube(ax: Axes, tube: TubeSections, color: str, alpha: float = 0.07) -> None:
+    """The tube shaded along its path and outlined at its first time (the start)."""
+    if not np.any(tube.radii > 0):
+        return
+    ellipses(ax, tube.shapes, tube.centres, tube.radii, color, filled=True, alpha=alpha, lw=0)
+    ellipses(ax, tube.shapes[:1], tube.centres[:1], tube.radii[:1], color, lw=0.9, alpha=0.9)
+
+
+def _along(path: Trajectory) -> FloatArray:
+    """The times ``(k,)`` at which a tube is drawn along ``path``: every ``TUBE_PERIOD`` s."""
+    return np.arange(0.0, path.duration + 1e-9, TUBE_PERIOD)
+
+
+def scene_height(data: ReportData, paths: Sequence[Trajectory], below: float) -> float:
+    """A figure height (in) for a ``FIGURE_WIDTH`` wide scene of ``paths`` at equal aspect,
+    with ``below`` in under the axes (legend, colour bar)."""
+    xmin, xmax, ymin, ymax = scenario_frame(data.scenario, _all_positions(paths, data))
+    axes_width = FIGURE_WIDTH - 0.8  # less the y label and tick labels
+    return axes_width * (ymax - ymin) / (xmax - xmin) + 0.7 + below
 
 
 def _all_positions(paths: Sequence[Trajectory], data: ReportData) -> FloatArray:
@@ -79,14 +112,15 @@ def draw_overview(fig: FigureLike, data: ReportData) -> None:
     for k, (demo, final) in enumerate(zip(data.demo_paths, data.final_paths, strict=True)):
         draw_path(ax, s, demo.dense_ts, demo.dense_xs, DEMO, None, MARKER_PERIOD, lw=0.8)
         draw_path(ax, s, final.dense_ts, final.dense_xs, OPTIMIZED, None, MARKER_PERIOD, lw=1.3)
-        _tube_along(ax, data, final, data.radius_optimized[k].radius, OPTIMIZED, along=True)
+        tube = constant_tube(data, final, data.radius_optimized[k].radius, _along(final))
+        draw_tube(ax, tube, OPTIMIZED, alpha=0.06)
     handles = [
         *ax.get_legend_handles_labels()[0],
         Line2D([], [], color=DEMO, lw=0.8, marker="o", ms=2.6, label="demonstrations"),
         Line2D([], [], color=OPTIMIZED, lw=1.3, marker="o", ms=2.6, label="optimized"),
         Patch(facecolor=OPTIMIZED, alpha=0.25, edgecolor=OPTIMIZED, label="tube (optimized)"),
     ]
-    _legend_below(fig, ax, handles)
+    _legend_below(fig, handles)
 
 
 def bisection_demo(data: ReportData) -> int:
@@ -96,54 +130,47 @@ def bisection_demo(data: ReportData) -> int:
 
 
 def draw_bisection(fig: FigureLike, data: ReportData, index: int) -> None:
-    """The paper's Fig. 2: one demo, the bisection's intermediate feasible trajectories, the
-    optimal one, and the tubes about the initial point."""
+    """The paper's Fig. 2: one demo, the search's intermediate feasible trajectories coloured by
+    their horizon ``T'`` (one colour scale), the optimal one, and the tubes of the demo and of
+    the optimal trajectory along their paths."""
     s = data.scenario
     opt = data.optimize.trajectories[index]
     demo, final = data.demo_paths[index], data.final_paths[index]
-    feasible = [simulate(s.dynamics, opt.x0, u, s.Ts) for u in opt.feasible_inputs[:-1]]
+    inputs = list(opt.feasible_inputs[:-1])
+    feasible = simulate_all(s, [opt.x0] * len(inputs), inputs) if inputs else []
     ax = fig.subplots()
     draw_scenario(ax, s, _all_positions([demo, final, *feasible], data))
-    shades = colormaps[INTERMEDIATE](np.linspace(0.35, 0.75, max(len(feasible), 1)))
-    for path, shade in zip(feasible, shades, strict=False):
-        draw_path(
-            ax,
-            s,
-            path.dense_ts,
-            path.dense_xs,
-            shade,
-            f"feasible, T' = {path.duration:.1f} s",
-            TUBE_PERIOD,
-            lw=0.9,
-        )
+    draw_tube(ax, constant_tube(data, demo, data.radius_demos[index].radius, _along(demo)), DEMO)
+    tube = constant_tube(data, final, data.radius_optimized[index].radius, _along(final))
+    draw_tube(ax, tube, OPTIMIZED)
+    if feasible:
+        horizons = np.array([path.duration for path in feasible])
+        top = max(float(horizons.max()), float(horizons.min()) + s.Ts)
+        colours = ListedColormap(colormaps[INTERMEDIATE](np.linspace(0.95, 0.4, 256)))
+        norm = Normalize(float(horizons.min()), top)  # shorter T': darker
+        scale = ScalarMappable(norm, colours)
+        shades = colours(norm(horizons))  # (k, 4)
+        for k in np.argsort(-horizons):  # shorter drawn on top
+            p = s.positions(feasible[k].dense_xs)
+            ax.plot(*p.T, color=shades[k], lw=0.9, zorder=4)
+        bar = fig.colorbar(scale, ax=ax, location="bottom", shrink=0.8, aspect=35, pad=0.02)
+        bar.set_label("T' of the intermediate feasible trajectories (s)")
+        bar.ax.set_gid("colorbar")
     label = f"{opt.demo} as flown, T = {demo.duration:.1f} s"
     draw_path(ax, s, demo.dense_ts, demo.dense_xs, DEMO, label, TUBE_PERIOD, lw=1.3)
     label = f"optimal, T' = {final.duration:.1f} s"
     draw_path(ax, s, final.dense_ts, final.dense_xs, OPTIMIZED, label, TUBE_PERIOD, lw=1.6)
-    _tube_along(ax, data, demo, data.radius_demos[index].radius, DEMO, along=False)
-    _tube_along(ax, data, final, data.radius_optimized[index].radius, OPTIMIZED, along=False)
     handles = [
         *ax.get_legend_handles_labels()[0],
-        Line2D(
-            [], [], color=DEMO, marker="o", ls="", mfc="none", ms=9, label="tube at start, demo"
-        ),
-        Line2D(
-            [],
-            [],
-            color=OPTIMIZED,
-            marker="o",
-            ls="",
-            mfc="none",
-            ms=9,
-            label="tube at start, optimal",
-        ),
+        Patch(facecolor=DEMO, alpha=0.3, edgecolor=DEMO, label="tube of the demonstration"),
+        Patch(facecolor=OPTIMIZED, alpha=0.3, edgecolor=OPTIMIZED, label="tube of the optimal"),
     ]
-    ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
+    _legend_below(fig, handles)
 
 
 def draw_optimization(fig: FigureLike, data: ReportData) -> None:
     """Per demo: J and the step size over the final horizon's descent; the horizons tried."""
-    cost, step, tries = fig.subplots(1, 3)
+    cost, step, tries = fig.subplots(3, 1)
     colours = colormaps["tab10"]
     for k, opt in enumerate(data.optimize.trajectories):
         colour = colours(k % 10)
@@ -171,6 +198,8 @@ def draw_optimization(fig: FigureLike, data: ReportData) -> None:
     )
     step.set(yscale="log", xlabel="iteration", ylabel="step size λ", title="step size λ")
     tries.set(xlabel="try", ylabel="horizon T' (s)", title="horizons tried")
+    log_axis(cost.yaxis)
+    log_axis(step.yaxis)
     tries.legend(
         handles=[
             Line2D([], [], color="0.3", marker="o", ls="", label="feasible (J = 0)"),
@@ -180,7 +209,7 @@ def draw_optimization(fig: FigureLike, data: ReportData) -> None:
         frameon=False,
     )
     fig.legend(
-        *step.get_legend_handles_labels(), loc="outside lower center", ncols=9, frameon=False
+        *step.get_legend_handles_labels(), loc="outside lower center", ncols=3, frameon=False
     )
 
 
@@ -188,11 +217,6 @@ def _box(ax: Axes, lower: FloatArray, upper: FloatArray, **style: Any) -> None:
     """The box ``[lower, upper]`` (2,); ``style``: matplotlib's (``Any``-typed) patch properties."""
     width, height = np.asarray(upper) - lower
     ax.add_patch(Rectangle((lower[0], lower[1]), width, height, **style))
-
-
-def _state_label(scenario: Scenario, index: int) -> str:
-    name = scenario.state_names[index]
-    return f"{name} (m)" if index in scenario.position_index else name
 
 
 def draw_coverage(fig: FigureLike, data: ReportData) -> None:
@@ -207,7 +231,7 @@ def draw_coverage(fig: FigureLike, data: ReportData) -> None:
     )
     for ax, (name, coverage, radii, colour) in zip(axes, cases, strict=True):
         r = np.array([max(x.radius, 0.0) for x in radii])
-        ax.set_title(f"{name}: {coverage.covered_fraction:.1%} of Init certified covered")
+        ax.set_title(f"{name}:\n{coverage.covered_fraction:.1%} of Init covered")
         if len(free) == 0:
             ax.text(0.5, 0.5, "Init is a single point", ha="center", transform=ax.transAxes)
             continue
@@ -231,8 +255,8 @@ def draw_coverage(fig: FigureLike, data: ReportData) -> None:
         ax.set_xlim(lo[0] - pad, hi[0] + pad)
         ax.set_ylim(lo[1] - pad, hi[1] + pad)
         ax.set_aspect("equal")
-        ax.set_xlabel(_state_label(s, pair[0]))
-        ax.set_ylabel(_state_label(s, pair[1]))
+        ax.set_xlabel(axis_label(s, s.state_names[pair[0]]))
+        ax.set_ylabel(axis_label(s, s.state_names[pair[1]]))
     handles = [
         Rectangle((0, 0), 1, 1, fill=False, edgecolor=INIT, lw=1.4, label="Init"),
         Patch(facecolor=DEMO, alpha=0.3, edgecolor=DEMO, label="tube slice, demonstrations"),
@@ -240,13 +264,13 @@ def draw_coverage(fig: FigureLike, data: ReportData) -> None:
         Rectangle((0, 0), 1, 1, fill=False, edgecolor="0.75", label="certified box"),
         Patch(facecolor=FAILURE, alpha=0.6, label="uncovered box"),
     ]
-    fig.legend(handles=handles, loc="outside lower center", ncols=5, frameon=False)
+    _legend_below(fig, handles)
 
 
 def draw_montecarlo(fig: FigureLike, data: ReportData) -> None:
     """Closed-loop paths (a subsample), failures, and the distributions of the margins."""
     s, mc = data.scenario, data.montecarlo
-    axes = fig.subplot_mosaic([["paths", "paths"], ["clearance", "tube"]], height_ratios=[1.5, 1])
+    axes = fig.subplot_mosaic([["paths"], ["clearance"], ["tube"]], height_ratios=[1.6, 1, 1])
     ax = axes["paths"]
     paths = [np.asarray(p) for p in mc.paths]
     draw_scenario(ax, s, np.concatenate(paths) if paths else None)
@@ -261,7 +285,7 @@ def draw_montecarlo(fig: FigureLike, data: ReportData) -> None:
     worst = s.positions(np.asarray(mc.falsification.worst_x0))
     ax.plot(*worst, "*", color=FAILURE, mec="white", mew=0.5, ms=9, zorder=6)
     ax.plot([], [], "*", color=FAILURE, ms=8, label="worst start found by falsification")
-    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
+    _legend_below(fig, ax.get_legend_handles_labels()[0])
     _histogram(
         axes["clearance"],
         np.asarray(mc.clearance),
@@ -276,7 +300,7 @@ def draw_montecarlo(fig: FigureLike, data: ReportData) -> None:
         failed=lambda v: v > 1.0 + 1e-6,
         threshold=1.0,
         reference=None,
-        xlabel="tube tightness  max_t ||e(t)||_P e^(λt) / ||e(0)||_P",
+        xlabel="tube tightness max_t ||e(t)||_P e^(λt) / ||e(0)||_P",
         log=True,
     )
 
@@ -305,6 +329,7 @@ def _histogram(
     ax.xaxis.set_major_locator(MaxNLocator(6))
     if log:
         ax.set_yscale("log")
+        log_axis(ax.yaxis)
     ax.legend(loc="best", frameon=False)
 
 
@@ -314,7 +339,7 @@ def inputs_trajectory(data: ReportData) -> tuple[int, FloatArray]:
     assigns to the same trajectory."""
     s = data.scenario
     worst = np.asarray(data.montecarlo.falsification.worst_x0, dtype=np.float64)
-    controller = load(data.controller_path)
+    controller = data.law
     index = int(controller.select(worst[None])[0][0])
     free = np.flatnonzero(s.init_upper > s.init_lower)
     corners = np.tile(s.init_lower, (2 ** len(free), 1))
@@ -330,7 +355,7 @@ def draw_inputs(fig: FigureLike, data: ReportData) -> None:
     """``u_ref`` of one reference trajectory and the closed-loop inputs (before clipping)
     against the input bounds and the operating region."""
     s = data.scenario
-    controller = load(data.controller_path)
+    controller = data.law
     index, starts = inputs_trajectory(data)
     reference = controller.trajectories[index]
     run = simulate_closed_loop(s.dynamics, controller, starts, index)
@@ -358,7 +383,8 @@ def draw_inputs(fig: FigureLike, data: ReportData) -> None:
             for v in s.operating_region[name]:
                 ax.axhline(v, color="0.45", ls=":", lw=1.2)
             ax.plot([], [], color="0.45", ls=":", label="operating region")
-        ax.set_ylabel(name)
+        ax.set_title(axis_label(s, name), loc="left")
+        ax.set_ylabel(f"[{s.unit(name)}]" if s.unit(name) else name)
         span = hi - lo
         ax.set_ylim(lo - 0.08 * span, hi + 0.08 * span)
     axes[-1].set_xlabel("t (s)")
@@ -368,4 +394,4 @@ def draw_inputs(fig: FigureLike, data: ReportData) -> None:
             if label not in labels:
                 handles.append(h)
                 labels.append(label)
-    fig.legend(handles, labels, loc="outside right upper", frameon=False)
+    fig.legend(handles, labels, loc="outside lower center", ncols=2, frameon=False)

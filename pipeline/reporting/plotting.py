@@ -13,8 +13,10 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from matplotlib.axes import Axes
+from matplotlib.axis import Axis
 from matplotlib.collections import EllipseCollection
 from matplotlib.patches import Rectangle
+from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 from shapely.geometry import box
 from shapely.geometry.base import BaseGeometry
 
@@ -35,13 +37,16 @@ UNSAFE = "0.62"
 BOUND = "#8C1C13"
 INTERMEDIATE = "Purples"
 
+# Figures are drawn about ``FIGURE_WIDTH`` in wide and shown at most 1.25x that (640 px) and at
+# least at a phone's column (~365 px, 0.73x): 10 pt text stays >= 9 px on a phone.
+FIGURE_WIDTH = 5.2  # in
 STYLE: dict[RcKeyType, object] = {
-    "font.size": 9,
-    "axes.titlesize": 10,
-    "axes.labelsize": 9,
-    "legend.fontsize": 8,
-    "xtick.labelsize": 8,
-    "ytick.labelsize": 8,
+    "font.size": 10,
+    "axes.titlesize": 10.5,
+    "axes.labelsize": 10,
+    "legend.fontsize": 9.5,
+    "xtick.labelsize": 9.5,
+    "ytick.labelsize": 9.5,
     "axes.spines.top": False,
     "axes.spines.right": False,
     "axes.grid": True,
@@ -50,6 +55,26 @@ STYLE: dict[RcKeyType, object] = {
     "svg.fonttype": "none",
     "pdf.fonttype": 42,
 }
+
+
+SUPERSCRIPT = str.maketrans("-0123456789", "⁻⁰¹²³⁴⁵⁶⁷⁸⁹")
+
+
+def _power_of_ten(value: float, _: object = None) -> str:
+    """A decade as ``10⁻²`` (plain text, not mathtext: building its parser costs ~1 s)."""
+    if value <= 0:
+        return ""
+    exponent = round(float(np.log10(value)))
+    if abs(value / 10.0**exponent - 1) > 1e-9:
+        return ""
+    return {0: "1", 1: "10"}.get(exponent, "10" + str(exponent).translate(SUPERSCRIPT))
+
+
+def log_axis(axis: Axis) -> None:
+    """A log-scaled ``axis`` labelled at decades in plain text (call after ``set_yscale``)."""
+    axis.set_major_locator(LogLocator(base=10, numticks=6))
+    axis.set_major_formatter(FuncFormatter(_power_of_ten))
+    axis.set_minor_formatter(NullFormatter())
 
 
 # ``**style``: matplotlib artist properties, ``Any`` as matplotlib's own stubs type them.
@@ -121,7 +146,7 @@ def draw_scenario(
                 name,
                 (where.x, where.y),
                 color="0.1",
-                fontsize=8,
+                fontsize=9,
                 ha="center",
                 va="center",
                 zorder=6,
@@ -155,8 +180,15 @@ def draw_scenario(
     ax.set_ylim(ymin, ymax)
     ax.set_aspect("equal")
     ax.grid(False)
-    ax.set_xlabel(f"{scenario.state_names[i]} (m)")
-    ax.set_ylabel(f"{scenario.state_names[j]} (m)")
+    ax.set_xlabel(axis_label(scenario, scenario.state_names[i], "m"))
+    ax.set_ylabel(axis_label(scenario, scenario.state_names[j], "m"))
+
+
+def axis_label(scenario: Scenario, name: str, unit: str = "") -> str:
+    """``name`` with its label and unit (``Scenario.label``); ``unit`` where none is declared."""
+    if scenario.unit(name) or not unit:
+        return scenario.label(name)
+    return f"{scenario.label(name)} [{unit}]"
 
 
 def draw_path(
@@ -197,15 +229,17 @@ def ellipses(
     label: str | None = None,
     **style: object,
 ) -> None:
-    """The ellipses ``{p : (p - c)^T shape^-1 (p - c) <= r^2}`` for ``centers (k, 2)`` and
-    ``radii (k,)``; ``shape (2, 2)`` from ``projection_shape`` or ``slice_shape``."""
-    values, vectors = np.linalg.eigh(shape)
-    angle = np.degrees(np.arctan2(vectors[1, 1], vectors[0, 1]))  # the major axis
+    """The ellipses ``{p : (p - c_k)^T shape_k^-1 (p - c_k) <= r_k^2}`` for ``centers (k, 2)``
+    and ``radii (k,)``; ``shape (2, 2)`` (one for all, from ``projection_shape`` or
+    ``slice_shape``) or ``(k, 2, 2)`` (one each, e.g. a funnel's ellipsoids along a path)."""
     radii = np.asarray(radii, dtype=np.float64).reshape(-1)
+    shapes = np.broadcast_to(np.asarray(shape, dtype=np.float64), (len(radii), 2, 2))
+    values, vectors = np.linalg.eigh(shapes)  # (k, 2), (k, 2, 2); ascending
+    angle = np.degrees(np.arctan2(vectors[:, 1, 1], vectors[:, 0, 1]))  # the major axes
     collection = EllipseCollection(
-        widths=2 * radii * np.sqrt(values[1]),
-        heights=2 * radii * np.sqrt(values[0]),
-        angles=np.full(len(radii), angle),
+        widths=2 * radii * np.sqrt(values[:, 1]),
+        heights=2 * radii * np.sqrt(values[:, 0]),
+        angles=angle,
         units="xy",
         offsets=np.asarray(centers, dtype=np.float64).reshape(-1, 2),
         offset_transform=ax.transData,

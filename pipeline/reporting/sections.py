@@ -29,6 +29,8 @@ from pipeline.reporting.content import (
     seconds,
 )
 from pipeline.reporting.data import ReportData
+from pipeline.reporting.law import law_items
+from pipeline.reporting.plotting import FIGURE_WIDTH
 from pipeline.reporting.summary import Summary
 from pipeline.reporting.summary import Verdict as VerdictKind
 
@@ -59,10 +61,16 @@ def headline_items(summary: Summary) -> tuple[Headline, ...]:
             f"the paper: {PAPER_FASTER_PERCENT}%",
         ),
         Headline(
-            "Min clearance to Unsafe",
+            "Nominal clearance to Unsafe",
             f"{fixed(h.min_clearance_before)} → {fixed(h.min_clearance_after)} m",
-            f"demos → optimized; required d = {h.required_clearance:g} m; "
-            f"the paper's demo: {PAPER_DEMO_CLEARANCE}",
+            f"closest nominal trajectory, demos → optimized; required d = "
+            f"{h.required_clearance:g} m; the paper's demo: {PAPER_DEMO_CLEARANCE}",
+        ),
+        Headline(
+            "Closed-loop clearance (Monte Carlo)",
+            f"{fixed(summary.montecarlo.min_clearance)} m",
+            f"closest of the {summary.montecarlo.samples} closed-loop runs from Init "
+            "(controller.json flown); > 0: never in Unsafe",
         ),
         Headline(
             "Init coverage",
@@ -87,6 +95,7 @@ def headline_items(summary: Summary) -> tuple[Headline, ...]:
 def _summary(data: ReportData) -> tuple:
     s, summary = data.scenario, data.summary
     n = len(s.demos)
+    position = [s.state_names[i] for i in s.position_index]
     demos = tuple(
         (
             d.demo,
@@ -119,7 +128,7 @@ def _summary(data: ReportData) -> tuple:
             summary.text,
             summary.reasons,
         ),
-        Headlines(headline_items(summary)),
+        Headlines(headline_items(summary) + law_items(data)),
         Table(
             ("claim", "kind", "how it was established"),
             tuple((c.claim, c.kind.value, c.how) for c in summary.claims),
@@ -130,14 +139,14 @@ def _summary(data: ReportData) -> tuple:
         Table(
             (
                 "demo",
-                "start (X, Y)",
+                f"start ({', '.join(position)}) [m]",
                 "T demo (s)",
                 "T opt (s)",
                 "faster",
                 "clearance before (m)",
                 "clearance after (m)",
-                "radius before",
-                "radius after",
+                "radius before (P-norm)",
+                "radius after (P-norm)",
                 "optimized",
             ),
             demos,
@@ -177,19 +186,29 @@ def _scenario(data: ReportData) -> tuple:
             f"{{x : ||x - x_ref(t)||_P <= r e^(-λt)}}: outlined at the start, shaded every "
             f"{figures.TUBE_PERIOD:g} s along the path.",
             partial(figures.draw_overview, data=data),
-            (10.0, 5.4),
+            (
+                FIGURE_WIDTH,
+                figures.scene_height(data, [*data.demo_paths, *data.final_paths], below=1.1),
+            ),
             data.fingerprint("feedback", "optimize", "radius_optimized"),
         ),
         Figure(
             "bisection",
             f"As in the paper's Fig. 2, for {opt.demo} (flown closest to Unsafe: "
             f"{before:.2f} m): the demonstration, the search's intermediate feasible "
-            f"trajectories (purple, darker = shorter horizon) and the optimal one "
-            f"({opt.N_demo} → {opt.N} samples). Circles about the initial point: the tubes "
-            f"(robustness bounds) of the demonstration and of the optimal trajectory. Markers "
-            f"every {figures.TUBE_PERIOD:g} s.",
+            "trajectories (purple; their horizon T' on the colour scale, darker = shorter) "
+            "and the optimal one "
+            f"({opt.N_demo} → {opt.N} samples), with the tubes (robustness bounds) of the "
+            "demonstration (blue) and of the optimal trajectory (orange) along their paths: "
+            f"outlined at the start, shaded every {figures.TUBE_PERIOD:g} s. Markers every "
+            f"{figures.TUBE_PERIOD:g} s.",
             partial(figures.draw_bisection, data=data, index=index),
-            (10.0, 4.0),
+            (
+                FIGURE_WIDTH,
+                figures.scene_height(
+                    data, [data.demo_paths[index], data.final_paths[index]], below=2.3
+                ),
+            ),
             data.fingerprint("feedback", "optimize", "radius_demos", "radius_optimized", index),
         ),
     )

@@ -9,7 +9,6 @@ from functools import partial
 
 import numpy as np
 
-from pipeline.controller import load
 from pipeline.io.artifacts import file_hash
 from pipeline.reporting import figures
 from pipeline.reporting.content import (
@@ -24,6 +23,8 @@ from pipeline.reporting.content import (
     vector,
 )
 from pipeline.reporting.data import ReportData
+from pipeline.reporting.law import gain_table, labelled, law
+from pipeline.reporting.plotting import FIGURE_WIDTH
 from pipeline.reporting.summary import Quantiles, StressRunSummary, StressSummary
 
 
@@ -78,12 +79,12 @@ def optimization(data: ReportData) -> tuple:
         ),
         Figure(
             "optimization",
-            "Left: the tightened J over the descent at the final horizon (log scale; a triangle "
+            "Top: the tightened J over the descent at the final horizon (log scale; a triangle "
             "on the bottom axis marks where the untightened J reached 0, i.e. feasible). Middle: "
             "the step size λ (grows by α after an accepted step, shrinks by β after a rejected "
-            "one). Right: the horizons tried, in order (circle: feasible, cross: infeasible).",
+            "one). Bottom: the horizons tried, in order (circle: feasible, cross: infeasible).",
             partial(figures.draw_optimization, data=data),
-            (10.0, 3.9),
+            (FIGURE_WIDTH, 7.4),
             data.fingerprint("optimize"),
         ),
         Table(
@@ -129,19 +130,28 @@ def feedback(data: ReportData) -> tuple:
     region_rows = []
     for name, (lower, upper) in fb.region.items():
         extent = summary.region_extent_at_r_d.get(name, 0.0)
-        region_rows.append((name, number(lower), number(upper), number(extent)))
+        region_rows.append((s.label(name), number(lower), number(upper), number(extent)))
     input_rows = tuple(
-        (name, number(lo), number(hi), number(margin))
+        (s.label(name), number(lo), number(hi), number(margin))
         for name, lo, hi, margin in zip(
             s.input_names, s.input_lower, s.input_upper, summary.input_margin_at_r_d, strict=True
         )
     )
     quantities = (
-        ("contraction rate λ", f"{fb.rate:g} 1/s"),
+        (
+            "contraction rate λ",
+            f"{fb.rate:g} 1/s"
+            if data.law.feedback_period == 0
+            else f"{fb.rate:g} 1/s continuous; {data.law.rate:.4g} 1/s with the law held every "
+            f"{data.law.feedback_period:g} s (the tube's rate)",
+        ),
         ("gain design", f"{fb.gain} (solver status: {fb.solver_status})"),
         ("P eigenvalues", vector(eig, 4)),
         ("P condition number", number(float(eig[-1] / eig[0]), 4)),
-        ("required radius r_d (position extent d)", number(r_d, 4)),
+        (
+            "required radius r_d (P-norm; its tube's position extent is d)",
+            f"{number(r_d, 4)} (d = {s.clearance:g} m)",
+        ),
         (
             "covering radius (smallest common radius of balls at the demo starts covering Init)",
             "none found" if summary.covering_radius is None else number(summary.covering_radius, 4),
@@ -150,7 +160,7 @@ def feedback(data: ReportData) -> tuple:
             "radius kept by the optimizer, max(r_d, covering radius)",
             number(summary.kept_radius, 4),
         ),
-        ("position extent per unit P-radius", number(fb.position_extent(1.0), 4)),
+        ("position extent per unit P-radius", f"{number(fb.position_extent(1.0), 4)} m"),
         ("Jacobian hull", f"{len(fb.vertices)} vertices; " + "; ".join(fb.hull)),
         ("certified margin (max generalised eigenvalue, < 0)", scientific(fb.certified_margin)),
         ("design objective", number(fb.objective, 4)),
@@ -163,29 +173,21 @@ def feedback(data: ReportData) -> tuple:
             "||x(t) - x_ref(t)||_P <= e^(-λt) ||x(0) - x_ref(0)||_P while the tube stays in the "
             f"region. Design: {fb.message}."
         ),
-        Table(
-            ("K", *s.state_names),
-            tuple(
-                (
-                    name,
-                    *(number(float(v), 4) if abs(v) > 1e-9 * np.abs(K).max() else "0" for v in row),
-                )
-                for name, row in zip(s.input_names, K, strict=True)
-            ),
-            "Feedback gain K (inputs × states)",
-            numeric=(False, *([True] * s.n)),
-        ),
+        gain_table(s, K, "Feedback gain K (inputs × states)"),
         Table(("quantity", "value"), quantities, "Certificate"),
+        *law(data),
         Table(
             ("variable", "lower", "upper", "tube extent at r_d"),
             tuple(region_rows),
-            "Operating region (where the certificate holds) and the margin the tube needs",
+            "Operating region (where the certificate holds) and the margin the tube needs, in "
+            "each variable's unit",
             numeric=(False, True, True, True),
         ),
         Table(
             ("input", "lower bound", "upper bound", "max |K_j e| at r_d"),
             input_rows,
-            "Input margins: the feedback's share of each input at the required radius",
+            "Input margins: the feedback's share of each input at the required radius, in the "
+            "input's unit",
             numeric=(False, True, True, True),
         ),
     )
@@ -213,12 +215,15 @@ def coverage(data: ReportData) -> tuple:
     shown = " and ".join(free[:2]) if free else "its single point"
     through = f" (through the start's {', '.join(free[2:])})" if len(free) > 2 else ""
     projected = f" (projected along {', '.join(free[2:])})" if len(free) > 2 else ""
+    extent = data.feedback.position_extent(1.0)  # m per unit of P-radius
     radii = tuple(
         (
             d.name,
             fixed(before.radius, 3),
+            fixed(before.radius * extent, 3),
             before.binding,
             fixed(after.radius, 3),
+            fixed(after.radius * extent, 3),
             after.binding,
         )
         for d, before, after in zip(
@@ -237,7 +242,7 @@ def coverage(data: ReportData) -> tuple:
             "before (demonstrations, blue) and after optimization (orange). Grey: boxes certified "
             f"covered; red: boxes not certified covered{projected}.",
             partial(figures.draw_coverage, data=data),
-            (10.0, 4.6),
+            (FIGURE_WIDTH, 3.9),
             data.fingerprint(
                 "feedback",
                 "coverage_demos",
@@ -253,10 +258,19 @@ def coverage(data: ReportData) -> tuple:
             numeric=(False, False, True, True, True, True, False),
         ),
         Table(
-            ("demo", "radius before", "bound by", "radius after", "bound by"),
+            (
+                "demo",
+                "radius before",
+                "extent before (m)",
+                "bound by",
+                "radius after",
+                "extent after (m)",
+                "bound by",
+            ),
             radii,
-            "Robustness radii (P-norm) and the constraint that sets each",
-            numeric=(False, True, False, True, False),
+            "Robustness radii in the P-norm (no unit: ||e||_P weighs every state's error), "
+            "their tubes' largest position offset (m), and the constraint that sets each",
+            numeric=(False, True, True, False, True, True, False),
         ),
     )
 
@@ -311,7 +325,7 @@ def montecarlo(data: ReportData) -> tuple:
             "distributions of each run's minimum clearance to Unsafe and of its tube tightness "
             "(1 = on the tube's boundary); failures in red beyond the dashed threshold.",
             partial(figures.draw_montecarlo, data=data),
-            (10.0, 7.2),
+            (FIGURE_WIDTH, 8.4),
             data.fingerprint("montecarlo"),
         ),
         Table(
@@ -339,7 +353,7 @@ def montecarlo(data: ReportData) -> tuple:
                     "falsification: worst margin found",
                     number(f.worst_margin, 4) + (f" ({f.binding})" if f.binding else ""),
                 ),
-                ("falsification: worst start", vector(f.worst_x0, 4)),
+                ("falsification: worst start", labelled(data.scenario, f.worst_x0)),
                 ("falsification: closed-loop runs", str(f.evaluations)),
             ),
             "Margins",
@@ -351,12 +365,13 @@ def montecarlo(data: ReportData) -> tuple:
 def inputs(data: ReportData) -> tuple:
     s = data.scenario
     index, starts = figures.inputs_trajectory(data)
-    x0 = load(data.controller_path).trajectories[index].x0
+    x0 = data.law.trajectories[index].x0
     demo = next((d.name for d in s.demos if np.allclose(d.x0, x0)), "no demonstration")
     return (
         Paragraph(
             f"Reference trajectory {index + 1} of controller.json (from {demo}): the one the "
-            f"controller selects for the falsification's worst start {vector(starts[0], 3)}. "
+            f"controller selects for the falsification's worst start "
+            f"({labelled(s, starts[0])}). "
             "Closed-loop inputs are the controller's output before clipping, simulated here from "
             "controller.json."
         ),
@@ -367,7 +382,7 @@ def inputs(data: ReportData) -> tuple:
             "Init's corners assigned to this trajectory (thin teal), against the input bounds "
             "(dashed) and the operating region (dotted).",
             partial(figures.draw_inputs, data=data),
-            (10.0, 2.0 + 2.0 * s.m),
+            (FIGURE_WIDTH, 1.6 + 2.0 * s.m),
             data.fingerprint("montecarlo", file_hash(data.controller_path)),
         ),
     )

@@ -112,7 +112,8 @@ def _run(args: argparse.Namespace) -> int:
         from pipeline.runtime.orchestrator import rebuild_reports
 
         written = rebuild_reports(args.scenario, source=args.source, out=args.out)
-        print(f"{written.message}:\n  {written.html}\n  {written.pdf}")
+        files = [written.html, *([written.pdf] if written.pdf is not None else [])]
+        print(f"{written.message}:" + "".join(f"\n  {path}" for path in files))
         return 0
     if args.command == "schema":
         from pipeline.model.schema import json_schema

@@ -1,15 +1,21 @@
 """The report stage: built from the artifacts of the session's run of quadrotor_hill.
 
-The HTML parses, is self-contained and holds the headline numbers of summary.json; the PDF has a
-page for every section; a missing input is a clear error; headless Chromium renders the page.
+The HTML parses, is self-contained and holds the headline numbers of summary.json; the PDF (the
+page printed by Chromium) has the title on page 1 and every section in order, on few pages; a
+missing or failing browser is a message and no PDF, never a stale one; a missing input is a
+clear error; headless Chromium renders the page at 1400 px and 390 px with every legend and
+colour bar inside its figure, no sideways scrolling and legible figure text.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import re
 import shutil
 import subprocess
+import unicodedata
+from html import escape, unescape
 from html.parser import HTMLParser
 from pathlib import Path
 
@@ -20,13 +26,16 @@ from pypdf import PdfReader
 
 from pipeline.io.errors import UserError
 from pipeline.model.scenario import Scenario, load_scenario
+from pipeline.reporting import pdf as pdf_module
 from pipeline.reporting.sections import headline_items, section_headings
 from pipeline.reporting.summary import Summary
 from pipeline.runtime.cli import main
 from pipeline.runtime.stored import load_report_data
-from stages.report import write_reports
+from stages.report import ReportResult, write_reports
 
 CHROMIUM = Path("/usr/bin/chromium")
+BROWSER = pdf_module.find_browser()  # what the report prints its PDF with
+needs_browser = pytest.mark.skipif(BROWSER is None, reason="no Chromium to print the PDF")
 
 
 @pytest.fixture(scope="module")
@@ -111,6 +120,9 @@ def test_html_holds_the_headline_numbers_of_summary_json(run: tuple[Scenario, Pa
         "the paper: 42%",
         f"{h['min_clearance_before']:.2f} → {h['min_clearance_after']:.2f} m",
         "the paper's demo: 0.22",
+        "Closed-loop clearance (Monte Carlo)",  # beside the nominal one, each labelled
+        f"{summary['montecarlo']['min_clearance']:.2f} m",
+        f"closest of the {summary['montecarlo']['samples']} closed-loop runs",
         f"{h['coverage_before']:.1%} → {h['coverage_after']:.1%}",
         f"{h['montecarlo_failures']} / {h['montecarlo_samples']}",
         f"≤ {h['failure_bound_95']:.2e}",
@@ -132,19 +144,75 @@ def test_html_holds_the_headline_numbers_of_summary_json(run: tuple[Scenario, Pa
     assert not missing, f"not in report.html: {missing}"
 
 
-def test_pdf_has_a_page_for_every_section_in_order(run: tuple[Scenario, Path]) -> None:
+@needs_browser
+def test_pdf_has_the_title_first_and_every_section_in_order(run: tuple[Scenario, Path]) -> None:
     reader = PdfReader(run[1] / "report.pdf")
-    texts = [page.extract_text() for page in reader.pages]
+    # NFKC: the browser's fonts set ligatures ("ﬁ" in "certificate")
+    texts = [unicodedata.normalize("NFKC", page.extract_text()) for page in reader.pages]
+    assert texts[0].startswith("Safety controller synthesis report: quadrotor_hill")
+    summary = json.loads((run[1] / "summary.json").read_text())
+    assert f"{summary['headline']['faster_percent_mean']:.0f}%" in texts[0]
     lines = [{line.strip() for line in text.splitlines()} for text in texts]
     starts = []
-    for heading in section_headings():  # a section's first page; later ones say "(continued)"
+    for heading in section_headings():
         pages = [k for k, page in enumerate(lines) if heading in page]
         assert pages, f"no PDF page has the heading {heading!r}"
         starts.append(pages[0])
-    assert starts == sorted(starts) and len(set(starts)) == len(starts)
-    assert len(reader.pages) >= len(section_headings())
-    summary = json.loads((run[1] / "summary.json").read_text())
-    assert f"{summary['headline']['faster_percent_mean']:.0f}%" in texts[0]
+    assert starts == sorted(starts)
+    # sections flow on: no page per section, no nearly empty page before the last
+    assert len(reader.pages) <= 10, len(reader.pages)
+    assert all(len(text) > 600 for text in texts[:-1]), [len(t) for t in texts]
+
+
+def _with_browser(
+    run: tuple[Scenario, Path], out: Path, browser: Path | None, monkeypatch: pytest.MonkeyPatch
+) -> ReportResult:
+    """The report of a copy of the run in ``out`` (with an old report.pdf) printed by
+    ``browser`` (None: no browser found)."""
+    shutil.copytree(run[1], out)
+    (out / "report.pdf").write_bytes(b"%PDF- an old report")
+    monkeypatch.setattr(pdf_module, "find_browser", lambda: browser)
+    result = write_reports(load_report_data(run[0], out))
+    assert result.success and result.pdf is None
+    assert not (out / "report.pdf").exists()  # never a stale PDF beside a new HTML
+    assert (out / "report.html").stat().st_size > 0
+    return result
+
+
+def test_without_a_browser_no_pdf_is_written_and_an_old_one_is_removed(
+    run: tuple[Scenario, Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    result = _with_browser(run, tmp_path / "copy", None, monkeypatch)
+    assert "report.pdf not written: no Chromium on PATH" in result.message
+    assert "apt-get install chromium" in result.message
+
+
+def test_a_failing_browser_is_a_message_not_a_crash(
+    run: tuple[Scenario, Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    broken = tmp_path / "chromium"
+    broken.write_text("#!/bin/sh\necho 'cannot open display' >&2\nexit 3\n")
+    broken.chmod(0o755)
+    result = _with_browser(run, tmp_path / "copy", broken, monkeypatch)
+    assert "report.pdf not written: chromium exited with code 3" in result.message
+    assert result.message.endswith(": cannot open display")  # the browser's last words
+
+
+def test_units_and_labels_in_tables_and_figures(run: tuple[Scenario, Path]) -> None:
+    """quadrotor_hill declares units and labels: the K table, margins, the inputs figure's axes
+    and the scenario figure's axes carry them; radii say they are P-norms and give metres."""
+    html = (run[1] / "report.html").read_text()
+    text = " ".join(" ".join(_parse(html).text).split())
+    scenario = run[0]
+    for name in scenario.input_names:  # K table rows, input margins, inputs figure titles
+        assert text.count(scenario.label(name)) >= 3, scenario.label(name)
+    for name in scenario.state_names:  # K table header
+        assert f"{scenario.label(name)}" in text
+    assert "u1 (thrust) [N]" in text and "X (horizontal position) [m]" in text
+    assert "[unit of u_j] per [unit of x_i]" in text
+    assert "Robustness radii in the P-norm" in text and "extent after (m)" in text
+    inputs = html[html.index('id="figure-inputs"') :]
+    assert ">u2 (pitch acceleration) [rad/s^2]<" in inputs[: inputs.index("</figure>")]
 
 
 def test_the_scenario_figure_is_written_beside_the_report(run: tuple[Scenario, Path]) -> None:
@@ -169,17 +237,19 @@ def test_cli_rebuilds_the_report_from_saved_artifacts(
     out = run[1]
     stages = sorted((out / "artifacts").glob("*.npz"))
     before = {p.name: p.stat().st_mtime_ns for p in stages}
-    reports = {p: p.stat().st_mtime_ns for p in (out / "report.html", out / "report.pdf")}
+    written = [out / "report.html", *([out / "report.pdf"] if BROWSER else [])]
+    reports = {p: p.stat().st_mtime_ns for p in written}
     assert main(["report", "quadrotor_hill", "--from", str(out)]) == 0
     printed = capsys.readouterr().out
-    assert str(out / "report.html") in printed and str(out / "report.pdf") in printed
+    assert str(out / "report.html") in printed
+    assert (str(out / "report.pdf") in printed) == (BROWSER is not None)
     assert {p.name: p.stat().st_mtime_ns for p in stages} == before  # nothing recomputed
     assert all(p.stat().st_mtime_ns > t for p, t in reports.items())  # both rewritten
     assert not list(out.glob(".report.*"))  # no temporary files left by the atomic writes
 
 
 def _pdf_text(path: Path) -> list[str]:
-    return [page.extract_text() for page in PdfReader(path).pages]
+    return [page.extract_text() for page in PdfReader(path).pages] if BROWSER else []
 
 
 def test_a_rebuild_reuses_exactly_the_figures_whose_inputs_did_not_change(
@@ -195,10 +265,11 @@ def test_a_rebuild_reuses_exactly_the_figures_whose_inputs_did_not_change(
     html, pdf = (out / "report.html").read_text(), _pdf_text(out / "report.pdf")
     figures = sorted(p.name for p in (out / "artifacts" / "figures").iterdir())
     assert sum(name.endswith(".svg") for name in figures) == 6
-    assert sum(name.startswith("page-") for name in figures) == len(pdf)
+    assert sum(name.startswith("report-") for name in figures) == (1 if BROWSER else 0)
 
-    warm = write_reports(data)  # nothing changed: every page and figure reused, same files
+    warm = write_reports(data)  # nothing changed: every figure and the PDF reused, same files
     assert "(every figure reused)" in warm.message
+    assert (", reused)" in warm.message) == (BROWSER is not None)
     assert (out / "report.html").read_text() == html and _pdf_text(out / "report.pdf") == pdf
     assert sorted(p.name for p in (out / "artifacts" / "figures").iterdir()) == figures
 
@@ -220,7 +291,8 @@ def test_cli_report_writes_into_out_and_reads_from_from(
     before = files()
     assert main(["report", "quadrotor_hill", "--from", str(source), "--out", str(target)]) == 0
     assert str(target / "report.html") in capsys.readouterr().out
-    assert {p.name for p in target.iterdir()} == {"report.html", "report.pdf", "scenario.png"}
+    printed = {"report.pdf"} if BROWSER else set()
+    assert {p.name for p in target.iterdir()} == {"report.html", "scenario.png", *printed}
     assert files() == before
     assert str(source) in (target / "report.html").read_text()  # names the run it shows
 
@@ -293,3 +365,67 @@ def test_chromium_renders_the_report(run: tuple[Scenario, Path], tmp_path: Path)
     assert dom.stdout.count("<svg") == 6 and dom.stdout.rstrip().endswith("</html>")
     for key in ("summary", "scenario", "optimization", "feedback", "coverage", "reproducibility"):
         assert f'id="{key}"' in dom.stdout
+
+
+MEASURE = """<script>
+const out = {scroll: document.documentElement.scrollWidth, view: window.innerWidth, figures: []};
+for (const svg of document.querySelectorAll("figure svg")) {
+  const box = svg.getBoundingClientRect();
+  const scale = box.width / svg.viewBox.baseVal.width;  // screen px per SVG unit
+  const parts = [...svg.querySelectorAll('g[id*="legend_"], g[id$="-colorbar"]')].map((g) => {
+    const r = g.getBoundingClientRect();
+    return [g.id, r.left - box.left, r.top - box.top, box.right - r.right, box.bottom - r.bottom];
+  });
+  const sizes = [...svg.querySelectorAll("text")].map(
+    (t) => parseFloat(getComputedStyle(t).fontSize) * scale);
+  out.figures.push({id: svg.closest("figure").id, left: box.left, right: box.right, parts,
+                    smallest: Math.min(...sizes)});
+}
+document.body.setAttribute("data-measured", JSON.stringify(out));
+</script>"""
+
+
+def _measuring_page(report: str, width: int) -> str:
+    """The report in an iframe ``width`` px wide (a headless window is never narrower than
+    500 px), measured by ``MEASURE`` inside it; the result copied into the outer page."""
+    inner = report.replace("</body>", MEASURE + "</body>")
+    return (
+        f'<!doctype html><html><body style="margin:0"><iframe id="f" style="border:0;'
+        f'width:{width}px;height:900px" srcdoc="{escape(inner, quote=True)}"></iframe>'
+        "<script>window.onload = () => document.body.setAttribute('data-measured', "
+        "document.getElementById('f').contentDocument.body.getAttribute('data-measured'));"
+        "</script></body></html>"
+    )
+
+
+@pytest.mark.chromium
+@pytest.mark.skipif(not CHROMIUM.exists(), reason="needs /usr/bin/chromium")
+@pytest.mark.parametrize("width", [1400, 390])
+def test_figures_fit_their_box_at_desktop_and_phone_width(
+    run: tuple[Scenario, Path], tmp_path: Path, width: int
+) -> None:
+    """Measured by the browser on a copy of the page with a measuring script: each figure
+    inside the viewport (no sideways scrolling), every legend and colour bar inside its
+    figure's box, and the smallest figure text at least 8 px on screen."""
+    page = tmp_path / "measured.html"
+    page.write_text(_measuring_page((run[1] / "report.html").read_text(), width))
+    dom = _chromium(
+        "--window-size=1400,1000",
+        "--virtual-time-budget=5000",
+        "--dump-dom",
+        page.as_uri(),
+        profile=tmp_path / "profile",
+    )
+    found = re.search(r'data-measured="([^"]*)"', dom.stdout)
+    assert found, dom.stderr[-2000:]
+    measured = json.loads(unescape(found.group(1)))
+    assert measured["view"] == width
+    assert measured["scroll"] <= width, "the page scrolls sideways"
+    assert len(measured["figures"]) == 6
+    assert any(g[0] == "bisection-colorbar" for f in measured["figures"] for g in f["parts"])
+    for figure in measured["figures"]:
+        assert figure["left"] >= 0 and figure["right"] <= width, figure
+        assert figure["parts"], f"{figure['id']}: no legend found"
+        for name, *margins in figure["parts"]:
+            assert min(margins) >= -1.0, f"{name} sticks out of its figure by {-min(margins)} px"
+        assert figure["smallest"] >= 8.0, f"{figure['id']}: text {figure['smallest']:.1f} px"
