@@ -42,6 +42,7 @@ from pipeline.model.scenario import Scenario, load_scenario
 from pipeline.model.simulate import Trajectory, simulate
 from pipeline.numerics.sampled import HeldRate, held_rate
 from pipeline.numerics.verify import VERIFY_SUBSTEPS
+from pipeline.reporting.pdf import find_browser
 from pipeline.reporting.summary import Verdict
 from pipeline.runtime.codekey import code_key
 from pipeline.runtime.options import RunOptions
@@ -73,7 +74,7 @@ from stages.report import ReportResult, write_reports
 from stages.stress import stress_test
 
 log = logging.getLogger(__name__)
-REPORT_FILES = ("report.html", "report.pdf", "scenario.png")
+REPORT_FILES = ("report.html", "scenario.png")  # report.pdf too where a browser prints it
 # the code each cached stage's key covers besides its own module (see pipeline.runtime.codekey)
 RADIUS_CODE = ("stages.radius", "pipeline.model.simulate", "pipeline.numerics.verify")
 REPORT_CODE = ("stages.report", "pipeline.runtime.summary", "pipeline.runtime.stored")
@@ -407,7 +408,7 @@ def _synthesize(
             file_hash(controller_path),
         ),
         lambda: write_reports(load_report_data(scenario, out)),
-        rerun=not all((out / name).is_file() for name in REPORT_FILES),
+        rerun=not _reports_present(out),
         describe=lambda result: result.message,
     )
     clear_stale(out)
@@ -425,6 +426,12 @@ def _synthesize(
         summary=summary,
         outputs=Outputs.of(out),
     )
+
+
+def _reports_present(out: Path) -> bool:
+    """Every report file is there (the PDF only where a browser can print it)."""
+    names = REPORT_FILES if find_browser() is None else (*REPORT_FILES, "report.pdf")
+    return all((out / name).is_file() for name in names)
 
 
 def rebuild_reports(
