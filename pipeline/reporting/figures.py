@@ -69,13 +69,14 @@ def constant_tube(data: ReportData, path: Trajectory, radius: float, t: FloatArr
     """The tube ``||x - x_ref(t)||_P <= radius e^(-λt)`` about ``path`` at times ``t (k,)``."""
     s = data.scenario
     shape = projection_shape(data.feedback.certified_tube.P, s.position_index)
+    rate = data.feedback.rate if data.law.rate is None else data.law.rate  # None: no feedback block
     p = s.positions(path.dense_xs)
     centres = np.stack([np.interp(t, path.dense_ts, p[:, 0]), np.interp(t, path.dense_ts, p[:, 1])])
     return TubeSections(
         t=t,
         centres=centres.T,
         shapes=np.broadcast_to(shape, (len(t), 2, 2)),
-        radii=max(radius, 0.0) * np.exp(-data.law.rate * t),  # the tube's P-radius at t
+        radii=max(radius, 0.0) * np.exp(-rate * t),  # the tube's P-radius at t
     )
 
 
