@@ -1,18 +1,24 @@
-"""The emitted lookup feedback controller, format ``safety-controller/1`` (see the README).
+"""The emitted lookup feedback controller, formats ``safety-controller/1`` and ``/2`` (README).
 
 This module needs only NumPy and the standard library, so ``controller.json`` can be run
-without the pipeline installed (copy this file). Control law:
+without the pipeline installed (copy this file). ``/1`` carries one gain ``K`` and metric ``P``
+for every trajectory (the ``feedback`` block); ``/2`` (a funnel per trajectory) carries on each
+trajectory ``K (N, m, n)``, the gain on sample interval ``k``, and ``P (N+1, n, n)``, the metric
+at ``t_k = k Ts``, with ``Q = P^-1`` linear in t between samples (``metric_interpolation``
+``"inverse-linear"``): ``P(t) = ((1 - s) P[k]^-1 + s P[k+1]^-1)^-1``, ``s = t / Ts - k``. A
+``/1`` file is read as the constant case (``K[k] = K``, ``P(t) = P``). Control law:
 
-1. ``select(x0) -> (index, ratio)``: the trajectory ``i`` minimising ``||x0 - x0_i||_P /
+1. ``select(x0) -> (index, ratio)``: the trajectory ``i`` minimising ``||x0 - x0_i||_{P_i(0)} /
    radius_i`` and that value. ``x0`` is covered (inside the certificate) when the ratio is
    ``< 1``; a start with ratio ``>= 1`` is outside every certified ball and nothing is claimed
    for it (``select(x0, strict=True)`` raises ``UncoveredStartError`` instead);
-2. ``controller(t, x, index)``: for ``t <= T_i``, ``u = clip(u_ref_i[floor(t / Ts)] + K (x -
-   x_ref_i(t)), lower, upper)`` with ``x_ref_i`` linearly interpolated on the trajectory's fine
-   grid ``t``; for ``t > T_i`` the terminal law ``u = clip(u_eq + K_T (x - x_eq))`` of the
-   optional ``terminal`` block (its certified invariant ellipsoid ``(x - x_eq)^T P_T (x - x_eq)
-   <= level`` lies in Goal and holds every end tube), or ``BeyondHorizonError`` when the file
-   has none: the law is never extrapolated past ``T``.
+2. ``controller(t, x, index)``: for ``t <= T_i``, ``u = clip(u_ref_i[k] + K_i[k] (x -
+   x_ref_i(t)), lower, upper)``, ``k = floor(t / Ts)``, with ``x_ref_i`` linearly
+   interpolated on the trajectory's fine grid ``t``; for ``t > T_i`` the terminal law ``u =
+   clip(u_eq + K_T (x - x_eq))`` of the optional ``terminal`` block (its certified invariant
+   ellipsoid ``(x - x_eq)^T P_T (x - x_eq) <= level`` lies in Goal and holds every end
+   tube), or ``BeyondHorizonError`` when the file has none: the law is never extrapolated past
+   ``T``.
 
 Gain convention: ``u = u_ref + K e`` with ``e = x - x_ref``, so a stabilising ``K`` is the
 *negative* of ``control.lqr``'s gain (which is written ``u = -K x``).
@@ -26,8 +32,8 @@ n)`` is then controlled row by row; a single state ``(n,)`` with a scalar index 
 shape, a non-positive radius or ``Ts``, ``lower > upper``, ``P`` not positive definite, times
 that do not increase, ``T`` that disagrees with ``t`` and ``u_ref``, bytes that are not UTF-8
 JSON) raises ``ControllerFormatError`` naming the field. The optional fields (``terminal``,
-``feedback_period``, ``interpolation_error_P_norm``) may be absent: files written before they
-existed still load.
+``feedback_period``, ``interpolation_error_P_norm``; in ``/2`` also ``feedback`` and each
+trajectory's ``rate``) may be absent: files written before they existed still load.
 """
 
 from __future__ import annotations
@@ -43,13 +49,16 @@ from typing import Any, NoReturn
 import numpy as np
 
 FORMAT = "safety-controller/1"
+FUNNEL_FORMAT = "safety-controller/2"
+INVERSE_LINEAR = "inverse-linear"  # Q = P^-1 linear in t between samples
 TIME_TOLERANCE = 1e-9  # relative, for t[0] = 0 and t[-1] = T
 SAMPLE_TOLERANCE = 1e-6  # in samples, for T = N Ts
 SYMMETRY_TOLERANCE = 1e-9  # relative, for P = P^T
 
 
 class ControllerFormatError(ValueError):
-    """``controller.json`` is not a valid ``safety-controller/1`` file; the message says where."""
+    """``controller.json`` is not a valid ``safety-controller/1`` or ``/2`` file; the message says
+    where."""
 
     exit_code = 2
 
@@ -68,9 +77,20 @@ def _frozen(array: np.ndarray) -> np.ndarray:
     return array
 
 
+def _repeated(matrix: np.ndarray, count: int) -> np.ndarray:
+    """``(count, *matrix.shape)``: one matrix repeated, as a read-only view (a /1 file)."""
+    return np.broadcast_to(matrix, (count, *matrix.shape))
+
+
 @dataclass(frozen=True, kw_only=True)
 class ReferenceTrajectory:
-    """One nominal trajectory: ``x0 (n,)``, ``u_ref (N, m)``, ``t (k,)``, ``x_ref (k, n)``."""
+    """One nominal trajectory with its tube ``||x - x_ref(t)||_{P(t)} <= radius e^{-rate t}``.
+
+    Attributes:
+      x0: (n,); u_ref: (N, m); t: (r,) and x_ref: (r, n) the fine grid; K: (N, m, n) the gain
+      on sample interval ``k``; P: (N+1, n, n) the metric at ``t_k``; rate: lambda (1/s). In a
+      ``/1`` file K and P are the ``feedback`` block's, repeated (read-only views).
+    """
 
     x0: np.ndarray
     radius: float
@@ -78,6 +98,31 @@ class ReferenceTrajectory:
     u_ref: np.ndarray
     t: np.ndarray
     x_ref: np.ndarray
+    K: np.ndarray
+    P: np.ndarray
+    rate: float
+
+    def metric(self, t: np.ndarray | float, Ts: float) -> np.ndarray:
+        """``P(t)`` for times ``t (...)`` -> ``(..., n, n)`` (``inverse_linear``); a repeated
+        metric (a ``/1`` file: a read-only view with stride 0) is returned as it is."""
+        t = np.asarray(t, dtype=np.float64)
+        if self.P.strides[0] == 0:
+            return np.broadcast_to(self.P[0], (*t.shape, *self.P.shape[1:]))
+        return inverse_linear(self.P, Ts, t)
+
+
+def inverse_linear(P: np.ndarray, Ts: float, t: np.ndarray | float) -> np.ndarray:
+    """The metric ``P(t)`` at times ``t (...)`` -> ``(..., n, n)`` from ``P (N+1, n, n)`` at
+    ``t_k = k Ts``: ``Q = P^-1`` linear in t on each sample interval, ``P(t) = ((1 - s) Q[k] + s
+    Q[k+1])^-1``, ``k = floor(t / Ts)``, ``s = t / Ts - k``, held at the ends outside
+    ``[0, N Ts]``."""
+    t = np.asarray(t, dtype=np.float64)
+    k = np.clip(np.floor(t / Ts + 1e-9).astype(np.int64), 0, len(P) - 2)
+    s = np.clip(t / Ts - k, 0.0, 1.0)[..., None, None]
+    Q = np.linalg.inv(P)
+    Q = (Q + np.swapaxes(Q, -1, -2)) / 2
+    M = np.linalg.inv((1 - s) * Q[k] + s * Q[k + 1])
+    return (M + np.swapaxes(M, -1, -2)) / 2
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -108,10 +153,11 @@ class TerminalController:
 
 @dataclass(frozen=True, kw_only=True)
 class Controller:
-    """``u = clip(u_ref_i(t) + K (x - x_ref_i(t)))`` around trajectory ``i`` chosen by ``select``.
+    """``u = clip(u_ref_i(t) + K_i[k] (x - x_ref_i(t)))`` around trajectory ``i`` from ``select``.
 
     Attributes:
-      K: (m, n) gain; P: (n, n) contraction metric; rate: lambda (1/s).
+      K: (m, n) gain; P: (n, n) contraction metric; rate: lambda (1/s): the ``feedback`` block
+        (None in a ``/2`` file without one; each trajectory carries its own K, P and rate).
       lower, upper: (m,) input bounds the law clips to.
       trajectories: the reference trajectories with their initial balls.
       interpolation_error: the file's stated P-norm error of interpolating ``x_ref`` (0 if
@@ -127,14 +173,20 @@ class Controller:
     Ts: float
     lower: np.ndarray
     upper: np.ndarray
-    K: np.ndarray
-    P: np.ndarray
-    rate: float
+    K: np.ndarray | None
+    P: np.ndarray | None
+    rate: float | None
     trajectories: tuple[ReferenceTrajectory, ...]
     interpolation_error: float = 0.0
     terminal: TerminalController | None = None
     feedback_period: float = 0.0
     source: str = "controller.json"
+    format: str = FORMAT
+
+    @property
+    def funnel(self) -> bool:
+        """A ``/2`` file: a time-varying gain and metric per trajectory."""
+        return self.format == FUNNEL_FORMAT
 
     @property
     def n(self) -> int:
@@ -146,14 +198,28 @@ class Controller:
 
     def with_gain(self, scale: float) -> Controller:
         """A new controller with gain ``scale K`` (e.g. 0: the reference replayed open loop)."""
-        return dataclasses.replace(self, K=_frozen(scale * self.K))
+        K = None if self.K is None else _frozen(scale * self.K)
+        trajectories = tuple(
+            dataclasses.replace(tr, K=_frozen(scale * tr.K)) for tr in self.trajectories
+        )
+        return dataclasses.replace(self, K=K, trajectories=trajectories)
 
     def ratios(self, x0: np.ndarray) -> np.ndarray:
-        """``||x0 - x0_i||_P / radius_i`` for ``x0 (..., n)`` -> ``(..., k)``."""
+        """``||x0 - x0_i||_{P_i(0)} / radius_i`` for ``x0 (..., n)`` -> ``(..., k)``."""
         centres = np.stack([tr.x0 for tr in self.trajectories])  # (k, n)
+        metrics = np.stack([tr.P[0] for tr in self.trajectories])  # (k, n, n)
         radii = np.array([tr.radius for tr in self.trajectories])  # (k,)
         e = np.asarray(x0, dtype=np.float64)[..., None, :] - centres  # (..., k, n)
-        return np.sqrt(np.einsum("...i,ij,...j->...", e, self.P, e)) / radii
+        return np.sqrt(np.einsum("...ki,kij,...kj->...k", e, metrics, e)) / radii
+
+    def metric(self, t: float, index: np.ndarray) -> np.ndarray:
+        """The tube metric ``P_i(t)`` of trajectories ``index (...)`` -> ``(..., n, n)``: the
+        tube is ``||x - x_ref_i(t)||_{P_i(t)} <= radius_i e^{-rate_i t}``."""
+        index = np.asarray(index)
+        out = np.empty((*index.shape, self.n, self.n))
+        for i, tr in enumerate(self.trajectories):
+            out[index == i] = tr.metric(t, self.Ts)
+        return out
 
     def select(self, x0: np.ndarray, *, strict: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """For initial states ``x0 (..., n)``: ``(index (...), coverage_ratio (...))``, the
@@ -191,10 +257,20 @@ class Controller:
             x[rows] = [np.interp(t, tr.t, tr.x_ref[:, j]) for j in range(self.n)]
         return u, x
 
+    def gains(self, t: float, index: np.ndarray) -> np.ndarray:
+        """``K_i[floor(t / Ts)]`` of trajectories ``index (...)`` -> ``(..., m, n)``."""
+        index = np.asarray(index)
+        out = np.empty((*index.shape, self.m, self.n))
+        for i, tr in enumerate(self.trajectories):
+            k = min(max(int(np.floor(t / self.Ts + 1e-9)), 0), len(tr.K) - 1)
+            out[index == i] = tr.K[k]
+        return out
+
     def unclipped(self, t: float, x: np.ndarray, index: np.ndarray) -> np.ndarray:
-        """``u_ref + K (x - x_ref)`` before clipping, ``x (..., n)`` -> ``(..., m)``."""
+        """``u_ref + K[k] (x - x_ref)`` before clipping, ``x (..., n)`` -> ``(..., m)``."""
         u_ref, x_ref = self.reference(t, index)
-        return u_ref + (np.asarray(x) - x_ref) @ self.K.T
+        e = np.asarray(x) - x_ref
+        return u_ref + np.einsum("...ji,...i->...j", self.gains(t, index), e)
 
     def horizons(self, index: np.ndarray) -> np.ndarray:
         """``T_i`` (s) of trajectories ``index (...)`` -> ``(...)``."""
@@ -315,9 +391,17 @@ def _shape_text(shape: tuple[int | None, ...]) -> str:
 
 
 def _trajectory(
-    read: _Reader, where: str, item: object, n: int, m: int, Ts: float
+    read: _Reader,
+    where: str,
+    item: object,
+    n: int,
+    m: int,
+    Ts: float,
+    feedback: tuple[np.ndarray, np.ndarray, float] | None,
 ) -> ReferenceTrajectory:
-    item = read.mapping(where, item, ("x0", "radius", "T", "u_ref", "t", "x_ref"))
+    """One trajectory; ``feedback = (K, P, rate)`` of a /1 file, None: its own (a /2 file)."""
+    own = ("K", "P") if feedback is None else ()
+    item = read.mapping(where, item, ("x0", "radius", "T", "u_ref", "t", "x_ref", *own))
     x0 = read.array(f"{where}.x0", item["x0"], (n,))
     radius = read.number(f"{where}.radius", item["radius"], positive=True)
     T = read.number(f"{where}.T", item["T"], positive=True)
@@ -329,13 +413,24 @@ def _trajectory(
         read.fail(f"{where}.t", "times that do not increase", "strictly increasing times")
     if abs(t[0]) > tolerance or abs(t[-1] - T) > tolerance:
         read.fail(f"{where}.t", f"[{t[0]:g} .. {t[-1]:g}]", f"times from 0 to T = {T:g}")
-    if abs(len(u_ref) * Ts - T) > SAMPLE_TOLERANCE * Ts:
-        read.fail(
-            f"{where}.u_ref", f"{len(u_ref)} rows", f"T / Ts = {T:g} / {Ts:g} = {T / Ts:g} rows"
-        )
+    N = len(u_ref)
+    if abs(N * Ts - T) > SAMPLE_TOLERANCE * Ts:
+        read.fail(f"{where}.u_ref", f"{N} rows", f"T / Ts = {T:g} / {Ts:g} = {T / Ts:g} rows")
+    if feedback is None:
+        K = _frozen(read.array(f"{where}.K", item["K"], (N, m, n)))
+        P = read.array(f"{where}.P", item["P"], (N + 1, n, n))
+        for k, P_k in enumerate(P):
+            _metric(read, f"{where}.P[{k}]", P_k)
+        P = _frozen((P + np.swapaxes(P, 1, 2)) / 2)
+        rate = read.number(f"{where}.rate", item.get("rate", 0.0))
+        if rate < 0:
+            read.fail(f"{where}.rate", rate, "a number >= 0")
+    else:
+        K, P, rate = _repeated(feedback[0], N), _repeated(feedback[1], N + 1), feedback[2]
     return ReferenceTrajectory(
-        x0=_frozen(x0), radius=radius, T=T, u_ref=_frozen(u_ref), t=_frozen(t), x_ref=_frozen(x_ref)
-    )
+        x0=_frozen(x0), radius=radius, T=T, u_ref=_frozen(u_ref), t=_frozen(t),
+        x_ref=_frozen(x_ref), K=K, P=P, rate=rate,
+    )  # fmt: skip
 
 
 def _terminal(read: _Reader, item: object, n: int, m: int) -> TerminalController:
@@ -361,24 +456,28 @@ def _metric(read: _Reader, field: str, P: np.ndarray) -> None:
 
 
 def parse(data: object, source: str = "controller.json") -> Controller:
-    """Validate a decoded ``controller.json`` document and build the controller."""
+    """Validate a decoded ``controller.json`` document (``/1`` or ``/2``) and build the
+    controller."""
     read = _Reader(source)
+    if isinstance(data, dict) and data.get("format") == FUNNEL_FORMAT:
+        required: tuple[str, ...] = ("metric_interpolation",)
+    else:
+        required = ("feedback",)
     top = read.mapping(
         "(top level)" if not isinstance(data, dict) else "",
         data,
-        (
-            "format",
-            "scenario",
-            "state_names",
-            "input_names",
-            "Ts",
-            "input_bounds",
-            "feedback",
-            "trajectories",
-        ),
-    )
-    if top["format"] != FORMAT:
-        read.fail("format", top["format"], f"'{FORMAT}'")
+        ("format", "scenario", "state_names", "input_names", "Ts", "input_bounds", *required,
+         "trajectories"),
+    )  # fmt: skip
+    if top["format"] not in (FORMAT, FUNNEL_FORMAT):
+        read.fail("format", top["format"], f"'{FORMAT}' or '{FUNNEL_FORMAT}'")
+    funnel = top["format"] == FUNNEL_FORMAT
+    if funnel and top["metric_interpolation"] != INVERSE_LINEAR:
+        read.fail(
+            "metric_interpolation",
+            _scalar_or_kind(top["metric_interpolation"]),
+            f"'{INVERSE_LINEAR}' (P^-1 linear in t between samples)",
+        )
     if not isinstance(top["scenario"], str):
         read.fail("scenario", _kind(top["scenario"]), "a string")
     state_names = read.names("state_names", top["state_names"])
@@ -391,18 +490,23 @@ def parse(data: object, source: str = "controller.json") -> Controller:
     if np.any(lower > upper):
         j = int(np.argmax(lower > upper))
         read.fail(f"input_bounds.lower[{j}]", float(lower[j]), f"<= upper bound {upper[j]:g}")
-    feedback = read.mapping("feedback", top["feedback"], ("K", "P", "rate"))
-    K = read.array("feedback.K", feedback["K"], (m, n))
-    P = read.array("feedback.P", feedback["P"], (n, n))
-    _metric(read, "feedback.P", P)
-    rate = read.number("feedback.rate", feedback["rate"], positive=True)
+    K = P = rate = None
+    if top.get("feedback") is not None or not funnel:
+        feedback = read.mapping("feedback", top["feedback"], ("K", "P", "rate"))
+        K = _frozen(read.array("feedback.K", feedback["K"], (m, n)))
+        P = read.array("feedback.P", feedback["P"], (n, n))
+        _metric(read, "feedback.P", P)
+        P = _frozen((P + P.T) / 2)
+        rate = read.number("feedback.rate", feedback["rate"], positive=True)
     items = top["trajectories"]
     if not isinstance(items, list):
         read.fail("trajectories", _scalar_or_kind(items), "a list of trajectories")
     if not items:
         read.fail("trajectories", "an empty list", "at least one trajectory")
+    shared = None if funnel else (K, P, rate)
     trajectories = tuple(
-        _trajectory(read, f"trajectories[{i}]", item, n, m, Ts) for i, item in enumerate(items)
+        _trajectory(read, f"trajectories[{i}]", item, n, m, Ts, shared)  # type: ignore[arg-type]
+        for i, item in enumerate(items)
     )
     error = top.get("interpolation_error_P_norm", 0.0)
     error = read.number("interpolation_error_P_norm", error)
@@ -420,14 +524,15 @@ def parse(data: object, source: str = "controller.json") -> Controller:
         Ts=Ts,
         lower=_frozen(lower),
         upper=_frozen(upper),
-        K=_frozen(K),
-        P=_frozen((P + P.T) / 2),
+        K=K,
+        P=P,
         rate=rate,
         trajectories=trajectories,
         interpolation_error=error,
         terminal=terminal,
         feedback_period=period,
         source=source,
+        format=top["format"],
     )
 
 
@@ -450,7 +555,7 @@ def load(path: str | Path) -> Controller:
         ) from None
     except RecursionError:
         raise ControllerFormatError(
-            f"{path}: JSON nested too deeply; expected a safety-controller/1 document"
+            f"{path}: JSON nested too deeply; expected a safety-controller document"
         ) from None
     except ValueError as error:  # e.g. an integer with more digits than Python converts
         raise ControllerFormatError(f"{path}: invalid JSON number ({error})") from None

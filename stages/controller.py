@@ -1,9 +1,14 @@
 """Stage ``controller``: emit the lookup feedback controller ``controller.json``.
 
-Format ``safety-controller/1`` (documented in the README and read by ``pipeline.controller``):
-the feedback ``K``, metric ``P`` and rate, and for every nominal trajectory its start ``x0``,
-robustness radius, duration ``T``, held inputs ``u_ref (N, m)`` and states ``x_ref`` on a fine
-grid ``t`` (RK4 substeps), so that linear interpolation error is negligible against the tube.
+Format ``safety-controller/1`` (``emit_controller``; documented in the README and read by
+``pipeline.controller``): the feedback ``K``, metric ``P`` and rate, and for every nominal
+trajectory its start ``x0``, robustness radius, duration ``T``, held inputs ``u_ref (N, m)`` and
+states ``x_ref`` on a fine grid ``t`` (RK4 substeps), so that linear interpolation error is
+negligible against the tube. Format ``safety-controller/2`` (``emit_funnel_controller``): the
+same per trajectory plus its funnel (``pipeline.numerics.funnel``): gains ``K (N, m, n)``,
+metrics ``P (N+1, n, n)`` at the samples with ``Q = P^-1`` linear in t between them
+(``metric_interpolation: "inverse-linear"``), ``radius = rho`` and ``rate``; no ``feedback``
+block. The interpolation error is measured in the tube's metric at the time, ``P(t)``.
 
 The law after ``T`` (``pipeline.numerics.terminal``): an equilibrium at Goal's centre, its LQR
 gain and the largest certified invariant ellipsoid. The ``terminal`` block is written only when
@@ -19,11 +24,12 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.controller import FORMAT, load
+from pipeline.controller import FORMAT, FUNNEL_FORMAT, INVERSE_LINEAR, inverse_linear, load
 from pipeline.io.artifacts import atomic_write_json
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
-from pipeline.model.simulate import simulate
+from pipeline.model.simulate import Trajectory, simulate
+from pipeline.numerics.funnel_check import Funnel
 from pipeline.numerics.terminal import TerminalError, design_terminal
 
 REFERENCE_SUBSTEPS = 20
@@ -47,15 +53,17 @@ def terminal_block(
     ends: Sequence[FloatArray],
     end_radii: Sequence[float],
     period: float = 0.0,
+    end_metrics: FloatArray | None = None,
 ) -> tuple[dict | None, float, str]:
     """The ``terminal`` block (None when there is none), the end tubes' fit and a sentence.
 
     Args:
       K: (m, n) tube gain; P: (n, n) tube metric; ends: ``x_ref_i(T_i) (n,)`` each; end_radii:
-        ``radius_i e^{-lambda T_i}``, the end tubes' P-norm radii.
+        ``radius_i e^{-lambda T_i}``, the end tubes' P-norm radii; end_metrics: (k, n, n) each
+        end tube's own metric (a funnel's ``P_i[N]``) instead of ``P``.
     """
     try:
-        design = design_terminal(scenario, K, P, ends, end_radii, period)
+        design = design_terminal(scenario, K, P, ends, end_radii, period, end_metrics)
     except TerminalError as error:
         return None, np.inf, f"no terminal controller ({error}); the law refuses t > T"
     where = np.round(design.x_eq, 3).tolist()
@@ -88,6 +96,62 @@ def terminal_block(
     )
 
 
+def _reference(
+    scenario: Scenario, x0: FloatArray, us: FloatArray, radius: float, substeps: int
+) -> tuple[dict, FloatArray, FloatArray]:
+    """The trajectory's entry (``x0``, ``radius``, ``T``, ``u_ref``, ``t``, ``x_ref`` on the RK4
+    grid of ``substeps`` per sample) and the error of interpolating that grid linearly: the
+    midpoints' times ``(M,)`` and errors ``(M, n)`` against a 2x finer simulation."""
+    fine = simulate(scenario.dynamics, x0, us, scenario.Ts, substeps=substeps)
+    finer = simulate(scenario.dynamics, x0, us, scenario.Ts, substeps=2 * substeps)
+    mid = 0.5 * (fine.dense_xs[:-1] + fine.dense_xs[1:])
+    item = {
+        "x0": np.asarray(x0).tolist(),
+        "radius": float(radius),
+        "T": fine.duration,
+        "u_ref": np.asarray(us).tolist(),
+        "t": fine.dense_ts.tolist(),
+        "x_ref": fine.dense_xs.tolist(),
+    }
+    return item, finer.dense_ts[1::2], mid - finer.dense_xs[1::2]
+
+
+def _document(scenario: Scenario, version: str, trajectories: list[dict], **fields) -> dict:
+    """The document's top level around ``trajectories``, then ``fields``."""
+    return {
+        "format": version,
+        "scenario": scenario.name,
+        "state_names": list(scenario.state_names),
+        "input_names": list(scenario.input_names),
+        "Ts": scenario.Ts,
+        "input_bounds": {
+            "lower": scenario.input_lower.tolist(),
+            "upper": scenario.input_upper.tolist(),
+        },
+        **fields,
+    } | {"trajectories": trajectories}
+
+
+def _write(
+    path: Path, document: dict, terminal: dict | None, terminal_message: str
+) -> ControllerResult:
+    """Write ``document`` (with ``terminal`` when there is one), read it back, say what it is."""
+    if terminal is not None:
+        document["terminal"] = terminal
+    atomic_write_json(path, document)
+    load(path)  # the file as emitted must validate
+    count, worst = len(document["trajectories"]), document["interpolation_error_P_norm"]
+    return ControllerResult(
+        path=path,
+        trajectories=count,
+        interpolation_error=worst,
+        success=True,
+        message=f"{count} trajectories; x_ref interpolation error <= {worst:.1e} in P-norm",
+        terminal=terminal is not None,
+        terminal_message=terminal_message,
+    )
+
+
 def emit_controller(
     scenario: Scenario,
     K: FloatArray,
@@ -101,7 +165,7 @@ def emit_controller(
     radius_floor: float | None = None,
     feedback_period: float = 0.0,
 ) -> ControllerResult:
-    """Write ``controller.json`` and read it back.
+    """Write ``controller.json`` (``safety-controller/1``) and read it back.
 
     Args:
       starts: ``(n,)`` each; inputs: ``(N_i, m)`` each; radii: P-norm robustness radii.
@@ -114,39 +178,19 @@ def emit_controller(
     """
     trajectories, worst, ends, end_radii = [], 0.0, [], []
     for x0, us, radius in zip(starts, inputs, radii, strict=True):
-        fine = simulate(scenario.dynamics, x0, us, scenario.Ts, substeps=substeps)
-        # interpolation error: the fine grid's midpoints against a 2x finer simulation
-        finer = simulate(scenario.dynamics, x0, us, scenario.Ts, substeps=2 * substeps)
-        mid = 0.5 * (fine.dense_xs[:-1] + fine.dense_xs[1:])
-        error = mid - finer.dense_xs[1::2]
+        item, _, error = _reference(scenario, x0, us, radius, substeps)
         worst = max(worst, float(np.sqrt(np.einsum("ki,ij,kj->k", error, P, error)).max()))
-        ends.append(fine.dense_xs[-1])
-        end_radii.append(float(radius) * float(np.exp(-rate * fine.duration)))
-        trajectories.append(
-            {
-                "x0": np.asarray(x0).tolist(),
-                "radius": float(radius),
-                "T": fine.duration,
-                "u_ref": np.asarray(us).tolist(),
-                "t": fine.dense_ts.tolist(),
-                "x_ref": fine.dense_xs.tolist(),
-            }
-        )
-    document = {
-        "format": FORMAT,
-        "scenario": scenario.name,
-        "state_names": list(scenario.state_names),
-        "input_names": list(scenario.input_names),
-        "Ts": scenario.Ts,
-        "input_bounds": {
-            "lower": scenario.input_lower.tolist(),
-            "upper": scenario.input_upper.tolist(),
-        },
-        "feedback": {"K": np.asarray(K).tolist(), "P": np.asarray(P).tolist(), "rate": rate},
-        "trajectories": trajectories,
-        "interpolation_error_P_norm": worst,
-        "feedback_period": feedback_period,
-    }
+        ends.append(np.asarray(item["x_ref"][-1]))
+        end_radii.append(float(radius) * float(np.exp(-rate * item["T"])))
+        trajectories.append(item)
+    document = _document(
+        scenario,
+        FORMAT,
+        trajectories,
+        feedback={"K": np.asarray(K).tolist(), "P": np.asarray(P).tolist(), "rate": rate},
+        interpolation_error_P_norm=worst,
+        feedback_period=feedback_period,
+    )
     terminal, fit, terminal_message = terminal_block(
         scenario, K, P, ends, end_radii, feedback_period
     )
@@ -166,17 +210,62 @@ def emit_controller(
                 item["radius"] = radius
             terminal = retry
             terminal_message = f"{message}; radii lowered to the covering radius {radius_floor:.4g}"
-    if terminal is not None:
-        document["terminal"] = terminal
-    atomic_write_json(path, document)
-    load(path)  # the file as emitted must validate
-    return ControllerResult(
-        path=path,
-        trajectories=len(trajectories),
-        interpolation_error=worst,
-        success=True,
-        message=f"{len(trajectories)} trajectories; x_ref interpolation error <= {worst:.1e} in "
-        "P-norm",
-        terminal=terminal is not None,
-        terminal_message=terminal_message,
+    return _write(path, document, terminal, terminal_message)
+
+
+def emit_funnel_controller(
+    scenario: Scenario,
+    trajectories: Sequence[Trajectory],
+    funnels: Sequence[Funnel],
+    path: Path,
+    *,
+    feedback_period: float = 0.0,
+    substeps: int = REFERENCE_SUBSTEPS,
+) -> ControllerResult:
+    """Write ``controller.json`` as ``safety-controller/2`` (one funnel per trajectory) and read
+    it back.
+
+    Args:
+      trajectories: the nominals (``xs (N_i+1, n)``, ``us (N_i, m)`` each); funnels: their
+        certified funnels (``synthesize_funnel``; ``K (N_i, m, n)``, ``P (N_i+1, n, n)``,
+        ``rho``, ``rate``), in the same order.
+      feedback_period: recorded in the file; the funnel certificate is for continuous feedback
+        (0), and the certify stage refuses a funnel file with ``h > 0``.
+
+    Raises:
+      ValueError: a funnel that was not certified (``success`` False), or whose shapes do not
+        fit its trajectory.
+    """
+    items, worst, ends, end_radii, end_metrics = [], 0.0, [], [], []
+    for i, (trajectory, funnel) in enumerate(zip(trajectories, funnels, strict=True)):
+        N, n, m = len(trajectory.us), scenario.n, scenario.m
+        if not funnel.success:
+            raise ValueError(f"funnel {i} was not certified ({funnel.message}): not emitted")
+        if funnel.K.shape != (N, m, n) or funnel.P.shape != (N + 1, n, n):
+            raise ValueError(
+                f"funnel {i}: K {funnel.K.shape}, P {funnel.P.shape} do not fit its trajectory "
+                f"of N = {N} intervals; expected K ({N}, {m}, {n}), P ({N + 1}, {n}, {n})"
+            )
+        item, times, error = _reference(
+            scenario, trajectory.xs[0], trajectory.us, funnel.rho, substeps
+        )
+        metric = inverse_linear(funnel.P, scenario.Ts, times)  # (M, n, n): P(t), eq. (F1)
+        worst = max(worst, float(np.sqrt(np.einsum("ki,kij,kj->k", error, metric, error)).max()))
+        item |= {"K": funnel.K.tolist(), "P": funnel.P.tolist(), "rate": funnel.rate}
+        items.append(item)
+        ends.append(np.asarray(item["x_ref"][-1]))
+        end_radii.append(funnel.rho * float(np.exp(-funnel.rate * item["T"])))
+        end_metrics.append(funnel.P[-1])
+    document = _document(
+        scenario,
+        FUNNEL_FORMAT,
+        items,
+        metric_interpolation=INVERSE_LINEAR,
+        interpolation_error_P_norm=worst,
+        feedback_period=feedback_period,
     )
+    first = funnels[0]  # the terminal design's "tube" candidate: the first funnel's end
+    terminal, _, terminal_message = terminal_block(
+        scenario, first.K[-1], first.P[-1], ends, end_radii, feedback_period, np.stack(end_metrics)
+    )
+    return _write(path, document, terminal, terminal_message)

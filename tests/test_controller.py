@@ -133,7 +133,7 @@ def _mutations():
     return [
         (drop(["feedback"]), "feedback: found 'nothing (missing field)'"),
         (drop(["trajectories", 0, "x_ref"]), "trajectories[0].x_ref: found 'nothing"),
-        (set_(["format"], "safety-controller/2"), "format: found 'safety-controller/2'"),
+        (set_(["format"], "safety-controller/3"), "format: found 'safety-controller/3'"),
         (set_(["feedback", "K"], [[1.0, 2.0, 3.0]]), "feedback.K: found 'shape (1, 3)'"),
         (set_(["trajectories", 1, "x0"], [1.0]), "trajectories[1].x0: found 'shape (1,)'"),
         (set_(["trajectories", 0, "x_ref"], [[0.0, 0.0]]), "trajectories[0].x_ref: found"),

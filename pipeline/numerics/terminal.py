@@ -306,9 +306,15 @@ def end_levels(
     ends: Sequence[FloatArray],
     radii: Sequence[float],
 ) -> FloatArray:
-    """(k,) the smallest level holding each end tube ``||x - ends[i]||_P <= radii[i]``."""
+    """(k,) the smallest level holding each end tube ``||x - ends[i]||_P <= radii[i]``; ``P``
+    is ``(n, n)``, or ``(k, n, n)``: one metric per end tube (a funnel's ``P_i[N]``)."""
+    P = np.asarray(P, dtype=np.float64)
+    metrics = np.broadcast_to(P, (len(ends), *P.shape[-2:]))
     return np.array(
-        [containing_level(terminal_P, a - x_eq, P, rho) for a, rho in zip(ends, radii, strict=True)]
+        [
+            containing_level(terminal_P, a - x_eq, P_i, rho)
+            for a, P_i, rho in zip(ends, metrics, radii, strict=True)
+        ]
     )
 
 
@@ -338,9 +344,11 @@ def design_terminal(
     ends: Sequence[FloatArray],
     end_radii: Sequence[float],
     period: float = 0.0,
+    end_metrics: FloatArray | None = None,
 ) -> TerminalDesign:
     """The best-fitting certified terminal controller for end tubes ``||x - ends[i]||_P <=
-    end_radii[i]`` (tube gain ``K (m, n)``, metric ``P (n, n)``).
+    end_radii[i]`` (tube gain ``K (m, n)``, metric ``P (n, n)``; ``end_metrics (k, n, n)``: each
+    end tube's own metric instead of ``P``, a funnel's).
 
     Candidates: equilibria at Goal's centre and at the mean end position (when in Goal), each
     with the LQR gain and Riccati matrix there and with the tube's own ``K`` and ``P``; the
@@ -371,7 +379,9 @@ def design_terminal(
                     f"{gain} gain at {np.round(position, 3).tolist()}: " + "; ".join(check.failures)
                 )
                 continue
-            fit = float(np.sqrt(end_levels(P_T, x_eq, P, ends, end_radii).max() / check.level))
+            metrics = P if end_metrics is None else end_metrics
+            needed = end_levels(P_T, x_eq, metrics, ends, end_radii)
+            fit = float(np.sqrt(needed.max() / check.level))
             if best is None or fit < best.fit:
                 best = TerminalDesign(
                     x_eq=x_eq, u_eq=u_eq, K=K_T, P=P_T, check=check, gain=gain, fit=fit
