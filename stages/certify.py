@@ -2,7 +2,8 @@
 
 Every "certified" claim of a run comes from here. The file is read back with
 ``pipeline.controller.load`` (the reader users run) and re-verified against the scenario, using
-nothing but the file and the scenario (no stage result):
+nothing but the file and the scenario (no stage result). A ``safety-controller/1`` file (one
+``K``, ``P``, rate):
 
 1. the file is for this scenario: state and input names, ``Ts`` and input bounds agree;
 2. the metric: ``P = P^T`` with ``lambda_min(P) > 0``;
@@ -32,6 +33,17 @@ nothing but the file and the scenario (no stage result):
    Goal, and it holds every end tube ``||x - x_ref(T)||_P <= radius e^{-lambda T}`` (exact
    S-procedure containment). Then "safe for all time" is certified; without the block the law
    refuses ``t > T``, and a scenario with ``terminal: hold`` is not certified.
+
+A ``safety-controller/2`` file (a funnel per trajectory: ``K_i[k]``, ``P_i[k]``, ``rho_i =
+radius_i``) replaces steps 2-3 and the radius of step 4: each funnel is rebuilt from the file's
+``x_ref``, ``u_ref``, ``K``, ``P``, ``radius`` and the scenario's state and input bounds
+(``pipeline.numerics.recertify``: local sound hulls per sample interval, then
+``funnel_check.check_funnel``: ``P[k] > 0``, the vertex inequalities (F3) at both ends of every
+interval by numpy eigenvalues, the tube in Unsafe's clearance, the inputs and state bounds, and
+``E(T)`` in Goal). The reference checks of step 4 measure in the tube's metric at the time,
+``P_i(t)``; step 5 covers Init by the balls ``||x - x0_i||_{P_i[0]} <= radius_i``; step 6's end
+tubes are ``||x - x_ref_i(T)||_{P_i[N]} <= radius_i e^{-rate_i T}``. The funnel certificate is
+for continuous feedback: a ``/2`` file with ``feedback_period > 0`` is not certified.
 """
 
 from __future__ import annotations
@@ -44,9 +56,10 @@ import numpy as np
 from pipeline.controller import Controller, ControllerFormatError, load
 from pipeline.io.artifacts import file_hash
 from pipeline.model.scenario import Scenario
-from pipeline.model.simulate import simulate
+from pipeline.model.simulate import Trajectory, simulate
 from pipeline.numerics.cover import DEFAULT_DEPTH, subdivide
 from pipeline.numerics.hull import DEFAULT_SEGMENTS, HullError, jacobian_hull
+from pipeline.numerics.recertify import recheck_funnel
 from pipeline.numerics.sampled import contraction_rate, held_rate
 from pipeline.numerics.terminal import check_level, end_levels
 from pipeline.numerics.tube import Tube
@@ -127,8 +140,9 @@ def verify_terminal(scenario: Scenario, controller: Controller) -> tuple[float, 
         period=controller.feedback_period,
     )
     ends = [tr.x_ref[-1] for tr in controller.trajectories]
-    radii = [tr.radius * float(np.exp(-controller.rate * tr.T)) for tr in controller.trajectories]
-    needed = end_levels(terminal.P, terminal.x_eq, controller.P, ends, radii)
+    radii = [tr.radius * float(np.exp(-tr.rate * tr.T)) for tr in controller.trajectories]
+    metrics = np.stack([tr.P[-1] for tr in controller.trajectories])  # each end tube's metric
+    needed = end_levels(terminal.P, terminal.x_eq, metrics, ends, radii)
     fit = float(np.sqrt(needed.max() / terminal.level))
     failures = [f"terminal: {failure}" for failure in check.failures]
     if not fit <= 1:
@@ -166,6 +180,134 @@ def _contraction_margin(controller: Controller, A: np.ndarray, B: np.ndarray) ->
     return float(np.linalg.eigvalsh((M + np.swapaxes(M, 1, 2)) / 2).max())
 
 
+def _constant(
+    scenario: Scenario, controller: Controller, failures: list[str], segments: int
+) -> tuple[float, int, list[float], tuple[float, float]]:
+    """Steps 2-4 for a ``/1`` file: ``(contraction margin, vertices, verified radii, (reference
+    error, interpolation error))``; what fails is appended to ``failures``."""
+    assert controller.P is not None and controller.K is not None and controller.rate is not None
+    # 2. The metric.
+    metric = float(np.linalg.eigvalsh(controller.P)[0])
+    if not metric > 0:
+        failures.append(f"P is not positive definite (smallest eigenvalue {metric:.3g})")
+
+    # 3. Contraction (C) at every vertex of a sound Jacobian hull over the operating region.
+    try:
+        hull = jacobian_hull(scenario.dynamics, scenario.operating_region, segments)
+        margin, vertices = _contraction_margin(controller, hull.A, hull.B), len(hull.vertices)
+    except HullError as error:
+        margin, vertices = float("nan"), 0
+        failures.append(f"no Jacobian hull over the operating region: {error}")
+    if controller.feedback_period > 0 and vertices:
+        failures += _held(controller, hull.A, hull.B)
+    # strictly below zero by more than floating-point rounding of M and of the hull's vertices
+    rounding = ROUNDING_MARGIN * max(1.0, float(np.linalg.norm(controller.P, 2)))
+    if not margin < -rounding:
+        failures.append(
+            f"the contraction inequality fails at rate {controller.rate:g}: largest eigenvalue "
+            f"{margin:.3g} >= -{rounding:.1g} over {vertices} hull vertices"
+        )
+
+    # 4. Each reference and its radius, in the file's tube.
+    tube = Tube(
+        K=controller.K,
+        P=controller.P,
+        rate=controller.rate,
+        region=scenario.operating_region,
+        state_names=scenario.state_names,
+        input_names=scenario.input_names,
+        position_index=scenario.position_index,
+    )
+    verified, errors = [], (0.0, 0.0)
+    for i, tr in enumerate(controller.trajectories):
+        errors, fine = _reference(scenario, controller, i, failures, errors)
+        if fine is None:
+            verified.append(0.0)
+            continue
+        nominal = simulate(scenario.dynamics, tr.x0, tr.u_ref, scenario.Ts, VERIFY_SUBSTEPS)
+        limits = radius_limits(scenario, tube, nominal)
+        verified.append(limits.radius)
+        if not tr.radius <= limits.radius * (1 + RADIUS_TOLERANCE):
+            binding = min(limits.limits, key=lambda key: limits.limits[key][0])
+            failures.append(
+                f"trajectories[{i}]: radius {tr.radius:.6g} > {limits.radius:.6g}, the largest "
+                f"the tube allows ({binding} binds at t = {limits.limits[binding][1]:.2f} s)"
+            )
+    return margin, vertices, verified, errors
+
+
+def _funnels(
+    scenario: Scenario, controller: Controller, failures: list[str]
+) -> tuple[float, int, list[float], tuple[float, float]]:
+    """Steps 2-4 for a ``/2`` file, each funnel rebuilt from the file and re-checked
+    (``pipeline.numerics.recertify``): ``(largest (F2) eigenvalue, vertices, verified levels,
+    (reference error, interpolation error))``; what fails is appended to ``failures``."""
+    if controller.feedback_period > 0:
+        failures.append(
+            f"feedback_period {controller.feedback_period:g} s: the funnel certificate is for "
+            "continuous feedback (0); a held law is not certified by a safety-controller/2 file"
+        )
+    margin, vertices, verified, errors = -np.inf, 0, [], (0.0, 0.0)
+    for i, tr in enumerate(controller.trajectories):
+        errors, fine = _reference(scenario, controller, i, failures, errors)
+        if fine is None:
+            verified.append(0.0)
+            continue
+        check = recheck_funnel(
+            scenario, fine, tr.K, tr.P, tr.radius, tr.rate, scenario.state_bounds
+        )
+        margin, vertices = max(margin, check.margin), vertices + check.vertices
+        verified.append(check.radius)
+        if check.failure is not None:
+            failures.append(f"trajectories[{i}]: the funnel is not certified: {check.failure}")
+    return margin, vertices, verified, errors
+
+
+def _reference(
+    scenario: Scenario,
+    controller: Controller,
+    i: int,
+    failures: list[str],
+    errors: tuple[float, float],
+) -> tuple[tuple[float, float], Trajectory | None]:
+    """Step 4's reference checks of trajectory ``i`` in its tube metric ``P_i(t)``: ``x_ref``
+    is the dynamics from ``x0`` under ``u_ref`` on a uniform RK4 grid, and its linear
+    interpolation is close to the dynamics. Returns ``(largest (reference error, interpolation
+    error) so far, the re-simulated trajectory (None: not on a uniform grid))``."""
+    tr = controller.trajectories[i]
+    N = len(tr.u_ref)
+    substeps = (len(tr.t) - 1) // N
+    fine = simulate(scenario.dynamics, tr.x0, tr.u_ref, scenario.Ts, substeps=max(substeps, 1))
+    if substeps * N + 1 != len(tr.t) or not np.allclose(fine.dense_ts, tr.t, rtol=0, atol=1e-9):
+        failures.append(f"trajectories[{i}]: t is not a uniform RK4 grid of the samples")
+        return errors, None
+    e = tr.x_ref - fine.dense_xs
+    metric = tr.metric(tr.t, controller.Ts)  # (r, n, n)
+    mismatch = float(np.sqrt(np.einsum("ki,kij,kj->k", e, metric, e)).max()) / tr.radius
+    if not mismatch <= REFERENCE_TOLERANCE:
+        failures.append(
+            f"trajectories[{i}]: x_ref is not the dynamics under u_ref from x0 "
+            f"(P-norm error {mismatch:.3g} radius)"
+        )
+    # The law tracks the file's x_ref interpolated linearly: measure that against a grid
+    # finer than both the file's and the verification's (midpoints included).
+    finer = simulate(
+        scenario.dynamics, tr.x0, tr.u_ref, scenario.Ts, 2 * max(substeps, VERIFY_SUBSTEPS)
+    )
+    tracked = np.stack(
+        [np.interp(finer.dense_ts, tr.t, tr.x_ref[:, j]) for j in range(controller.n)], -1
+    )
+    gap = tracked - finer.dense_xs
+    metric = tr.metric(finer.dense_ts, controller.Ts)
+    measured = float(np.sqrt(np.einsum("ki,kij,kj->k", gap, metric, gap)).max())
+    if not measured <= INTERPOLATION_TOLERANCE * tr.radius:
+        failures.append(
+            f"trajectories[{i}]: the interpolated x_ref is {measured / tr.radius:.3g} radius "
+            f"from the dynamics (> {INTERPOLATION_TOLERANCE:g}); emit it on a finer grid"
+        )
+    return (max(errors[0], mismatch), max(errors[1], measured)), fine
+
+
 def certify_controller(
     scenario: Scenario,
     path: Path,
@@ -201,85 +343,15 @@ def certify_controller(
     failures = _same_scenario(scenario, controller)
     if failures:
         return refused(sha256, failures)
-
-    # 2. The metric.
-    metric = float(np.linalg.eigvalsh(controller.P)[0])
-    if not metric > 0:
-        failures.append(f"P is not positive definite (smallest eigenvalue {metric:.3g})")
-
-    # 3. Contraction (C) at every vertex of a sound Jacobian hull over the operating region.
-    try:
-        hull = jacobian_hull(scenario.dynamics, scenario.operating_region, segments)
-        margin, vertices = _contraction_margin(controller, hull.A, hull.B), len(hull.vertices)
-    except HullError as error:
-        margin, vertices = float("nan"), 0
-        failures.append(f"no Jacobian hull over the operating region: {error}")
-    if controller.feedback_period > 0 and vertices:
-        failures += _held(controller, hull.A, hull.B)
-    # strictly below zero by more than floating-point rounding of M and of the hull's vertices
-    rounding = ROUNDING_MARGIN * max(1.0, float(np.linalg.norm(controller.P, 2)))
-    if not margin < -rounding:
-        failures.append(
-            f"the contraction inequality fails at rate {controller.rate:g}: largest eigenvalue "
-            f"{margin:.3g} >= -{rounding:.1g} over {vertices} hull vertices"
+    if controller.funnel:
+        margin, vertices, verified, (reference_error, interpolation) = _funnels(
+            scenario, controller, failures
         )
-
-    # 4. Each reference and its radius, in the file's tube.
-    tube = Tube(
-        K=controller.K,
-        P=controller.P,
-        rate=controller.rate,
-        region=scenario.operating_region,
-        state_names=scenario.state_names,
-        input_names=scenario.input_names,
-        position_index=scenario.position_index,
-    )
-    verified, reference_error, interpolation = [], 0.0, 0.0
-    for i, tr in enumerate(controller.trajectories):
-        N = len(tr.u_ref)
-        substeps = (len(tr.t) - 1) // N
-        fine = simulate(scenario.dynamics, tr.x0, tr.u_ref, scenario.Ts, substeps=max(substeps, 1))
-        if substeps * N + 1 != len(tr.t) or not np.allclose(fine.dense_ts, tr.t, rtol=0, atol=1e-9):
-            failures.append(f"trajectories[{i}]: t is not a uniform RK4 grid of the samples")
-            verified.append(0.0)
-            continue
-        e = tr.x_ref - fine.dense_xs
-        mismatch = float(np.sqrt(np.einsum("ki,ij,kj->k", e, controller.P, e)).max()) / tr.radius
-        reference_error = max(reference_error, mismatch)
-        if not mismatch <= REFERENCE_TOLERANCE:
-            failures.append(
-                f"trajectories[{i}]: x_ref is not the dynamics under u_ref from x0 "
-                f"(P-norm error {mismatch:.3g} radius)"
-            )
-        nominal = simulate(scenario.dynamics, tr.x0, tr.u_ref, scenario.Ts, VERIFY_SUBSTEPS)
-        # The law tracks the file's x_ref interpolated linearly: measure that against a grid
-        # finer than both the file's and the verification's (midpoints included).
-        finer = simulate(
-            scenario.dynamics,
-            tr.x0,
-            tr.u_ref,
-            scenario.Ts,
-            2 * max(substeps, VERIFY_SUBSTEPS),
+    else:
+        margin, vertices, verified, (reference_error, interpolation) = _constant(
+            scenario, controller, failures, segments
         )
-        tracked = np.stack(
-            [np.interp(finer.dense_ts, tr.t, tr.x_ref[:, j]) for j in range(controller.n)], -1
-        )
-        gap = tracked - finer.dense_xs
-        measured = float(np.sqrt(np.einsum("ki,ij,kj->k", gap, controller.P, gap)).max())
-        interpolation = max(interpolation, measured)
-        if not measured <= INTERPOLATION_TOLERANCE * tr.radius:
-            failures.append(
-                f"trajectories[{i}]: the interpolated x_ref is {measured / tr.radius:.3g} radius "
-                f"from the dynamics (> {INTERPOLATION_TOLERANCE:g}); emit it on a finer grid"
-            )
-        limits = radius_limits(scenario, tube, nominal)
-        verified.append(limits.radius)
-        if not tr.radius <= limits.radius * (1 + RADIUS_TOLERANCE):
-            binding = min(limits.limits, key=lambda key: limits.limits[key][0])
-            failures.append(
-                f"trajectories[{i}]: radius {tr.radius:.6g} > {limits.radius:.6g}, the largest "
-                f"the tube allows ({binding} binds at t = {limits.limits[binding][1]:.2f} s)"
-            )
+    metric = min(float(np.linalg.eigvalsh(tr.P).min()) for tr in controller.trajectories)
 
     # The Monte Carlo allows twice the stated interpolation error as tube slack: it must be
     # the error this check measures, neither understated nor inflated.
@@ -293,7 +365,7 @@ def certify_controller(
 
     # 5. Coverage of Init by the file's initial balls.
     cover = subdivide(
-        controller.P,
+        np.stack([tr.P[0] for tr in controller.trajectories]),  # each ball's metric at t = 0
         scenario.init_lower,
         scenario.init_upper,
         np.stack([tr.x0 for tr in controller.trajectories]),
@@ -329,10 +401,19 @@ def certify_controller(
         if controller.feedback_period > 0
         else ""
     )
+    if controller.funnel:
+        what = (
+            f"{len(verified)} funnels (K[k], P[k], Q = P^-1 linear in t) rebuilt: P[k] > 0, "
+            f"(F2) on {vertices} local hull vertices (margin {margin:.2e}), levels within "
+            "their constraints"
+        )
+    else:
+        what = (
+            f"P > 0, contraction at rate {controller.rate:g}{held} on {vertices} hull vertices "
+            f"(margin {margin:.2e}), {len(verified)} radii within their tubes"
+        )
     message = (
-        f"controller.json re-verified: P > 0, contraction at rate {controller.rate:g}{held} on "
-        f"{vertices} hull vertices (margin {margin:.2e}), {len(verified)} radii within their "
-        "tubes, Init covered" + after
+        f"controller.json re-verified: {what}, Init covered" + after
         if success
         else "controller.json is not certified: " + "; ".join(failures)
     )

@@ -8,7 +8,8 @@ stage at an interval's right end uses the left limit of the input. A file with
 
 ``check_runs`` measures each run's margins in continuous time (dense grid plus the motion bound
 between grid points): clearance to Unsafe, Goal at ``T``, input slack before clipping, and the
-error against the predicted tube ``||e(t)||_P <= e^{-lambda t} ||e(0)||_P + 2 delta``.
+error against the predicted tube ``||e(t)||_P(t) <= e^{-lambda t} ||e(0)||_P(0) + 2 delta``
+(``P(t) = P`` for a ``/1`` file; a funnel's time-varying metric, its own ``lambda``, for ``/2``).
 """
 
 from __future__ import annotations
@@ -173,7 +174,6 @@ def check_runs(
     index, ratio = controller.select(x0)
     covered = ratio < 1.0
     paths = []
-    P = controller.P
     for i in np.unique(index):
         rows = np.flatnonzero(index == i)
         steps = len(controller.trajectories[int(i)].u_ref) * substeps
@@ -207,10 +207,12 @@ def check_runs(
         slack = np.minimum(raw - controller.lower, controller.upper - raw)
         checks["input_slack"][rows] = slack.min(axis=(1, 2, 3))
         e = xs - run.x_ref
-        norm = np.sqrt(np.einsum("btj,jk,btk->bt", e, P, e))
+        reference = controller.trajectories[int(i)]
+        P = reference.metric(run.ts, controller.Ts)  # (K+1, n, n): P(t) on the grid
+        norm = np.sqrt(np.einsum("btj,tjk,btk->bt", e, P, e))
         # the reference is interpolated: allow twice its stated error (P-norm) on top of the tube
         slack = INTERPOLATION_SLACK * controller.interpolation_error + 1e-9
-        decayed = np.maximum(norm - slack, 0.0) * np.exp(controller.rate * run.ts)
+        decayed = np.maximum(norm - slack, 0.0) * np.exp(reference.rate * run.ts)
         ratio = decayed / np.maximum(norm[:, :1], 1e-12)
         checks["tube"][rows] = np.max(ratio, axis=1)
         checks["tube_final"][rows] = ratio[:, -1]

@@ -102,6 +102,7 @@ def hold_runs_compiled(
         controller.upper,
     )
     steps, hold = held_steps(controller, substeps)
+    metric = np.broadcast_to(terminal.P / terminal.level, (N * steps + 1, *terminal.P.shape))
     after = np.empty_like(out)
     kernels.rollout_kernel(
         x_end,
@@ -110,7 +111,7 @@ def hold_runs_compiled(
         law,
         np.array([0.0, N * controller.Ts]),
         np.ascontiguousarray(np.stack([terminal.x_eq, terminal.x_eq])),
-        np.ascontiguousarray(terminal.P / terminal.level),
+        np.ascontiguousarray(metric),
         0.0,
         0.0,
         *_scene(scenario),
@@ -160,13 +161,12 @@ def _rollouts(
     for i in np.unique(index):
         rows = np.flatnonzero(index == i)
         reference = controller.trajectories[int(i)]
-        N = len(reference.u_ref)
-        gains = np.ascontiguousarray(np.broadcast_to(controller.K, (N, *controller.K.shape)))
+        grid = controller.Ts / substeps * np.arange(len(reference.u_ref) * substeps + 1)
         checks = np.empty((len(rows), out.shape[1]))
         law = (
             controller.Ts,
             np.ascontiguousarray(reference.u_ref),
-            gains,
+            np.ascontiguousarray(reference.K),  # (N, m, n): K[k] on sample interval k
             controller.lower,
             controller.upper,
         )
@@ -177,8 +177,8 @@ def _rollouts(
             law,
             np.ascontiguousarray(reference.t),
             np.ascontiguousarray(reference.x_ref),
-            np.ascontiguousarray(controller.P),
-            controller.rate,
+            np.ascontiguousarray(reference.metric(grid, controller.Ts)),  # P(t) on the RK4 grid
+            reference.rate,
             slack + 1e-9,
             *_scene(scenario),
             checks,

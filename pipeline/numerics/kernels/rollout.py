@@ -12,8 +12,10 @@ linearly interpolated on the emitted grid ``t_ref``; with ``hold > 0`` the input
 first stage of every ``hold``-th step and held (zero-order-hold feedback). Per run it returns,
 without storing the path: clearance to Unsafe minus half the longest grid step (the motion bound
 between grid points), the signed distance of the final position to Goal's boundary, the smallest
-input slack before clipping, the tube ratio ``max_t max(|e(t)|_P - slack, 0) e^(rate t) / |e(0)|_P``
-and its value at ``T``, whether every state stayed finite, and the final state.
+input slack before clipping, the tube ratio ``max_t max(|e(t)|_P(t) - slack, 0) e^(rate t) /
+|e(0)|_P(0)`` and its value at ``T`` (``P(t)`` given on the RK4 grid: one metric repeated for a
+``/1`` file, a funnel's time-varying metric for ``/2``), whether every state stayed finite, and
+the final state.
 
 Shapes: ``B`` runs, ``n`` states, ``m`` inputs, ``N`` sample intervals, ``r`` reference points.
 """
@@ -97,12 +99,12 @@ def unsafe_distance(px, py, nearest, scene):
 
 
 @njit(cache=True, inline="always")
-def metric_norm(x, xr, M):
-    """``|x - xr|_M`` for ``x, xr (n,)``, ``M (n, n)``."""
+def metric_norm(x, xr, M, g):
+    """``|x - xr|_M[g]`` for ``x, xr (n,)``, ``M (G, n, n)`` metrics on the RK4 grid."""
     q = 0.0
     for i in range(x.size):
         for j in range(x.size):
-            q += (x[i] - xr[i]) * M[i, j] * (x[j] - xr[j])
+            q += (x[i] - xr[i]) * M[g, i, j] * (x[j] - xr[j])
     return math.sqrt(max(q, 0.0))
 
 
@@ -113,10 +115,11 @@ def rollout_kernel(x0, s, hold, law, t_ref, x_ref, M, rate, slack, position, sce
 
     Args: ``hold``: RK4 steps per zero-order-hold window (0: the law at every stage); ``law`` as
     in ``closed_loop_slope`` (``K[k]`` held on sample interval ``k``),
-    ``t_ref (r,)`` and ``x_ref (r, n)`` the reference grid, ``M (n, n)`` the tube metric and
-    ``rate`` its decay, ``slack`` the allowed interpolation error, ``position (2,)`` the position
-    state indices, ``scene`` Unsafe as in ``unsafe_distance``, ``goal = (V, ring_start, index,
-    lower, upper)``: Goal's rings and its extra bounds on states ``index`` at ``T``.
+    ``t_ref (r,)`` and ``x_ref (r, n)`` the reference grid, ``M (N s + 1, n, n)`` the tube
+    metric at the RK4 grid times ``j Ts / s`` and ``rate`` its decay, ``slack`` the allowed
+    interpolation error, ``position (2,)`` the position state indices, ``scene`` Unsafe as in
+    ``unsafe_distance``, ``goal = (V, ring_start, index, lower, upper)``: Goal's rings and its extra
+    bounds on states ``index`` at ``T``.
     """
     B, n = x0.shape
     m = law[1].shape[1]
@@ -139,7 +142,7 @@ def rollout_kernel(x0, s, hold, law, t_ref, x_ref, M, rate, slack, position, sce
         finite = True
         input_slack = np.inf
         reference_state(0.0, t_ref, x_ref, xr_now)
-        norm0 = metric_norm(x, xr_now, M)
+        norm0 = metric_norm(x, xr_now, M, 0)
         denominator = max(norm0, 1e-12)
         ratio = max(norm0 - slack, 0.0) / denominator
         tube = ratio
@@ -186,7 +189,7 @@ def rollout_kernel(x0, s, hold, law, t_ref, x_ref, M, rate, slack, position, sce
             longest = max(longest, math.hypot(x[p0] - px, x[p1] - py))
             nearest = unsafe_distance(x[p0], x[p1], nearest, scene)
             reference_state((j + 1) * h, t_ref, x_ref, xr_now)  # the next step's first stage
-            norm = metric_norm(x, xr_now, M)
+            norm = metric_norm(x, xr_now, M, j + 1)
             ratio = max(norm - slack, 0.0) * math.exp(rate * ((j + 1) * h)) / denominator
             tube = max(tube, ratio)
         goal_V, goal_start, goal_index, goal_lower, goal_upper = goal

@@ -1,0 +1,175 @@
+"""Re-verify one funnel of a ``safety-controller/2`` file from the file's data alone.
+
+The file carries, per trajectory, ``x_ref`` (re-simulated by the caller from ``x0`` and
+``u_ref``), ``K (N, m, n)``, ``P (N+1, n, n)`` (``Q = P^-1`` linear in t between samples, eq. (F1)
+of ``pipeline.numerics.funnel``), the level ``rho`` and the rate ``lambda``; not the hulls the
+synthesis used. Rebuilt here, independently of the synthesis's boxes and its solver:
+
+1. per sample interval ``k``, the nominal's a priori box ``B_k = grid_k +- pad`` (E1 of
+   ``funnel_bounds``: ``F h < pad`` with ``F`` from the hull below, ``pad`` grown until it holds);
+2. the box ``Z_k`` of the variables the Jacobian depends on: a state's ``B_k`` widened by the
+   tube's extent ``rho s_i[k]``, an input's ``u_ref[k] +- rho g_j[k]`` (E3), clipped to the
+   scenario's state and input bounds (sound: the limits re-checked below keep the tube inside
+   them), and a sound hull of ``[f_x f_u]`` over ``Z_k`` (``pipeline.numerics.hull``, outward
+   rounded);
+3. ``funnel_check.check_funnel`` on the funnel so rebuilt: ``P[k]`` positive definite, (F3) at
+   every vertex at both ends of every interval (numpy eigenvalues), the enclosure (E1) and the
+   tube inside every hull box, ``rho`` within the limits of Unsafe, the inputs, the state bounds
+   and Goal at ``T`` (``funnel_bounds.funnel_limits``).
+
+A hull over a box is sound for any number of segments, so ``SEGMENTS`` are tried in turn and the
+funnel is accepted when one of them certifies it (a finer hull is tighter, not always a subset).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+
+from pipeline.model.dynamics import FloatArray
+from pipeline.model.scenario import Scenario
+from pipeline.model.simulate import Trajectory
+from pipeline.numerics.funnel_bounds import (
+    Enclosure,
+    enclosure_range,
+    funnel_limits,
+    grid_range,
+    rate_bound,
+    substeps,
+    tube_extents,
+)
+from pipeline.numerics.funnel_check import Funnel, certificate_margins, check_funnel
+from pipeline.numerics.hull import HullError, jacobian_hull
+
+SEGMENTS = (1, 4)
+WIDEN = 1e-9  # relative widening of the tube's extent in the hull boxes (rounding of E3)
+PAD_ROUNDS = 8
+
+
+@dataclass(frozen=True, kw_only=True)
+class FunnelRecheck:
+    """The re-verification of one funnel.
+
+    Attributes:
+      failure: what fails (None: certified); margin: the largest eigenvalue of (F2) over the
+        vertices at both ends of every interval (< 0 for a certificate); vertices: hull vertices
+        over all intervals; radius: the largest level the constraints allow (>= rho to pass);
+        binding: the constraint that sets it.
+    """
+
+    failure: str | None
+    margin: float
+    vertices: int
+    radius: float
+    binding: str
+
+
+def _bounds(scenario: Scenario, state_bounds: Mapping[str, tuple[float, float]], name: str):
+    if name in scenario.input_names:
+        j = scenario.input_names.index(name)
+        return float(scenario.input_lower[j]), float(scenario.input_upper[j])
+    lower, upper = state_bounds.get(name, (-np.inf, np.inf))
+    return float(lower), float(upper)
+
+
+def rebuild_funnel(
+    scenario: Scenario,
+    trajectory: Trajectory,
+    K: FloatArray,
+    P: FloatArray,
+    rho: float,
+    rate: float,
+    state_bounds: Mapping[str, tuple[float, float]],
+    segments: int,
+) -> Funnel:
+    """The funnel ``K (N, m, n)``, ``P (N+1, n, n)``, ``rho``, ``rate`` around ``trajectory``
+    with hulls and enclosure rebuilt by steps 1-2 of the module docstring.
+
+    Raises:
+      HullError: no hull over a box, or no a priori enclosure within ``PAD_ROUNDS``.
+    """
+    dynamics, n = scenario.dynamics, scenario.n
+    variables = dynamics.depends_on()
+    h = scenario.Ts / substeps(trajectory)
+    grid = grid_range(trajectory)  # (N, 2, n)
+    Q = np.linalg.inv(P)
+    s_ext, g, _ = tube_extents((Q + np.swapaxes(Q, 1, 2)) / 2, K, scenario.position_index)
+    N = len(K)
+    boxes, vertices = np.empty((N, 2, len(variables))), []
+    pads, F = np.empty((N, n)), np.empty((N, n))
+    for k in range(N):
+        pad = 2 * h * np.abs(dynamics.f(grid[k], trajectory.us[k])).max(axis=0) + 1e-9
+        for _ in range(PAD_ROUNDS):
+            B = grid[k] + np.stack([-pad, pad])  # the a priori box B_k (E1)
+            for d, name in enumerate(variables):
+                if name in scenario.input_names:
+                    j = scenario.input_names.index(name)
+                    centre = (trajectory.us[k, j],) * 2
+                    w = rho * g[k, j] * (1 + WIDEN)
+                else:
+                    i = scenario.state_names.index(name)
+                    centre, w = B[:, i], rho * s_ext[k, i] * (1 + WIDEN)
+                lower, upper = _bounds(scenario, state_bounds, name)
+                boxes[k, :, d] = max(centre[0] - w, lower), min(centre[1] + w, upper)
+            region = dict(zip(variables, boxes[k].T, strict=True))
+            hull = jacobian_hull(dynamics, region, segments, compact=True)
+            F[k] = rate_bound(dynamics, trajectory, k, B, hull.A)  # eq. (E1)
+            if np.all(F[k] * h < pad):
+                break
+            pad = np.maximum(pad, 2 * F[k] * h)
+        else:
+            raise HullError(f"no a priori enclosure of the nominal on interval {k}")
+        pads[k] = pad
+        vertices.append(hull.vertices)
+    enclosure = Enclosure(
+        box=grid + np.stack([-pads, pads], axis=1),
+        rate_bound=F,
+        grid_range=grid,
+        range=enclosure_range(grid, F, h),
+    )
+    return Funnel(
+        K=K, P=P, rho=rho, rate=rate, margins=np.full((N, 2), np.nan), boxes=boxes,
+        variables=variables, vertices=tuple(vertices), enclosure=enclosure, limits={},
+        binding="", seconds=0.0, success=True, message="rebuilt from controller.json",
+    )  # fmt: skip
+
+
+def recheck_funnel(
+    scenario: Scenario,
+    trajectory: Trajectory,
+    K: FloatArray,
+    P: FloatArray,
+    rho: float,
+    rate: float,
+    state_bounds: Mapping[str, tuple[float, float]],
+) -> FunnelRecheck:
+    """Steps 1-3 of the module docstring for one funnel (``K (N, m, n)``, ``P (N+1, n, n)``)."""
+    failures: list[str] = []
+    last = FunnelRecheck(failure="", margin=float("nan"), vertices=0, radius=0.0, binding="")
+    for segments in SEGMENTS:
+        try:
+            funnel = rebuild_funnel(scenario, trajectory, K, P, rho, rate, state_bounds, segments)
+        except (HullError, np.linalg.LinAlgError) as error:
+            failures.append(f"{segments} segment(s): {error}")
+            continue
+        failure = check_funnel(scenario, trajectory, funnel, state_bounds)
+        Q = np.linalg.inv(P)
+        Q = (Q + np.swapaxes(Q, 1, 2)) / 2
+        margin = float(certificate_margins(Q, K, funnel.vertices, rate, scenario.Ts).max())
+        assert funnel.enclosure is not None
+        limits = funnel_limits(scenario, trajectory, Q, K, funnel.enclosure, state_bounds)
+        binding = min(limits, key=lambda key: limits[key][0])
+        last = FunnelRecheck(
+            failure=failure,
+            margin=margin,
+            vertices=sum(len(v) for v in funnel.vertices),
+            radius=limits[binding][0],
+            binding=binding,
+        )
+        if failure is None:
+            return last
+        failures.append(f"{segments} segment(s): {failure}")
+    return dataclasses.replace(last, failure="; ".join(failures))
