@@ -84,7 +84,7 @@ def test_synthesize_takes_every_computing_option_with_its_default():
 @pytest.mark.parametrize(
     ("keywords", "message"),
     [
-        ({"certificate": "funnel"}, "certificate='funnel' is not available; expected one of"),
+        ({"certificate": "tube"}, "certificate='tube'; expected one of ('constant', 'funnel')"),
         ({"samples": 0}, "samples=0; expected a whole number >= 1"),
         ({"jobs": 1.5}, "jobs=1.5; expected a whole number >= 1"),
         ({"method": "newton"}, "method='newton'; expected one of ('gd', 'lbfgs')"),

@@ -107,6 +107,8 @@ def format_summary(summary: Summary) -> str:
         before = f"{d.binding_before} at {d.binding_time_before:.1f} s"
         after = f"{d.binding_after} at {d.binding_time_after:.1f} s"
         lines.append(f"  {d.demo:<9} {before:<30} -> {after}")
+    if summary.certificate == "funnel":
+        lines += _funnel_lines(summary)
     h, mc, fb = summary.headline, summary.montecarlo, summary.feedback
     lines.append(
         f"\nmean duration {h.T_demo_mean:.1f} s -> {h.T_optimized_mean:.1f} s "
@@ -140,8 +142,24 @@ def format_summary(summary: Summary) -> str:
         )
     if summary.stress is not None:
         lines.append(f"  [stress test, not certified] {summary.stress.message}")
-    lines.append(f"\nverdict: {summary.text}")
+    lines.append(f"\nverdict ({summary.certificate} certificate): {summary.text}")
     return "\n".join(lines)
+
+
+def _funnel_lines(summary: Summary) -> list[str]:
+    """Each optimized trajectory's funnel: its level, what bounds it, its synthesis time."""
+    lines = [
+        "\nfunnels (level rho: E_i(0) holds rho times the constant ball's slice of Init, 1 at"
+        " most; bound by: the constraint that sets it):"
+    ]
+    for d in summary.demos:
+        if d.funnel_level is None:
+            continue
+        level = "dropped" if d.funnel_binding == "dropped" else f"{d.funnel_level:.3f}"
+        binding = "" if d.funnel_binding == "dropped" else d.funnel_binding or ""
+        seconds = "" if d.funnel_seconds is None else f"{d.funnel_seconds:.1f} s"
+        lines.append(f"  {d.demo:<9} {level:>7}  {binding:<30} {seconds:>7}")
+    return lines
 
 
 def describe_radii(radii: Sequence[RadiusResult]) -> str:
