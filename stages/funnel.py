@@ -184,7 +184,7 @@ def _describe(funnels: Sequence[Funnel], usable: Sequence[int], rejected: Sequen
         levels = [funnels[i].rho for i in usable]
         found = (
             f"funnels certified for {len(usable)} of {len(funnels)} trajectories, levels "
-            f"{min(levels):.3g} to {max(levels):.3g} (1: the constant ball's slice of Init held "
+            f"{min(levels):.3f} to {max(levels):.3f} (1: the constant ball's slice of Init held "
             f"whole); {timing}"
         )
     else:
