@@ -11,8 +11,11 @@ the controller would, and the feedback is sampled every ``--period`` seconds and
 It prints whether the start is covered by the certificate (coverage ratio < 1), the closest
 approach to the hill and the ceiling, and whether the flight ends in Goal; the plot shows the
 flight over the nominal trajectory, the position projection of the certified tube
-``||x - x_ref(t)||_P <= e^(-rate t) radius`` (filled) and of the flight's own bound
-``e^(-rate t) ||x0 - x_ref(0)||_P`` (outlined) at a few times.
+``||x - x_ref(t)||_P(t) <= e^(-rate t) radius`` (filled) and of the flight's own bound
+``e^(-rate t) ||x0 - x_ref(0)||_P(0)`` (outlined) at a few times. Both file formats fly the same
+way: ``safety-controller/1`` (one gain ``K`` and metric ``P``) and ``/2`` (a funnel per
+trajectory: ``K[k]`` per sample interval, a metric ``P(t)`` that varies along the flight,
+``controller.metric(t, index)``).
 
 Note: the certificate assumes continuous-time feedback; a held feedback is not certified here,
 so a long period is flown at your own risk (the printout says which one was flown).
@@ -105,19 +108,20 @@ def plot(controller, index: int, ts, xs, path: Path) -> None:
 
     reference = controller.trajectories[index]
     e0 = xs[0] - reference.x_ref[0]
-    level = math.sqrt(e0 @ controller.P @ e0)
-    Q = np.linalg.inv(controller.P)[:2, :2]  # position projection of {e : e^T P e <= 1}
+    level = math.sqrt(e0 @ controller.metric(0.0, index) @ e0)
     figure, axes = plt.subplots(figsize=(8, 4), layout="constrained")
     for shape, colour in ((HILL, "0.6"), (CEILING, "0.6")):
         axes.add_patch(Polygon(shape, color=colour))
     x_from, x_to, y_from, y_to = GOAL
     axes.add_patch(Polygon([(x_from, y_from), (x_to, y_from), (x_to, y_to), (x_from, y_to)],
                            color="tab:green", alpha=0.3, label="Goal"))  # fmt: skip
-    values, vectors = np.linalg.eigh(Q)
-    angle = math.degrees(math.atan2(vectors[1, 1], vectors[0, 1]))
     for t in np.linspace(0, reference.T, 12):
+        # position projection of {e : e^T P(t) e <= 1}
+        Q = np.linalg.inv(controller.metric(t, index))[:2, :2]
+        values, vectors = np.linalg.eigh(Q)
+        angle = math.degrees(math.atan2(vectors[1, 1], vectors[0, 1]))
         centre = [np.interp(t, reference.t, reference.x_ref[:, j]) for j in (0, 1)]
-        decay = math.exp(-controller.rate * t)
+        decay = math.exp(-reference.rate * t)
         for scale, style in ((reference.radius, {"color": "tab:orange", "alpha": 0.15}),
                              (level, {"fill": False, "color": "tab:blue", "lw": 0.8})):  # fmt: skip
             width, height = (2 * scale * decay * math.sqrt(v) for v in values[::-1])
@@ -146,7 +150,11 @@ def main(argv: list[str] | None = None) -> int:
     x0 = np.array(args.start, dtype=float)
     index, ratio, ts, xs = fly(controller, x0, args.period)
     covered = "covered" if ratio < 1 else "NOT covered (outside the certificate)"
-    print(f"start {x0.tolist()}: {covered}, coverage ratio {ratio:.3f}, trajectory {index}")
+    kind = "funnel" if controller.funnel else "constant"
+    print(
+        f"start {x0.tolist()}: {covered}, coverage ratio {ratio:.3f}, trajectory {index} "
+        f"({kind} certificate)"
+    )
     positions = xs[:, :2]
     hill = _distance_to_polygon(positions, HILL).min()
     ceiling = _distance_to_polygon(positions, CEILING).min()

@@ -59,7 +59,7 @@ from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import Trajectory, simulate
 from pipeline.numerics.cover import DEFAULT_DEPTH, subdivide
 from pipeline.numerics.hull import DEFAULT_SEGMENTS, HullError, jacobian_hull
-from pipeline.numerics.recertify import recheck_funnel
+from pipeline.numerics.recertify import check_reference, recheck_funnel
 from pipeline.numerics.sampled import contraction_rate, held_rate
 from pipeline.numerics.terminal import check_level, end_levels
 from pipeline.numerics.tube import Tube
@@ -79,12 +79,17 @@ class CertificationResult:
 
     Attributes:
       path: the file checked; sha256: its content hash at the time of the check.
-      metric_eigenvalue: ``lambda_min(P)`` (> 0 for a metric).
+      metric_eigenvalue: ``lambda_min(P)`` (> 0 for a metric; a ``/2`` file: over every
+        ``P_i[k]``).
       contraction_margin: the largest eigenvalue of (C)'s left side over the hull's vertices
-        (< 0 for a certificate); ``vertices`` how many there were.
-      radii: (k,) the radii the file claims; verified_radii: (k,) the largest the re-check
-        allows for each trajectory (a claim is certified when it is not larger).
-      reference_error: the largest ``||x_ref - simulated||_P / radius`` over the trajectories.
+        (< 0 for a certificate); ``vertices`` how many there were. A ``/2`` file: the largest
+        eigenvalue of (F2) (``Q^-1/2 L Q^-1/2``) over every funnel's local hull vertices at
+        both ends of every interval, and the vertices of all those hulls.
+      radii: (k,) the radii (``/2``: funnel levels) the file claims; verified_radii: (k,) the
+        largest the re-check allows for each trajectory (a claim is certified when it is not
+        larger).
+      reference_error: the largest ``||x_ref - simulated||_P(t) / radius`` over the
+        trajectories.
       covered_fraction: the part of Init certified covered by the file's balls (volume).
       terminal: the file has a terminal block; terminal_decay: its certified ``alpha`` (1/s);
         terminal_fit: the largest end tube's share of the ellipsoid's radius (<= 1 to fit).
@@ -112,6 +117,7 @@ def _held(controller: Controller, A: np.ndarray, B: np.ndarray) -> list[str]:
     """Step 3 for held feedback: ``h`` divides ``Ts`` and the file's rate is at most
     ``lambda_h`` (from the largest rate (C) certifies at the vertices ``A (V, n, n)``, ``B (V, n,
     m)``)."""
+    assert controller.P is not None and controller.K is not None and controller.rate is not None
     h = controller.feedback_period
     steps = controller.Ts / h
     if abs(steps - round(steps)) > 1e-9 * steps or steps < 1 - 1e-9:
@@ -175,6 +181,7 @@ def _contraction_margin(controller: Controller, A: np.ndarray, B: np.ndarray) ->
     """Largest eigenvalue of ``A_cl^T P + P A_cl + 2 lambda P`` over ``A (V, n, n)``,
     ``B (V, n, m)`` with ``A_cl = A + B K`` (eq. (C) of the module docstring)."""
     P, K = controller.P, controller.K
+    assert P is not None and K is not None and controller.rate is not None  # a /1 file
     A_cl = A + B @ K  # (V, n, n)
     M = np.swapaxes(A_cl, 1, 2) @ P + P @ A_cl + 2.0 * controller.rate * P
     return float(np.linalg.eigvalsh((M + np.swapaxes(M, 1, 2)) / 2).max())
@@ -270,42 +277,26 @@ def _reference(
     failures: list[str],
     errors: tuple[float, float],
 ) -> tuple[tuple[float, float], Trajectory | None]:
-    """Step 4's reference checks of trajectory ``i`` in its tube metric ``P_i(t)``: ``x_ref``
-    is the dynamics from ``x0`` under ``u_ref`` on a uniform RK4 grid, and its linear
-    interpolation is close to the dynamics. Returns ``(largest (reference error, interpolation
-    error) so far, the re-simulated trajectory (None: not on a uniform grid))``."""
+    """Step 4's reference checks of trajectory ``i`` in its tube metric ``P_i(t)``
+    (``recertify.check_reference``). Returns ``(largest (reference error, interpolation error)
+    so far, the re-simulated trajectory (None: not on a uniform grid))``."""
     tr = controller.trajectories[i]
-    N = len(tr.u_ref)
-    substeps = (len(tr.t) - 1) // N
-    fine = simulate(scenario.dynamics, tr.x0, tr.u_ref, scenario.Ts, substeps=max(substeps, 1))
-    if substeps * N + 1 != len(tr.t) or not np.allclose(fine.dense_ts, tr.t, rtol=0, atol=1e-9):
+    check = check_reference(scenario, tr, controller.Ts, VERIFY_SUBSTEPS)
+    if check.trajectory is None:
         failures.append(f"trajectories[{i}]: t is not a uniform RK4 grid of the samples")
         return errors, None
-    e = tr.x_ref - fine.dense_xs
-    metric = tr.metric(tr.t, controller.Ts)  # (r, n, n)
-    mismatch = float(np.sqrt(np.einsum("ki,kij,kj->k", e, metric, e)).max()) / tr.radius
-    if not mismatch <= REFERENCE_TOLERANCE:
+    if not check.error <= REFERENCE_TOLERANCE:
         failures.append(
             f"trajectories[{i}]: x_ref is not the dynamics under u_ref from x0 "
-            f"(P-norm error {mismatch:.3g} radius)"
+            f"(P-norm error {check.error:.3g} radius)"
         )
-    # The law tracks the file's x_ref interpolated linearly: measure that against a grid
-    # finer than both the file's and the verification's (midpoints included).
-    finer = simulate(
-        scenario.dynamics, tr.x0, tr.u_ref, scenario.Ts, 2 * max(substeps, VERIFY_SUBSTEPS)
-    )
-    tracked = np.stack(
-        [np.interp(finer.dense_ts, tr.t, tr.x_ref[:, j]) for j in range(controller.n)], -1
-    )
-    gap = tracked - finer.dense_xs
-    metric = tr.metric(finer.dense_ts, controller.Ts)
-    measured = float(np.sqrt(np.einsum("ki,kij,kj->k", gap, metric, gap)).max())
-    if not measured <= INTERPOLATION_TOLERANCE * tr.radius:
+    if not check.interpolation <= INTERPOLATION_TOLERANCE * tr.radius:
         failures.append(
-            f"trajectories[{i}]: the interpolated x_ref is {measured / tr.radius:.3g} radius "
-            f"from the dynamics (> {INTERPOLATION_TOLERANCE:g}); emit it on a finer grid"
+            f"trajectories[{i}]: the interpolated x_ref is {check.interpolation / tr.radius:.3g} "
+            f"radius from the dynamics (> {INTERPOLATION_TOLERANCE:g}); emit it on a finer grid"
         )
-    return (max(errors[0], mismatch), max(errors[1], measured)), fine
+    errors = (max(errors[0], check.error), max(errors[1], check.interpolation))
+    return errors, check.trajectory
 
 
 def certify_controller(

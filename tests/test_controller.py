@@ -386,3 +386,85 @@ def test_bad_terminal_blocks_are_refused(tmp_path, mutate, message):
     mutate(document)
     with pytest.raises(ControllerFormatError, match=re.escape(message)):
         load(_write(tmp_path, document))
+
+
+# safety-controller/2: a gain per sample interval and a metric per sample on each trajectory.
+
+FUNNEL_K = [[[-1.0, -2.0]], [[-3.0, -1.0]]]  # (N = 2, m = 1, n = 2)
+FUNNEL_P = [[[2.0, 0.0], [0.0, 1.0]], [[4.0, 1.0], [1.0, 2.0]], [[1.0, 0.0], [0.0, 1.0]]]
+
+
+def _funnel_document() -> dict:
+    """The toy file as /2: trajectory 0 with its own ``K[k]``, ``P[k]``; trajectory 1 with
+    ``K = 0`` and ``P = 8 I`` (no ``rate``: 0)."""
+    document = _base()
+    del document["feedback"]
+    document |= {"format": "safety-controller/2", "metric_interpolation": "inverse-linear"}
+    first, second = document["trajectories"]
+    first |= {"K": FUNNEL_K, "P": FUNNEL_P, "rate": 0.0}
+    second |= {"K": [[[0.0, 0.0]]] * 2, "P": (8 * np.eye(2)[None].repeat(3, axis=0)).tolist()}
+    return document
+
+
+def test_funnel_file_selects_in_each_initial_metric_and_flies_the_gain_of_the_interval(tmp_path):
+    controller = load(_write(tmp_path, _funnel_document()))
+    assert controller.funnel and controller.K is None and controller.P is None
+    x0 = np.array([[0.2, 0.0], [3.1, 0.1]])
+    index, ratio = controller.select(x0)
+    np.testing.assert_array_equal(index, [0, 1])
+    # ||x0 - x0_i||_{P_i[0]} / radius_i: sqrt(2 * 0.04) / 1 and sqrt(8 * 0.02) / 0.5
+    np.testing.assert_allclose(ratio, [np.sqrt(0.08), np.sqrt(0.16) / 0.5])
+    e = np.array([[0.1, 0.2]])
+    x = np.array([[0.25, 0.5]]) + e  # the reference at t = 0.25 is (0.25, 0.5), u_ref 0.5
+    np.testing.assert_allclose(controller.unclipped(0.25, x, [0]), [[0.0]], atol=1e-15)
+    x = np.array([[0.75, 1.5]]) + e  # interval 1: u_ref -0.5, K = (-3, -1)
+    np.testing.assert_allclose(controller.unclipped(0.75, x, [0]), [[-0.5 - 0.3 - 0.2]])
+    np.testing.assert_allclose(controller(0.75, x, [0]), [[-1.0]])  # clipped
+    np.testing.assert_allclose(controller.unclipped(0.75, x + 3, [1]), [[0.0]], atol=1e-15)
+    open_loop = controller.with_gain(0.0)
+    np.testing.assert_allclose(open_loop.unclipped(0.75, x, [0]), [[-0.5]])
+    np.testing.assert_allclose(controller.trajectories[0].K, FUNNEL_K)  # unchanged
+
+
+def test_funnel_metric_is_inverse_linear_between_samples(tmp_path):
+    controller = load(_write(tmp_path, _funnel_document()))
+    P = np.array(FUNNEL_P)
+    Q = np.linalg.inv(P)
+    for t, expected in ((0.0, P[0]), (0.5, P[1]), (1.0, P[2]), (2.0, P[2])):
+        np.testing.assert_allclose(controller.metric(t, np.array(0)), expected, rtol=1e-12)
+    s = 0.3  # t = 0.5 + 0.3 * 0.5 on interval 1
+    expected = np.linalg.inv((1 - s) * Q[1] + s * Q[2])
+    np.testing.assert_allclose(controller.metric(0.65, np.array([0])), [expected], rtol=1e-12)
+    assert not np.allclose(expected, (1 - s) * P[1] + s * P[2])  # not linear in P
+    grid = controller.trajectories[0].metric(np.array([0.0, 0.65]), controller.Ts)
+    np.testing.assert_allclose(grid, [P[0], expected], rtol=1e-12)
+    constant = load(_write(tmp_path, _document()))  # a /1 file: P(t) = P
+    np.testing.assert_array_equal(
+        constant.metric(0.65, np.array([0, 1])), [np.diag([2.0, 1.0])] * 2
+    )
+
+
+def _funnel_mutations():
+    def trajectory(key, value):
+        return lambda d: d["trajectories"][0].__setitem__(key, value)
+
+    bad_P = [FUNNEL_P[0], [[1.0, 2.0], [2.0, 1.0]], FUNNEL_P[2]]  # eigenvalues 3, -1
+    return [
+        (lambda d: d["trajectories"][0].pop("K"), "trajectories[0].K: found 'nothing"),
+        (lambda d: d["trajectories"][1].pop("P"), "trajectories[1].P: found 'nothing"),
+        (trajectory("K", FUNNEL_K[:1]), "trajectories[0].K: found 'shape (1, 1, 2)'"),
+        (trajectory("P", FUNNEL_P[:2]), "trajectories[0].P: found 'shape (2, 2, 2)'"),
+        (trajectory("P", bad_P), "trajectories[0].P[1]: found 'smallest eigenvalue -1'"),
+        (trajectory("rate", -0.5), "trajectories[0].rate: found -0.5; expected a number >= 0"),
+        (lambda d: d.pop("metric_interpolation"), "metric_interpolation: found 'nothing"),
+        (lambda d: d.update(metric_interpolation="linear"), "expected 'inverse-linear'"),
+        (lambda d: d.update(feedback={"K": [[1.0]]}), "feedback.P: found 'nothing"),
+    ]
+
+
+@pytest.mark.parametrize(("mutate", "message"), _funnel_mutations())
+def test_bad_funnel_files_are_refused_with_the_field(tmp_path, mutate, message):
+    document = _funnel_document()
+    mutate(document)
+    with pytest.raises(ControllerFormatError, match=re.escape(message)):
+        load(_write(tmp_path, document))

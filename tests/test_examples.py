@@ -48,3 +48,17 @@ def test_example_refuses_a_bad_controller_file_with_exit_2(tmp_path):
         [sys.executable, str(EXAMPLE), str(bad)], capture_output=True, text=True, timeout=60
     )
     assert run.returncode == 2 and "Traceback" not in run.stderr
+
+
+def test_example_flies_a_funnel_file_into_goal(quadrotor_funnel_artifact, tmp_path):
+    """safety-controller/2 (one quadrotor funnel): a covered start near the funnel's centre
+    flies clear of the hill into Goal, and the figure draws the time-varying tube."""
+    _, path = quadrotor_funnel_artifact
+    figure = tmp_path / "flight.png"
+    start = ("--start", "1.4", "2.2", "0", "0", "0", "0")
+    text = _fly(path, tmp_path, *start, "--period", "0.01", "--plot", str(figure))
+    assert "covered, coverage ratio" in text and "(funnel certificate)" in text
+    assert "NOT covered" not in text
+    hill = float(re.search(r"closest to the hill ([\d.]+) m", text).group(1))
+    assert hill > 0.5 and " in Goal" in text
+    assert figure.stat().st_size > 10_000

@@ -1,4 +1,5 @@
-"""The compiled closed-loop kernel against its NumPy oracle: same margins to 1e-9, same failures."""
+"""The compiled closed-loop kernel against its NumPy oracle: same margins to 1e-9, same failures,
+for a ``safety-controller/1`` file (constant K, P) and a ``/2`` file (K per interval, P(t))."""
 
 from __future__ import annotations
 
@@ -111,3 +112,45 @@ def test_runs_continued_past_T_match_the_numpy_oracle(synthesized, tmp_path, per
             getattr(compiled, name), getattr(oracle, name), rtol=1e-9, atol=1e-9, err_msg=name
         )
     assert np.isfinite(oracle.final_state).all()
+
+
+@pytest.mark.parametrize("gain", [1.0, -3.0])
+def test_funnel_rollouts_match_the_numpy_oracle(funnel_artifact, tmp_path, gain):
+    """safety-controller/2 (time-varying K[k] and tube metric P(t)): seeded starts in Init
+    widened by half its width agree to 1e-9; the funnel's own gain keeps every covered run in
+    its tube (ratio ||e(t)||_P(t) / ||e(0)||_P(0) <= 1), a destabilising one does not."""
+    scenario, path = funnel_artifact
+    document = json.loads(path.read_text())
+    for item in document["trajectories"]:
+        item["K"] = (gain * np.asarray(item["K"])).tolist()
+    variant = tmp_path / "controller.json"
+    variant.write_text(json.dumps(document))
+    controller = load(variant)
+    assert controller.funnel and controller.K is None
+    x0 = _starts(scenario, 80, seed=13, widen=0.5)
+    numpy_checks = check_runs(scenario, controller, x0)[0]
+    _assert_same(numpy_checks, check_runs_compiled(scenario, controller, x0))
+    covered = numpy_checks.covered
+    assert 0 < covered.sum() < len(x0)
+    failures = numpy_checks.failures()
+    if gain == 1.0:
+        assert not any(mask[covered].any() for mask in failures.values())
+        assert numpy_checks.tube_tightness[covered].max() <= 1 + 1e-6
+    else:
+        assert failures["tube"][covered].any()
+
+
+def test_quadrotor_funnel_rollouts_match_the_numpy_oracle(quadrotor_funnel_artifact):
+    """A nonlinear funnel (quadrotor_hill, one demo): kernel and oracle agree to 1e-9 on starts
+    around the funnel's start, and the covered runs stay in their funnel and clear of the hill."""
+    scenario, path = quadrotor_funnel_artifact
+    controller = load(path)
+    centre = controller.trajectories[0].x0
+    rng = np.random.default_rng(17)
+    x0 = centre + rng.uniform(-1.5, 1.5, size=(40, scenario.n)) * (scenario.init_upper > 0)
+    x0[:, 2:] = 0.0  # at rest, as Init
+    numpy_checks = check_runs(scenario, controller, x0)[0]
+    _assert_same(numpy_checks, check_runs_compiled(scenario, controller, x0))
+    covered = numpy_checks.covered
+    assert 0 < covered.sum() < len(x0)
+    assert not any(mask[covered].any() for mask in numpy_checks.failures().values())

@@ -1,9 +1,14 @@
-"""Re-verify one funnel of a ``safety-controller/2`` file from the file's data alone.
+"""Re-verify a ``safety-controller`` file's trajectories from the file's data alone.
 
-The file carries, per trajectory, ``x_ref`` (re-simulated by the caller from ``x0`` and
-``u_ref``), ``K (N, m, n)``, ``P (N+1, n, n)`` (``Q = P^-1`` linear in t between samples, eq. (F1)
-of ``pipeline.numerics.funnel``), the level ``rho`` and the rate ``lambda``; not the hulls the
-synthesis used. Rebuilt here, independently of the synthesis's boxes and its solver:
+``check_reference`` (either format): ``x_ref`` is the dynamics from ``x0`` under ``u_ref`` on the
+file's RK4 grid, and its linear interpolation (what the law tracks) is measured against a finer
+simulation, both in the tube's metric at the time, ``P(t)``.
+
+``recheck_funnel`` (``/2``). The file carries, per trajectory, ``x_ref`` (re-simulated by
+``check_reference`` from ``x0`` and ``u_ref``), ``K (N, m, n)``, ``P (N+1, n, n)`` (``Q =
+P^-1`` linear in t between samples, eq. (F1) of ``pipeline.numerics.funnel``), the level ``rho``
+and the rate ``lambda``; not the hulls the synthesis used. Rebuilt here, independently of the
+synthesis's boxes and its solver:
 
 1. per sample interval ``k``, the nominal's a priori box ``B_k = grid_k +- pad`` (E1 of
    ``funnel_bounds``: ``F h < pad`` with ``F`` from the hull below, ``pad`` grown until it holds);
@@ -29,9 +34,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline.controller import ReferenceTrajectory
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
-from pipeline.model.simulate import Trajectory
+from pipeline.model.simulate import Trajectory, simulate
 from pipeline.numerics.funnel_bounds import (
     Enclosure,
     enclosure_range,
@@ -47,6 +53,46 @@ from pipeline.numerics.hull import HullError, jacobian_hull
 SEGMENTS = (1, 4)
 WIDEN = 1e-9  # relative widening of the tube's extent in the hull boxes (rounding of E3)
 PAD_ROUNDS = 8
+
+
+@dataclass(frozen=True, kw_only=True)
+class ReferenceCheck:
+    """One trajectory's reference as the file states it.
+
+    Attributes:
+      trajectory: ``x0``, ``u_ref`` simulated on the file's grid (None: ``t`` is not a uniform
+        RK4 grid of the samples, and nothing else was measured).
+      error: ``max ||x_ref - simulated||_P(t) / radius`` on that grid.
+      interpolation: ``max ||x_ref interpolated - the dynamics||_P(t)`` on the finer grid.
+    """
+
+    trajectory: Trajectory | None
+    error: float
+    interpolation: float
+
+
+def check_reference(
+    scenario: Scenario, reference: ReferenceTrajectory, Ts: float, least_substeps: int
+) -> ReferenceCheck:
+    """``reference``'s ``x_ref`` against the dynamics, in ``P(t)``; the interpolation measured
+    on a grid of ``2 max(file's substeps, least_substeps)`` RK4 steps per sample (finer than the
+    file's, midpoints included)."""
+    tr, N = reference, len(reference.u_ref)
+    substeps = (len(tr.t) - 1) // N
+    fine = simulate(scenario.dynamics, tr.x0, tr.u_ref, Ts, substeps=max(substeps, 1))
+    if substeps * N + 1 != len(tr.t) or not np.allclose(fine.dense_ts, tr.t, rtol=0, atol=1e-9):
+        return ReferenceCheck(trajectory=None, error=np.inf, interpolation=np.inf)
+    e = tr.x_ref - fine.dense_xs
+    metric = tr.metric(tr.t, Ts)  # (r, n, n)
+    error = float(np.sqrt(np.einsum("ki,kij,kj->k", e, metric, e)).max()) / tr.radius
+    finer = simulate(scenario.dynamics, tr.x0, tr.u_ref, Ts, 2 * max(substeps, least_substeps))
+    tracked = np.stack(
+        [np.interp(finer.dense_ts, tr.t, tr.x_ref[:, j]) for j in range(tr.x_ref.shape[1])], -1
+    )
+    gap = tracked - finer.dense_xs
+    metric = tr.metric(finer.dense_ts, Ts)
+    interpolation = float(np.sqrt(np.einsum("ki,kij,kj->k", gap, metric, gap)).max())
+    return ReferenceCheck(trajectory=fine, error=error, interpolation=interpolation)
 
 
 @dataclass(frozen=True, kw_only=True)

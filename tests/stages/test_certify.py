@@ -4,7 +4,9 @@ A double integrator at rest (four references covering Init, exact hull: one vert
 by the controller stage and must certify; the same file with a negative or 10x radius, a
 perturbed metric or gain, a moved reference or another scenario's sampling time must not.
 The quadrotor's shipped controller (the session's synthesis) is checked the same way, where the
-hull has many vertices and the contraction margin is tight.
+hull has many vertices and the contraction margin is tight. A ``safety-controller/2`` file built
+from real funnels (``funnel_artifact``) must certify, and not with a perturbed ``P``, ``K``,
+level or ``x_ref``, held feedback, or a level past the one its constraints allow.
 """
 
 from __future__ import annotations
@@ -14,8 +16,11 @@ import json
 import numpy as np
 import pytest
 
+from pipeline.model.scenario import load_scenario
 from pipeline.model.simulate import simulate
+from pipeline.numerics.funnel import synthesize_funnel
 from stages.certify import certify_controller
+from stages.controller import emit_funnel_controller
 from tests.stages.conftest import emit_at_rest
 
 
@@ -171,3 +176,124 @@ def test_the_tracked_reference_is_measured_not_trusted(synthesized, tmp_path, ch
     _tamper(path, change)
     result = certify_controller(scenario, path)
     assert not result.success and message in result.message
+
+
+# safety-controller/2: a funnel per trajectory, rebuilt from the file and re-checked.
+
+
+def test_the_funnel_file_certifies(funnel_artifact):
+    scenario, path = funnel_artifact
+    result = certify_controller(scenario, path)
+    assert result.success, result.message
+    assert "2 funnels" in result.message and result.covered_fraction == 1.0
+    assert result.contraction_margin < 0 and result.vertices == 60  # linear: one per interval
+    # every level within what the constraints allow, and the check measures, not echoes
+    assert all(r <= v for r, v in zip(result.radii, result.verified_radii, strict=True))
+    assert result.reference_error <= 1e-9
+
+
+def _funnel_P(trajectory, k, scale):
+    def change(document):
+        P = np.asarray(document["trajectories"][trajectory]["P"])
+        P[k] *= scale
+        document["trajectories"][trajectory]["P"] = P.tolist()
+
+    return change
+
+
+def _funnel_K(trajectory, scale):
+    def change(document):
+        item = document["trajectories"][trajectory]
+        item["K"] = (scale * np.asarray(item["K"])).tolist()
+
+    return change
+
+
+def _funnel_radius(scale):
+    def change(document):
+        for item in document["trajectories"]:
+            item["radius"] *= scale
+
+    return change
+
+
+def _moved_funnel_reference(document):
+    x_ref = np.asarray(document["trajectories"][0]["x_ref"])
+    x_ref[len(x_ref) // 2 :, 1] += 1e-3
+    document["trajectories"][0]["x_ref"] = x_ref.tolist()
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        (_funnel_P(0, 10, 0.5), "trajectories[0]: the funnel is not certified"),
+        (_funnel_P(1, 0, 0.5), "trajectories[1]: the funnel is not certified"),
+        (_funnel_P(0, 3, -1.0), "trajectories[0].P[3]: found 'smallest eigenvalue"),
+        (_funnel_K(1, 3.0), "trajectories[1]: the funnel is not certified"),
+        (_funnel_K(0, 0.2), "trajectories[0]: the funnel is not certified"),
+        (_funnel_radius(0.5), "Init is not covered"),
+        (_moved_funnel_reference, "trajectories[0]: x_ref is not the dynamics under u_ref"),
+        (lambda d: d.update(feedback_period=0.01), "the funnel certificate is for continuous"),
+        (lambda d: d.update(metric_interpolation="linear"), "metric_interpolation: found"),
+    ],
+    ids=[
+        "P[10] halved", "P[0] halved", "P[3] negated", "K 3x", "K 0.2x", "radius halved",
+        "moved x_ref", "held feedback", "P linear",
+    ],
+)  # fmt: skip
+def test_a_tampered_funnel_file_is_not_certified(funnel_artifact, tmp_path, change, message):
+    scenario, original = funnel_artifact
+    path = tmp_path / "controller.json"
+    path.write_text(original.read_text())
+    _tamper(path, change)
+    result = certify_controller(scenario, path)
+    assert not result.success
+    assert message in result.message, result.message
+
+
+def test_a_funnel_level_is_certified_up_to_its_limit_and_not_beyond(funnel_artifact, tmp_path):
+    """The double integrator's hull does not depend on the tube (linear), so the largest level
+    is set by the constraints: just under it certifies, just over it does not."""
+    scenario, original = funnel_artifact
+    verified = certify_controller(scenario, original).verified_radii
+    for scale, certified in ((0.999, True), (1.01, False)):
+        path = tmp_path / f"controller_{scale}.json"
+        path.write_text(original.read_text())
+
+        def set_levels(document, scale=scale):
+            for item, level in zip(document["trajectories"], verified, strict=True):
+                item["radius"] = scale * level
+
+        _tamper(path, set_levels)
+        result = certify_controller(scenario, path)
+        assert result.success == certified, result.message
+        if not certified:
+            assert "exceeds the limit" in result.message
+
+
+def test_a_funnel_file_with_a_terminal_controller_holds_each_end_funnel(tmp_path):
+    """A full double-integrator demo's funnel ends slowly in Goal: the terminal block is written
+    against the end funnel ``E(T)`` (its own ``P[N]``), re-verified, and refused when the end
+    funnel is made to stick out (a larger level)."""
+    scenario = load_scenario("double_integrator", check_demos=False)
+    demo = scenario.demos[0]
+    trajectory = simulate(scenario.dynamics, demo.x0, demo.us, scenario.Ts)
+    funnel = synthesize_funnel(scenario, trajectory)
+    assert funnel.success, funnel.message
+    path = tmp_path / "controller.json"
+    written = emit_funnel_controller(scenario, [trajectory], [funnel], path)
+    assert written.terminal, written.terminal_message
+    result = certify_controller(scenario, path)
+    assert result.terminal and 0 < result.terminal_fit <= 1
+    assert not [f for f in result.failures if f.startswith("terminal")], result.failures
+    # E(T) is small (the fit is mostly x_ref(T)'s offset from x_eq): P[N] / 1e4 makes it 100x
+    # larger, past the terminal ellipsoid
+
+    def bulge(document):
+        P = np.asarray(document["trajectories"][0]["P"])
+        P[-1] *= 1e-4
+        document["trajectories"][0]["P"] = P.tolist()
+
+    _tamper(path, bulge)
+    result = certify_controller(scenario, path)
+    assert "end tube is not inside the terminal ellipsoid" in result.message

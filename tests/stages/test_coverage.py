@@ -204,3 +204,22 @@ def test_lookup_table_is_sound_with_one_metric_per_ball(seed):
     e = x[hit] - centers[ball[hit]]
     assert np.all(np.einsum("bi,bij,bj->b", e, P[ball[hit]], e) <= radii[ball[hit]] ** 2 + 1e-12)
     assert abs(hit.mean() - result.covered_fraction) < 0.1  # 500 samples
+
+
+def test_one_metric_per_ball():
+    """A funnel's balls each have their own ``P_i[0]`` (``subdivide`` with ``P (k, n, n)``).
+    The box [-1, 3] x [-0.1, 0.1]: a ball at (0, 0) long in x (``diag(1, 100)``, radius 1.5:
+    its corner (1, 0.1) at norm sqrt 2) and one at (2, 0) in ``diag(1, 100)`` cover it; the
+    same two balls in one metric ``diag(100, 1)`` (long in y) do not. ``P`` repeated is the
+    constant case: the same answer as ``P (n, n)``."""
+    from pipeline.numerics.cover import subdivide
+
+    lower, upper = np.array([-1.0, -0.1]), np.array([3.0, 0.1])
+    centres, radii = np.array([[0.0, 0.0], [2.0, 0.0]]), np.array([1.5, 1.5])
+    long_x, long_y = np.diag([1.0, 100.0]), np.diag([100.0, 1.0])
+    assert subdivide(np.stack([long_x, long_x]), lower, upper, centres, radii).covered
+    mixed = subdivide(np.stack([long_x, long_y]), lower, upper, centres, radii)
+    assert not mixed.covered and 0.25 < mixed.fraction < 0.75  # the second ball is thin in x
+    for P in (long_x, long_y):
+        one, repeated = (subdivide(M, lower, upper, centres, radii) for M in (P, np.stack([P, P])))
+        assert one.covered == repeated.covered and one.fraction == repeated.fraction
