@@ -4,18 +4,23 @@ stage reused), and bad combinations refused before any work."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
+import shutil
 
 import numpy as np
 import pytest
 
 import pipeline
 from pipeline.controller import FUNNEL_FORMAT, load
+from pipeline.io.artifacts import read_stored
 from pipeline.numerics.cover import subdivide
+from pipeline.runtime import orchestrator
 from pipeline.runtime.cli import main
 from pipeline.runtime.options import RunOptions
 from pipeline.runtime.orchestrator import run_synthesis
+from pipeline.runtime.registry import RESULT_TYPES
 
 SAMPLES = 200
 
@@ -116,3 +121,33 @@ def test_the_funnel_certificate_refuses_held_feedback(tmp_path, capsys):
         run_synthesis(
             "double_integrator", out, RunOptions(certificate="funnel", feedback_period=0.01)
         )
+
+
+def test_a_run_without_any_certified_funnel_fails_and_says_why(funnel_run, tmp_path, monkeypatch):
+    """Every funnel rejected (the funnel stage run again on a copy of the run): the run fails at
+    stage funnel naming the reason, and ships no controller."""
+    result, _ = funnel_run
+    folder = tmp_path / "double_integrator"
+    shutil.copytree(result.outputs.folder, folder)
+    stored = read_stored(folder / "artifacts" / "funnel", RESULT_TYPES)
+    assert stored is not None
+    for artifact in (folder / "artifacts").glob("funnel.*"):
+        artifact.unlink()  # the stage runs again: every funnel of the last run, all rejected
+
+    def none_certified(*_args, **_kwargs):
+        return dataclasses.replace(
+            stored.result,
+            usable=(),
+            rejected=("all dropped: test",),
+            success=False,
+            message="no funnel certified for any of the 9 trajectories; all dropped: test",
+        )
+
+    monkeypatch.setattr(orchestrator, "synthesize_funnels", none_certified)
+    failed = run_synthesis(
+        "double_integrator", folder, RunOptions(certificate="funnel", samples=20)
+    )
+    assert failed.verdict is pipeline.Verdict.FAILED and failed.controller is None
+    assert failed.message.startswith("failed: stage funnel: no funnel certified: ")
+    assert "all dropped: test" in failed.message
+    assert not (folder / "controller.json").exists()

@@ -368,6 +368,8 @@ def _synthesize(
             scenario, runner, executor, tube, feedback, demo_starts, final_inputs,
             final_trajectories, initial_radii, quiet,
         )  # fmt: skip
+        if not funnels.usable:
+            return _failed(out, scenario, "funnel", f"no funnel certified: {funnels.message}")
         # A re-optimize round (issue 16 part 4, branch funnel-optimize) goes here: optimize the
         # nominals against these funnels' time-varying extents, run _funnels again around the
         # new nominals, and keep the round only when every funnel is re-verified and T
