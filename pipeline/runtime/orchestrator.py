@@ -61,7 +61,7 @@ from pipeline.runtime.summary import StageResults, demo_table, summarise
 from pipeline.runtime.synthesis import Outputs, Synthesis
 from pipeline.runtime.terminal import describe_coverage, describe_radii, optimization_logs
 from stages.certify import certify_controller
-from stages.controller import ControllerResult, emit_controller, emit_funnel_controller
+from stages.controller import emit_controller, emit_funnel_controller
 from stages.coverage import (
     CoverageResult,
     CoveringRadius,
@@ -114,49 +114,6 @@ def _coverage(
     radii: Sequence[RadiusResult],
 ) -> CoverageResult:
     return cover_init(scenario, feedback, np.array(starts), _cover_radii(radii))
-
-
-def _constant_controller(
-    scenario: Scenario,
-    runner: StageRunner,
-    options: RunOptions,
-    tube: str,
-    feedback: FeedbackResult,
-    starts: Sequence[np.ndarray],
-    inputs: Sequence[np.ndarray],
-    radii: Sequence[RadiusResult],
-    r_required: float,
-    controller_path: Path,
-) -> ControllerResult:
-    """Stage ``controller`` for the constant certificate: ``safety-controller/1`` from the
-    feedback's ``K``, ``P`` and the trajectories with a positive robustness radius."""
-    usable = [i for i, r in enumerate(radii) if r.radius > 0]
-    return runner.run(
-        "controller",
-        inputs_key(
-            code_key("stages.controller"),
-            tube,
-            usable,
-            *starts,
-            *inputs,
-            [radii[i].radius for i in usable],
-            r_required,
-        ),
-        lambda: emit_controller(
-            scenario,
-            feedback.certified_tube.K,
-            feedback.certified_tube.P,
-            feedback.rate,
-            [starts[i] for i in usable],
-            [inputs[i] for i in usable],
-            [radii[i].radius for i in usable],
-            controller_path,
-            radius_floor=r_required,
-            feedback_period=options.feedback_period,
-        ),
-        rerun=True,  # always written from this run's certified results
-        describe=lambda result: result.message,
-    )
 
 
 def _funnels(
@@ -390,10 +347,33 @@ def _synthesize(
             describe=lambda result: result.message,
         )
     elif certificate == "constant":
-        controller = _constant_controller(
-            scenario, runner, options, tube, feedback, demo_starts, final_inputs, final_radii,
-            r_required, controller_path,
-        )  # fmt: skip
+        usable = [i for i, r in enumerate(final_radii) if r.radius > 0]
+        controller = runner.run(
+            "controller",
+            inputs_key(
+                code_key("stages.controller"),
+                tube,
+                usable,
+                *demo_starts,
+                *final_inputs,
+                [final_radii[i].radius for i in usable],
+                r_required,
+            ),
+            lambda: emit_controller(
+                scenario,
+                feedback.certified_tube.K,
+                feedback.certified_tube.P,
+                feedback.rate,
+                [demo_starts[i] for i in usable],
+                [final_inputs[i] for i in usable],
+                [final_radii[i].radius for i in usable],
+                controller_path,
+                radius_floor=r_required,
+                feedback_period=options.feedback_period,
+            ),
+            rerun=True,  # always written from this run's certified results
+            describe=lambda result: result.message,
+        )
     else:
         raise ValueError(f"certificate {certificate!r}; expected 'constant' or 'funnel'")
     started_certify = time.perf_counter()
