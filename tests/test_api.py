@@ -154,7 +154,7 @@ def test_the_command_line_is_quiet_with_q_and_says_where_outputs_went(tmp_path, 
     out = tmp_path / "out"
     argv = ["synthesize", "double_integrator", "--out", str(out), "--samples", "20"]
     assert main([*argv, "-q"]) in (0, 1)
-    assert capsys.readouterr().out.startswith("verdict: ")
+    assert capsys.readouterr().out.startswith("verdict (constant certificate): ")
     assert main(argv) in (0, 1)  # every stage reused
     printed = capsys.readouterr().out
     assert printed.startswith(f"outputs: {out}\n")

@@ -57,7 +57,7 @@ def format_result(result: Synthesis, *, quiet: bool = False) -> str:
     if result.summary is None:  # failed before a summary: the stage and the error
         return result.message
     if quiet:
-        return f"verdict: {result.message}"
+        return f"verdict ({result.summary.certificate} certificate): {result.message}"
     return f"{format_summary(result.summary)}\n\n{format_outputs(result)}"
 
 
