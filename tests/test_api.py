@@ -137,14 +137,36 @@ def test_the_library_logs_one_line_per_stage(synthesized):
     assert all(r.name.startswith("pipeline.") for r in records)
 
 
-def test_the_terminal_explains_its_terms(synthesized):
+def test_the_terminal_explains_its_terms_in_the_scenarios_units(synthesized):
     result, _, _, _ = synthesized
-    text = format_summary(result.summary)
+    summary, scenario = result.summary, pipeline.load_scenario("double_integrator")
+    text = format_summary(summary, scenario)
     assert "radius limited by (the constraint the tube touches first;" in text
     assert "tube ratio at the final time (closed-loop error / its certified bound;" in text
-    assert f"closed loop {result.summary.montecarlo.min_clearance:.2f} m" in text
+    # clearances in the position unit, radii in the P-norm
+    assert "(clear: the nominal path's smallest distance to Unsafe, m; r: robustness radius" in text
+    assert "the largest tube that stays safe, in the P-norm (no unit)" in text
+    h, mc = summary.headline, summary.montecarlo
+    assert (
+        f"min nominal clearance {h.min_clearance_before:.2f} m -> {h.min_clearance_after:.2f} m "
+        f"(required d = {h.required_clearance:g} m); closed loop {mc.min_clearance:.2f} m"
+    ) in text
+    # each constraint that limits a radius is explained once, with its bound and unit
+    bindings = {b for d in summary.demos for b in (d.binding_before, d.binding_after)}
+    explained = [line for line in text.splitlines() if line.startswith("  (") and ": " in line]
+    assert sorted(line[3:].split(":")[0] for line in explained) == sorted(bindings)
+    for line in explained:
+        if line.startswith("  (region '"):  # double_integrator: the region is the input box
+            name, side = line.split("'")[1], line.split("'")[2].split(":")[0].strip()
+            bound = summary.feedback.region[name][0 if side == "lower" else 1]
+            relation = ">=" if side == "lower" else "<="
+            assert f": {name} {relation} {bound:g} m/s^2, the operating region's edge" in line
     if "input slack" in text:
         assert "(input slack: how far the feedback's input stays from its bounds" in text
+        assert "(ux: m/s^2, uy: m/s^2)" in text
+    bare = format_summary(summary)  # no scenario: numbers without units, said so
+    assert "smallest distance to Unsafe, position units;" in bare
+    assert f"closed loop {mc.min_clearance:.2f}\n" in bare
     outputs = format_outputs(result)
     assert outputs.startswith(f"outputs in {result.outputs.folder}:")
     assert "report.html" in outputs and "controller.json" in outputs
@@ -160,6 +182,8 @@ def test_the_command_line_is_quiet_with_q_and_says_where_outputs_went(tmp_path, 
     assert printed.startswith(f"outputs: {out}\n")
     assert "[optimize] reused (inputs unchanged)" in printed
     assert printed.rstrip().splitlines()[-1].strip().startswith("artifacts/")
+    assert "ends in Goal   (distances in m)" in printed  # the demo table's unit
+    assert re.search(r"closed loop \d+\.\d\d m\n", printed)  # the summary in the units
 
 
 def test_a_scenario_name_is_looked_up_in_the_current_directory_first(tmp_path, monkeypatch):

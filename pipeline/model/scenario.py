@@ -122,8 +122,8 @@ class Scenario:
         return self.dynamics.m
 
     def label(self, name: str, *, unit: bool = True) -> str:
-        """A state or input name for people: ``"u1 (thrust) [N]"``, or ``"u1"`` when the scenario
-        declares neither a label nor a unit for it."""
+        """A state or input name for people: ``"force (thrust) [N]"``, or ``"force"`` when the
+        scenario declares neither a label nor a unit for it."""
         text = name
         if name in self.labels:
             text += f" ({self.labels[name]})"
@@ -134,6 +134,12 @@ class Scenario:
     def unit(self, name: str) -> str:
         """The unit of a state or input (``""`` when undeclared)."""
         return self.units.get(name, "")
+
+    def position_unit(self) -> str:
+        """The position states' common unit: of clearances, distances and ``d`` (``""`` when
+        undeclared or when the two differ)."""
+        units = {self.unit(self.state_names[i]) for i in self.position_index}
+        return units.pop() if len(units) == 1 else ""
 
     def positions(self, xs: FloatArray) -> FloatArray:
         """Position coordinates of states: ``(..., n)`` -> ``(..., 2)``."""

@@ -131,11 +131,11 @@ class ScenarioSpec(_Strict):
     )
     units: dict[str, str] = Field(
         default_factory=dict,
-        description="optional unit of a state or input (e.g. u1: N), shown in reports and the HUD",
+        description="optional unit of a state or input (e.g. force: N), for reports and the HUD",
     )
     labels: dict[str, str] = Field(
         default_factory=dict,
-        description="optional human name of a state or input (e.g. u1: thrust)",
+        description="optional human name of a state or input (e.g. force: thrust)",
     )
     stress: StressSpec | None = Field(default=None, description="optional stress-test settings")
     demos: list[DemoSpec] = Field(default_factory=list)

@@ -90,7 +90,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 def _run(args: argparse.Namespace) -> int:
     if args.command == "synthesize":
         from pipeline.runtime.api import synthesize
-        from pipeline.runtime.terminal import format_result, show_progress
+        from pipeline.runtime.terminal import format_result, show_progress, units_of
 
         options = from_arguments(RunOptions, args)
         computed = {  # every option but how much to print
@@ -100,7 +100,8 @@ def _run(args: argparse.Namespace) -> int:
         }
         with show_progress(verbose=options.verbose, quiet=options.quiet):
             result = synthesize(args.scenario, out=args.out, **computed)
-        print(format_result(result, quiet=options.quiet))
+        scenario = None if options.quiet else units_of(args.scenario)
+        print(format_result(result, scenario=scenario, quiet=options.quiet))
         return result.exit_code
     if args.command == "demos":
         from pipeline.demonstrations.pilot import regenerate_demos

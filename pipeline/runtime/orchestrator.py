@@ -59,7 +59,12 @@ from pipeline.runtime.runner import StageRunner
 from pipeline.runtime.stored import load_report_data, write_manifest
 from pipeline.runtime.summary import StageResults, demo_table, summarise
 from pipeline.runtime.synthesis import Outputs, Synthesis
-from pipeline.runtime.terminal import describe_coverage, describe_radii, optimization_logs
+from pipeline.runtime.terminal import (
+    describe_coverage,
+    describe_covering,
+    describe_radii,
+    optimization_logs,
+)
 from stages.certify import certify_controller
 from stages.controller import emit_controller, emit_funnel_controller
 from stages.coverage import (
@@ -253,7 +258,7 @@ def _synthesize(
             )
             return _failed(out, scenario, "feedback", reason)
         log.info(
-            f"[feedback] held every {held.period:g} s: tube rate {held.held_rate:.4g}/s "
+            f"[held feedback] every {held.period:g} s: tube rate {held.held_rate:.4g}/s "
             f"(continuous {held.rate:.4g}/s; pipeline.numerics.sampled)"
         )
     tube = inputs_key(core, runner.digest("feedback"), options.feedback_period)
@@ -276,7 +281,7 @@ def _synthesize(
         "covering_radius",
         inputs_key(code_key("stages.coverage"), tube, *demo_starts, upper),
         lambda: covering_radius(scenario, feedback, np.array(demo_starts), upper=upper),
-        describe=lambda result: result.message,
+        describe=describe_covering,
     )
     r_required = covering.kept_radius(r_d)
     margins = ConstraintMargins.of_tube(feedback.certified_tube, r_required)

@@ -40,6 +40,7 @@ from pipeline.reporting.summary import (
     Summary,
     Verdict,
 )
+from pipeline.runtime.terminal import length_unit
 
 if TYPE_CHECKING:  # stage result types: only the orchestrator imports stages
     from stages.certify import CertificationResult
@@ -393,14 +394,16 @@ def _quantiles(values: FloatArray) -> Quantiles | None:
     return Quantiles(median=float(median), p95=float(p95), max=float(top))
 
 
-def demo_table(scenario: Any, trajectories: Sequence[Trajectory]) -> str:
+def demo_table(scenario: Scenario, trajectories: Sequence[Trajectory]) -> str:
     """The demonstrations as flown: start, duration, the smallest distance of the dense path to
-    each Unsafe set (m), and whether it ends in Goal. ``trajectories``: one per demo."""
+    each Unsafe set (in the position unit), and whether it ends in Goal. ``trajectories``: one
+    per demo."""
     names = list(scenario.unsafe)
     header = f"{'demo':<12} {'start':<22} {'T (s)':>6}" + "".join(
         f" {('to ' + name)[:14]:>14}" for name in names
     )
-    lines = [header + "  ends in Goal"]
+    unit = length_unit(scenario)
+    lines = [header + "  ends in Goal" + (f"   (distances in {unit})" if unit else "")]
     for demo, trajectory in zip(scenario.demos, trajectories, strict=True):
         positions = scenario.positions(trajectory.dense_xs)
         start = "(" + ", ".join(f"{v:.2f}" for v in scenario.positions(demo.x0)) + ")"

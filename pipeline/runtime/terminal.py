@@ -2,27 +2,51 @@
 at the end, the run's table, headline, claims, verdict and where the files went.
 
 Each term that is not self-explanatory is explained where it is printed: "radius limited by"
-(the constraint the tube touches first), "tube ratio" (the closed-loop error at the final time
-against the certified bound), "input slack" (the distance of the feedback's input to its bounds).
+(the constraint the tube touches first, each kind named with its bound), "tube ratio" (the
+closed-loop error at the final time against the certified bound), "input slack" (the distance of
+the feedback's input to its bounds). Numbers carry the scenario's units (``Scenario.units``):
+clearances in the position unit, inputs in their own; radii are in the P-norm
+``||e||_P = sqrt(e^T P e)``, which mixes the states' units and so has none.
 """
 
 from __future__ import annotations
 
 import logging
+import re
 import sys
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
+from pathlib import Path
 from typing import TYPE_CHECKING
 
+from tqdm import tqdm
+
+from pipeline.io.errors import UserError
 from pipeline.reporting.summary import Summary
+from pipeline.runtime.outdir import stale_name
 from pipeline.runtime.synthesis import Synthesis
 
 if TYPE_CHECKING:  # stage result types: only the orchestrator imports stages
-    from stages.coverage import CoverageResult
+    from pipeline.model.scenario import Scenario
+    from stages.coverage import CoverageResult, CoveringRadius
     from stages.optimize import OptimizeResult
     from stages.radius import RadiusResult
 
 LOGGER = "pipeline"
+STALE_CONTROLLER = stale_name(Path("controller.json")).name
+SCENE_PICTURE = "scenario.png"
+# The radius stage's constraint names (pipeline.numerics.tube_radius, funnel_bounds), explained.
+BINDING = re.compile(
+    r"(?P<kind>unsafe|goal bound|region|input|state) '(?P<name>[^']+)'(?: (?P<side>lower|upper))?$"
+)
+MEANING = {
+    "unsafe": "the tube touches this Unsafe set",
+    "goal": "at the final time the tube reaches the edge of Goal",
+    "goal bound": "at the final time the tube reaches this bound of Goal (goal.bounds)",
+    "region": "the operating region's edge (where the contraction certificate holds)",
+    "input": "the input bound: the feedback's input would be clipped beyond it",
+    "state": "the physical envelope (state_bounds)",
+}
 
 
 @contextmanager
@@ -45,45 +69,67 @@ def show_progress(*, verbose: bool = False, quiet: bool = False) -> Iterator[Non
 
 class _StdoutHandler(logging.StreamHandler):  # type: ignore[type-arg]
     """Warnings on stderr, everything else on stdout (``sys.stdout`` looked up per message, so
-    that pytest's capture and redirections see it)."""
+    that pytest's capture and redirections see it). A progress bar on the terminal
+    (``pipeline.io.progress``) is cleared for the line and redrawn under it: a stage's line,
+    logged while its bar is open, starts its own line instead of following the bar's text."""
 
     def emit(self, record: logging.LogRecord) -> None:
         self.stream = sys.stderr if record.levelno >= logging.WARNING else sys.stdout
-        super().emit(record)
+        with tqdm.external_write_mode(file=self.stream):
+            super().emit(record)
 
 
-def format_result(result: Synthesis, *, quiet: bool = False) -> str:
-    """The end of the run: the summary (or only the verdict with ``quiet``) and the files."""
+def format_result(
+    result: Synthesis, *, scenario: Scenario | None = None, quiet: bool = False
+) -> str:
+    """The end of the run: the summary (or only the verdict with ``quiet``) and the files.
+    ``scenario`` (the one run) gives the units; without it numbers are printed bare."""
     if result.summary is None:  # failed before a summary: the stage and the error
         return result.message
     if quiet:
         return f"verdict ({result.summary.certificate} certificate): {result.message}"
-    return f"{format_summary(result.summary)}\n\n{format_outputs(result)}"
+    return f"{format_summary(result.summary, scenario)}\n\n{format_outputs(result)}"
+
+
+def units_of(scenario: str | Path) -> Scenario | None:
+    """The scenario whose units and labels the summary is printed in (``None``, numbers bare,
+    when it no longer loads: the run already said what it found)."""
+    from pipeline.model.scenario import load_scenario
+
+    try:
+        return load_scenario(scenario, check_demos=False)
+    except UserError:
+        return None
 
 
 def format_outputs(result: Synthesis) -> str:
-    """Where the files went, one line each."""
+    """Where the files went: the folder, then one line per main file."""
     files = result.outputs
     lines = [f"outputs in {files.folder}:"]
     if files.report_html is not None:
-        lines.append(f"  {files.report_html.name:<16} the report (open in a browser)")
+        lines.append(f"  {files.report_html.name:<22} the report (open in a browser)")
     if files.report_pdf is not None:
-        lines.append(f"  {files.report_pdf.name:<16} the same report as PDF")
+        lines.append(f"  {files.report_pdf.name:<22} the same report as PDF")
     if files.controller is not None:
         lines.append(
-            f"  {files.controller.name:<16} the certified controller (pipeline.controller)"
+            f"  {files.controller.name:<22} the certified controller (pipeline.controller)"
         )
+    elif (files.folder / STALE_CONTROLLER).is_file():
+        lines.append(f"  {STALE_CONTROLLER:<22} NOT certified: kept for inspection only")
     else:
-        lines.append(f"  {'controller.json':<16} not written: the run did not certify it")
-    lines.append(f"  {files.summary.name:<16} the numbers above, verdict and claims (JSON)")
+        lines.append(f"  {'controller.json':<22} not written: the run did not certify it")
+    lines.append(f"  {files.summary.name:<22} the numbers above, verdict and claims (JSON)")
+    if (files.folder / SCENE_PICTURE).is_file():
+        lines.append(f"  {SCENE_PICTURE:<22} the scenario's sets and flights (picture)")
     lines.append(
-        f"  {files.artifacts.name + '/':<16} each stage's cached result (reused by re-runs)"
+        f"  {files.artifacts.name + '/':<22} each stage's cached result (reused by re-runs)"
     )
     return "\n".join(lines)
 
 
-def format_summary(summary: Summary) -> str:
-    """The end-of-run table, headline, claims and verdict."""
+def format_summary(summary: Summary, scenario: Scenario | None = None) -> str:
+    """The end-of-run table, headline, claims and verdict, in ``scenario``'s units."""
+    length = length_unit(scenario)
     lines = [
         f"\n{'demo':<9} {'T demo':>7} {'T opt':>6} {'faster':>7} {'clear before':>13}"
         f" {'clear after':>12} {'r before':>9} {'r after':>8} {'iters':>6} {'time':>6}"
@@ -97,8 +143,9 @@ def format_summary(summary: Summary) -> str:
             f"{d.radius_after:>8.3f} {d.iterations:>6d} {d.seconds:>5.1f}s{mark}"
         )
     lines.append(
-        "(clear: smallest distance of the nominal path to Unsafe, m; r: robustness radius, the"
-        " largest tube (P-norm) that stays safe)"
+        f"(clear: the nominal path's smallest distance to Unsafe, {length or 'position units'};"
+        " r: robustness radius, the largest tube that stays safe, in the P-norm (no unit);"
+        " time: optimization wall time)"
     )
     lines.append(
         "\nradius limited by (the constraint the tube touches first; demonstration -> optimized):"
@@ -107,21 +154,26 @@ def format_summary(summary: Summary) -> str:
         before = f"{d.binding_before} at {d.binding_time_before:.1f} s"
         after = f"{d.binding_after} at {d.binding_time_after:.1f} s"
         lines.append(f"  {d.demo:<9} {before:<30} -> {after}")
+    bindings = dict.fromkeys(b for d in summary.demos for b in (d.binding_before, d.binding_after))
+    region = summary.feedback.region
+    lines += [f"  ({explain_binding(b, scenario, region)})" for b in bindings if b]
     if summary.certificate == "funnel":
         lines += _funnel_lines(summary)
     h, mc, fb = summary.headline, summary.montecarlo, summary.feedback
     lines.append(
         f"\nmean duration {h.T_demo_mean:.1f} s -> {h.T_optimized_mean:.1f} s "
         f"({h.faster_percent_mean:.0f}% faster); min nominal clearance "
-        f"{h.min_clearance_before:.2f} -> {h.min_clearance_after:.2f} m "
-        f"(required {h.required_clearance:g}); closed loop {mc.min_clearance:.2f} m"
+        f"{_quantity(h.min_clearance_before, length, '.2f')} -> "
+        f"{_quantity(h.min_clearance_after, length, '.2f')} "
+        f"(required d = {_quantity(h.required_clearance, length, 'g')}); closed loop "
+        f"{_quantity(mc.min_clearance, length, '.2f')}"
     )
     lines.append(f"Init coverage: {h.coverage_before:.1%} -> {h.coverage_after:.1%}")
     if fb.kept_radius > fb.required_radius:
         lines.append(
             f"  tubes kept at the covering radius {fb.kept_radius:.4g} > r_d = "
-            f"{fb.required_radius:.4g} (balls of radius r_d about the demo starts miss parts"
-            " of Init)"
+            f"{fb.required_radius:.4g} (P-norm; balls of radius r_d about the demo starts miss"
+            " parts of Init)"
         )
     lines.append(
         f"Monte Carlo: {mc.samples} runs, {h.montecarlo_failures} failures, "
@@ -137,8 +189,8 @@ def format_summary(summary: Summary) -> str:
         lines.append(f"  [{claim.kind.value}] {claim.claim}")
     if "input slack" in mc.falsification.binding:
         lines.append(
-            "    (input slack: how far the feedback's input stays from its bounds; below 0 it"
-            " would be clipped)"
+            "    (input slack: how far the feedback's input stays from its bounds, in that"
+            f" input's unit{_input_units(scenario)}; below 0 it would be clipped)"
         )
     if summary.stress is not None:
         lines.append(f"  [stress test, not certified] {summary.stress.message}")
@@ -163,10 +215,85 @@ def _funnel_lines(summary: Summary) -> list[str]:
     return lines
 
 
+def explain_binding(
+    binding: str,
+    scenario: Scenario | None = None,
+    region: Mapping[str, tuple[float, float]] | None = None,
+) -> str:
+    """What a "radius limited by" constraint is, in a few words, with its bound and unit when
+    known (from ``region``, the feedback's operating region, else ``scenario``):
+    ``"region 'force' upper: force (thrust) <= 14.9 N, the operating region's edge ..."``."""
+    if binding == "goal":
+        return f"goal: {MEANING['goal']}"
+    found = BINDING.match(binding)
+    if found is None:
+        return f"{binding}: a constraint of the radius (see the report)"
+    kind, name, side = found.group("kind", "name", "side")
+    bound = _bound(kind, name, side, scenario, region or {})
+    if bound is None:
+        return f"{binding}: {MEANING[kind]}"
+    label = name if scenario is None else scenario.label(name, unit=False)
+    unit = "" if scenario is None else scenario.unit(name)
+    relation = ">=" if side == "lower" else "<="
+    return f"{binding}: {label} {relation} {_quantity(bound, unit, 'g')}, {MEANING[kind]}"
+
+
+def _bound(
+    kind: str,
+    name: str,
+    side: str | None,
+    scenario: Scenario | None,
+    region: Mapping[str, tuple[float, float]],
+) -> float | None:
+    """The value of the bound ``kind 'name' side`` (None when not known)."""
+    if side is None:
+        return None
+    index = 0 if side == "lower" else 1
+    if kind == "region" and name in region:
+        return float(region[name][index])
+    if scenario is None:
+        return None
+    if kind == "region" and name in scenario.operating_region:
+        return float(scenario.operating_region[name][index])
+    if kind == "input" and name in scenario.input_names:
+        j = scenario.input_names.index(name)
+        return float((scenario.input_lower, scenario.input_upper)[index][j])
+    if kind == "state" and name in scenario.state_bounds:
+        return float(scenario.state_bounds[name][index])
+    if kind == "goal bound" and name in scenario.goal_bounds:
+        return float(scenario.goal_bounds[name][index])
+    return None
+
+
+def length_unit(scenario: Scenario | None) -> str:
+    """The position states' common unit (``""`` without a scenario, undeclared or mixed)."""
+    return "" if scenario is None else scenario.position_unit()
+
+
+def _input_units(scenario: Scenario | None) -> str:
+    """`` (force: N, torque: N m)`` for the inputs with a declared unit ("" for none)."""
+    if scenario is None:
+        return ""
+    known = [
+        f"{name}: {scenario.unit(name)}" for name in scenario.input_names if scenario.unit(name)
+    ]
+    return f" ({', '.join(known)})" if known else ""
+
+
+def _quantity(value: float, unit: str, spec: str) -> str:
+    """``value`` formatted by ``spec``, followed by its unit when there is one."""
+    return f"{value:{spec}} {unit}" if unit else f"{value:{spec}}"
+
+
 def describe_radii(radii: Sequence[RadiusResult]) -> str:
     """A radius stage's line: the smallest and largest radius."""
     values = [r.radius for r in radii]
     return f"robustness radii {min(values):.3g} to {max(values):.3g} (P-norm)"
+
+
+def describe_covering(covering: CoveringRadius) -> str:
+    """The covering radius stage's line: its message, saying the radius is in the P-norm."""
+    return f"{covering.message} (radius in the P-norm)"
 
 
 def describe_coverage(coverage: CoverageResult) -> str:
