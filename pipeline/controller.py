@@ -41,7 +41,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, NoReturn
@@ -215,10 +215,18 @@ class Controller:
     def metric(self, t: float, index: np.ndarray) -> np.ndarray:
         """The tube metric ``P_i(t)`` of trajectories ``index (...)`` -> ``(..., n, n)``: the
         tube is ``||x - x_ref_i(t)||_{P_i(t)} <= radius_i e^{-rate_i t}``."""
+        return self._gather(index, (self.n, self.n), lambda tr: tr.metric(t, self.Ts))
+
+    def _gather(
+        self, index: np.ndarray, shape: tuple[int, ...], value: Callable[..., np.ndarray]
+    ) -> np.ndarray:
+        """``value(trajectory) (*shape)`` of trajectories ``index (...)`` -> ``(..., *shape)``."""
         index = np.asarray(index)
-        out = np.empty((*index.shape, self.n, self.n))
+        out = np.empty((*index.shape, *shape))
         for i, tr in enumerate(self.trajectories):
-            out[index == i] = tr.metric(t, self.Ts)
+            rows = index == i
+            if np.any(rows):
+                out[rows] = value(tr)
         return out
 
     def select(self, x0: np.ndarray, *, strict: bool = False) -> tuple[np.ndarray, np.ndarray]:
@@ -259,12 +267,8 @@ class Controller:
 
     def gains(self, t: float, index: np.ndarray) -> np.ndarray:
         """``K_i[floor(t / Ts)]`` of trajectories ``index (...)`` -> ``(..., m, n)``."""
-        index = np.asarray(index)
-        out = np.empty((*index.shape, self.m, self.n))
-        for i, tr in enumerate(self.trajectories):
-            k = min(max(int(np.floor(t / self.Ts + 1e-9)), 0), len(tr.K) - 1)
-            out[index == i] = tr.K[k]
-        return out
+        k = max(int(np.floor(t / self.Ts + 1e-9)), 0)
+        return self._gather(index, (self.m, self.n), lambda tr: tr.K[min(k, len(tr.K) - 1)])
 
     def unclipped(self, t: float, x: np.ndarray, index: np.ndarray) -> np.ndarray:
         """``u_ref + K[k] (x - x_ref)`` before clipping, ``x (..., n)`` -> ``(..., m)``."""

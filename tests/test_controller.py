@@ -307,7 +307,12 @@ def _parent(document, path):
 def test_mutated_files_raise_nothing_but_controller_format_error(
     tmp_path, path, action, value, cut
 ):
-    document = _document(terminal=True)
+    _load_mutated(tmp_path, _document(terminal=True), path, action, value, cut)
+
+
+def _load_mutated(tmp_path, document, path, action, value, cut):
+    """Apply ``action`` at ``path`` of ``document``; ``load`` must refuse the result with
+    ``ControllerFormatError`` or accept a usable controller."""
     parent, key = _parent(document, path), path[-1]
     if action == "delete":
         del parent[key]
@@ -403,7 +408,7 @@ def _funnel_document() -> dict:
     first, second = document["trajectories"]
     first |= {"K": FUNNEL_K, "P": FUNNEL_P, "rate": 0.0}
     second |= {"K": [[[0.0, 0.0]]] * 2, "P": (8 * np.eye(2)[None].repeat(3, axis=0)).tolist()}
-    return document
+    return copy.deepcopy(document)  # no list shared with FUNNEL_K, FUNNEL_P or another field
 
 
 def test_funnel_file_selects_in_each_initial_metric_and_flies_the_gain_of_the_interval(tmp_path):
@@ -424,6 +429,10 @@ def test_funnel_file_selects_in_each_initial_metric_and_flies_the_gain_of_the_in
     open_loop = controller.with_gain(0.0)
     np.testing.assert_allclose(open_loop.unclipped(0.75, x, [0]), [[-0.5]])
     np.testing.assert_allclose(controller.trajectories[0].K, FUNNEL_K)  # unchanged
+    with pytest.raises(UncoveredStartError, match="coverage ratio 2.26"):
+        controller.select(np.array([1.6, 0.0]), strict=True)  # sqrt(2 * 1.6^2) from ball 0
+    with pytest.raises(BeyondHorizonError, match="no terminal controller"):
+        controller(1.5, x, np.array([0]))  # no terminal block: the law refuses t > T
 
 
 def test_funnel_metric_is_inverse_linear_between_samples(tmp_path):
@@ -468,3 +477,21 @@ def test_bad_funnel_files_are_refused_with_the_field(tmp_path, mutate, message):
     mutate(document)
     with pytest.raises(ControllerFormatError, match=re.escape(message)):
         load(_write(tmp_path, document))
+
+
+FUNNEL_PATHS = list(_paths(_funnel_document()))
+
+
+@settings(
+    max_examples=200, deadline=2000, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(
+    path=st.sampled_from(FUNNEL_PATHS),
+    action=st.sampled_from(["delete", "replace", "retype", "truncate", "flip"]),
+    value=JSON_VALUES,
+    cut=st.floats(0.0, 1.0),
+)
+def test_mutated_funnel_files_raise_nothing_but_controller_format_error(
+    tmp_path, path, action, value, cut
+):
+    _load_mutated(tmp_path, _funnel_document(), path, action, value, cut)

@@ -297,3 +297,23 @@ def test_a_funnel_file_with_a_terminal_controller_holds_each_end_funnel(tmp_path
     _tamper(path, bulge)
     result = certify_controller(scenario, path)
     assert "end tube is not inside the terminal ellipsoid" in result.message
+
+
+def test_a_quadrotor_funnel_is_rebuilt_from_the_file_and_perturbations_are_caught(
+    quadrotor_funnel_artifact, tmp_path
+):
+    """Nonlinear: the local hulls are rebuilt around the file's tube (pitch and thrust boxes per
+    interval, many vertices); the funnel re-verifies (only Init's coverage fails: one funnel
+    covers part of it), and a halved ``P[k]`` or a 1.5x gain does not."""
+    scenario, original = quadrotor_funnel_artifact
+    result = certify_controller(scenario, original)
+    assert result.failures and all(f.startswith("Init is not covered") for f in result.failures)
+    assert 0 < result.covered_fraction < 1
+    assert result.contraction_margin < 0 and result.vertices > 2 * len(scenario.demos[0].us)
+    assert result.radii[0] <= result.verified_radii[0]
+    for change in (_funnel_P(0, 40, 0.5), _funnel_K(0, 1.5)):
+        path = tmp_path / "controller.json"
+        path.write_text(original.read_text())
+        _tamper(path, change)
+        result = certify_controller(scenario, path)
+        assert "trajectories[0]: the funnel is not certified" in result.message, result.message
