@@ -14,68 +14,46 @@ as soon as the problem's own cost is zero: a descent that approaches ``J = 0`` f
 reaches it in the limit (measured: most failed tries ended at J ~ 1e-10 after the iteration cap).
 The result is re-verified in continuous time independently of the cost
 (``pipeline.numerics.verify``).
+
+Funnels (issue 16 part 4): ``reoptimize_with_funnels`` runs the same search from each optimized
+nominal again, with the margins of the funnel synthesized around it (per sample interval,
+``pipeline.numerics.margins``; ``ConstraintMargins.of_funnel``) in place of the constant tube's,
+and the scenario's ``state_bounds`` in place of the operating region. One call is one round of
+the alternation nominal -> funnel -> nominal; the caller synthesizes and checks the new funnels.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from pipeline.io.executor import Executor, SerialExecutor
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario, load_scenario_cached
-from pipeline.numerics.descent import DescentResult, IterationLog, gradient_descent, lbfgs
+from pipeline.numerics.descent import DescentResult, IterationLog
+from pipeline.numerics.footprint import ConstraintMargins, verify_within
+from pipeline.numerics.funnel_check import Funnel
+from pipeline.numerics.horizon import (
+    PARAMETERIZATIONS,
+    SEED_MODES,
+    minimise,
+    reseed,
+    shortest_by_continuation,
+    smallest_feasible,
+    warm_up,
+)
 from pipeline.numerics.penalties import MarginError
 from pipeline.numerics.problem import Problem, make_problem
 from pipeline.numerics.settings import DESCENT_METHODS, EPS_D, EPS_G, EPS_I, HORIZON_SEARCHES
-from pipeline.numerics.shooting import StabilisedProblem
-from pipeline.numerics.tube import Tube
-from pipeline.numerics.verify import Verification, verify_nominal
+from pipeline.numerics.verify import Verification
 
 METHODS = DESCENT_METHODS
-SEED_MODES = ("compress", "truncate")
-PARAMETERIZATIONS = ("feedback", "open_loop")
 SEARCHES = HORIZON_SEARCHES
-
-
-@dataclass(frozen=True, kw_only=True)
-class ConstraintMargins:
-    """The tube's footprint at the required radius, from the feedback stage.
-
-    Attributes:
-      input_margin: (m,) how much the tube's feedback may add to ``u_ref``, per input.
-      region_margin: state/input name -> how far the tube extends along it.
-      gain: (m, n) the feedback gain, which also stabilises the shooting
-        (``pipeline.numerics.shooting``).
-      clearance: the tube's position extent, kept from Unsafe and Goal's boundary (default: the
-        scenario's ``d``; larger when coverage of Init needs a radius above ``r_d``).
-      goal_margin: state name -> how far the tube extends along it (shrinks Goal's extra bounds).
-    """
-
-    input_margin: FloatArray
-    region_margin: Mapping[str, float]
-    gain: FloatArray
-    clearance: float | None = None
-    goal_margin: Mapping[str, float] = field(default_factory=dict)
-
-    @classmethod
-    def of_tube(cls, tube: Tube, radius: float) -> ConstraintMargins:
-        """The footprint of the feedback's tube of P-norm radius ``radius``."""
-        return cls(
-            input_margin=tube.input_margin(radius),
-            region_margin=tube.region_extent(radius),
-            gain=tube.K,
-            clearance=tube.position_extent(radius),
-            goal_margin=dict(
-                zip(tube.state_names, map(float, tube.state_extent(radius)), strict=True)
-            ),
-        )
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -158,157 +136,80 @@ class OptimizeResult:
     message: str
 
 
-def reseed(u: FloatArray, N: int, mode: str) -> FloatArray:
-    """A seed of ``N`` samples from a feasible input ``u (N_u, m)``: its first ``N`` samples
-    (``truncate``, the paper's Remark 4) or the same input played faster (``compress``)."""
-    if mode == "truncate":
-        return np.array(u[:N]) if N <= len(u) else np.vstack([u, np.repeat(u[-1:], N - len(u), 0)])
-    if mode == "compress":
-        source = (np.arange(len(u)) + 0.5) / len(u)
-        target = (np.arange(N) + 0.5) / N
-        return np.stack([np.interp(target, source, column) for column in u.T], axis=-1)
-    raise ValueError(f"seed mode must be one of {SEED_MODES}, got {mode!r}")
-
-
-def smallest_feasible(feasible: Callable[[int], bool], lo: int, hi: int) -> int:
-    """Bisection on the horizon (Remark 4): the smallest ``N`` in ``(lo, hi]`` with
-    ``feasible(N)``, given ``lo`` infeasible and ``hi`` feasible and feasibility monotone in
-    ``N``. Each call of ``feasible`` is one optimisation; there are ``ceil(log2(hi - lo))``."""
-    while hi - lo > 1:
-        mid = (lo + hi) // 2
-        if feasible(mid):
-            hi = mid
-        else:
-            lo = mid
-    return hi
-
-
-def shortest_by_continuation(feasible: Callable[[int], bool], N: int, fraction: float) -> int:
-    """Shorten a feasible horizon ``N`` step by step: try ``N - step`` (``step`` a ``fraction``
-    of ``N``), keep it when feasible, halve the step when not, stop below one sample.
-
-    Each try is warm-started from the last feasible solution, which stays close to it; measured
-    on quadrotor_hill this finds 13% shorter flights than the bisection's long jumps, whose
-    seeds are far from any solution (see the README)."""
-    step = max(1, int(fraction * N))
-    while step >= 1:
-        if N - step >= 1 and feasible(N - step):
-            N -= step
-            step = max(1, int(fraction * N))
-        else:
-            step //= 2
-    return N
-
-
-def _minimise(
-    problem: Problem,
-    tightened: Problem,
-    seed: FloatArray,
-    gain: FloatArray,
-    options: OptimizeOptions,
-) -> tuple[DescentResult, FloatArray]:
-    """Drive ``problem``'s cost to zero from ``seed (N, m)`` by descending on ``tightened``'s
-    (the same problem with larger margins); returns the outcome, whose ``cost`` is
-    ``problem``'s, and its nominal input ``(N, m)``.
-
-    With ``parameterization="feedback"`` the descent runs over ``v`` of
-    ``pipeline.numerics.shooting`` (the same cost, better conditioned); ``"open_loop"`` is the
-    paper's literal ``u``.
-    """
-    if options.parameterization == "feedback":
-        target: Any = StabilisedProblem.around(tightened, gain, seed)
-        check: Any = dataclasses.replace(target, problem=problem)
-    elif options.parameterization == "open_loop":
-        target, check = tightened, problem
-    else:
-        raise ValueError(f"parameterization must be one of {PARAMETERIZATIONS}")
-    gate = max(options.overshoot, 1e-6) ** 2  # evaluate the real cost only once this close
-
-    def reached(v: FloatArray, J_tightened: float) -> bool:
-        return J_tightened == 0.0 or (J_tightened <= gate and check.cost(v) == 0.0)
-
-    if options.method == "gd":
-        outcome = gradient_descent(
-            target, seed, max_iterations=options.max_iterations, reached=reached
-        )
-    elif options.method == "lbfgs":
-        outcome = lbfgs(
-            target,
-            seed,
-            max_iterations=options.max_iterations,
-            box=options.parameterization == "open_loop",
-            reached=reached,
-        )
-    else:
-        raise ValueError(f"method must be one of {METHODS}, got {options.method!r}")
-    cost = check.cost(outcome.u)
-    outcome = dataclasses.replace(outcome, cost=cost, feasible=cost == 0.0)
-    u = target.inputs(outcome.u) if options.parameterization == "feedback" else outcome.u
-    return outcome, u
-
-
-def _warm_up(problem: Problem, gain: FloatArray, options: OptimizeOptions) -> None:
-    """Compile (or load from numba's disk cache) the kernels one descent step uses, on a
-    two-sample horizon, so that per-demo wall times measure the optimization only."""
-    seed = np.asarray(problem.u_seed[:2], dtype=np.float64)
-    short = problem.with_horizon(2, seed)
-    short.cost(seed)
-    short.cost_and_gradient(seed)
-    if options.parameterization == "feedback":
-        StabilisedProblem.around(short, gain, seed).cost_and_gradient(seed)
-
-
 def optimize_demo(
     scenario: Scenario, demo: int, margins: ConstraintMargins, options: OptimizeOptions
 ) -> TrajectoryOptimization:
     """Minimum-time search (Remark 4) for demo number ``demo``; its ``seconds`` exclude the
-    one-off compilation of the scenario's kernels (``_warm_up``)."""
+    one-off compilation of the scenario's kernels (``warm_up``)."""
+    chosen = scenario.demos[demo]
+    return optimize_from(
+        scenario, chosen.name, chosen.x0, chosen.us, margins, options, N_demo=len(chosen.us)
+    )
+
+
+def optimize_from(
+    scenario: Scenario,
+    name: str,
+    x0: FloatArray,
+    us: FloatArray,
+    margins: ConstraintMargins,
+    options: OptimizeOptions,
+    *,
+    N_demo: int,
+    infeasible_hint: str = "record a demonstration with more clearance",
+) -> TrajectoryOptimization:
+    """Minimum-time search from the flight ``x0 (n,)``, ``us (N, m)`` (a demo, or an optimized
+    nominal to optimize again under new margins): first made feasible at its own ``N``, then
+    shortened. ``N_demo``: the demonstration's length, for the speedup; ``infeasible_hint``: what
+    to do when the flight cannot be made feasible at its own length."""
+    box = scenario.operating_region if margins.region is None else margins.region
 
     def constrained(extra: float) -> Problem:
         return make_problem(
             scenario,
-            demo=demo,
+            x0=x0,
+            u_seed=us,
             input_margin=margins.input_margin,
             region_margin={
-                name: extent + extra + (options.eps_r if name in scenario.state_names else 0.0)
-                for name, extent in margins.region_margin.items()
+                key: margins.region_margin.get(key, 0.0)
+                + extra
+                + (options.eps_r if key in scenario.state_names else 0.0)
+                for key in box
             },
             eps_d=options.eps_d + extra,
             eps_g=options.eps_g + extra,
             eps_i=options.eps_i + extra,
             clearance=margins.clearance,
-            goal_margin={name: extent + extra for name, extent in margins.goal_margin.items()},
+            goal_margin={key: extent + extra for key, extent in margins.goal_margin.items()},
+            region=margins.region,
+            profile=margins.profile,
         )
 
-    name = scenario.demos[demo].name
+    def unchanged(
+        seconds: float,
+        message: str,
+        tries: tuple[BisectionTry, ...] = (),
+        log: IterationLog | None = None,
+    ) -> TrajectoryOptimization:
+        return TrajectoryOptimization(
+            demo=name, x0=np.asarray(x0, dtype=np.float64), N_demo=N_demo, N=len(us), u=us,
+            Ts=scenario.Ts, tries=tries, feasible_inputs=(), log=log or IterationLog.empty(),
+            verification=None, seconds=seconds, success=False, message=message,
+        )  # fmt: skip
+
     try:
         problem, tightened = constrained(0.0), constrained(options.overshoot)
     except MarginError as error:  # e.g. a tube too wide for Goal: this demo cannot be optimized
-        us = scenario.demos[demo].us
-        return TrajectoryOptimization(
-            demo=name,
-            x0=scenario.demos[demo].x0,
-            N_demo=len(us),
-            N=len(us),
-            u=us,
-            Ts=scenario.Ts,
-            tries=(),
-            feasible_inputs=(),
-            log=IterationLog.empty(),
-            verification=None,
-            seconds=0.0,
-            success=False,
-            message=f"demo '{name}' was not optimized: {error}",
-        )
-    _warm_up(problem, margins.gain, options)
+        return unchanged(0.0, f"demo '{name}' was not optimized: {error}")
+    warm_up(problem, margins.gain, options)
     start = time.perf_counter()
-    N_demo = problem.N
+    N_start = problem.N
     tries: list[BisectionTry] = []
     feasible_inputs: list[FloatArray] = []
 
     def attempt(N: int, seed: FloatArray) -> DescentResult:
         t0 = time.perf_counter()
-        outcome, u = _minimise(
+        outcome, u = minimise(
             problem.with_horizon(N, seed),
             tightened.with_horizon(N, seed),
             seed,
@@ -328,23 +229,14 @@ def optimize_demo(
             feasible_inputs.append(u)
         return dataclasses.replace(outcome, u=u)
 
-    first = attempt(N_demo, problem.u_seed)
+    first = attempt(N_start, problem.u_seed)
     if not first.feasible:
-        return TrajectoryOptimization(
-            demo=name,
-            x0=problem.x0,
-            N_demo=N_demo,
-            N=N_demo,
-            u=problem.u_seed,
-            Ts=scenario.Ts,
+        return unchanged(
+            time.perf_counter() - start,
+            f"demo '{name}' could not be made feasible at its own length "
+            f"({first.message}); {infeasible_hint}",
             tries=tuple(tries),
-            feasible_inputs=(),
             log=first.log,
-            verification=None,
-            seconds=time.perf_counter() - start,
-            success=False,
-            message=f"demo '{name}' could not be made feasible at its own length "
-            f"({first.message}); record a demonstration with more clearance",
         )
     nearest = first  # the shortest feasible solution so far
 
@@ -356,25 +248,16 @@ def optimize_demo(
         return outcome.feasible
 
     if options.search == "bisection":
-        hi = smallest_feasible(feasible, 0, N_demo)
+        hi = smallest_feasible(feasible, 0, N_start)
     elif options.search == "continuation":
-        hi = shortest_by_continuation(feasible, N_demo, options.step_fraction)
+        hi = shortest_by_continuation(feasible, N_start, options.step_fraction)
     else:
         raise ValueError(f"search must be one of {SEARCHES}, got {options.search!r}")
     best, best_log = nearest.u, nearest.log
-    verification = verify_nominal(
-        scenario,
-        problem.x0,
-        best,
-        input_lower=problem.input_lower,
-        input_upper=problem.input_upper,
-        region=_shrunk(scenario.operating_region, margins.region_margin),
-        clearance=margins.clearance,
-        goal_bounds=_shrunk(scenario.goal_bounds, margins.goal_margin),
-    )
+    verification = verify_within(scenario, problem.with_horizon(hi, best), best, margins)
     success = verification.passed
     message = (
-        f"{N_demo} -> {hi} samples ({1 - hi / N_demo:.0%} faster), {verification.message}"
+        f"{N_start} -> {hi} samples ({1 - hi / N_start:.0%} faster), {verification.message}"
         if success
         else f"optimized trajectory failed verification: {verification.message}"
     )
@@ -393,16 +276,6 @@ def optimize_demo(
         success=success,
         message=message,
     )
-
-
-def _shrunk(
-    box: Mapping[str, tuple[float, float]], margin: Mapping[str, float]
-) -> dict[str, tuple[float, float]]:
-    """``box`` (name -> (lower, upper)) shrunk on both sides by ``margin`` (name -> amount)."""
-    return {
-        name: (lower + margin.get(name, 0.0), upper - margin.get(name, 0.0))
-        for name, (lower, upper) in box.items()
-    }
 
 
 def _optimize_in_worker(
@@ -428,12 +301,97 @@ def optimize(
     results = executor.map(
         _optimize_in_worker, tasks, done=None if progress is None else lambda _i: progress(1)
     )
+    return _result(results, options, "optimized and verified")
+
+
+def _result(
+    results: Sequence[TrajectoryOptimization], options: OptimizeOptions, done: str
+) -> OptimizeResult:
+    """The stage's result: successful iff every trajectory is; the message lists the failures."""
     failed = [r for r in results if not r.success]
     message = (
-        f"all {len(results)} trajectories optimized and verified"
+        f"all {len(results)} trajectories {done}"
         if not failed
         else "; ".join(r.message for r in failed)
     )
     return OptimizeResult(
         trajectories=tuple(results), options=options, success=not failed, message=message
     )
+
+
+def _reoptimize_in_worker(
+    task: tuple[Path, str, TrajectoryOptimization, ConstraintMargins, OptimizeOptions],
+) -> TrajectoryOptimization:
+    path, source_hash, previous, margins, options = task
+    scenario = load_scenario_cached(path, source_hash)
+    return optimize_from(
+        scenario,
+        previous.demo,
+        previous.x0,
+        previous.u,
+        margins,
+        options,
+        N_demo=previous.N_demo,
+        infeasible_hint="its funnel's margins leave it no room: keep the previous round",
+    )
+
+
+def reoptimize_with_funnels(
+    scenario: Scenario,
+    trajectories: Sequence[TrajectoryOptimization],
+    funnels: Sequence[Funnel],
+    options: OptimizeOptions,
+    executor: Executor | None = None,
+    progress: Callable[[int], None] | None = None,
+    *,
+    clearance: float = 0.0,
+    level: float | None = None,
+) -> OptimizeResult:
+    """Optimise each trajectory again, keeping its funnel's tube inside the constraints (issue 16
+    part 4: one round of the alternation nominal -> funnel -> nominal).
+
+    Trajectory ``i`` (an optimized nominal, ``u (N_i, m)``) is first made feasible at its own
+    ``N_i`` and then shortened as in ``optimize``, with the margins of ``funnels[i]`` (synthesized
+    around that nominal) instead of the constant certificate's: Unsafe bloated by ``clearance +
+    eps_d`` plus the funnel's position extent on each sample interval, the input bounds shrunk by
+    its input extents, and no operating region: the scenario's ``state_bounds`` shrunk by its
+    state extents (``pipeline.numerics.margins.funnel_margins`` at ``level``, default each
+    funnel's rho; on a shorter horizon the extents are read by normalised time, maximum over the
+    window). ``clearance`` (m): how far beyond the tube the nominal must stay from Unsafe (0: the
+    tube itself must clear Unsafe, which is what the funnel certifies). The shooting is
+    stabilised by the mean of the funnel's gains ``K[k]``. A trajectory whose funnel was not
+    certified is returned unchanged, unsuccessful. Nothing here is certified: synthesize and
+    check the funnel around each new nominal before using it.
+    """
+    if len(trajectories) != len(funnels):
+        raise ValueError(
+            f"reoptimize_with_funnels: {len(trajectories)} trajectories but {len(funnels)}"
+            " funnels; give one funnel per trajectory, in the same order"
+        )
+    tasks, kept = [], {}
+    for i, (previous, funnel) in enumerate(zip(trajectories, funnels, strict=True)):
+        if not funnel.success or funnel.K.shape[0] != previous.N:
+            kept[i] = dataclasses.replace(
+                previous,
+                success=False,
+                message=f"'{previous.demo}' not optimized again: its funnel "
+                + (
+                    f"was not certified ({funnel.message})"
+                    if not funnel.success
+                    else f"has {funnel.K.shape[0]} intervals, the trajectory {previous.N}"
+                ),
+            )
+            continue
+        margins = ConstraintMargins.of_funnel(scenario, funnel, clearance=clearance, level=level)
+        tasks.append((i, (scenario.path, scenario.source_hash, previous, margins, options)))
+    executor = executor or SerialExecutor()
+    done = [] if not tasks else executor.map(
+        _reoptimize_in_worker,
+        [task for _, task in tasks],
+        done=None if progress is None else lambda _i: progress(1),
+    )  # fmt: skip
+    by_index = kept | {i: result for (i, _), result in zip(tasks, done, strict=True)}
+    results = [by_index[i] for i in range(len(trajectories))]
+    if progress is not None:
+        progress(len(kept))
+    return _result(results, options, "optimized again within their funnels and verified")

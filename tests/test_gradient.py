@@ -1,5 +1,6 @@
 """Both gradient methods against central finite differences and each other, on inputs whose
-trajectories have every penalty active; the pruned sensitivity system of Remark 3."""
+trajectories have every penalty active, with constant margins and with margins that vary along the
+trajectory (a funnel's); the pruned sensitivity system of Remark 3."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import pytest
 
 from pipeline import available_scenarios, load_scenario
 from pipeline.model import geometry
+from pipeline.numerics.margins import MarginProfile
 from pipeline.numerics.problem import make_problem
 from pipeline.numerics.sensitivity import interval_sensitivities, sensitivity_pattern
 
@@ -105,6 +107,61 @@ def test_methods_and_backends_agree(case):
         assert J == pytest.approx(J0, rel=1e-12)
         assert _relative_error(q, q0) <= 1e-9
     assert problem.gradient(u, method="sensitivity").shape == u.shape
+
+
+def _varying(problem, M: int = 7):
+    """``problem`` with margins that vary along the trajectory on a grid of ``M`` intervals
+    (another horizon than the problem's: the regridding is exercised), small enough to leave
+    every shrunk box non-empty."""
+    scenario = problem.scenario
+    rng = np.random.default_rng(11)
+    region = scenario.operating_region
+    span = scenario.input_upper - scenario.input_lower
+    input_width = np.array(
+        [region[k][1] - region[k][0] if k in region else w for k, w in zip(
+            scenario.input_names, span, strict=True)]
+    )  # fmt: skip
+    state_width = np.array(
+        [region[k][1] - region[k][0] if k in region else 1.0 for k in scenario.state_names]
+    )
+    profile = MarginProfile(
+        clearance=rng.uniform(0.0, 0.3, M),
+        input=rng.uniform(0.0, 0.02, (M, scenario.m)) * input_width,
+        state=rng.uniform(0.0, 0.02, (M, scenario.n)) * state_width,
+        final_clearance=0.05,
+        final_state=np.full(scenario.n, 0.01),
+    )
+    c = problem.constraints
+    return make_problem(
+        scenario,
+        x0=problem.x0,
+        u_seed=problem.u_seed,
+        penalty_points=problem.penalty_points,
+        eps_d=c.unsafe_margin - scenario.clearance,
+        region_margin={k: 0.45 * (hi - lo) for k, (lo, hi) in region.items()},
+        profile=profile,
+    )
+
+
+@pytest.fixture(scope="module", params=available_scenarios())
+def varying_case(request):
+    problem, u = _active_case(request.param, 3)
+    varying = _varying(problem)
+    return problem, varying, u, _finite_differences(varying, u)
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_gradient_with_margins_along_the_trajectory_matches_central_differences(
+    varying_case, method
+):
+    constant, problem, u, q_fd = varying_case
+    J, q = problem.cost_and_gradient(u, method=method)
+    assert np.isfinite(J) and J > constant.cost(u)  # the time-varying margins add cost
+    assert _relative_error(q, q_fd) <= 1e-6
+    reference = dataclasses.replace(problem, backend="numpy", _cache={})
+    J_numpy, q_numpy = reference.cost_and_gradient(u, method=method)
+    assert J_numpy == pytest.approx(J, rel=1e-12)
+    assert _relative_error(q_numpy, q) <= 1e-9
 
 
 def test_gradient_of_a_quadrotor_flight_near_the_hill():

@@ -25,6 +25,7 @@ import numpy as np
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.simulate import Trajectory, simulate
 from pipeline.numerics.adjoint import adjoint_gradient
+from pipeline.numerics.margins import MarginProfile
 from pipeline.numerics.penalties import Constraints, build_constraints
 from pipeline.numerics.sensitivity import (
     SensitivityPattern,
@@ -74,12 +75,18 @@ class Problem:
 
     @property
     def input_lower(self) -> FloatArray:
-        """(m,) input bounds shrunk by ``eps_i + input_margin`` (the box for L-BFGS-B)."""
-        return self.constraints.input_lower
+        """Input bounds shrunk by ``eps_i + input_margin`` (the box for L-BFGS-B): (m,) when the
+        margins are constant, else (N, m) per sample with the margin profile on this horizon;
+        either broadcasts against ``u (N, m)``."""
+        if self.constraints.profile.M == 1:
+            return self.constraints.grid(1, 1).input_lower[0]
+        return self.constraints.grid(self.N, self.substeps).input_lower
 
     @property
     def input_upper(self) -> FloatArray:
-        return self.constraints.input_upper
+        if self.constraints.profile.M == 1:
+            return self.constraints.grid(1, 1).input_upper[0]
+        return self.constraints.grid(self.N, self.substeps).input_upper
 
     @property
     def region(self) -> Mapping[str, tuple[float, float]]:
@@ -95,14 +102,18 @@ class Problem:
 
     @property
     def _compiled(self) -> Any:
-        if "compiled" not in self._cache:
-            from pipeline.numerics.kernels import compiled
+        """(kernels, penalty data on this horizon's grid, sensitivity pattern)."""
+        from pipeline.numerics.kernels import compiled
 
+        if "compiled" not in self._cache:
             kernels = compiled.load_kernels(self.scenario.dynamics)
-            data = compiled.penalty_data(self.constraints)
             pattern = compiled.pattern_data(self.pattern, self.scenario.dynamics.sparsity_x)
-            self._cache["compiled"] = (kernels, data, pattern)
-        return self._cache["compiled"]
+            self._cache["compiled"] = (kernels, pattern)
+        key = f"data N={self.N}"  # the margins on the grid depend on the horizon
+        if key not in self._cache:
+            self._cache[key] = compiled.penalty_data(self.constraints, self.N, self.substeps)
+        kernels, pattern = self._cache["compiled"]
+        return kernels, self._cache[key], pattern
 
     def _input(self, u: FloatArray) -> FloatArray:
         u = np.asarray(u, dtype=np.float64)
@@ -223,6 +234,8 @@ def make_problem(
     eps_i: float = EPS_I,
     clearance: float | None = None,
     goal_margin: Mapping[str, float] | None = None,
+    region: Mapping[str, tuple[float, float]] | None = None,
+    profile: MarginProfile | None = None,
     penalty_points: int = DEFAULT_PENALTY_POINTS,
     backend: str = "numba",
 ) -> Problem:
@@ -238,6 +251,9 @@ def make_problem(
       eps_d, eps_g, eps_i: the margins of §IV-A (Unsafe bloated by d + eps_d, Goal shrunk by
         d + eps_g, inputs shrunk by eps_i); clearance: ``d`` (default: the scenario's);
         goal_margin: name -> shrink of Goal's extra bounds (the tube's extent).
+      region: name -> (lower, upper) box the nominal stays in (default: the operating region).
+      profile: margins that vary along the trajectory (``pipeline.numerics.margins``), on top of
+        the constant ones; read on each horizon's grid by normalised time (``on_grid``).
       penalty_points: intermediate penalty points per interval = RK4 substeps - 1.
       backend: "numba" or "numpy".
     """
@@ -270,6 +286,8 @@ def make_problem(
         eps_i=eps_i,
         clearance=clearance,
         goal_margin=goal_margin,
+        region=region,
+        profile=profile,
     )
     return Problem(
         scenario=scenario,

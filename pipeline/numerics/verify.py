@@ -4,6 +4,9 @@ The trajectory is re-simulated on a fine RK4 grid (spacing ``h``). Between grid 
 position moves at most ``v_max h / 2`` from the nearer grid point, and distance to a set is
 1-Lipschitz, so ``min_grid(dist) - v_max h / 2`` is a lower bound on the clearance over the
 whole of ``[0, T]``; the operating-region states are bounded the same way with their rates.
+Margins may vary along the trajectory (``pipeline.numerics.margins``): a clearance, input bound
+or region bound per sample interval ``(N,)`` is checked on that interval's fine grid points (each
+fine step lies inside one interval, so the bound between grid points is the same).
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ class Verification:
 
     Attributes:
       clearance: Unsafe name -> lower bound on the distance to that set over ``[0, T]``.
+      required_clearance: the largest distance required from Unsafe over ``[0, T]``.
       goal_margin: distance of the final position inside Goal shrunk by ``d`` (< 0: outside).
       input_margin: smallest distance of an input to its (shrunk) bound (< 0: violated).
       region_margin: smallest distance of a state/input to its operating-region bound.
@@ -55,17 +59,30 @@ def verify_nominal(
     *,
     input_lower: FloatArray,
     input_upper: FloatArray,
-    region: Mapping[str, tuple[float, float]],
-    clearance: float | None = None,
+    region: Mapping[str, tuple[float | FloatArray, float | FloatArray]],
+    clearance: float | FloatArray | None = None,
     goal_bounds: Mapping[str, tuple[float, float]] | None = None,
+    goal_clearance: float | None = None,
     substeps: int = VERIFY_SUBSTEPS,
 ) -> Verification:
     """Check ``x0 (n,)``, ``us (N, m)``: clearance ``>= d`` from every Unsafe set, final position
     in Goal shrunk by ``d`` (and Goal's extra bounds), inputs in ``[input_lower, input_upper]``
     and states/inputs in the ``region`` box, all on ``[0, T]`` in continuous time. ``d`` is
     ``clearance``, by default the scenario's; ``goal_bounds`` replaces Goal's extra bounds (e.g.
-    shrunk by the tube's extent)."""
-    d = scenario.clearance if clearance is None else clearance
+    shrunk by the tube's extent).
+
+    Margins along the trajectory: ``clearance`` may be ``(N,)``, one per sample interval (then
+    ``goal_clearance``, Goal's shrink, is required), ``input_lower``/``input_upper`` ``(N, m)``
+    and each region bound ``(N,)``."""
+    N = len(us)
+    d_k = np.broadcast_to(
+        np.asarray(scenario.clearance if clearance is None else clearance, float), (N,)
+    )
+    if goal_clearance is None:
+        if clearance is not None and np.ndim(clearance) != 0:
+            raise ValueError("verify_nominal: a clearance per interval needs goal_clearance")
+        goal_clearance = float(d_k[0])
+    d = float(d_k.max())
     trajectory = simulate(scenario.dynamics, x0, us, scenario.Ts, substeps=substeps)
     xs = trajectory.dense_xs
     h = scenario.Ts / substeps
@@ -86,14 +103,16 @@ def verify_nominal(
     clearances: dict[str, float] = {}
     for name, unsafe in scenario.unsafe.items():
         distances = geometry.distance(positions, unsafe)
-        clearances[name] = float(distances.min() - speed * h / 2)
-        if clearances[name] < d:
-            k = int(np.argmin(distances))
+        low = _per_interval(distances, substeps, np.minimum) - speed * h / 2  # (N,)
+        clearances[name] = float(low.min())
+        short = low - d_k
+        if short.min() < 0:
+            k = int(np.argmin(short))
             failures.append(
-                f"clearance to '{name}' is {clearances[name]:.3f} < d = {d:g} "
-                f"near t = {trajectory.dense_ts[k]:.2f} s"
+                f"clearance to '{name}' is {low[k]:.3f} < d = {d_k[k]:g} "
+                f"on [{k * scenario.Ts:.2f}, {(k + 1) * scenario.Ts:.2f}] s"
             )
-    mod_goal = geometry.shrink(scenario.goal, d)
+    mod_goal = geometry.shrink(scenario.goal, goal_clearance)
     final = positions[-1]
     inside = bool(geometry.contains(mod_goal, final))
     to_boundary = float(geometry.boundary_distance(final, mod_goal)) if not mod_goal.is_empty else 0
@@ -105,22 +124,30 @@ def verify_nominal(
     if goal_margin < 0:
         failures.append(
             f"final position ({final[0]:.3f}, {final[1]:.3f}) is not in Goal "
-            f"shrunk by d (margin {goal_margin:.3f})"
+            f"shrunk by {goal_clearance:g} (margin {goal_margin:.3f})"
         )
     input_margin = float(np.min(np.minimum(us - input_lower, input_upper - us)))
     if input_margin < 0:
         failures.append(f"input outside its bounds by {-input_margin:.3g}")
-    region_margin = np.inf
-    for name, (lower, upper) in region.items():
+    region_margin = float(np.inf)
+    for name, (floor, ceiling) in region.items():  # numbers, or (N,) per interval
         if name in scenario.state_names:
             i = scenario.state_names.index(name)
-            values, slack = xs[:, i], float(np.max(np.abs(xdot[:, i]))) * h / 2
+            slack = float(np.max(np.abs(xdot[:, i]))) * h / 2
+            low = _per_interval(xs[:, i], substeps, np.minimum)
+            high = _per_interval(xs[:, i], substeps, np.maximum)
         else:
-            values, slack = us[:, scenario.input_names.index(name)], 0.0
-        margin = float(np.min(np.minimum(values - lower, upper - values))) - slack
+            low = high = us[:, scenario.input_names.index(name)]
+            slack = 0.0
+        room = np.minimum(low - floor, ceiling - high) - slack  # (N,)
+        margin = float(np.min(room))
         region_margin = min(region_margin, margin)
         if margin < 0:
-            failures.append(f"'{name}' leaves the operating region [{lower:.3g}, {upper:.3g}]")
+            k = int(np.argmin(room))
+            lo, hi = (float(np.broadcast_to(bound, (N,))[k]) for bound in (floor, ceiling))
+            failures.append(
+                f"'{name}' leaves the region [{lo:.3g}, {hi:.3g}] near t = {k * scenario.Ts:.2f} s"
+            )
     return Verification(
         clearance=clearances,
         goal_margin=goal_margin,
@@ -129,3 +156,10 @@ def verify_nominal(
         required_clearance=d,
         failures=tuple(failures),
     )
+
+
+def _per_interval(values: FloatArray, substeps: int, reduce: np.ufunc) -> FloatArray:
+    """(N,) ``reduce`` (minimum or maximum) of fine-grid ``values (N s + 1,)`` over each sample
+    interval's ``s + 1`` points (both ends)."""
+    inner = values[:-1].reshape(-1, substeps)  # (N, s): the interval's first s points
+    return reduce(reduce.reduce(inner, axis=1), values[substeps::substeps])

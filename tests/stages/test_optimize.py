@@ -1,4 +1,5 @@
-"""Stage optimize: bisection, seeds, verified results, parallel equals serial."""
+"""Stage optimize: bisection, seeds, verified results, parallel equals serial; margins along the
+trajectory and the re-optimization within a funnel."""
 
 from __future__ import annotations
 
@@ -12,6 +13,9 @@ from hypothesis import strategies as st
 
 from pipeline import load_scenario
 from pipeline.io.executor import ProcessExecutor
+from pipeline.model.simulate import simulate
+from pipeline.numerics.funnel import synthesize_funnel
+from pipeline.numerics.margins import MarginProfile
 from pipeline.numerics.problem import make_problem
 from stages.feedback import design_feedback
 from stages.optimize import (
@@ -19,6 +23,7 @@ from stages.optimize import (
     OptimizeOptions,
     optimize,
     optimize_demo,
+    reoptimize_with_funnels,
     reseed,
     shortest_by_continuation,
     smallest_feasible,
@@ -151,3 +156,96 @@ def test_a_wider_tube_is_kept_away_by_its_own_clearance():
         clearance=1.2,
     )
     assert problem.with_horizon(result.N, result.u).cost(result.u) == 0.0
+
+
+@functools.cache
+def _double_integrator():
+    """The double integrator, its demo 1 optimized with no tube (margins zero, clearance d) and
+    with the constant certificate's tube, and the funnel around the latter."""
+    scenario = load_scenario("double_integrator", check_demos=False)
+    feedback = design_feedback(scenario)
+    bare = ConstraintMargins(
+        input_margin=np.zeros(scenario.m), region_margin={}, gain=feedback.K, clearance=None
+    )
+    tube = ConstraintMargins.of_tube(
+        feedback.certified_tube, feedback.required_radius(scenario.clearance)
+    )
+    constant = optimize_demo(scenario, 0, tube, OptimizeOptions())
+    trajectory = simulate(scenario.dynamics, constant.x0, constant.u, scenario.Ts)
+    return (
+        scenario,
+        bare,
+        optimize_demo(scenario, 0, bare, OptimizeOptions()),
+        constant,
+        (synthesize_funnel(scenario, trajectory)),
+    )
+
+
+def test_a_margin_along_the_trajectory_binds_where_it_is_and_nowhere_else():
+    """Input extent 1.5 on 'ux' on one interval of the demo's grid only: the optimum without it
+    breaks it there and nowhere else; with it, the optimum keeps |ux| <= 0.5 on the interval(s)
+    that interval maps to (normalised time, window maximum) and uses more elsewhere."""
+    scenario, bare, unconstrained, _, _ = _double_integrator()
+    M = unconstrained.N_demo
+    extent = np.zeros((M, scenario.m))
+    extent[40, 0] = 1.5  # |ux| <= 0.5 on [4.0, 4.1] s of the demo, ~1/3 of the way
+    profile = MarginProfile(
+        clearance=np.zeros(M),
+        input=extent,
+        state=np.zeros((M, scenario.n)),
+        final_clearance=0.0,
+        final_state=np.zeros(scenario.n),
+    )
+    spiked = dataclasses.replace(bare, profile=profile)
+    problem = make_problem(scenario, demo=0, input_margin=0.0, region_margin={}, profile=profile)
+    # binding: the optimum without the margin violates it, on the mapped samples only
+    N0, u0 = unconstrained.N, unconstrained.u
+    mapped0 = np.flatnonzero(profile.on_grid(N0).input[:, 0] > 0)
+    value, _ = problem.constraints.input_terms(u0, problem.constraints.grid(N0, problem.substeps))
+    assert 1 <= len(mapped0) <= 2 and set(np.flatnonzero(value > 0)) <= set(mapped0)
+    assert value.sum() > 0
+    result = optimize_demo(scenario, 0, spiked, OptimizeOptions())
+    assert result.success, result.message
+    mapped = np.flatnonzero(profile.on_grid(result.N).input[:, 0] > 0)
+    assert 1 <= len(mapped) <= 2
+    assert np.all(np.abs(result.u[mapped, 0]) <= 0.5)
+    assert np.abs(np.delete(result.u[:, 0], mapped)).max() > 1.5  # not applied elsewhere
+    assert problem.with_horizon(result.N, result.u).cost(result.u) == 0.0
+
+
+def test_reoptimizing_within_a_funnel_keeps_its_tube_inside_the_constraints():
+    scenario, _, _, constant, funnel = _double_integrator()
+    assert constant.success and funnel.success, funnel.message
+    again = reoptimize_with_funnels(scenario, [constant], [funnel], OptimizeOptions())
+    (new,) = again.trajectories
+    assert again.success and new.success, new.message
+    assert new.N <= constant.N and new.N_demo == constant.N_demo
+    margins = ConstraintMargins.of_funnel(scenario, funnel)
+    profile = margins.profile.on_grid(new.N)
+    # the new nominal's inputs keep the funnel's input extents from the bounds, per sample
+    assert np.all(new.u - profile.input >= scenario.input_lower - 1e-12)
+    assert np.all(new.u + profile.input <= scenario.input_upper + 1e-12)
+    # verified against the tube's clearance per interval, not the scenario's d
+    assert new.verification.required_clearance == pytest.approx(profile.clearance.max())
+    assert profile.clearance.max() < scenario.clearance
+    problem = make_problem(
+        scenario,
+        x0=new.x0,
+        u_seed=new.u,
+        clearance=0.0,
+        region=dict(scenario.state_bounds),
+        region_margin={},
+        profile=margins.profile,
+    )
+    assert problem.cost(new.u) == 0.0
+
+
+def test_reoptimizing_needs_one_certified_funnel_per_trajectory():
+    scenario, _, _, constant, funnel = _double_integrator()
+    with pytest.raises(ValueError, match="one funnel per trajectory"):
+        reoptimize_with_funnels(scenario, [constant, constant], [funnel], OptimizeOptions())
+    rejected = dataclasses.replace(funnel, success=False, message="LMIs infeasible")
+    result = reoptimize_with_funnels(scenario, [constant], [rejected], OptimizeOptions())
+    (kept,) = result.trajectories
+    assert not result.success and "was not certified (LMIs infeasible)" in kept.message
+    np.testing.assert_array_equal(kept.u, constant.u)

@@ -132,10 +132,12 @@ def load_kernels(dynamics: Dynamics) -> ModuleType:
 
 
 class PenaltyData(NamedTuple):
-    """``Constraints`` as arrays for numba (see ``pipeline.numerics.kernels.loops``)."""
+    """``Constraints`` on one grid as arrays for numba (see ``pipeline.numerics.kernels.loops``):
+    ``unsafe_margin (N s + 1,)``, ``input_* (N, m)``, ``region_state_* (N s + 1, a)``,
+    ``region_input_* (N, b)`` (``Constraints.grid``)."""
 
     position: IntArray
-    unsafe_margin: float
+    unsafe_margin: FloatArray
     unsafe_vertices: FloatArray
     unsafe_ring_start: IntArray
     unsafe_set_rings: IntArray
@@ -194,8 +196,10 @@ def unsafe_ring_arrays(
     return vertices, start, np.array(set_rings, dtype=np.int64), boxes
 
 
-def penalty_data(constraints: Constraints) -> PenaltyData:
-    """Vertex arrays and bounds of ``constraints`` for the kernels."""
+def penalty_data(constraints: Constraints, N: int, substeps: int) -> PenaltyData:
+    """Vertex arrays and bounds of ``constraints`` on the grid of ``N`` intervals and
+    ``substeps`` RK4 steps each, for the kernels."""
+    grid = constraints.grid(N, substeps)
     unsafe_vertices, unsafe_start, set_rings, boxes = unsafe_ring_arrays(
         list(constraints.unsafe.values())
     )
@@ -203,21 +207,21 @@ def penalty_data(constraints: Constraints) -> PenaltyData:
     c = constraints
     return PenaltyData(
         position=np.array(c.position_index, dtype=np.int64),
-        unsafe_margin=float(c.unsafe_margin),
+        unsafe_margin=np.ascontiguousarray(grid.unsafe_margin),
         unsafe_vertices=unsafe_vertices,
         unsafe_ring_start=unsafe_start,
         unsafe_set_rings=set_rings,
         unsafe_box=boxes,
         goal_vertices=goal_vertices,
         goal_ring_start=goal_start,
-        input_lower=c.input_lower,
-        input_upper=c.input_upper,
+        input_lower=np.ascontiguousarray(grid.input_lower),
+        input_upper=np.ascontiguousarray(grid.input_upper),
         region_state_index=c.region_state_index,
-        region_state_lower=c.region_state_lower,
-        region_state_upper=c.region_state_upper,
+        region_state_lower=np.ascontiguousarray(grid.region_state_lower),
+        region_state_upper=np.ascontiguousarray(grid.region_state_upper),
         region_input_index=c.region_input_index,
-        region_input_lower=c.region_input_lower,
-        region_input_upper=c.region_input_upper,
+        region_input_lower=np.ascontiguousarray(grid.region_input_lower),
+        region_input_upper=np.ascontiguousarray(grid.region_input_upper),
         goal_index=c.goal_index,
         goal_lower=c.goal_lower,
         goal_upper=c.goal_upper,

@@ -9,9 +9,11 @@ Shapes: ``n`` states, ``m`` inputs, ``N`` samples, ``s`` substeps, ``h = Ts / s`
 ``X (N s + 1, n)``
 the RK4 grid.
 
-``P`` is a ``pipeline.numerics.kernels.compiled.PenaltyData`` tuple. Polygons are vertex arrays
-``V (v, 2)`` with rings ``ring_start[r]:ring_start[r+1]`` (not closed); Unsafe set ``S`` owns rings
-``set_rings[S]:set_rings[S+1]``.
+``P`` is a ``pipeline.numerics.kernels.compiled.PenaltyData`` tuple: its margins are per RK4
+grid point (``unsafe_margin (N s + 1,)``, ``region_state_* (N s + 1, a)``) and per sample
+(``input_* (N, m)``, ``region_input_* (N, b)``), constant arrays for constant margins. Polygons
+are vertex arrays ``V (v, 2)`` with rings ``ring_start[r]:ring_start[r+1]`` (not closed); Unsafe
+set ``S`` owns rings ``set_rings[S]:set_rings[S+1]``.
 """
 
 import math
@@ -71,15 +73,16 @@ def polygon_query(px, py, V, ring_start, r0, r1):
 
 
 @njit(cache=True)
-def state_penalty(x, w, grad, P):
-    """``w (g_unsafe + g_reg)(x)``; sets ``grad (n,)`` to its derivative."""
+def state_penalty(x, w, grad, P, i_grid):
+    """``w (g_unsafe + g_reg)(x)`` at RK4 grid point ``i_grid`` (its margins); sets ``grad (n,)``
+    to its derivative."""
     grad[:] = 0.0
     value = 0.0
     p0 = P.position[0]
     p1 = P.position[1]
     px = x[p0]
     py = x[p1]
-    d = P.unsafe_margin
+    d = P.unsafe_margin[i_grid]
     for S in range(P.unsafe_set_rings.size - 1):
         # distance to the bounding box <= r: the barrier is zero when it exceeds d'
         ex = max(P.unsafe_box[S, 0] - px, 0.0, px - P.unsafe_box[S, 2])
@@ -107,23 +110,24 @@ def state_penalty(x, w, grad, P):
             grad[p1] += slope * (py - cy)
     for j in range(P.region_state_index.size):
         i = P.region_state_index[j]
-        e = x[i] - min(max(x[i], P.region_state_lower[j]), P.region_state_upper[j])
+        lo = P.region_state_lower[i_grid, j]
+        e = x[i] - min(max(x[i], lo), P.region_state_upper[i_grid, j])
         value += e * e
         grad[i] += w * 2.0 * e
     return w * value
 
 
 @njit(cache=True)
-def input_penalty(u, grad, P):
-    """``(g_in + g_reg)(u)`` (eq. (40)); sets ``grad (m,)``."""
+def input_penalty(u, grad, P, k):
+    """``(g_in + g_reg)(u)`` (eq. (40)) for sample ``k`` (its margins); sets ``grad (m,)``."""
     value = 0.0
     for i in range(u.size):
-        e = u[i] - min(max(u[i], P.input_lower[i]), P.input_upper[i])
+        e = u[i] - min(max(u[i], P.input_lower[k, i]), P.input_upper[k, i])
         value += e * e
         grad[i] = 2.0 * e
     for j in range(P.region_input_index.size):
         i = P.region_input_index[j]
-        e = u[i] - min(max(u[i], P.region_input_lower[j]), P.region_input_upper[j])
+        e = u[i] - min(max(u[i], P.region_input_lower[k, j]), P.region_input_upper[k, j])
         value += e * e
         grad[i] += 2.0 * e
     return value
@@ -200,16 +204,16 @@ def cost_kernel(x0, U, h, s, P):
     gu = np.empty(U.shape[1])
     J = 0.0
     for k in range(N):
-        J += input_penalty(U[k], gu, P)
+        J += input_penalty(U[k], gu, P, k)
     x = x0.copy()
     x_next = np.empty(n)
-    J += state_penalty(x, w, gx, P)
+    J += state_penalty(x, w, gx, P, 0)
     for i in range(N * s):
         rk4_step(x, U[i // s], h, K, Y, x_next)
         x, x_next = x_next, x
         if not all_finite(x):
             return np.inf
-        J += state_penalty(x, w, gx, P)
+        J += state_penalty(x, w, gx, P, i + 1)
         if J == np.inf:
             return J
     return J + final_penalty(x, gx, P)
@@ -225,14 +229,14 @@ def forward_kernel(x0, U, h, s, P, X, Y, J_x, J_u):
     K = np.empty((4, n))
     J = 0.0
     for k in range(N):
-        J += input_penalty(U[k], J_u[k], P)
+        J += input_penalty(U[k], J_u[k], P, k)
     X[0] = x0
-    J += state_penalty(X[0], w, J_x[0], P)
+    J += state_penalty(X[0], w, J_x[0], P, 0)
     for i in range(N * s):
         rk4_step(X[i], U[i // s], h, K, Y[i], X[i + 1])
         if not all_finite(X[i + 1]):
             return np.nan
-        J += state_penalty(X[i + 1], w, J_x[i + 1], P)
+        J += state_penalty(X[i + 1], w, J_x[i + 1], P, i + 1)
     return J + final_penalty(X[N * s], J_x[N * s], P)
 
 
@@ -389,9 +393,9 @@ def sensitivity_kernel(x0, U, h, s, P, S, phi_rows, phi_cols, gamma_rows, gamma_
     gx = np.empty(n)
     J = 0.0
     for k in range(N):
-        J += input_penalty(U[k], q[k], P)
+        J += input_penalty(U[k], q[k], P, k)
     x = x0.copy()
-    J += state_penalty(x, w, J_samples[0], P)
+    J += state_penalty(x, w, J_samples[0], P, 0)
     stage = (0.0, 0.5, 0.5, 1.0)
     for k in range(N):
         u = U[k]
@@ -424,12 +428,12 @@ def sensitivity_kernel(x0, U, h, s, P, S, phi_rows, phi_cols, gamma_rows, gamma_
                 q[:] = np.nan
                 return np.inf
             if j < s - 1:  # an intermediate grid point: chain its penalty to x_k and u[k]
-                J += state_penalty(x, w, gx, P)
+                J += state_penalty(x, w, gx, P, k * s + j + 1)
                 for e in range(nP):
                     a[k, phi_cols[e]] += gx[phi_rows[e]] * Phi[e]
                 for e in range(nQ):
                     c[k, gamma_cols[e]] += gx[gamma_rows[e]] * Gamma[e]
-        J += state_penalty(x, w, J_samples[k + 1], P)
+        J += state_penalty(x, w, J_samples[k + 1], P, (k + 1) * s)
         Phi_k[k] = Phi
         Gamma_k[k] = Gamma
     J += final_penalty(x, J_samples[N], P)

@@ -1,0 +1,122 @@
+"""A certificate's footprint on the constraints: the margins the nominal keeps, and their check.
+
+``ConstraintMargins`` says how far the tube around a nominal reaches (paper §IV-A: the
+constraints the optimizer meets are the real ones shrunk by it): a constant certificate's tube of
+radius ``r`` (``of_tube``: constant extents) or a funnel's (``of_funnel``: extents per sample
+interval, ``pipeline.numerics.margins``). ``verify_within`` checks an optimized nominal against
+them in continuous time (``pipeline.numerics.verify``), independently of the cost.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from pipeline.model.dynamics import FloatArray
+from pipeline.model.scenario import Scenario
+from pipeline.numerics.funnel_check import Funnel
+from pipeline.numerics.margins import MarginProfile, funnel_margins
+from pipeline.numerics.problem import Problem
+from pipeline.numerics.tube import Tube
+from pipeline.numerics.verify import Verification, verify_nominal
+
+
+@dataclass(frozen=True, kw_only=True)
+class ConstraintMargins:
+    """The tube's footprint at the required radius, from the feedback stage.
+
+    Attributes:
+      input_margin: (m,) how much the tube's feedback may add to ``u_ref``, per input.
+      region_margin: state/input name -> how far the tube extends along it.
+      gain: (m, n) the feedback gain, which also stabilises the shooting
+        (``pipeline.numerics.shooting``).
+      clearance: the tube's position extent, kept from Unsafe and Goal's boundary (default: the
+        scenario's ``d``; larger when coverage of Init needs a radius above ``r_d``).
+      goal_margin: state name -> how far the tube extends along it (shrinks Goal's extra bounds).
+      profile: margins that vary along the trajectory (a funnel's extents per sample interval,
+        ``pipeline.numerics.margins``), added to the constant ones above; None: none.
+      region: name -> (lower, upper), the box the nominal stays in (None: the scenario's
+        operating region; a funnel's: the scenario's ``state_bounds``).
+    """
+
+    input_margin: FloatArray
+    region_margin: Mapping[str, float]
+    gain: FloatArray
+    clearance: float | None = None
+    goal_margin: Mapping[str, float] = field(default_factory=dict)
+    profile: MarginProfile | None = None
+    region: Mapping[str, tuple[float, float]] | None = None
+
+    @classmethod
+    def of_tube(cls, tube: Tube, radius: float) -> ConstraintMargins:
+        """The footprint of the feedback's tube of P-norm radius ``radius``."""
+        return cls(
+            input_margin=tube.input_margin(radius),
+            region_margin=tube.region_extent(radius),
+            gain=tube.K,
+            clearance=tube.position_extent(radius),
+            goal_margin=dict(
+                zip(tube.state_names, map(float, tube.state_extent(radius)), strict=True)
+            ),
+        )
+
+    @classmethod
+    def of_funnel(
+        cls,
+        scenario: Scenario,
+        funnel: Funnel,
+        *,
+        clearance: float = 0.0,
+        level: float | None = None,
+    ) -> ConstraintMargins:
+        """The footprint of ``funnel``'s tube at ``level`` (default its rho): its extents per
+        sample interval (``funnel_margins``), no operating region (the nominal stays in the
+        scenario's ``state_bounds`` shrunk by the tube), Unsafe kept ``clearance`` beyond the
+        tube; the shooting is stabilised by the mean of the funnel's gains ``K[k]``."""
+        if not (np.isfinite(clearance) and clearance >= 0.0):
+            raise ValueError(f"clearance must be a finite number >= 0, got {clearance!r}")
+        return cls(
+            input_margin=np.zeros(scenario.m),
+            region_margin={},
+            gain=funnel.K.mean(axis=0),
+            clearance=clearance,
+            profile=funnel_margins(scenario, funnel, level=level),
+            region=dict(scenario.state_bounds),
+        )
+
+
+def verify_within(
+    scenario: Scenario, problem: Problem, u: FloatArray, margins: ConstraintMargins
+) -> Verification:
+    """``pipeline.numerics.verify`` of ``u (N, m)`` against ``problem``'s margins on its horizon
+    (without the descent's eps_r: the region shrunk by the tube's extents only)."""
+    box = scenario.operating_region if margins.region is None else margins.region
+    on = margins.profile.on_grid(problem.N) if margins.profile is not None else None
+    extents: dict[str, FloatArray | float] = {key: 0.0 for key in box}
+    final = np.zeros(scenario.n)
+    if on is not None:
+        extents |= {k: on.state[:, i] for i, k in enumerate(scenario.state_names) if k in box}
+        extents |= {k: on.input[:, j] for j, k in enumerate(scenario.input_names) if k in box}
+        final = on.final_state
+    d = scenario.clearance if margins.clearance is None else margins.clearance
+    shrink = {key: margins.region_margin.get(key, 0.0) + extents[key] for key in box}
+    goal_shrink = {
+        key: margins.goal_margin.get(key, 0.0) + final[scenario.state_names.index(key)]
+        for key in scenario.goal_bounds
+    }
+    return verify_nominal(
+        scenario,
+        problem.x0,
+        u,
+        input_lower=problem.input_lower,
+        input_upper=problem.input_upper,
+        region={k: (lo + shrink[k], hi - shrink[k]) for k, (lo, hi) in box.items()},
+        clearance=d + (on.clearance if on is not None else 0.0),
+        goal_clearance=d + (on.final_clearance if on is not None else 0.0),
+        goal_bounds={
+            k: (lo + goal_shrink[k], hi - goal_shrink[k])
+            for k, (lo, hi) in scenario.goal_bounds.items()
+        },
+    )
