@@ -1,7 +1,11 @@
-"""Stage ``coverage``: is Init inside the union of the balls ``{x : ||x - x0_i||_P <= r_i}``?
+"""Stage ``coverage``: is Init inside the union of the balls ``{x : ||x - x0_i||_P_i <= r_i}``?
 
-Init is a box, covered by sound recursive subdivision (``pipeline.numerics.cover``, which
-the final certificate check, stage ``certify``, uses as well): a box is covered when all its
+Each ball has its own metric ``P_i``: the funnel certificate's balls are its initial ellipsoids
+``E_i(0)`` (``P_i = P_i[0]``, ``r_i = rho_i``; ``cover_balls``); the constant certificate's are the
+same code with the feedback's one ``P`` repeated (``cover_init``).
+
+Init is a box, covered by sound recursive subdivision (``pipeline.numerics.cover``, which the
+final certificate check, stage ``certify``, uses as well): a box is covered when all its
 vertices lie in one ball; boxes no ball can cover yet are halved up to ``max_depth`` times.
 What remains is reported as uncovered (sound, not complete). The covered boxes with their
 ball indices form the controller's lookup table.
@@ -31,7 +35,7 @@ class Metric(Protocol):
 
 @dataclass(frozen=True, kw_only=True)
 class CoverageResult:
-    """Coverage of Init by the balls ``||x - centers[i]||_P <= radii[i]``.
+    """Coverage of Init by the balls ``||x - centers[i]||_P_i <= radii[i]`` (one metric per ball).
 
     Attributes:
       covered: every part of Init is certified covered.
@@ -83,11 +87,31 @@ def cover_init(
     max_depth: int = DEFAULT_DEPTH,
 ) -> CoverageResult:
     """Certify that Init (``scenario.init_lower/upper (n,)``) lies in the union of the balls
-    with ``centers (k, n)``, ``radii (k,)`` in the metric ``feedback.P (n, n)``."""
+    with ``centers (k, n)``, ``radii (k,)`` in the metric ``feedback.P (n, n)`` (the constant
+    certificate: ``cover_balls`` with that ``P`` repeated for every ball)."""
     if feedback.P is None:
         raise ValueError("coverage: the feedback has no certified P; run the feedback stage")
+    P = np.asarray(feedback.P, dtype=np.float64)
+    centers = np.asarray(centers, dtype=np.float64).reshape(-1, P.shape[0])
+    metrics = np.repeat(P[None], len(centers), axis=0)  # (k, n, n)
+    return cover_balls(scenario, metrics, centers, radii, max_depth)
+
+
+def cover_balls(
+    scenario: Scenario,
+    metrics: FloatArray,
+    centers: FloatArray,
+    radii: FloatArray,
+    max_depth: int = DEFAULT_DEPTH,
+    *,
+    noun: str = "ball",
+) -> CoverageResult:
+    """Certify that Init (``scenario.init_lower/upper (n,)``) lies in the union of the balls
+    ``(x - centers[i])^T metrics[i] (x - centers[i]) <= radii[i]^2`` with ``metrics (k, n, n)``,
+    ``centers (k, n)``, ``radii (k,)`` (radii <= 0 cover nothing); ``noun`` names a ball in
+    the message (e.g. ``"funnel start"``)."""
     cover = subdivide(
-        np.asarray(feedback.P, dtype=np.float64),
+        np.asarray(metrics, dtype=np.float64),
         scenario.init_lower,
         scenario.init_upper,
         centers,
@@ -98,7 +122,7 @@ def cover_init(
     fraction, covered = cover.fraction, cover.covered
     if covered:
         used = len(np.unique(cover.assignment))
-        message = f"Init is covered by {used} ball{'s' if used > 1 else ''}"
+        message = f"Init is covered by {used} {noun}{'s' if used > 1 else ''}"
     else:
         names = [scenario.state_names[i] for i in free_index]
         widths = gaps[:, 1, free_index] - gaps[:, 0, free_index]

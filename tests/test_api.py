@@ -72,7 +72,7 @@ def test_synthesize_takes_every_computing_option_with_its_default():
 @pytest.mark.parametrize(
     ("keywords", "message"),
     [
-        ({"certificate": "funnel"}, "certificate='funnel' is not available; expected one of"),
+        ({"certificate": "tube"}, "certificate='tube'; expected one of ('constant', 'funnel')"),
         ({"samples": 0}, "samples=0; expected a whole number >= 1"),
         ({"jobs": 1.5}, "jobs=1.5; expected a whole number >= 1"),
         ({"method": "newton"}, "method='newton'; expected one of ('gd', 'lbfgs')"),
@@ -169,7 +169,7 @@ def test_the_command_line_is_quiet_with_q_and_says_where_outputs_went(
     shutil.copytree(synthesized[0].outputs.folder, out)  # the session's run, at other samples
     argv = ["synthesize", "double_integrator", "--out", str(out), "--samples", "20"]
     assert main([*argv, "-q"]) in (0, 1)
-    assert capsys.readouterr().out.startswith("verdict: ")
+    assert capsys.readouterr().out.startswith("verdict (constant certificate): ")
     assert main(argv) in (0, 1)  # every stage reused
     printed = capsys.readouterr().out
     assert printed.startswith(f"outputs: {out}\n")

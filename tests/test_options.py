@@ -5,9 +5,11 @@ from __future__ import annotations
 
 import dataclasses
 import inspect
+import typing
 
 import pytest
 
+from pipeline.model.schema import ScenarioSpec
 from pipeline.numerics import settings
 from pipeline.numerics.penalties import build_constraints
 from pipeline.numerics.problem import make_problem
@@ -28,8 +30,10 @@ def test_every_option_reaches_the_dataclass() -> None:
     options = parse(
         "--method", "lbfgs", "--search", "bisection", "--samples", "7", "--jobs", "2",
         "--executor", "dask-local", "--force", "-q", "--stress", "--seed", "3",
+        "--certificate", "funnel",
     )  # fmt: skip
     assert options == RunOptions(
+        certificate="funnel",
         method="lbfgs",
         search="bisection",
         samples=7,
@@ -47,8 +51,14 @@ def test_every_option_reaches_the_dataclass() -> None:
 
 @pytest.mark.parametrize(
     "argv",
-    [["--method", "newton"], ["--search", "linear"], ["--samples", "0"], ["-v", "-q"]],
-    ids=["method", "search", "samples", "verbose and quiet"],
+    [
+        ["--method", "newton"],
+        ["--search", "linear"],
+        ["--samples", "0"],
+        ["-v", "-q"],
+        ["--certificate", "tube"],
+    ],
+    ids=["method", "search", "samples", "verbose and quiet", "certificate"],
 )
 def test_bad_choices_exit_2(argv: list[str], capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit) as raised:
@@ -61,6 +71,7 @@ def test_choices_come_from_the_optimizer() -> None:
     run = {f.name: f.metadata["cli"] for f in dataclasses.fields(RunOptions)}
     assert run["method"].choices == settings.DESCENT_METHODS
     assert run["search"].choices == settings.HORIZON_SEARCHES
+    assert run["certificate"].choices == settings.CERTIFICATES
     assert RunOptions().method == OptimizeOptions().method
     assert RunOptions().search == OptimizeOptions().search
 
@@ -73,3 +84,14 @@ def test_margin_defaults_have_one_source(name: str, value: float) -> None:
     assert getattr(OptimizeOptions(), name) == value
     for function in (build_constraints, make_problem):
         assert inspect.signature(function).parameters[name].default == value
+
+
+def test_certificate_kinds_are_the_scenario_schemas() -> None:
+    """``--certificate`` offers exactly the kinds a scenario's ``certificate`` may name; unset
+    (None), the scenario's own kind is used."""
+    hint = typing.get_type_hints(ScenarioSpec)["certificate"]
+    assert typing.get_args(hint) == settings.CERTIFICATES
+    assert parse().certificate is None and RunOptions(certificate=None).certificate is None
+    assert parse("--certificate", "constant").certificate == "constant"
+    with pytest.raises(ValueError, match=r"certificate='tube'; expected one of"):
+        RunOptions(certificate="tube")

@@ -34,6 +34,8 @@ def test_summary_json_round_trips_through_the_typed_summary(synthesized, summary
     document = json.loads((out / "summary.json").read_text())
     assert summary.to_json() == document
     assert summary.verdict is Verdict.CERTIFIED_AND_VALIDATED and summary.certified
+    assert summary.certificate == document["certificate"] == "constant"  # the scenario's kind
+    assert all(d.funnel_level is None for d in summary.demos)  # no funnel in a constant run
     assert summary.certification.certified and summary.certification.contraction_margin < 0
     assert {c.kind for c in summary.claims} >= {
         ClaimKind.CERTIFIED,
@@ -81,3 +83,13 @@ def test_a_wrong_summary_json_names_the_field(summary, change, message):
     change(document)
     with pytest.raises(ValueError, match=message.replace("[", r"\[").replace("]", r"\]")):
         Summary.from_json(document)
+
+
+def test_a_summary_without_a_certificate_is_a_constant_ones(summary):
+    """``summary.json`` written before the funnel certificate existed reads as ``constant``."""
+    document = summary.to_json()
+    del document["certificate"]
+    for demo in document["demos"]:
+        for name in ("funnel_level", "funnel_binding", "funnel_seconds"):
+            del demo[name]
+    assert Summary.from_json(document).certificate == "constant"

@@ -1,7 +1,6 @@
-"""Sound coverage of a box by P-norm balls ``{x : ||x - x0_i||_{P_i} <= r_i}``, by subdivision.
-
-One metric for every ball (``P (n, n)``, the constant certificate) or one per ball (``P (k, n,
-n)``, a funnel's ``P_i[0]``): the same code, the constant metric repeated.
+"""Sound coverage of a box by ellipsoidal balls ``{x : (x - x0_i)^T P_i (x - x0_i) <= r_i^2}``, by
+subdivision; each ball has its own metric ``P_i`` (a funnel's ``P_i(0)``), the constant
+certificate's balls are the same code with one ``P`` repeated.
 
 The box's degenerate intervals (e.g. "at rest") are fixed and drop out, leaving a box of
 dimension ``D`` over the free states. A box is covered when all ``2^D`` of its vertices lie in
@@ -65,22 +64,32 @@ def subdivide(
     max_depth: int = DEFAULT_DEPTH,
 ) -> Subdivision:
     """Certify that the box ``[lower0, upper0]`` (n,) lies in the union of the balls with
-    ``centers (k, n)``, ``radii (k,)`` (radii <= 0 are ignored) in the metric ``P (n, n)``, or
-    ``P (k, n, n)``: ball ``i`` in its own metric ``P[i]``."""
+    ``centers (k, n)``, ``radii (k,)`` (radii <= 0 are ignored) and metrics ``P (k, n, n)``, one
+    per ball (``P (n, n)``: the same metric for every ball)."""
     lower0 = np.asarray(lower0, dtype=np.float64)
     upper0 = np.asarray(upper0, dtype=np.float64)
     n = lower0.shape[0]
     centers = np.asarray(centers, dtype=np.float64).reshape(-1, n)
-    P = np.broadcast_to(np.asarray(P, dtype=np.float64), (len(centers), n, n))
     radii = np.asarray(radii, dtype=np.float64).reshape(-1)
-    if radii.shape[0] != centers.shape[0]:
-        raise ValueError(f"coverage: {centers.shape[0]} centers but {radii.shape[0]} radii")
+    k = centers.shape[0]
+    if radii.shape[0] != k:
+        raise ValueError(f"coverage: {k} centers but {radii.shape[0]} radii")
+    P = np.asarray(P, dtype=np.float64)
+    if P.shape == (n, n):
+        P = np.broadcast_to(P, (k, n, n))
+    if P.shape != (k, n, n):
+        raise ValueError(
+            f"coverage: metrics of shape {P.shape} for {k} balls in {n} states; expected "
+            f"({k}, {n}, {n}) or ({n}, {n})"
+        )
+    if not np.all(np.isfinite(P)):
+        raise ValueError("coverage: non-finite metric")
     if not (np.all(np.isfinite(centers)) and np.all(np.isfinite(radii))):
         raise ValueError("coverage: non-finite center or radius")
     free = tuple(int(i) for i in np.flatnonzero(upper0 > lower0))
     D = len(free)
     corners = np.array(list(itertools.product((0.0, 1.0), repeat=D)), float).reshape(2**D, D)
-    lambda_min = np.linalg.eigvalsh(P)[:, 0]  # (k,)
+    lambda_min = np.linalg.eigvalsh(P)[:, 0] if k else np.zeros(0)  # (k,)
     r2 = np.where(radii > 0, radii, 0.0) ** 2
     usable = r2 > 0  # a radius whose square underflows covers nothing
 
@@ -95,7 +104,7 @@ def subdivide(
         vertices = np.repeat(lower[:, None, :], len(corners), axis=1)
         vertices[:, :, free_index] += corners[None] * (upper - lower)[:, None, free_index]
         e = vertices[:, :, None, :] - centers[None, None]  # (B, 2^D, k, n)
-        q = np.einsum("bvki,kij,bvkj->bvk", e, P, e)  # ||v - x0_i||_{P_i}^2
+        q = np.einsum("bvki,bvki->bvk", np.einsum("kij,bvkj->bvki", P, e), e)  # ||v - x0_i||^2_P_i
         worst = q.max(axis=1)  # (B, k)
         fits = (worst <= r2[None]) & usable[None]
         margin = np.where(fits, 1.0 - worst / np.where(usable, r2, 1.0)[None], -np.inf)

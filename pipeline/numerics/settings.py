@@ -14,3 +14,6 @@ EPS_I = 0.0  # eq. (40): input bounds shrunk by eps_i
 
 DESCENT_METHODS = ("gd", "lbfgs")  # the paper's gradient descent, or L-BFGS-B
 HORIZON_SEARCHES = ("continuation", "bisection")  # how the final time is shortened (Remark 4)
+# The certificate kinds (the scenario's `certificate`, --certificate): one contraction metric P
+# and gain K for all time (eq. (10)-(12)), or a time-varying funnel K[k], P[k] per trajectory.
+CERTIFICATES = ("constant", "funnel")

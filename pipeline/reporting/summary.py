@@ -73,6 +73,9 @@ class DemoSummary:
     binding_after: str
     binding_time_before: float
     binding_time_after: float
+    funnel_level: float | None = None  # the funnel certificate: rho of the optimized one
+    funnel_binding: str | None = None  # the constraint that sets it (None: no funnel)
+    funnel_seconds: float | None = None  # its synthesis wall time
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -187,7 +190,9 @@ class Reproducibility:
 @dataclass(frozen=True, kw_only=True)
 class Summary:
     """Everything ``summary.json`` holds. ``reasons``: why the verdict is not "certified and
-    validated" (empty otherwise); ``timings``: wall time per stage (0: reused)."""
+    validated" (empty otherwise); ``timings``: wall time per stage (0: reused); ``certificate``:
+    what the verdict is for, ``"constant"`` (one metric and gain, ``safety-controller/1``) or
+    ``"funnel"`` (a funnel per trajectory, ``safety-controller/2``)."""
 
     scenario: str
     verdict: Verdict
@@ -203,6 +208,7 @@ class Summary:
     total_seconds: float
     reproducibility: Reproducibility
     stress: StressSummary | None = None
+    certificate: str = "constant"
 
     @property
     def certified(self) -> bool:

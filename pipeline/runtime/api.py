@@ -17,14 +17,12 @@ from pathlib import Path
 from pipeline.runtime.options import RunOptions
 from pipeline.runtime.synthesis import Synthesis
 
-CERTIFICATES = ("constant",)  # the constant-metric tube of the paper (eq. (10)-(12))
-
 
 def synthesize(
     scenario: str | Path,
     *,
     out: str | Path | None = None,
-    certificate: str | None = None,
+    certificate: str | None = RunOptions.certificate,
     samples: int = RunOptions.samples,
     seed: int = RunOptions.seed,
     executor: str | None = RunOptions.executor,
@@ -42,7 +40,10 @@ def synthesize(
         path of a scenario folder or its ``scenario.yaml``.
       out: the output folder (default ``./reports/NAME`` under the current directory); stages
         whose inputs did not change since the last run there are reused.
-      certificate: ``"constant"`` (the default: one contraction metric ``P`` for all of time).
+      certificate: ``"constant"`` (one contraction metric ``P`` and gain ``K`` for all of
+        time, the paper's tube) or ``"funnel"`` (a time-varying gain ``K_i[k]`` and metric
+        ``P_i[k]`` per trajectory, ``safety-controller/2``); default: the scenario's
+        ``certificate``.
       samples, seed: the Monte Carlo closed-loop runs and their seed.
       executor, jobs: where parallel work runs (``None``/``"local"``, ``"dask-local"``,
         ``"dask://HOST:PORT"``) and with how many worker processes.
@@ -56,12 +57,8 @@ def synthesize(
     input raises ``pipeline.UserError`` (``ScenarioError`` for the scenario) before any work;
     a stage that fails gives ``Verdict.FAILED`` with the stage and the error in ``message``.
     """
-    if certificate not in (None, *CERTIFICATES):
-        raise ValueError(
-            f"certificate={certificate!r} is not available; expected one of {CERTIFICATES} "
-            "(the constant-metric tube of the paper)"
-        )
     options = RunOptions(
+        certificate=certificate,
         samples=samples,
         seed=seed,
         executor=executor,

@@ -12,7 +12,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, TypeVar
 
-from pipeline.numerics.settings import DESCENT_METHODS, HORIZON_SEARCHES
+from pipeline.numerics.settings import CERTIFICATES, DESCENT_METHODS, HORIZON_SEARCHES
 
 if TYPE_CHECKING:
     from _typeshed import DataclassInstance
@@ -69,6 +69,13 @@ def period(text: str) -> float:
 class RunOptions:
     """Command-line choices of ``synthesize``."""
 
+    certificate: str | None = option(
+        None,
+        "what certifies the controller: one constant metric and gain for all time, or a "
+        "time-varying funnel per trajectory (default: the scenario's `certificate`)",
+        choices=CERTIFICATES,
+        parse=str,
+    )
     method: str = option(
         DESCENT_METHODS[0],
         "optimizer: the paper's gradient descent (gd) or L-BFGS-B",
@@ -104,7 +111,8 @@ class RunOptions:
         for item in self.__dataclass_fields__.values():
             spec: CommandLine = item.metadata["cli"]
             value = getattr(self, item.name)
-            if spec.choices is not None and value not in spec.choices:
+            unset = value is None and item.default is None  # None: the scenario decides
+            if spec.choices is not None and value not in spec.choices and not unset:
                 raise ValueError(f"{item.name}={value!r}; expected one of {spec.choices}")
             if spec.parse is positive_int and (type(value) is not int or value < 1):
                 raise ValueError(f"{item.name}={value!r}; expected a whole number >= 1")

@@ -2,12 +2,17 @@
 (``./reports/NAME`` under the current directory unless given ``out``).
 
     load -> feedback -> radius(demos) -> coverage(demos) -> covering radius -> optimize
-         -> radius(optimized) -> coverage(optimized) -> controller -> certify -> montecarlo
-         -> report
+         -> radius(optimized) -> coverage(optimized) [-> funnel -> coverage(funnel)]
+         -> controller -> certify -> montecarlo -> report
 
-The controller stage writes ``controller.json`` on every run, from this run's certified
-results; the certify stage then re-verifies that file as written (never cached), and the
-verdict's "certified" is its result.
+The certificate (``--certificate``, default the scenario's ``certificate``) decides what is
+shipped: ``constant`` writes ``safety-controller/1`` from the feedback's one ``P``, ``K`` and
+the robustness radii; ``funnel`` synthesizes a time-varying funnel around each optimized
+trajectory (stage ``funnel``, asked to hold the part of Init the constant ball holds), covers
+Init by their initial ellipsoids ``E_i(0)`` and writes ``safety-controller/2``. The controller
+stage writes ``controller.json`` on every run, from this run's certified results; the certify
+stage then re-verifies that file as written (never cached), and the verdict's "certified" is
+its result.
 
 The optimizer keeps every tube at the required radius ``max(r_d, covering radius)``: ``r_d`` is
 the radius that the clearance ``d`` certifies, and the covering radius the smallest common one
@@ -21,7 +26,6 @@ outcome is the returned ``Synthesis``; the command line prints both.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import os
 import sys
@@ -39,11 +43,10 @@ from pipeline.io.folders import default_output_folder
 from pipeline.io.lock import folder_lock
 from pipeline.io.progress import progress_bar
 from pipeline.model.scenario import Scenario, load_scenario
-from pipeline.model.simulate import Trajectory, simulate
-from pipeline.numerics.sampled import HeldRate, held_rate
-from pipeline.numerics.verify import VERIFY_SUBSTEPS
+from pipeline.model.simulate import Trajectory
 from pipeline.reporting.pdf import find_browser
 from pipeline.reporting.summary import Verdict
+from pipeline.runtime import run_inputs
 from pipeline.runtime.codekey import code_key
 from pipeline.runtime.options import RunOptions
 from pipeline.runtime.outdir import (
@@ -64,9 +67,16 @@ from pipeline.runtime.terminal import (
     optimization_logs,
 )
 from stages.certify import certify_controller
-from stages.controller import emit_controller
-from stages.coverage import CoverageResult, CoveringRadius, cover_init, covering_radius
+from stages.controller import emit_controller, emit_funnel_controller
+from stages.coverage import (
+    CoverageResult,
+    CoveringRadius,
+    cover_balls,
+    cover_init,
+    covering_radius,
+)
 from stages.feedback import FeedbackResult, design_feedback
+from stages.funnel import FunnelStageResult, synthesize_funnels
 from stages.montecarlo import validate_closed_loop
 from stages.optimize import ConstraintMargins, OptimizeOptions, OptimizeResult, optimize
 from stages.radius import RadiusResult, robustness_radius
@@ -88,15 +98,7 @@ REPORT_STAGES = (  # the controller's result is the file itself, keyed by its ha
     "coverage_optimized",
     "montecarlo",
 )
-
-
-def _trajectories(
-    scenario: Scenario, starts: Sequence[np.ndarray], inputs: Sequence[np.ndarray]
-) -> list[Trajectory]:
-    return [
-        simulate(scenario.dynamics, x0, us, scenario.Ts, substeps=VERIFY_SUBSTEPS)
-        for x0, us in zip(starts, inputs, strict=True)
-    ]
+FUNNEL_STAGES = ("funnel", "coverage_funnel")  # with the funnel certificate
 
 
 def _radii(
@@ -120,36 +122,45 @@ def _coverage(
     return cover_init(scenario, feedback, np.array(starts), _cover_radii(radii))
 
 
-def _held_feedback(
-    scenario: Scenario, feedback: FeedbackResult, period: float
-) -> tuple[FeedbackResult, HeldRate]:
-    """The feedback with its tube at the held law's rate ``lambda_h`` (``--feedback-period``)."""
-    n = len(scenario.state_names)
-    A, B = feedback.vertices[:, :, :n], feedback.vertices[:, :, n:]
-    tube = feedback.certified_tube
-    held = held_rate(tube.P, tube.K, A, B, feedback.rate, period)
-    if not held.success:
-        return feedback, held
-    held_tube = dataclasses.replace(tube, rate=held.held_rate)
-    return dataclasses.replace(feedback, rate=held.held_rate, tube=held_tube), held
-
-
-def _check_period(scenario: Scenario, period: float) -> None:
-    """``--feedback-period`` must divide the sampling time (``u_ref`` switches at samples)."""
-    if period == 0:
-        return
-    steps = scenario.Ts / period
-    if steps < 1 - 1e-9 or abs(steps - round(steps)) > 1e-9 * steps:
-        raise UserError(
-            f"--feedback-period: found {period:g} s; expected a period that divides the "
-            f"scenario's sampling_time {scenario.Ts:g} s (e.g. {scenario.Ts / 10:g})"
+def _funnels(
+    scenario: Scenario,
+    runner: StageRunner,
+    executor: Executor,
+    tube: str,
+    feedback: FeedbackResult,
+    starts: Sequence[np.ndarray],
+    inputs: Sequence[np.ndarray],
+    trajectories: Sequence[Trajectory],
+    initial_radii: Sequence[float],
+    quiet: bool,
+) -> tuple[FunnelStageResult, CoverageResult]:
+    """Stages ``funnel`` (one per trajectory, on ``executor``) and ``coverage_funnel`` (Init by
+    the usable funnels' initial ellipsoids ``E_i(0)``, each in its own metric ``P_i[0]``)."""
+    names = [d.name for d in scenario.demos]
+    with progress_bar(len(trajectories), "funnels", quiet) as advance:
+        funnels: FunnelStageResult = runner.run(
+            "funnel",
+            inputs_key(code_key("stages.funnel"), tube, names, *starts, *inputs, initial_radii),
+            lambda: synthesize_funnels(
+                scenario,
+                names,
+                trajectories,
+                feedback.certified_tube.P,
+                np.asarray(initial_radii),
+                executor=executor,
+                progress=advance,
+            ),
+            describe=lambda result: result.message,
         )
-
-
-def _spec_key(scenario: Scenario, *exclude: str) -> str:
-    """A hash of the scenario's parsed values (not the file's bytes), without ``exclude``."""
-    spec = scenario.spec.model_dump(mode="json", exclude={"demos", *exclude})
-    return inputs_key(scenario.name, spec)
+    coverage: CoverageResult = runner.run(
+        "coverage_funnel",
+        inputs_key(code_key("stages.coverage"), tube, runner.digest("funnel"), *starts),
+        lambda: cover_balls(
+            scenario, funnels.starts, np.array(starts), funnels.levels, noun="funnel start"
+        ),
+        describe=describe_coverage,
+    )
+    return funnels, coverage
 
 
 def run_synthesis(
@@ -173,7 +184,8 @@ def run_synthesis(
             found=[],
             expected=f"at least one demo (record one: python -m pipeline record {scenario.name})",
         )
-    _check_period(scenario, options.feedback_period)
+    certificate = run_inputs.certificate_of(scenario, options)
+    run_inputs.check_period(scenario, options.feedback_period, certificate)
     out = (Path(out) if out is not None else default_output_folder(scenario.name)).absolute()
     check_output_folder(out, scenario.name)
     log.info(f"outputs: {out}")
@@ -217,11 +229,11 @@ def _synthesize(
     runner: StageRunner,
     started: float,
 ) -> Synthesis:
-    core = _spec_key(scenario, "description", "stress")  # what the numerical stages read
+    core = run_inputs.spec_key(scenario, "description", "stress")  # what the numerical stages read
     demo_starts = [d.x0 for d in scenario.demos]
     demo_inputs = [d.us for d in scenario.demos]
     demos = inputs_key([d.name for d in scenario.demos], *demo_starts, *demo_inputs)
-    demo_trajectories = _trajectories(scenario, demo_starts, demo_inputs)
+    demo_trajectories = run_inputs.trajectories(scenario, demo_starts, demo_inputs)
     log.info(
         f"scenario {scenario.name}: {len(scenario.demos)} demos, all valid "
         f"(never in Unsafe, end in Goal)\n{demo_table(scenario, demo_trajectories)}\n"
@@ -238,7 +250,7 @@ def _synthesize(
         reason = f"the feedback could not be certified: {feedback.message}"
         return _failed(out, scenario, "feedback", reason)
     if options.feedback_period > 0:
-        feedback, held = _held_feedback(scenario, feedback, options.feedback_period)
+        feedback, held = run_inputs.held_feedback(scenario, feedback, options.feedback_period)
         if not held.success:
             reason = (
                 f"zero-order-hold feedback every {held.period:g} s cannot be certified: the "
@@ -293,7 +305,7 @@ def _synthesize(
         t.u if t.success else d.us
         for t, d in zip(optimized.trajectories, scenario.demos, strict=True)
     ]
-    final_trajectories = _trajectories(scenario, demo_starts, final_inputs)
+    final_trajectories = run_inputs.trajectories(scenario, demo_starts, final_inputs)
     final_radii = runner.run(
         "radius_optimized",
         inputs_key(code_key(*RADIUS_CODE), tube, *demo_starts, *final_inputs),
@@ -307,34 +319,69 @@ def _synthesize(
         describe=describe_coverage,
     )
 
-    usable = [i for i, r in enumerate(final_radii) if r.radius > 0]
     controller_path = out / "controller.json"
-    controller = runner.run(
-        "controller",
-        inputs_key(
-            code_key("stages.controller"),
-            tube,
-            usable,
-            *demo_starts,
-            *final_inputs,
-            [final_radii[i].radius for i in usable],
-            r_required,
-        ),
-        lambda: emit_controller(
-            scenario,
-            feedback.certified_tube.K,
-            feedback.certified_tube.P,
-            feedback.rate,
-            [demo_starts[i] for i in usable],
-            [final_inputs[i] for i in usable],
-            [final_radii[i].radius for i in usable],
-            controller_path,
-            radius_floor=r_required,
-            feedback_period=options.feedback_period,
-        ),
-        rerun=True,  # always written from this run's certified results
-        describe=lambda result: result.message,
-    )
+    certificate = run_inputs.certificate_of(scenario, options)
+    funnels: FunnelStageResult | None = None
+    funnel_coverage: CoverageResult | None = None
+    if certificate == "funnel":
+        # The funnels are asked to hold the constant ball's slice of Init (stage funnel, (I1));
+        # a trajectory without a robustness radius asks for the radius the optimizer kept.
+        initial_radii = [r.radius if r.radius > 0 else r_required for r in final_radii]
+        funnels, funnel_coverage = _funnels(
+            scenario, runner, executor, tube, feedback, demo_starts, final_inputs,
+            final_trajectories, initial_radii, quiet,
+        )  # fmt: skip
+        if not funnels.usable:
+            return _failed(out, scenario, "funnel", f"no funnel certified: {funnels.message}")
+        # A re-optimize round (issue 16 part 4, branch funnel-optimize) goes here: optimize the
+        # nominals against these funnels' time-varying extents, run _funnels again around the
+        # new nominals, and keep the round only when every funnel is re-verified and T
+        # shortens (a few rounds at most); final_inputs, final_trajectories, funnels and
+        # funnel_coverage then hold the kept round. Never emit an unverified round.
+        usable = list(funnels.usable)
+        controller = runner.run(
+            "controller",
+            inputs_key(code_key("stages.controller"), runner.digest("funnel"), usable),
+            lambda: emit_funnel_controller(
+                scenario,
+                [final_trajectories[i] for i in usable],
+                [funnels.funnels[i] for i in usable],
+                controller_path,
+                feedback_period=options.feedback_period,
+            ),
+            rerun=True,  # always written from this run's certified results
+            describe=lambda result: result.message,
+        )
+    elif certificate == "constant":
+        usable = [i for i, r in enumerate(final_radii) if r.radius > 0]
+        controller = runner.run(
+            "controller",
+            inputs_key(
+                code_key("stages.controller"),
+                tube,
+                usable,
+                *demo_starts,
+                *final_inputs,
+                [final_radii[i].radius for i in usable],
+                r_required,
+            ),
+            lambda: emit_controller(
+                scenario,
+                feedback.certified_tube.K,
+                feedback.certified_tube.P,
+                feedback.rate,
+                [demo_starts[i] for i in usable],
+                [final_inputs[i] for i in usable],
+                [final_radii[i].radius for i in usable],
+                controller_path,
+                radius_floor=r_required,
+                feedback_period=options.feedback_period,
+            ),
+            rerun=True,  # always written from this run's certified results
+            describe=lambda result: result.message,
+        )
+    else:
+        raise ValueError(f"certificate {certificate!r}; expected 'constant' or 'funnel'")
     started_certify = time.perf_counter()
     certification = certify_controller(scenario, controller_path)
     certify_seconds = time.perf_counter() - started_certify
@@ -365,7 +412,7 @@ def _synthesize(
             "stress",
             inputs_key(
                 code_key("stages.stress"),
-                _spec_key(scenario, "description"),
+                run_inputs.spec_key(scenario, "description"),
                 file_hash(controller_path),
                 options.seed,
             ),
@@ -387,6 +434,9 @@ def _synthesize(
         controller=controller,
         certification=certification,
         montecarlo=montecarlo,
+        certificate=certificate,
+        funnels=funnels,
+        funnel_coverage=funnel_coverage,
     )
     summary = summarise(
         results,
@@ -402,8 +452,9 @@ def _synthesize(
         inputs_key(
             code_key(*REPORT_CODE),
             scenario.source_hash,
-            _spec_key(scenario),
+            run_inputs.spec_key(scenario),
             [runner.digest(name) for name in REPORT_STAGES],
+            [runner.digest(name) for name in FUNNEL_STAGES if funnels is not None],
             None if stress is None else runner.digest("stress"),
             file_hash(controller_path),
         ),

@@ -17,6 +17,7 @@ from pipeline.io.artifacts import type_name
 from stages.controller import ControllerResult
 from stages.coverage import CoverageResult, CoveringRadius
 from stages.feedback import FeedbackResult
+from stages.funnel import FunnelStageResult
 from stages.montecarlo import MonteCarloResult
 from stages.optimize import OptimizeResult
 from stages.radius import RadiusResult
@@ -29,6 +30,7 @@ STAGE_RESULTS: tuple[type, ...] = (
     CoverageResult,
     CoveringRadius,
     OptimizeResult,
+    FunnelStageResult,
     ControllerResult,
     MonteCarloResult,
     StressResult,

@@ -4,7 +4,9 @@ of every claim (the typed ``Summary`` of ``pipeline.reporting.summary``, written
 
 Claims carry their kind: *certified* (LMI and tube bounds, re-verified on controller.json as
 written), *statistically validated* (Monte Carlo with its bound), *falsification-searched*
-(worst case found by search, no bound).
+(worst case found by search, no bound). The verdict is for the certificate the run shipped
+(``constant`` or ``funnel``); its coverage is that certificate's (the constant balls, or the
+funnels' initial ellipsoids ``E_i(0)``).
 """
 
 from __future__ import annotations
@@ -13,7 +15,7 @@ import platform
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from importlib import metadata
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -45,6 +47,7 @@ if TYPE_CHECKING:  # stage result types: only the orchestrator imports stages
     from stages.controller import ControllerResult
     from stages.coverage import CoverageResult, CoveringRadius
     from stages.feedback import FeedbackResult
+    from stages.funnel import FunnelStageResult
     from stages.montecarlo import MonteCarloResult
     from stages.optimize import OptimizeResult
     from stages.radius import RadiusResult
@@ -75,7 +78,10 @@ def _versions() -> dict[str, str]:
 
 @dataclass(frozen=True, kw_only=True)
 class StageResults:
-    """The stage results a summary is made from (one entry per demo in the sequences)."""
+    """The stage results a summary is made from (one entry per demo in the sequences).
+
+    ``certificate`` is what the run shipped; with ``"funnel"``, ``funnels`` and
+    ``funnel_coverage`` are the funnel stage's result and Init's coverage by its ``E_i(0)``."""
 
     scenario: Scenario
     feedback: FeedbackResult
@@ -90,6 +96,36 @@ class StageResults:
     controller: ControllerResult
     certification: CertificationResult
     montecarlo: MonteCarloResult
+    certificate: str = "constant"
+    funnels: FunnelStageResult | None = None
+    funnel_coverage: CoverageResult | None = None
+
+    def __post_init__(self) -> None:
+        if self.certificate == "funnel":
+            if self.funnels is None or self.funnel_coverage is None:
+                raise ValueError("a funnel run's results need its funnels and their coverage")
+        elif self.certificate != "constant":
+            raise ValueError(f"certificate {self.certificate!r}; expected 'constant' or 'funnel'")
+
+    @property
+    def coverage(self) -> CoverageResult:
+        """Init's coverage by the shipped certificate's initial sets."""
+        if self.funnel_coverage is not None and self.certificate == "funnel":
+            return self.funnel_coverage
+        return self.final_coverage
+
+
+def _funnel_fields(run: StageResults, i: int) -> dict[str, Any]:
+    """Trajectory ``i``'s funnel in ``DemoSummary``'s terms (empty for the constant one)."""
+    if run.funnels is None:
+        return {}
+    funnel = run.funnels.funnels[i]
+    kept = i in run.funnels.usable
+    return {
+        "funnel_level": funnel.rho if kept else 0.0,
+        "funnel_binding": funnel.binding if kept else "dropped",
+        "funnel_seconds": funnel.seconds,
+    }
 
 
 def _demos(run: StageResults) -> tuple[DemoSummary, ...]:
@@ -118,6 +154,7 @@ def _demos(run: StageResults) -> tuple[DemoSummary, ...]:
                 binding_after=radius_after.binding,
                 binding_time_before=radius_before.binding_time,
                 binding_time_after=radius_after.binding_time,
+                **_funnel_fields(run, i),
             )
         )
     return tuple(demos)
@@ -126,17 +163,19 @@ def _demos(run: StageResults) -> tuple[DemoSummary, ...]:
 def _reasons(run: StageResults, demos: Sequence[DemoSummary]) -> tuple[str, ...]:
     """Why the run is not certified and validated (empty when it is)."""
     reasons = []
-    if not run.final_coverage.covered:
-        gap = run.final_coverage.largest_gap()
+    if not run.coverage.covered:
+        gap = run.coverage.largest_gap()
         where = (
             "" if gap is None else f"; record a new demonstration from {np.round(gap, 3).tolist()}"
         )
-        reasons.append(f"coverage gap: {run.final_coverage.message}{where}")
+        reasons.append(f"coverage gap: {run.coverage.message}{where}")
     failed = [d.demo for d in demos if not d.optimized]
     if failed:
         reasons.append(f"not optimized (kept as flown): {', '.join(failed)}")
-    if any(r.radius <= 0 for r in run.final_radii):
+    if run.funnels is None and any(r.radius <= 0 for r in run.final_radii):
         reasons.append("a nominal trajectory has no robustness radius")
+    if run.funnels is not None and not run.funnels.usable:
+        reasons.append(f"no funnel certified: {run.funnels.message}")
     if not run.certification.success:
         reasons.append(run.certification.message)
     if not run.montecarlo.success:
@@ -145,9 +184,54 @@ def _reasons(run: StageResults, demos: Sequence[DemoSummary]) -> tuple[str, ...]
 
 
 def _claims(run: StageResults, certified: bool) -> tuple[Claim, ...]:
-    feedback, check, mc = run.feedback, run.certification, run.montecarlo
+    mc = run.montecarlo
     falsification = mc.falsification
+    return (
+        *_certificate_claims(run, certified),
+        _after_horizon(run, certified),
+        Claim(
+            claim=f"failure probability <= {mc.failure_bound:.2e}",
+            kind=ClaimKind.STATISTICALLY_VALIDATED,
+            how=f"{mc.samples} i.i.d. closed-loop runs from controller.json, "
+            "one-sided 95% Clopper-Pearson bound",
+        ),
+        Claim(
+            claim=f"worst safety margin found {falsification.worst_margin:.3f}"
+            + (f" ({falsification.binding})" if falsification.binding else ""),
+            kind=ClaimKind.FALSIFICATION_SEARCHED,
+            how=f"Init corners, Sobol points and Nelder-Mead ({falsification.evaluations} "
+            "closed-loop runs); evidence, not a bound",
+        ),
+    )
+
+
+def _certificate_claims(run: StageResults, certified: bool) -> tuple[Claim, ...]:
+    """What the certificate proves, "certified" only where the check of controller.json as
+    written (stage ``certify``) proved it."""
+    feedback, check = run.feedback, run.certification
     contraction = ClaimKind.CERTIFIED if check.contraction_margin < 0 else ClaimKind.NOT_ESTABLISHED
+    if run.funnels is not None:
+        dropped = "" if not run.funnels.rejected else f"; {'; '.join(run.funnels.rejected)}"
+        shipped = len(run.funnels.usable)
+        return (
+            Claim(
+                claim=f"each of the {shipped} shipped funnels is invariant: e^T P_i(t) e never "
+                "grows under the time-varying gain K_i[k] while the state is in the funnel",
+                kind=contraction if check.success else ClaimKind.NOT_ESTABLISHED,
+                how=f"LMIs (F3) at every vertex of a sound Jacobian hull of each interval's tube, "
+                "at both ends of every interval, solved by Clarabel; re-verified on "
+                f"controller.json as written (largest eigenvalue {check.contraction_margin:.2e})"
+                f"{dropped}",
+            ),
+            Claim(
+                claim="every start in Init lies in a funnel that avoids Unsafe, keeps the "
+                "inputs and state bounds, and ends in Goal",
+                kind=ClaimKind.CERTIFIED if certified else ClaimKind.NOT_ESTABLISHED,
+                how="funnel levels bounded on a dense grid with a bound between grid points; "
+                f"Init covered by the funnels' initial ellipsoids by box subdivision "
+                f"({run.coverage.message}); both re-verified on controller.json as written",
+            ),
+        )
     return (
         Claim(
             claim=f"contraction at rate {feedback.rate:g} over the operating region",
@@ -163,20 +247,6 @@ def _claims(run: StageResults, certified: bool) -> tuple[Claim, ...]:
             how="robustness radii on a dense grid with a bound between grid points; "
             f"Init covered by box subdivision ({run.final_coverage.message}); both re-verified "
             "on controller.json as written",
-        ),
-        _after_horizon(run, certified),
-        Claim(
-            claim=f"failure probability <= {mc.failure_bound:.2e}",
-            kind=ClaimKind.STATISTICALLY_VALIDATED,
-            how=f"{mc.samples} i.i.d. closed-loop runs from controller.json, "
-            "one-sided 95% Clopper-Pearson bound",
-        ),
-        Claim(
-            claim=f"worst safety margin found {falsification.worst_margin:.3f}"
-            + (f" ({falsification.binding})" if falsification.binding else ""),
-            kind=ClaimKind.FALSIFICATION_SEARCHED,
-            how=f"Init corners, Sobol points and Nelder-Mead ({falsification.evaluations} "
-            "closed-loop runs); evidence, not a bound",
         ),
     )
 
@@ -253,12 +323,15 @@ def summarise(
     written (stage ``certify``) passed and the stages' own results agree."""
     scenario, mc = run.scenario, run.montecarlo
     demos = _demos(run)
-    certified = bool(
-        run.certification.success
-        and run.feedback.success
-        and run.final_coverage.covered
-        and all(r.radius > 0 for r in run.final_radii)
-    )
+    if run.funnels is not None:  # what certify proved on the shipped funnels, and coverage
+        certified = bool(run.certification.success and run.coverage.covered and run.funnels.usable)
+    else:
+        certified = bool(
+            run.certification.success
+            and run.feedback.success
+            and run.final_coverage.covered
+            and all(r.radius > 0 for r in run.final_radii)
+        )
     T_before = np.array([d.T_demo for d in demos])
     T_after = np.array([d.T_optimized for d in demos])
     check = run.certification
@@ -275,9 +348,9 @@ def summarise(
             min_clearance_after=float(min(d.clearance_after for d in demos)),
             required_clearance=scenario.clearance,
             coverage_before=run.demo_coverage.covered_fraction,
-            coverage_after=run.final_coverage.covered_fraction,
+            coverage_after=run.coverage.covered_fraction,
             covered_before=bool(run.demo_coverage.covered),
-            covered_after=bool(run.final_coverage.covered),
+            covered_after=bool(run.coverage.covered),
             montecarlo_samples=mc.samples,
             montecarlo_failures=int(sum(mc.failures.values())),
             failure_bound_95=mc.failure_bound,
@@ -308,6 +381,7 @@ def summarise(
             command=tuple(command),
         ),
         stress=None if stress is None else stress_summary(stress),
+        certificate=run.certificate,
     )
 
 

@@ -87,7 +87,7 @@ def format_result(
     if result.summary is None:  # failed before a summary: the stage and the error
         return result.message
     if quiet:
-        return f"verdict: {result.message}"
+        return f"verdict ({result.summary.certificate} certificate): {result.message}"
     return f"{format_summary(result.summary, scenario)}\n\n{format_outputs(result)}"
 
 
@@ -157,6 +157,8 @@ def format_summary(summary: Summary, scenario: Scenario | None = None) -> str:
     bindings = dict.fromkeys(b for d in summary.demos for b in (d.binding_before, d.binding_after))
     region = summary.feedback.region
     lines += [f"  ({explain_binding(b, scenario, region)})" for b in bindings if b]
+    if summary.certificate == "funnel":
+        lines += _funnel_lines(summary)
     h, mc, fb = summary.headline, summary.montecarlo, summary.feedback
     lines.append(
         f"\nmean duration {h.T_demo_mean:.1f} s -> {h.T_optimized_mean:.1f} s "
@@ -192,8 +194,25 @@ def format_summary(summary: Summary, scenario: Scenario | None = None) -> str:
         )
     if summary.stress is not None:
         lines.append(f"  [stress test, not certified] {summary.stress.message}")
-    lines.append(f"\nverdict: {summary.text}")
+    lines.append(f"\nverdict ({summary.certificate} certificate): {summary.text}")
     return "\n".join(lines)
+
+
+def _funnel_lines(summary: Summary) -> list[str]:
+    """Each optimized trajectory's funnel: its level, what bounds it, its synthesis time."""
+    lines = [
+        "\nfunnels (level rho: E_i(0) holds rho times the constant ball's slice of Init, 1 at"
+        " most; bound by: the constraint that sets it, 'design' when the funnel's own LMI caps"
+        " do, which at level 1 means the slice is held whole; synthesis time):"
+    ]
+    for d in summary.demos:
+        if d.funnel_level is None:
+            continue
+        level = "dropped" if d.funnel_binding == "dropped" else f"{d.funnel_level:.3f}"
+        binding = "" if d.funnel_binding == "dropped" else d.funnel_binding or ""
+        seconds = "" if d.funnel_seconds is None else f"{d.funnel_seconds:.1f} s"
+        lines.append(f"  {d.demo:<9} {level:>7}  {binding:<30} {seconds:>7}")
+    return lines
 
 
 def explain_binding(

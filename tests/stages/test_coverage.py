@@ -1,5 +1,6 @@
 """Stage ``coverage``: known covered and uncovered configurations, 2-D and 3-D Init inside a
-higher-dimensional state, and the lookup table's soundness."""
+higher-dimensional state, one metric per ball (the funnel's initial ellipsoids), and the lookup
+table's soundness."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ from hypothesis import strategies as st
 from shapely.geometry import Point, box
 from shapely.ops import unary_union
 
-from stages.coverage import cover_init, covering_radius
+from stages.coverage import cover_balls, cover_init, covering_radius
 
 
 def init(lower, upper, names=None):
@@ -58,6 +59,53 @@ def test_ellipsoidal_balls_enough_and_too_small():
     short = cover_init(init([0, 0], [2, 1]), SimpleNamespace(P=P), centers, [needed, 0.9 * needed])
     assert not short.covered
     assert np.all(short.uncovered_boxes[:, 0, 0] >= 1.0 - 1e-12)  # gaps only on ball 1's side
+
+
+HALF_SQUARE = np.array([[dx, dy] for dx in (-0.5, 0.5) for dy in (-0.5, 0.5)])
+METRICS = np.array([[[1.0, 0.2], [0.2, 2.0]], [[3.0, -0.8], [-0.8, 0.5]]])  # (2, 2, 2) P_0, P_1
+
+
+def _exact_radii(metrics):
+    """(2,) the smallest radius at which each ball, about (0.5, 0.5) and (1.5, 0.5) in its own
+    metric, holds its half of [0, 2] x [0, 1]: the largest P_i-norm of a half-square corner."""
+    return np.sqrt(np.einsum("vi,kij,vj->kv", HALF_SQUARE, metrics, HALF_SQUARE).max(axis=1))
+
+
+def test_two_balls_with_their_own_metrics_cover_exactly():
+    """Each ball holds exactly its half at its own metric's radius: covered at depth 1, each half
+    by its own ball; the same radii fail when the metrics are swapped, and ball 1 a thousandth
+    short leaves gaps on its side only."""
+    centers = np.array([[0.5, 0.5], [1.5, 0.5]])
+    needed = _exact_radii(METRICS) * (1 + 1e-12)
+    exact = cover_balls(init([0, 0], [2, 1]), METRICS, centers, needed)
+    assert exact.covered and exact.depth == 1 and exact.covered_fraction == 1.0
+    left = exact.boxes[:, 1, 0] <= 1.0  # the boxes of x0 in [0, 1]
+    assert exact.assignment[left].tolist() == [0, 0]  # [0, 1] x [0, 0.5] and [0, 1] x [0.5, 1]
+    assert exact.assignment[~left].tolist() == [1, 1]
+    assert "covered by 2 balls" in exact.message
+    swapped = cover_balls(init([0, 0], [2, 1]), METRICS[::-1], centers, needed, max_depth=4)
+    assert not swapped.covered  # the metrics are read per ball, not one for all
+    short = cover_balls(
+        init([0, 0], [2, 1]), METRICS, centers, needed * [1, 1 - 1e-3], max_depth=6, noun="start"
+    )
+    assert not short.covered and 0.99 < short.covered_fraction < 1.0
+    assert np.all(short.uncovered_boxes[:, 0, 0] >= 1.0 - 1e-12)  # gaps only on ball 1's side
+    assert "not covered" in short.message
+
+
+def test_constant_metric_is_the_same_code_with_p_repeated():
+    P = METRICS[0]
+    centers, radii = np.array([[0.5, 0.5], [1.5, 0.5]]), np.array([0.9, 0.7])
+    constant = cover_init(init([0, 0], [2, 1]), SimpleNamespace(P=P), centers, radii)
+    repeated = cover_balls(init([0, 0], [2, 1]), np.stack([P, P]), centers, radii)
+    np.testing.assert_array_equal(constant.boxes, repeated.boxes)
+    np.testing.assert_array_equal(constant.uncovered_boxes, repeated.uncovered_boxes)
+    assert constant.covered_fraction == repeated.covered_fraction
+
+
+def test_metrics_of_the_wrong_shape():
+    with pytest.raises(ValueError, match=r"metrics of shape \(3, 2, 2\) for 2 balls"):
+        cover_balls(init([0, 0], [1, 1]), np.stack([np.eye(2)] * 3), [[0, 0], [1, 1]], [1, 1])
 
 
 def three_d_case():
@@ -137,6 +185,25 @@ def test_covering_radius_of_two_balls_is_the_half_square_diagonal():
     too_small = covering_radius(init([0, 0], [2, 1]), METRIC, centers, upper=0.6)
     assert not too_small.covered and too_small.radius == np.inf
     assert too_small.kept_radius(0.5) == 0.5 and "do not cover" in too_small.message
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 10_000))
+def test_lookup_table_is_sound_with_one_metric_per_ball(seed):
+    """Every point of a covered box lies in the ball the table assigns to it, in that ball's
+    own metric."""
+    rng = np.random.default_rng(seed)
+    M = rng.normal(size=(5, 2, 2))
+    P = M @ np.swapaxes(M, 1, 2) + 0.3 * np.eye(2)  # (5, 2, 2)
+    centers = rng.uniform(0, 1, size=(5, 2))
+    radii = rng.uniform(0.2, 1.0, size=5)
+    result = cover_balls(init([0, 0], [1, 1]), P, centers, radii, max_depth=5)
+    x = rng.uniform(0, 1, size=(500, 2))
+    ball = result.lookup(x)
+    hit = ball >= 0
+    e = x[hit] - centers[ball[hit]]
+    assert np.all(np.einsum("bi,bij,bj->b", e, P[ball[hit]], e) <= radii[ball[hit]] ** 2 + 1e-12)
+    assert abs(hit.mean() - result.covered_fraction) < 0.1  # 500 samples
 
 
 def test_one_metric_per_ball():

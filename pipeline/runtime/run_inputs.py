@@ -1,0 +1,78 @@
+"""What a run settles before its stages: the certificate it ships, the feedback period checked
+against it, the scenario's parsed values as a cache key, the nominal trajectories simulated, and
+the feedback's tube at the held law's rate. No stage is imported here (only the orchestrator
+imports stages); stage results are read by their fields.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from pipeline.io.artifacts import inputs_key
+from pipeline.io.errors import UserError
+from pipeline.model.scenario import Scenario
+from pipeline.model.simulate import Trajectory, simulate
+from pipeline.numerics.sampled import HeldRate, held_rate
+from pipeline.numerics.verify import VERIFY_SUBSTEPS
+from pipeline.runtime.options import RunOptions
+
+if TYPE_CHECKING:  # stage result types: only the orchestrator imports stages
+    from stages.feedback import FeedbackResult
+
+
+def trajectories(
+    scenario: Scenario, starts: Sequence[np.ndarray], inputs: Sequence[np.ndarray]
+) -> list[Trajectory]:
+    """The nominal of each start ``(n,)`` under its inputs ``(N_i, m)``, on the dense grid the
+    radius and funnel stages bound between samples (``VERIFY_SUBSTEPS``)."""
+    return [
+        simulate(scenario.dynamics, x0, us, scenario.Ts, substeps=VERIFY_SUBSTEPS)
+        for x0, us in zip(starts, inputs, strict=True)
+    ]
+
+
+def held_feedback(
+    scenario: Scenario, feedback: FeedbackResult, period: float
+) -> tuple[FeedbackResult, HeldRate]:
+    """The feedback with its tube at the held law's rate ``lambda_h`` (``--feedback-period``)."""
+    n = len(scenario.state_names)
+    A, B = feedback.vertices[:, :, :n], feedback.vertices[:, :, n:]
+    tube = feedback.certified_tube
+    held = held_rate(tube.P, tube.K, A, B, feedback.rate, period)
+    if not held.success:
+        return feedback, held
+    held_tube = dataclasses.replace(tube, rate=held.held_rate)
+    return dataclasses.replace(feedback, rate=held.held_rate, tube=held_tube), held
+
+
+def check_period(scenario: Scenario, period: float, certificate: str) -> None:
+    """``--feedback-period`` must divide the sampling time (``u_ref`` switches at samples); the
+    funnel certificate is for continuous feedback only."""
+    if period == 0:
+        return
+    if certificate == "funnel":
+        raise UserError(
+            f"--feedback-period: found {period:g} s with the funnel certificate, which holds "
+            "for continuous feedback only; expected 0 (or --certificate constant)"
+        )
+    steps = scenario.Ts / period
+    if steps < 1 - 1e-9 or abs(steps - round(steps)) > 1e-9 * steps:
+        raise UserError(
+            f"--feedback-period: found {period:g} s; expected a period that divides the "
+            f"scenario's sampling_time {scenario.Ts:g} s (e.g. {scenario.Ts / 10:g})"
+        )
+
+
+def certificate_of(scenario: Scenario, options: RunOptions) -> str:
+    """The certificate this run ships: ``--certificate``, else the scenario's."""
+    return options.certificate or scenario.certificate
+
+
+def spec_key(scenario: Scenario, *exclude: str) -> str:
+    """A hash of the scenario's parsed values (not the file's bytes), without ``exclude``."""
+    spec = scenario.spec.model_dump(mode="json", exclude={"demos", *exclude})
+    return inputs_key(scenario.name, spec)

@@ -1,0 +1,192 @@
+"""Stage ``funnel``: a time-varying funnel around each final trajectory (the funnel certificate).
+
+For trajectory ``i`` (``pipeline.numerics.funnel``): gains ``K_i[k] (m, n)`` held on
+``[t_k, t_k+1)``, metrics ``P_i[k] (n, n)`` at ``t_k`` and a level ``rho_i``, certifying that
+every state starting in
+
+    E_i(0) = {x : (x - x0_i)^T P_i[0] (x - x0_i) <= rho_i^2}
+
+stays in the tube ``E_i(t)`` around the nominal, clear of Unsafe, inside the input bounds and
+the scenario's ``state_bounds``, and ends in Goal. Each funnel is asked to hold the part of Init
+that the constant certificate's ball of radius ``r_i`` holds: its slice along Init's free
+directions ``S (n, D)`` (the coverage stage fixes the other states),
+
+    Q_init_i = r_i^2 S (S^T P S)^-1 S^T,                                                    (I1)
+
+``P`` the constant certificate's metric. A funnel that ``pipeline.numerics.funnel_check`` rejects
+(re-checked here with numpy alone, independently of the solver) or whose level is not positive
+is dropped, as a trajectory without a robustness radius is in the constant certificate.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.io.executor import Executor, SerialExecutor
+from pipeline.model.dynamics import FloatArray
+from pipeline.model.scenario import Scenario, load_scenario_cached
+from pipeline.model.simulate import Trajectory
+from pipeline.numerics.funnel import synthesize_funnel
+from pipeline.numerics.funnel_check import Funnel, check_funnel
+
+
+@dataclass(frozen=True, kw_only=True)
+class FunnelStageResult:
+    """The funnels of the final trajectories, one per trajectory in order.
+
+    Attributes:
+      names: the trajectories' names (their demos).
+      funnels: each trajectory's funnel (``Funnel``; a rejected one has ``success`` False).
+      initial_radii: (k,) the constant certificate's radius ``r_i`` whose ball slice (I1) each
+        funnel was asked to hold.
+      usable: indices of the trajectories whose funnel is certified (``success``, ``rho > 0``
+        and the independent check passed); the others are dropped.
+      rejected: one line per dropped trajectory: its name and why.
+    """
+
+    names: tuple[str, ...]
+    funnels: tuple[Funnel, ...] = field(repr=False)
+    initial_radii: FloatArray = field(repr=False)
+    usable: tuple[int, ...]
+    rejected: tuple[str, ...]
+    success: bool
+    message: str
+
+    @property
+    def starts(self) -> FloatArray:
+        """(k, n, n) ``P_i[0]``, the metric of each funnel's initial ellipsoid ``E_i(0)``."""
+        return np.stack([funnel.P[0] for funnel in self.funnels])
+
+    @property
+    def levels(self) -> FloatArray:
+        """(k,) ``rho_i`` of the usable funnels, 0 for dropped ones (they cover nothing)."""
+        return np.array(
+            [f.rho if i in self.usable else 0.0 for i, f in enumerate(self.funnels)], dtype=float
+        )
+
+
+def initial_sets(scenario: Scenario, P: FloatArray, radii: FloatArray) -> FloatArray:
+    """(k, n, n) ``Q_init_i`` of (I1): the slice of the ball ``||e||_P <= r_i`` along Init's
+    free directions, for the metric ``P (n, n)`` and radii ``(k,)``."""
+    P = np.asarray(P, dtype=np.float64)
+    free = np.flatnonzero(np.asarray(scenario.init_upper) > np.asarray(scenario.init_lower))
+    S = np.eye(P.shape[0])[:, free]  # (n, D)
+    Q_slice = S @ np.linalg.solve(S.T @ P @ S, S.T)  # eq. (I1) with r = 1
+    radii = np.asarray(radii, dtype=np.float64).reshape(-1)
+    return radii[:, None, None] ** 2 * Q_slice[None]
+
+
+@dataclass(frozen=True, kw_only=True)
+class _Task:
+    """One funnel for a worker: the scenario (loaded there), the nominal and ``Q_init (n, n)``."""
+
+    path: Path
+    source_hash: str
+    trajectory: Trajectory
+    initial: FloatArray
+    rate: float
+
+
+def _accepted(
+    scenario: Scenario,
+    trajectory: Trajectory,
+    funnel: Funnel,
+    state_bounds: Mapping[str, tuple[float, float]],
+) -> str | None:
+    """None if ``funnel`` certifies its trajectory, else why it is dropped."""
+    if not funnel.success:
+        return funnel.message
+    if not funnel.rho > 0:
+        return f"funnel level {funnel.rho:.3g} is not positive"
+    failure = check_funnel(scenario, trajectory, funnel, state_bounds)
+    return None if failure is None else f"rejected by the independent check: {failure}"
+
+
+def _funnel_in_worker(task: _Task) -> tuple[Funnel, str | None]:
+    scenario = load_scenario_cached(task.path, task.source_hash)
+    bounds = dict(scenario.state_bounds)
+    funnel = synthesize_funnel(
+        scenario, task.trajectory, state_bounds=bounds, initial=task.initial, rate=task.rate
+    )
+    return funnel, _accepted(scenario, task.trajectory, funnel, bounds)
+
+
+def synthesize_funnels(
+    scenario: Scenario,
+    names: Sequence[str],
+    trajectories: Sequence[Trajectory],
+    P: FloatArray,
+    radii: FloatArray,
+    *,
+    rate: float = 0.0,
+    executor: Executor | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> FunnelStageResult:
+    """The funnel of every trajectory on ``executor`` (default: here, in order; the result does
+    not depend on it), each asked to hold the slice (I1) of the constant certificate's ball.
+
+    Args:
+      names: one per trajectory; trajectories: the final nominals (``xs (N_i+1, n)``,
+        ``us (N_i, m)``, their dense grids).
+      P: (n, n) the constant certificate's metric; radii: (k,) its ball radius per trajectory.
+      rate: lambda (1/s) of the funnels' decay (``synthesize_funnel``).
+    """
+    if not (len(names) == len(trajectories) == len(radii)):
+        raise ValueError(
+            f"funnel: {len(names)} names, {len(trajectories)} trajectories and {len(radii)} "
+            "radii; expected one of each per trajectory"
+        )
+    radii = np.asarray(radii, dtype=np.float64).reshape(-1)
+    initial = initial_sets(scenario, P, radii)
+    tasks = [
+        _Task(
+            path=scenario.path,
+            source_hash=scenario.source_hash,
+            trajectory=trajectory,
+            initial=Q_init,
+            rate=rate,
+        )
+        for trajectory, Q_init in zip(trajectories, initial, strict=True)
+    ]
+    executor = executor or SerialExecutor()
+    outcomes = executor.map(
+        _funnel_in_worker, tasks, done=None if progress is None else lambda _i: progress(1)
+    )
+    funnels = tuple(funnel for funnel, _ in outcomes)
+    usable = tuple(i for i, (_, failure) in enumerate(outcomes) if failure is None)
+    rejected = tuple(
+        f"{names[i]} dropped: {failure}" for i, (_, failure) in enumerate(outcomes) if failure
+    )
+    return FunnelStageResult(
+        names=tuple(names),
+        funnels=funnels,
+        initial_radii=radii,
+        usable=usable,
+        rejected=rejected,
+        success=len(usable) == len(funnels),
+        message=_describe(funnels, usable, rejected),
+    )
+
+
+def _describe(funnels: Sequence[Funnel], usable: Sequence[int], rejected: Sequence[str]) -> str:
+    """One line: how many funnels are certified, their levels and times, who was dropped."""
+    seconds = np.array([f.seconds for f in funnels])
+    timing = (
+        f"{seconds.min():.1f} to {seconds.max():.1f} s each ({seconds.sum():.1f} s of work)"
+        if len(seconds)
+        else "none"
+    )
+    if usable:
+        levels = [funnels[i].rho for i in usable]
+        found = (
+            f"funnels certified for {len(usable)} of {len(funnels)} trajectories, levels "
+            f"{min(levels):.3f} to {max(levels):.3f} (1: the constant ball's slice of Init held "
+            f"whole); {timing}"
+        )
+    else:
+        found = f"no funnel certified for any of the {len(funnels)} trajectories; {timing}"
+    return "; ".join([found, *rejected])

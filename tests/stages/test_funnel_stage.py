@@ -1,0 +1,131 @@
+"""Stage ``funnel``: the required initial set (I1), funnels on the shipped double integrator's
+demos that hold it and pass the independent check, a perturbed funnel dropped and said so, and
+the result stored and read back like every stage's."""
+
+from __future__ import annotations
+
+import dataclasses
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+import stages.funnel as funnel_stage
+from pipeline.io.artifacts import read_stored, save_result
+from pipeline.model.scenario import load_scenario
+from pipeline.model.simulate import simulate
+from pipeline.numerics.funnel_check import check_funnel
+from pipeline.numerics.verify import VERIFY_SUBSTEPS
+from pipeline.runtime.registry import RESULT_TYPES
+from stages.feedback import design_feedback
+from stages.funnel import FunnelStageResult, initial_sets, synthesize_funnels
+from stages.radius import robustness_radius
+
+DEMOS = 2  # the first two demos: about 1-2 s per funnel
+
+
+@pytest.fixture(scope="module")
+def inputs():
+    """The shipped double integrator, its first demos' trajectories, the constant certificate's
+    metric ``P (4, 4)`` and each demo's robustness radius."""
+    scenario = load_scenario("double_integrator")
+    tube = design_feedback(scenario).certified_tube
+    trajectories = [
+        simulate(scenario.dynamics, d.x0, d.us, scenario.Ts, substeps=VERIFY_SUBSTEPS)
+        for d in scenario.demos[:DEMOS]
+    ]
+    radii = np.array([robustness_radius(scenario, tube, tr).radius for tr in trajectories])
+    names = [d.name for d in scenario.demos[:DEMOS]]
+    return scenario, names, trajectories, np.asarray(tube.P), radii
+
+
+@pytest.fixture(scope="module")
+def result(inputs):
+    scenario, names, trajectories, P, radii = inputs
+    done = []
+    found = synthesize_funnels(scenario, names, trajectories, P, radii, progress=done.append)
+    assert done == [1] * DEMOS  # one tick per funnel
+    return found
+
+
+def test_initial_set_is_the_balls_slice_along_init():
+    """Init's free directions are x, y: ``Q_init = r^2 S (S^T P S)^-1 S^T`` is zero on the fixed
+    velocities, and a point of the slice on the ball's boundary is on the ellipsoid's."""
+    scenario = SimpleNamespace(init_lower=np.zeros(4), init_upper=np.array([1.0, 1.0, 0.0, 0.0]))
+    rng = np.random.default_rng(1)
+    M = rng.normal(size=(4, 4))
+    P = M @ M.T + np.eye(4)
+    Q = initial_sets(scenario, P, [0.5, 2.0])
+    assert Q.shape == (2, 4, 4)
+    np.testing.assert_array_equal(Q[:, 2:, :], 0.0)
+    np.testing.assert_array_equal(Q[:, :, 2:], 0.0)
+    np.testing.assert_allclose(Q[1], 16 * Q[0], rtol=1e-12)  # r^2 scaling
+    d = np.array([0.3, -0.7, 0.0, 0.0])
+    x = 2.0 * d / np.sqrt(d @ P @ d)  # ||x||_P = r = 2, in the slice
+    assert x[:2] @ np.linalg.solve(Q[1][:2, :2], x[:2]) == pytest.approx(1.0, rel=1e-12)
+    assert x @ P @ x == pytest.approx(4.0, rel=1e-12)
+
+
+def test_funnels_hold_the_required_initial_set(inputs, result):
+    scenario, names, trajectories, P, radii = inputs
+    assert isinstance(result, FunnelStageResult) and result.success
+    assert result.usable == (0, 1) and result.rejected == () and result.names == tuple(names)
+    assert "funnels certified for 2 of 2 trajectories" in result.message
+    initial = initial_sets(scenario, P, radii)
+    rng = np.random.default_rng(0)
+    for i, (funnel, trajectory) in enumerate(zip(result.funnels, trajectories, strict=True)):
+        assert funnel.success and 0 < funnel.rho <= 1
+        assert check_funnel(scenario, trajectory, funnel, scenario.state_bounds) is None
+        # Points on the boundary of the required set (I1) are in E(0) at level 1, so E(0) at
+        # level rho holds rho times the set.
+        w = rng.normal(size=(200, 2))
+        L = np.linalg.cholesky(initial[i][:2, :2])
+        e = np.zeros((200, 4))
+        e[:, :2] = (w / np.linalg.norm(w, axis=1, keepdims=True)) @ L.T
+        assert np.einsum("bi,ij,bj->b", e, funnel.P[0], e).max() <= 1 + 1e-6
+    np.testing.assert_array_equal(result.levels, [f.rho for f in result.funnels])
+    np.testing.assert_array_equal(result.starts, np.stack([f.P[0] for f in result.funnels]))
+    np.testing.assert_array_equal(result.initial_radii, radii)
+
+
+def test_a_funnel_the_check_rejects_is_dropped(inputs, result, monkeypatch):
+    """The second funnel's metric shrunk at one sample: the independent check rejects it, the
+    stage drops it (level 0 for coverage) and names it."""
+    scenario, names, trajectories, P, radii = inputs
+    funnels = iter(result.funnels)
+
+    def perturbed(*_args, **_kwargs):
+        funnel = next(funnels)
+        if funnel is result.funnels[1]:
+            metric = funnel.P.copy()
+            metric[5] *= 0.5
+            return dataclasses.replace(funnel, P=metric)
+        return funnel
+
+    monkeypatch.setattr(funnel_stage, "synthesize_funnel", perturbed)
+    found = synthesize_funnels(scenario, names, trajectories, P, radii)
+    assert found.usable == (0,) and not found.success
+    assert len(found.rejected) == 1 and found.rejected[0].startswith(f"{names[1]} dropped: ")
+    assert "rejected by the independent check" in found.rejected[0]
+    assert found.levels[1] == 0.0 and found.levels[0] == result.funnels[0].rho
+    assert "funnels certified for 1 of 2 trajectories" in found.message
+
+
+def test_mismatched_inputs(inputs):
+    scenario, names, trajectories, P, radii = inputs
+    with pytest.raises(ValueError, match="2 names, 1 trajectories and 2 radii"):
+        synthesize_funnels(scenario, names, trajectories[:1], P, radii)
+
+
+def test_result_is_stored_and_read_back(result, tmp_path):
+    save_result(tmp_path / "funnel", "key", result)
+    stored = read_stored(tmp_path / "funnel", RESULT_TYPES)
+    assert stored is not None and stored.key == "key"
+    back = stored.result
+    assert isinstance(back, FunnelStageResult) and back.usable == result.usable
+    for a, b in zip(back.funnels, result.funnels, strict=True):
+        np.testing.assert_array_equal(a.P, b.P)
+        np.testing.assert_array_equal(a.K, b.K)
+        assert a.rho == b.rho and dict(a.limits) == dict(b.limits)
+        assert len(a.vertices) == len(b.vertices)
+        np.testing.assert_array_equal(a.enclosure.range, b.enclosure.range)
