@@ -76,6 +76,7 @@ class DemoSummary:
     funnel_level: float | None = None  # the funnel certificate: rho of the optimized one
     funnel_binding: str | None = None  # the constraint that sets it (None: no funnel)
     funnel_seconds: float | None = None  # its synthesis wall time
+    T_constant: float | None = None  # a funnel run: the constant certificate's optimized T
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -26,6 +26,8 @@ outcome is the returned ``Synthesis``; the command line prints both.
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 import logging
 import os
 import sys
@@ -78,7 +80,13 @@ from stages.coverage import (
 from stages.feedback import FeedbackResult, design_feedback
 from stages.funnel import FunnelStageResult, synthesize_funnels
 from stages.montecarlo import validate_closed_loop
-from stages.optimize import ConstraintMargins, OptimizeOptions, OptimizeResult, optimize
+from stages.optimize import (
+    ConstraintMargins,
+    OptimizeOptions,
+    OptimizeResult,
+    optimize,
+    reoptimize_with_funnels,
+)
 from stages.radius import RadiusResult, robustness_radius
 from stages.report import ReportResult, write_reports
 from stages.stress import stress_test
@@ -99,6 +107,7 @@ REPORT_STAGES = (  # the controller's result is the file itself, keyed by its ha
     "montecarlo",
 )
 FUNNEL_STAGES = ("funnel", "coverage_funnel")  # with the funnel certificate
+FUNNEL_ROUNDS = 2  # re-optimize rounds against the funnels at most (issue 16 part 4)
 
 
 def _radii(
@@ -133,13 +142,15 @@ def _funnels(
     trajectories: Sequence[Trajectory],
     initial_radii: Sequence[float],
     quiet: bool,
+    stage: str = "funnel",
 ) -> tuple[FunnelStageResult, CoverageResult]:
-    """Stages ``funnel`` (one per trajectory, on ``executor``) and ``coverage_funnel`` (Init by
-    the usable funnels' initial ellipsoids ``E_i(0)``, each in its own metric ``P_i[0]``)."""
+    """Stages ``stage`` (``funnel`` or ``funnel_k`` in re-optimize round k: one funnel per
+    trajectory, on ``executor``) and ``coverage_<stage>`` (Init by the usable funnels' initial
+    ellipsoids ``E_i(0)``, each in its own metric ``P_i[0]``)."""
     names = [d.name for d in scenario.demos]
     with progress_bar(len(trajectories), "funnels", quiet) as advance:
         funnels: FunnelStageResult = runner.run(
-            "funnel",
+            stage,
             inputs_key(code_key("stages.funnel"), tube, names, *starts, *inputs, initial_radii),
             lambda: synthesize_funnels(
                 scenario,
@@ -153,14 +164,95 @@ def _funnels(
             describe=lambda result: result.message,
         )
     coverage: CoverageResult = runner.run(
-        "coverage_funnel",
-        inputs_key(code_key("stages.coverage"), tube, runner.digest("funnel"), *starts),
+        f"coverage_{stage}",
+        inputs_key(code_key("stages.coverage"), tube, runner.digest(stage), *starts),
         lambda: cover_balls(
             scenario, funnels.starts, np.array(starts), funnels.levels, noun="funnel start"
         ),
         describe=describe_coverage,
     )
     return funnels, coverage
+
+
+def _reoptimize_rounds(
+    scenario: Scenario,
+    runner: StageRunner,
+    executor: Executor,
+    tube: str,
+    feedback: FeedbackResult,
+    optimized: OptimizeResult,
+    starts: Sequence[np.ndarray],
+    inputs: list[np.ndarray],
+    trajectories: list[Trajectory],
+    funnels: FunnelStageResult,
+    coverage: CoverageResult,
+    initial_radii: Sequence[float],
+    options: OptimizeOptions,
+    quiet: bool,
+) -> tuple[list[np.ndarray], list[Trajectory], FunnelStageResult, CoverageResult]:
+    """The alternation of issue 16 part 4: optimize the nominals against the current funnels'
+    time-varying extents (stage ``reoptimize_k``), synthesize and check new funnels around them
+    (``funnel_k``, ``coverage_funnel_k``), and keep round k only when it covers Init at least as
+    well and its total T is shorter; stop at the first round that does not, or after
+    ``FUNNEL_ROUNDS``. Returns the kept round's inputs, trajectories, funnels and coverage (a
+    round is never kept unverified: its funnels passed ``check_funnel`` in their stage)."""
+    previous = list(optimized.trajectories)
+    for k in range(1, FUNNEL_ROUNDS + 1):
+        previous = [
+            dataclasses.replace(t, u=u, N=len(u)) for t, u in zip(previous, inputs, strict=True)
+        ]
+        with progress_bar(len(previous), f"round {k}: optimized again", quiet) as advance:
+            again: OptimizeResult = runner.run(
+                f"reoptimize_{k}",
+                inputs_key(
+                    code_key("stages.optimize"),
+                    runner.digest(_round_stage(k - 1)),
+                    *inputs,
+                    repr(options),
+                ),  # fmt: skip
+                functools.partial(
+                    reoptimize_with_funnels,
+                    scenario,
+                    previous,
+                    funnels.funnels,
+                    options,
+                    executor,
+                    advance,
+                ),  # fmt: skip
+                describe=lambda result: result.message,
+            )
+        new_inputs = [
+            t.u if t.success else u for t, u in zip(again.trajectories, inputs, strict=True)
+        ]
+        if not any(t.success for t in again.trajectories):
+            log.info(f"[round {k}] no trajectory optimized again: the previous funnels are kept")
+            break
+        new_trajectories = run_inputs.trajectories(scenario, starts, new_inputs)
+        new_funnels, new_coverage = _funnels(
+            scenario, runner, executor, tube, feedback, starts, new_inputs,
+            new_trajectories, initial_radii, quiet, stage=_round_stage(k),
+        )  # fmt: skip
+        before = sum(trajectories[i].duration for i in funnels.usable)
+        after = sum(new_trajectories[i].duration for i in new_funnels.usable)
+        shorter = after < before and len(new_funnels.usable) >= len(funnels.usable)
+        if not (shorter and new_coverage.covered_fraction >= coverage.covered_fraction):
+            log.info(
+                f"[round {k}] not kept: total T {after:.2f} s against {before:.2f} s, Init "
+                f"{100 * new_coverage.covered_fraction:.1f}% covered against "
+                f"{100 * coverage.covered_fraction:.1f}%; the previous funnels are kept"
+            )
+            break
+        log.info(f"[round {k}] kept: total T {before:.2f} s -> {after:.2f} s")
+        inputs, trajectories, funnels, coverage = (
+            new_inputs, new_trajectories, new_funnels, new_coverage
+        )  # fmt: skip
+        previous = list(again.trajectories)
+    return inputs, trajectories, funnels, coverage
+
+
+def _round_stage(k: int) -> str:
+    """The funnel stage of re-optimize round ``k`` (0: the first funnels)."""
+    return "funnel" if k == 0 else f"funnel_{k}"
 
 
 def run_synthesis(
@@ -323,6 +415,7 @@ def _synthesize(
     certificate = run_inputs.certificate_of(scenario, options)
     funnels: FunnelStageResult | None = None
     funnel_coverage: CoverageResult | None = None
+    constant_trajectories: list[Trajectory] | None = None
     if certificate == "funnel":
         # The funnels are asked to hold the constant ball's slice of Init (stage funnel, (I1));
         # a trajectory without a robustness radius asks for the radius the optimizer kept.
@@ -333,11 +426,11 @@ def _synthesize(
         )  # fmt: skip
         if not funnels.usable:
             return _failed(out, scenario, "funnel", f"no funnel certified: {funnels.message}")
-        # A re-optimize round (issue 16 part 4, branch funnel-optimize) goes here: optimize the
-        # nominals against these funnels' time-varying extents, run _funnels again around the
-        # new nominals, and keep the round only when every funnel is re-verified and T
-        # shortens (a few rounds at most); final_inputs, final_trajectories, funnels and
-        # funnel_coverage then hold the kept round. Never emit an unverified round.
+        constant_trajectories = final_trajectories
+        final_inputs, final_trajectories, funnels, funnel_coverage = _reoptimize_rounds(
+            scenario, runner, executor, tube, feedback, optimized, demo_starts, final_inputs,
+            final_trajectories, funnels, funnel_coverage, initial_radii, optimize_options, quiet,
+        )  # fmt: skip
         usable = list(funnels.usable)
         controller = runner.run(
             "controller",
@@ -437,6 +530,7 @@ def _synthesize(
         certificate=certificate,
         funnels=funnels,
         funnel_coverage=funnel_coverage,
+        constant_trajectories=constant_trajectories,
     )
     summary = summarise(
         results,

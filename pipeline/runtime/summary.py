@@ -11,6 +11,7 @@ funnels' initial ellipsoids ``E_i(0)``).
 
 from __future__ import annotations
 
+import dataclasses
 import platform
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -99,6 +100,9 @@ class StageResults:
     certificate: str = "constant"
     funnels: FunnelStageResult | None = None
     funnel_coverage: CoverageResult | None = None
+    # a funnel run: the constant certificate's optimized nominals (final_trajectories are the
+    # shipped ones, re-optimized against the funnels)
+    constant_trajectories: Sequence[Trajectory] | None = None
 
     def __post_init__(self) -> None:
         if self.certificate == "funnel":
@@ -121,7 +125,15 @@ def _funnel_fields(run: StageResults, i: int) -> dict[str, Any]:
         return {}
     funnel = run.funnels.funnels[i]
     kept = i in run.funnels.usable
+    shipped = run.final_trajectories[i]
+    positions = run.scenario.positions(shipped.dense_xs)
+    clearance = min(
+        float(np.min(geometry.distance(positions, u))) for u in run.scenario.unsafe.values()
+    )
+    constant = run.constant_trajectories
     return {
+        "clearance_after": clearance,  # the shipped nominal's, not the constant one's
+        "T_constant": None if constant is None else constant[i].duration,
         "funnel_level": funnel.rho if kept else 0.0,
         "funnel_binding": funnel.binding if kept else "dropped",
         "funnel_seconds": funnel.seconds,
@@ -147,16 +159,16 @@ def _demos(run: StageResults) -> tuple[DemoSummary, ...]:
                 horizons_tried=len(opt.tries),
                 seconds=opt.seconds,
                 clearance_before=radius_before.nominal_clearance,
-                clearance_after=radius_after.nominal_clearance,
+                clearance_after=radius_after.nominal_clearance,  # the shipped one's: below
                 radius_before=radius_before.radius,
                 radius_after=radius_after.radius,
                 binding_before=radius_before.binding,
                 binding_after=radius_after.binding,
                 binding_time_before=radius_before.binding_time,
                 binding_time_after=radius_after.binding_time,
-                **_funnel_fields(run, i),
             )
         )
+        demos[-1] = dataclasses.replace(demos[-1], **_funnel_fields(run, i))
     return tuple(demos)
 
 
