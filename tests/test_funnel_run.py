@@ -78,6 +78,27 @@ def test_funnel_run_ships_a_certified_safety_controller_2(funnel_run):
     assert (result.outputs.artifacts / "funnel.json").is_file()
 
 
+def test_the_nominals_are_optimized_again_against_the_funnels(funnel_run):
+    """Issue 16 part 4: round 1 re-optimizes against the funnels' extents; a kept round shortens
+    the total T, and the shipped nominals are the kept round's."""
+    result, lines = funnel_run
+    assert any(line.startswith("[reoptimize_1] ") for line in lines)
+    assert any(line.startswith("[funnel_1] ") for line in lines)
+    rounds = [line for line in lines if line.startswith("[round ")]
+    assert rounds, "every round says whether it was kept"
+    demos = result.summary.demos
+    constant = sum(d.T_constant for d in demos)
+    shipped = sum(d.T_optimized for d in demos)
+    controller = load(result.outputs.controller)
+    assert sorted(tr.t[-1] for tr in controller.trajectories) == pytest.approx(
+        sorted(d.T_optimized for d in demos)
+    )
+    if any("kept: total T" in line for line in rounds):
+        assert shipped < constant
+    else:
+        assert shipped == pytest.approx(constant)
+
+
 def test_the_claims_say_which_certificate_and_what_certify_proved(funnel_run):
     result, _ = funnel_run
     claims = {claim.claim: claim.kind for claim in result.claims}

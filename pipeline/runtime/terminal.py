@@ -147,6 +147,14 @@ def format_summary(summary: Summary, scenario: Scenario | None = None) -> str:
         " r: robustness radius, the largest tube that stays safe, in the P-norm (no unit);"
         " time: optimization wall time)"
     )
+    if summary.certificate == "funnel":
+        constant = [d.T_constant for d in summary.demos if d.T_constant is not None]
+        if constant:
+            lines.append(
+                f"(funnel run: T opt and clear after are the shipped nominals'; r and the limits"
+                f" below are the constant certificate's, on its own optimized nominals, T "
+                f"{min(constant):.1f}-{max(constant):.1f} s)"
+            )
     lines.append(
         "\nradius limited by (the constraint the tube touches first; demonstration -> optimized):"
     )
