@@ -3,6 +3,10 @@
 (a) One flight (the first shipped demo, else a 100-sample hover input): fixed-step RK4
     (``pipeline.model.simulate.simulate``) against ``solve_ivp`` (``simulate_reference``).
 (b) 10,000 initial states simulated as one batch against 100 simulated one at a time, per state.
+(c) The same flight as (a), one trajectory (``x0 (n,)``: RK4 on scalars) against a batch of one
+    (``x0 (1, n)``: ``rk4_step`` on arrays, ``f`` through ``np.moveaxis``, the path every
+    one-trajectory call took before), and whether their states are bitwise equal.
+(d) ``Dynamics.f`` at one point ``x (n,)`` against the same point as a batch ``(1, n)``.
 """
 
 from __future__ import annotations
@@ -44,6 +48,15 @@ def run() -> None:
         / ONE_AT_A_TIME
     )
 
+    one = best_time(lambda: simulate(D, x0, us, Ts), repeat=5)
+    batch_of_one = best_time(lambda: simulate(D, x0[None], us[None], Ts), repeat=3)
+    equal = np.array_equal(
+        simulate(D, x0, us, Ts).dense_xs, simulate(D, x0[None], us[None], Ts).dense_xs[0]
+    )
+    point, inputs = x0, us[0]
+    f_point = best_time(lambda: D.f(point, inputs), repeat=5, number=2000)
+    f_batch = best_time(lambda: D.f(point[None], inputs[None]), repeat=5, number=2000)
+
     print(
         f"quadrotor_hill, {label}: N = {N} samples of Ts = {Ts:g} s, RK4 substeps = "
         f"{DEFAULT_SUBSTEPS}; best of repeated runs"
@@ -57,6 +70,8 @@ def run() -> None:
             f"{ONE_AT_A_TIME} one at a time",
             single,
         ),
+        ("(c) one flight", "x0 (n,): scalars", one, "x0 (1, n): arrays, moveaxis", batch_of_one),
+        ("(d) f at one point", "x (n,)", f_point, "x (1, n)", f_batch),
     ]
     print(
         f"{'measurement':<22} {'fast path':<16} {'time':>10}   {'slow path':<29} "
@@ -64,10 +79,11 @@ def run() -> None:
     )
     for name, fast_label, fast, slow_label, slow in rows:
         print(
-            f"{name:<22} {fast_label:<16} {_ms(fast):>10}   {slow_label:<29} {_ms(slow):>10}"
-            f"   {slow / fast:>7.1f}x"
+            f"{name:<22} {fast_label:<16} {_duration(fast):>10}   {slow_label:<29} "
+            f"{_duration(slow):>10}   {slow / fast:>7.1f}x"
         )
+    print(f"(c) states bitwise equal: {'yes' if equal else 'NO'}")
 
 
-def _ms(seconds: float) -> str:
-    return f"{seconds * 1e3:.3f} ms"
+def _duration(seconds: float) -> str:
+    return f"{seconds * 1e3:.3f} ms" if seconds >= 1e-3 else f"{seconds * 1e6:.2f} us"

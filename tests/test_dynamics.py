@@ -2,10 +2,13 @@
 
 For every shipped scenario, ``f_x`` and ``f_u`` at random points must match
 ``(f(x + h e_j, u) - f(x - h e_j, u)) / 2h`` (error O(h^2)), on batches of points at once.
+At one point (``x (n,)``, ``u (m,)``) ``f``, ``f_x``, ``f_u`` and ``f_scalars`` take a short path
+that must give bitwise the numbers of the batch code (``np.moveaxis`` of the point into scalars).
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from functools import cache
 
 import numpy as np
@@ -16,6 +19,7 @@ from hypothesis import strategies as st
 
 from pipeline import available_scenarios, load_scenario
 from pipeline.model.dynamics import Dynamics, FloatArray
+from pipeline.model.expressions import ALLOWED_FUNCTIONS
 
 SCENARIOS = available_scenarios()
 
@@ -167,3 +171,82 @@ def test_constant_expressions_broadcast() -> None:
     assert D.f_x(x, u).shape == (5, 2, 2) and D.f_u(x, u).shape == (5, 2, 1)
     np.testing.assert_array_equal(D.sparsity_x, [[False, False], [True, False]])
     np.testing.assert_array_equal(D.sparsity_u, [[False], [True]])
+
+
+def every_function_dynamics() -> Dynamics:
+    """Three states, two inputs; every function a scenario may use, powers; damped, so that
+    flights of a few seconds from the unit box stay bounded."""
+    a, b, c = sympy.symbols("a b c", real=True)
+    p, q = sympy.symbols("p q", real=True)
+    F = ALLOWED_FUNCTIONS
+    f = [
+        -a + 0.2 * a**2 * F["sin"](b) * p + F["cos"](c) / (2 + b**2),
+        -b + F["exp"](-(c**2)) + F["sqrt"](1 + a**2) * q - 0.1 * b**3 + 0.2 * F["tan"](0.3 * a),
+        -c
+        + F["tanh"](a * b)
+        + F["atan"](c)
+        + F["atan2"](b, a + 3)
+        - F["log"](2 + c**2)
+        + 0.1 * F["abs"](b) * b * p**2
+        - 0.1 * sympy.pi * q,
+    ]
+    return Dynamics.from_expressions([a, b, c], [p, q], f)
+
+
+def batch_code(
+    dynamics: Dynamics, entries: Sequence[sympy.Expr] | None = None
+) -> Callable[[FloatArray, FloatArray], FloatArray]:
+    """The oracle: ``entries`` (default ``f``'s) at one point as the batch code computes them
+    (``np.moveaxis`` of ``x (n,)``, ``u (m,)`` into scalars, the values copied into an array)."""
+    entries = list(dynamics.expressions if entries is None else entries)
+    args = (*dynamics.state_symbols, *dynamics.input_symbols)
+    compiled = sympy.lambdify(list(args), entries, modules="numpy", cse=True)
+
+    def evaluate(x: FloatArray, u: FloatArray) -> FloatArray:
+        out = np.empty(len(entries))
+        for i, value in enumerate(compiled(*np.moveaxis(x, -1, 0), *np.moveaxis(u, -1, 0))):
+            out[i] = value
+        return out
+
+    return evaluate
+
+
+def test_every_function_dynamics_is_what_it_says() -> None:
+    D = every_function_dynamics()
+    names = {type(e).__name__.lower() for f in D.expressions for e in sympy.preorder_traversal(f)}
+    assert {"sin", "cos", "tan", "exp", "log", "tanh", "atan", "atan2", "abs", "pow"} <= names
+    assert D.f(np.zeros(3), np.zeros(2)).shape == (3,)
+
+
+@pytest.mark.parametrize("name", [*SCENARIOS, "every_function"])
+def test_one_point_is_bitwise_the_batch_code(name: str) -> None:
+    """``f``, ``f_x``, ``f_u`` and ``f_scalars`` at 300 single points: exactly the numbers of
+    the batch code (the oracle) at each."""
+    if name == "every_function":
+        D = every_function_dynamics()
+        rng = np.random.default_rng(3)
+        x, u = rng.uniform(-2.0, 2.0, (300, D.n)), rng.uniform(-2.0, 2.0, (300, D.m))
+    else:
+        D = load_scenario(name, check_demos=False).dynamics
+        x, u = random_points(load_scenario(name, check_demos=False), 300, seed=3)
+    f, f_x, f_u = batch_code(D), batch_code(D, D.jacobian_x), batch_code(D, D.jacobian_u)
+    for a, b in zip(x, u, strict=True):
+        expected = f(a, b)
+        assert np.array_equal(D.f(a, b), expected), (a, b, D.f(a, b) - expected)
+        assert np.array_equal(np.array(D.f_scalars(list(a), list(b)), dtype=np.float64), expected)
+        assert np.array_equal(D.f_x(a, b), f_x(a, b).reshape(D.n, D.n))
+        assert np.array_equal(D.f_u(a, b), f_u(a, b).reshape(D.n, D.m))
+        assert D.f(a, b).dtype == np.float64 and D.f(a, b).shape == (D.n,)
+    # The points are not all alike (the comparison is not between constants).
+    assert np.ptp(D.f(x, u), axis=0).max() > 0.1
+
+
+def test_one_point_constant_entries() -> None:
+    """Constant entries come back from the one-point path as float64 (lambdify returns ints)."""
+    a, b, c = sympy.symbols("a b c", real=True)
+    D = Dynamics.from_expressions([a, b], [c], [sympy.Integer(1), a * c])
+    x, u = np.array([2.0, 0.0]), np.array([3.0])
+    assert D.f(x, u).dtype == np.float64
+    np.testing.assert_array_equal(D.f(x, u), [1.0, 6.0])
+    np.testing.assert_array_equal(D.f_x(x, u), [[0.0, 0.0], [3.0, 0.0]])
+    np.testing.assert_array_equal(D.f_u(x, u), [[0.0], [2.0]])

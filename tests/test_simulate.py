@@ -2,17 +2,22 @@
 
 Inputs are held on ``[k Ts, (k+1) Ts)``. RK4's global error is ``C h^4``, so halving the step
 ``h = Ts / substeps`` divides the error by 16: the observed order ``log2(e_h / e_{h/2})`` is ~4.
+One trajectory (``x0 (n,)``, ``us (N, m)``) runs on scalars: bitwise the numbers of ``rk4_step``
+on ``(n,)`` arrays with ``f`` through the batch code (``tests.test_dynamics.batch_code``).
 """
 
 from __future__ import annotations
 
+import dataclasses
 from functools import cache
 
 import numpy as np
 import pytest
 
-from pipeline import ScenarioError, load_scenario
-from pipeline.model.simulate import simulate, simulate_reference
+from pipeline import ScenarioError, available_scenarios, load_scenario
+from pipeline.model.dynamics import Dynamics
+from pipeline.model.simulate import rk4_step, simulate, simulate_reference
+from tests.test_dynamics import batch_code, every_function_dynamics
 
 
 @cache
@@ -133,3 +138,60 @@ def test_rk4_observed_order_is_four() -> None:
     )
     orders = np.log2(errors[:-1] / errors[1:])
     assert np.all((orders > 3.5) & (orders < 4.5)), f"errors {errors}, observed orders {orders}"
+
+
+def array_rk4(dynamics: Dynamics, x0: np.ndarray, us: np.ndarray, Ts: float, s: int) -> np.ndarray:
+    """The oracle: ``rk4_step`` on ``(n,)`` arrays, ``f`` through the batch code; -> (N*s+1, n)."""
+    D = dataclasses.replace(dynamics, _f=batch_code(dynamics))
+    x, dense = np.array(x0, dtype=np.float64), [np.array(x0, dtype=np.float64)]
+    for u in us:
+        for _ in range(s):
+            x = rk4_step(D, x, u, Ts / s)
+            dense.append(x)
+    return np.array(dense)
+
+
+def _flights(name: str) -> tuple[Dynamics, float, list[tuple[np.ndarray, np.ndarray]]]:
+    """A scenario's dynamics, Ts and flights: its shipped demos and two random input sequences
+    (the every-function dynamics: four random flights)."""
+    rng = np.random.default_rng(5)
+    if name == "every_function":
+        D, Ts = every_function_dynamics(), 0.05
+        return D, Ts, [(rng.uniform(-1, 1, 3), rng.uniform(-1, 1, (40, 2))) for _ in range(4)]
+    scenario = load_scenario(name)
+    flights = [(d.x0, d.us) for d in scenario.demos]
+    for _ in range(2):
+        x0 = rng.uniform(scenario.init_lower, scenario.init_upper)
+        flights.append((x0, rng.uniform(scenario.input_lower, scenario.input_upper, (60, 2))))
+    return scenario.dynamics, scenario.Ts, flights
+
+
+@pytest.mark.parametrize("name", [*available_scenarios(), "every_function"])
+def test_one_trajectory_is_bitwise_rk4_step_on_arrays(name: str) -> None:
+    """Every shipped demo (and random flights) at 1, 3 and 4 substeps: ``simulate``'s states on
+    the whole RK4 grid equal the array RK4's bit for bit."""
+    D, Ts, flights = _flights(name)
+    assert len(flights) >= 4
+    for x0, us in flights:
+        for s in (1, 3, 4):
+            trajectory = simulate(D, x0, us, Ts, substeps=s)
+            expected = array_rk4(D, x0, us, Ts, s)
+            assert trajectory.dense_xs.dtype == np.float64
+            assert np.array_equal(trajectory.dense_xs, expected), np.abs(
+                trajectory.dense_xs - expected
+            ).max()
+            np.testing.assert_array_equal(trajectory.xs, expected[::s])
+            assert np.ptp(expected, axis=0).max() > 0.1  # the flight moves
+
+
+def test_one_trajectory_edge_shapes() -> None:
+    """No input samples: just ``x0``; a list ``x0`` counts as one trajectory."""
+    scenario = quadrotor()
+    empty = simulate(scenario.dynamics, X0, np.zeros((0, 2)), scenario.Ts)
+    assert empty.xs.shape == empty.dense_xs.shape == (1, 6) and empty.us.shape == (0, 2)
+    np.testing.assert_array_equal(empty.xs[0], X0)
+    us = hover_inputs(3, scenario.Ts)
+    listed = simulate(scenario.dynamics, X0.tolist(), us.tolist(), scenario.Ts)
+    np.testing.assert_array_equal(
+        listed.dense_xs, simulate(scenario.dynamics, X0, us, scenario.Ts).dense_xs
+    )

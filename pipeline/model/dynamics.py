@@ -19,23 +19,30 @@ FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
 
 
+def _compiled(entries: Sequence[sympy.Expr], args: Sequence[sympy.Symbol]) -> Callable[..., list]:
+    """The expressions as one NumPy function of the scalars ``(*x, *u)`` -> list of the values."""
+    return sympy.lambdify(list(args), list(entries), modules="numpy", cse=True)
+
+
 def _vectorised(
-    entries: Sequence[sympy.Expr], args: Sequence[sympy.Symbol], n_state: int
+    compiled: Callable[..., list], count: int
 ) -> Callable[[FloatArray, FloatArray], FloatArray]:
-    """NumPy function ``(x (..., n), u (..., m)) -> (..., len(entries))`` of the expressions."""
-    compiled = sympy.lambdify(list(args), list(entries), modules="numpy", cse=True)
+    """NumPy function ``(x (..., n), u (..., m)) -> (..., count)`` of ``compiled``'s values."""
 
     def evaluate(x: FloatArray, u: FloatArray) -> FloatArray:
         x = np.asarray(x, dtype=np.float64)
         u = np.asarray(u, dtype=np.float64)
+        if x.ndim == 1 and u.ndim == 1:
+            # One point: the same np.float64 scalars as the batch path below passes for (n,)
+            # and (m,), hence the same numbers, without its moveaxis and broadcast (~5x faster).
+            return np.array(compiled(*x, *u), dtype=np.float64)
         batch = np.broadcast_shapes(x.shape[:-1], u.shape[:-1])
         values = compiled(*np.moveaxis(x, -1, 0), *np.moveaxis(u, -1, 0))
-        out = np.empty((*batch, len(entries)))
+        out = np.empty((*batch, count))
         for i, value in enumerate(values):
             out[..., i] = value
         return out
 
-    del n_state
     return evaluate
 
 
@@ -62,6 +69,7 @@ class Dynamics:
     _f: Callable[[FloatArray, FloatArray], FloatArray] = field(repr=False)
     _f_x: Callable[[FloatArray, FloatArray], FloatArray] = field(repr=False)
     _f_u: Callable[[FloatArray, FloatArray], FloatArray] = field(repr=False)
+    _f_scalars: Callable[..., list] = field(repr=False)
 
     @classmethod
     def from_expressions(
@@ -77,6 +85,7 @@ class Dynamics:
         jac_x = f.jacobian(sympy.Matrix(xs))
         jac_u = f.jacobian(sympy.Matrix(us))
         args = (*xs, *us)
+        f_scalars = _compiled(list(f), args)
         return cls(
             state_names=tuple(s.name for s in xs),
             input_names=tuple(s.name for s in us),
@@ -89,9 +98,10 @@ class Dynamics:
             sparsity_u=np.array([[entry != 0 for entry in row] for row in jac_u.tolist()]).reshape(
                 n, m
             ),
-            _f=_vectorised(list(f), args, n),
-            _f_x=_vectorised(list(jac_x), args, n),
-            _f_u=_vectorised(list(jac_u), args, n),
+            _f=_vectorised(f_scalars, n),
+            _f_x=_vectorised(_compiled(list(jac_x), args), n * n),
+            _f_u=_vectorised(_compiled(list(jac_u), args), n * m),
+            _f_scalars=f_scalars,
         )
 
     @property
@@ -105,6 +115,11 @@ class Dynamics:
     def f(self, x: FloatArray, u: FloatArray) -> FloatArray:
         """Vector field: ``x (..., n)``, ``u (..., m)`` -> ``(..., n)``."""
         return self._f(x, u)
+
+    def f_scalars(self, x: Sequence[np.float64], u: Sequence[np.float64]) -> list:
+        """The vector field at one point on scalars: ``n`` and ``m`` np.float64 -> ``n`` values,
+        the numbers ``f`` returns for ``x (n,)``, ``u (m,)`` (for RK4 along one trajectory)."""
+        return self._f_scalars(*x, *u)
 
     def f_x(self, x: FloatArray, u: FloatArray) -> FloatArray:
         """State Jacobian ``df/dx``: -> ``(..., n, n)``."""

@@ -3,8 +3,10 @@
 The input is held on each sample interval: ``u(t) = u[k]`` for ``k Ts <= t < (k+1) Ts`` (the
 paper's joystick samples, §IV-A). The continuous model is integrated, never replaced by a
 discrete one: ``simulate`` uses fixed-step RK4 with ``substeps`` steps per interval (batched over
-any leading axes), ``simulate_reference`` uses ``scipy.integrate.solve_ivp`` restarted at every
-sample boundary (the input is discontinuous there) with tight tolerances.
+any leading axes; one trajectory runs the same steps on scalars: bitwise the numbers ``rk4_step``
+gives on ``(n,)`` arrays, without their per-step overheads),
+``simulate_reference`` uses ``scipy.integrate.solve_ivp`` restarted at every sample boundary (the
+input is discontinuous there) with tight tolerances.
 """
 
 from __future__ import annotations
@@ -55,6 +57,35 @@ def rk4_step(dynamics: Dynamics, x: FloatArray, u: FloatArray, h: float) -> Floa
     return x + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
 
 
+def _rk4_one(
+    dynamics: Dynamics, x0: FloatArray, us: FloatArray, h: float, substeps: int
+) -> FloatArray:
+    """``rk4_step`` along one trajectory on np.float64 scalars: ``x0 (n,)``, ``us (N, m)`` ->
+    the states on the RK4 grid ``(N*substeps+1, n)``.
+
+    Each entry goes through the operations ``rk4_step`` applies to it elementwise, in its order
+    (``x + (0.5 h) k1``, ..., ``x + (h/6) (((k1 + 2 k2) + 2 k3) + k4)``), each rounded once in
+    IEEE double as NumPy's do, and ``Dynamics.f_scalars`` is what ``f`` evaluates at one point:
+    the result is bitwise ``rk4_step``'s, without the per-step cost of small arrays.
+    """
+    f, half, sixth = dynamics.f_scalars, 0.5 * h, h / 6.0
+    x = list(x0)
+    rows = [x]
+    for u in us:
+        u = list(u)
+        for _ in range(substeps):
+            k1 = f(x, u)
+            k2 = f([a + half * b for a, b in zip(x, k1, strict=True)], u)
+            k3 = f([a + half * b for a, b in zip(x, k2, strict=True)], u)
+            k4 = f([a + h * b for a, b in zip(x, k3, strict=True)], u)
+            x = [
+                a + sixth * (b1 + 2.0 * b2 + 2.0 * b3 + b4)
+                for a, b1, b2, b3, b4 in zip(x, k1, k2, k3, k4, strict=True)
+            ]
+            rows.append(x)
+    return np.array(rows, dtype=np.float64)
+
+
 def simulate(
     dynamics: Dynamics,
     x0: FloatArray,
@@ -76,14 +107,17 @@ def simulate(
     N = us.shape[-2]
     batch = np.broadcast_shapes(x0.shape[:-1], us.shape[:-2])
     h = Ts / substeps
-    dense = np.empty((*batch, N * substeps + 1, x0.shape[-1]))
-    x = np.broadcast_to(x0, (*batch, x0.shape[-1])).copy()
-    dense[..., 0, :] = x
-    for k in range(N):
-        u = us[..., k, :]
-        for s in range(substeps):
-            x = rk4_step(dynamics, x, u, h)
-            dense[..., k * substeps + s + 1, :] = x
+    if x0.ndim == 1 and us.ndim == 2:
+        dense = _rk4_one(dynamics, x0, us, h, substeps)
+    else:
+        dense = np.empty((*batch, N * substeps + 1, x0.shape[-1]))
+        x = np.broadcast_to(x0, (*batch, x0.shape[-1])).copy()
+        dense[..., 0, :] = x
+        for k in range(N):
+            u = us[..., k, :]
+            for s in range(substeps):
+                x = rk4_step(dynamics, x, u, h)
+                dense[..., k * substeps + s + 1, :] = x
     ts = Ts * np.arange(N + 1)
     dense_ts = h * np.arange(N * substeps + 1)
     return Trajectory(
