@@ -346,6 +346,7 @@ def reoptimize_with_funnels(
     *,
     clearance: float = 0.0,
     level: float | None = None,
+    at_least: float | None = None,
 ) -> OptimizeResult:
     """Optimise each trajectory again, keeping its funnel's tube inside the constraints (issue 16
     part 4: one round of the alternation nominal -> funnel -> nominal).
@@ -358,7 +359,9 @@ def reoptimize_with_funnels(
     state extents (``pipeline.numerics.margins.funnel_margins`` at ``level``, default each
     funnel's rho; on a shorter horizon the extents are read by normalised time, maximum over the
     window). ``clearance`` (m): how far beyond the tube the nominal must stay from Unsafe (0: the
-    tube itself must clear Unsafe, which is what the funnel certifies). The shooting is
+    tube itself must clear Unsafe, which is what the funnel certifies); ``at_least`` (m, default
+    the scenario's d): the nominal's own distance to Unsafe never drops below it, as the constant
+    certificate's nominals and the uncertified comparison keep d. The shooting is
     stabilised by the mean of the funnel's gains ``K[k]``. A trajectory whose funnel was not
     certified is returned unchanged, unsuccessful. Nothing here is certified: synthesize and
     check the funnel around each new nominal before using it.
@@ -382,7 +385,13 @@ def reoptimize_with_funnels(
                 ),
             )
             continue
-        margins = ConstraintMargins.of_funnel(scenario, funnel, clearance=clearance, level=level)
+        margins = ConstraintMargins.of_funnel(
+            scenario,
+            funnel,
+            clearance=clearance,
+            level=level,
+            at_least=scenario.clearance if at_least is None else at_least,
+        )
         tasks.append((i, (scenario.path, scenario.source_hash, previous, margins, options)))
     executor = executor or SerialExecutor()
     done = [] if not tasks else executor.map(

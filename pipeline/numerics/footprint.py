@@ -9,6 +9,7 @@ them in continuous time (``pipeline.numerics.verify``), independently of the cos
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
@@ -70,19 +71,27 @@ class ConstraintMargins:
         *,
         clearance: float = 0.0,
         level: float | None = None,
+        at_least: float = 0.0,
     ) -> ConstraintMargins:
         """The footprint of ``funnel``'s tube at ``level`` (default its rho): its extents per
         sample interval (``funnel_margins``), no operating region (the nominal stays in the
         scenario's ``state_bounds`` shrunk by the tube), Unsafe kept ``clearance`` beyond the
-        tube; the shooting is stabilised by the mean of the funnel's gains ``K[k]``."""
-        if not (np.isfinite(clearance) and clearance >= 0.0):
-            raise ValueError(f"clearance must be a finite number >= 0, got {clearance!r}")
+        tube and at least ``at_least`` from the nominal (the scenario's d: the nominal keeps the
+        required clearance even where the funnel is thinner); the shooting is stabilised by the
+        mean of the funnel's gains ``K[k]``."""
+        for name, value in (("clearance", clearance), ("at_least", at_least)):
+            if not (np.isfinite(value) and value >= 0.0):
+                raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+        profile = funnel_margins(scenario, funnel, level=level)
+        profile = dataclasses.replace(
+            profile, clearance=np.maximum(profile.clearance, at_least - clearance)
+        )
         return cls(
             input_margin=np.zeros(scenario.m),
             region_margin={},
             gain=funnel.K.mean(axis=0),
             clearance=clearance,
-            profile=funnel_margins(scenario, funnel, level=level),
+            profile=profile,
             region=dict(scenario.state_bounds),
         )
 
