@@ -32,6 +32,7 @@ from pipeline.model.scenario import Scenario, load_scenario_cached
 from pipeline.model.simulate import Trajectory
 from pipeline.numerics.funnel import synthesize_funnel
 from pipeline.numerics.funnel_check import Funnel, check_funnel
+from pipeline.numerics.recertify import recheck_funnel
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -103,7 +104,13 @@ def _accepted(
     if not funnel.rho > 0:
         return f"funnel level {funnel.rho:.3g} is not positive"
     failure = check_funnel(scenario, trajectory, funnel, state_bounds)
-    return None if failure is None else f"rejected by the independent check: {failure}"
+    if failure is not None:
+        return f"rejected by the independent check: {failure}"
+    # as the certify stage will see it: rebuilt from K, P and rho alone (its own enclosure)
+    again = recheck_funnel(
+        scenario, trajectory, funnel.K, funnel.P, funnel.rho, funnel.rate, state_bounds
+    )
+    return None if not again.failure else f"rejected when rebuilt as certify does: {again.failure}"
 
 
 def _funnel_in_worker(task: _Task) -> tuple[Funnel, str | None]:

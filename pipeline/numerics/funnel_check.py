@@ -18,7 +18,9 @@ from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import Trajectory
 from pipeline.numerics.funnel_bounds import Enclosure, funnel_limits, rate_bound, substeps
 
-LEVEL_SLACK = 1e-9  # rho is shrunk by this relative amount so that no bound holds with equality
+LEVEL_SLACK = 1e-4  # rho is shrunk by this relative amount so that no bound holds with equality
+# (1e-9 was too little: certify rebuilds the enclosure from the file, and its limits may be lower
+# by ~1e-5 relative)
 INTERPOLATION = "Q = P^-1 linear in t on each sample interval"
 
 

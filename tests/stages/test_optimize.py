@@ -216,28 +216,32 @@ def test_a_margin_along_the_trajectory_binds_where_it_is_and_nowhere_else():
 def test_reoptimizing_within_a_funnel_keeps_its_tube_inside_the_constraints():
     scenario, _, _, constant, funnel = _double_integrator()
     assert constant.success and funnel.success, funnel.message
-    again = reoptimize_with_funnels(scenario, [constant], [funnel], OptimizeOptions())
-    (new,) = again.trajectories
-    assert again.success and new.success, new.message
-    assert new.N <= constant.N and new.N_demo == constant.N_demo
-    margins = ConstraintMargins.of_funnel(scenario, funnel)
-    profile = margins.profile.on_grid(new.N)
-    # the new nominal's inputs keep the funnel's input extents from the bounds, per sample
-    assert np.all(new.u - profile.input >= scenario.input_lower - 1e-12)
-    assert np.all(new.u + profile.input <= scenario.input_upper + 1e-12)
-    # verified against the tube's clearance per interval, not the scenario's d
-    assert new.verification.required_clearance == pytest.approx(profile.clearance.max())
-    assert profile.clearance.max() < scenario.clearance
-    problem = make_problem(
-        scenario,
-        x0=new.x0,
-        u_seed=new.u,
-        clearance=0.0,
-        region=dict(scenario.state_bounds),
-        region_margin={},
-        profile=margins.profile,
-    )
-    assert problem.cost(new.u) == 0.0
+    raw = ConstraintMargins.of_funnel(scenario, funnel).profile
+    assert raw.clearance.max() < scenario.clearance  # the funnel is thinner than d here
+    for at_least, expected in [(0.0, raw.clearance.max()), (None, scenario.clearance)]:
+        again = reoptimize_with_funnels(
+            scenario, [constant], [funnel], OptimizeOptions(), at_least=at_least
+        )
+        (new,) = again.trajectories
+        assert again.success and new.success, new.message
+        assert new.N <= constant.N and new.N_demo == constant.N_demo
+        margins = ConstraintMargins.of_funnel(scenario, funnel, at_least=at_least or 0.0)
+        profile = margins.profile.on_grid(new.N)
+        # the new nominal's inputs keep the funnel's input extents from the bounds, per sample
+        assert np.all(new.u - profile.input >= scenario.input_lower - 1e-12)
+        assert np.all(new.u + profile.input <= scenario.input_upper + 1e-12)
+        # verified against the tube's clearance per interval (at least d by default)
+        assert new.verification.required_clearance == pytest.approx(expected)
+        problem = make_problem(
+            scenario,
+            x0=new.x0,
+            u_seed=new.u,
+            clearance=0.0,
+            region=dict(scenario.state_bounds),
+            region_margin={},
+            profile=margins.profile,
+        )
+        assert problem.cost(new.u) == 0.0
 
 
 def test_reoptimizing_needs_one_certified_funnel_per_trajectory():
