@@ -23,7 +23,7 @@ from pipeline.reporting.content import (
     vector,
 )
 from pipeline.reporting.data import ReportData
-from pipeline.reporting.law import gain_table, labelled, law
+from pipeline.reporting.law import gain_table, held_rate, labelled, law
 from pipeline.reporting.plotting import FIGURE_WIDTH
 from pipeline.reporting.summary import Quantiles, StressRunSummary, StressSummary
 
@@ -142,7 +142,7 @@ def feedback(data: ReportData) -> tuple:
             "contraction rate λ",
             f"{fb.rate:g} 1/s"
             if data.law.feedback_period == 0
-            else f"{fb.rate:g} 1/s continuous; {data.law.rate:.4g} 1/s with the law held every "
+            else f"{fb.rate:g} 1/s continuous; {held_rate(data)} with the law held every "
             f"{data.law.feedback_period:g} s (the tube's rate)",
         ),
         ("gain design", f"{fb.gain} (solver status: {fb.solver_status})"),
