@@ -1,13 +1,16 @@
 """The funnel certificate as a run (``certificate="funnel"``, ``--certificate funnel``): on the
 double integrator end to end through the API, the command line's flag on the same folder (every
-stage reused), and bad combinations refused before any work."""
+stage reused), bad combinations refused before any work, and the report of a funnel run (the
+funnel figure, the table constant vs funnel, the per-trajectory gains)."""
 
 from __future__ import annotations
 
 import dataclasses
 import json
 import logging
+import re
 import shutil
+from html import unescape
 
 import numpy as np
 import pytest
@@ -15,12 +18,16 @@ import pytest
 import pipeline
 from pipeline.controller import FUNNEL_FORMAT, load
 from pipeline.io.artifacts import read_stored
+from pipeline.model import geometry
 from pipeline.numerics.cover import subdivide
+from pipeline.reporting import figures
 from pipeline.runtime import orchestrator
 from pipeline.runtime.cli import main
 from pipeline.runtime.options import RunOptions
 from pipeline.runtime.orchestrator import run_synthesis
 from pipeline.runtime.registry import RESULT_TYPES
+from pipeline.runtime.stored import load_report_data
+from tests.stages.test_report import CHROMIUM, _chromium, _measuring_page
 
 SAMPLES = 200
 
@@ -172,3 +179,126 @@ def test_a_run_without_any_certified_funnel_fails_and_says_why(funnel_run, tmp_p
     assert failed.message.startswith("failed: stage funnel: no funnel certified: ")
     assert "all dropped: test" in failed.message
     assert not (folder / "controller.json").exists()
+
+
+@pytest.fixture(scope="module")
+def funnel_report(funnel_run, tmp_path_factory: pytest.TempPathFactory):
+    """``(ReportData, report.html text)`` of a copy of the API's funnel run, synthesized again
+    there with ``certificate="funnel"`` (every stage reused), so that the command-line test's
+    constant run on the original folder changes nothing here."""
+    result, _ = funnel_run
+    folder = tmp_path_factory.mktemp("funnel_report") / "double_integrator"
+    shutil.copytree(result.outputs.folder, folder)
+    again = pipeline.synthesize(
+        "double_integrator", out=folder, certificate="funnel", samples=SAMPLES
+    )
+    assert again.verdict is pipeline.Verdict.CERTIFIED_AND_VALIDATED, again.message
+    scenario = pipeline.load_scenario("double_integrator")
+    data = load_report_data(scenario, folder, write_to=tmp_path_factory.mktemp("unused"))
+    return data, (folder / "report.html").read_text()
+
+
+def _text(html: str) -> str:
+    """The page's visible text, SVGs left out, whitespace collapsed."""
+    html = re.sub(r"<svg.*?</svg>", " ", html, flags=re.S)
+    return " ".join(unescape(re.sub(r"<[^>]+>", " ", html)).split())
+
+
+def test_the_report_of_a_funnel_run_shows_the_funnels_and_both_certificates(funnel_report):
+    data, html = funnel_report
+    assert data.funnel and data.law.K is None and data.law.P is None  # no feedback block
+    assert html.count("<svg") == 7 and 'id="figure-funnels"' in html
+    text = _text(html)
+    table = text[text.index("Constant vs funnel certificate in this run") :]
+    table = table[: table.index("Funnel per demonstration")]
+    # The shipped trajectories are controller.json's: T and clearance computed from the file.
+    shipped = data.law.trajectories
+    T = sorted(tr.T for tr in shipped)
+    span = f"{T[0]:.1f}" if f"{T[0]:.1f}" == f"{T[-1]:.1f}" else f"{T[0]:.1f}-{T[-1]:.1f}"
+    funnel_row = table[table.index("funnel (K_i[k], P_i(t) per trajectory)") :]
+    head = "funnel (K_i[k], P_i(t) per trajectory) shipped: controller.json (safety-controller/2)"
+    assert funnel_row.startswith(f"{head} {len(shipped)} {span} ")
+    shown = float(funnel_row[len(head) :].split()[2])  # min nominal clearance (m)
+    # Checked on the file's x_ref points: the polyline comes no farther than its vertices, and
+    # no nearer than the vertices less half the longest segment.
+    s = data.scenario
+    vertices = min(
+        float(geometry.distance(s.positions(tr.x_ref), polygon).min())
+        for tr in shipped
+        for polygon in s.unsafe.values()
+    )
+    step = max(
+        float(np.linalg.norm(np.diff(s.positions(tr.x_ref), axis=0), axis=1).max())
+        for tr in shipped
+    )
+    assert vertices - step / 2 - 1e-3 <= shown <= vertices + 1e-3
+    assert "certified and validated: certify re-checked controller.json (passed)" in funnel_row
+    assert f"0 failures in {SAMPLES} Monte Carlo runs" in funnel_row
+    constant_row = table[table.index("constant (one K, P)") : table.index("funnel (K_i[k]")]
+    assert constant_row.startswith("constant (one K, P) verified by the stages, not shipped 9 ")
+    assert "no controller written or re-certified from a file" in constant_row
+    # The gains are per trajectory: their range is shown, the constant K is labelled as such.
+    assert "Shipped gains: the gains are per trajectory and per sample interval" in text
+    assert "Feedback gain K (inputs × states) of the constant certificate" in text
+
+
+def test_the_funnel_figure_draws_the_position_projection_of_each_shipped_funnel(funnel_report):
+    """``funnel_tube``: the ellipse ``(p - p_ref)^T (C P_i(t)^-1 C^T)^-1 (p - p_ref) <=
+    rho_i^2`` is the position shadow of ``E_i(t)``: boundary states of ``E_i(t)`` (``P_i(t)``
+    from the file's metric) all land inside it and reach its boundary; at the sample times
+    the metric is the file's ``P_i[k]``."""
+    data, _ = funnel_report
+    s, Ts = data.scenario, data.law.Ts
+    rng = np.random.default_rng(3)
+    for i in (0, len(data.law.trajectories) - 1):
+        tr = data.law.trajectories[i]
+        t = np.array([0.0, 0.37 * tr.T, 5 * Ts, tr.T])
+        tube = figures.funnel_tube(data, i, t)
+        np.testing.assert_allclose(tube.radii, tr.radius * np.exp(-tr.rate * t))
+        p_ref = s.positions(np.stack([np.interp(t, tr.t, x) for x in tr.x_ref.T], axis=-1))
+        np.testing.assert_allclose(tube.centres, p_ref, atol=1e-12)
+        for k, P in enumerate(tr.metric(t, Ts)):
+            if k == 2:
+                np.testing.assert_allclose(P, tr.P[5], rtol=1e-9, atol=1e-9)
+            z = rng.normal(size=(20000, s.n))
+            z /= np.linalg.norm(z, axis=1, keepdims=True)
+            L = np.linalg.cholesky(P)  # P = L L^T, so e = rho L^-T z has e^T P e = rho^2
+            e = tube.radii[k] * np.linalg.solve(L.T, z.T).T  # (B, n)
+            p = s.positions(e)
+            value = np.einsum("bi,ij,bj->b", p, np.linalg.inv(tube.shapes[k]), p)
+            value /= tube.radii[k] ** 2
+            assert value.max() <= 1 + 1e-9 and value.max() > 0.99
+
+
+@pytest.mark.chromium
+@pytest.mark.skipif(not CHROMIUM.exists(), reason="needs /usr/bin/chromium")
+def test_the_funnel_report_fits_a_phone(funnel_report, tmp_path):
+    """The browser measurement of tests/stages/test_report.py on the funnel run's page at
+    390 px: the seven figures (the funnel figure too) inside the column, every legend and
+    colour bar inside its figure, text at least 8 px."""
+    _, html = funnel_report
+    page = tmp_path / "measured.html"
+    page.write_text(_measuring_page(html, 390))
+    dom = _chromium(
+        "--window-size=1400,1000",
+        "--virtual-time-budget=5000",
+        "--dump-dom",
+        page.as_uri(),
+        profile=tmp_path / "profile",
+    )
+    found = re.search(r'data-measured="([^"]*)"', dom.stdout)
+    assert found, dom.stderr[-2000:]
+    measured = json.loads(unescape(found.group(1)))
+    assert measured["scroll"] <= 390, "the page scrolls sideways"
+    assert [f["id"] for f in measured["figures"]][:3] == [
+        "figure-overview",
+        "figure-funnels",
+        "figure-bisection",
+    ]
+    assert len(measured["figures"]) == 7
+    for figure in measured["figures"]:
+        assert figure["left"] >= 0 and figure["right"] <= 390, figure
+        assert figure["parts"], f"{figure['id']}: no legend found"
+        for name, *margins in figure["parts"]:
+            assert min(margins) >= -1.0, f"{name} sticks out of its figure by {-min(margins)} px"
+        assert figure["smallest"] >= 8.0, f"{figure['id']}: text {figure['smallest']:.1f} px"

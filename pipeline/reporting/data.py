@@ -84,6 +84,43 @@ class ReportData:
         period; ``feedback.rate`` is the continuous design's)."""
         return load(self.controller_path)
 
+    @property
+    def funnel(self) -> bool:
+        """The run shipped the funnel certificate (``safety-controller/2``, one funnel per
+        trajectory); the constant certificate's stage results are then verified, not shipped."""
+        return self.summary.certificate == "funnel"
+
+    @functools.cached_property
+    def shipped_paths(self) -> tuple[Trajectory, ...]:
+        """The nominal trajectories the run ships: ``final_paths`` in a constant run; in a funnel
+        run controller.json's (re-optimized nominals and dropped funnels included), in the file's
+        order, each with ``ts (N+1,)``, ``us = u_ref (N, m)`` and the file's fine grid ``t``,
+        ``x_ref`` as ``dense_ts``, ``dense_xs`` (``xs`` read off it at ``k Ts``)."""
+        if not self.funnel:
+            return self.final_paths
+        Ts = self.law.Ts
+        paths = []
+        for tr in self.law.trajectories:
+            ts = Ts * np.arange(len(tr.u_ref) + 1, dtype=np.float64)
+            xs = np.stack([np.interp(ts, tr.t, tr.x_ref[:, i]) for i in range(tr.x_ref.shape[1])])
+            paths.append(Trajectory(ts=ts, xs=xs.T, us=tr.u_ref, dense_ts=tr.t, dense_xs=tr.x_ref))
+        return tuple(paths)
+
+    @functools.cached_property
+    def shipped_demos(self) -> tuple[int, ...]:
+        """For each shipped trajectory, the index of the demonstration it starts from (the
+        optimizer keeps each demonstration's start)."""
+        if not self.funnel:
+            return tuple(range(len(self.final_paths)))
+        starts = np.stack([demo.x0 for demo in self.scenario.demos])  # (D, n)
+        return tuple(
+            int(np.argmin(np.abs(starts - tr.x0).max(axis=1))) for tr in self.law.trajectories
+        )
+
+    def shipped_index(self, demo: int) -> int | None:
+        """The shipped trajectory started from demonstration ``demo`` (None: none shipped)."""
+        return next((i for i, d in enumerate(self.shipped_demos) if d == demo), None)
+
     def fingerprint(self, *reads: object) -> str:
         """SHA-256 of what a figure reads: the scenario file, the demonstrations, and for each
         of ``reads`` the stored key of that stage (a name in ``STAGES``) or the value itself."""

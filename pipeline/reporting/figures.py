@@ -6,32 +6,28 @@ feasible trajectories purple, closed loop teal, failures and gaps red.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-import numpy.typing as npt
 from matplotlib import colormaps
 from matplotlib.axes import Axes
 from matplotlib.cm import ScalarMappable
 from matplotlib.colors import ListedColormap, Normalize
 from matplotlib.lines import Line2D
 from matplotlib.patches import Patch, Rectangle
-from matplotlib.ticker import MaxNLocator
 
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.simulate import Trajectory
-from pipeline.numerics.closed_loop import simulate_closed_loop
 from pipeline.numerics.tube import projection_shape, slice_shape
 from pipeline.reporting.content import FigureLike
 from pipeline.reporting.data import ReportData, simulate_all
 from pipeline.reporting.plotting import (
-    BOUND,
-    CLOSED_LOOP,
     DEMO,
     FAILURE,
     FIGURE_WIDTH,
+    FUNNEL,
     INIT,
     INTERMEDIATE,
     OPTIMIZED,
@@ -44,10 +40,11 @@ from pipeline.reporting.plotting import (
 )
 
 TUBE_PERIOD = 0.5  # s between the tube ellipses drawn along a path
+FUNNEL_PERIOD = 0.1  # s between the funnel sections of the funnel figure
 MARKER_PERIOD = 1.0  # s between the time markers on a path
 
 
-def _legend_below(fig: FigureLike, handles: Sequence[object], ncols: int = 2) -> None:
+def legend_below(fig: FigureLike, handles: Sequence[object], ncols: int = 2) -> None:
     """One legend under the axes, inside the figure (constrained layout makes room for it)."""
     fig.legend(handles=handles, loc="outside lower center", ncols=ncols, frameon=False)
 
@@ -80,6 +77,32 @@ def constant_tube(data: ReportData, path: Trajectory, radius: float, t: FloatArr
     )
 
 
+def funnel_tube(data: ReportData, index: int, t: FloatArray) -> TubeSections:
+    """The shipped funnel ``E_i(t) = {x : ||x - x_ref_i(t)||_{P_i(t)} <= radius_i e^(-rate_i t)}``
+    of controller.json's trajectory ``index`` at times ``t (k,)``, projected on the position:
+    shapes ``C P_i(t)^-1 C^T (k, 2, 2)`` (``P_i(t)`` interpolated as the file says, Q = P^-1
+    linear in t), centres ``p_ref(t)`` on the file's fine grid."""
+    s, tr = data.scenario, data.law.trajectories[index]
+    c = list(s.position_index)
+    Q = np.linalg.inv(tr.metric(t, data.law.Ts))  # (k, n, n)
+    p = s.positions(tr.x_ref)
+    centres = np.stack([np.interp(t, tr.t, p[:, 0]), np.interp(t, tr.t, p[:, 1])])
+    return TubeSections(
+        t=t,
+        centres=centres.T,
+        shapes=Q[:, c][:, :, c],
+        radii=tr.radius * np.exp(-tr.rate * t),
+    )
+
+
+def shipped_tube(data: ReportData, index: int, t: FloatArray) -> TubeSections:
+    """The tube the run ships around its trajectory ``index`` (``shipped_paths``): the funnel in
+    a funnel run, the constant-metric tube otherwise."""
+    if data.funnel:
+        return funnel_tube(data, index, t)
+    return constant_tube(data, data.final_paths[index], data.radius_optimized[index].radius, t)
+
+
 def draw_tube(ax: Axes, tube: TubeSections, color: str, alpha: float = 0.07) -> None:
     """The tube shaded along its path and outlined at its first time (the start)."""
     if not np.any(tube.radii > 0):
@@ -106,28 +129,59 @@ def _all_positions(paths: Sequence[Trajectory], data: ReportData) -> FloatArray:
 
 
 def draw_overview(fig: FigureLike, data: ReportData) -> None:
-    """Scenario, every demonstration and its optimized trajectory with its tube."""
+    """Scenario, every demonstration and the shipped (optimized) trajectories with their tubes:
+    the constant-metric tube, or in a funnel run the funnel ``E_i(t)`` of controller.json."""
     s = data.scenario
     ax = fig.subplots()
-    draw_scenario(ax, s, _all_positions([*data.demo_paths, *data.final_paths], data))
-    for k, (demo, final) in enumerate(zip(data.demo_paths, data.final_paths, strict=True)):
+    draw_scenario(ax, s, _all_positions([*data.demo_paths, *data.shipped_paths], data))
+    for demo in data.demo_paths:
         draw_path(ax, s, demo.dense_ts, demo.dense_xs, DEMO, None, MARKER_PERIOD, lw=0.8)
-        draw_path(ax, s, final.dense_ts, final.dense_xs, OPTIMIZED, None, MARKER_PERIOD, lw=1.3)
-        tube = constant_tube(data, final, data.radius_optimized[k].radius, _along(final))
-        draw_tube(ax, tube, OPTIMIZED, alpha=0.06)
+    for k, path in enumerate(data.shipped_paths):
+        draw_path(ax, s, path.dense_ts, path.dense_xs, OPTIMIZED, None, MARKER_PERIOD, lw=1.3)
+        draw_tube(ax, shipped_tube(data, k, _along(path)), OPTIMIZED, alpha=0.06)
+    tube = "funnel E_i(t) (shipped)" if data.funnel else "tube (optimized)"
     handles = [
         *ax.get_legend_handles_labels()[0],
         Line2D([], [], color=DEMO, lw=0.8, marker="o", ms=2.6, label="demonstrations"),
         Line2D([], [], color=OPTIMIZED, lw=1.3, marker="o", ms=2.6, label="optimized"),
-        Patch(facecolor=OPTIMIZED, alpha=0.25, edgecolor=OPTIMIZED, label="tube (optimized)"),
+        Patch(facecolor=OPTIMIZED, alpha=0.25, edgecolor=OPTIMIZED, label=tube),
     ]
-    _legend_below(fig, handles)
+    legend_below(fig, handles)
+
+
+def draw_funnels(fig: FigureLike, data: ReportData) -> None:
+    """The shipped funnels: the position projection of each ``E_i(t)`` along its path every
+    ``FUNNEL_PERIOD`` s (outlined at ``t = 0`` and ``t = T``), over Unsafe, Goal and Init."""
+    s = data.scenario
+    ax = fig.subplots()
+    draw_scenario(ax, s, _all_positions(data.shipped_paths, data))
+    for k, path in enumerate(data.shipped_paths):
+        t = np.append(np.arange(0.0, path.duration, FUNNEL_PERIOD), path.duration)
+        tube = funnel_tube(data, k, t)
+        ellipses(ax, tube.shapes, tube.centres, tube.radii, FUNNEL, filled=True, alpha=0.05, lw=0)
+        ends = [0, len(t) - 1]
+        ellipses(ax, tube.shapes[ends], tube.centres[ends], tube.radii[ends], FUNNEL, lw=0.9)
+        draw_path(ax, s, path.dense_ts, path.dense_xs, OPTIMIZED, None, MARKER_PERIOD, lw=1.2)
+    handles = [
+        *ax.get_legend_handles_labels()[0],
+        Line2D([], [], color=OPTIMIZED, lw=1.2, marker="o", ms=2.6, label="shipped nominal"),
+        Patch(facecolor=FUNNEL, alpha=0.3, edgecolor=FUNNEL, label="funnel E_i(t), position"),
+    ]
+    legend_below(fig, handles)
 
 
 def bisection_demo(data: ReportData) -> int:
     """The demo shown like the paper's Fig. 2: the one flown closest to Unsafe."""
     clearances = [d.clearance_before for d in data.summary.demos]
     return int(np.argmin(clearances))
+
+
+def bisection_paths(data: ReportData, index: int) -> list[Trajectory]:
+    """The nominal paths of the Fig. 2 analogue for demo ``index``: the demonstration, the
+    constant certificate's optimum and, in a funnel run, the trajectory shipped from it."""
+    shipped = data.shipped_index(index) if data.funnel else None
+    extra = [] if shipped is None else [data.shipped_paths[shipped]]
+    return [data.demo_paths[index], data.final_paths[index], *extra]
 
 
 def draw_bisection(fig: FigureLike, data: ReportData, index: int) -> None:
@@ -139,10 +193,15 @@ def draw_bisection(fig: FigureLike, data: ReportData, index: int) -> None:
     demo, final = data.demo_paths[index], data.final_paths[index]
     inputs = list(opt.feasible_inputs[:-1])
     feasible = simulate_all(s, [opt.x0] * len(inputs), inputs) if inputs else []
+    shipped = data.shipped_index(index) if data.funnel else None
+    optimal = final if shipped is None else data.shipped_paths[shipped]
     ax = fig.subplots()
-    draw_scenario(ax, s, _all_positions([demo, final, *feasible], data))
+    draw_scenario(ax, s, _all_positions([demo, final, optimal, *feasible], data))
     draw_tube(ax, constant_tube(data, demo, data.radius_demos[index].radius, _along(demo)), DEMO)
-    tube = constant_tube(data, final, data.radius_optimized[index].radius, _along(final))
+    if shipped is None:
+        tube = constant_tube(data, final, data.radius_optimized[index].radius, _along(final))
+    else:
+        tube = funnel_tube(data, shipped, _along(optimal))
     draw_tube(ax, tube, OPTIMIZED)
     if feasible:
         horizons = np.array([path.duration for path in feasible])
@@ -159,14 +218,20 @@ def draw_bisection(fig: FigureLike, data: ReportData, index: int) -> None:
         bar.ax.set_gid("colorbar")
     label = f"{opt.demo} as flown, T = {demo.duration:.1f} s"
     draw_path(ax, s, demo.dense_ts, demo.dense_xs, DEMO, label, TUBE_PERIOD, lw=1.3)
-    label = f"optimal, T' = {final.duration:.1f} s"
-    draw_path(ax, s, final.dense_ts, final.dense_xs, OPTIMIZED, label, TUBE_PERIOD, lw=1.6)
+    moved = optimal.us.shape != final.us.shape or not np.allclose(optimal.us, final.us)
+    if shipped is not None and moved:  # the nominal re-optimized against its funnel
+        p = s.positions(final.dense_xs)
+        label = f"optimal, constant certificate, T' = {final.duration:.1f} s"
+        ax.plot(*p.T, color=OPTIMIZED, lw=1.0, ls="--", label=label, zorder=5)
+    label = f"{'shipped' if shipped is not None else 'optimal'}, T' = {optimal.duration:.1f} s"
+    draw_path(ax, s, optimal.dense_ts, optimal.dense_xs, OPTIMIZED, label, TUBE_PERIOD, lw=1.6)
+    name = "funnel of the shipped" if shipped is not None else "tube of the optimal"
     handles = [
         *ax.get_legend_handles_labels()[0],
         Patch(facecolor=DEMO, alpha=0.3, edgecolor=DEMO, label="tube of the demonstration"),
-        Patch(facecolor=OPTIMIZED, alpha=0.3, edgecolor=OPTIMIZED, label="tube of the optimal"),
+        Patch(facecolor=OPTIMIZED, alpha=0.3, edgecolor=OPTIMIZED, label=name),
     ]
-    _legend_below(fig, handles)
+    legend_below(fig, handles)
 
 
 def draw_optimization(fig: FigureLike, data: ReportData) -> None:
@@ -265,134 +330,4 @@ def draw_coverage(fig: FigureLike, data: ReportData) -> None:
         Rectangle((0, 0), 1, 1, fill=False, edgecolor="0.75", label="certified box"),
         Patch(facecolor=FAILURE, alpha=0.6, label="uncovered box"),
     ]
-    _legend_below(fig, handles)
-
-
-def draw_montecarlo(fig: FigureLike, data: ReportData) -> None:
-    """Closed-loop paths (a subsample), failures, and the distributions of the margins."""
-    s, mc = data.scenario, data.montecarlo
-    axes = fig.subplot_mosaic([["paths"], ["clearance"], ["tube"]], height_ratios=[1.6, 1, 1])
-    ax = axes["paths"]
-    paths = [np.asarray(p) for p in mc.paths]
-    draw_scenario(ax, s, np.concatenate(paths) if paths else None)
-    for k, p in enumerate(paths):
-        label = f"closed loop ({len(paths)} of {mc.samples} runs)" if k == 0 else None
-        ax.plot(p[:, 0], p[:, 1], color=CLOSED_LOOP, lw=0.6, alpha=0.55, label=label, zorder=4)
-    failed = s.positions(np.asarray(mc.failed_x0).reshape(-1, s.n))
-    if len(failed):
-        ax.plot(
-            *failed.T, "x", color=FAILURE, ms=5, zorder=6, label=f"failed start ({len(failed)})"
-        )
-    worst = s.positions(np.asarray(mc.falsification.worst_x0))
-    ax.plot(*worst, "*", color=FAILURE, mec="white", mew=0.5, ms=9, zorder=6)
-    ax.plot([], [], "*", color=FAILURE, ms=8, label="worst start found by falsification")
-    _legend_below(fig, ax.get_legend_handles_labels()[0])
-    _histogram(
-        axes["clearance"],
-        np.asarray(mc.clearance),
-        failed=lambda v: v <= 0,
-        threshold=0.0,
-        reference=(s.clearance, f"d = {s.clearance:g} m"),
-        xlabel="minimum clearance to Unsafe (m)",
-    )
-    _histogram(
-        axes["tube"],
-        np.asarray(mc.tube_tightness),
-        failed=lambda v: v > 1.0 + 1e-6,
-        threshold=1.0,
-        reference=None,
-        xlabel="tube tightness max_t ||e(t)||_P e^(λt) / ||e(0)||_P",
-        log=True,
-    )
-
-
-def _histogram(
-    ax: Axes,
-    values: FloatArray,
-    failed: Callable[[FloatArray], npt.NDArray[np.bool_]],
-    threshold: float,
-    reference: tuple[float, str] | None,
-    xlabel: str,
-    log: bool = False,
-) -> None:
-    finite = values[np.isfinite(values)]
-    bad = failed(finite)
-    low = min(float(finite.min()), threshold) if len(finite) else threshold
-    high = max(float(finite.max()), threshold) if len(finite) else threshold + 1
-    bins = np.linspace(low, high + 1e-12, 41).tolist()  # a list: matplotlib's stub wants one
-    ax.hist(finite[~bad], bins=bins, color=CLOSED_LOOP, alpha=0.8, label="passed")
-    if bad.any():
-        ax.hist(finite[bad], bins=bins, color=FAILURE, label=f"failed ({int(bad.sum())})")
-    ax.axvline(threshold, color=FAILURE, lw=1.2, ls="--", label="failure threshold")
-    if reference is not None:
-        ax.axvline(reference[0], color="0.3", lw=0.9, ls=":", label=reference[1])
-    ax.set(xlabel=xlabel, ylabel="runs (log scale)" if log else "runs")
-    ax.xaxis.set_major_locator(MaxNLocator(6))
-    if log:
-        ax.set_yscale("log")
-        log_axis(ax.yaxis)
-    ax.legend(loc="best", frameon=False)
-
-
-def inputs_trajectory(data: ReportData) -> tuple[int, FloatArray]:
-    """The reference trajectory of the inputs figure and the closed-loop starts simulated around
-    it ``(B, n)``: the falsification's worst start (first), and Init's corners that the controller
-    assigns to the same trajectory."""
-    s = data.scenario
-    worst = np.asarray(data.montecarlo.falsification.worst_x0, dtype=np.float64)
-    controller = data.law
-    index = int(controller.select(worst[None])[0][0])
-    free = np.flatnonzero(s.init_upper > s.init_lower)
-    corners = np.tile(s.init_lower, (2 ** len(free), 1))
-    for k, i in enumerate(free):
-        corners[:, i] = np.where(
-            (np.arange(len(corners)) >> k) & 1, s.init_upper[i], s.init_lower[i]
-        )
-    corners = corners[controller.select(corners)[0] == index]
-    return index, np.vstack([worst[None], corners])
-
-
-def draw_inputs(fig: FigureLike, data: ReportData) -> None:
-    """``u_ref`` of one reference trajectory and the closed-loop inputs (before clipping)
-    against the input bounds and the operating region."""
-    s = data.scenario
-    controller = data.law
-    index, starts = inputs_trajectory(data)
-    reference = controller.trajectories[index]
-    run = simulate_closed_loop(s.dynamics, controller, starts, index)
-    t = run.ts[:-1]
-    demo = next((d for d in s.demos if np.allclose(d.x0, reference.x0)), None)
-    axes = np.atleast_1d(fig.subplots(s.m, 1, sharex=True))
-    for j, ax in enumerate(axes):
-        name = s.input_names[j]
-        if demo is not None:
-            T = s.Ts * np.arange(demo.N + 1)
-            u = np.append(demo.us[:, j], demo.us[-1, j])
-            ax.step(T, u, where="post", color=DEMO, lw=0.8, alpha=0.6, label="demo input as flown")
-        for b in range(1, len(starts)):
-            label = "closed loop, Init corners" if b == 1 else None
-            ax.plot(t, run.unclipped[b, :, 0, j], color=CLOSED_LOOP, lw=0.6, alpha=0.5, label=label)
-        worst = run.unclipped[0, :, 0, j]
-        ax.plot(t, worst, color=CLOSED_LOOP, lw=2.4, alpha=0.55, label="closed loop, worst start")
-        T = controller.Ts * np.arange(len(reference.u_ref) + 1)
-        u = np.append(reference.u_ref[:, j], reference.u_ref[-1, j])
-        ax.step(T, u, where="post", color=OPTIMIZED, lw=1.1, label="u_ref (optimized)")
-        lo, hi = s.input_lower[j], s.input_upper[j]
-        ax.axhline(lo, color=BOUND, ls="--", lw=1, label="input bounds")
-        ax.axhline(hi, color=BOUND, ls="--", lw=1)
-        if name in s.operating_region:
-            for v in s.operating_region[name]:
-                ax.axhline(v, color="0.45", ls=":", lw=1.2)
-            ax.plot([], [], color="0.45", ls=":", label="operating region")
-        ax.set_title(axis_label(s, name), loc="left")
-        ax.set_ylabel(f"[{s.unit(name)}]" if s.unit(name) else name)
-        span = hi - lo
-        ax.set_ylim(lo - 0.08 * span, hi + 0.08 * span)
-    axes[-1].set_xlabel("t (s)")
-    handles, labels = axes[0].get_legend_handles_labels()
-    for ax in axes[1:]:
-        for h, label in zip(*ax.get_legend_handles_labels(), strict=True):
-            if label not in labels:
-                handles.append(h)
-                labels.append(label)
-    fig.legend(handles, labels, loc="outside lower center", ncols=2, frameon=False)
+    legend_below(fig, handles)

@@ -60,16 +60,24 @@ def gain_table(s: Scenario, K: FloatArray, caption: str) -> Table:
     )
 
 
+def held_rate(data: ReportData) -> str:
+    """The tube's rate of the held law in controller.json's ``feedback`` block, or where the
+    file has none (a ``safety-controller/2`` file) that each trajectory carries its own."""
+    rate = data.law.rate
+    return "per trajectory (controller.json)" if rate is None else f"{rate:.4g} 1/s"
+
+
 def law(data: ReportData) -> tuple:
     """The feedback period (zero-order hold) and the law after ``T`` (controller.json)."""
     s, result = data.scenario, data.controller
     controller = data.law
     h = controller.feedback_period
+    gain = "K_i[k]" if controller.K is None else "K"
     period = (
-        "continuous: the certificate assumes u = u_ref + K e recomputed continuously"
+        f"continuous: the certificate assumes u = u_ref + {gain} e recomputed continuously"
         if h == 0
         else f"zero-order hold: the state measured and u recomputed every h = {h:g} s "
-        f"({1 / h:.4g} Hz) and held in between; the tube's rate λ = {controller.rate:.4g} 1/s "
+        f"({1 / h:.4g} Hz) and held in between; the tube's rate λ = {held_rate(data)} "
         f"is certified for the held law (continuous: {data.feedback.rate:g} 1/s)"
     )
     rows: list[tuple[str, str]] = [

@@ -36,6 +36,7 @@ INIT = "0.15"
 UNSAFE = "0.62"
 BOUND = "#8C1C13"
 INTERMEDIATE = "Purples"
+FUNNEL = "#8C564B"  # the shipped funnels E_i(t) (brown: apart from the tubes' orange and blue)
 
 # Figures are drawn about ``FIGURE_WIDTH`` in wide and shown at most 1.25x that (640 px) and at
 # least at a phone's column (~365 px, 0.73x): 10 pt text stays >= 9 px on a phone.

@@ -14,7 +14,7 @@ from functools import partial
 import numpy as np
 
 from pipeline.io.artifacts import file_hash
-from pipeline.reporting import figures, stage_sections
+from pipeline.reporting import certificates, figures, stage_sections
 from pipeline.reporting.content import (
     Figure,
     Headline,
@@ -150,9 +150,11 @@ def _summary(data: ReportData) -> tuple:
                 "optimized",
             ),
             demos,
-            "Per demonstration",
+            "Per demonstration"
+            + (" (the constant certificate's optimization and radii)" if data.funnel else ""),
             numeric=(False, False, *([True] * 7), False),
         ),
+        *certificates.comparison(data),
         Table(
             ("stage", "wall time (s)", ""),
             tuple(timings),
@@ -172,6 +174,7 @@ def _scenario(data: ReportData) -> tuple:
         for name, lo, hi in zip(s.state_names, s.init_lower, s.init_upper, strict=True)
         if hi > lo
     )
+    shipped = (file_hash(data.controller_path),) if data.funnel else ()  # drawn from the file
     return (
         Paragraph(
             f"Unsafe: {', '.join(s.unsafe)} (grey; dotted: bloated by d). Goal: green; ModGoal: "
@@ -180,18 +183,24 @@ def _scenario(data: ReportData) -> tuple:
         ),
         Figure(
             "overview",
-            "All demonstrations (blue) and their optimized trajectories (orange). Markers are "
-            f"{figures.MARKER_PERIOD:g} s apart, so their spacing shows the speed. The orange "
-            "ellipses are the position projection of each optimized trajectory's robustness tube "
-            f"{{x : ||x - x_ref(t)||_P <= r e^(-λt)}}: outlined at the start, shaded every "
-            f"{figures.TUBE_PERIOD:g} s along the path.",
+            "All demonstrations (blue) and their optimized trajectories (orange"
+            + (", as shipped in controller.json" if data.funnel else "")
+            + f"). Markers are {figures.MARKER_PERIOD:g} s apart, so their spacing shows the "
+            "speed. The orange ellipses are the position projection of each "
+            + (
+                "shipped trajectory's funnel {x : ||x - x_ref(t)||_P_i(t) <= ρ_i}"
+                if data.funnel
+                else "optimized trajectory's robustness tube {x : ||x - x_ref(t)||_P <= r e^(-λt)}"
+            )
+            + f": outlined at the start, shaded every {figures.TUBE_PERIOD:g} s along the path.",
             partial(figures.draw_overview, data=data),
             (
                 FIGURE_WIDTH,
-                figures.scene_height(data, [*data.demo_paths, *data.final_paths], below=1.1),
+                figures.scene_height(data, [*data.demo_paths, *data.shipped_paths], below=1.1),
             ),
-            data.fingerprint("feedback", "optimize", "radius_optimized"),
+            data.fingerprint("feedback", "optimize", "radius_optimized", *shipped),
         ),
+        *certificates.funnel_figure(data),
         Figure(
             "bisection",
             f"As in the paper's Fig. 2, for {opt.demo} (flown closest to Unsafe: "
@@ -201,15 +210,23 @@ def _scenario(data: ReportData) -> tuple:
             f"({opt.N_demo} → {opt.N} samples), with the tubes (robustness bounds) of the "
             "demonstration (blue) and of the optimal trajectory (orange) along their paths: "
             f"outlined at the start, shaded every {figures.TUBE_PERIOD:g} s. Markers every "
-            f"{figures.TUBE_PERIOD:g} s.",
+            f"{figures.TUBE_PERIOD:g} s."
+            + (
+                " Funnel run: the orange path is the trajectory shipped in controller.json from "
+                "this demonstration and its tube is its funnel E_i(t) (dashed: the constant "
+                "certificate's optimum, where the shipped nominal was re-optimized); the "
+                "demonstration's tube is the constant certificate's."
+                if data.funnel
+                else ""
+            ),
             partial(figures.draw_bisection, data=data, index=index),
             (
                 FIGURE_WIDTH,
-                figures.scene_height(
-                    data, [data.demo_paths[index], data.final_paths[index]], below=2.3
-                ),
+                figures.scene_height(data, figures.bisection_paths(data, index), below=2.3),
             ),
-            data.fingerprint("feedback", "optimize", "radius_demos", "radius_optimized", index),
+            data.fingerprint(
+                "feedback", "optimize", "radius_demos", "radius_optimized", index, *shipped
+            ),
         ),
     )
 

@@ -10,7 +10,7 @@ from functools import partial
 import numpy as np
 
 from pipeline.io.artifacts import file_hash
-from pipeline.reporting import figures
+from pipeline.reporting import certificates, figures, loop_figures
 from pipeline.reporting.content import (
     Figure,
     Paragraph,
@@ -23,7 +23,7 @@ from pipeline.reporting.content import (
     vector,
 )
 from pipeline.reporting.data import ReportData
-from pipeline.reporting.law import gain_table, labelled, law
+from pipeline.reporting.law import gain_table, held_rate, labelled, law
 from pipeline.reporting.plotting import FIGURE_WIDTH
 from pipeline.reporting.summary import Quantiles, StressRunSummary, StressSummary
 
@@ -142,7 +142,7 @@ def feedback(data: ReportData) -> tuple:
             "contraction rate λ",
             f"{fb.rate:g} 1/s"
             if data.law.feedback_period == 0
-            else f"{fb.rate:g} 1/s continuous; {data.law.rate:.4g} 1/s with the law held every "
+            else f"{fb.rate:g} 1/s continuous; {held_rate(data)} with the law held every "
             f"{data.law.feedback_period:g} s (the tube's rate)",
         ),
         ("gain design", f"{fb.gain} (solver status: {fb.solver_status})"),
@@ -173,7 +173,17 @@ def feedback(data: ReportData) -> tuple:
             "||x(t) - x_ref(t)||_P <= e^(-λt) ||x(0) - x_ref(0)||_P while the tube stays in the "
             f"region. Design: {fb.message}."
         ),
-        gain_table(s, K, "Feedback gain K (inputs × states)"),
+        *certificates.shipped_feedback(data),
+        gain_table(
+            s,
+            K,
+            "Feedback gain K (inputs × states)"
+            + (
+                f" of the constant certificate ({certificates.CONSTANT_STATUS})"
+                if data.funnel
+                else ""
+            ),
+        ),
         Table(("quantity", "value"), quantities, "Certificate"),
         *law(data),
         Table(
@@ -240,7 +250,14 @@ def coverage(data: ReportData) -> tuple:
             "coverage",
             f"Init (black) over {shown} with the slices of the balls at each start{through}: "
             "before (demonstrations, blue) and after optimization (orange). Grey: boxes certified "
-            f"covered; red: boxes not certified covered{projected}.",
+            f"covered; red: boxes not certified covered{projected}."
+            + (
+                " These are the constant certificate's balls; the shipped funnels' initial "
+                "ellipsoids E_i(0) cover "
+                f"{percent(data.summary.headline.coverage_after)} of Init (Summary)."
+                if data.funnel
+                else ""
+            ),
             partial(figures.draw_coverage, data=data),
             (FIGURE_WIDTH, 3.9),
             data.fingerprint(
@@ -324,7 +341,7 @@ def montecarlo(data: ReportData) -> tuple:
             "red crosses, the falsification search's worst start as a red star. Bottom: the "
             "distributions of each run's minimum clearance to Unsafe and of its tube tightness "
             "(1 = on the tube's boundary); failures in red beyond the dashed threshold.",
-            partial(figures.draw_montecarlo, data=data),
+            partial(loop_figures.draw_montecarlo, data=data),
             (FIGURE_WIDTH, 8.4),
             data.fingerprint("montecarlo"),
         ),
@@ -364,7 +381,7 @@ def montecarlo(data: ReportData) -> tuple:
 
 def inputs(data: ReportData) -> tuple:
     s = data.scenario
-    index, starts = figures.inputs_trajectory(data)
+    index, starts = loop_figures.inputs_trajectory(data)
     x0 = data.law.trajectories[index].x0
     demo = next((d.name for d in s.demos if np.allclose(d.x0, x0)), "no demonstration")
     return (
@@ -381,7 +398,7 @@ def inputs(data: ReportData) -> tuple:
             "as flown (blue), and the closed-loop input from the worst start (teal) and from "
             "Init's corners assigned to this trajectory (thin teal), against the input bounds "
             "(dashed) and the operating region (dotted).",
-            partial(figures.draw_inputs, data=data),
+            partial(loop_figures.draw_inputs, data=data),
             (FIGURE_WIDTH, 1.6 + 2.0 * s.m),
             data.fingerprint("montecarlo", file_hash(data.controller_path)),
         ),

@@ -93,6 +93,9 @@ def test_html_parses_and_needs_no_network(run: tuple[Scenario, Path]) -> None:
     names = [tag for tag, _ in page.tags]
     assert "script" not in names and "iframe" not in names
     assert names.count("svg") == 6  # every figure inlined
+    # a constant run: no funnel figure, no table "constant vs funnel", no per-trajectory gains
+    assert 'id="figure-funnels"' not in html and "Constant vs funnel" not in html
+    assert "Shipped gains" not in html
     for tag, attrs in page.tags:
         for name in ("src", "href", "xlink:href", "action", "srcset"):
             value = (attrs.get(name) or "").strip().lower()
