@@ -231,7 +231,7 @@ def draw_bisection(fig: FigureLike, data: ReportData, index: int) -> None:
         Patch(facecolor=DEMO, alpha=0.3, edgecolor=DEMO, label="tube of the demonstration"),
         Patch(facecolor=OPTIMIZED, alpha=0.3, edgecolor=OPTIMIZED, label=name),
     ]
-    legend_below(fig, handles)
+    legend_below(fig, handles, ncols=2 if len(handles) <= 4 else 1)  # one column fits a phone
 
 
 def draw_optimization(fig: FigureLike, data: ReportData) -> None:

@@ -151,7 +151,12 @@ def _summary(data: ReportData) -> tuple:
             ),
             demos,
             "Per demonstration"
-            + (" (the constant certificate's optimization and radii)" if data.funnel else ""),
+            + (
+                " (T opt and clearance after: the shipped nominals, re-optimized against their"
+                " funnels; radii: the constant certificate's, on its own optimized nominals)"
+                if data.funnel
+                else ""
+            ),
             numeric=(False, False, *([True] * 7), False),
         ),
         *certificates.comparison(data),
