@@ -17,6 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.model.scenario import Scenario
+from pipeline.numerics.margins import MarginProfile
 from pipeline.numerics.penalties import Constraints
 
 
@@ -44,4 +45,5 @@ def uncertified_constraints(scenario: Scenario) -> Constraints:
         unsafe=dict(scenario.unsafe),
         unsafe_margin=float(scenario.clearance),
         position_index=tuple(scenario.position_index),
+        profile=MarginProfile.zero(scenario.n, scenario.m),
     )

@@ -1,0 +1,22 @@
+"""The uncertified comparison of ``make bench`` (issue 16): its constraints are the scenario's real
+limits with nothing reserved for a certificate."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from bench.uncertified import uncertified_constraints
+from pipeline.model.scenario import load_scenario
+
+
+def test_uncertified_constraints_are_the_scenarios_own_limits() -> None:
+    scenario = load_scenario("quadrotor_hill", check_demos=False)
+    constraints = uncertified_constraints(scenario)
+    np.testing.assert_array_equal(constraints.input_lower, scenario.input_lower)
+    np.testing.assert_array_equal(constraints.input_upper, scenario.input_upper)
+    assert constraints.unsafe_margin == scenario.clearance  # d, no tube
+    assert constraints.region == {"theta": (-0.8, 0.8)}  # state_bounds, not the operating region
+    assert constraints.goal_region.equals(scenario.goal)  # Goal itself, not shrunk
+    grid = constraints.grid(4, 2)  # no time-varying margin on top
+    assert np.all(grid.input_lower == scenario.input_lower)
+    assert np.all(grid.unsafe_margin == scenario.clearance)
