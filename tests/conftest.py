@@ -32,7 +32,7 @@ SYNTHESIS_FIXTURES = {"synthesis_run", "synthesis", "synthesized"}
 # then the rest. With two workers the first goes to one, the second to the other, and the third
 # (its worker has only the first group's two tests left) again to the first: the unicycle's
 # synthesis (the longest) runs beside the quadrotor's group from the start.
-SCHEDULE = ("unicycle_slalom", "quadrotor_hill", "double_integrator")
+SCHEDULE = ("unicycle_slalom", "quadrotor_hill", "double_integrator", "double_integrator_hold")
 
 
 def synthesis_group(scenario: str) -> str:
