@@ -157,11 +157,13 @@ def optimize_from(
     *,
     N_demo: int,
     infeasible_hint: str = "record a demonstration with more clearance",
+    N_min: int = 1,
 ) -> TrajectoryOptimization:
     """Minimum-time search from the flight ``x0 (n,)``, ``us (N, m)`` (a demo, or an optimized
     nominal to optimize again under new margins): first made feasible at its own ``N``, then
-    shortened. ``N_demo``: the demonstration's length, for the speedup; ``infeasible_hint``: what
-    to do when the flight cannot be made feasible at its own length."""
+    shortened, never below ``N_min`` samples (a horizon under it counts as infeasible without a
+    try). ``N_demo``: the demonstration's length, for the speedup; ``infeasible_hint``: what to do
+    when the flight cannot be made feasible at its own length."""
     box = scenario.operating_region if margins.region is None else margins.region
 
     def constrained(extra: float) -> Problem:
@@ -242,6 +244,8 @@ def optimize_from(
 
     def feasible(N: int) -> bool:
         nonlocal nearest
+        if N < N_min:
+            return False
         outcome = attempt(N, reseed(nearest.u, N, options.seed_mode))
         if outcome.feasible:
             nearest = outcome
@@ -320,9 +324,9 @@ def _result(
 
 
 def _reoptimize_in_worker(
-    task: tuple[Path, str, TrajectoryOptimization, ConstraintMargins, OptimizeOptions],
+    task: tuple[Path, str, TrajectoryOptimization, ConstraintMargins, OptimizeOptions, int],
 ) -> TrajectoryOptimization:
-    path, source_hash, previous, margins, options = task
+    path, source_hash, previous, margins, options, N_min = task
     scenario = load_scenario_cached(path, source_hash)
     return optimize_from(
         scenario,
@@ -333,6 +337,7 @@ def _reoptimize_in_worker(
         options,
         N_demo=previous.N_demo,
         infeasible_hint="its funnel's margins leave it no room: keep the previous round",
+        N_min=N_min,
     )
 
 
@@ -347,6 +352,7 @@ def reoptimize_with_funnels(
     clearance: float = 0.0,
     level: float | None = None,
     at_least: float | None = None,
+    shortest: Sequence[int] | None = None,
 ) -> OptimizeResult:
     """Optimise each trajectory again, keeping its funnel's tube inside the constraints (issue 16
     part 4: one round of the alternation nominal -> funnel -> nominal).
@@ -362,17 +368,34 @@ def reoptimize_with_funnels(
     tube itself must clear Unsafe, which is what the funnel certifies); ``at_least`` (m, default
     the scenario's d): the nominal's own distance to Unsafe never drops below it, as the constant
     certificate's nominals and the uncertified comparison keep d. The shooting is
-    stabilised by the mean of the funnel's gains ``K[k]``. A trajectory whose funnel was not
-    certified is returned unchanged, unsuccessful. Nothing here is certified: synthesize and
-    check the funnel around each new nominal before using it.
+    stabilised by the mean of the funnel's gains ``K[k]``. ``shortest`` (one per trajectory,
+    default 1): trajectory ``i`` is shortened to no fewer than ``shortest[i]`` samples, so that
+    a round moves its nominal only as far as the next funnel can follow (the caller's
+    continuation); one already at its floor, or whose funnel was not certified, is returned
+    unchanged, unsuccessful. Nothing here is certified: synthesize and check the funnel around
+    each new nominal before using it.
     """
     if len(trajectories) != len(funnels):
         raise ValueError(
             f"reoptimize_with_funnels: {len(trajectories)} trajectories but {len(funnels)}"
             " funnels; give one funnel per trajectory, in the same order"
         )
+    floors = [1] * len(trajectories) if shortest is None else [int(n) for n in shortest]
+    if len(floors) != len(trajectories):
+        raise ValueError(
+            f"reoptimize_with_funnels: {len(floors)} shortest horizons for {len(trajectories)}"
+            " trajectories; give one per trajectory, in the same order"
+        )
     tasks, kept = [], {}
     for i, (previous, funnel) in enumerate(zip(trajectories, funnels, strict=True)):
+        if floors[i] >= previous.N:
+            kept[i] = dataclasses.replace(
+                previous,
+                success=False,
+                message=f"'{previous.demo}' not optimized again: it may not be shortened below "
+                f"{floors[i]} samples, and it has {previous.N}",
+            )
+            continue
         if not funnel.success or funnel.K.shape[0] != previous.N:
             kept[i] = dataclasses.replace(
                 previous,
@@ -392,7 +415,8 @@ def reoptimize_with_funnels(
             level=level,
             at_least=scenario.clearance if at_least is None else at_least,
         )
-        tasks.append((i, (scenario.path, scenario.source_hash, previous, margins, options)))
+        task = (scenario.path, scenario.source_hash, previous, margins, options, floors[i])
+        tasks.append((i, task))
     executor = executor or SerialExecutor()
     done = [] if not tasks else executor.map(
         _reoptimize_in_worker,

@@ -1,0 +1,107 @@
+"""The re-optimize rounds' continuation (issue 16 part 4, ``orchestrator._reoptimize_rounds``):
+per-trajectory acceptance of a round's new funnels on constructed funnel sets, the mixed set
+they leave, and the floor on a round's horizon (``optimize_from(..., N_min=...)``)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline import load_scenario
+from pipeline.numerics.footprint import ConstraintMargins
+from pipeline.runtime import orchestrator
+from stages.coverage import cover_balls
+from stages.feedback import design_feedback
+from stages.funnel import FunnelStageResult
+from stages.optimize import (
+    OptimizeOptions,
+    TrajectoryOptimization,
+    optimize_from,
+    reoptimize_with_funnels,
+)
+from tests.test_margins import _funnel
+
+
+def _stage(levels: list[float], usable: list[int], scale: float, n: int = 2) -> FunnelStageResult:
+    """Funnels of ``n`` states with ``P[0] = scale * I`` and the given levels; the others are
+    dropped (``rejected`` names them)."""
+    N = 3
+    funnels = tuple(
+        _funnel(np.zeros((N, 1, n)), np.broadcast_to(scale * np.eye(n), (N + 1, n, n)), rho)
+        for rho in levels
+    )
+    names = tuple(f"demo_{i}" for i in range(len(levels)))
+    return FunnelStageResult(
+        names=names, funnels=funnels, initial_radii=np.ones(len(levels)), usable=tuple(usable),
+        rejected=tuple(f"{names[i]} dropped: for the test" for i in range(len(levels))
+                       if i not in usable),
+        success=len(usable) == len(levels), message="",
+    )  # fmt: skip
+
+
+def test_a_new_funnel_is_kept_only_where_it_holds_what_the_kept_one_held():
+    before = _stage([1.0, 1.0, 0.5, 0.3], usable=[0, 1, 2], scale=1.0)
+    after = _stage([1.0 - 5e-4, 0.2, 0.6, 0.9], usable=[0, 1, 3], scale=4.0)
+    # 0: within the tolerance; 1: shrank; 2: dropped now; 3: dropped before, certified now.
+    assert orchestrator._accepted(before, after) == (0, 3)
+    assert orchestrator._accepted(before, after, tolerance=1e-4) == (3,)
+
+
+def test_the_mixed_set_takes_each_trajectorys_funnel_from_where_it_was_kept():
+    before = _stage([1.0, 1.0, 0.5], usable=[0, 1], scale=1.0)
+    after = _stage([1.0, 0.2, 0.8], usable=[0, 1, 2], scale=4.0)
+    mixed = orchestrator._mixed(before, after, kept=[0, 2])
+    assert mixed.funnels[0] is after.funnels[0] and mixed.funnels[2] is after.funnels[2]
+    assert mixed.funnels[1] is before.funnels[1]
+    assert mixed.usable == (0, 1, 2) and mixed.success and not mixed.rejected
+    np.testing.assert_array_equal(mixed.levels, [1.0, 1.0, 0.8])
+    np.testing.assert_array_equal(mixed.starts[:, 0, 0], [4.0, 1.0, 4.0])
+    # Keeping a funnel that is dropped: it stays dropped, and the reason comes with it.
+    dropped = orchestrator._mixed(before, _stage([1.0, 1.0, 1.0], [0, 1], 1.0), kept=[2])
+    assert dropped.usable == (0, 1) and not dropped.success
+    assert dropped.rejected == ("demo_2 dropped: for the test",)
+
+
+def test_the_mixed_set_covers_what_its_initial_ellipsoids_cover():
+    """Coverage is re-checked on the mixed set: on the double integrator's Init, a mix whose
+    one kept funnel shrank leaves a gap the unmixed set did not."""
+    scenario = load_scenario("double_integrator", check_demos=False)
+    lower, upper = np.asarray(scenario.init_lower), np.asarray(scenario.init_upper)
+    center = (lower + upper) / 2
+    wide = float(np.linalg.norm(upper - lower))  # a ball of this radius holds the whole box
+    kept = _stage([wide, wide], usable=[0, 1], scale=1.0, n=scenario.n)
+    narrow = _stage([0.1 * wide, 0.1 * wide], usable=[0, 1], scale=1.0, n=scenario.n)
+    centers = np.stack([center, center])
+    whole = cover_balls(scenario, kept.starts, centers, kept.levels)
+    assert whole.covered_fraction == 1.0
+    mixed = orchestrator._mixed(kept, narrow, kept=[0])
+    assert cover_balls(scenario, mixed.starts, centers, mixed.levels).covered_fraction == 1.0
+    both = orchestrator._mixed(kept, narrow, kept=[0, 1])
+    assert cover_balls(scenario, both.starts, centers, both.levels).covered_fraction < 1.0
+
+
+def test_a_rounds_horizon_stays_above_its_floor():
+    """``N_min``: the continuation stops at the floor where it would otherwise go shorter."""
+    scenario = load_scenario("double_integrator")
+    feedback = design_feedback(scenario)
+    margins = ConstraintMargins(input_margin=np.zeros(2), region_margin={}, gain=feedback.K)
+    demo = scenario.demos[0]
+
+    def shortest(N_min: int) -> TrajectoryOptimization:
+        return optimize_from(
+            scenario, demo.name, demo.x0, demo.us, margins, OptimizeOptions(),
+            N_demo=len(demo.us), N_min=N_min,
+        )  # fmt: skip
+
+    free = shortest(1)
+    assert free.success and free.N < free.N_demo
+    floor = (free.N + free.N_demo) // 2
+    bounded = shortest(floor)
+    assert bounded.success and floor <= bounded.N < free.N_demo
+    assert all(t.N >= floor for t in bounded.tries)
+
+
+def test_one_floor_per_trajectory():
+    scenario = load_scenario("double_integrator", check_demos=False)
+    with pytest.raises(ValueError, match="1 shortest horizons for 0 trajectories"):
+        reoptimize_with_funnels(scenario, [], [], OptimizeOptions(), shortest=[5])
