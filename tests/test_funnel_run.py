@@ -171,7 +171,7 @@ def test_a_run_without_any_certified_funnel_fails_and_says_why(funnel_run, tmp_p
             message="no funnel certified for any of the 9 trajectories; all dropped: test",
         )
 
-    monkeypatch.setattr(orchestrator, "synthesize_funnels", none_certified)
+    monkeypatch.setattr(orchestrator.funnels, "synthesize_funnels", none_certified)
     failed = run_synthesis(
         "double_integrator", folder, RunOptions(certificate="funnel", samples=20)
     )

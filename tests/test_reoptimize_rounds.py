@@ -1,4 +1,4 @@
-"""The re-optimize rounds' continuation (issue 16 part 4, ``orchestrator._reoptimize_rounds``):
+"""The re-optimize rounds' continuation (issue 16 part 4, ``funnels.reoptimize_rounds``):
 per-trajectory acceptance of a round's new funnels on constructed funnel sets, the mixed set
 they leave, and the floor on a round's horizon (``optimize_from(..., N_min=...)``)."""
 
@@ -9,7 +9,7 @@ import pytest
 
 from pipeline import load_scenario
 from pipeline.numerics.footprint import ConstraintMargins
-from pipeline.runtime import orchestrator
+from pipeline.runtime.orchestrator import funnels as rounds
 from stages.coverage import cover_balls
 from stages.feedback import design_feedback
 from stages.funnel import FunnelStageResult
@@ -43,21 +43,21 @@ def test_a_new_funnel_is_kept_only_where_it_holds_what_the_kept_one_held():
     before = _stage([1.0, 1.0, 0.5, 0.3], usable=[0, 1, 2], scale=1.0)
     after = _stage([1.0 - 5e-4, 0.2, 0.6, 0.9], usable=[0, 1, 3], scale=4.0)
     # 0: within the tolerance; 1: shrank; 2: dropped now; 3: dropped before, certified now.
-    assert orchestrator._accepted(before, after) == (0, 3)
-    assert orchestrator._accepted(before, after, tolerance=1e-4) == (3,)
+    assert rounds._accepted(before, after) == (0, 3)
+    assert rounds._accepted(before, after, tolerance=1e-4) == (3,)
 
 
 def test_the_mixed_set_takes_each_trajectorys_funnel_from_where_it_was_kept():
     before = _stage([1.0, 1.0, 0.5], usable=[0, 1], scale=1.0)
     after = _stage([1.0, 0.2, 0.8], usable=[0, 1, 2], scale=4.0)
-    mixed = orchestrator._mixed(before, after, kept=[0, 2])
+    mixed = rounds._mixed(before, after, kept=[0, 2])
     assert mixed.funnels[0] is after.funnels[0] and mixed.funnels[2] is after.funnels[2]
     assert mixed.funnels[1] is before.funnels[1]
     assert mixed.usable == (0, 1, 2) and mixed.success and not mixed.rejected
     np.testing.assert_array_equal(mixed.levels, [1.0, 1.0, 0.8])
     np.testing.assert_array_equal(mixed.starts[:, 0, 0], [4.0, 1.0, 4.0])
     # Keeping a funnel that is dropped: it stays dropped, and the reason comes with it.
-    dropped = orchestrator._mixed(before, _stage([1.0, 1.0, 1.0], [0, 1], 1.0), kept=[2])
+    dropped = rounds._mixed(before, _stage([1.0, 1.0, 1.0], [0, 1], 1.0), kept=[2])
     assert dropped.usable == (0, 1) and not dropped.success
     assert dropped.rejected == ("demo_2 dropped: for the test",)
 
@@ -74,9 +74,9 @@ def test_the_mixed_set_covers_what_its_initial_ellipsoids_cover():
     centers = np.stack([center, center])
     whole = cover_balls(scenario, kept.starts, centers, kept.levels)
     assert whole.covered_fraction == 1.0
-    mixed = orchestrator._mixed(kept, narrow, kept=[0])
+    mixed = rounds._mixed(kept, narrow, kept=[0])
     assert cover_balls(scenario, mixed.starts, centers, mixed.levels).covered_fraction == 1.0
-    both = orchestrator._mixed(kept, narrow, kept=[0, 1])
+    both = rounds._mixed(kept, narrow, kept=[0, 1])
     assert cover_balls(scenario, both.starts, centers, both.levels).covered_fraction < 1.0
 
 
