@@ -27,7 +27,7 @@ from pipeline.runtime.options import RunOptions
 from pipeline.runtime.orchestrator import run_synthesis
 from pipeline.runtime.registry import RESULT_TYPES
 from pipeline.runtime.stored import load_report_data
-from tests.stages.test_report import CHROMIUM, _chromium, _measuring_page
+from tests.stages.test_report import CHROMIUM, assert_figures_fit, measure_in_browser
 
 SAMPLES = 200
 
@@ -277,18 +277,7 @@ def test_the_funnel_report_fits_a_phone(funnel_report, tmp_path):
     390 px: the seven figures (the funnel figure too) inside the column, every legend and
     colour bar inside its figure, text at least 8 px."""
     _, html = funnel_report
-    page = tmp_path / "measured.html"
-    page.write_text(_measuring_page(html, 390))
-    dom = _chromium(
-        "--window-size=1400,1000",
-        "--virtual-time-budget=5000",
-        "--dump-dom",
-        page.as_uri(),
-        profile=tmp_path / "profile",
-    )
-    found = re.search(r'data-measured="([^"]*)"', dom.stdout)
-    assert found, dom.stderr[-2000:]
-    measured = json.loads(unescape(found.group(1)))
+    measured = measure_in_browser(html, 390, tmp_path)
     assert measured["scroll"] <= 390, "the page scrolls sideways"
     assert [f["id"] for f in measured["figures"]][:3] == [
         "figure-overview",
@@ -296,9 +285,4 @@ def test_the_funnel_report_fits_a_phone(funnel_report, tmp_path):
         "figure-bisection",
     ]
     assert len(measured["figures"]) == 7
-    for figure in measured["figures"]:
-        assert figure["left"] >= 0 and figure["right"] <= 390, figure
-        assert figure["parts"], f"{figure['id']}: no legend found"
-        for name, *margins in figure["parts"]:
-            assert min(margins) >= -1.0, f"{name} sticks out of its figure by {-min(margins)} px"
-        assert figure["smallest"] >= 8.0, f"{figure['id']}: text {figure['smallest']:.1f} px"
+    assert_figures_fit(measured, 390)

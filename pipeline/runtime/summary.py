@@ -11,7 +11,6 @@ funnels' initial ellipsoids ``E_i(0)``).
 
 from __future__ import annotations
 
-import dataclasses
 import platform
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -125,19 +124,21 @@ def _funnel_fields(run: StageResults, i: int) -> dict[str, Any]:
         return {}
     funnel = run.funnels.funnels[i]
     kept = i in run.funnels.usable
-    shipped = run.final_trajectories[i]
-    positions = run.scenario.positions(shipped.dense_xs)
-    clearance = min(
-        float(np.min(geometry.distance(positions, u))) for u in run.scenario.unsafe.values()
-    )
     constant = run.constant_trajectories
     return {
-        "clearance_after": clearance,  # the shipped nominal's, not the constant one's
         "T_constant": None if constant is None else constant[i].duration,
         "funnel_level": funnel.rho if kept else 0.0,
         "funnel_binding": funnel.binding if kept else "dropped",
         "funnel_seconds": funnel.seconds,
     }
+
+
+def _shipped_clearance(run: StageResults, i: int) -> float:
+    """The smallest distance to Unsafe over shipped nominal ``i``'s dense grid (a funnel run's:
+    its nominals are not the ones the constant radius stage measured)."""
+    positions = run.scenario.positions(run.final_trajectories[i].dense_xs)
+    unsafe = run.scenario.unsafe.values()
+    return min(float(np.min(geometry.distance(positions, region))) for region in unsafe)
 
 
 def _demos(run: StageResults) -> tuple[DemoSummary, ...]:
@@ -159,16 +160,20 @@ def _demos(run: StageResults) -> tuple[DemoSummary, ...]:
                 horizons_tried=len(opt.tries),
                 seconds=opt.seconds,
                 clearance_before=radius_before.nominal_clearance,
-                clearance_after=radius_after.nominal_clearance,  # the shipped one's: below
+                clearance_after=(
+                    radius_after.nominal_clearance
+                    if run.funnels is None
+                    else _shipped_clearance(run, i)
+                ),
                 radius_before=radius_before.radius,
                 radius_after=radius_after.radius,
                 binding_before=radius_before.binding,
                 binding_after=radius_after.binding,
                 binding_time_before=radius_before.binding_time,
                 binding_time_after=radius_after.binding_time,
+                **_funnel_fields(run, i),
             )
         )
-        demos[-1] = dataclasses.replace(demos[-1], **_funnel_fields(run, i))
     return tuple(demos)
 
 

@@ -410,22 +410,32 @@ def test_figures_fit_their_box_at_desktop_and_phone_width(
     """Measured by the browser on a copy of the page with a measuring script: each figure
     inside the viewport (no sideways scrolling), every legend and colour bar inside its
     figure's box, and the smallest figure text at least 8 px on screen."""
-    page = tmp_path / "measured.html"
-    page.write_text(_measuring_page((run[1] / "report.html").read_text(), width))
+    measured = measure_in_browser((run[1] / "report.html").read_text(), width, tmp_path)
+    assert measured["view"] == width
+    assert measured["scroll"] <= width, "the page scrolls sideways"
+    assert len(measured["figures"]) == 6
+    assert any(g[0] == "bisection-colorbar" for f in measured["figures"] for g in f["parts"])
+    assert_figures_fit(measured, width)
+
+
+def measure_in_browser(html: str, width: int, folder: Path) -> dict:
+    """The measuring script's result for ``html`` shown ``width`` px wide in headless Chromium."""
+    page = folder / "measured.html"
+    page.write_text(_measuring_page(html, width))
     dom = _chromium(
         "--window-size=1400,1000",
         "--virtual-time-budget=5000",
         "--dump-dom",
         page.as_uri(),
-        profile=tmp_path / "profile",
+        profile=folder / "profile",
     )
     found = re.search(r'data-measured="([^"]*)"', dom.stdout)
     assert found, dom.stderr[-2000:]
-    measured = json.loads(unescape(found.group(1)))
-    assert measured["view"] == width
-    assert measured["scroll"] <= width, "the page scrolls sideways"
-    assert len(measured["figures"]) == 6
-    assert any(g[0] == "bisection-colorbar" for f in measured["figures"] for g in f["parts"])
+    return json.loads(unescape(found.group(1)))
+
+
+def assert_figures_fit(measured: dict, width: int) -> None:
+    """Each figure inside the page, with a legend or colour bar inside it and text >= 8 px."""
     for figure in measured["figures"]:
         assert figure["left"] >= 0 and figure["right"] <= width, figure
         assert figure["parts"], f"{figure['id']}: no legend found"
