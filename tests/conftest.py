@@ -28,16 +28,25 @@ E2E_SAMPLES = 1000  # quadrotor_hill: the end-to-end tests reuse its run
 CI_SYNTHESIS_SAMPLES = 300  # every other shipped scenario: the CI safety check only
 SAMPLES = {"quadrotor_hill": E2E_SAMPLES}
 SYNTHESIS_FIXTURES = {"synthesis_run", "synthesis", "synthesized"}
-# The order in which the scheduler hands out work: these groups, then the tests marked slow,
-# then the rest. With two workers the first goes to one, the second to the other, and the third
-# (its worker has only the first group's two tests left) again to the first: the unicycle's
-# synthesis (the longest) runs beside the quadrotor's group from the start.
-SCHEDULE = ("unicycle_slalom", "quadrotor_hill", "double_integrator", "double_integrator_hold")
+FUNNEL_RUN_GROUP = "funnel-run"  # tests/test_funnel_run.py: its module's funnel run, made once
 
 
 def synthesis_group(scenario: str) -> str:
     """The xdist group of the tests that read ``scenario``'s session synthesis."""
     return f"synthesis-{scenario}"
+
+
+# The order in which the scheduler hands out work: these groups, then the tests marked slow,
+# then the rest. With two workers the first goes to one, the second to the other, and the third
+# (its worker has only the first group's two tests left) again to the first: the unicycle's
+# synthesis (the longest) runs beside the quadrotor's group from the start.
+SCHEDULE = (
+    synthesis_group("unicycle_slalom"),
+    synthesis_group("quadrotor_hill"),
+    FUNNEL_RUN_GROUP,
+    synthesis_group("double_integrator"),
+    synthesis_group("double_integrator_hold"),
+)
 
 
 def pytest_addoption(parser: pytest.Parser) -> None:
@@ -52,12 +61,44 @@ def pytest_addoption(parser: pytest.Parser) -> None:
 
 
 CPU_TIME = pytest.StashKey[dict[str, float]]()
+COMPILE_TIME = pytest.StashKey[dict[str, float]]()
 
 
 def _cpu_seconds() -> float:
     """CPU time of this process plus that of its subprocesses waited for so far (s)."""
     children = resource.getrusage(resource.RUSAGE_CHILDREN)
     return time.process_time() + children.ru_utime + children.ru_stime
+
+
+class _CompileClock:
+    """CPU seconds this process spent in numba compilations (outermost ones only: a kernel's
+    callees compile inside it), counted when ``--cpu-durations`` is given."""
+
+    def __init__(self) -> None:
+        self.seconds = 0.0
+        self._depth = 0
+        self._start = 0.0
+
+    def install(self) -> None:
+        from numba.core import event
+
+        clock = self
+
+        class Listener(event.Listener):
+            def on_start(self, _event) -> None:
+                if clock._depth == 0:
+                    clock._start = time.process_time()
+                clock._depth += 1
+
+            def on_end(self, _event) -> None:
+                clock._depth -= 1
+                if clock._depth == 0:
+                    clock.seconds += time.process_time() - clock._start
+
+        event.register("numba:compile", Listener())
+
+
+_COMPILE = _CompileClock()
 
 
 @pytest.hookimpl(wrapper=True)
@@ -76,11 +117,12 @@ def pytest_runtest_teardown(item: pytest.Item):
 
 
 def _timed(item: pytest.Item, when: str):
-    start = _cpu_seconds()
+    start, compiled = _cpu_seconds(), _COMPILE.seconds
     try:
         return (yield)
     finally:
         item.stash.setdefault(CPU_TIME, {})[when] = _cpu_seconds() - start
+        item.stash.setdefault(COMPILE_TIME, {})[when] = _COMPILE.seconds - compiled
 
 
 @pytest.hookimpl(wrapper=True)
@@ -90,15 +132,20 @@ def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo):
     seconds = item.stash.get(CPU_TIME, {}).get(call.when)
     if seconds is not None:
         worker = os.environ.get("PYTEST_XDIST_WORKER", "main")
-        report.user_properties.extend([("cpu_seconds", seconds), ("worker", worker)])
+        compiled = item.stash.get(COMPILE_TIME, {}).get(call.when, 0.0)
+        report.user_properties.extend(
+            [("cpu_seconds", seconds), ("compile_seconds", compiled), ("worker", worker)]
+        )
     return report
 
 
 class _CpuTally:
-    """Per test: CPU and wall seconds summed over its phases, and the worker that ran it."""
+    """Per test: CPU, numba compile CPU and wall seconds summed over its phases, and the worker
+    that ran it."""
 
     def __init__(self) -> None:
         self.cpu: dict[str, float] = defaultdict(float)
+        self.compile: dict[str, float] = defaultdict(float)
         self.wall: dict[str, float] = defaultdict(float)
         self.worker: dict[str, str] = {}
 
@@ -110,6 +157,7 @@ def pytest_runtest_logreport(report: pytest.TestReport) -> None:
     properties = dict(report.user_properties)
     if "cpu_seconds" in properties:
         _TALLY.cpu[report.nodeid] += float(properties["cpu_seconds"])
+        _TALLY.compile[report.nodeid] += float(properties.get("compile_seconds", 0.0))
         _TALLY.wall[report.nodeid] += report.duration
         _TALLY.worker[report.nodeid] = str(properties["worker"])
 
@@ -119,20 +167,28 @@ def pytest_terminal_summary(terminalreporter, config: pytest.Config) -> None:
     if count is None or not _TALLY.cpu:
         return
     write = terminalreporter.write_line
-    terminalreporter.section("CPU time per test (s; worker plus finished subprocesses)")
+    terminalreporter.section(
+        "CPU time per test (s; worker plus finished subprocesses; of it numba compiling in the "
+        "worker)"
+    )
     ranked = sorted(_TALLY.cpu, key=_TALLY.cpu.__getitem__, reverse=True)
     for nodeid in ranked[: count or None]:
         write(
-            f"{_TALLY.cpu[nodeid]:8.2f} cpu {_TALLY.wall[nodeid]:8.2f} wall "
-            f"{_TALLY.worker[nodeid]:>5}  {nodeid}"
+            f"{_TALLY.cpu[nodeid]:8.2f} cpu {_TALLY.compile[nodeid]:6.2f} compile "
+            f"{_TALLY.wall[nodeid]:8.2f} wall {_TALLY.worker[nodeid]:>5}  {nodeid}"
         )
     for worker in sorted(set(_TALLY.worker.values())):
         tests = [n for n in _TALLY.cpu if _TALLY.worker[n] == worker]
         cpu = sum(_TALLY.cpu[n] for n in tests)
+        compiled = sum(_TALLY.compile[n] for n in tests)
         wall = sum(_TALLY.wall[n] for n in tests)
-        write(f"worker {worker}: {len(tests)} tests, {cpu:.1f} s cpu, {wall:.1f} s wall")
+        write(
+            f"worker {worker}: {len(tests)} tests, {cpu:.1f} s cpu ({compiled:.1f} s compiling), "
+            f"{wall:.1f} s wall"
+        )
     cpu, wall = sum(_TALLY.cpu.values()), sum(_TALLY.wall.values())
-    write(f"all tests: {cpu:.1f} s cpu, {wall:.1f} s wall")
+    compiled = sum(_TALLY.compile.values())
+    write(f"all tests: {cpu:.1f} s cpu ({compiled:.1f} s compiling), {wall:.1f} s wall")
 
 
 @pytest.hookimpl(tryfirst=True)  # before xdist's own hook reads the groups in each worker
@@ -156,6 +212,8 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
 
 
 def pytest_configure(config: pytest.Config) -> None:
+    if config.getoption("cpu_durations") is not None:
+        _COMPILE.install()
     if getattr(config.option, "loadscopereorder", False):
         # xdist would hand out the groups largest first; ``_Schedule`` orders them instead
         config.option.loadscopereorder = False
@@ -169,7 +227,7 @@ class _Schedule:
 
     @pytest.hookimpl(trylast=True)  # after pytest's own reordering by parametrized fixtures
     def pytest_collection_modifyitems(self, items: list[pytest.Item]) -> None:
-        first = {synthesis_group(name): rank for rank, name in enumerate(SCHEDULE)}
+        first = {group: rank for rank, group in enumerate(SCHEDULE)}
 
         def rank(item: pytest.Item) -> int:
             for marker in item.iter_markers("xdist_group"):
