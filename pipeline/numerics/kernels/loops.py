@@ -36,6 +36,14 @@ def vjp_eval(x, u, lam, out_x, out_u):  # generated: out_x = lam f_x, out_u = la
     raise NotImplementedError
 
 
+@njit(cache=True, inline="always")
+def _copy(source, target):
+    """``target[:] = source`` for 1-D arrays, as a loop: numba compiles an array-to-array slice
+    assignment with a shape-mismatch message built from strings, ~1.6 s once per process."""
+    for i in range(source.size):
+        target[i] = source[i]
+
+
 @njit(cache=True)
 def polygon_query(px, py, V, ring_start, r0, r1):
     """Inside (even-odd rule), distance and nearest point of rings ``r0..r1-1``."""
@@ -166,7 +174,8 @@ def all_finite(x):
 def rk4_step(x, u, h, K, Y, out):
     """One RK4 step; stage values into ``Y (4, n)``, slopes into ``K (4, n)``, ``x+`` into out."""
     n = x.size
-    Y[0, :] = x
+    for i in range(n):  # element loops, not slice copies: see the note on _copy
+        Y[0, i] = x[i]
     f_eval(Y[0], u, K[0])
     for i in range(n):
         Y[1, i] = x[i] + 0.5 * h * K[0, i]
@@ -187,7 +196,7 @@ def simulate_kernel(x0, U, h, s, X):
     n = x0.size
     K = np.empty((4, n))
     Y = np.empty((4, n))
-    X[0] = x0
+    _copy(x0, X[0])
     for i in range(U.shape[0] * s):
         rk4_step(X[i], U[i // s], h, K, Y, X[i + 1])
 
@@ -230,7 +239,7 @@ def forward_kernel(x0, U, h, s, P, X, Y, J_x, J_u):
     J = 0.0
     for k in range(N):
         J += input_penalty(U[k], J_u[k], P, k)
-    X[0] = x0
+    _copy(x0, X[0])
     J += state_penalty(X[0], w, J_x[0], P, 0)
     for i in range(N * s):
         rk4_step(X[i], U[i // s], h, K, Y[i], X[i + 1])
@@ -405,9 +414,9 @@ def sensitivity_kernel(x0, U, h, s, P, S, phi_rows, phi_cols, gamma_rows, gamma_
         for j in range(s):
             for r in range(4):  # RK4 on (x, Phi_P, Gamma_Q): the pruned 33-equation system
                 if r == 0:
-                    y[:] = x
-                    zP[:] = Phi
-                    zQ[:] = Gamma
+                    _copy(x, y)
+                    _copy(Phi, zP)
+                    _copy(Gamma, zQ)
                 else:
                     c_r = stage[r] * h
                     for i in range(n):
@@ -434,8 +443,8 @@ def sensitivity_kernel(x0, U, h, s, P, S, phi_rows, phi_cols, gamma_rows, gamma_
                 for e in range(nQ):
                     c[k, gamma_cols[e]] += gx[gamma_rows[e]] * Gamma[e]
         J += state_penalty(x, w, J_samples[k + 1], P, (k + 1) * s)
-        Phi_k[k] = Phi
-        Gamma_k[k] = Gamma
+        _copy(Phi, Phi_k[k])
+        _copy(Gamma, Gamma_k[k])
     J += final_penalty(x, J_samples[N], P)
     mu = J_samples[N].copy()  # backward recursion of eq. (29)
     mu_next = np.empty(n)
