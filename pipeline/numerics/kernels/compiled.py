@@ -12,19 +12,24 @@ loop), and written to a cache folder under a name that hashes the source, so num
 
 from __future__ import annotations
 
+import fcntl
+import functools
 import hashlib
 import importlib.util
 import os
 import sys
 import tempfile
+import threading
 import weakref
+from collections.abc import Callable
 from pathlib import Path
 from types import ModuleType
-from typing import NamedTuple
+from typing import IO, Any, NamedTuple
 
 import numba
 import numpy as np
 import sympy
+from numba.core.dispatcher import Dispatcher
 from shapely.geometry import MultiPolygon, Polygon
 from shapely.geometry.base import BaseGeometry
 from sympy.printing.pycode import PythonCodePrinter
@@ -74,6 +79,28 @@ def _function(name: str, args: str, outputs: list[tuple[str, sympy.Expr]], unpac
     return "\n".join(lines) + "\n"
 
 
+def _is_unit(expression: sympy.Basic) -> bool:
+    return bool(expression.is_Float) and abs(float(expression)) == 1.0  # type: ignore[arg-type]
+
+
+def exact_units(expression: sympy.Expr) -> sympy.Expr:
+    """``expression`` with ``1.0*a -> a``, ``-1.0*a -> -a`` and a bare ``+-1.0 -> +-1``: the
+    same floating-point values (multiplying by +-1 is exact), and so the same kernel source as a
+    scenario written without the factor (a parameter ``k: 1.0`` in ``k*aX``): its compiled
+    kernels are shared. Exponents are left alone (``x**-1.0`` is ``pow``, not ``1/x``)."""
+    if _is_unit(expression):
+        return sympy.Integer(int(float(expression)))  # type: ignore[arg-type]
+
+    def unit_factor(e: sympy.Basic) -> bool:
+        return bool(e.is_Mul) and _is_unit(e.as_coeff_Mul()[0])  # type: ignore[attr-defined]
+
+    def drop(e: sympy.Expr) -> sympy.Expr:
+        coefficient, rest = e.as_coeff_Mul()
+        return rest if float(coefficient) > 0 else -rest
+
+    return expression.replace(unit_factor, drop)
+
+
 def dynamics_source(dynamics: Dynamics) -> str:
     """Numba source of ``f_eval``, ``f_jac_eval`` and ``vjp_eval`` for ``dynamics``."""
     n, m = dynamics.n, dynamics.m
@@ -81,9 +108,9 @@ def dynamics_source(dynamics: Dynamics) -> str:
     u = [sympy.Symbol(f"u_{j}") for j in range(m)]
     lam = [sympy.Symbol(f"l_{i}") for i in range(n)]
     rename = dict(zip((*dynamics.state_symbols, *dynamics.input_symbols), (*x, *u), strict=True))
-    f = [sympy.sympify(e).xreplace(rename) for e in dynamics.expressions]
-    A = dynamics.jacobian_x.xreplace(rename)
-    B = dynamics.jacobian_u.xreplace(rename)
+    f = [exact_units(sympy.sympify(e).xreplace(rename)) for e in dynamics.expressions]
+    A = dynamics.jacobian_x.xreplace(rename).applyfunc(exact_units)
+    B = dynamics.jacobian_u.xreplace(rename).applyfunc(exact_units)
     unpack = "\n".join(
         [f"    x_{i} = x[{i}]" for i in range(n)] + [f"    u_{j} = u[{j}]" for j in range(m)]
     )
@@ -127,8 +154,45 @@ def load_kernels(dynamics: Dynamics) -> ModuleType:
     module = importlib.util.module_from_spec(spec)
     sys.modules[name] = module
     spec.loader.exec_module(module)
+    _compile_one_at_a_time(module, path.with_suffix(".lock"))
     _LOADED[key] = _BY_DYNAMICS[dynamics] = module
     return module
+
+
+class _CompileLock:
+    """One process at a time compiles a kernel module's functions: an exclusive ``flock`` on
+    ``path``, taken by the outermost compile of a thread (a kernel compiles its callees inside
+    it) and released by the kernel's system when a process dies. A process that waited finds
+    the other's result in numba's disk cache instead of compiling it again (parallel workers,
+    pytest-xdist: each compiled every kernel it called first, ~10 s of CPU a scenario)."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.thread = threading.RLock()  # also makes ``depth`` the owning thread's
+        self.depth = 0
+        self.handle: IO[bytes] | None = None
+
+    def compile(self, original: Callable[[Any], Any], sig: Any) -> Any:
+        with self.thread:
+            if self.depth == 0:
+                self.handle = self.path.open("ab")
+                fcntl.flock(self.handle, fcntl.LOCK_EX)
+            self.depth += 1
+            try:
+                return original(sig)
+            finally:
+                self.depth -= 1
+                if self.depth == 0 and self.handle is not None:
+                    self.handle.close()  # releases the lock
+                    self.handle = None
+
+
+def _compile_one_at_a_time(module: ModuleType, lock_path: Path) -> None:
+    """Route every compile of ``module``'s dispatchers through one ``_CompileLock``."""
+    lock = _CompileLock(lock_path)
+    for value in vars(module).values():
+        if isinstance(value, Dispatcher):
+            value.compile = functools.partial(lock.compile, value.compile)  # type: ignore[method-assign]
 
 
 class PenaltyData(NamedTuple):
