@@ -41,7 +41,7 @@ tightened by ``NLP_MARGIN`` so that IPOPT's solution, to its tolerance, also has
 Certification's cost (issue 16): ``T_unc`` is IPOPT's minimum time from the same start with no
 tube at all (``bench.uncertified``: clearance d, Goal itself, the full input bounds and the
 scenario's ``state_bounds``), and ``cert/unc`` is ``T_certified / T_unc`` with ``T_certified`` the
-optimized T of the synthesized run's method (``OptimizeOptions().method``, the constant
+optimized T of the synthesized run's method (the scenario's ``optimizer``, the constant
 certificate's tube: what the optimize stage returns for that demo).
 
 Wall times: ours is ``optimize_demo`` (the whole search, after the numba kernels are loaded);
@@ -357,7 +357,7 @@ def run() -> None:
         )
     print(header)
     rows: list[tuple[dict[str, tuple[float, float]], float, float]] = []
-    certified = OptimizeOptions().method  # the synthesized run's method
+    certified = scenario.optimizer  # the synthesized run's method
     uncertified = uncertified_constraints(scenario)
     costs: list[float] = []
     for i, demo in enumerate(scenario.demos):

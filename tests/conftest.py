@@ -20,14 +20,22 @@ from io import StringIO
 from pathlib import Path
 
 import pytest
+from threadpoolctl import threadpool_limits
 
 import pipeline
 from pipeline.runtime.synthesis import Synthesis
 
+# single-threaded BLAS, as in the pipeline's runs: the stage functions tests call directly
+# multiply small matrices, where OpenBLAS's threads cost more than they save
+threadpool_limits(limits=1, user_api="blas")
+
 E2E_SAMPLES = 1000  # quadrotor_hill: the end-to-end tests reuse its run
 CI_SYNTHESIS_SAMPLES = 300  # every other shipped scenario: the CI safety check only
 SAMPLES = {"quadrotor_hill": E2E_SAMPLES}
-SYNTHESIS_FIXTURES = {"synthesis_run", "synthesis", "synthesized"}
+SYNTHESIS_FIXTURES = {"synthesis_run", "synthesis", "synthesized", "synthesized_constant"}
+# quadrotor_hill ships the funnel certificate; the tests of the constant certificate's file
+# (/1) and report read a run of it with --certificate constant, in a group of its own
+CONSTANT = "quadrotor_hill-constant"
 FUNNEL_RUN_GROUP = "funnel-run"  # tests/test_funnel_run.py: its module's funnel run, made once
 
 
@@ -45,6 +53,7 @@ SCHEDULE = (
     synthesis_group("quadrotor_hill"),
     FUNNEL_RUN_GROUP,
     synthesis_group("double_integrator"),
+    synthesis_group(CONSTANT),
     synthesis_group("double_integrator_hold"),
 )
 
@@ -202,7 +211,9 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
             continue
         callspec = getattr(item, "callspec", None)
         params = callspec.params if callspec is not None else {}
-        if "synthesized" in used or "name" not in params:
+        if "synthesized_constant" in used:
+            scenario = CONSTANT
+        elif "synthesized" in used or "name" not in params:
             scenario = "quadrotor_hill"
         else:
             scenario = str(params["name"])
@@ -268,7 +279,9 @@ class SessionRun:
         return self.cwd / "reports" / self.result.scenario
 
 
-def _synthesize_from_empty_directory(name: str, where: Path, samples: int) -> SessionRun:
+def _synthesize_from_empty_directory(
+    name: str, where: Path, samples: int, certificate: str | None = None
+) -> SessionRun:
     records: list[logging.LogRecord] = []
     handler = logging.Handler()
     handler.emit = records.append  # type: ignore[method-assign]
@@ -280,7 +293,7 @@ def _synthesize_from_empty_directory(name: str, where: Path, samples: int) -> Se
         with pytest.MonkeyPatch.context() as patch, redirect_stdout(printed):
             with redirect_stderr(printed):
                 patch.chdir(where)
-                result = pipeline.synthesize(name, samples=samples)
+                result = pipeline.synthesize(name, samples=samples, certificate=certificate)
     finally:
         logger.removeHandler(handler)
         logger.setLevel(logging.NOTSET)
@@ -295,18 +308,19 @@ def _synthesize_from_empty_directory(name: str, where: Path, samples: int) -> Se
 
 @pytest.fixture(scope="session")
 def synthesis_run(tmp_path_factory: pytest.TempPathFactory):
-    """Factory: ``synthesis_run(name)`` -> the ``SessionRun`` of ``name`` with
-    ``SAMPLES.get(name, CI_SYNTHESIS_SAMPLES)`` Monte Carlo samples, run once per session.
-    Tests that only read it share it; a test that changes files works on a copy of ``out``."""
-    runs: dict[str, SessionRun] = {}
+    """Factory: ``synthesis_run(name, certificate=None)`` -> the ``SessionRun`` of ``name``
+    (with ``certificate``, default the scenario's) with ``SAMPLES.get(name,
+    CI_SYNTHESIS_SAMPLES)`` Monte Carlo samples, run once per session. Tests that only read it
+    share it; a test that changes files works on a copy of ``out``."""
+    runs: dict[tuple[str, str | None], SessionRun] = {}
 
-    def run(name: str) -> SessionRun:
-        if name not in runs:
+    def run(name: str, certificate: str | None = None) -> SessionRun:
+        if (name, certificate) not in runs:
             where = tmp_path_factory.mktemp(name)
-            runs[name] = _synthesize_from_empty_directory(
-                name, where, SAMPLES.get(name, CI_SYNTHESIS_SAMPLES)
+            runs[name, certificate] = _synthesize_from_empty_directory(
+                name, where, SAMPLES.get(name, CI_SYNTHESIS_SAMPLES), certificate
             )
-        return runs[name]
+        return runs[name, certificate]
 
     return run
 
@@ -326,6 +340,14 @@ def synthesis(synthesis_run):
 def synthesized(synthesis):
     """``(exit_code, out)`` of ``synthesize quadrotor_hill`` with 1,000 Monte Carlo samples."""
     return synthesis("quadrotor_hill")
+
+
+@pytest.fixture(scope="session")
+def synthesized_constant(synthesis_run):
+    """``(exit_code, out)`` of ``synthesize quadrotor_hill --certificate constant`` (1,000
+    Monte Carlo samples): the constant certificate's ``safety-controller/1`` and report."""
+    session = synthesis_run("quadrotor_hill", certificate="constant")
+    return session.result.exit_code, session.out
 
 
 @pytest.fixture(scope="session")

@@ -107,14 +107,18 @@ def _write_modified(out, tmp_path, change):
     return path
 
 
+def scale_gains(document: dict, factor: float) -> None:
+    """Every gain of a controller.json scaled by ``factor``: the constant ``feedback.K``
+    (safety-controller/1) or each trajectory's ``K[k]`` (/2)."""
+    holders = [document["feedback"]] if "K" in document.get("feedback", {}) else []
+    for holder in holders or document["trajectories"]:
+        holder["K"] = (factor * np.array(holder["K"])).tolist()
+
+
 def test_a_destabilising_gain_is_caught(synthesized, tmp_path):
     _, out = synthesized
     scenario = load_scenario("quadrotor_hill", check_demos=False)
-
-    def flip(document):
-        document["feedback"]["K"] = (-3.0 * np.array(document["feedback"]["K"])).tolist()
-
-    broken = _write_modified(out, tmp_path, flip)
+    broken = _write_modified(out, tmp_path, lambda document: scale_gains(document, -3.0))
     result = validate_closed_loop(scenario, broken, samples=200, seed=1)
     assert not result.success and sum(result.failures.values()) > 0
     search = falsify(scenario, load(broken), sobol_points=16, local_searches=0)
@@ -124,11 +128,13 @@ def test_a_destabilising_gain_is_caught(synthesized, tmp_path):
 
 
 def _ball_boundary(controller, trajectory, scale, count, seed):
-    """``count`` states on ``||x - x0_i||_P = scale * radius_i`` (all state directions)."""
+    """``count`` states on ``||x - x0_i||_{P_i(0)} = scale * radius_i`` (all state directions;
+    ``P_i(0)`` is the constant ``P`` of a /1 file)."""
     reference = controller.trajectories[trajectory]
     directions = np.random.default_rng(seed).normal(size=(count, controller.n))
     directions /= np.linalg.norm(directions, axis=1, keepdims=True)
-    root = np.linalg.cholesky(np.linalg.inv(controller.P))  # maps the unit ball to ||.||_P <= 1
+    metric = controller.metric(0.0, np.array(trajectory))
+    root = np.linalg.cholesky(np.linalg.inv(metric))  # maps the unit ball to ||.||_P <= 1
     return reference.x0 + scale * reference.radius * directions @ root.T
 
 
@@ -200,23 +206,28 @@ def test_the_verdict_comes_from_the_file_as_written(synthesized, tmp_path, monke
     _, good = synthesized
     out = tmp_path / "run"
     subprocess.run(["cp", "-r", str(good), str(out)], check=True)
-    emit = orchestrator.emit_controller
 
-    def emit_inflated(*args, **kwargs):
-        result = emit(*args, **kwargs)
-        document = json.loads(result.path.read_text())
-        for item in document["trajectories"]:
-            item["radius"] *= 10.0
-        result.path.write_text(json.dumps(document))
-        return result
+    def inflated(emit):
+        def emit_inflated(*args, **kwargs):
+            result = emit(*args, **kwargs)
+            document = json.loads(result.path.read_text())
+            for item in document["trajectories"]:
+                item["radius"] *= 10.0
+            result.path.write_text(json.dumps(document))
+            return result
 
-    monkeypatch.setattr(orchestrator, "emit_controller", emit_inflated)
+        return emit_inflated
+
+    monkeypatch.setattr(orchestrator, "emit_controller", inflated(orchestrator.emit_controller))
+    monkeypatch.setattr(
+        orchestrator, "emit_funnel_controller", inflated(orchestrator.emit_funnel_controller)
+    )
     result = synthesize("quadrotor_hill", out=out, samples=1000)
     summary = json.loads((out / "summary.json").read_text())
     assert result.exit_code == 1 and result.verdict is Verdict.NOT_CERTIFIED
     assert result.controller is None and result.outputs.controller is None
     assert summary["verdict"]["certified"] is False
-    assert "controller.json is not certified: trajectories[0]: radius" in result.message
+    assert "controller.json is not certified: trajectories[0]: " in result.message
 
 
 def _start(out, *extra):

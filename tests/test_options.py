@@ -72,7 +72,8 @@ def test_choices_come_from_the_optimizer() -> None:
     assert run["method"].choices == settings.DESCENT_METHODS
     assert run["search"].choices == settings.HORIZON_SEARCHES
     assert run["certificate"].choices == settings.CERTIFICATES
-    assert RunOptions().method == OptimizeOptions().method
+    assert RunOptions().method is None  # the scenario's `optimizer` decides
+    assert ScenarioSpec.model_fields["optimizer"].default == OptimizeOptions().method
     assert RunOptions().search == OptimizeOptions().search
 
 
@@ -95,3 +96,14 @@ def test_certificate_kinds_are_the_scenario_schemas() -> None:
     assert parse("--certificate", "constant").certificate == "constant"
     with pytest.raises(ValueError, match=r"certificate='tube'; expected one of"):
         RunOptions(certificate="tube")
+
+
+def test_the_scenario_chooses_the_optimizer_unless_the_command_line_does() -> None:
+    from pipeline.model.scenario import load_scenario
+    from pipeline.runtime.run_inputs import method_of
+
+    quadrotor = load_scenario("quadrotor_hill", check_demos=False)
+    plain = load_scenario("double_integrator", check_demos=False)
+    assert method_of(quadrotor, RunOptions()) == "lbfgs"
+    assert method_of(plain, RunOptions()) == "gd"
+    assert method_of(quadrotor, parse("--method", "gd")) == "gd"

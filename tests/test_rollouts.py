@@ -12,6 +12,7 @@ from pipeline.controller import load
 from pipeline.model.scenario import load_scenario
 from pipeline.numerics.closed_loop import check_runs
 from pipeline.numerics.rollouts import check_runs_compiled
+from tests.test_end_to_end import scale_gains
 
 MARGINS = ("clearance", "goal_margin", "input_slack", "tube_tightness", "tube_final")
 
@@ -52,7 +53,7 @@ def test_compiled_rollouts_report_the_same_failures_of_a_broken_gain(synthesized
     _, out = synthesized
     scenario = load_scenario("quadrotor_hill", check_demos=False)
     document = json.loads((out / "controller.json").read_text())
-    document["feedback"]["K"] = (-3.0 * np.asarray(document["feedback"]["K"])).tolist()
+    scale_gains(document, -3.0)
     path = tmp_path / "controller.json"
     path.write_text(json.dumps(document))
     controller = load(path)

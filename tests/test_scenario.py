@@ -177,6 +177,12 @@ BAD_INPUTS: list[tuple[str, Mutation, str | None, list[str]]] = [
         ["certificate", "'constant' or 'funnel'"],
     ),
     (
+        "unknown optimizer",
+        yaml_replace("clearance: 0.25\n", "clearance: 0.25\noptimizer: newton\n"),
+        YAML,
+        ["optimizer", "'gd' or 'lbfgs'"],
+    ),
+    (
         "unit of an unknown name",
         yaml_replace("clearance: 0.25\n", "clearance: 0.25\nunits: {speed: m/s}\n"),
         YAML,
@@ -695,4 +701,5 @@ def test_labels_and_units_name_quantities_for_people() -> None:
     assert scenario.state_bounds["theta"] == (-0.8, 0.8)
     plain = load_scenario("double_integrator", check_demos=False)
     assert plain.label("vx") == "vx [m/s]"
-    assert plain.certificate == "constant"
+    assert plain.certificate == "constant" and plain.optimizer == "gd"
+    assert scenario.certificate == "funnel" and scenario.optimizer == "lbfgs"

@@ -24,17 +24,17 @@ def test_the_verdict_of_a_finished_run(certified, validated, verdict):
 
 
 @pytest.fixture
-def summary(synthesized) -> Summary:
-    _, out = synthesized
+def summary(synthesized_constant) -> Summary:
+    _, out = synthesized_constant
     return Summary.from_json(json.loads((out / "summary.json").read_text()))
 
 
-def test_summary_json_round_trips_through_the_typed_summary(synthesized, summary):
-    _, out = synthesized
+def test_summary_json_round_trips_through_the_typed_summary(synthesized_constant, summary):
+    _, out = synthesized_constant
     document = json.loads((out / "summary.json").read_text())
     assert summary.to_json() == document
     assert summary.verdict is Verdict.CERTIFIED_AND_VALIDATED and summary.certified
-    assert summary.certificate == document["certificate"] == "constant"  # the scenario's kind
+    assert summary.certificate == document["certificate"] == "constant"  # --certificate constant
     assert all(d.funnel_level is None for d in summary.demos)  # no funnel in a constant run
     assert summary.certification.certified and summary.certification.contraction_margin < 0
     assert {c.kind for c in summary.claims} >= {
@@ -44,6 +44,18 @@ def test_summary_json_round_trips_through_the_typed_summary(synthesized, summary
     }
     with pytest.raises(dataclasses.FrozenInstanceError):
         summary.verdict = Verdict.FAILED  # type: ignore[misc]
+
+
+def test_the_shipped_quadrotor_run_is_a_funnel_run(synthesized):
+    """quadrotor_hill ships the funnel certificate: its summary round-trips and names a
+    certified funnel level in (0, 1] for every demo."""
+    _, out = synthesized
+    document = json.loads((out / "summary.json").read_text())
+    summary = Summary.from_json(document)
+    assert summary.to_json() == document
+    assert summary.certificate == "funnel" and summary.certified
+    levels = [d.funnel_level for d in summary.demos]
+    assert all(level is not None and 0 < level <= 1 for level in levels), levels
 
 
 def test_non_finite_numbers_are_written_as_null(summary):

@@ -77,6 +77,7 @@ class Scenario:
         holding the state in Goal after ``T``).
       certificate: "constant" (one P, K over operating_region) or "funnel" (K[k], P[k] per
         trajectory).
+      optimizer: "gd" (the paper's gradient descent) or "lbfgs": how nominals are optimized.
       state_bounds: state name -> (lower, upper), the physical envelope (not a certificate region).
       units, labels: state or input name -> unit / human name (optional; see ``label``).
     """
@@ -101,6 +102,7 @@ class Scenario:
     source_hash: str = ""
     terminal: str = "reach"
     certificate: str = "constant"
+    optimizer: str = "gd"
     state_bounds: Mapping[str, tuple[float, float]] = field(default_factory=dict)
     units: Mapping[str, str] = field(default_factory=dict)
     labels: Mapping[str, str] = field(default_factory=dict)
@@ -424,6 +426,7 @@ def _build(path: Path, spec: ScenarioSpec) -> Scenario:
         source_hash=file_hash(path),
         terminal=spec.terminal,
         certificate=spec.certificate,
+        optimizer=spec.optimizer,
         state_bounds=dict(spec.state_bounds),
         units=dict(spec.units),
         labels=dict(spec.labels),

@@ -124,6 +124,11 @@ class ScenarioSpec(_Strict):
         description="'constant' (one metric P and gain K over operating_region, the paper's "
         "certificate) or 'funnel' (per-trajectory time-varying K[k], P[k] over each tube)",
     )
+    optimizer: Literal["gd", "lbfgs"] = Field(
+        default="gd",
+        description="how the nominal trajectories are optimized: 'gd' (the paper's gradient "
+        "descent, §III-B) or 'lbfgs' (L-BFGS-B on the same cost); --method overrides it",
+    )
     state_bounds: dict[str, Interval] = Field(
         default_factory=dict,
         description="the physical envelope of the states (e.g. a small-angle limit), apart from "

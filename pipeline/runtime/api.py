@@ -27,7 +27,7 @@ def synthesize(
     seed: int = RunOptions.seed,
     executor: str | None = RunOptions.executor,
     jobs: int = RunOptions.jobs,
-    method: str = RunOptions.method,
+    method: str | None = RunOptions.method,
     search: str = RunOptions.search,
     stress: bool = RunOptions.stress,
     force: bool = RunOptions.force,
@@ -47,7 +47,8 @@ def synthesize(
       samples, seed: the Monte Carlo closed-loop runs and their seed.
       executor, jobs: where parallel work runs (``None``/``"local"``, ``"dask-local"``,
         ``"dask://HOST:PORT"``) and with how many worker processes.
-      method, search: the optimizer (``"gd"``, ``"lbfgs"``) and horizon search.
+      method, search: the optimizer (``"gd"``, ``"lbfgs"``; default: the scenario's
+        ``optimizer``) and horizon search.
       stress: also run the stress test (wind, noise; reported, never certified).
       force: rerun every stage.
       feedback_period: the period ``h`` (s) of a zero-order-hold feedback to certify (0: the

@@ -76,10 +76,12 @@ class RunOptions:
         choices=CERTIFICATES,
         parse=str,
     )
-    method: str = option(
-        DESCENT_METHODS[0],
-        "optimizer: the paper's gradient descent (gd) or L-BFGS-B",
+    method: str | None = option(
+        None,
+        "optimizer: the paper's gradient descent (gd) or L-BFGS-B (default: the scenario's "
+        "`optimizer`)",
         choices=DESCENT_METHODS,
+        parse=str,
     )
     search: str = option(
         HORIZON_SEARCHES[0],

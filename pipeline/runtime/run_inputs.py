@@ -72,6 +72,11 @@ def certificate_of(scenario: Scenario, options: RunOptions) -> str:
     return options.certificate or scenario.certificate
 
 
+def method_of(scenario: Scenario, options: RunOptions) -> str:
+    """The optimizer this run uses: ``--method``, else the scenario's ``optimizer``."""
+    return options.method or scenario.optimizer
+
+
 def spec_key(scenario: Scenario, *exclude: str) -> str:
     """A hash of the scenario's parsed values (not the file's bytes), without ``exclude``."""
     spec = scenario.spec.model_dump(mode="json", exclude={"demos", *exclude})

@@ -127,10 +127,14 @@ def test_a_missing_file_is_not_certified(double_integrator, tmp_path):
     [_scale_radius(-1.0), _scale_radius(10.0), _perturb_P, _scale_K(1.05), _scale_K(0.95)],
     ids=["negative radius", "10x radius", "perturbed P", "K 5% larger", "K 5% smaller"],
 )
-def test_the_quadrotor_controller_certifies_and_tampering_is_caught(synthesized, tmp_path, change):
+def test_the_quadrotor_controller_certifies_and_tampering_is_caught(
+    synthesized_constant, tmp_path, change
+):
+    """The constant certificate's file (safety-controller/1); the funnel file's tampering:
+    ``test_a_quadrotor_funnel_is_rebuilt_from_the_file_and_perturbations_are_caught``."""
     from pipeline import load_scenario
 
-    _, out = synthesized
+    _, out = synthesized_constant
     scenario = load_scenario("quadrotor_hill", check_demos=False)
     assert certify_controller(scenario, out / "controller.json").success
     path = tmp_path / "controller.json"

@@ -40,13 +40,14 @@ needs_browser = pytest.mark.skipif(BROWSER is None, reason="no Chromium to print
 
 @pytest.fixture(scope="module")
 def run(
-    synthesized: tuple[int, Path], tmp_path_factory: pytest.TempPathFactory
+    synthesized_constant: tuple[int, Path], tmp_path_factory: pytest.TempPathFactory
 ) -> tuple[Scenario, Path]:
     """A finished run, its report written by the orchestrator: a copy of the session's
-    synthesis of quadrotor_hill (tests/conftest.py), so that rebuilding it here changes
+    synthesis of quadrotor_hill with the constant certificate (tests/conftest.py; the funnel
+    run's report is tested in tests/test_funnel_run.py), so that rebuilding it here changes
     nothing that other tests read."""
     out = tmp_path_factory.mktemp("report") / "quadrotor_hill"
-    shutil.copytree(synthesized[1], out)
+    shutil.copytree(synthesized_constant[1], out)
     return load_scenario("quadrotor_hill"), out
 
 
