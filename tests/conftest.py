@@ -36,7 +36,6 @@ SYNTHESIS_FIXTURES = {"synthesis_run", "synthesis", "synthesized", "synthesized_
 # quadrotor_hill ships the funnel certificate; the tests of the constant certificate's file
 # (/1) and report read a run of it with --certificate constant, in a group of its own
 CONSTANT = "quadrotor_hill-constant"
-FUNNEL_RUN_GROUP = "funnel-run"  # tests/test_funnel_run.py: its module's funnel run, made once
 
 
 def synthesis_group(scenario: str) -> str:
@@ -51,7 +50,6 @@ def synthesis_group(scenario: str) -> str:
 SCHEDULE = (
     synthesis_group("unicycle_slalom"),
     synthesis_group("quadrotor_hill"),
-    FUNNEL_RUN_GROUP,
     synthesis_group("double_integrator"),
     synthesis_group(CONSTANT),
     synthesis_group("double_integrator_hold"),

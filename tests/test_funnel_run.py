@@ -1,13 +1,13 @@
-"""The funnel certificate as a run (``certificate="funnel"``, ``--certificate funnel``): on the
-double integrator end to end through the API, the command line's flag on the same folder (every
-stage reused), bad combinations refused before any work, and the report of a funnel run (the
-funnel figure, the table constant vs funnel, the per-trajectory gains)."""
+"""The funnel certificate as a run (``certificate="funnel"``, ``--certificate funnel``): on
+quadrotor_hill end to end (the shipped scenario's certificate is the funnel: its session
+synthesis, tests/conftest.py, is the run), the command line's flag on a copy of its folder
+(every stage reused), bad combinations refused before any work, and the report of a funnel run
+(the funnel figure, the table constant vs funnel, the per-trajectory gains)."""
 
 from __future__ import annotations
 
 import dataclasses
 import json
-import logging
 import re
 import shutil
 from html import unescape
@@ -29,44 +29,17 @@ from pipeline.runtime.registry import RESULT_TYPES
 from pipeline.runtime.stored import load_report_data
 from tests.stages.test_report import CHROMIUM, assert_figures_fit, measure_in_browser
 
-SAMPLES = 200
-# One worker runs this module, so its module-scoped funnel run is made once (the group is in
-# tests/conftest.py's SCHEDULE: handed out among the first).
-pytestmark = pytest.mark.xdist_group("funnel-run")
-# Re-optimize rounds in this module's runs (the default is orchestrator.funnels.FUNNEL_ROUNDS,
-# 6): on double_integrator rounds 1 and 2 are both kept (shorter T, Init covered), which is what
-# the tests below check; rounds 3-6 cost ~17 s more and are not kept or shorten T a little.
-ROUNDS = 2
-
-
-@pytest.fixture(scope="module", autouse=True)
-def two_rounds():
-    """Every run of this module (the API's, the command line's, the report's) stops after
-    ``ROUNDS`` re-optimize rounds, so that the later runs on the same folder reuse them all."""
-    with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(orchestrator.funnels, "FUNNEL_ROUNDS", ROUNDS)
-        yield
+SCENARIO = "quadrotor_hill"
+SAMPLES = 200  # the command line's runs on a copy (the session run has 1,000)
 
 
 @pytest.fixture(scope="module")
-def funnel_run(tmp_path_factory: pytest.TempPathFactory):
-    """``pipeline.synthesize("double_integrator", certificate="funnel")`` -> ``(result, the
-    pipeline logger's lines)``."""
-    out = tmp_path_factory.mktemp("funnel") / "double_integrator"
-    lines: list[str] = []
-    handler = logging.Handler()
-    handler.emit = lambda record: lines.append(record.getMessage())  # type: ignore[method-assign]
-    logger = logging.getLogger("pipeline")
-    logger.addHandler(handler)
-    logger.setLevel(logging.INFO)
-    try:
-        result = pipeline.synthesize(
-            "double_integrator", out=out, certificate="funnel", samples=SAMPLES
-        )
-    finally:
-        logger.removeHandler(handler)
-        logger.setLevel(logging.NOTSET)
-    return result, lines
+def funnel_run(synthesis_run):
+    """quadrotor_hill's session synthesis (its scenario ships the funnel certificate) ->
+    ``(result, the pipeline logger's lines)``. Read only: a test that changes files copies it."""
+    session = synthesis_run(SCENARIO)
+    assert session.result.summary is not None and session.result.summary.certificate == "funnel"
+    return session.result, [record.getMessage() for record in session.records]
 
 
 def test_funnel_run_ships_a_certified_safety_controller_2(funnel_run):
@@ -85,8 +58,8 @@ def test_funnel_run_ships_a_certified_safety_controller_2(funnel_run):
     # The file's initial ellipsoids E_i(0) cover Init, each in its own metric P_i[0].
     cover = subdivide(
         np.stack([tr.P[0] for tr in controller.trajectories]),
-        pipeline.load_scenario("double_integrator").init_lower,
-        pipeline.load_scenario("double_integrator").init_upper,
+        pipeline.load_scenario(SCENARIO).init_lower,
+        pipeline.load_scenario(SCENARIO).init_upper,
         np.stack([tr.x0 for tr in controller.trajectories]),
         np.array([tr.radius for tr in controller.trajectories]),
     )
@@ -109,7 +82,6 @@ def test_the_nominals_are_optimized_again_against_the_funnels(funnel_run):
     assert any(line.startswith("[funnel_1] ") for line in lines)
     rounds = [line for line in lines if line.startswith("[round ")]
     assert rounds, "every round says whether it was kept"
-    assert not any(line.startswith(f"[reoptimize_{ROUNDS + 1}] ") for line in lines)
     demos = result.summary.demos
     constant = sum(d.T_constant for d in demos)
     shipped = sum(d.T_optimized for d in demos)
@@ -134,12 +106,14 @@ def test_the_claims_say_which_certificate_and_what_certify_proved(funnel_run):
     assert summary is not None and summary.certification.certified
 
 
-def test_the_command_line_flag_selects_the_certificate(funnel_run, capsys):
-    """``--certificate funnel`` on the API run's folder: every stage reused, the verdict line
-    names the certificate; ``--certificate constant`` there ships ``safety-controller/1``."""
+def test_the_command_line_flag_selects_the_certificate(funnel_run, capsys, tmp_path):
+    """``--certificate funnel`` on a copy of the API run's folder: every stage reused, the
+    verdict line names the certificate; ``--certificate constant`` there ships
+    ``safety-controller/1``."""
     result, _ = funnel_run
-    folder = result.outputs.folder
-    argv = ["synthesize", "double_integrator", "--out", str(folder), "--samples", str(SAMPLES)]
+    folder = tmp_path / SCENARIO
+    shutil.copytree(result.outputs.folder, folder)
+    argv = ["synthesize", SCENARIO, "--out", str(folder), "--samples", str(SAMPLES)]
     assert main([*argv, "--certificate", "funnel"]) == 0
     printed = capsys.readouterr().out
     assert "[funnel] reused (inputs unchanged)" in printed
@@ -172,7 +146,7 @@ def test_a_run_without_any_certified_funnel_fails_and_says_why(funnel_run, tmp_p
     """Every funnel rejected (the funnel stage run again on a copy of the run): the run fails at
     stage funnel naming the reason, and ships no controller."""
     result, _ = funnel_run
-    folder = tmp_path / "double_integrator"
+    folder = tmp_path / SCENARIO
     shutil.copytree(result.outputs.folder, folder)
     stored = read_stored(folder / "artifacts" / "funnel", RESULT_TYPES)
     assert stored is not None
@@ -189,9 +163,7 @@ def test_a_run_without_any_certified_funnel_fails_and_says_why(funnel_run, tmp_p
         )
 
     monkeypatch.setattr(orchestrator.funnels, "synthesize_funnels", none_certified)
-    failed = run_synthesis(
-        "double_integrator", folder, RunOptions(certificate="funnel", samples=20)
-    )
+    failed = run_synthesis(SCENARIO, folder, RunOptions(certificate="funnel", samples=20))
     assert failed.verdict is pipeline.Verdict.FAILED and failed.controller is None
     assert failed.message.startswith("failed: stage funnel: no funnel certified: ")
     assert "all dropped: test" in failed.message
@@ -199,20 +171,17 @@ def test_a_run_without_any_certified_funnel_fails_and_says_why(funnel_run, tmp_p
 
 
 @pytest.fixture(scope="module")
-def funnel_report(funnel_run, tmp_path_factory: pytest.TempPathFactory):
-    """``(ReportData, report.html text)`` of a copy of the API's funnel run, synthesized again
-    there with ``certificate="funnel"`` (every stage reused), so that the command-line test's
-    constant run on the original folder changes nothing here."""
-    result, _ = funnel_run
-    folder = tmp_path_factory.mktemp("funnel_report") / "double_integrator"
-    shutil.copytree(result.outputs.folder, folder)
-    again = pipeline.synthesize(
-        "double_integrator", out=folder, certificate="funnel", samples=SAMPLES
-    )
+def funnel_report(synthesis_run, tmp_path_factory: pytest.TempPathFactory):
+    """``(ReportData, report.html text, Monte Carlo samples)`` of a copy of the API's funnel
+    run, synthesized again there with ``certificate="funnel"`` (every stage reused)."""
+    session = synthesis_run(SCENARIO)
+    folder = tmp_path_factory.mktemp("funnel_report") / SCENARIO
+    shutil.copytree(session.out, folder)
+    again = pipeline.synthesize(SCENARIO, out=folder, certificate="funnel", samples=session.samples)
     assert again.verdict is pipeline.Verdict.CERTIFIED_AND_VALIDATED, again.message
-    scenario = pipeline.load_scenario("double_integrator")
+    scenario = pipeline.load_scenario(SCENARIO)
     data = load_report_data(scenario, folder, write_to=tmp_path_factory.mktemp("unused"))
-    return data, (folder / "report.html").read_text()
+    return data, (folder / "report.html").read_text(), session.samples
 
 
 def _text(html: str) -> str:
@@ -222,7 +191,7 @@ def _text(html: str) -> str:
 
 
 def test_the_report_of_a_funnel_run_shows_the_funnels_and_both_certificates(funnel_report):
-    data, html = funnel_report
+    data, html, samples = funnel_report
     assert data.funnel and data.law.K is None and data.law.P is None  # no feedback block
     assert html.count("<svg") == 7 and 'id="figure-funnels"' in html
     text = _text(html)
@@ -250,7 +219,7 @@ def test_the_report_of_a_funnel_run_shows_the_funnels_and_both_certificates(funn
     )
     assert vertices - step / 2 - 1e-3 <= shown <= vertices + 1e-3
     assert "certified and validated: certify re-checked controller.json (passed)" in funnel_row
-    assert f"0 failures in {SAMPLES} Monte Carlo runs" in funnel_row
+    assert f"0 failures in {samples} Monte Carlo runs" in funnel_row
     constant_row = table[table.index("constant (one K, P)") : table.index("funnel (K_i[k]")]
     assert constant_row.startswith("constant (one K, P) verified by the stages, not shipped 9 ")
     assert "no controller written or re-certified from a file" in constant_row
@@ -264,7 +233,7 @@ def test_the_funnel_figure_draws_the_position_projection_of_each_shipped_funnel(
     rho_i^2`` is the position shadow of ``E_i(t)``: boundary states of ``E_i(t)`` (``P_i(t)``
     from the file's metric) all land inside it and reach its boundary; at the sample times
     the metric is the file's ``P_i[k]``."""
-    data, _ = funnel_report
+    data, _, _ = funnel_report
     s, Ts = data.scenario, data.law.Ts
     rng = np.random.default_rng(3)
     for i in (0, len(data.law.trajectories) - 1):
@@ -293,7 +262,7 @@ def test_the_funnel_report_fits_a_phone(funnel_report, tmp_path):
     """The browser measurement of tests/stages/test_report.py on the funnel run's page at
     390 px: the seven figures (the funnel figure too) inside the column, every legend and
     colour bar inside its figure, text at least 8 px."""
-    _, html = funnel_report
+    _, html, _ = funnel_report
     measured = measure_in_browser(html, 390, tmp_path)
     assert measured["scroll"] <= 390, "the page scrolls sideways"
     assert [f["id"] for f in measured["figures"]][:3] == [
