@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 import os
 import resource
+import shutil
 import time
 from collections import defaultdict
 from contextlib import redirect_stderr, redirect_stdout
@@ -34,8 +35,8 @@ CI_SYNTHESIS_SAMPLES = 300  # every other shipped scenario: the CI safety check 
 SAMPLES = {"quadrotor_hill": E2E_SAMPLES}
 SYNTHESIS_FIXTURES = {"synthesis_run", "synthesis", "synthesized", "synthesized_constant"}
 # quadrotor_hill ships the funnel certificate; the tests of the constant certificate's file
-# (/1) and report read a run of it with --certificate constant, in a group of its own
-CONSTANT = "quadrotor_hill-constant"
+# (/1) and report read a run of it with --certificate constant (``synthesized_constant``), made
+# from the funnel run's folder: both runs are in quadrotor_hill's group
 
 
 def synthesis_group(scenario: str) -> str:
@@ -51,7 +52,6 @@ SCHEDULE = (
     synthesis_group("unicycle_slalom"),
     synthesis_group("quadrotor_hill"),
     synthesis_group("double_integrator"),
-    synthesis_group(CONSTANT),
     synthesis_group("double_integrator_hold"),
 )
 
@@ -209,9 +209,7 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
             continue
         callspec = getattr(item, "callspec", None)
         params = callspec.params if callspec is not None else {}
-        if "synthesized_constant" in used:
-            scenario = CONSTANT
-        elif "synthesized" in used or "name" not in params:
+        if used & {"synthesized", "synthesized_constant"} or "name" not in params:
             scenario = "quadrotor_hill"
         else:
             scenario = str(params["name"])
@@ -308,13 +306,18 @@ def _synthesize_from_empty_directory(
 def synthesis_run(tmp_path_factory: pytest.TempPathFactory):
     """Factory: ``synthesis_run(name, certificate=None)`` -> the ``SessionRun`` of ``name``
     (with ``certificate``, default the scenario's) with ``SAMPLES.get(name,
-    CI_SYNTHESIS_SAMPLES)`` Monte Carlo samples, run once per session. Tests that only read it
-    share it; a test that changes files works on a copy of ``out``."""
+    CI_SYNTHESIS_SAMPLES)`` Monte Carlo samples, run once per session (with a ``certificate``:
+    on a copy of the default run's folder, so the same worker makes both: one xdist group).
+    Tests that only read it share it; a test that changes files works on a copy of ``out``."""
     runs: dict[tuple[str, str | None], SessionRun] = {}
 
     def run(name: str, certificate: str | None = None) -> SessionRun:
         if (name, certificate) not in runs:
             where = tmp_path_factory.mktemp(name)
+            if certificate is not None:
+                # as a user's second run with --certificate: in a copy of the first run's folder
+                # (the stages before the certificate's reused, not computed again)
+                shutil.copytree(run(name).out, where / "reports" / name)
             runs[name, certificate] = _synthesize_from_empty_directory(
                 name, where, SAMPLES.get(name, CI_SYNTHESIS_SAMPLES), certificate
             )
@@ -343,7 +346,8 @@ def synthesized(synthesis):
 @pytest.fixture(scope="session")
 def synthesized_constant(synthesis_run):
     """``(exit_code, out)`` of ``synthesize quadrotor_hill --certificate constant`` (1,000
-    Monte Carlo samples): the constant certificate's ``safety-controller/1`` and report."""
+    Monte Carlo samples) in a copy of ``synthesized``'s folder: the constant certificate's
+    ``safety-controller/1`` and report."""
     session = synthesis_run("quadrotor_hill", certificate="constant")
     return session.result.exit_code, session.out
 
