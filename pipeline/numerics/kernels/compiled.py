@@ -161,10 +161,11 @@ def load_kernels(dynamics: Dynamics) -> ModuleType:
 
 class _CompileLock:
     """One process at a time compiles a kernel module's functions: an exclusive ``flock`` on
-    ``path``, taken by the outermost compile of a thread (a kernel compiles its callees inside
-    it) and released by the kernel's system when a process dies. A process that waited finds
-    the other's result in numba's disk cache instead of compiling it again (parallel workers,
-    pytest-xdist: each compiled every kernel it called first, ~10 s of CPU a scenario)."""
+    ``path``, taken by a thread's outermost compile (a kernel compiles its callees inside it),
+    released by the operating system if the process dies. A process that waited loads the
+    other's result from numba's disk cache instead of compiling it again (parallel workers or
+    pytest-xdist on a cold cache: each compiled every kernel it called first, ~10 s of CPU a
+    scenario). Outside numba's own compiler lock, so a waiting process holds nothing."""
 
     def __init__(self, path: Path) -> None:
         self.path = path
