@@ -267,15 +267,21 @@ def _kill_when(process, marker, timeout=300):
     pytest.fail(f"never saw {marker!r}: {''.join(lines)[-2000:]}")
 
 
-def test_a_killed_run_keeps_the_last_good_output_and_resumes(synthesized, tmp_path, capsys):
+def test_a_killed_run_keeps_the_last_good_output_and_resumes(
+    synthesized_constant, tmp_path, capsys
+):
+    """On the constant certificate's run (its --force rerun is the short one: the funnel
+    rounds would add ~35 s of CPU to the killed process, and kill and resume do not depend on
+    the certificate)."""
     from pipeline.runtime.cli import main
 
-    _, good = synthesized
+    _, good = synthesized_constant
     out = tmp_path / "run"
     subprocess.run(["cp", "-r", str(good), str(out)], check=True)
     before = {p.name: p.read_bytes() for p in [out / "controller.json", out / "summary.json"]}
     # --force reruns every stage; kill it while it computes the Monte Carlo stage
-    _kill_when(_start(out, "--force"), "[certify]")  # the Monte Carlo stage comes next
+    constant = ("--certificate", "constant")
+    _kill_when(_start(out, "--force", *constant), "[certify]")  # the Monte Carlo stage next
     for name, content in before.items():  # same inputs, so the rewritten files are identical
         assert (out / name).read_bytes() == content, name
     load(out / "controller.json")
@@ -283,7 +289,8 @@ def test_a_killed_run_keeps_the_last_good_output_and_resumes(synthesized, tmp_pa
     # the resumed run reads what the killed process left: in this process (the kill is the
     # process boundary under test, not the resume)
     capsys.readouterr()
-    code = main(["synthesize", "quadrotor_hill", "--out", str(out), "--samples", "1000"])
+    argv = ["synthesize", "quadrotor_hill", "--out", str(out), "--samples", "1000", *constant]
+    code = main(argv)
     resumed = capsys.readouterr()
     assert code == 0, resumed.out + resumed.err
     assert "[montecarlo] reused (inputs unchanged)" in resumed.out
