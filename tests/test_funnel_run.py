@@ -256,6 +256,34 @@ def test_the_funnel_figure_draws_the_position_projection_of_each_shipped_funnel(
             assert value.max() <= 1 + 1e-9 and value.max() > 0.99
 
 
+def test_the_coverage_figure_of_a_funnel_run_draws_the_shipped_initial_ellipsoids(funnel_report):
+    """A third panel: each shipped E_i(0) sliced in its own metric P_i[0] from the file, centred
+    on the file's x0_i, beside the constant balls (demonstrations, optimized)."""
+    from matplotlib.collections import EllipseCollection
+    from matplotlib.figure import Figure
+
+    data, _ = funnel_report
+    fig = Figure()
+    figures.draw_coverage(fig, data)
+    assert len(fig.axes) == 3
+    shipped = fig.axes[2]
+    assert shipped.get_title().startswith("shipped funnels:")
+    assert "constant" not in shipped.get_title()
+    collections = [c for c in shipped.collections if isinstance(c, EllipseCollection)]
+    assert collections  # the slices, filled and outlined
+    trajectories = data.law.trajectories
+    offsets = np.asarray(collections[0].get_offsets())
+    pair = list(data.coverage_demos.free[:2])
+    np.testing.assert_allclose(offsets, np.stack([tr.x0[pair] for tr in trajectories]))
+    # the slice of {e : e^T P_i[0] e <= rho_i^2} along the pair: (P_i[0][pair, pair])^-1 rho^2
+    widths = np.asarray(collections[0].get_widths())  # the major axes (full lengths)
+    expected = [
+        2 * tr.radius / np.sqrt(np.linalg.eigvalsh(tr.P[0][np.ix_(pair, pair)]).min())
+        for tr in trajectories
+    ]
+    np.testing.assert_allclose(widths, expected, rtol=1e-6)
+
+
 @pytest.mark.chromium
 @pytest.mark.skipif(not CHROMIUM.exists(), reason="needs /usr/bin/chromium")
 def test_the_funnel_report_fits_a_phone(funnel_report, tmp_path):

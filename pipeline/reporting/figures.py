@@ -285,49 +285,96 @@ def _box(ax: Axes, lower: FloatArray, upper: FloatArray, **style: Any) -> None:
     ax.add_patch(Rectangle((lower[0], lower[1]), width, height, **style))
 
 
-def draw_coverage(fig: FigureLike, data: ReportData) -> None:
-    """Init over its free states with the tube slices at the starts, before and after."""
+def _coverage_panel(
+    ax: Axes,
+    data: ReportData,
+    title: str,
+    slices: tuple[FloatArray, FloatArray, FloatArray],
+    colour: str,
+    boxes: tuple[FloatArray, FloatArray] | None,
+) -> None:
+    """One panel of the coverage figure: Init over its first two free states (one free state:
+    the interval twice), the certified and uncovered ``boxes`` ``(B, 2, n)`` when given, and
+    the ellipsoid slices ``(shapes (k, n, n) metrics, centres (k, n), radii (k,))``."""
     s = data.scenario
     free = list(data.coverage_demos.free)
-    axes = fig.subplots(1, 2, sharex=True, sharey=True)
-    starts = np.array([d.x0 for d in s.demos])
-    cases = (
+    ax.set_title(title)
+    if len(free) == 0:
+        ax.text(0.5, 0.5, "Init is a single point", ha="center", transform=ax.transAxes)
+        return
+    pair = free[:2] if len(free) >= 2 else [free[0], free[0]]
+    if boxes is not None:
+        certified, uncovered = boxes
+        for lower, upper in certified[:, :, pair]:
+            _box(ax, lower, upper, fill=False, edgecolor="0.75", lw=0.5, zorder=2)
+        for lower, upper in uncovered[:, :, pair]:
+            _box(ax, lower, upper, facecolor=FAILURE, alpha=0.6, lw=0, zorder=2)
+    metrics, centres, radii = slices
+    if len(free) >= 2:
+        shapes = np.stack([slice_shape(P, pair) for P in metrics])
+        ellipses(ax, shapes, centres[:, pair], radii, colour, filled=True, alpha=0.08, lw=0)
+        ellipses(ax, shapes, centres[:, pair], radii, colour, lw=1.0)
+    else:
+        half = radii / np.sqrt(metrics[:, free[0], free[0]])
+        for c, h in zip(centres[:, free[0]], half, strict=True):
+            ax.plot([c - h, c + h], [c, c], color=colour, lw=2)
+    ax.plot(*centres[:, pair].T, "o", color=colour, ms=3, zorder=4)
+    lo, hi = s.init_lower[pair], s.init_upper[pair]
+    _box(ax, lo, hi, fill=False, edgecolor=INIT, lw=1.4, zorder=5)
+    pad = 0.6 * max(hi - lo)
+    ax.set_xlim(lo[0] - pad, hi[0] + pad)
+    ax.set_ylim(lo[1] - pad, hi[1] + pad)
+    ax.set_aspect("equal")
+    ax.set_xlabel(axis_label(s, s.state_names[pair[0]]))
+    ax.set_ylabel(axis_label(s, s.state_names[pair[1]]))
+    ax.label_outer()  # shared axes: each label once
+
+
+def draw_coverage(fig: FigureLike, data: ReportData) -> None:
+    """Init over its free states with the slices at the starts: the constant balls of the
+    demonstrations and of the optimized nominals, and in a funnel run the shipped funnels'
+    initial ellipsoids ``E_i(0)`` (each in its own metric ``P_i[0]``, from controller.json)."""
+    starts = np.array([d.x0 for d in data.scenario.demos])
+    P = data.feedback.certified_tube.P
+    cases = [
         ("demonstrations", data.coverage_demos, data.radius_demos, DEMO),
         ("optimized", data.coverage_optimized, data.radius_optimized, OPTIMIZED),
-    )
-    for ax, (name, coverage, radii, colour) in zip(axes, cases, strict=True):
+    ]
+    axes = fig.subplots(1, len(cases) + data.funnel, sharex=True, sharey=True)
+    for ax, (name, coverage, radii, colour) in zip(axes, cases, strict=False):
         r = np.array([max(x.radius, 0.0) for x in radii])
-        ax.set_title(f"{name}:\n{coverage.covered_fraction:.1%} of Init covered")
-        if len(free) == 0:
-            ax.text(0.5, 0.5, "Init is a single point", ha="center", transform=ax.transAxes)
-            continue
-        pair = free[:2] if len(free) >= 2 else [free[0], free[0]]
-        for lower, upper in coverage.boxes[:, :, pair]:
-            _box(ax, lower, upper, fill=False, edgecolor="0.75", lw=0.5, zorder=2)
-        for lower, upper in coverage.uncovered_boxes[:, :, pair]:
-            _box(ax, lower, upper, facecolor=FAILURE, alpha=0.6, lw=0, zorder=2)
-        if len(free) >= 2:
-            shape = slice_shape(data.feedback.certified_tube.P, pair)
-            ellipses(ax, shape, starts[:, pair], r, colour, filled=True, alpha=0.08, lw=0)
-            ellipses(ax, shape, starts[:, pair], r, colour, lw=1.0)
-        else:
-            half = r / np.sqrt(data.feedback.certified_tube.P[free[0], free[0]])
-            for c, h in zip(starts[:, free[0]], half, strict=True):
-                ax.plot([c - h, c + h], [c, c], color=colour, lw=2)
-        ax.plot(*starts[:, pair].T, "o", color=colour, ms=3, zorder=4)
-        lo, hi = s.init_lower[pair], s.init_upper[pair]
-        _box(ax, lo, hi, fill=False, edgecolor=INIT, lw=1.4, zorder=5)
-        pad = 0.6 * max(hi - lo)
-        ax.set_xlim(lo[0] - pad, hi[0] + pad)
-        ax.set_ylim(lo[1] - pad, hi[1] + pad)
-        ax.set_aspect("equal")
-        ax.set_xlabel(axis_label(s, s.state_names[pair[0]]))
-        ax.set_ylabel(axis_label(s, s.state_names[pair[1]]))
+        _coverage_panel(
+            ax,
+            data,
+            f"{name}:\n{coverage.covered_fraction:.1%} covered",
+            (np.broadcast_to(P, (len(r), *P.shape)), starts, r),
+            colour,
+            (coverage.boxes, coverage.uncovered_boxes),
+        )
     handles = [
         Rectangle((0, 0), 1, 1, fill=False, edgecolor=INIT, lw=1.4, label="Init"),
-        Patch(facecolor=DEMO, alpha=0.3, edgecolor=DEMO, label="tube slice, demonstrations"),
-        Patch(facecolor=OPTIMIZED, alpha=0.3, edgecolor=OPTIMIZED, label="tube slice, optimized"),
+        Patch(facecolor=DEMO, alpha=0.3, edgecolor=DEMO, label="ball slice, demonstrations"),
+        Patch(facecolor=OPTIMIZED, alpha=0.3, edgecolor=OPTIMIZED, label="ball slice, optimized"),
         Rectangle((0, 0), 1, 1, fill=False, edgecolor="0.75", label="certified box"),
         Patch(facecolor=FAILURE, alpha=0.6, label="uncovered box"),
     ]
+    if data.funnel:
+        shipped = data.law.trajectories
+        _coverage_panel(
+            axes[-1],
+            data,
+            f"shipped funnels:\n{data.summary.headline.coverage_after:.1%} covered",
+            (
+                np.stack([tr.P[0] for tr in shipped]),
+                np.stack([tr.x0 for tr in shipped]),
+                np.array([tr.radius for tr in shipped]),
+            ),
+            FUNNEL,
+            None,
+        )
+        handles.insert(
+            3, Patch(facecolor=FUNNEL, alpha=0.3, edgecolor=FUNNEL, label="funnel slice E_i(0)")
+        )
+        for ax in (axes[0], axes[2]):  # three panels: the shared x label once, in the middle
+            ax.set_xlabel("")
     legend_below(fig, handles)

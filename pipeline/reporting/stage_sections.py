@@ -252,9 +252,11 @@ def coverage(data: ReportData) -> tuple:
             "before (demonstrations, blue) and after optimization (orange). Grey: boxes certified "
             f"covered; red: boxes not certified covered{projected}."
             + (
-                " These are the constant certificate's balls; the shipped funnels' initial "
-                "ellipsoids E_i(0) cover "
-                f"{percent(data.summary.headline.coverage_after)} of Init (Summary)."
+                " The first two are the constant certificate's balls (verified, not shipped); "
+                "the third (brown) shows the slices of the shipped funnels' initial ellipsoids "
+                "E_i(0), each in its own metric P_i[0] from controller.json, which cover "
+                f"{percent(data.summary.headline.coverage_after)} of Init (certified by the same "
+                "box subdivision in the certify stage)."
                 if data.funnel
                 else ""
             ),
@@ -266,6 +268,8 @@ def coverage(data: ReportData) -> tuple:
                 "coverage_optimized",
                 "radius_demos",
                 "radius_optimized",
+                "controller",
+                data.funnel,
             ),
         ),
         Table(
