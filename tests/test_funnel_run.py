@@ -262,7 +262,7 @@ def test_the_coverage_figure_of_a_funnel_run_draws_the_shipped_initial_ellipsoid
     from matplotlib.collections import EllipseCollection
     from matplotlib.figure import Figure
 
-    data, _ = funnel_report
+    data, _, _ = funnel_report
     fig = Figure()
     figures.draw_coverage(fig, data)
     assert len(fig.axes) == 3
