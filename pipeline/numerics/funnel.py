@@ -222,7 +222,7 @@ def _program(
         vertices=tuple(vertices[a] for a in bounds[:-1]),
         c=c,
         Q_init=Q_init,
-        floor=1e-4 * float(np.linalg.eigvalsh(Q_init)[-1]),
+        floor=1e-4 * float(np.linalg.eigvalsh(Q_init)[:, -1].max()),
         caps=tuple(caps),
         W=W,
         initial_weight=100 * float(np.einsum("kij,kji->", W, Q_seed[bounds])),
@@ -246,7 +246,9 @@ def synthesize_funnel(
       state_bounds: state name -> (lower, upper) the tube must respect (the physical envelope).
       initial: (n, n) ``Q_init`` (positive semidefinite): ``E(0)`` at level 1 must hold
         ``{Q_init^1/2 v : |v| <= 1}`` (degenerate for a slice, e.g. Init's free directions);
-        default the seed's shape with position extent ``scenario.clearance``.
+        or (p, n, n), every one of them (``Q_init[j] = v_j v_j^T``: the points ``x0 +- v_j``,
+        the corners of a cell of Init, ``pipeline.numerics.cells``); default the seed's shape
+        with position extent ``scenario.clearance``.
       rate: lambda of (F2). Default 0: the tube's level is constant and ``Q(t)`` itself shrinks
         where the closed loop contracts (``Q e^{-2 lambda t}`` would satisfy (F2) with rate 0
         too, so a positive rate only restricts the shape); the LMI margin stays (``MARGINS``).
@@ -281,8 +283,16 @@ def synthesize_funnel(
         extent = np.linalg.eigvalsh(Q_seed[0][np.ix_(c, c)])[-1]
         initial = Q_seed[0] * scenario.clearance**2 / extent
     Q_init = np.asarray(initial, dtype=np.float64)
+    if Q_init.ndim == 2:
+        Q_init = Q_init[None]
+    if Q_init.ndim != 3 or Q_init.shape[1:] != (scenario.n, scenario.n) or not len(Q_init):
+        raise ValueError(
+            f"funnel: initial of shape {np.shape(initial)}; expected ({scenario.n}, "
+            f"{scenario.n}) or (p, {scenario.n}, {scenario.n}) with p >= 1"
+        )
     L_inv = np.linalg.inv(np.linalg.cholesky(Q_seed[0]))
-    Q_seed = Q_seed * np.linalg.eigvalsh(L_inv @ Q_init @ L_inv.T)[-1]  # Q_seed[0] >= Q_init
+    # Q_seed[0] >= every Q_init[j]
+    Q_seed = Q_seed * np.linalg.eigvalsh(L_inv @ Q_init @ L_inv.T)[:, -1].max()
 
     def result(success: bool, message: str, **values: Unpack[_Parts]) -> Funnel:
         defaults: _Parts = {

@@ -19,6 +19,7 @@ from pipeline.io.executor import Executor
 from pipeline.io.progress import progress_bar
 from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import Trajectory
+from pipeline.numerics.funnel_check import Funnel
 from pipeline.runtime import run_inputs
 from pipeline.runtime.codekey import code_key
 from pipeline.runtime.runner import StageRunner
@@ -29,9 +30,10 @@ from stages.funnel import FunnelStageResult, synthesize_funnels
 from stages.optimize import OptimizeOptions, OptimizeResult, reoptimize_with_funnels
 
 log = logging.getLogger(__name__)
-FUNNEL_ROUNDS = 6  # re-optimize rounds against the funnels at most (issue 16 part 4)
-ROUND_FLOOR = 0.6  # a round shortens a nominal to no fewer than this fraction of its samples
-SETTLED = 0.95  # a trajectory whose floor fraction reaches this is not optimized again
+FUNNEL_ROUNDS = 10  # re-optimize rounds against the funnels at most (issue 16 part 4)
+FIRST_STEP = 0.1  # round 1 shortens a nominal by at most this fraction of its samples
+GROW, MAX_STEP = 1.5, 0.4  # a kept trajectory's next step grows by GROW, up to MAX_STEP
+SETTLED = 0.025  # a trajectory whose step falls below this is not optimized again
 LEVEL_TOLERANCE = 1e-3  # a new funnel's level may fall this far below the kept one's
 
 
@@ -47,10 +49,12 @@ def funnel_stages(
     initial_radii: Sequence[float],
     quiet: bool,
     stage: str = "funnel",
+    reuse: Sequence[Funnel | None] | None = None,
 ) -> tuple[FunnelStageResult, CoverageResult]:
     """Stages ``stage`` (``funnel`` or ``funnel_k`` in re-optimize round k: one funnel per
-    trajectory, on ``executor``) and ``coverage_<stage>`` (Init by the usable funnels' initial
-    ellipsoids ``E_i(0)``, each in its own metric ``P_i[0]``)."""
+    trajectory, on ``executor``; ``reuse[i]``, when given, is trajectory i's certified funnel
+    from an earlier round around the same nominal) and ``coverage_<stage>`` (Init by the usable
+    funnels' initial ellipsoids ``E_i(0)``, each in its own metric ``P_i[0]``)."""
     names = [d.name for d in scenario.demos]
     with progress_bar(len(trajectories), "funnels", quiet) as advance:
         funnels: FunnelStageResult = runner.run(
@@ -64,6 +68,7 @@ def funnel_stages(
                 np.asarray(initial_radii),
                 executor=executor,
                 progress=advance,
+                reuse=reuse,
             ),
             describe=lambda result: result.message,
         )
@@ -97,18 +102,22 @@ def reoptimize_rounds(
     """The alternation of issue 16 part 4, as a continuation that keeps Init covered.
 
     Round k optimizes each nominal again against its current funnel's time-varying extents
-    (stage ``reoptimize_k``), but to no fewer than ``ceil(f_i N_i)`` samples, and synthesizes
-    and checks new funnels around the new nominals (``funnel_k``, ``coverage_funnel_k``).
-    Trajectory i's new nominal and funnel are kept only when that funnel is certified and its
-    level holds at least what the kept one held (``_accepted``: both levels are fractions of
-    the same required set (I1)); the mixed set is covered again (``coverage_funnel_k_kept``)
-    and the round is kept only when it covers Init at least as well and shortens the total T.
-    A trajectory that was not kept (or all of them, when the round is not) may move only half as
-    far next round (``f_i <- (1 + f_i) / 2``); one whose floor passes ``SETTLED`` is not
-    optimized again. Stop when every trajectory is settled, when no trajectory could be
-    optimized again, or after ``FUNNEL_ROUNDS``. Returns the kept inputs, trajectories, funnels
-    and coverage (a round is never kept unverified: its funnels passed ``check_funnel`` and the
-    certify-style rebuild in their stage).
+    (stage ``reoptimize_k``), but to no fewer than ``ceil((1 - step_i) N_i)`` samples, and
+    synthesizes and checks new funnels around the new nominals (``funnel_k``,
+    ``coverage_funnel_k``); a trajectory that did not move keeps its funnel.
+    Trajectory i's new nominal and funnel are kept when that funnel is certified and the mixed
+    set (new funnels for the kept, the earlier ones for the others) covers Init at least as
+    well as the kept set (``coverage_funnel_k_certified``); if it does not, only the new funnels
+    whose level holds at least what the kept one held are kept (``_accepted``: both levels are
+    fractions of the same required set, the start's cell of Init; ``coverage_funnel_k_level``).
+    The round is kept only when it covers Init at least as well and shortens the total T.
+    A trust region on each step (``_next_step``): ``FIRST_STEP`` in round 1, ``GROW`` times
+    longer after a kept move (at most ``MAX_STEP``), half as long after one not kept (or for
+    every trajectory, when the round is not kept); a trajectory whose step falls below
+    ``SETTLED`` is not optimized again. Stop when every trajectory is settled, when no
+    trajectory could be optimized again, or after ``FUNNEL_ROUNDS``. Returns the kept inputs,
+    trajectories, funnels and coverage (a round is never kept unverified: its funnels passed
+    ``check_funnel`` and the certify-style rebuild in their stage).
 
     Why (measured on quadrotor_hill_gusty, ``--samples 2000``): one unbounded round shortened
     T from 11.8 s to ~3 s, but the new funnels, bound by their own LMI caps ('design': the
@@ -120,10 +129,10 @@ def reoptimize_rounds(
     after six rounds T 5.7-8.1 s (mean 6.9 s, from 11.8 s), Init covered, certified. On
     quadrotor_hill (``--certificate funnel``) T 2.8-3.0 s, certified.
     """
-    fraction = [ROUND_FLOOR] * len(trajectories)
+    step = [FIRST_STEP] * len(trajectories)
     previous = list(optimized.trajectories)
     for k in range(1, FUNNEL_ROUNDS + 1):
-        active = [i for i in funnels.usable if fraction[i] < SETTLED]
+        active = [i for i in funnels.usable if step[i] >= SETTLED]
         if not active:
             log.info(f"[round {k}] every trajectory settled: the previous funnels are kept")
             break
@@ -131,7 +140,8 @@ def reoptimize_rounds(
             dataclasses.replace(t, u=u, N=len(u)) for t, u in zip(previous, inputs, strict=True)
         ]
         shortest = [
-            math.ceil(fraction[i] * len(u)) if i in active else len(u) for i, u in enumerate(inputs)
+            math.ceil((1 - step[i]) * len(u)) if i in active else len(u)
+            for i, u in enumerate(inputs)
         ]
         with progress_bar(len(previous), f"round {k}: optimized again", quiet) as advance:
             again: OptimizeResult = runner.run(
@@ -164,34 +174,46 @@ def reoptimize_rounds(
         new_funnels, new_coverage = funnel_stages(
             scenario, runner, executor, tube, feedback, starts, new_inputs,
             new_trajectories, initial_radii, quiet, stage=_round_stage(k),
+            reuse=[
+                funnels.funnels[i] if i in funnels.usable and i not in moved else None
+                for i in range(len(inputs))
+            ],
         )  # fmt: skip
-        kept = [i for i in _accepted(funnels, new_funnels) if i in moved]
-        if set(kept) != set(range(len(inputs))):
-            new_inputs = [new_inputs[i] if i in kept else u for i, u in enumerate(inputs)]
-            new_trajectories = [
-                new_trajectories[i] if i in kept else t for i, t in enumerate(trajectories)
-            ]
-            new_funnels = _mixed(funnels, new_funnels, kept)
-            new_coverage = runner.run(
-                f"coverage_{_round_stage(k)}_kept",
-                inputs_key(
-                    code_key("stages.coverage"),
-                    tube,
-                    runner.digest(_round_stage(k - 1)),
-                    runner.digest(_round_stage(k)),
-                    kept,
-                    *starts,
-                ),  # fmt: skip
-                functools.partial(
-                    cover_balls,
-                    scenario,
-                    new_funnels.starts,
-                    np.array(starts),
-                    new_funnels.levels,
-                    noun="funnel start",
-                ),
-                describe=describe_coverage,
-            )
+        # Every moved trajectory whose new funnel is certified, when the set still covers Init
+        # as well; else only those whose level holds what the kept one held (_accepted).
+        certified = [i for i in moved if i in new_funnels.usable]
+        by_level = [i for i in _accepted(funnels, new_funnels) if i in moved]
+        for rule, kept in (("certified", certified), ("level", by_level)):
+            mixed, mixed_coverage = new_funnels, new_coverage
+            if kept != moved:  # unmoved trajectories already carry their kept funnels
+                mixed = _mixed(funnels, new_funnels, kept)
+                mixed_coverage = runner.run(
+                    f"coverage_{_round_stage(k)}_{rule}",
+                    inputs_key(
+                        code_key("stages.coverage"),
+                        tube,
+                        runner.digest(_round_stage(k - 1)),
+                        runner.digest(_round_stage(k)),
+                        kept,
+                        *starts,
+                    ),  # fmt: skip
+                    functools.partial(
+                        cover_balls,
+                        scenario,
+                        mixed.starts,
+                        np.array(starts),
+                        mixed.levels,
+                        noun="funnel start",
+                    ),
+                    describe=describe_coverage,
+                )
+            if mixed_coverage.covered_fraction >= coverage.covered_fraction or rule == "level":
+                break
+        new_inputs = [new_inputs[i] if i in kept else u for i, u in enumerate(inputs)]
+        new_trajectories = [
+            new_trajectories[i] if i in kept else t for i, t in enumerate(trajectories)
+        ]
+        new_funnels, new_coverage = mixed, mixed_coverage
         before = sum(trajectories[i].duration for i in funnels.usable)
         after = sum(new_trajectories[i].duration for i in new_funnels.usable)
         shorter = after < before and len(new_funnels.usable) >= len(funnels.usable)
@@ -203,7 +225,7 @@ def reoptimize_rounds(
             )
             kept = []
         for i in active:
-            fraction[i] = fraction[i] if i in kept else (1 + fraction[i]) / 2
+            step[i] = _next_step(step[i], i in kept)
         if not kept:
             continue
         log.info(
@@ -217,12 +239,18 @@ def reoptimize_rounds(
     return inputs, trajectories, funnels, coverage
 
 
+def _next_step(step: float, kept: bool) -> float:
+    """The fraction of its samples a trajectory may lose next round: ``GROW`` times ``step``
+    after a kept move (at most ``MAX_STEP``), half of it after one that was not kept."""
+    return min(GROW * step, MAX_STEP) if kept else step / 2
+
+
 def _accepted(
     before: FunnelStageResult, after: FunnelStageResult, tolerance: float = LEVEL_TOLERANCE
 ) -> tuple[int, ...]:
     """Indices i whose new funnel is usable and whose level holds at least what the kept one
-    held: ``rho_after_i >= rho_before_i - tolerance`` (both fractions of the same required set
-    (I1), 0 for a dropped funnel)."""
+    held: ``rho_after_i >= rho_before_i - tolerance`` (both fractions of the same required set,
+    0 for a dropped funnel)."""
     old, new = before.levels, after.levels
     return tuple(i for i in after.usable if new[i] >= old[i] - tolerance)
 
