@@ -62,15 +62,17 @@ the whole envelope on every interval, the hull so wide that the program was near
 held 0.916 of its set after a second solve, ~60 s each). An angle's box is also capped to whole
 arc segments of the hull (``funnel_pieces``: 6 hull vertices instead of 10 on quadrotor_hill,
 and a tighter hull); if the capped boxes cannot hold the whole initial set, the uncapped ones
-are tried and the better funnel kept. 3. LMIs (F3) plus
-``Q[0] >= tau Q_init`` and, at level 1, the tube inside every box (``Q_ii <= s_i^2``,
-``K_j Q K_j^T <= s_j^2`` at both ends), its position disk clear of Unsafe
-(``C Q C^T <= d_k^2 I``, ``d_k`` the nominal's sound clearance on the interval) and inside Goal
-at T; all linear in Q. Maximise ``tau <= 1`` first, then minimise ``sum_k tr(W Q[k])``, ``W``
-weighting position by ``1/d^2`` and inputs by their inverse squared half-ranges; Clarabel, the
-program assembled by ``funnel_lmi`` (cvxpy states the same program for the tests). ``Q / tau``
-holds the whole initial set at level 1 and meets every cap at level ``sqrt(tau)``. 4. Level:
-``rho = min(sqrt(tau), funnel_limits)`` (``funnel_bounds``; Goal there is the exact ellipse).
+are tried and the better funnel kept. 3. LMIs (F3) plus ``Q[0] >= tau Q_init[j]`` for every
+required matrix (one ellipsoid, or ``v v^T`` per corner ``v`` of a polytope: by the Schur
+complement, ``Q[0] >= tau v v^T`` iff ``v^T (Q[0] / tau)^-1 v <= 1``) and, at level 1, the tube
+inside every box (``Q_ii <= s_i^2``, ``K_j Q K_j^T <= s_j^2`` at both ends), its position disk
+clear of Unsafe (``C Q C^T <= d_k^2 I``, ``d_k`` the nominal's sound clearance on the interval)
+and inside Goal at T; all linear in Q. Maximise ``tau <= 1`` first, then minimise
+``sum_k tr(W Q[k])``, ``W`` weighting position by ``1/d^2`` and inputs by their inverse squared
+half-ranges; Clarabel, the program assembled by ``funnel_lmi`` (cvxpy states the same program
+for the tests). ``Q / tau`` holds the whole initial set at level 1 and meets every cap at level
+``sqrt(tau)``. 4. Level: ``rho = min(sqrt(tau), funnel_limits)`` (``funnel_bounds``; Goal there
+is the exact ellipse).
 5. ``funnel_check.check_funnel``: numpy only; a funnel that fails it is rejected.
 """
 
