@@ -5,6 +5,8 @@ they leave, the trust region on each step, and the floor on a round's horizon
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
@@ -119,3 +121,13 @@ def test_a_step_grows_after_a_kept_move_and_halves_after_one_that_was_not():
     while failing[-1] >= rounds.SETTLED:
         failing.append(rounds._next_step(failing[-1], kept=False))
     assert len(failing) <= 4
+
+
+def test_covering_as_well_reads_the_covered_flag_not_the_last_bits_of_the_volume():
+    def coverage(covered: bool, fraction: float) -> SimpleNamespace:
+        return SimpleNamespace(covered=covered, covered_fraction=fraction)
+
+    assert rounds._covers_as_well(coverage(True, 1 - 1e-16), coverage(True, 1 + 2e-16))
+    assert not rounds._covers_as_well(coverage(False, 0.999), coverage(True, 1.0))
+    assert rounds._covers_as_well(coverage(False, 0.9), coverage(False, 0.8))
+    assert not rounds._covers_as_well(coverage(False, 0.7), coverage(False, 0.8))
