@@ -113,9 +113,10 @@ def reoptimize_rounds(
     A trust region on each step (``_next_step``): ``FIRST_STEP`` in round 1, ``GROW`` times
     longer after a kept move (at most ``MAX_STEP``), half as long after one not kept (or for
     every trajectory, when the round is not kept); a trajectory whose step falls below
-    ``SETTLED`` is not optimized again. Stop when every trajectory is settled, when no
-    trajectory could be optimized again, or after ``FUNNEL_ROUNDS``. Returns the kept inputs,
-    trajectories, funnels and coverage (a round is never kept unverified: its funnels passed
+    ``SETTLED``, or whose optimizer stopped above its floor (no shorter horizon is feasible
+    against its current funnel), is not optimized again. Stop when every trajectory is settled,
+    when no trajectory could be optimized again, or after ``FUNNEL_ROUNDS``. Returns the kept
+    inputs, trajectories, funnels and coverage (a round is never kept unverified: its funnels passed
     ``check_funnel`` and the certify-style rebuild in their stage).
 
     Why (measured on quadrotor_hill_gusty, ``--samples 2000``): one unbounded round shortened
@@ -164,7 +165,13 @@ def reoptimize_rounds(
                 ),  # fmt: skip
                 describe=lambda result: result.message,
             )
-        moved = [i for i in active if again.trajectories[i].success]
+        moved = [
+            i
+            for i in active
+            if again.trajectories[i].success and again.trajectories[i].N < len(inputs[i])
+        ]
+        # The optimizer's search stopped above the floor: the limit against this funnel.
+        stopped = [i for i in active if i not in moved or again.trajectories[i].N > shortest[i]]
         if not moved:
             log.info(f"[round {k}] no trajectory optimized again: the previous funnels are kept")
             break
@@ -216,7 +223,7 @@ def reoptimize_rounds(
             )
             kept = []
         for i in active:
-            step[i] = _next_step(step[i], i in kept)
+            step[i] = 0.0 if i in stopped else _next_step(step[i], i in kept)
         if not kept:
             continue
         log.info(
