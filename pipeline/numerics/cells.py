@@ -18,10 +18,10 @@ This is only a request: the coverage stage certifies Init against the funnels' i
 ellipsoids at their levels by its own sound subdivision. With ``g`` a power of two the cells are
 boxes of that subdivision, each inside one funnel when every level reaches 1.
 
-Why (measured on quadrotor_hill_gusty, Init vX, vY in [-0.2, 0.2], theta in [-0.05, 0.05]): the
-constant certificate's ball slice that the funnels were asked to hold before reached theta
-+-0.30 rad, vX +-0.95 m/s and vY +-0.86 m/s from every start, 4-6x what Init spans; a cell stays
-inside Init.
+Why (measured on quadrotor_hill_gusty, Init with velocity and pitch spread): the constant
+certificate's ball slice that the funnels were asked to hold before reached +-0.30 rad in pitch
+and +-0.95 m/s in horizontal speed from every start, 4-6x what Init spans; a cell stays inside
+Init.
 """
 
 from __future__ import annotations
