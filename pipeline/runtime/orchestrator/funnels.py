@@ -130,9 +130,10 @@ def reoptimize_rounds(
     schedule (40% first, then only halved) ran out of rounds while every round still
     shortened (6 rounds, T 3.7-5.1 s, 1.37-1.89x the uncertified minimum time); this trust
     region kept all 10 rounds: T 2.7-3.3 s, 1.08-1.23x, certified. On quadrotor_hill
-    (``--certificate funnel --method lbfgs --samples 10000``) T 2.6-2.8 s, certified; settling
-    a trajectory whose optimizer stopped above its floor took that run from 232 s to 131 s wall
-    (load ~6): three rounds in which no nominal could be shortened cost 36-46 s each.
+    (``--certificate funnel --method lbfgs --samples 10000``) T 2.6-2.8 s, certified, 23 s wall
+    at load ~1 (the previous schedule: 53 s); settling a trajectory whose optimizer stopped
+    above its floor took that run from 232 s to 131 s wall at load ~6: three rounds in which
+    no nominal could be shortened cost 36-46 s each.
     """
     step = [FIRST_STEP] * len(trajectories)
     previous = list(optimized.trajectories)
