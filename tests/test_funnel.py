@@ -269,3 +269,33 @@ def test_clarabel_matches_cvxpy_with_pieces_of_different_length() -> None:
     uniform = FunnelProgram(**{**program.__dict__, "Ts": scenario.Ts})
     Q_uniform, _ = solve_clarabel(uniform)
     assert np.abs(Q_uniform - Q_direct).max() > 1e-3 * np.abs(Q_direct).max()
+
+
+def test_a_stack_of_corners_is_held_as_cvxpy_holds_it() -> None:
+    """``Q_init (p, n, n)`` of rank-one ``v v^T`` (the corners of a cell of Init): Clarabel and
+    cvxpy agree, ``Q[0] / tau`` holds every corner (``v^T (Q[0] / tau)^-1 v <= 1``), and one
+    corner pushed out beyond what the caps allow lowers tau."""
+    scenario, K, Q_seed, J = _demo_start(8)
+    vertices = tuple(np.stack([Jk, Jk * 1.05]) for Jk in J)
+    caps = tuple((k, np.eye(6)[2:3], np.full((1, 1), 4 * Q_seed[0][2, 2])) for k in range(9))
+    rng = np.random.default_rng(5)
+    L = np.linalg.cholesky(Q_seed[0])
+    corners = rng.normal(size=(12, 6))
+    corners = 0.9 * corners / np.linalg.norm(corners, axis=1, keepdims=True) @ L.T  # inside
+    program = FunnelProgram(
+        Ts=scenario.Ts, K=K, vertices=vertices, c=0.3,
+        Q_init=np.einsum("pi,pj->pij", corners, corners), floor=1e-6, caps=caps,
+        W=np.broadcast_to(np.eye(6), (9, 6, 6)), initial_weight=1e3,
+    )  # fmt: skip
+    (Q_direct, tau), (Q_reference, tau_reference) = solve_clarabel(program), solve_cvxpy(program)
+    assert tau == pytest.approx(tau_reference, rel=1e-4)
+    np.testing.assert_allclose(Q_direct, Q_reference, atol=1e-4 * np.abs(Q_reference).max())
+    held = np.einsum("pi,ij,pj->p", corners, np.linalg.inv(Q_direct[0] / tau), corners)
+    assert held.max() <= 1 + 1e-5
+    far = corners.copy()
+    far[0] = 0.0
+    far[0, 2] = 10 * np.sqrt(caps[0][2][0, 0])  # pitch far beyond the pitch cap
+    wide = dataclasses.replace(program, Q_init=np.einsum("pi,pj->pij", far, far))
+    (_, tau_far), (_, tau_far_reference) = solve_clarabel(wide), solve_cvxpy(wide)
+    # Q_22 <= cap and Q >= tau v v^T with v_2^2 = 100 cap: tau <= 1/100
+    assert tau_far <= 0.01 and tau_far == pytest.approx(tau_far_reference, abs=1e-6)

@@ -1,8 +1,11 @@
 """The re-optimize rounds' continuation (issue 16 part 4, ``funnels.reoptimize_rounds``):
 per-trajectory acceptance of a round's new funnels on constructed funnel sets, the mixed set
-they leave, and the floor on a round's horizon (``optimize_from(..., N_min=...)``)."""
+they leave, the trust region on each step, and the floor on a round's horizon
+(``optimize_from(..., N_min=...)``)."""
 
 from __future__ import annotations
+
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -105,3 +108,26 @@ def test_one_floor_per_trajectory():
     scenario = load_scenario("double_integrator", check_demos=False)
     with pytest.raises(ValueError, match="1 shortest horizons for 0 trajectories"):
         reoptimize_with_funnels(scenario, [], [], OptimizeOptions(), shortest=[5])
+
+
+def test_a_step_grows_after_a_kept_move_and_halves_after_one_that_was_not():
+    step = rounds.FIRST_STEP
+    grown = rounds._next_step(step, kept=True)
+    assert grown == pytest.approx(rounds.GROW * step)
+    assert rounds._next_step(grown, kept=False) == pytest.approx(grown / 2)
+    assert rounds._next_step(rounds.MAX_STEP, kept=True) == rounds.MAX_STEP  # capped
+    # halving settles a trajectory that keeps failing within a few rounds
+    failing = [step]
+    while failing[-1] >= rounds.SETTLED:
+        failing.append(rounds._next_step(failing[-1], kept=False))
+    assert len(failing) <= 4
+
+
+def test_covering_as_well_reads_the_covered_flag_not_the_last_bits_of_the_volume():
+    def coverage(covered: bool, fraction: float) -> SimpleNamespace:
+        return SimpleNamespace(covered=covered, covered_fraction=fraction)
+
+    assert rounds._covers_as_well(coverage(True, 1 - 1e-16), coverage(True, 1 + 2e-16))
+    assert not rounds._covers_as_well(coverage(False, 0.999), coverage(True, 1.0))
+    assert rounds._covers_as_well(coverage(False, 0.9), coverage(False, 0.8))
+    assert not rounds._covers_as_well(coverage(False, 0.7), coverage(False, 0.8))

@@ -62,15 +62,17 @@ the whole envelope on every interval, the hull so wide that the program was near
 held 0.916 of its set after a second solve, ~60 s each). An angle's box is also capped to whole
 arc segments of the hull (``funnel_pieces``: 6 hull vertices instead of 10 on quadrotor_hill,
 and a tighter hull); if the capped boxes cannot hold the whole initial set, the uncapped ones
-are tried and the better funnel kept. 3. LMIs (F3) plus
-``Q[0] >= tau Q_init`` and, at level 1, the tube inside every box (``Q_ii <= s_i^2``,
-``K_j Q K_j^T <= s_j^2`` at both ends), its position disk clear of Unsafe
-(``C Q C^T <= d_k^2 I``, ``d_k`` the nominal's sound clearance on the interval) and inside Goal
-at T; all linear in Q. Maximise ``tau <= 1`` first, then minimise ``sum_k tr(W Q[k])``, ``W``
-weighting position by ``1/d^2`` and inputs by their inverse squared half-ranges; Clarabel, the
-program assembled by ``funnel_lmi`` (cvxpy states the same program for the tests). ``Q / tau``
-holds the whole initial set at level 1 and meets every cap at level ``sqrt(tau)``. 4. Level:
-``rho = min(sqrt(tau), funnel_limits)`` (``funnel_bounds``; Goal there is the exact ellipse).
+are tried and the better funnel kept. 3. LMIs (F3) plus ``Q[0] >= tau Q_init[j]`` for every
+required matrix (one ellipsoid, or ``v v^T`` per corner ``v`` of a polytope: by the Schur
+complement, ``Q[0] >= tau v v^T`` iff ``v^T (Q[0] / tau)^-1 v <= 1``) and, at level 1, the tube
+inside every box (``Q_ii <= s_i^2``, ``K_j Q K_j^T <= s_j^2`` at both ends), its position disk
+clear of Unsafe (``C Q C^T <= d_k^2 I``, ``d_k`` the nominal's sound clearance on the interval)
+and inside Goal at T; all linear in Q. Maximise ``tau <= 1`` first, then minimise
+``sum_k tr(W Q[k])``, ``W`` weighting position by ``1/d^2`` and inputs by their inverse squared
+half-ranges; Clarabel, the program assembled by ``funnel_lmi`` (cvxpy states the same program
+for the tests). ``Q / tau`` holds the whole initial set at level 1 and meets every cap at level
+``sqrt(tau)``. 4. Level: ``rho = min(sqrt(tau), funnel_limits)`` (``funnel_bounds``; Goal there
+is the exact ellipse).
 5. ``funnel_check.check_funnel``: numpy only; a funnel that fails it is rejected.
 """
 
@@ -222,7 +224,7 @@ def _program(
         vertices=tuple(vertices[a] for a in bounds[:-1]),
         c=c,
         Q_init=Q_init,
-        floor=1e-4 * float(np.linalg.eigvalsh(Q_init)[-1]),
+        floor=1e-4 * float(np.linalg.eigvalsh(Q_init)[:, -1].max()),
         caps=tuple(caps),
         W=W,
         initial_weight=100 * float(np.einsum("kij,kji->", W, Q_seed[bounds])),
@@ -246,7 +248,9 @@ def synthesize_funnel(
       state_bounds: state name -> (lower, upper) the tube must respect (the physical envelope).
       initial: (n, n) ``Q_init`` (positive semidefinite): ``E(0)`` at level 1 must hold
         ``{Q_init^1/2 v : |v| <= 1}`` (degenerate for a slice, e.g. Init's free directions);
-        default the seed's shape with position extent ``scenario.clearance``.
+        or (p, n, n), every one of them (``Q_init[j] = v_j v_j^T``: the points ``x0 +- v_j``,
+        the corners of a cell of Init, ``pipeline.numerics.cells``); default the seed's shape
+        with position extent ``scenario.clearance``.
       rate: lambda of (F2). Default 0: the tube's level is constant and ``Q(t)`` itself shrinks
         where the closed loop contracts (``Q e^{-2 lambda t}`` would satisfy (F2) with rate 0
         too, so a positive rate only restricts the shape); the LMI margin stays (``MARGINS``).
@@ -281,8 +285,16 @@ def synthesize_funnel(
         extent = np.linalg.eigvalsh(Q_seed[0][np.ix_(c, c)])[-1]
         initial = Q_seed[0] * scenario.clearance**2 / extent
     Q_init = np.asarray(initial, dtype=np.float64)
+    if Q_init.ndim == 2:
+        Q_init = Q_init[None]
+    if Q_init.ndim != 3 or Q_init.shape[1:] != (scenario.n, scenario.n) or not len(Q_init):
+        raise ValueError(
+            f"funnel: initial of shape {np.shape(initial)}; expected ({scenario.n}, "
+            f"{scenario.n}) or (p, {scenario.n}, {scenario.n}) with p >= 1"
+        )
     L_inv = np.linalg.inv(np.linalg.cholesky(Q_seed[0]))
-    Q_seed = Q_seed * np.linalg.eigvalsh(L_inv @ Q_init @ L_inv.T)[-1]  # Q_seed[0] >= Q_init
+    # Q_seed[0] >= every Q_init[j]
+    Q_seed = Q_seed * np.linalg.eigvalsh(L_inv @ Q_init @ L_inv.T)[:, -1].max()
 
     def result(success: bool, message: str, **values: Unpack[_Parts]) -> Funnel:
         defaults: _Parts = {

@@ -6,7 +6,8 @@ Unknowns ``Q[0..N]`` (n, n symmetric), ``x = (q_0, .., q_N)``, ``q_k`` the upper
     minimise sum_k tr(W[k] Q[k]) - w tau
     subject to  -(Q[k+1] - Q[k]) / Ts_k + G_kv(Q[k+e]) <= 0,  G(X) = Acl X + X Acl^T + c X,
                 Acl = A_v + B_v K[k], every vertex v of interval k, e in {0, 1};           (F3)
-                Q[0] >= tau Q_init, tau <= 1;  Q[k] >= floor I;  C Q[k] C^T <= bound (caps).
+                Q[0] >= tau Q_init[j] (every j), tau <= 1;  Q[k] >= floor I;
+                C Q[k] C^T <= bound (caps).
 
 ``tau`` is the fraction of the required initial set held (``w`` large: it is maximised first), so
 a program that cannot hold all of it still returns the funnel that holds the most.
@@ -46,7 +47,8 @@ class FunnelProgram:
     Attributes:
       Ts: the intervals' durations, one for all or (N,); K: (N, m, n) gains held on each;
         vertices: N arrays (V_k, n, n+m) of ``[A_v B_v]``.
-      c: ``2 lambda + eps`` in ``G``; Q_init: (n, n); floor: smallest eigenvalue of each Q[k].
+      c: ``2 lambda + eps`` in ``G``; Q_init: (n, n) or (p, n, n), each held by ``Q[0] / tau``;
+        floor: smallest eigenvalue of each Q[k].
       caps: ``(k, C (r, n), bound (r, r))``: ``C Q[k] C^T <= bound`` (a scalar if r = 1).
       W: (N+1, n, n) objective weights; initial_weight: ``w``.
     """
@@ -137,12 +139,17 @@ def solve_clarabel(program: FunnelProgram) -> tuple[FloatArray, float] | str:
     triplets.append((rows(1, 1).ravel(), np.array([unknowns - 1]), np.ones(1)))
     b_parts.append(np.ones(1))
     cones.append(clarabel.NonnegativeConeT(1))
-    # Q[0] - tau Q_init >= 0: s = svec(Q[0]) - tau svec(Q_init) = b - A x.
-    r0 = rows(1, p)
-    triplets.append(_block(r0, of(np.array([0])), -sE.T[None]))
-    triplets.append((r0.ravel(), np.full(p, unknowns - 1), svec(program.Q_init)))
-    b_parts.append(np.zeros(p))
-    cones.append(clarabel.PSDTriangleConeT(n))
+    # Q[0] - tau Q_init[j] >= 0: s = svec(Q[0]) - tau svec(Q_init[j]) = b - A x.
+    Q_init = np.asarray(program.Q_init, dtype=np.float64).reshape(-1, n, n)
+    r0 = rows(len(Q_init), p)
+    triplets.append(
+        _block(
+            r0, of(np.zeros(len(Q_init), dtype=int)), np.broadcast_to(-sE.T, (len(Q_init), p, p))
+        )
+    )
+    triplets.append((r0.ravel(), np.full(r0.size, unknowns - 1), svec(Q_init).ravel()))
+    b_parts.append(np.zeros(r0.size))
+    cones.extend(clarabel.PSDTriangleConeT(n) for _ in range(len(Q_init)))
     # Q[k] - floor I >= 0: s = svec(Q[k]) - svec(floor I) = b - A x.
     everyone = np.arange(N + 1)
     triplets.append(_block(rows(N + 1, p), of(everyone), np.broadcast_to(-sE.T, (N + 1, p, p))))
@@ -187,7 +194,8 @@ def solve_cvxpy(program: FunnelProgram) -> tuple[FloatArray, float] | str:
     Ts = np.broadcast_to(np.asarray(program.Ts, dtype=np.float64), (N,))
     Q = [cp.Variable((n, n), symmetric=True) for _ in range(N + 1)]
     tau = cp.Variable()
-    constraints = [Q[0] - tau * program.Q_init >> 0, tau <= 1]
+    Q_init = np.asarray(program.Q_init, dtype=np.float64).reshape(-1, n, n)
+    constraints = [Q[0] - tau * Q_j >> 0 for Q_j in Q_init] + [tau <= 1]
     constraints += [Qk >> program.floor * np.eye(n) for Qk in Q]
     constraints += [bound - C @ Q[k] @ C.T >> 0 for k, C, bound in program.caps]
     for k in range(N):

@@ -209,9 +209,9 @@ def format_summary(summary: Summary, scenario: Scenario | None = None) -> str:
 def _funnel_lines(summary: Summary) -> list[str]:
     """Each optimized trajectory's funnel: its level, what bounds it, its synthesis time."""
     lines = [
-        "\nfunnels (level rho: E_i(0) holds rho times the constant ball's slice of Init, 1 at"
-        " most; bound by: the constraint that sets it, 'design' when the funnel's own LMI caps"
-        " do, which at level 1 means the slice is held whole; synthesis time):"
+        "\nfunnels (level rho: E_i(0) holds rho times its start's cell of Init, 1 at most; bound"
+        " by: the constraint that sets it, 'design' when the funnel's own LMI caps do, which at"
+        " level 1 means the cell is held whole; synthesis time):"
     ]
     for d in summary.demos:
         if d.funnel_level is None:

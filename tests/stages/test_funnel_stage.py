@@ -1,5 +1,6 @@
-"""Stage ``funnel``: the required initial set (I1), funnels on the shipped double integrator's
-demos that hold it and pass the independent check, a perturbed funnel dropped and said so, and
+"""Stage ``funnel``: the required initial sets (each start's cell of Init, else the ball slice
+(I1)), funnels on the shipped double integrator's demos that hold them and pass the independent
+check, unchanged trajectories' funnels reused, a perturbed funnel dropped and said so, and
 the result stored and read back like every stage's."""
 
 from __future__ import annotations
@@ -14,11 +15,12 @@ import stages.funnel as funnel_stage
 from pipeline.io.artifacts import read_stored, save_result
 from pipeline.model.scenario import load_scenario
 from pipeline.model.simulate import simulate
+from pipeline.numerics.cells import init_cells
 from pipeline.numerics.funnel_check import check_funnel
 from pipeline.numerics.verify import VERIFY_SUBSTEPS
 from pipeline.runtime.registry import RESULT_TYPES
 from stages.feedback import design_feedback
-from stages.funnel import FunnelStageResult, initial_sets, synthesize_funnels
+from stages.funnel import FunnelStageResult, initial_sets, required_sets, synthesize_funnels
 from stages.radius import robustness_radius
 
 DEMOS = 2  # the first two demos: about 1-2 s per funnel
@@ -71,15 +73,22 @@ def test_funnels_hold_the_required_initial_set(inputs, result):
     assert isinstance(result, FunnelStageResult) and result.success
     assert result.usable == (0, 1) and result.rejected == () and result.names == tuple(names)
     assert "funnels certified for 2 of 2 trajectories" in result.message
-    initial = initial_sets(scenario, P, radii)
+    starts = np.array([t.xs[0] for t in trajectories])
+    corners = init_cells(scenario.init_lower, scenario.init_upper, starts, P)
+    initial = required_sets(scenario, starts, P, radii)
     rng = np.random.default_rng(0)
     for i, (funnel, trajectory) in enumerate(zip(result.funnels, trajectories, strict=True)):
         assert funnel.success and 0 < funnel.rho <= 1
         assert check_funnel(scenario, trajectory, funnel, scenario.state_bounds) is None
-        # Points on the boundary of the required set (I1) are in E(0) at level 1, so E(0) at
+        if len(corners[i]):  # the corners of its cell are in E(0) at level 1
+            v = corners[i]
+            np.testing.assert_allclose(initial[i], np.einsum("pi,pj->pij", v, v))
+            assert np.einsum("bi,ij,bj->b", v, funnel.P[0], v).max() <= 1 + 1e-6
+            continue
+        # Points on the boundary of the ball slice (I1) are in E(0) at level 1, so E(0) at
         # level rho holds rho times the set.
         w = rng.normal(size=(200, 2))
-        L = np.linalg.cholesky(initial[i][:2, :2])
+        L = np.linalg.cholesky(initial[i][0][:2, :2])
         e = np.zeros((200, 4))
         e[:, :2] = (w / np.linalg.norm(w, axis=1, keepdims=True)) @ L.T
         assert np.einsum("bi,ij,bj->b", e, funnel.P[0], e).max() <= 1 + 1e-6
@@ -109,6 +118,27 @@ def test_a_funnel_the_check_rejects_is_dropped(inputs, result, monkeypatch):
     assert "rejected by the independent check" in found.rejected[0]
     assert found.levels[1] == 0.0 and found.levels[0] == result.funnels[0].rho
     assert "funnels certified for 1 of 2 trajectories" in found.message
+
+
+def test_a_reused_funnel_is_not_synthesized_again(inputs, result, monkeypatch):
+    """``reuse``: the first trajectory's funnel is given, only the second is synthesized."""
+    scenario, names, trajectories, P, radii = inputs
+    calls = []
+
+    def counted(*args, **kwargs):
+        calls.append(args[1])
+        return result.funnels[1]
+
+    monkeypatch.setattr(funnel_stage, "synthesize_funnel", counted)
+    done = []
+    found = synthesize_funnels(
+        scenario, names, trajectories, P, radii, reuse=[result.funnels[0], None],
+        progress=done.append,
+    )  # fmt: skip
+    assert len(calls) == 1 and calls[0] is trajectories[1] and sum(done) == 2
+    assert found.funnels[0] is result.funnels[0] and found.usable == (0, 1)
+    with pytest.raises(ValueError, match="1 funnels to reuse for 2 trajectories"):
+        synthesize_funnels(scenario, names, trajectories, P, radii, reuse=[None])
 
 
 def test_mismatched_inputs(inputs):

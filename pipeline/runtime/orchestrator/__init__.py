@@ -294,8 +294,9 @@ def _synthesize(
     funnel_coverage: CoverageResult | None = None
     constant_trajectories: list[Trajectory] | None = None
     if certificate == "funnel":
-        # The funnels are asked to hold the constant ball's slice of Init (stage funnel, (I1));
-        # a trajectory without a robustness radius asks for the radius the optimizer kept.
+        # Each funnel is asked to hold its start's cell of Init (stage funnel); a start that
+        # owns no cell asks for the constant ball's slice (I1), at the radius the optimizer kept
+        # when its trajectory has no robustness radius.
         initial_radii = [r.radius if r.radius > 0 else r_required for r in final_radii]
         funnels, funnel_coverage = funnel_stages(
             scenario, runner, executor, tube, feedback, demo_starts, final_inputs,

@@ -19,6 +19,7 @@ from pipeline.io.executor import Executor
 from pipeline.io.progress import progress_bar
 from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import Trajectory
+from pipeline.numerics.funnel_check import Funnel
 from pipeline.runtime import run_inputs
 from pipeline.runtime.codekey import code_key
 from pipeline.runtime.runner import StageRunner
@@ -29,9 +30,10 @@ from stages.funnel import FunnelStageResult, synthesize_funnels
 from stages.optimize import OptimizeOptions, OptimizeResult, reoptimize_with_funnels
 
 log = logging.getLogger(__name__)
-FUNNEL_ROUNDS = 6  # re-optimize rounds against the funnels at most (issue 16 part 4)
-ROUND_FLOOR = 0.6  # a round shortens a nominal to no fewer than this fraction of its samples
-SETTLED = 0.95  # a trajectory whose floor fraction reaches this is not optimized again
+FUNNEL_ROUNDS = 10  # re-optimize rounds against the funnels at most (issue 16 part 4)
+FIRST_STEP = 0.1  # round 1 shortens a nominal by at most this fraction of its samples
+GROW, MAX_STEP = 1.5, 0.4  # a kept trajectory's next step grows by GROW, up to MAX_STEP
+SETTLED = 0.025  # a trajectory whose step falls below this is not optimized again
 LEVEL_TOLERANCE = 1e-3  # a new funnel's level may fall this far below the kept one's
 
 
@@ -47,10 +49,12 @@ def funnel_stages(
     initial_radii: Sequence[float],
     quiet: bool,
     stage: str = "funnel",
+    reuse: Sequence[Funnel | None] | None = None,
 ) -> tuple[FunnelStageResult, CoverageResult]:
     """Stages ``stage`` (``funnel`` or ``funnel_k`` in re-optimize round k: one funnel per
-    trajectory, on ``executor``) and ``coverage_<stage>`` (Init by the usable funnels' initial
-    ellipsoids ``E_i(0)``, each in its own metric ``P_i[0]``)."""
+    trajectory, on ``executor``; ``reuse[i]``, when given, is trajectory i's certified funnel
+    from an earlier round around the same nominal) and ``coverage_<stage>`` (Init by the usable
+    funnels' initial ellipsoids ``E_i(0)``, each in its own metric ``P_i[0]``)."""
     names = [d.name for d in scenario.demos]
     with progress_bar(len(trajectories), "funnels", quiet) as advance:
         funnels: FunnelStageResult = runner.run(
@@ -64,6 +68,7 @@ def funnel_stages(
                 np.asarray(initial_radii),
                 executor=executor,
                 progress=advance,
+                reuse=reuse,
             ),
             describe=lambda result: result.message,
         )
@@ -97,33 +102,43 @@ def reoptimize_rounds(
     """The alternation of issue 16 part 4, as a continuation that keeps Init covered.
 
     Round k optimizes each nominal again against its current funnel's time-varying extents
-    (stage ``reoptimize_k``), but to no fewer than ``ceil(f_i N_i)`` samples, and synthesizes
-    and checks new funnels around the new nominals (``funnel_k``, ``coverage_funnel_k``).
+    (stage ``reoptimize_k``), but to no fewer than ``ceil((1 - step_i) N_i)`` samples, and
+    synthesizes and checks new funnels around the new nominals (``funnel_k``,
+    ``coverage_funnel_k``); a trajectory that did not move keeps its funnel.
     Trajectory i's new nominal and funnel are kept only when that funnel is certified and its
     level holds at least what the kept one held (``_accepted``: both levels are fractions of
-    the same required set (I1)); the mixed set is covered again (``coverage_funnel_k_kept``)
-    and the round is kept only when it covers Init at least as well and shortens the total T.
-    A trajectory that was not kept (or all of them, when the round is not) may move only half as
-    far next round (``f_i <- (1 + f_i) / 2``); one whose floor passes ``SETTLED`` is not
-    optimized again. Stop when every trajectory is settled, when no trajectory could be
-    optimized again, or after ``FUNNEL_ROUNDS``. Returns the kept inputs, trajectories, funnels
-    and coverage (a round is never kept unverified: its funnels passed ``check_funnel`` and the
-    certify-style rebuild in their stage).
+    the same required set, the start's cell of Init); the mixed set is covered again
+    (``coverage_funnel_k_kept``) and the round is kept only when it covers Init at least as
+    well (``_covers_as_well``) and shortens the total T.
+    A trust region on each step (``_next_step``): ``FIRST_STEP`` in round 1, ``GROW`` times
+    longer after a kept move (at most ``MAX_STEP``), half as long after one not kept (or for
+    every trajectory, when the round is not kept); a trajectory whose step falls below
+    ``SETTLED``, or whose optimizer stopped above its floor (no shorter horizon is feasible
+    against its current funnel), is not optimized again. Stop when every trajectory is settled,
+    when no trajectory could be optimized again, or after ``FUNNEL_ROUNDS``. Returns the kept
+    inputs, trajectories, funnels and coverage (a round is never kept unverified: its funnels passed
+    ``check_funnel`` and the certify-style rebuild in their stage).
 
     Why (measured on quadrotor_hill_gusty, ``--samples 2000``): one unbounded round shortened
     T from 11.8 s to ~3 s, but the new funnels, bound by their own LMI caps ('design': the
     local hull at the new nominal's high thrust and pitch) or by Goal, held only 11-21% of
     their required sets and Init went uncovered, so the round was discarded. Shorter steps
     keep each new nominal within reach of the funnel that was certified around the previous.
-    Measured with these settings (``--samples 2000 --jobs 2``): gusty, 40% steps kept 1 of 9
-    new funnels (the others held 20-100% of their sets), 20% steps then 5-8 of 9 a round;
-    after six rounds T 5.7-8.1 s (mean 6.9 s, from 11.8 s), Init covered, certified. On
-    quadrotor_hill (``--certificate funnel``) T 2.8-3.0 s, certified.
+    With each funnel asked for its start's cell of Init (``stages.funnel``), measured with
+    ``--method lbfgs --samples 2000 --jobs 2``: a 40% first step gave funnels holding 56-68%
+    of their cells (Init 36% covered, round discarded); 10% steps are held whole. The old
+    schedule (40% first, then only halved) ran out of rounds while every round still
+    shortened (6 rounds, T 3.7-5.1 s, 1.37-1.89x the uncertified minimum time); this trust
+    region kept all 10 rounds: T 2.7-3.3 s, 1.08-1.23x, certified. On quadrotor_hill
+    (``--certificate funnel --method lbfgs --samples 10000``) T 2.6-2.8 s, certified, 23 s wall
+    at load ~1 (the previous schedule: 53 s); settling a trajectory whose optimizer stopped
+    above its floor took that run from 232 s to 131 s wall at load ~6: three rounds in which
+    no nominal could be shortened cost 36-46 s each.
     """
-    fraction = [ROUND_FLOOR] * len(trajectories)
+    step = [FIRST_STEP] * len(trajectories)
     previous = list(optimized.trajectories)
     for k in range(1, FUNNEL_ROUNDS + 1):
-        active = [i for i in funnels.usable if fraction[i] < SETTLED]
+        active = [i for i in funnels.usable if step[i] >= SETTLED]
         if not active:
             log.info(f"[round {k}] every trajectory settled: the previous funnels are kept")
             break
@@ -131,7 +146,8 @@ def reoptimize_rounds(
             dataclasses.replace(t, u=u, N=len(u)) for t, u in zip(previous, inputs, strict=True)
         ]
         shortest = [
-            math.ceil(fraction[i] * len(u)) if i in active else len(u) for i, u in enumerate(inputs)
+            math.ceil((1 - step[i]) * len(u)) if i in active else len(u)
+            for i, u in enumerate(inputs)
         ]
         with progress_bar(len(previous), f"round {k}: optimized again", quiet) as advance:
             again: OptimizeResult = runner.run(
@@ -155,7 +171,13 @@ def reoptimize_rounds(
                 ),  # fmt: skip
                 describe=lambda result: result.message,
             )
-        moved = [i for i in active if again.trajectories[i].success]
+        moved = [
+            i
+            for i in active
+            if again.trajectories[i].success and again.trajectories[i].N < len(inputs[i])
+        ]
+        # The optimizer's search stopped above the floor: the limit against this funnel.
+        stopped = [i for i in active if i not in moved or again.trajectories[i].N > shortest[i]]
         if not moved:
             log.info(f"[round {k}] no trajectory optimized again: the previous funnels are kept")
             break
@@ -164,9 +186,13 @@ def reoptimize_rounds(
         new_funnels, new_coverage = funnel_stages(
             scenario, runner, executor, tube, feedback, starts, new_inputs,
             new_trajectories, initial_radii, quiet, stage=_round_stage(k),
+            reuse=[
+                funnels.funnels[i] if i in funnels.usable and i not in moved else None
+                for i in range(len(inputs))
+            ],
         )  # fmt: skip
         kept = [i for i in _accepted(funnels, new_funnels) if i in moved]
-        if set(kept) != set(range(len(inputs))):
+        if kept != moved:  # unmoved trajectories already carry their kept funnels
             new_inputs = [new_inputs[i] if i in kept else u for i, u in enumerate(inputs)]
             new_trajectories = [
                 new_trajectories[i] if i in kept else t for i, t in enumerate(trajectories)
@@ -195,7 +221,7 @@ def reoptimize_rounds(
         before = sum(trajectories[i].duration for i in funnels.usable)
         after = sum(new_trajectories[i].duration for i in new_funnels.usable)
         shorter = after < before and len(new_funnels.usable) >= len(funnels.usable)
-        if not (shorter and new_coverage.covered_fraction >= coverage.covered_fraction):
+        if not (shorter and _covers_as_well(new_coverage, coverage)):
             log.info(
                 f"[round {k}] not kept: total T {after:.2f} s against {before:.2f} s, Init "
                 f"{100 * new_coverage.covered_fraction:.1f}% covered against "
@@ -203,7 +229,7 @@ def reoptimize_rounds(
             )
             kept = []
         for i in active:
-            fraction[i] = fraction[i] if i in kept else (1 + fraction[i]) / 2
+            step[i] = 0.0 if i in stopped else _next_step(step[i], i in kept)
         if not kept:
             continue
         log.info(
@@ -217,12 +243,24 @@ def reoptimize_rounds(
     return inputs, trajectories, funnels, coverage
 
 
+def _covers_as_well(new: CoverageResult, old: CoverageResult) -> bool:
+    """``new`` covers Init whenever ``old`` does (the covered flag, not the volume fraction,
+    whose sum of box volumes may differ in the last bits), else at least as large a part."""
+    return new.covered or (not old.covered and new.covered_fraction >= old.covered_fraction)
+
+
+def _next_step(step: float, kept: bool) -> float:
+    """The fraction of its samples a trajectory may lose next round: ``GROW`` times ``step``
+    after a kept move (at most ``MAX_STEP``), half of it after one that was not kept."""
+    return min(GROW * step, MAX_STEP) if kept else step / 2
+
+
 def _accepted(
     before: FunnelStageResult, after: FunnelStageResult, tolerance: float = LEVEL_TOLERANCE
 ) -> tuple[int, ...]:
     """Indices i whose new funnel is usable and whose level holds at least what the kept one
-    held: ``rho_after_i >= rho_before_i - tolerance`` (both fractions of the same required set
-    (I1), 0 for a dropped funnel)."""
+    held: ``rho_after_i >= rho_before_i - tolerance`` (both fractions of the same required set,
+    0 for a dropped funnel)."""
     old, new = before.levels, after.levels
     return tuple(i for i in after.usable if new[i] >= old[i] - tolerance)
 

@@ -1,0 +1,55 @@
+"""``pipeline.numerics.cells``: Init cut into cells, each given to the nearest start (C1); the
+hulls of the cells' corners together hold Init, and each start is asked for its own cells only."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial import Delaunay
+
+from pipeline.numerics.cells import PAD, init_cells
+
+
+def test_two_starts_split_a_square_in_halves():
+    """Starts at the centres of the square's halves, g = 2: each owns the two cells of its half,
+    so it is asked for the four corners of that half (pushed ``PAD`` away from it)."""
+    starts = np.array([[0.25, 0.5], [0.75, 0.5]])
+    left, right = init_cells(np.zeros(2), np.ones(2), starts, np.eye(2), divisions=2)
+    expected = np.array([[-0.25, -0.5], [-0.25, 0.5], [0.25, -0.5], [0.25, 0.5]]) * (1 + PAD)
+    for offsets in (left, right):
+        order = np.lexsort(offsets.T[::-1])
+        np.testing.assert_allclose(offsets[order], expected, rtol=1e-12)
+
+
+def test_the_hulls_hold_init_and_a_fixed_state_stays_fixed():
+    """Random starts in a box with one fixed state: every random point of Init lies in the hull
+    of the corners its owner was asked for; the fixed state has zero offset."""
+    rng = np.random.default_rng(3)
+    lower, upper = np.array([0.0, -1.0, 2.0, 0.5]), np.array([2.0, 1.0, 2.0, 1.0])
+    starts = rng.uniform(lower, upper, size=(5, 4))
+    starts[:, 2] = 2.0
+    M = np.diag([1.0, 4.0, 1.0, 9.0])
+    cells = init_cells(lower, upper, starts, M)
+    assert all(np.all(v[:, 2] == 0.0) for v in cells if len(v))
+    free = [0, 1, 3]
+    hulls = [Delaunay((starts[i] + v / (1 + PAD))[:, free]) if len(v) > 3 else None
+             for i, v in enumerate(cells)]  # fmt: skip
+    points = rng.uniform(lower, upper, size=(2000, 4))
+    inside = np.zeros(len(points), dtype=bool)
+    for hull in hulls:
+        if hull is not None:
+            inside |= hull.find_simplex(points[:, free], tol=1e-9) >= 0
+    assert inside.all()
+
+
+def test_a_start_far_away_owns_nothing():
+    starts = np.array([[0.5, 0.5], [10.0, 10.0]])
+    near, far = init_cells(np.zeros(2), np.ones(2), starts, np.eye(2))
+    assert len(near) == 4 and far.shape == (0, 2)  # the whole square: its four corners
+
+
+def test_bad_shapes_and_divisions():
+    with pytest.raises(ValueError, match=r"expected \(k, 2\) and \(2, 2\)"):
+        init_cells(np.zeros(2), np.ones(2), np.zeros((1, 3)), np.eye(2))
+    with pytest.raises(ValueError, match="divisions must be a whole number >= 1, got 0"):
+        init_cells(np.zeros(2), np.ones(2), np.zeros((1, 2)), np.eye(2), divisions=0)
