@@ -250,10 +250,18 @@ def test_the_funnel_figure_draws_the_position_projection_of_each_shipped_funnel(
             z /= np.linalg.norm(z, axis=1, keepdims=True)
             L = np.linalg.cholesky(P)  # P = L L^T, so e = rho L^-T z has e^T P e = rho^2
             e = tube.radii[k] * np.linalg.solve(L.T, z.T).T  # (B, n)
-            p = s.positions(e)
+            # and the boundary states whose position is farthest along each axis w of the
+            # ellipse: e = rho P^-1 C^T w / sqrt(w^T C P^-1 C^T w), on the ellipse's boundary
+            C = np.zeros((2, s.n))
+            C[[0, 1], list(s.position_index)] = 1.0
+            axes = np.linalg.eigh(tube.shapes[k])[1].T  # (2, 2)
+            scale = np.sqrt(np.einsum("wi,ij,wj->w", axes, tube.shapes[k], axes))
+            extreme = tube.radii[k] * (np.linalg.solve(P, C.T) @ axes.T / scale).T  # (2, n)
+            p = s.positions(np.vstack([e, extreme]))
             value = np.einsum("bi,ij,bj->b", p, np.linalg.inv(tube.shapes[k]), p)
             value /= tube.radii[k] ** 2
-            assert value.max() <= 1 + 1e-9 and value.max() > 0.99
+            assert value.max() <= 1 + 1e-9  # every boundary state lands inside
+            np.testing.assert_allclose(value[-2:], 1.0, rtol=1e-9)  # and the extremes on it
 
 
 def test_the_coverage_figure_of_a_funnel_run_draws_the_shipped_initial_ellipsoids(funnel_report):
