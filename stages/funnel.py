@@ -29,7 +29,7 @@ without a robustness radius is in the constant certificate.
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -148,6 +148,14 @@ def _funnel_in_worker(task: _Task) -> tuple[Funnel, str | None]:
     return funnel, _accepted(scenario, task.trajectory, funnel, bounds)
 
 
+def _reused(funnel: Funnel) -> tuple[Funnel, str | None]:
+    """An earlier round's funnel kept for a nominal that did not move: no synthesis time spent
+    now; dropped (with the reason) unless it was certified."""
+    if not (funnel.success and funnel.rho > 0):
+        return funnel, f"the reused funnel was not certified ({funnel.message})"
+    return replace(funnel, seconds=0.0), None
+
+
 def synthesize_funnels(
     scenario: Scenario,
     names: Sequence[str],
@@ -171,7 +179,9 @@ def synthesize_funnels(
       rate: lambda (1/s) of the funnels' decay (``synthesize_funnel``).
       reuse: per trajectory, None or a funnel certified earlier around the same nominal with
         the same request (an earlier round's, for a nominal that did not move): kept as it is,
-        without a new synthesis (the result would be the same; it passed the checks then).
+        without a new synthesis (the result would be the same; it passed the checks then), its
+        synthesis time counted as 0; one that was not certified (``success``, ``rho > 0``) is
+        dropped again.
     """
     if not (len(names) == len(trajectories) == len(radii)):
         raise ValueError(
@@ -204,7 +214,9 @@ def synthesize_funnels(
         done=None if progress is None else lambda _i: progress(1),
     )
     computed = dict(zip(tasks, done, strict=True))
-    outcomes = [computed[i] if funnel is None else (funnel, None) for i, funnel in enumerate(reuse)]
+    outcomes = [
+        computed[i] if funnel is None else _reused(funnel) for i, funnel in enumerate(reuse)
+    ]
     if progress is not None and len(tasks) < len(trajectories):
         progress(len(trajectories) - len(tasks))
     funnels = tuple(funnel for funnel, _ in outcomes)

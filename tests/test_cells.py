@@ -53,3 +53,37 @@ def test_bad_shapes_and_divisions():
         init_cells(np.zeros(2), np.ones(2), np.zeros((1, 3)), np.eye(2))
     with pytest.raises(ValueError, match="divisions must be a whole number >= 1, got 0"):
         init_cells(np.zeros(2), np.ones(2), np.zeros((1, 2)), np.eye(2), divisions=0)
+
+
+def test_one_free_state_asks_for_the_ends_of_the_owned_interval():
+    """Init with one free state: each start is asked for the two ends of its cells' interval
+    (Qhull needs two dimensions; this used to raise)."""
+    cells = init_cells([0.0, 0.0], [1.0, 0.0], [[0.5, 0.0]], np.eye(2))
+    np.testing.assert_allclose(np.sort(cells[0][:, 0]), np.array([-0.5, 0.5]) * (1 + PAD))
+    assert np.all(cells[0][:, 1] == 0.0)
+
+
+def test_a_start_at_a_single_point_init_asks_for_nothing():
+    """Init is the start itself: no offset to hold (the funnel then holds the ball slice)."""
+    cells = init_cells([1.0, 2.0], [1.0, 2.0], [[1.0, 2.0], [3.0, 2.0]], np.eye(2))
+    assert [len(c) for c in cells] == [0, 0]
+
+
+def test_many_hull_corners_fall_back_to_the_bounding_box():
+    """A start owning a region whose hull has more than MAX_CORNERS vertices is asked for the
+    2^D corners of its cells' bounding box, which hold the hull."""
+    from pipeline.numerics.cells import MAX_CORNERS, _hull_corners
+
+    angles = np.linspace(0, 2 * np.pi, 4 * MAX_CORNERS, endpoint=False)
+    circle = np.c_[np.cos(angles), np.sin(angles)]  # every point a hull vertex
+    corners = _hull_corners(circle)
+    assert len(corners) == 4
+    np.testing.assert_allclose(np.sort(corners, axis=0)[[0, -1]], [[-1, -1], [1, 1]], atol=1e-12)
+
+
+def test_the_padding_covers_the_level_slack():
+    """A funnel at level ``1 - LEVEL_SLACK`` holds a corner pushed ``PAD`` out when
+    ``1 / (1 + PAD) <= 1 - LEVEL_SLACK``."""
+    from pipeline.numerics.funnel_check import LEVEL_SLACK
+
+    assert 1 / (1 + PAD) <= 1 - LEVEL_SLACK

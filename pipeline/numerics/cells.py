@@ -33,9 +33,10 @@ from scipy.spatial import ConvexHull, QhullError
 
 from pipeline.model.dynamics import FloatArray
 
-PAD = 1e-3  # relative push of each corner away from its start (LEVEL_SLACK is 1e-4)
+PAD = 1e-3  # relative push of each corner away from its start: > LEVEL_SLACK / (1 - LEVEL_SLACK)
 DIVISIONS = 4  # g, cells per free side, halved while g^D exceeds MAX_CELLS
 MAX_CELLS = 4096
+MAX_CORNERS = 64  # hull vertices per start; beyond, the bounding box's 2^D corners
 
 
 def init_cells(
@@ -72,11 +73,11 @@ def init_cells(
     if int(divisions) != divisions or divisions < 1:
         raise ValueError(f"init_cells: divisions must be a whole number >= 1, got {divisions!r}")
     g = int(divisions)
-    if D == 0:  # Init is one point: the nearest start holds it
-        e = lower[None] - starts
+    if D == 0:  # Init is one point: the nearest start holds it (none, if that start is it:
+        e = lower[None] - starts  # an empty request falls back to the ball slice (I1))
         owner = int(np.argmin(np.einsum("ki,ij,kj->k", e, M, e)))
         return tuple(
-            (e[i : i + 1] * (1 + PAD)) if i == owner else np.zeros((0, n))
+            (e[i : i + 1] * (1 + PAD)) if i == owner and np.any(e[i]) else np.zeros((0, n))
             for i in range(len(starts))
         )
     steps = (upper[free] - lower[free]) / g
@@ -93,20 +94,30 @@ def init_cells(
             result.append(np.zeros((0, n)))
             continue
         grid = np.unique((mine[:, None, :] + corners[None]).reshape(-1, D), axis=0)
-        points = lower[free] + grid * steps  # (q, D) corners of the owned cells
-        points = points[_hull_vertices(points)]
+        points = _hull_corners(lower[free] + grid * steps)  # of the owned cells' corners
         V = np.repeat(lower[None], len(points), axis=0)
         V[:, free] = points
         result.append((V - x0) * (1 + PAD))
     return tuple(result)
 
 
-def _hull_vertices(points: FloatArray) -> np.ndarray:
-    """Indices of the vertices of the convex hull of ``points (q, D)`` (all of them when the
-    points do not span ``D`` dimensions, e.g. a single cell row)."""
-    if len(points) <= points.shape[1] + 1:
-        return np.arange(len(points))
+def _hull_corners(points: FloatArray) -> FloatArray:
+    """Points ``(r, D)`` whose convex hull holds that of ``points (q, D)``: the hull's vertices
+    (all points when they do not span ``D`` dimensions), or the corners of their bounding box
+    when Qhull fails or the hull has more than ``max(MAX_CORNERS, 2^D)`` vertices (each corner is
+    one matrix inequality of the funnel program; the box holds the hull, so the request only
+    grows)."""
+    D = points.shape[1]
+    if D == 1:
+        return np.array([points.min(axis=0), points.max(axis=0)])
+    if len(points) <= D + 1:
+        return points
     try:
-        return np.asarray(ConvexHull(points).vertices)
-    except QhullError:
-        return np.arange(len(points))
+        vertices = points[ConvexHull(points).vertices]
+    except (QhullError, ValueError):  # e.g. points in a flat slab: the box below holds them
+        vertices = None
+    if vertices is not None and len(vertices) <= max(MAX_CORNERS, 2**D):
+        return vertices
+    box = np.array(list(itertools.product((0, 1), repeat=D)))  # (2^D, D)
+    low, high = points.min(axis=0), points.max(axis=0)
+    return low + box * (high - low)

@@ -249,8 +249,8 @@ def synthesize_funnel(
       initial: (n, n) ``Q_init`` (positive semidefinite): ``E(0)`` at level 1 must hold
         ``{Q_init^1/2 v : |v| <= 1}`` (degenerate for a slice, e.g. Init's free directions);
         or (p, n, n), every one of them (``Q_init[j] = v_j v_j^T``: the points ``x0 +- v_j``,
-        the corners of a cell of Init, ``pipeline.numerics.cells``); default the seed's shape
-        with position extent ``scenario.clearance``.
+        the corners of the hull of the start's cells of Init, ``pipeline.numerics.cells``);
+        default the seed's shape with position extent ``scenario.clearance``.
       rate: lambda of (F2). Default 0: the tube's level is constant and ``Q(t)`` itself shrinks
         where the closed loop contracts (``Q e^{-2 lambda t}`` would satisfy (F2) with rate 0
         too, so a positive rate only restricts the shape); the LMI margin stays (``MARGINS``).

@@ -309,7 +309,7 @@ def _coverage_panel(
 ) -> None:
     """One panel of the coverage figure: Init over its first two free states (one free state:
     the interval twice), the certified and uncovered ``boxes`` ``(B, 2, n)`` when given, and
-    the ellipsoid slices ``(shapes (k, n, n) metrics, centres (k, n), radii (k,))``."""
+    the ellipsoid slices ``slices = (metrics (k, n, n), centres (k, n), radii (k,))``."""
     s = data.scenario
     free = list(data.coverage_demos.free)
     ax.set_title(title)
@@ -352,7 +352,7 @@ def draw_coverage(fig: FigureLike, data: ReportData) -> None:
         ("demonstrations", data.coverage_demos, data.radius_demos, DEMO),
         ("optimized", data.coverage_optimized, data.radius_optimized, OPTIMIZED),
     ]
-    axes = fig.subplots(1, len(cases) + data.funnel, sharex=True, sharey=True)
+    axes = fig.subplots(1, 3 if data.funnel else 2, sharex=True, sharey=True)
     for ax, (name, coverage, radii, colour) in zip(axes, cases, strict=False):
         r = np.array([max(x.radius, 0.0) for x in radii])
         _coverage_panel(

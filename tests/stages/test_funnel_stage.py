@@ -136,7 +136,14 @@ def test_a_reused_funnel_is_not_synthesized_again(inputs, result, monkeypatch):
         progress=done.append,
     )  # fmt: skip
     assert len(calls) == 1 and calls[0] is trajectories[1] and sum(done) == 2
-    assert found.funnels[0] is result.funnels[0] and found.usable == (0, 1)
+    reused = found.funnels[0]
+    assert reused.seconds == 0.0 and found.usable == (0, 1)  # no synthesis time spent now
+    assert dataclasses.replace(reused, seconds=result.funnels[0].seconds) == result.funnels[0]
+    # a funnel that was not certified is not kept by being reused
+    failed = dataclasses.replace(result.funnels[0], success=False, message="(F2) fails")
+    again = synthesize_funnels(scenario, names, trajectories, P, radii, reuse=[failed, None])
+    assert again.usable == (1,)
+    assert "reused funnel was not certified ((F2) fails)" in again.rejected[0]
     with pytest.raises(ValueError, match="1 funnels to reuse for 2 trajectories"):
         synthesize_funnels(scenario, names, trajectories, P, radii, reuse=[None])
 

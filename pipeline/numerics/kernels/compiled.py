@@ -176,8 +176,7 @@ class _CompileLock:
     def compile(self, original: Callable[[Any], Any], sig: Any) -> Any:
         with self.thread:
             if self.depth == 0:
-                self.handle = self.path.open("ab")
-                fcntl.flock(self.handle, fcntl.LOCK_EX)
+                self.handle = self._lock()
             self.depth += 1
             try:
                 return original(sig)
@@ -186,6 +185,20 @@ class _CompileLock:
                 if self.depth == 0 and self.handle is not None:
                     self.handle.close()  # releases the lock
                     self.handle = None
+
+    def _lock(self) -> IO[bytes] | None:
+        """The locked file, or None where it cannot be locked (e.g. a read-only cache folder):
+        then this process compiles without waiting, as it would without the lock."""
+        try:
+            handle = self.path.open("ab")
+        except OSError:
+            return None
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX)
+        except OSError:
+            handle.close()
+            return None
+        return handle
 
 
 def _compile_one_at_a_time(module: ModuleType, lock_path: Path) -> None:

@@ -196,7 +196,8 @@ def _synthesize(
     runner: StageRunner,
     started: float,
 ) -> Synthesis:
-    core = run_inputs.spec_key(scenario, "description", "stress")  # what the numerical stages read
+    # what the numerical stages read (optimize keys on the optimizer it runs, --method or not)
+    core = run_inputs.spec_key(scenario, "description", "stress", "optimizer")
     demo_starts = [d.x0 for d in scenario.demos]
     demo_inputs = [d.us for d in scenario.demos]
     demos = inputs_key([d.name for d in scenario.demos], *demo_starts, *demo_inputs)
