@@ -88,13 +88,12 @@ def cover_init(
 ) -> CoverageResult:
     """Certify that Init (``scenario.init_lower/upper (n,)``) lies in the union of the balls
     with ``centers (k, n)``, ``radii (k,)`` in the metric ``feedback.P (n, n)`` (the constant
-    certificate: ``cover_balls`` with that ``P`` repeated for every ball)."""
+    certificate: ``cover_balls`` with that one ``P`` for every ball)."""
     if feedback.P is None:
         raise ValueError("coverage: the feedback has no certified P; run the feedback stage")
     P = np.asarray(feedback.P, dtype=np.float64)
     centers = np.asarray(centers, dtype=np.float64).reshape(-1, P.shape[0])
-    metrics = np.repeat(P[None], len(centers), axis=0)  # (k, n, n)
-    return cover_balls(scenario, metrics, centers, radii, max_depth)
+    return cover_balls(scenario, P, centers, radii, max_depth)
 
 
 def cover_balls(
@@ -107,9 +106,9 @@ def cover_balls(
     noun: str = "ball",
 ) -> CoverageResult:
     """Certify that Init (``scenario.init_lower/upper (n,)``) lies in the union of the balls
-    ``(x - centers[i])^T metrics[i] (x - centers[i]) <= radii[i]^2`` with ``metrics (k, n, n)``,
-    ``centers (k, n)``, ``radii (k,)`` (radii <= 0 cover nothing); ``noun`` names a ball in
-    the message (e.g. ``"funnel start"``)."""
+    ``(x - centers[i])^T metrics[i] (x - centers[i]) <= radii[i]^2`` with ``metrics (k, n, n)``
+    (or ``(n, n)``, one for every ball), ``centers (k, n)``, ``radii (k,)`` (radii <= 0 cover
+    nothing); ``noun`` names a ball in the message (e.g. ``"funnel start"``)."""
     cover = subdivide(
         np.asarray(metrics, dtype=np.float64),
         scenario.init_lower,

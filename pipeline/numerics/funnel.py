@@ -104,7 +104,7 @@ from pipeline.numerics.funnel_check import (
 )
 from pipeline.numerics.funnel_lmi import FunnelProgram, solve_clarabel
 from pipeline.numerics.funnel_pieces import interpolate, piece_hulls, pieces
-from pipeline.numerics.hull import HullError
+from pipeline.numerics.hull import HullError, arc_variables
 
 
 class _Parts(TypedDict, total=False):
@@ -364,7 +364,8 @@ def synthesize_funnel(
         return dataclasses.replace(funnel, message=message)
 
     funnel = attempt(tight=True)
-    if not funnel.success or funnel.limits["design"] < 1.0:
+    capped = bool(arc_variables(scenario.dynamics))  # without angles both attempts are the same
+    if capped and (not funnel.success or funnel.limits["design"] < 1.0):
         # The capped boxes could not hold the whole initial set: the seed's boxes, keep the better.
         wide = attempt(tight=False)
         funnel = max(funnel, wide, key=lambda f: (f.success, f.rho))

@@ -83,13 +83,16 @@ def piece_hulls(
     segments: int,
     bounds: np.ndarray,
     tight: bool,
+    pad_rounds: int = PAD_ROUNDS,
 ) -> tuple[tuple[str, ...], FloatArray, tuple[FloatArray, ...], Enclosure]:
     """The boxes and hulls of the module docstring for seed ``Q_seed (N+1, n, n)``, held gains
     ``K (N, m, n)`` and pieces ``bounds (S+1,)``: ``(variables (d names), boxes (N, 2, d),
     vertices (N arrays (V, n, n+m)), enclosure)``, per sample interval (its piece's box and hull).
+    ``pipeline.numerics.recertify`` rebuilds a shipped funnel's hulls with it too: pieces of one
+    interval, the file's ``Q`` as the seed, ``allowance`` its level.
 
     Raises:
-      HullError: no hull over a box, or no a priori enclosure (E1) in ``PAD_ROUNDS`` rounds.
+      HullError: no hull over a box, or no a priori enclosure (E1) in ``pad_rounds`` rounds.
     """
     dynamics, n = scenario.dynamics, scenario.n
     variables = dynamics.depends_on()
@@ -105,7 +108,7 @@ def piece_hulls(
     pads = 2 * h * np.abs(dynamics.f(grid, trajectory.us[:, None])).max(axis=1) + 1e-9  # (N, n)
     F = np.empty((N, n))
     for a, b in itertools.pairwise(bounds):
-        for _ in range(PAD_ROUNDS):
+        for _ in range(pad_rounds):
             B = grid[a:b] + np.stack([-pads[a:b], pads[a:b]], axis=1)  # a priori boxes (E1)
             box = np.empty((2, len(variables)))
             for d, name in enumerate(variables):

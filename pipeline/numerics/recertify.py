@@ -38,17 +38,10 @@ from pipeline.controller import ReferenceTrajectory
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import Trajectory, simulate
-from pipeline.numerics.funnel_bounds import (
-    Enclosure,
-    enclosure_range,
-    funnel_limits,
-    grid_range,
-    rate_bound,
-    substeps,
-    tube_extents,
-)
+from pipeline.numerics.funnel_bounds import funnel_limits
 from pipeline.numerics.funnel_check import Funnel, certificate_margins, check_funnel
-from pipeline.numerics.hull import HullError, jacobian_hull
+from pipeline.numerics.funnel_pieces import piece_hulls
+from pipeline.numerics.hull import HullError
 
 SEGMENTS = (1, 4)
 WIDEN = 1e-9  # relative widening of the tube's extent in the hull boxes (rounding of E3)
@@ -113,14 +106,6 @@ class FunnelRecheck:
     binding: str
 
 
-def _bounds(scenario: Scenario, state_bounds: Mapping[str, tuple[float, float]], name: str):
-    if name in scenario.input_names:
-        j = scenario.input_names.index(name)
-        return float(scenario.input_lower[j]), float(scenario.input_upper[j])
-    lower, upper = state_bounds.get(name, (-np.inf, np.inf))
-    return float(lower), float(upper)
-
-
 def rebuild_funnel(
     scenario: Scenario,
     trajectory: Trajectory,
@@ -132,53 +117,22 @@ def rebuild_funnel(
     segments: int,
 ) -> Funnel:
     """The funnel ``K (N, m, n)``, ``P (N+1, n, n)``, ``rho``, ``rate`` around ``trajectory``
-    with hulls and enclosure rebuilt by steps 1-2 of the module docstring.
+    with hulls and enclosure rebuilt by steps 1-2 of the module docstring
+    (``funnel_pieces.piece_hulls`` on pieces of one sample interval, with the file's ``Q =
+    P^-1`` at level ``rho (1 + WIDEN)`` as the extents and no arc caps).
 
     Raises:
       HullError: no hull over a box, or no a priori enclosure within ``PAD_ROUNDS``.
     """
-    dynamics, n = scenario.dynamics, scenario.n
-    variables = dynamics.depends_on()
-    h = scenario.Ts / substeps(trajectory)
-    grid = grid_range(trajectory)  # (N, 2, n)
     Q = np.linalg.inv(P)
-    s_ext, g, _ = tube_extents((Q + np.swapaxes(Q, 1, 2)) / 2, K, scenario.position_index)
     N = len(K)
-    boxes, vertices = np.empty((N, 2, len(variables))), []
-    pads, F = np.empty((N, n)), np.empty((N, n))
-    for k in range(N):
-        pad = 2 * h * np.abs(dynamics.f(grid[k], trajectory.us[k])).max(axis=0) + 1e-9
-        for _ in range(PAD_ROUNDS):
-            B = grid[k] + np.stack([-pad, pad])  # the a priori box B_k (E1)
-            for d, name in enumerate(variables):
-                if name in scenario.input_names:
-                    j = scenario.input_names.index(name)
-                    centre = (trajectory.us[k, j],) * 2
-                    w = rho * g[k, j] * (1 + WIDEN)
-                else:
-                    i = scenario.state_names.index(name)
-                    centre, w = B[:, i], rho * s_ext[k, i] * (1 + WIDEN)
-                lower, upper = _bounds(scenario, state_bounds, name)
-                boxes[k, :, d] = max(centre[0] - w, lower), min(centre[1] + w, upper)
-            region = dict(zip(variables, boxes[k].T, strict=True))
-            hull = jacobian_hull(dynamics, region, segments, compact=True)
-            F[k] = rate_bound(dynamics, trajectory, k, B, hull.A)  # eq. (E1)
-            if np.all(F[k] * h < pad):
-                break
-            pad = np.maximum(pad, 2 * F[k] * h)
-        else:
-            raise HullError(f"no a priori enclosure of the nominal on interval {k}")
-        pads[k] = pad
-        vertices.append(hull.vertices)
-    enclosure = Enclosure(
-        box=grid + np.stack([-pads, pads], axis=1),
-        rate_bound=F,
-        grid_range=grid,
-        range=enclosure_range(grid, F, h),
-    )
+    variables, boxes, vertices, enclosure = piece_hulls(
+        scenario, trajectory, (Q + np.swapaxes(Q, 1, 2)) / 2, K, state_bounds,
+        rho * (1 + WIDEN), segments, np.arange(N + 1), tight=False, pad_rounds=PAD_ROUNDS,
+    )  # fmt: skip
     return Funnel(
         K=K, P=P, rho=rho, rate=rate, margins=np.full((N, 2), np.nan), boxes=boxes,
-        variables=variables, vertices=tuple(vertices), enclosure=enclosure, limits={},
+        variables=variables, vertices=vertices, enclosure=enclosure, limits={},
         binding="", seconds=0.0, success=True, message="rebuilt from controller.json",
     )  # fmt: skip
 
@@ -193,6 +147,8 @@ def recheck_funnel(
     state_bounds: Mapping[str, tuple[float, float]],
 ) -> FunnelRecheck:
     """Steps 1-3 of the module docstring for one funnel (``K (N, m, n)``, ``P (N+1, n, n)``)."""
+    Q = np.linalg.inv(P)
+    Q = (Q + np.swapaxes(Q, 1, 2)) / 2
     failures: list[str] = []
     last = FunnelRecheck(failure="", margin=float("nan"), vertices=0, radius=0.0, binding="")
     for segments in SEGMENTS:
@@ -202,8 +158,6 @@ def recheck_funnel(
             failures.append(f"{segments} segment(s): {error}")
             continue
         failure = check_funnel(scenario, trajectory, funnel, state_bounds)
-        Q = np.linalg.inv(P)
-        Q = (Q + np.swapaxes(Q, 1, 2)) / 2
         margin = float(certificate_margins(Q, K, funnel.vertices, rate, scenario.Ts).max())
         assert funnel.enclosure is not None
         limits = funnel_limits(scenario, trajectory, Q, K, funnel.enclosure, state_bounds)

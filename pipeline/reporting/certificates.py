@@ -119,7 +119,7 @@ def comparison(data: ReportData) -> tuple:
             "Constant vs funnel certificate in this run. T: the nominal horizons; clearance: "
             "the smallest distance from Unsafe to the nominal paths as polylines through their "
             "fine grids (for the shipped ones exactly the x_ref the controller follows; the "
-            "per-demonstration clearances above are lower bounds over continuous time); "
+            "per-demonstration clearances above are the smallest over those grids' points); "
             "coverage: certified by box subdivision (the constant balls, or the funnels' "
             "initial ellipsoids E_i(0))",
             numeric=(False, False, True, True, True, True, False),

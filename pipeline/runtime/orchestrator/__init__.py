@@ -50,7 +50,7 @@ from pipeline.reporting.summary import Verdict
 from pipeline.runtime import run_inputs
 from pipeline.runtime.codekey import code_key
 from pipeline.runtime.options import RunOptions
-from pipeline.runtime.orchestrator.funnels import funnel_stages, reoptimize_rounds
+from pipeline.runtime.orchestrator.funnels import FunnelRun, funnel_stages, reoptimize_rounds
 from pipeline.runtime.outdir import (
     check_output_folder,
     check_report_folder,
@@ -107,25 +107,35 @@ REPORT_STAGES = (  # the controller's result is the file itself, keyed by its ha
 FUNNEL_STAGES = ("funnel", "coverage_funnel")  # with the funnel certificate
 
 
-def _radii(
-    scenario: Scenario, feedback: FeedbackResult, trajectories: Sequence[Trajectory]
-) -> tuple[RadiusResult, ...]:
-    tube = feedback.certified_tube
-    return tuple(robustness_radius(scenario, tube, tr) for tr in trajectories)
-
-
-def _cover_radii(radii: Sequence[RadiusResult]) -> np.ndarray:
-    """(k,) the radii coverage reads: negative ones (no valid tube) count as 0."""
-    return np.array([max(r.radius, 0.0) for r in radii])
-
-
-def _coverage(
+def _radii_and_coverage(
     scenario: Scenario,
+    runner: StageRunner,
     feedback: FeedbackResult,
-    starts: Sequence[np.ndarray],
-    radii: Sequence[RadiusResult],
-) -> CoverageResult:
-    return cover_init(scenario, feedback, np.array(starts), _cover_radii(radii))
+    tube: str,
+    which: str,
+    trajectories: Sequence[Trajectory],
+    inputs: Sequence[np.ndarray],
+) -> tuple[tuple[RadiusResult, ...], CoverageResult]:
+    """Stages ``radius_<which>`` (the robustness radius of each trajectory, whose start and
+    input ``(N_i, m)`` name it in the key) and ``coverage_<which>`` (Init by the balls of those
+    radii around the starts; a negative radius, no valid tube, counts as 0)."""
+    starts = [t.xs[0] for t in trajectories]
+    radii: tuple[RadiusResult, ...] = runner.run(
+        f"radius_{which}",
+        inputs_key(code_key(*RADIUS_CODE), tube, *starts, *inputs),
+        lambda: tuple(
+            robustness_radius(scenario, feedback.certified_tube, tr) for tr in trajectories
+        ),
+        describe=describe_radii,
+    )
+    kept = np.array([max(r.radius, 0.0) for r in radii])
+    coverage: CoverageResult = runner.run(
+        f"coverage_{which}",
+        inputs_key(code_key("stages.coverage"), tube, *starts, kept),
+        lambda: cover_init(scenario, feedback, np.array(starts), kept),
+        describe=describe_coverage,
+    )
+    return radii, coverage
 
 
 def run_synthesis(
@@ -231,17 +241,8 @@ def _synthesize(
             f"(continuous {held.rate:.4g}/s; pipeline.numerics.sampled)"
         )
     tube = inputs_key(core, runner.digest("feedback"), options.feedback_period)
-    demo_radii = runner.run(
-        "radius_demos",
-        inputs_key(code_key(*RADIUS_CODE), tube, demos),
-        lambda: _radii(scenario, feedback, demo_trajectories),
-        describe=describe_radii,
-    )
-    demo_coverage = runner.run(
-        "coverage_demos",
-        inputs_key(code_key("stages.coverage"), tube, *demo_starts, _cover_radii(demo_radii)),
-        lambda: _coverage(scenario, feedback, demo_starts, demo_radii),
-        describe=describe_coverage,
+    demo_radii, demo_coverage = _radii_and_coverage(
+        scenario, runner, feedback, tube, "demos", demo_trajectories, demo_inputs
     )
 
     r_d = feedback.required_radius(scenario.clearance)
@@ -276,17 +277,8 @@ def _synthesize(
         for t, d in zip(optimized.trajectories, scenario.demos, strict=True)
     ]
     final_trajectories = run_inputs.trajectories(scenario, demo_starts, final_inputs)
-    final_radii = runner.run(
-        "radius_optimized",
-        inputs_key(code_key(*RADIUS_CODE), tube, *demo_starts, *final_inputs),
-        lambda: _radii(scenario, feedback, final_trajectories),
-        describe=describe_radii,
-    )
-    final_coverage = runner.run(
-        "coverage_optimized",
-        inputs_key(code_key("stages.coverage"), tube, *demo_starts, _cover_radii(final_radii)),
-        lambda: _coverage(scenario, feedback, demo_starts, final_radii),
-        describe=describe_coverage,
+    final_radii, final_coverage = _radii_and_coverage(
+        scenario, runner, feedback, tube, "optimized", final_trajectories, final_inputs
     )
 
     controller_path = out / "controller.json"
@@ -299,17 +291,24 @@ def _synthesize(
         # owns no cell asks for the constant ball's slice (I1), at the radius the optimizer kept
         # when its trajectory has no robustness radius.
         initial_radii = [r.radius if r.radius > 0 else r_required for r in final_radii]
-        funnels, funnel_coverage = funnel_stages(
-            scenario, runner, executor, tube, feedback, demo_starts, final_inputs,
-            final_trajectories, initial_radii, quiet,
-        )  # fmt: skip
+        funnel_run = FunnelRun(
+            scenario=scenario,
+            runner=runner,
+            executor=executor,
+            tube=tube,
+            feedback=feedback,
+            starts=demo_starts,
+            initial_radii=initial_radii,
+            options=optimize_options,
+            quiet=quiet,
+        )
+        funnels, funnel_coverage = funnel_stages(funnel_run, final_inputs, final_trajectories)
         if not funnels.usable:
             return _failed(out, scenario, "funnel", f"no funnel certified: {funnels.message}")
         constant_trajectories = final_trajectories
         final_inputs, final_trajectories, funnels, funnel_coverage = reoptimize_rounds(
-            scenario, runner, executor, tube, feedback, optimized, demo_starts, final_inputs,
-            final_trajectories, funnels, funnel_coverage, initial_radii, optimize_options, quiet,
-        )  # fmt: skip
+            funnel_run, optimized, final_inputs, final_trajectories, funnels, funnel_coverage
+        )
         usable = list(funnels.usable)
         controller = runner.run(
             "controller",
@@ -358,13 +357,14 @@ def _synthesize(
     certification = certify_controller(scenario, controller_path)
     certify_seconds = time.perf_counter() - started_certify
     log.info(f"[certify] {certify_seconds:.1f} s: {certification.message}")
+    controller_sha = file_hash(controller_path)  # unchanged from here until it may be renamed below
     with progress_bar(options.samples, "closed-loop runs", quiet) as advance:
         montecarlo = runner.run(
             "montecarlo",
             inputs_key(
                 code_key("stages.montecarlo"),
                 core,
-                file_hash(controller_path),
+                controller_sha,
                 options.samples,
                 options.seed,
             ),
@@ -385,7 +385,7 @@ def _synthesize(
             inputs_key(
                 code_key("stages.stress"),
                 run_inputs.spec_key(scenario, "description"),
-                file_hash(controller_path),
+                controller_sha,
                 options.seed,
             ),
             lambda: stress_test(scenario, controller_path, seed=options.seed),
@@ -419,7 +419,7 @@ def _synthesize(
         stress=stress,
     )
     atomic_write_json(out / "summary.json", summary.to_json())
-    write_manifest(scenario, out, file_hash(controller_path))
+    write_manifest(scenario, out, controller_sha)
     runner.run(  # keyed on what the report shows: never on this run's timings
         "report",
         inputs_key(
@@ -429,7 +429,7 @@ def _synthesize(
             [runner.digest(name) for name in REPORT_STAGES],
             [runner.digest(name) for name in FUNNEL_STAGES if funnels is not None],
             None if stress is None else runner.digest("stress"),
-            file_hash(controller_path),
+            controller_sha,
         ),
         lambda: write_reports(load_report_data(scenario, out)),
         rerun=not _reports_present(out),

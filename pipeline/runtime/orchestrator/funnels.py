@@ -37,17 +37,33 @@ SETTLED = 0.025  # a trajectory whose step falls below this is not optimized aga
 LEVEL_TOLERANCE = 1e-3  # a new funnel's level may fall this far below the kept one's
 
 
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class FunnelRun:
+    """What every funnel stage of one run shares.
+
+    Attributes:
+      tube: the key of the feedback the run certified (every funnel stage's inputs include it).
+      feedback: the constant certificate (its metric assigns Init's cells to the starts).
+      starts: (n,) per trajectory, the demonstrations' starts, which every nominal keeps.
+      initial_radii: per trajectory, the constant ball's radius (I1), for a start owning no cell.
+      options: the optimizer of the re-optimize rounds; quiet: no progress bars.
+    """
+
+    scenario: Scenario
+    runner: StageRunner
+    executor: Executor
+    tube: str
+    feedback: FeedbackResult
+    starts: Sequence[np.ndarray]
+    initial_radii: Sequence[float]
+    options: OptimizeOptions
+    quiet: bool
+
+
 def funnel_stages(
-    scenario: Scenario,
-    runner: StageRunner,
-    executor: Executor,
-    tube: str,
-    feedback: FeedbackResult,
-    starts: Sequence[np.ndarray],
+    run: FunnelRun,
     inputs: Sequence[np.ndarray],
     trajectories: Sequence[Trajectory],
-    initial_radii: Sequence[float],
-    quiet: bool,
     stage: str = "funnel",
     reuse: Sequence[Funnel | None] | None = None,
 ) -> tuple[FunnelStageResult, CoverageResult]:
@@ -55,49 +71,51 @@ def funnel_stages(
     trajectory, on ``executor``; ``reuse[i]``, when given, is trajectory i's certified funnel
     from an earlier round around the same nominal) and ``coverage_<stage>`` (Init by the usable
     funnels' initial ellipsoids ``E_i(0)``, each in its own metric ``P_i[0]``)."""
+    scenario, runner, starts = run.scenario, run.runner, run.starts
     names = [d.name for d in scenario.demos]
-    with progress_bar(len(trajectories), "funnels", quiet) as advance:
+    with progress_bar(len(trajectories), "funnels", run.quiet) as advance:
         funnels: FunnelStageResult = runner.run(
             stage,
-            inputs_key(code_key("stages.funnel"), tube, names, *starts, *inputs, initial_radii),
+            inputs_key(
+                code_key("stages.funnel"), run.tube, names, *starts, *inputs, run.initial_radii
+            ),
             lambda: synthesize_funnels(
                 scenario,
                 names,
                 trajectories,
-                feedback.certified_tube.P,
-                np.asarray(initial_radii),
-                executor=executor,
+                run.feedback.certified_tube.P,
+                np.asarray(run.initial_radii),
+                executor=run.executor,
                 progress=advance,
                 reuse=reuse,
             ),
             describe=lambda result: result.message,
         )
-    coverage: CoverageResult = runner.run(
-        f"coverage_{stage}",
-        inputs_key(code_key("stages.coverage"), tube, runner.digest(stage), *starts),
+    return funnels, _funnel_coverage(run, f"coverage_{stage}", funnels, runner.digest(stage))
+
+
+def _funnel_coverage(
+    run: FunnelRun, stage: str, funnels: FunnelStageResult, *inputs: object
+) -> CoverageResult:
+    """Stage ``stage``: Init covered by the usable funnels' initial ellipsoids ``E_i(0)``, each
+    in its own metric ``P_i[0]`` at its level; ``inputs`` name the funnels in its key."""
+    return run.runner.run(
+        stage,
+        inputs_key(code_key("stages.coverage"), run.tube, *inputs, *run.starts),
         lambda: cover_balls(
-            scenario, funnels.starts, np.array(starts), funnels.levels, noun="funnel start"
+            run.scenario, funnels.starts, np.array(run.starts), funnels.levels, noun="funnel start"
         ),
         describe=describe_coverage,
     )
-    return funnels, coverage
 
 
 def reoptimize_rounds(
-    scenario: Scenario,
-    runner: StageRunner,
-    executor: Executor,
-    tube: str,
-    feedback: FeedbackResult,
+    run: FunnelRun,
     optimized: OptimizeResult,
-    starts: Sequence[np.ndarray],
     inputs: list[np.ndarray],
     trajectories: list[Trajectory],
     funnels: FunnelStageResult,
     coverage: CoverageResult,
-    initial_radii: Sequence[float],
-    options: OptimizeOptions,
-    quiet: bool,
 ) -> tuple[list[np.ndarray], list[Trajectory], FunnelStageResult, CoverageResult]:
     """The alternation of issue 16 part 4, as a continuation that keeps Init covered.
 
@@ -135,6 +153,7 @@ def reoptimize_rounds(
     above its floor took that run from 232 s to 131 s wall at load ~6: three rounds in which
     no nominal could be shortened cost 36-46 s each.
     """
+    scenario, runner, starts = run.scenario, run.runner, run.starts
     step = [FIRST_STEP] * len(trajectories)
     previous = list(optimized.trajectories)
     for k in range(1, FUNNEL_ROUNDS + 1):
@@ -149,7 +168,7 @@ def reoptimize_rounds(
             math.ceil((1 - step[i]) * len(u)) if i in active else len(u)
             for i, u in enumerate(inputs)
         ]
-        with progress_bar(len(previous), f"round {k}: optimized again", quiet) as advance:
+        with progress_bar(len(previous), f"round {k}: optimized again", run.quiet) as advance:
             again: OptimizeResult = runner.run(
                 f"reoptimize_{k}",
                 inputs_key(
@@ -157,15 +176,15 @@ def reoptimize_rounds(
                     runner.digest(_round_stage(k - 1)),
                     *inputs,
                     shortest,
-                    repr(options),
+                    repr(run.options),
                 ),  # fmt: skip
                 functools.partial(
                     reoptimize_with_funnels,
                     scenario,
                     previous,
                     funnels.funnels,
-                    options,
-                    executor,
+                    run.options,
+                    run.executor,
                     advance,
                     shortest=shortest,
                 ),  # fmt: skip
@@ -182,10 +201,14 @@ def reoptimize_rounds(
             log.info(f"[round {k}] no trajectory optimized again: the previous funnels are kept")
             break
         new_inputs = [again.trajectories[i].u if i in moved else u for i, u in enumerate(inputs)]
-        new_trajectories = run_inputs.trajectories(scenario, starts, new_inputs)
+        simulated = run_inputs.trajectories(
+            scenario, [starts[i] for i in moved], [new_inputs[i] for i in moved]
+        )  # the others keep their nominal
+        new_trajectories = list(trajectories)
+        for i, trajectory in zip(moved, simulated, strict=True):
+            new_trajectories[i] = trajectory
         new_funnels, new_coverage = funnel_stages(
-            scenario, runner, executor, tube, feedback, starts, new_inputs,
-            new_trajectories, initial_radii, quiet, stage=_round_stage(k),
+            run, new_inputs, new_trajectories, stage=_round_stage(k),
             reuse=[
                 funnels.funnels[i] if i in funnels.usable and i not in moved else None
                 for i in range(len(inputs))
@@ -198,25 +221,13 @@ def reoptimize_rounds(
                 new_trajectories[i] if i in kept else t for i, t in enumerate(trajectories)
             ]
             new_funnels = _mixed(funnels, new_funnels, kept)
-            new_coverage = runner.run(
+            new_coverage = _funnel_coverage(
+                run,
                 f"coverage_{_round_stage(k)}_kept",
-                inputs_key(
-                    code_key("stages.coverage"),
-                    tube,
-                    runner.digest(_round_stage(k - 1)),
-                    runner.digest(_round_stage(k)),
-                    kept,
-                    *starts,
-                ),  # fmt: skip
-                functools.partial(
-                    cover_balls,
-                    scenario,
-                    new_funnels.starts,
-                    np.array(starts),
-                    new_funnels.levels,
-                    noun="funnel start",
-                ),
-                describe=describe_coverage,
+                new_funnels,
+                runner.digest(_round_stage(k - 1)),
+                runner.digest(_round_stage(k)),
+                kept,
             )
         before = sum(trajectories[i].duration for i in funnels.usable)
         after = sum(new_trajectories[i].duration for i in new_funnels.usable)
