@@ -25,6 +25,7 @@ separately: it is evidence, not a bound.
 from __future__ import annotations
 
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -161,17 +162,27 @@ def _drawn_paths(
 ) -> list[FloatArray]:
     """The first ``count`` paths drawn in the report, each ``(K, n)`` thinned to about 200
     points: the first two runs around each trajectory of chunk 0, then chunk 1, ..., simulated
-    by the NumPy oracle from the same starts the chunks drew (only as many chunks as needed)."""
-    paths: list[FloatArray] = []
+    by the NumPy oracle from the same starts the chunks drew (only as many chunks as needed),
+    in one batch (the oracle's cost is per step, nearly whatever the batch size)."""
+    starts: list[FloatArray] = []
     for size, stream in zip(chunks, streams, strict=True):
-        if len(paths) >= count:
+        if len(starts) >= count:
             break
         x0 = _uniform_init(scenario, np.random.default_rng(stream), size)
         index, _ = controller.select(x0)
         drawn = np.concatenate([np.flatnonzero(index == i)[:2] for i in np.unique(index)])
-        _, groups = check_runs(scenario, controller, x0[np.sort(drawn)])
-        paths += [p for g in groups for p in g[:, :: max(1, g.shape[1] // 200)]]
-    return paths[:count]
+        starts += list(x0[drawn])  # by trajectory, then by draw
+    if not starts:
+        return []
+    x0 = np.array(starts[:count])
+    index, _ = controller.select(x0)
+    _, groups = check_runs(scenario, controller, x0)
+    paths: list[FloatArray] = [np.empty((0, 0))] * len(x0)
+    for i, group in zip(np.unique(index), groups, strict=True):
+        thinned = group[:, :: max(1, group.shape[1] // 200)]
+        for row, path in zip(np.flatnonzero(index == i), thinned, strict=True):
+            paths[row] = path
+    return paths
 
 
 def _run_chunk_in_worker(
@@ -204,14 +215,19 @@ def validate_closed_loop(
         for size, stream in zip(chunks, streams, strict=True)
     ]
     executor = executor or SerialExecutor()
-    outcomes = executor.map(
-        _run_chunk_in_worker,
-        tasks,
-        done=None if progress is None else lambda i: progress(chunks[i]),
-    )
+    # the report's paths and the falsification search run here while the chunks run in the
+    # executor's workers (with the serial executor the two threads take turns)
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="montecarlo-side") as side:
+        drawn = side.submit(_drawn_paths, scenario, controller, chunks, streams, drawn_paths)
+        searched = side.submit(falsify, scenario, controller, seed=seed)
+        outcomes = executor.map(
+            _run_chunk_in_worker,
+            tasks,
+            done=None if progress is None else lambda i: progress(chunks[i]),
+        )
+        paths, falsification = drawn.result(), searched.result()
     parts = [o[0] for o in outcomes]
     failed = [o[1] for o in outcomes]
-    paths = _drawn_paths(scenario, controller, chunks, streams, drawn_paths)
     merged = {
         f: np.concatenate([getattr(p, f) for p in parts]) for f in RunChecks.__dataclass_fields__
     }
@@ -223,7 +239,6 @@ def validate_closed_loop(
     counts["after_T"] = int(after_T.sum())
     failing = int(np.any([*checks.failures().values(), after_T], axis=0).sum())
     bound = float(binomtest(failing, samples, alternative="less").proportion_ci(0.95).high)
-    falsification = falsify(scenario, controller, seed=seed)
     success = failing == 0
     after = (
         f"; {held} continued to T + {HOLD_SECONDS:g} s stayed in Goal (V / level <= "

@@ -20,3 +20,29 @@ def test_monte_carlo_and_stress_fly_a_funnel_file(quadrotor_funnel_artifact):
     assert stress.success, stress.message
     assert stress.with_feedback.samples == stress.without_feedback.samples == 60
     assert stress.with_feedback.failed_fraction < stress.without_feedback.failed_fraction
+
+
+def test_the_reports_paths_are_the_first_runs_drawn_each_simulated_alone(
+    quadrotor_funnel_artifact,
+):
+    """The drawn paths come from one batch of the oracle: the same paths, in the same order, as
+    simulating each chunk's first two runs per trajectory on its own, cut at ``count``."""
+    import numpy as np
+
+    from pipeline.controller import load
+    from pipeline.numerics.closed_loop import check_runs
+    from stages.montecarlo import _drawn_paths, _uniform_init
+
+    scenario, path = quadrotor_funnel_artifact
+    controller = load(path)
+    chunks, streams = [40, 40, 40], np.random.SeedSequence(4).spawn(3)
+    paths = _drawn_paths(scenario, controller, chunks, streams, 3)
+    alone = []
+    for size, stream in zip(chunks, streams, strict=True):
+        x0 = _uniform_init(scenario, np.random.default_rng(stream), size)
+        for start in x0[:2]:  # one trajectory: the first two runs of each chunk
+            _, (group,) = check_runs(scenario, controller, start[None])
+            alone.append(group[0, :: max(1, group.shape[1] // 200)])
+    assert len(paths) == 3
+    for batched, single in zip(paths, alone[:3], strict=False):
+        np.testing.assert_allclose(batched, single, rtol=0, atol=1e-12)
