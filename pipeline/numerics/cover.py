@@ -55,6 +55,18 @@ class Subdivision:
         return float(self.covered)
 
 
+def _farthest_vertex(vertices: FloatArray, centers: FloatArray, P: FloatArray) -> FloatArray:
+    """``max_v ||v - x0_i||^2_P_i`` (B, k) over each box's ``vertices (B, V, n)``, for the balls'
+    ``centers (k, n)`` and metrics ``P (k, n, n)``: one matrix product per ball."""
+    B, V, n = vertices.shape
+    flat = vertices.reshape(B * V, n)
+    worst = np.empty((B, len(centers)))
+    for i, (center, metric) in enumerate(zip(centers, P, strict=True)):
+        e = flat - center
+        worst[:, i] = np.sum((e @ metric) * e, axis=1).reshape(B, V).max(axis=1)
+    return worst
+
+
 def subdivide(
     P: FloatArray,
     lower0: FloatArray,
@@ -103,9 +115,7 @@ def subdivide(
         # Vertices (B, 2^D, n): the box's lower corner plus 0/1 of its free widths.
         vertices = np.repeat(lower[:, None, :], len(corners), axis=1)
         vertices[:, :, free_index] += corners[None] * (upper - lower)[:, None, free_index]
-        e = vertices[:, :, None, :] - centers[None, None]  # (B, 2^D, k, n)
-        q = np.einsum("bvki,bvki->bvk", np.einsum("kij,bvkj->bvki", P, e), e)  # ||v - x0_i||^2_P_i
-        worst = q.max(axis=1)  # (B, k)
+        worst = _farthest_vertex(vertices, centers, P)  # (B, k)
         fits = (worst <= r2[None]) & usable[None]
         margin = np.where(fits, 1.0 - worst / np.where(usable, r2, 1.0)[None], -np.inf)
         done = fits.any(axis=1)
