@@ -42,18 +42,15 @@ def vjp_eval(x, u, lam, out_x, out_u):  # generated: out_x = lam f_x, out_u = la
 def rk4_step(x, u, h, K, Y, out):
     """One RK4 step; stage values into ``Y (4, n)``, slopes into ``K (4, n)``, ``x+`` into out."""
     n = x.size
-    for i in range(n):  # element loops, not slice copies: see shared.copy_vector
-        Y[0, i] = x[i]
-    f_eval(Y[0], u, K[0])
-    for i in range(n):
-        Y[1, i] = x[i] + 0.5 * h * K[0, i]
-    f_eval(Y[1], u, K[1])
-    for i in range(n):
-        Y[2, i] = x[i] + 0.5 * h * K[1, i]
-    f_eval(Y[2], u, K[2])
-    for i in range(n):
-        Y[3, i] = x[i] + h * K[2, i]
-    f_eval(Y[3], u, K[3])
+    step = (0.0, 0.5 * h, 0.5 * h, h)  # stage r at x + step[r] K[r - 1]
+    for r in range(4):
+        if r == 0:
+            for i in range(n):  # element loops, not slice copies: see shared.copy_vector
+                Y[0, i] = x[i]
+        else:
+            for i in range(n):
+                Y[r, i] = x[i] + step[r] * K[r - 1, i]
+        f_eval(Y[r], u, K[r])
     for i in range(n):
         out[i] = x[i] + (h / 6.0) * (K[0, i] + 2.0 * K[1, i] + 2.0 * K[2, i] + K[3, i])
 
@@ -131,34 +128,24 @@ def adjoint_sweep(U, h, s, Y, J_x, q, G):
     lam_y = np.empty(n)
     lam_next = np.empty(n)
     gu = np.empty(m)
+    a = (h / 6.0, h / 3.0, h / 3.0, h / 6.0)  # RK4 weights h b_r
+    b = (0.5 * h, 0.5 * h, h, 0.0)  # stage r + 1's coupling to stage r + 2 (none: r = 3)
     for i in range(J_x.shape[0] - 2, -1, -1):
         k = i // s
         u = U[k]
         for j in range(n):
             lam_next[j] = lam[j] + J_x[i, j]
-        for j in range(n):  # stage 4: kap4 = h/6 lam
-            kap[j] = (h / 6.0) * lam[j]
-        vjp_eval(Y[i, 3], u, kap, lam_y, gu)
-        for j in range(m):
-            q[k, j] += gu[j]
-        for j in range(n):  # stage 3: kap3 = h/3 lam + h lam_y4
-            lam_next[j] += lam_y[j]
-            kap[j] = (h / 3.0) * lam[j] + h * lam_y[j]
-        vjp_eval(Y[i, 2], u, kap, lam_y, gu)
-        for j in range(m):
-            q[k, j] += gu[j]
-        for j in range(n):  # stage 2: kap2 = h/3 lam + h/2 lam_y3
-            lam_next[j] += lam_y[j]
-            kap[j] = (h / 3.0) * lam[j] + 0.5 * h * lam_y[j]
-        vjp_eval(Y[i, 1], u, kap, lam_y, gu)
-        for j in range(m):
-            q[k, j] += gu[j]
-        for j in range(n):  # stage 1: kap1 = h/6 lam + h/2 lam_y2
-            lam_next[j] += lam_y[j]
-            kap[j] = (h / 6.0) * lam[j] + 0.5 * h * lam_y[j]
-        vjp_eval(Y[i, 0], u, kap, lam_y, gu)
-        for j in range(m):
-            q[k, j] += gu[j]
+        for r in range(3, -1, -1):  # stage r + 1, last first: kap = a[r] lam + b[r] lam_y
+            if r == 3:
+                for j in range(n):  # kap4 = h/6 lam
+                    kap[j] = a[r] * lam[j]
+            else:
+                for j in range(n):  # kap3 = h/3 lam + h lam_y4, kap2 = h/3 lam + h/2 lam_y3, ...
+                    lam_next[j] += lam_y[j]
+                    kap[j] = a[r] * lam[j] + b[r] * lam_y[j]
+            vjp_eval(Y[i, r], u, kap, lam_y, gu)
+            for j in range(m):
+                q[k, j] += gu[j]
         for j in range(n):
             lam[j] = lam_next[j] + lam_y[j]
         if i % s == 0:  # u[k] = v[k] + G (x_i - z[k]): chain dJ/du[k] into dJ/dx_i
