@@ -155,22 +155,6 @@ def adjoint_sweep(U, h, s, Y, J_x, q, G):
 
 
 @njit(cache=True)
-def adjoint_kernel(x0, U, h, s, P, q):
-    """``J`` and ``q = dJ/du`` into ``q (N, m)`` by one forward pass and one backward sweep."""
-    n = x0.size
-    Ns = U.shape[0] * s
-    X = np.empty((Ns + 1, n))
-    Y = np.empty((Ns, 4, n))
-    J_x = np.empty((Ns + 1, n))
-    J = forward_kernel(x0, U, h, s, P, X, Y, J_x, q)
-    if math.isnan(J):
-        q[:] = np.nan
-        return np.inf
-    adjoint_sweep(U, h, s, Y, J_x, q, np.zeros((U.shape[1], n)))
-    return J
-
-
-@njit(cache=True)
 def feedback_inputs(x0, V, Z, G, h, s, U):
     """Held inputs of the sampled feedback ``U[k] = V[k] + G (x(k Ts) - Z[k])`` into ``U (N, m)``;
     returns False if a state is not finite."""
@@ -193,12 +177,22 @@ def feedback_inputs(x0, V, Z, G, h, s, U):
 
 
 @njit(cache=True)
-def feedback_adjoint_kernel(x0, V, Z, G, h, s, P, U, q):
-    """``J(U(V))`` and ``q = dJ/dV`` under the sampled feedback (``U`` receives the inputs)."""
+def adjoint_kernel(x0, V, Z, G, feedback, h, s, P, U, q):
+    """``J(U)`` and ``q = dJ/dV`` into ``q (N, m)`` by one forward pass and one backward sweep
+    (one kernel for both cases: numba compiles it once per scenario, not twice).
+
+    With ``feedback``, ``U (N, m)`` receives the inputs of the sampled feedback
+    ``U[k] = V[k] + G (x(k Ts) - Z[k])`` (``Z (N, n)``, ``G (m, n)``); without, the open loop:
+    ``U = V`` (``U`` may be ``V``), ``G`` must be zeros and ``Z`` is not read."""
     n = x0.size
-    if not feedback_inputs(x0, V, Z, G, h, s, U):
-        q[:] = np.nan
-        return np.inf
+    if feedback:
+        if not feedback_inputs(x0, V, Z, G, h, s, U):
+            q[:] = np.nan
+            return np.inf
+    else:
+        for k in range(V.shape[0]):
+            for r in range(V.shape[1]):
+                U[k, r] = V[k, r]
     Ns = U.shape[0] * s
     X = np.empty((Ns + 1, n))
     Y = np.empty((Ns, 4, n))
