@@ -5,6 +5,7 @@ and read numba's disk cache), a factor of 1.0 does not make a new kernel module,
 from __future__ import annotations
 
 import fcntl
+import hashlib
 import threading
 import weakref
 from collections import Counter
@@ -18,7 +19,7 @@ from numba.core import event
 
 from pipeline.model.dynamics import Dynamics
 from pipeline.model.scenario import load_scenario
-from pipeline.numerics.kernels import compiled
+from pipeline.numerics.kernels import compiled, shared
 from pipeline.numerics.kernels.compiled import dynamics_source, exact_units, load_kernels
 from tests.test_scenario import write_scenario
 
@@ -124,3 +125,12 @@ def test_an_edit_of_the_shared_functions_gives_new_kernel_modules(
     after = load_kernels(dynamics)
     assert after.__name__ != before.__name__
     assert len(list((tmp_path / "cache").glob("kernels_*.py"))) == 2
+
+
+def test_numba_keys_its_cache_of_shared_on_the_file_contents() -> None:
+    """``shared`` is an ordinary module: numba's own cache of it is fresh only while its stamp
+    matches, and numba (0.68 here) stamps a file by the SHA-256 of its bytes, so an edit of
+    ``shared.py`` recompiles it and a ``touch`` does not (fails if a numba version stamps
+    otherwise, e.g. by modification time and size as older ones did)."""
+    stamp = shared.all_finite._cache._impl.locator.get_source_stamp()
+    assert stamp == hashlib.sha256(Path(shared.__file__).read_bytes()).digest()
