@@ -1,18 +1,25 @@
 """The compiled kernels' cache: one process at a time compiles a kernel module (the others wait
-and read numba's disk cache), and a factor of 1.0 does not make a new kernel module."""
+and read numba's disk cache), a factor of 1.0 does not make a new kernel module, the functions of
+``shared`` compile once for every dynamics, and an edit of ``shared`` gives new kernel modules."""
 
 from __future__ import annotations
 
 import fcntl
+import hashlib
 import threading
+import weakref
+from collections import Counter
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 import sympy
+from numba.core import event
 
 from pipeline.model.dynamics import Dynamics
 from pipeline.model.scenario import load_scenario
+from pipeline.numerics.kernels import compiled, shared
 from pipeline.numerics.kernels.compiled import dynamics_source, exact_units, load_kernels
 from tests.test_scenario import write_scenario
 
@@ -29,14 +36,15 @@ def test_a_kernel_waits_while_another_process_compiles_its_module(
     results: list[bool] = []
     with source.with_suffix(".lock").open("ab") as other:
         fcntl.flock(other, fcntl.LOCK_EX)
-        first = threading.Thread(
-            target=lambda: results.append(kernels.all_finite(np.array([0.0, np.nan])))
+        out = np.empty(1)
+        first = threading.Thread(  # f_eval: defined in the generated module, not in shared
+            target=lambda: results.append(kernels.f_eval(np.zeros(1), np.ones(1), out) or out[0])
         )
         first.start()
         first.join(1.0)
         assert first.is_alive() and not results, "compiled while another process held the lock"
     first.join(60.0)
-    assert results == [False]
+    assert results == [1.0]
 
 
 @pytest.mark.parametrize(
@@ -66,3 +74,63 @@ def test_a_parameter_of_one_shares_the_kernels_of_the_scenario_without_it(tmp_pa
     )
     shipped = load_scenario("double_integrator", check_demos=False)
     assert dynamics_source(fixture.dynamics) == dynamics_source(shipped.dynamics)
+
+
+class _Compiles(event.Listener):
+    """Counts numba's compilations (not loads from its disk cache) by function name."""
+
+    def __init__(self) -> None:
+        self.count: Counter[str] = Counter()
+
+    def on_start(self, ev: event.Event) -> None:
+        self.count[ev.data["dispatcher"].py_func.__name__] += 1
+
+    def on_end(self, ev: event.Event) -> None:
+        pass
+
+
+def test_two_dynamics_compile_their_loops_but_share_the_dynamics_free_functions(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``feedback_inputs`` (generated per dynamics) compiles once per module; ``all_finite``,
+    which it calls, from ``shared``, at most once in the process (none if already compiled)."""
+    monkeypatch.setenv("SAFETY_KERNEL_CACHE", str(tmp_path))
+    v, u = sympy.symbols("v u", real=True)
+    compiles = _Compiles()
+    with event.install_listener("numba:compile", compiles):
+        for rate in (0.125, 0.25):
+            kernels = load_kernels(Dynamics.from_expressions([v], [u], [u - rate * v]))
+            U = np.empty((3, 1))
+            one = np.ones((3, 1))
+            assert kernels.feedback_inputs(np.zeros(1), one, np.zeros((3, 1)), one, 0.1, 2, U)
+            assert U[0, 0] == 1.0 and U[1, 0] > 1.0  # u = 1 + x, x grows from 0
+    assert compiles.count["feedback_inputs"] == 2
+    assert compiles.count["all_finite"] <= 1
+
+
+def test_an_edit_of_the_shared_functions_gives_new_kernel_modules(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """numba's cache of a generated kernel holds the shared functions it calls but checks only
+    the generated file: the module's name (its cache key) hashes ``shared``'s source too."""
+    monkeypatch.setenv("SAFETY_KERNEL_CACHE", str(tmp_path / "cache"))
+    v, u = sympy.symbols("v u", real=True)
+    dynamics = Dynamics.from_expressions([v], [u], [u - 0.375 * v])
+    before = load_kernels(dynamics)
+    edited = tmp_path / "shared.py"
+    edited.write_text(compiled._SHARED.read_text() + "\n# an edit\n")
+    monkeypatch.setattr(compiled, "_SHARED", edited)
+    fresh: weakref.WeakKeyDictionary[Dynamics, Any] = weakref.WeakKeyDictionary()
+    monkeypatch.setattr(compiled, "_BY_DYNAMICS", fresh)
+    after = load_kernels(dynamics)
+    assert after.__name__ != before.__name__
+    assert len(list((tmp_path / "cache").glob("kernels_*.py"))) == 2
+
+
+def test_numba_keys_its_cache_of_shared_on_the_file_contents() -> None:
+    """``shared`` is an ordinary module: numba's own cache of it is fresh only while its stamp
+    matches, and numba (0.68 here) stamps a file by the SHA-256 of its bytes, so an edit of
+    ``shared.py`` recompiles it and a ``touch`` does not (fails if a numba version stamps
+    otherwise, e.g. by modification time and size as older ones did)."""
+    stamp = shared.all_finite._cache._impl.locator.get_source_stamp()
+    assert stamp == hashlib.sha256(Path(shared.__file__).read_bytes()).digest()

@@ -176,7 +176,11 @@ class Problem:
         kernels, data, pattern = self._compiled
         q = np.empty_like(u)
         if method == "adjoint":
-            J = kernels.adjoint_kernel(self.x0, u, h, self.substeps, data, q)
+            no_gain = np.zeros((u.shape[1], self.x0.size))  # the open loop
+            no_reference = np.empty((0, self.x0.size))
+            J = kernels.adjoint_kernel(
+                self.x0, u, no_reference, no_gain, False, h, self.substeps, data, u, q
+            )
         else:
             J = kernels.sensitivity_kernel(
                 self.x0,

@@ -9,8 +9,8 @@ Hauser's projection-operator method, the descent here runs over ``v (N, m)`` wit
 
 where ``G (m, n)`` is the robustness feedback's gain and ``z (N, n)`` the seed's sampled states.
 The cost is the problem's ``J(u(v))``; its gradient ``dJ/dv`` is the discrete RK4 adjoint with the
-feedback chained in at every sample time (``kernel_loops.feedback_adjoint_kernel``). Since ``u(v)``
-is itself piecewise constant, the optimum is an ordinary nominal input ``u``.
+feedback chained in at every sample time (``adjoint_kernel`` of ``kernels.loops``, ``feedback``
+on). Since ``u(v)`` is itself piecewise constant, the optimum is an ordinary nominal input ``u``.
 """
 
 from __future__ import annotations
@@ -58,8 +58,8 @@ class StabilisedProblem:
         kernels, data, _ = problem._compiled
         u, q = np.empty_like(v), np.empty_like(v)
         h = problem.Ts / problem.substeps
-        J = kernels.feedback_adjoint_kernel(
-            problem.x0, v, self.reference, self.gain, h, problem.substeps, data, u, q
+        J = kernels.adjoint_kernel(
+            problem.x0, v, self.reference, self.gain, True, h, problem.substeps, data, u, q
         )
         return float(J), q, u
 

@@ -35,10 +35,12 @@ from shapely.geometry.base import BaseGeometry
 from sympy.printing.pycode import PythonCodePrinter
 
 from pipeline.model.dynamics import Dynamics, FloatArray
+from pipeline.numerics.kernels import shared
 from pipeline.numerics.penalties import Constraints, IntArray
 from pipeline.numerics.sensitivity import SensitivityPattern
 
 _TEMPLATES = tuple(Path(__file__).with_name(name) for name in ("loops.py", "rollout.py"))
+_SHARED = Path(shared.__file__)  # imported by the generated modules: its source is in their key
 _LOADED: dict[str, ModuleType] = {}
 _BY_DYNAMICS: weakref.WeakKeyDictionary[Dynamics, ModuleType] = weakref.WeakKeyDictionary()
 
@@ -137,7 +139,9 @@ def load_kernels(dynamics: Dynamics) -> ModuleType:
     source = "\n\n".join(template.read_text() for template in _TEMPLATES)
     source += "\n# ---- generated from the scenario's expressions ----\n"
     source += dynamics_source(dynamics)
-    stamp = f"{numba.__version__} {sys.version}\n{source}"
+    # numba's cache of a generated kernel holds the compiled shared functions it calls, and numba
+    # checks only the generated file's own stamp: an edit of shared.py must give a new module.
+    stamp = f"{numba.__version__} {sys.version}\n{_SHARED.read_text()}\n{source}"
     key = hashlib.sha256(stamp.encode()).hexdigest()[:20]
     if key in _LOADED:
         _BY_DYNAMICS[dynamics] = _LOADED[key]
@@ -154,6 +158,7 @@ def load_kernels(dynamics: Dynamics) -> ModuleType:
     module = importlib.util.module_from_spec(spec)
     sys.modules[name] = module
     spec.loader.exec_module(module)
+    _share_compile_lock()
     _compile_one_at_a_time(module, path.with_suffix(".lock"))
     _LOADED[key] = _BY_DYNAMICS[dynamics] = module
     return module
@@ -202,11 +207,19 @@ class _CompileLock:
 
 
 def _compile_one_at_a_time(module: ModuleType, lock_path: Path) -> None:
-    """Route every compile of ``module``'s dispatchers through one ``_CompileLock``."""
+    """Route every compile of the dispatchers defined in ``module`` (not those it imports from
+    ``shared``) through one ``_CompileLock``."""
     lock = _CompileLock(lock_path)
     for value in vars(module).values():
-        if isinstance(value, Dispatcher):
+        if isinstance(value, Dispatcher) and value.py_func.__module__ == module.__name__:
             value.compile = functools.partial(lock.compile, value.compile)  # type: ignore[method-assign]
+
+
+@functools.cache
+def _share_compile_lock() -> None:
+    """The same for ``shared``, once per process: its lock is taken inside a generated module's,
+    never the other way round, so two processes cannot wait on each other."""
+    _compile_one_at_a_time(shared, cache_folder() / "shared.lock")
 
 
 class PenaltyData(NamedTuple):
