@@ -15,9 +15,8 @@ is run into a temporary folder first (``--samples 1000``).
     sample times, for 20 of the same initial states; only the clearance is checked.
 (c) ``validate_closed_loop`` on 100,000 samples (10 chunks of 10,000) with 1 and 2 worker
     processes (``make_executor(None, jobs)``; the 2-worker time includes spawning the pool), then
-    on 1,000,000 with 2 workers, measured. The falsification search runs in the parent either
-    way, so it is timed on its own too, and the speed-up of the sampled part is reported without
-    it.
+    on 1,000,000 with 2 workers, measured. The falsification search and the report's paths run
+    in the parent beside the chunks (the search is timed alone too).
 Targets: (a) at least 50x the rollouts per second of (b) (issue 6); (a') >= 20,000 rollouts/s
 on one core and (c) 10^6 samples under 60 s on 2 cores (issue 15).
 """
@@ -177,11 +176,9 @@ def run() -> None:
                 f" {seconds[jobs]:6.2f} s"
                 f" ({result.message})"
             )
-        sampled = [max(seconds[j] - search, 1e-9) for j in (1, 2)]
         print(
-            f"  speed-up with 2 workers: {seconds[1] / seconds[2]:.2f}x overall;"
-            f" {sampled[0] / sampled[1]:.2f}x without the serial falsification search"
-            f" ({search:.2f} s, timed alone)"
+            f"  speed-up with 2 workers: {seconds[1] / seconds[2]:.2f}x (the pool's start-up"
+            f" included); the falsification search alone: {search:.2f} s"
         )
         executor = make_executor(None, 2)
         start = time.perf_counter()
