@@ -134,3 +134,37 @@ def test_numba_keys_its_cache_of_shared_on_the_file_contents() -> None:
     otherwise, e.g. by modification time and size as older ones did)."""
     stamp = shared.all_finite._cache._impl.locator.get_source_stamp()
     assert stamp == hashlib.sha256(Path(shared.__file__).read_bytes()).digest()
+
+
+def test_threads_asking_at_once_get_one_module(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The Monte Carlo stage's side thread and its chunks may ask for the kernels at the same
+    moment: the module is generated and imported once."""
+    monkeypatch.setenv("SAFETY_KERNEL_CACHE", str(tmp_path))
+    monkeypatch.setattr(compiled, "_LOADED", {})
+    monkeypatch.setattr(compiled, "_BY_DYNAMICS", weakref.WeakKeyDictionary())
+    v, u = sympy.symbols("v u", real=True)
+    dynamics = Dynamics.from_expressions([v], [u], [u - 0.25 * v])
+    executed = Counter[str]()
+    original = compiled.importlib.util.module_from_spec
+
+    def counted(spec: Any) -> Any:
+        executed[spec.name] += 1
+        return original(spec)
+
+    monkeypatch.setattr(compiled.importlib.util, "module_from_spec", counted)
+    start = threading.Barrier(4)
+    modules: list[Any] = []
+
+    def ask() -> None:
+        start.wait()
+        modules.append(load_kernels(dynamics))
+
+    threads = [threading.Thread(target=ask) for _ in range(4)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert len(modules) == 4 and all(m is modules[0] for m in modules)
+    assert list(executed.values()) == [1]

@@ -43,6 +43,7 @@ _TEMPLATES = tuple(Path(__file__).with_name(name) for name in ("loops.py", "roll
 _SHARED = Path(shared.__file__)  # imported by the generated modules: its source is in their key
 _LOADED: dict[str, ModuleType] = {}
 _BY_DYNAMICS: weakref.WeakKeyDictionary[Dynamics, ModuleType] = weakref.WeakKeyDictionary()
+_LOADING = threading.Lock()  # e.g. the Monte Carlo stage's chunks and its side thread
 
 
 def cache_folder() -> Path:
@@ -133,7 +134,15 @@ def dynamics_source(dynamics: Dynamics) -> str:
 
 
 def load_kernels(dynamics: Dynamics) -> ModuleType:
-    """The compiled kernel module of ``dynamics`` (generated and imported once per process)."""
+    """The compiled kernel module of ``dynamics`` (generated and imported once per process,
+    also when several threads ask at once)."""
+    if dynamics in _BY_DYNAMICS:
+        return _BY_DYNAMICS[dynamics]
+    with _LOADING:
+        return _load_kernels(dynamics)
+
+
+def _load_kernels(dynamics: Dynamics) -> ModuleType:
     if dynamics in _BY_DYNAMICS:
         return _BY_DYNAMICS[dynamics]
     source = "\n\n".join(template.read_text() for template in _TEMPLATES)
