@@ -217,7 +217,8 @@ def validate_closed_loop(
     executor = executor or SerialExecutor()
     # the report's paths and the falsification search run here while the chunks run in the
     # executor's workers (with the serial executor the two threads take turns)
-    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="montecarlo-side") as side:
+    side = ThreadPoolExecutor(max_workers=1, thread_name_prefix="montecarlo-side")
+    try:
         drawn = side.submit(_drawn_paths, scenario, controller, chunks, streams, drawn_paths)
         searched = side.submit(falsify, scenario, controller, seed=seed)
         outcomes = executor.map(
@@ -226,6 +227,8 @@ def validate_closed_loop(
             done=None if progress is None else lambda i: progress(chunks[i]),
         )
         paths, falsification = drawn.result(), searched.result()
+    finally:  # a failed chunk (or Ctrl-C) does not wait for the side work
+        side.shutdown(wait=False, cancel_futures=True)
     parts = [o[0] for o in outcomes]
     failed = [o[1] for o in outcomes]
     merged = {

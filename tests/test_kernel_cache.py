@@ -112,14 +112,13 @@ def test_an_edit_of_the_shared_functions_gives_new_kernel_modules(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """numba's cache of a generated kernel holds the shared functions it calls but checks only
-    the generated file: the module's name (its cache key) hashes ``shared``'s source too."""
+    the generated file: the module's name (its cache key) hashes ``shared``'s source too, as this
+    process imported it (the code it links)."""
     monkeypatch.setenv("SAFETY_KERNEL_CACHE", str(tmp_path / "cache"))
     v, u = sympy.symbols("v u", real=True)
     dynamics = Dynamics.from_expressions([v], [u], [u - 0.375 * v])
     before = load_kernels(dynamics)
-    edited = tmp_path / "shared.py"
-    edited.write_text(compiled._SHARED.read_text() + "\n# an edit\n")
-    monkeypatch.setattr(compiled, "_SHARED", edited)
+    monkeypatch.setattr(shared, "SOURCE", shared.SOURCE + "\n# an edit\n")
     fresh: weakref.WeakKeyDictionary[Dynamics, Any] = weakref.WeakKeyDictionary()
     monkeypatch.setattr(compiled, "_BY_DYNAMICS", fresh)
     after = load_kernels(dynamics)

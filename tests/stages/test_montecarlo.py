@@ -22,27 +22,33 @@ def test_monte_carlo_and_stress_fly_a_funnel_file(quadrotor_funnel_artifact):
     assert stress.with_feedback.failed_fraction < stress.without_feedback.failed_fraction
 
 
-def test_the_reports_paths_are_the_first_runs_drawn_each_simulated_alone(
-    quadrotor_funnel_artifact,
-):
+def test_the_reports_paths_are_the_first_runs_drawn_each_simulated_alone(synthesized):
     """The drawn paths come from one batch of the oracle: the same paths, in the same order, as
-    simulating each chunk's first two runs per trajectory on its own, cut at ``count``."""
+    simulating each chunk's first two runs around each trajectory on its own (quadrotor_hill's
+    nine funnels: the batch regroups the runs by trajectory), cut at ``count``."""
     import numpy as np
 
     from pipeline.controller import load
+    from pipeline.model.scenario import load_scenario
     from pipeline.numerics.closed_loop import check_runs
     from stages.montecarlo import _drawn_paths, _uniform_init
 
-    scenario, path = quadrotor_funnel_artifact
-    controller = load(path)
-    chunks, streams = [40, 40, 40], np.random.SeedSequence(4).spawn(3)
-    paths = _drawn_paths(scenario, controller, chunks, streams, 3)
-    alone = []
+    _, out = synthesized
+    scenario = load_scenario("quadrotor_hill", check_demos=False)
+    controller = load(out / "controller.json")
+    chunks, streams = [60, 60], np.random.SeedSequence(4).spawn(2)
+    count = 25
+    paths = _drawn_paths(scenario, controller, chunks, streams, count)
+    alone, owners = [], []
     for size, stream in zip(chunks, streams, strict=True):
         x0 = _uniform_init(scenario, np.random.default_rng(stream), size)
-        for start in x0[:2]:  # one trajectory: the first two runs of each chunk
-            _, (group,) = check_runs(scenario, controller, start[None])
-            alone.append(group[0, :: max(1, group.shape[1] // 200)])
-    assert len(paths) == 3
-    for batched, single in zip(paths, alone[:3], strict=False):
-        np.testing.assert_allclose(batched, single, rtol=0, atol=1e-12)
+        index, _ = controller.select(x0)
+        for i in np.unique(index):
+            for start in x0[np.flatnonzero(index == i)[:2]]:
+                _, (group,) = check_runs(scenario, controller, start[None])
+                alone.append(group[0, :: max(1, group.shape[1] // 200)])
+                owners.append(int(i))
+    assert len(set(owners[:count])) > 2 and len(alone) > count  # several trajectories, a cut
+    assert len(paths) == count
+    for batched, single in zip(paths, alone[:count], strict=True):
+        np.testing.assert_allclose(batched, single, rtol=0, atol=1e-9)

@@ -22,6 +22,7 @@ import tempfile
 import threading
 import weakref
 from collections.abc import Callable
+from contextlib import AbstractContextManager, nullcontext
 from pathlib import Path
 from types import ModuleType
 from typing import IO, Any, NamedTuple
@@ -29,6 +30,7 @@ from typing import IO, Any, NamedTuple
 import numba
 import numpy as np
 import sympy
+from numba.core.compiler_lock import global_compiler_lock
 from numba.core.dispatcher import Dispatcher
 from shapely.geometry import MultiPolygon, Polygon
 from shapely.geometry.base import BaseGeometry
@@ -40,7 +42,6 @@ from pipeline.numerics.penalties import Constraints, IntArray
 from pipeline.numerics.sensitivity import SensitivityPattern
 
 _TEMPLATES = tuple(Path(__file__).with_name(name) for name in ("loops.py", "rollout.py"))
-_SHARED = Path(shared.__file__)  # imported by the generated modules: its source is in their key
 _LOADED: dict[str, ModuleType] = {}
 _BY_DYNAMICS: weakref.WeakKeyDictionary[Dynamics, ModuleType] = weakref.WeakKeyDictionary()
 _LOADING = threading.Lock()  # e.g. the Monte Carlo stage's chunks and its side thread
@@ -149,8 +150,10 @@ def _load_kernels(dynamics: Dynamics) -> ModuleType:
     source += "\n# ---- generated from the scenario's expressions ----\n"
     source += dynamics_source(dynamics)
     # numba's cache of a generated kernel holds the compiled shared functions it calls, and numba
-    # checks only the generated file's own stamp: an edit of shared.py must give a new module.
-    stamp = f"{numba.__version__} {sys.version}\n{_SHARED.read_text()}\n{source}"
+    # checks only the generated file's own stamp: an edit of shared.py must give a new module
+    # (keyed on the source this process runs), as must a change of PenaltyData's fields (numba
+    # keys a named tuple on its field types, not their names)
+    stamp = f"{numba.__version__} {sys.version}\n{shared.SOURCE}\n{PenaltyData._fields}\n{source}"
     key = hashlib.sha256(stamp.encode()).hexdigest()[:20]
     if key in _LOADED:
         _BY_DYNAMICS[dynamics] = _LOADED[key]
@@ -179,16 +182,20 @@ class _CompileLock:
     released by the operating system if the process dies. A process that waited loads the
     other's result from numba's disk cache instead of compiling it again (parallel workers or
     pytest-xdist on a cold cache: each compiled every kernel it called first, ~10 s of CPU a
-    scenario). Outside numba's own compiler lock, so a waiting process holds nothing."""
+    scenario). A generated module's lock is taken outside numba's own compiler lock; ``shared``'s
+    inside it (``outer``): a kernel compiling holds its module's lock and numba's, then takes
+    ``shared``'s for its callees, and a direct call of a shared function takes numba's first too,
+    so the locks are always taken in one order."""
 
-    def __init__(self, path: Path) -> None:
+    def __init__(self, path: Path, outer: AbstractContextManager[Any] | None = None) -> None:
         self.path = path
+        self.outer = outer if outer is not None else nullcontext()
         self.thread = threading.RLock()  # also makes ``depth`` the owning thread's
         self.depth = 0
         self.handle: IO[bytes] | None = None
 
     def compile(self, original: Callable[[Any], Any], sig: Any) -> Any:
-        with self.thread:
+        with self.outer, self.thread:
             if self.depth == 0:
                 self.handle = self._lock()
             self.depth += 1
@@ -215,10 +222,12 @@ class _CompileLock:
         return handle
 
 
-def _compile_one_at_a_time(module: ModuleType, lock_path: Path) -> None:
+def _compile_one_at_a_time(
+    module: ModuleType, lock_path: Path, outer: AbstractContextManager[Any] | None = None
+) -> None:
     """Route every compile of the dispatchers defined in ``module`` (not those it imports from
     ``shared``) through one ``_CompileLock``."""
-    lock = _CompileLock(lock_path)
+    lock = _CompileLock(lock_path, outer)
     for value in vars(module).values():
         if isinstance(value, Dispatcher) and value.py_func.__module__ == module.__name__:
             value.compile = functools.partial(lock.compile, value.compile)  # type: ignore[method-assign]
@@ -226,9 +235,10 @@ def _compile_one_at_a_time(module: ModuleType, lock_path: Path) -> None:
 
 @functools.cache
 def _share_compile_lock() -> None:
-    """The same for ``shared``, once per process: its lock is taken inside a generated module's,
-    never the other way round, so two processes cannot wait on each other."""
-    _compile_one_at_a_time(shared, cache_folder() / "shared.lock")
+    """The same for ``shared``, once per process (called under ``_LOADING``): its lock is taken
+    inside a generated module's and inside numba's compiler lock, never the other way round, so
+    neither two processes nor two threads can wait on each other."""
+    _compile_one_at_a_time(shared, cache_folder() / "shared.lock", global_compiler_lock)
 
 
 class PenaltyData(NamedTuple):

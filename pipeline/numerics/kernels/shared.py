@@ -4,8 +4,8 @@ A normal module (numba caches it beside this file, ``cache=True``): the per-scen
 modules that ``pipeline.numerics.kernels.compiled`` generates from ``loops.py``, ``rollout.py`` and
 the scenario's ``f_eval`` import these functions instead of compiling their own copies (numba links
 the compiled callee into each caller). Each generated module's name hashes this file's source too,
-so an edit here gives new kernel modules; numba invalidates this module's own cache when the
-file's modification time or size changes.
+the source this process imported (``SOURCE``), so an edit here gives new kernel modules; numba
+stamps this module's own cache with the SHA-256 of the file's contents.
 
 Penalties (eqs. (40)-(42), as ``pipeline.numerics.penalties``), polygon queries, the pruned
 right-hand sides of (33)-(34), and the closed loop's reference, clearance and metric helpers.
@@ -16,14 +16,17 @@ vertex arrays ``V (v, 2)`` with rings ``ring_start[r]:ring_start[r+1]`` (not clo
 """
 
 import math
+from pathlib import Path
 
 import numpy as np
 from numba import njit
 
+SOURCE = Path(__file__).read_text()  # as imported: what the generated modules' key hashes
 _SERIES_BELOW = 1e-4  # as pipeline.numerics.penalties
 
-# Not inlined (``inline="always"`` would type and lower a copy in every caller, once per scenario):
-# a call costs the closed loop nothing measurable (bench montecarlo, same rollouts/s).
+# The functions below except ``copy_vector`` are not inlined (``inline="always"`` would type and
+# lower a copy in every caller, once per scenario): a call costs the closed loop nothing
+# measurable (bench montecarlo, same rollouts/s).
 
 
 @njit(cache=True, inline="always")
