@@ -78,6 +78,14 @@ class FunnelStageResult:
             [f.rho if i in self.usable else 0.0 for i, f in enumerate(self.funnels)], dtype=float
         )
 
+    def failure(self, i: int) -> str | None:
+        """Why trajectory ``i``'s funnel was dropped (its ``rejected`` line without the name);
+        None if it is usable."""
+        if i in self.usable:
+            return None
+        prefix = f"{self.names[i]} dropped: "
+        return next(line.removeprefix(prefix) for line in self.rejected if line.startswith(prefix))
+
 
 def initial_sets(scenario: Scenario, P: FloatArray, radii: FloatArray) -> FloatArray:
     """(k, n, n) ``Q_init_i`` of (I1): the slice of the ball ``||e||_P <= r_i`` along Init's
@@ -148,12 +156,14 @@ def _funnel_in_worker(task: _Task) -> tuple[Funnel, str | None]:
     return funnel, _accepted(scenario, task.trajectory, funnel, bounds)
 
 
-def _reused(funnel: Funnel) -> tuple[Funnel, str | None]:
-    """An earlier round's funnel kept for a nominal that did not move: no synthesis time spent
-    now; dropped (with the reason) unless it was certified."""
-    if not (funnel.success and funnel.rho > 0):
-        return funnel, f"the reused funnel was not certified ({funnel.message})"
-    return replace(funnel, seconds=0.0), None
+def _reused(earlier: tuple[Funnel, str | None]) -> tuple[Funnel, str | None]:
+    """An earlier round's funnel and its verdict then (None: certified), kept for a nominal that
+    did not move: no synthesis time spent now; dropped again (with the reason) if it was
+    dropped then or is not certified (``success``, ``rho > 0``)."""
+    funnel, failure = earlier
+    if failure is None and not (funnel.success and funnel.rho > 0):
+        failure = f"the reused funnel was not certified ({funnel.message})"
+    return replace(funnel, seconds=0.0), failure
 
 
 def synthesize_funnels(
@@ -166,7 +176,7 @@ def synthesize_funnels(
     rate: float = 0.0,
     executor: Executor | None = None,
     progress: Callable[[int], None] | None = None,
-    reuse: Sequence[Funnel | None] | None = None,
+    reuse: Sequence[tuple[Funnel, str | None] | None] | None = None,
 ) -> FunnelStageResult:
     """The funnel of every trajectory on ``executor`` (default: here, in order; the result does
     not depend on it), each asked to hold its start's cell of Init (``required_sets``).
@@ -177,11 +187,11 @@ def synthesize_funnels(
       P: (n, n) the constant certificate's metric (it assigns the cells); radii: (k,) its ball
         radius per trajectory (I1), for a start that owns no cell.
       rate: lambda (1/s) of the funnels' decay (``synthesize_funnel``).
-      reuse: per trajectory, None or a funnel certified earlier around the same nominal with
-        the same request (an earlier round's, for a nominal that did not move): kept as it is,
-        without a new synthesis (the result would be the same; it passed the checks then), its
-        synthesis time counted as 0; one that was not certified (``success``, ``rho > 0``) is
-        dropped again.
+      reuse: per trajectory, None or a funnel made earlier around the same nominal with the
+        same request and its verdict then (None: certified, else why it was dropped; an earlier
+        round's, for a nominal that did not move): kept as it is, without a new synthesis and
+        its checks (the result would be the same), its synthesis time counted as 0; one dropped
+        then, or not certified (``success``, ``rho > 0``), is dropped again.
     """
     if not (len(names) == len(trajectories) == len(radii)):
         raise ValueError(
@@ -215,7 +225,7 @@ def synthesize_funnels(
     )
     computed = dict(zip(tasks, done, strict=True))
     outcomes = [
-        computed[i] if funnel is None else _reused(funnel) for i, funnel in enumerate(reuse)
+        computed[i] if earlier is None else _reused(earlier) for i, earlier in enumerate(reuse)
     ]
     if progress is not None and len(tasks) < len(trajectories):
         progress(len(trajectories) - len(tasks))

@@ -165,6 +165,7 @@ def _drawn_paths(
     by the NumPy oracle from the same starts the chunks drew (only as many chunks as needed),
     in one batch (the oracle's cost is per step, nearly whatever the batch size)."""
     starts: list[FloatArray] = []
+    owners: list[int] = []  # the trajectory each start selects
     for size, stream in zip(chunks, streams, strict=True):
         if len(starts) >= count:
             break
@@ -172,10 +173,10 @@ def _drawn_paths(
         index, _ = controller.select(x0)
         drawn = np.concatenate([np.flatnonzero(index == i)[:2] for i in np.unique(index)])
         starts += list(x0[drawn])  # by trajectory, then by draw
+        owners += list(index[drawn])
     if not starts:
         return []
-    x0 = np.array(starts[:count])
-    index, _ = controller.select(x0)
+    x0, index = np.array(starts[:count]), np.array(owners[:count])
     _, groups = check_runs(scenario, controller, x0)
     paths: list[FloatArray] = [np.empty((0, 0))] * len(x0)
     for i, group in zip(np.unique(index), groups, strict=True):

@@ -111,6 +111,7 @@ def rebuild_funnel(
     trajectory: Trajectory,
     K: FloatArray,
     P: FloatArray,
+    Q: FloatArray,
     rho: float,
     rate: float,
     state_bounds: Mapping[str, tuple[float, float]],
@@ -118,16 +119,15 @@ def rebuild_funnel(
 ) -> Funnel:
     """The funnel ``K (N, m, n)``, ``P (N+1, n, n)``, ``rho``, ``rate`` around ``trajectory``
     with hulls and enclosure rebuilt by steps 1-2 of the module docstring
-    (``funnel_pieces.piece_hulls`` on pieces of one sample interval, with the file's ``Q =
-    P^-1`` at level ``rho (1 + WIDEN)`` as the extents and no arc caps).
+    (``funnel_pieces.piece_hulls`` on pieces of one sample interval, with the file's ``Q (N+1,
+    n, n) = P^-1`` (symmetrized) at level ``rho (1 + WIDEN)`` as the extents and no arc caps).
 
     Raises:
       HullError: no hull over a box, or no a priori enclosure within ``PAD_ROUNDS``.
     """
-    Q = np.linalg.inv(P)
     N = len(K)
     variables, boxes, vertices, enclosure = piece_hulls(
-        scenario, trajectory, (Q + np.swapaxes(Q, 1, 2)) / 2, K, state_bounds,
+        scenario, trajectory, Q, K, state_bounds,
         rho * (1 + WIDEN), segments, np.arange(N + 1), tight=False, pad_rounds=PAD_ROUNDS,
     )  # fmt: skip
     return Funnel(
@@ -153,7 +153,9 @@ def recheck_funnel(
     last = FunnelRecheck(failure="", margin=float("nan"), vertices=0, radius=0.0, binding="")
     for segments in SEGMENTS:
         try:
-            funnel = rebuild_funnel(scenario, trajectory, K, P, rho, rate, state_bounds, segments)
+            funnel = rebuild_funnel(
+                scenario, trajectory, K, P, Q, rho, rate, state_bounds, segments
+            )
         except (HullError, np.linalg.LinAlgError) as error:
             failures.append(f"{segments} segment(s): {error}")
             continue

@@ -76,25 +76,26 @@ def test_funnels_hold_the_required_initial_set(inputs, result):
     starts = np.array([t.xs[0] for t in trajectories])
     corners = init_cells(scenario.init_lower, scenario.init_upper, starts, P)
     initial = required_sets(scenario, starts, P, radii)
-    rng = np.random.default_rng(0)
     for i, (funnel, trajectory) in enumerate(zip(result.funnels, trajectories, strict=True)):
         assert funnel.success and 0 < funnel.rho <= 1
         assert check_funnel(scenario, trajectory, funnel, scenario.state_bounds) is None
-        if len(corners[i]):  # the corners of its cell are in E(0) at level 1
-            v = corners[i]
-            np.testing.assert_allclose(initial[i], np.einsum("pi,pj->pij", v, v))
-            assert np.einsum("bi,ij,bj->b", v, funnel.P[0], v).max() <= 1 + 1e-6
-            continue
-        # Points on the boundary of the ball slice (I1) are in E(0) at level 1, so E(0) at
-        # level rho holds rho times the set.
-        w = rng.normal(size=(200, 2))
-        L = np.linalg.cholesky(initial[i][0][:2, :2])
-        e = np.zeros((200, 4))
-        e[:, :2] = (w / np.linalg.norm(w, axis=1, keepdims=True)) @ L.T
-        assert np.einsum("bi,ij,bj->b", e, funnel.P[0], e).max() <= 1 + 1e-6
+        v = corners[i]  # both starts own cells: their corners are in E(0) at level 1
+        assert len(v)
+        np.testing.assert_allclose(initial[i], np.einsum("pi,pj->pij", v, v))
+        assert np.einsum("bi,ij,bj->b", v, funnel.P[0], v).max() <= 1 + 1e-6
     np.testing.assert_array_equal(result.levels, [f.rho for f in result.funnels])
     np.testing.assert_array_equal(result.starts, np.stack([f.P[0] for f in result.funnels]))
     np.testing.assert_array_equal(result.initial_radii, radii)
+
+
+def test_a_start_that_owns_no_cell_asks_for_the_ball_slice(inputs):
+    """A start far outside Init owns none of its cells: its funnel is asked for the constant
+    ball's slice (I1) at its radius instead."""
+    scenario, _, trajectories, P, radii = inputs
+    far = trajectories[0].xs[0] + np.array([50.0, 50.0, 0.0, 0.0])
+    initial = required_sets(scenario, [trajectories[0].xs[0], far], P, radii)
+    assert initial[0].shape[0] > 1  # the near start: its cell's corners
+    np.testing.assert_array_equal(initial[1], initial_sets(scenario, P, radii)[1][None])
 
 
 def test_a_funnel_the_check_rejects_is_dropped(inputs, result, monkeypatch):
@@ -132,7 +133,7 @@ def test_a_reused_funnel_is_not_synthesized_again(inputs, result, monkeypatch):
     monkeypatch.setattr(funnel_stage, "synthesize_funnel", counted)
     done = []
     found = synthesize_funnels(
-        scenario, names, trajectories, P, radii, reuse=[result.funnels[0], None],
+        scenario, names, trajectories, P, radii, reuse=[(result.funnels[0], None), None],
         progress=done.append,
     )  # fmt: skip
     assert len(calls) == 1 and calls[0] is trajectories[1] and sum(done) == 2
@@ -141,9 +142,16 @@ def test_a_reused_funnel_is_not_synthesized_again(inputs, result, monkeypatch):
     assert dataclasses.replace(reused, seconds=result.funnels[0].seconds) == result.funnels[0]
     # a funnel that was not certified is not kept by being reused
     failed = dataclasses.replace(result.funnels[0], success=False, message="(F2) fails")
-    again = synthesize_funnels(scenario, names, trajectories, P, radii, reuse=[failed, None])
+    again = synthesize_funnels(
+        scenario, names, trajectories, P, radii, reuse=[(failed, None), None]
+    )
     assert again.usable == (1,)
     assert "reused funnel was not certified ((F2) fails)" in again.rejected[0]
+    # one dropped earlier stays dropped, for the same reason, without being synthesized again
+    dropped = synthesize_funnels(
+        scenario, names, trajectories, P, radii, reuse=[(result.funnels[0], "(F5) fails"), None]
+    )
+    assert dropped.usable == (1,) and dropped.failure(0) == "(F5) fails" and len(calls) == 3
     with pytest.raises(ValueError, match="1 funnels to reuse for 2 trajectories"):
         synthesize_funnels(scenario, names, trajectories, P, radii, reuse=[None])
 

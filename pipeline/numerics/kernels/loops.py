@@ -45,8 +45,7 @@ def rk4_step(x, u, h, K, Y, out):
     step = (0.0, 0.5 * h, 0.5 * h, h)  # stage r at x + step[r] K[r - 1]
     for r in range(4):
         if r == 0:
-            for i in range(n):  # element loops, not slice copies: see shared.copy_vector
-                Y[0, i] = x[i]
+            copy_vector(x, Y[0])
         else:
             for i in range(n):
                 Y[r, i] = x[i] + step[r] * K[r - 1, i]

@@ -27,6 +27,7 @@ import numpy as np
 from numba import njit
 
 from pipeline.numerics.kernels.shared import (
+    copy_vector,
     metric_norm,
     polygon_query,
     reference_state,
@@ -124,8 +125,7 @@ def rollout_kernel(x0, s, hold, law, t_ref, x_ref, M, rate, slack, position, sce
                 break
             for r in range(4):
                 if r == 0:
-                    for i in range(n):  # element loops, not slice copies: shared.copy_vector
-                        y[i] = x[i]
+                    copy_vector(x, y)
                 else:
                     for i in range(n):
                         y[i] = x[i] + step[r] * K[r - 1, i]

@@ -65,12 +65,13 @@ def funnel_stages(
     inputs: Sequence[np.ndarray],
     trajectories: Sequence[Trajectory],
     stage: str = "funnel",
-    reuse: Sequence[Funnel | None] | None = None,
+    reuse: Sequence[tuple[Funnel, str | None] | None] | None = None,
 ) -> tuple[FunnelStageResult, CoverageResult]:
     """Stages ``stage`` (``funnel`` or ``funnel_k`` in re-optimize round k: one funnel per
-    trajectory, on ``executor``; ``reuse[i]``, when given, is trajectory i's certified funnel
-    from an earlier round around the same nominal) and ``coverage_<stage>`` (Init by the usable
-    funnels' initial ellipsoids ``E_i(0)``, each in its own metric ``P_i[0]``)."""
+    trajectory, on ``executor``; ``reuse[i]``, when given, is trajectory i's funnel from an
+    earlier round around the same nominal, with its verdict then) and ``coverage_<stage>``
+    (Init by the usable funnels' initial ellipsoids ``E_i(0)``, each in its own metric
+    ``P_i[0]``)."""
     scenario, runner, starts = run.scenario, run.runner, run.starts
     names = [d.name for d in scenario.demos]
     with progress_bar(len(trajectories), "funnels", run.quiet) as advance:
@@ -210,7 +211,7 @@ def reoptimize_rounds(
         new_funnels, new_coverage = funnel_stages(
             run, new_inputs, new_trajectories, stage=_round_stage(k),
             reuse=[
-                funnels.funnels[i] if i in funnels.usable and i not in moved else None
+                None if i in moved else (funnels.funnels[i], funnels.failure(i))
                 for i in range(len(inputs))
             ],
         )  # fmt: skip
@@ -284,10 +285,9 @@ def _mixed(
     source = [after if i in kept else before for i in range(len(before.funnels))]
     usable = tuple(i for i, result in enumerate(source) if i in result.usable)
     rejected = tuple(
-        line
+        f"{result.names[i]} dropped: {result.failure(i)}"
         for i, result in enumerate(source)
-        for line in result.rejected
-        if line.startswith(f"{result.names[i]} dropped")
+        if i not in result.usable
     )
     levels = [source[i].funnels[i].rho for i in usable]
     return dataclasses.replace(
