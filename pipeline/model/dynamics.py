@@ -116,6 +116,11 @@ class Dynamics:
         """Vector field: ``x (..., n)``, ``u (..., m)`` -> ``(..., n)``."""
         return self._f(x, u)
 
+    @property
+    def scalar_function(self) -> Callable[..., list]:
+        """``f_scalars`` taking the ``n + m`` scalars as separate arguments."""
+        return self._f_scalars
+
     def f_scalars(self, x: Sequence[np.float64], u: Sequence[np.float64]) -> list:
         """The vector field at one point on scalars: ``n`` and ``m`` np.float64 -> ``n`` values,
         the numbers ``f`` returns for ``x (n,)``, ``u (m,)`` (for RK4 along one trajectory)."""

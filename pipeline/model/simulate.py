@@ -11,6 +11,8 @@ input is discontinuous there) with tight tolerances.
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -57,6 +59,43 @@ def rk4_step(dynamics: Dynamics, x: FloatArray, u: FloatArray, h: float) -> Floa
     return x + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
 
 
+def _rk4_loop_source(n: int) -> str:
+    """Python source of ``loop(F, x, us, h, substeps)``: ``_rk4_one``'s steps written out for
+    ``n`` states, each state a local variable (no lists, no per-entry loops: ~2x faster). Only
+    ``n`` enters the source, never anything of a scenario's."""
+    X = [f"x{i}" for i in range(n)]
+
+    def stage(name: str, step: str | None) -> str:
+        args = X if step is None else [f"x{i} + {step[0]} * {step[1]}{i}" for i in range(n)]
+        return f"{''.join(f'{name}{i}, ' for i in range(n))}= F({', '.join(args)}, *u)"
+
+    update = ", ".join(f"x{i} + sixth * (a{i} + 2.0 * b{i} + 2.0 * c{i} + d{i})" for i in range(n))
+    row = "".join(f"{x}, " for x in X)
+    body = [
+        "def loop(F, x, us, h, substeps):",
+        "    half, sixth = 0.5 * h, h / 6.0",
+        f"    {row}= x",
+        f"    rows = [({row})]",
+        "    for u in us:",
+        "        for _ in range(substeps):",
+        f"            {stage('a', None)}",
+        f"            {stage('b', ('half', 'a'))}",
+        f"            {stage('c', ('half', 'b'))}",
+        f"            {stage('d', ('h', 'c'))}",
+        f"            {row}= {update},",
+        f"            rows.append(({row}))",
+        "    return rows",
+    ]
+    return "\n".join(body) + "\n"
+
+
+@functools.cache
+def _rk4_loop(n: int) -> Callable[..., list]:
+    namespace: dict[str, Callable[..., list]] = {}
+    exec(compile(_rk4_loop_source(n), f"<rk4 loop, n={n}>", "exec"), namespace)
+    return namespace["loop"]
+
+
 def _rk4_one(
     dynamics: Dynamics, x0: FloatArray, us: FloatArray, h: float, substeps: int
 ) -> FloatArray:
@@ -68,21 +107,8 @@ def _rk4_one(
     IEEE double as NumPy's do, and ``Dynamics.f_scalars`` is what ``f`` evaluates at one point:
     the result is bitwise ``rk4_step``'s, without the per-step cost of small arrays.
     """
-    f, half, sixth = dynamics.f_scalars, 0.5 * h, h / 6.0
-    x = list(x0)
-    rows = [x]
-    for u in us:
-        u = list(u)
-        for _ in range(substeps):
-            k1 = f(x, u)
-            k2 = f([a + half * b for a, b in zip(x, k1, strict=True)], u)
-            k3 = f([a + half * b for a, b in zip(x, k2, strict=True)], u)
-            k4 = f([a + h * b for a, b in zip(x, k3, strict=True)], u)
-            x = [
-                a + sixth * (b1 + 2.0 * b2 + 2.0 * b3 + b4)
-                for a, b1, b2, b3, b4 in zip(x, k1, k2, k3, k4, strict=True)
-            ]
-            rows.append(x)
+    loop = _rk4_loop(len(x0))
+    rows = loop(dynamics.scalar_function, list(x0), [list(u) for u in us], h, substeps)
     return np.array(rows, dtype=np.float64)
 
 
