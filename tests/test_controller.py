@@ -109,6 +109,21 @@ def test_the_controller_is_immutable_and_with_gain_builds_a_new_one(tmp_path):
     assert not hasattr(controller, "follow")
 
 
+def test_a_file_loaded_again_is_parsed_again_only_when_its_bytes_changed(tmp_path):
+    path = _write(tmp_path, _document())
+    first = load(path)
+    assert load(path) is first  # same path, same bytes: the same immutable controller
+    document = _document()
+    document["trajectories"][0]["radius"] = 0.75
+    _write(tmp_path, document)  # same path, other bytes
+    edited = load(path)
+    assert edited is not first and edited.trajectories[0].radius == 0.75
+    (tmp_path / "controller.json").write_text("{")
+    for _ in range(2):  # a bad file is refused every time, never served from before
+        with pytest.raises(ControllerFormatError, match="invalid JSON"):
+            load(path)
+
+
 def _mutations():
     def drop(path):
         def apply(d):

@@ -60,7 +60,8 @@ def _runtime_nodes(tree: ast.AST) -> Iterator[ast.AST]:
         pending.extend(ast.iter_child_nodes(node))
 
 
-def _imported(module: str, source: str, is_package: bool) -> set[str]:
+@cache  # each stage's key parses the modules it shares with the others: once per source
+def _imported(module: str, source: str, is_package: bool) -> frozenset[str]:
     """Project modules named by the imports in ``source`` (and their parent packages) that run:
     imports under ``if TYPE_CHECKING:`` only name types for the checker."""
     names: set[str] = set()
@@ -82,7 +83,7 @@ def _imported(module: str, source: str, is_package: bool) -> set[str]:
             prefix = ".".join(parts[:end])
             if module_file(prefix) is not None:
                 found.add(prefix)
-    return found
+    return frozenset(found)
 
 
 @cache
