@@ -1,8 +1,8 @@
 """Executors: identical results on any of them, retries, and failures reported by chunk.
 
-The worker processes are spawned and import this module to find the functions they run: it
-imports only the executor at the top (the stages, ~2 s of imports per worker, only where a test
-needs them).
+The local worker processes are forked from multiprocessing's fork server and import this module
+to find the functions they run: it imports only the executor at the top (the stages, ~2 s of
+imports per process, only where a test needs them).
 """
 
 from __future__ import annotations

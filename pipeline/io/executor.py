@@ -4,8 +4,10 @@
 the order of ``items``) and ``close()``:
 
 - ``None`` / ``"local"``: in this process when ``jobs == 1``, else ``jobs`` local processes
-  (``concurrent.futures``, spawned with BLAS threads pinned to 1; each exits when its parent
-  dies, so a killed run leaves no worker behind);
+  (``concurrent.futures`` with BLAS threads pinned to 1, forked from multiprocessing's fork
+  server, a clean single-threaded process that imported the ``preload`` modules once, so a
+  pool starts without each worker importing the stages again; each worker exits when the
+  run's process dies, so a killed run leaves no worker behind);
 - ``"dask-local"``: a ``dask.distributed`` LocalCluster with ``jobs`` workers;
 - ``"dask://HOST:PORT"``: an existing Dask scheduler (``pip install .[dask]``).
 
@@ -19,10 +21,12 @@ import multiprocessing
 import os
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from typing import Any, Protocol
+
+from threadpoolctl import threadpool_limits
 
 from pipeline.io.errors import UserError
 
@@ -82,34 +86,59 @@ class SerialExecutor:
 PARENT_POLL_SECONDS = 0.5
 
 
-def _exit_with_parent(parent: int) -> None:
-    """Worker initializer: exit as soon as the parent process is gone (e.g. ``kill -9``), so that
-    no orphaned worker keeps computing. A daemon thread polls the parent's pid."""
+def _running(pid: int) -> bool:
+    """Is process ``pid`` running (not gone, not a zombie waiting for its parent)?"""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    try:
+        with open(f"/proc/{pid}/stat") as stat:
+            return stat.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:  # no /proc: kill(pid, 0) is all there is
+        return True
+
+
+def _worker_setup(run: int) -> None:
+    """Worker initializer: single-threaded BLAS (whatever the fork server's environment), and
+    exit as soon as the run's process ``run`` is gone (e.g. ``kill -9``), so that no orphaned
+    worker keeps computing (the fork server, the worker's parent, exits once its workers
+    have). A daemon thread polls it."""
+    threadpool_limits(limits=1)
 
     def watch() -> None:
-        while os.getppid() == parent:
+        while _running(run):
             time.sleep(PARENT_POLL_SECONDS)
         os._exit(1)
 
-    threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
+    threading.Thread(target=watch, name="exit-with-run", daemon=True).start()
 
 
 class ProcessExecutor:
-    """``jobs`` spawned local processes with single-threaded BLAS."""
+    """``jobs`` local processes with single-threaded BLAS, forked from the fork server.
 
-    def __init__(self, jobs: int) -> None:
+    ``preload``: modules the fork server imports when it starts (the first pool of this process
+    starts it; later pools share it), e.g. those of the functions the workers will run."""
+
+    def __init__(self, jobs: int, preload: Iterable[str] = ()) -> None:
         self.jobs = jobs
+        self.preload = tuple(preload)
         self._pool: ProcessPoolExecutor | None = None
 
     def _start(self) -> ProcessPoolExecutor:
         if self._pool is None:
             saved = {name: os.environ.get(name) for name in PINNED_THREADS}
-            os.environ.update(PINNED_THREADS)  # inherited by the spawned workers
+            os.environ.update(PINNED_THREADS)  # inherited by the fork server if it starts now
             try:
+                context = multiprocessing.get_context("forkserver")
+                if self.preload:
+                    context.set_forkserver_preload(["pipeline.io.executor", *self.preload])
                 self._pool = ProcessPoolExecutor(
                     max_workers=self.jobs,
-                    mp_context=multiprocessing.get_context("spawn"),
-                    initializer=_exit_with_parent,
+                    mp_context=context,
+                    initializer=_worker_setup,
                     initargs=(os.getpid(),),
                 )
                 self._pool.submit(int).result()  # start the workers under the pinned env
@@ -205,10 +234,11 @@ class DaskExecutor:
             self._cluster.close()
 
 
-def make_executor(spec: str | None, jobs: int = 1) -> Executor:
-    """An executor from the ``--executor`` text (see the module docstring)."""
+def make_executor(spec: str | None, jobs: int = 1, preload: Iterable[str] = ()) -> Executor:
+    """An executor from the ``--executor`` text (see the module docstring); ``preload``: modules
+    local worker processes should find imported (``ProcessExecutor``)."""
     if spec in (None, "", "local"):
-        return SerialExecutor() if jobs <= 1 else ProcessExecutor(jobs)
+        return SerialExecutor() if jobs <= 1 else ProcessExecutor(jobs, preload)
     if spec == "dask-local":
         return DaskExecutor(None, max(jobs, 1))
     if spec.startswith("dask://"):

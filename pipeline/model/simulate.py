@@ -65,7 +65,7 @@ def _rk4_loop_source(n: int) -> str:
     ``n`` enters the source, never anything of a scenario's."""
     X = [f"x{i}" for i in range(n)]
 
-    def stage(name: str, step: str | None) -> str:
+    def stage(name: str, step: tuple[str, str] | None) -> str:
         args = X if step is None else [f"x{i} + {step[0]} * {step[1]}{i}" for i in range(n)]
         return f"{''.join(f'{name}{i}, ' for i in range(n))}= F({', '.join(args)}, *u)"
 
