@@ -70,6 +70,10 @@ def synthesize(
         force=force,
         feedback_period=feedback_period,
     )
-    from pipeline.runtime.orchestrator import run_synthesis  # heavy: numerics and stages
+    from pipeline.model.scenario import load_scenario
 
-    return run_synthesis(scenario, out=None if out is None else Path(out), options=options)
+    # a mistake in the scenario is reported before the heavy imports (~2 s: numerics, stages)
+    loaded = load_scenario(scenario)
+    from pipeline.runtime.orchestrator import run_synthesis
+
+    return run_synthesis(loaded, out=None if out is None else Path(out), options=options)

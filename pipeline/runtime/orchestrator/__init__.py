@@ -141,9 +141,10 @@ def _radii_and_coverage(
 
 
 def run_synthesis(
-    scenario_name: str | Path, out: Path | None = None, options: RunOptions | None = None
+    scenario_name: Scenario | str | Path, out: Path | None = None, options: RunOptions | None = None
 ) -> Synthesis:
-    """Run every stage on a scenario (the public form is ``pipeline.synthesize``).
+    """Run every stage on a scenario (the public form is ``pipeline.synthesize``): a loaded
+    ``Scenario``, or its name or path.
 
     Bad input (the scenario, the output folder, a folder in use) raises ``UserError`` before any
     work. A run that fails writes ``summary.json`` saying so, renames the previous
@@ -152,7 +153,10 @@ def run_synthesis(
     """
     started = time.perf_counter()
     options = options or RunOptions()
-    scenario = load_scenario(scenario_name)
+    if isinstance(scenario_name, Scenario):
+        scenario = scenario_name
+    else:
+        scenario = load_scenario(scenario_name)
     if not scenario.demos:
         raise ScenarioError(
             "no demonstrations to synthesize from",
