@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.io.executor import Executor, SerialExecutor
+from pipeline.io.executor import Executor, SerialExecutor, preload_in_workers
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario, load_scenario_cached
 from pipeline.model.simulate import Trajectory
@@ -42,6 +42,8 @@ from pipeline.numerics.cells import init_cells
 from pipeline.numerics.funnel import synthesize_funnel
 from pipeline.numerics.funnel_check import Funnel, check_funnel
 from pipeline.numerics.recertify import recheck_funnel
+
+preload_in_workers(__name__)  # its chunks run in worker processes
 
 
 @dataclass(frozen=True, kw_only=True)

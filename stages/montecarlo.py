@@ -34,11 +34,13 @@ from scipy.optimize import minimize
 from scipy.stats import binomtest, qmc
 
 from pipeline.controller import Controller, load
-from pipeline.io.executor import Executor, SerialExecutor
+from pipeline.io.executor import Executor, SerialExecutor, preload_in_workers
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario, load_scenario_cached
 from pipeline.numerics.closed_loop import RunChecks, check_runs
 from pipeline.numerics.rollouts import check_runs_compiled, hold_runs_compiled
+
+preload_in_workers(__name__)  # its chunks run in worker processes
 
 FAILURE_KINDS = ("unsafe", "goal", "clipping", "tube", "non_finite", "uncovered", "after_T")
 HOLD_SECONDS = 10.0

@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.io.executor import Executor, SerialExecutor
+from pipeline.io.executor import Executor, SerialExecutor, preload_in_workers
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario, load_scenario_cached
 from pipeline.numerics.descent import DescentResult, IterationLog
@@ -51,6 +51,8 @@ from pipeline.numerics.penalties import MarginError
 from pipeline.numerics.problem import Problem, make_problem
 from pipeline.numerics.settings import DESCENT_METHODS, EPS_D, EPS_G, EPS_I, HORIZON_SEARCHES
 from pipeline.numerics.verify import Verification
+
+preload_in_workers(__name__)  # its chunks run in worker processes
 
 METHODS = DESCENT_METHODS
 SEARCHES = HORIZON_SEARCHES

@@ -5,9 +5,10 @@ the order of ``items``) and ``close()``:
 
 - ``None`` / ``"local"``: in this process when ``jobs == 1``, else ``jobs`` local processes
   (``concurrent.futures`` with BLAS threads pinned to 1, forked from multiprocessing's fork
-  server, a clean single-threaded process that imported the ``preload`` modules once, so a
-  pool starts without each worker importing the stages again; each worker exits when the
-  run's process dies, so a killed run leaves no worker behind);
+  server, a clean single-threaded process that imported the modules registered with
+  ``preload_in_workers`` once, so a pool starts without each worker importing the stages
+  again; each worker exits when the run's process dies, so a killed run leaves no worker
+  behind);
 - ``"dask-local"``: a ``dask.distributed`` LocalCluster with ``jobs`` workers;
 - ``"dask://HOST:PORT"``: an existing Dask scheduler (``pip install .[dask]``).
 
@@ -21,7 +22,7 @@ import multiprocessing
 import os
 import threading
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from typing import Any, Protocol
@@ -116,15 +117,22 @@ def _worker_setup(run: int) -> None:
     threading.Thread(target=watch, name="exit-with-run", daemon=True).start()
 
 
+_PRELOAD: set[str] = {__name__}  # modules the fork server imports when it starts
+
+
+def preload_in_workers(module: str) -> None:
+    """Have the fork server import ``module`` (one whose functions run in worker processes), so
+    that its workers start with it imported. The first pool of a process starts the server:
+    modules registered later are imported by each worker that needs them (as without)."""
+    _PRELOAD.add(module)
+
+
 class ProcessExecutor:
-    """``jobs`` local processes with single-threaded BLAS, forked from the fork server.
+    """``jobs`` local processes with single-threaded BLAS, forked from the fork server (which
+    imported the ``preload_in_workers`` modules when this process's first pool started it)."""
 
-    ``preload``: modules the fork server imports when it starts (the first pool of this process
-    starts it; later pools share it), e.g. those of the functions the workers will run."""
-
-    def __init__(self, jobs: int, preload: Iterable[str] = ()) -> None:
+    def __init__(self, jobs: int) -> None:
         self.jobs = jobs
-        self.preload = tuple(preload)
         self._pool: ProcessPoolExecutor | None = None
 
     def _start(self) -> ProcessPoolExecutor:
@@ -133,8 +141,7 @@ class ProcessExecutor:
             os.environ.update(PINNED_THREADS)  # inherited by the fork server if it starts now
             try:
                 context = multiprocessing.get_context("forkserver")
-                if self.preload:
-                    context.set_forkserver_preload(["pipeline.io.executor", *self.preload])
+                context.set_forkserver_preload(sorted(_PRELOAD))
                 self._pool = ProcessPoolExecutor(
                     max_workers=self.jobs,
                     mp_context=context,
@@ -234,11 +241,10 @@ class DaskExecutor:
             self._cluster.close()
 
 
-def make_executor(spec: str | None, jobs: int = 1, preload: Iterable[str] = ()) -> Executor:
-    """An executor from the ``--executor`` text (see the module docstring); ``preload``: modules
-    local worker processes should find imported (``ProcessExecutor``)."""
+def make_executor(spec: str | None, jobs: int = 1) -> Executor:
+    """An executor from the ``--executor`` text (see the module docstring)."""
     if spec in (None, "", "local"):
-        return SerialExecutor() if jobs <= 1 else ProcessExecutor(jobs, preload)
+        return SerialExecutor() if jobs <= 1 else ProcessExecutor(jobs)
     if spec == "dask-local":
         return DaskExecutor(None, max(jobs, 1))
     if spec.startswith("dask://"):

@@ -105,8 +105,6 @@ REPORT_STAGES = (  # the controller's result is the file itself, keyed by its ha
     "montecarlo",
 )
 FUNNEL_STAGES = ("funnel", "coverage_funnel")  # with the funnel certificate
-# the stages whose chunks local worker processes run: imported once, by the fork server
-WORKER_MODULES = ("stages.optimize", "stages.funnel", "stages.montecarlo")
 
 
 def _radii_and_coverage(
@@ -176,7 +174,7 @@ def run_synthesis(
         for folder in (out, out / "artifacts"):
             remove_temporaries(folder)  # left by killed writers; none can be active now
         runner = StageRunner(out, force=options.force)
-        executor = make_executor(options.executor, options.jobs, preload=WORKER_MODULES)
+        executor = make_executor(options.executor, options.jobs)
         try:
             return _synthesize(scenario, out, options, executor, runner, started)
         except (UserError, KeyboardInterrupt):
