@@ -13,10 +13,11 @@ from functools import cache
 
 import numpy as np
 import pytest
+import sympy
 
 from pipeline import ScenarioError, available_scenarios, load_scenario
 from pipeline.model.dynamics import Dynamics
-from pipeline.model.simulate import rk4_step, simulate, simulate_reference
+from pipeline.model.simulate import _rk4_loop, rk4_step, simulate, simulate_reference
 from tests.test_dynamics import batch_code, every_function_dynamics
 
 
@@ -182,6 +183,29 @@ def test_one_trajectory_is_bitwise_rk4_step_on_arrays(name: str) -> None:
             ).max()
             np.testing.assert_array_equal(trajectory.xs, expected[::s])
             assert np.ptp(expected, axis=0).max() > 0.1  # the flight moves
+
+
+@pytest.mark.parametrize(
+    ("expression", "x0"),
+    [("1 / x", 0.0), ("x ** 0.5", -1.0), ("x ** 3", 1e120)],
+    ids=["division by zero", "complex power", "overflow"],
+)
+def test_where_python_floats_raise_the_trajectory_is_numpys(expression: str, x0: float) -> None:
+    """One trajectory runs on Python floats, which raise (or turn complex) where NumPy's scalars
+    give inf or nan: there it is run again on np.float64, so it still equals the array RK4."""
+    from pipeline.model.expressions import parse_expression
+
+    x, u = sympy.symbols("x u")
+    f = parse_expression(expression, {"x": x, "u": u}) + u
+    D = Dynamics.from_expressions([x], [u], [f])
+    us = np.zeros((3, 1))
+    with pytest.raises((ArithmeticError, TypeError)):  # what the fallback catches
+        np.array(_rk4_loop(1)(D.float_function, [x0], us.tolist(), 0.05, 2), dtype=np.float64)
+    with np.errstate(all="ignore"):
+        trajectory = simulate(D, np.array([x0]), us, 0.1, substeps=2)
+        expected = array_rk4(D, np.array([x0]), us, 0.1, 2)
+    assert not np.all(np.isfinite(expected))  # the case is what it says
+    np.testing.assert_array_equal(trajectory.dense_xs, expected)
 
 
 def test_one_trajectory_edge_shapes() -> None:

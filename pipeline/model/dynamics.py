@@ -24,6 +24,27 @@ def _compiled(entries: Sequence[sympy.Expr], args: Sequence[sympy.Symbol]) -> Ca
     return sympy.lambdify(list(args), list(entries), modules="numpy", cse=True)
 
 
+# NumPy's functions that lambdify prints for the scenario language's (pipeline.model.expressions)
+FLOAT_FUNCTIONS = ("sin", "cos", "tan", "exp", "log", "sqrt", "tanh", "arctan", "arctan2", "abs")
+
+
+def _returning_float(function: Callable[..., object]) -> Callable[..., float]:
+    def call(*args: float) -> float:
+        return float(function(*args))  # type: ignore[arg-type]
+
+    return call
+
+
+def _compiled_on_floats(
+    entries: Sequence[sympy.Expr], args: Sequence[sympy.Symbol]
+) -> Callable[..., list]:
+    """``_compiled`` for Python floats: the same NumPy functions, their results as Python floats,
+    so that the arithmetic between them runs on floats (the same IEEE operations as on
+    np.float64, about twice as fast; but an error where NumPy's scalars give inf or nan)."""
+    on_floats = {name: _returning_float(getattr(np, name)) for name in FLOAT_FUNCTIONS}
+    return sympy.lambdify(list(args), list(entries), modules=[on_floats, "numpy"], cse=True)
+
+
 def _vectorised(
     compiled: Callable[..., list], count: int
 ) -> Callable[[FloatArray, FloatArray], FloatArray]:
@@ -70,6 +91,7 @@ class Dynamics:
     _f_x: Callable[[FloatArray, FloatArray], FloatArray] = field(repr=False)
     _f_u: Callable[[FloatArray, FloatArray], FloatArray] = field(repr=False)
     _f_scalars: Callable[..., list] = field(repr=False)
+    _f_floats: Callable[..., list] = field(repr=False)
 
     @classmethod
     def from_expressions(
@@ -102,6 +124,7 @@ class Dynamics:
             _f_x=_vectorised(_compiled(list(jac_x), args), n * n),
             _f_u=_vectorised(_compiled(list(jac_u), args), n * m),
             _f_scalars=f_scalars,
+            _f_floats=_compiled_on_floats(list(f), args),
         )
 
     @property
@@ -120,6 +143,13 @@ class Dynamics:
     def scalar_function(self) -> Callable[..., list]:
         """``f_scalars`` taking the ``n + m`` scalars as separate arguments."""
         return self._f_scalars
+
+    @property
+    def float_function(self) -> Callable[..., list]:
+        """``scalar_function`` on Python floats: the same values, bit for bit, where no
+        operation overflows, divides by zero or leaves the reals (there Python raises or turns
+        complex, where NumPy's scalars give inf or nan)."""
+        return self._f_floats
 
     def f_scalars(self, x: Sequence[np.float64], u: Sequence[np.float64]) -> list:
         """The vector field at one point on scalars: ``n`` and ``m`` np.float64 -> ``n`` values,

@@ -104,12 +104,20 @@ def _rk4_one(
 
     Each entry goes through the operations ``rk4_step`` applies to it elementwise, in its order
     (``x + (0.5 h) k1``, ..., ``x + (h/6) (((k1 + 2 k2) + 2 k3) + k4)``), each rounded once in
-    IEEE double as NumPy's do, and ``Dynamics.f_scalars`` is what ``f`` evaluates at one point:
-    the result is bitwise ``rk4_step``'s, without the per-step cost of small arrays.
+    IEEE double as NumPy's do, and ``Dynamics.f_scalars`` is what ``f`` evaluates at one point
+    (``float_function`` the same on Python floats, with NumPy's functions): the result is
+    bitwise ``rk4_step``'s, without the per-step cost of small arrays.
     """
     loop = _rk4_loop(len(x0))
-    rows = loop(dynamics.scalar_function, list(x0), [list(u) for u in us], h, substeps)
-    return np.array(rows, dtype=np.float64)
+    try:  # Python floats: the same IEEE operations as np.float64's, ~1.5-2x faster
+        return np.array(
+            loop(dynamics.float_function, x0.tolist(), us.tolist(), h, substeps), dtype=np.float64
+        )
+    except (ArithmeticError, TypeError, ValueError):
+        # an overflow, a division by zero or a complex power: where Python raises, NumPy's
+        # scalars give inf or nan, so the whole trajectory again on np.float64
+        rows = loop(dynamics.scalar_function, list(x0), [list(u) for u in us], h, substeps)
+        return np.array(rows, dtype=np.float64)
 
 
 def simulate(
