@@ -74,6 +74,28 @@ class BeyondHorizonError(ValueError):
     """The law was asked for ``t > T`` and the file has no certified terminal controller."""
 
 
+def _named(index: np.ndarray, count: int) -> np.ndarray:
+    """The trajectories ``index (...)`` names, sorted; an ``IndexError`` if one is not in
+    ``0 .. count - 1``."""
+    named = np.unique(index)
+    if len(named) and (named[0] < 0 or named[-1] >= count):
+        bad = named[-1] if named[-1] >= count else named[0]
+        raise IndexError(f"trajectory index {bad} out of range: the file has {count} (0..)")
+    return named
+
+
+def _groups(index: np.ndarray, count: int) -> list[tuple[int, np.ndarray | slice]]:
+    """``(i, rows)`` for each trajectory ``i`` that ``index (...)`` names (``0 <= i < count``),
+    ``rows`` selecting its entries (all at once when they name one trajectory, as in a batch
+    flown around one)."""
+    named = _named(index, count)
+    if len(named) == 0:
+        return []
+    if len(named) == 1:
+        return [(int(named[0]), slice(None))]
+    return [(int(i), index == i) for i in named]
+
+
 def _frozen(array: np.ndarray) -> np.ndarray:
     array = np.array(array, dtype=np.float64)
     array.flags.writeable = False
@@ -226,10 +248,8 @@ class Controller:
         """``value(trajectory) (*shape)`` of trajectories ``index (...)`` -> ``(..., *shape)``."""
         index = np.asarray(index)
         out = np.empty((*index.shape, *shape))
-        for i, tr in enumerate(self.trajectories):
-            rows = index == i
-            if np.any(rows):
-                out[rows] = value(tr)
+        for i, rows in _groups(index, len(self.trajectories)):
+            out[rows] = value(self.trajectories[i])
         return out
 
     def select(self, x0: np.ndarray, *, strict: bool = False) -> tuple[np.ndarray, np.ndarray]:
@@ -259,10 +279,8 @@ class Controller:
         index = np.asarray(index)
         u = np.empty((*index.shape, self.m))
         x = np.empty((*index.shape, self.n))
-        for i, tr in enumerate(self.trajectories):
-            rows = index == i
-            if not np.any(rows):
-                continue
+        for i, rows in _groups(index, len(self.trajectories)):
+            tr = self.trajectories[i]
             k = min(int(np.floor(t / self.Ts + 1e-9)), len(tr.u_ref) - 1)
             u[rows] = tr.u_ref[max(k, 0)]
             x[rows] = [np.interp(t, tr.t, tr.x_ref[:, j]) for j in range(self.n)]
@@ -281,7 +299,9 @@ class Controller:
 
     def horizons(self, index: np.ndarray) -> np.ndarray:
         """``T_i`` (s) of trajectories ``index (...)`` -> ``(...)``."""
-        return np.array([tr.T for tr in self.trajectories])[np.asarray(index)]
+        index = np.asarray(index)
+        _named(index, len(self.trajectories))  # refuses an index out of range
+        return np.array([tr.T for tr in self.trajectories])[index]
 
     def __call__(self, t: float, x: np.ndarray, index: np.ndarray) -> np.ndarray:
         """The control input at time ``t`` for states ``x (..., n)`` following trajectories

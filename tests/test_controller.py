@@ -94,6 +94,22 @@ def test_control_law_interpolates_and_clips(tmp_path):
     np.testing.assert_allclose(controller(0.25, far, index), [[-1.0]])
 
 
+def test_a_mixed_batch_is_each_row_alone_and_a_bad_index_is_refused(tmp_path):
+    controller = load(_write(tmp_path, _document()))
+    x = np.array([[0.25, 0.5], [3.1, 0.0], [2.0, 0.1], [0.5, -0.2]])
+    index = np.array([0, 1, 0, 1])
+    batch = controller(0.25, x, index)
+    for row, i in enumerate(index):
+        np.testing.assert_array_equal(batch[row], controller(0.25, x[row], np.array(i)))
+    np.testing.assert_array_equal(
+        controller(0.25, x, np.ones(4, dtype=int)),
+        [controller(0.25, row, np.array(1)) for row in x],
+    )
+    for bad in (2, -1):
+        with pytest.raises(IndexError, match=f"trajectory index {bad} out of range"):
+            controller(0.25, x, np.array([0, bad, 0, 1]))
+
+
 def test_the_controller_is_immutable_and_with_gain_builds_a_new_one(tmp_path):
     controller = load(_write(tmp_path, _document()))
     with pytest.raises(dataclasses.FrozenInstanceError):
