@@ -9,6 +9,7 @@ coverage needs. Every case ends in exit 2 with one line, or in a finished run.
 from __future__ import annotations
 
 import contextlib
+import re
 import shutil
 import signal
 import subprocess
@@ -288,3 +289,40 @@ def test_abs_in_the_dynamics_is_certified(
     assert result.returncode == 0 and "certified and validated" in result.stdout, result.stdout
     summary = (out / "summary.json").read_text()
     assert "hull vertices" in summary
+
+
+@pytest.mark.skipif(safe_yaml._LIBYAML is None, reason="PyYAML without libyaml")
+@pytest.mark.parametrize("name", ["quadrotor_hill", "unicycle_slalom", "double_integrator"])
+def test_libyaml_composes_what_the_reference_loader_does(name: str, tmp_path: Path) -> None:
+    """The fast path (libyaml composes, the same constructor builds) gives the reference
+    loader's data, also with anchors and aliases; its alias count is the reference's."""
+    text = load_scenario(name, check_demos=False).path.read_text()
+    text += "\nx_anchor: &a {p: [1, 2.5, null, yes]}\nx_uses: [*a, *a, {q: *a}]\n"
+    reference = safe_yaml._ScenarioLoader(text)
+    expected = reference.get_data()
+    fast = safe_yaml._compose_with_libyaml(text)
+    assert fast is not None
+    node, loader = fast
+    assert loader.construct_document(node) == expected
+    assert safe_yaml._aliases(node) == reference.aliases == 3
+    path = tmp_path / "scenario.yaml"
+    path.write_text(text)
+    assert safe_yaml.load_yaml(path) == expected
+
+
+@pytest.mark.skipif(safe_yaml._LIBYAML is None, reason="PyYAML without libyaml")
+def test_what_libyaml_refuses_the_reference_loader_reports(tmp_path: Path) -> None:
+    """A syntax error, too many aliases, nesting past libyaml's limit: the fast path steps
+    aside and the message is the reference loader's (PyYAML's words and place)."""
+    many = "a: &a 1\nb: [" + ", ".join(["*a"] * (safe_yaml.MAX_ALIASES + 1)) + "]\n"
+    cases = {
+        "a: [1, 2\nb: 3\n": "line 2, column 2: expected ',' or ']', but got ':'",
+        many: f"more than {safe_yaml.MAX_ALIASES} aliases",
+        "a: " + "[" * 2000 + "]" * 2000 + "\n": "nested too deeply",
+    }
+    for text, message in cases.items():
+        assert safe_yaml._compose_with_libyaml(text) is None
+        path = tmp_path / "scenario.yaml"
+        path.write_text(text)
+        with pytest.raises(ScenarioError, match=re.escape(message)):
+            safe_yaml.load_yaml(path)
