@@ -39,6 +39,7 @@ if TYPE_CHECKING:
 
 DEFAULT_PENALTY_POINTS = 3  # 4 RK4 substeps per interval (pipeline.model.simulate.DEFAULT_SUBSTEPS)
 METHODS = ("sensitivity", "adjoint")
+_NO_REFERENCE = np.empty((0, 0))  # the reference states of the open loop: never read
 BACKENDS = ("numba", "numpy")
 
 
@@ -153,7 +154,13 @@ class Problem:
                 return np.inf
             return self.constraints.evaluate(dense, u, self.substeps).cost
         kernels, data, _ = self._compiled
-        return float(kernels.cost_kernel(self.x0, u, self.Ts / self.substeps, self.substeps, data))
+        no_gain = np.zeros((u.shape[1], self.x0.size))  # the open loop
+        h, q = self.Ts / self.substeps, np.empty_like(u)
+        return float(
+            kernels.adjoint_kernel(
+                self.x0, u, _NO_REFERENCE, no_gain, False, h, self.substeps, data, u, q, False
+            )
+        )
 
     def cost_and_gradient(self, u: FloatArray, method: str = "adjoint") -> tuple[float, FloatArray]:
         """``J(u)`` and ``q = dJ/du`` (N, m).
@@ -177,9 +184,8 @@ class Problem:
         q = np.empty_like(u)
         if method == "adjoint":
             no_gain = np.zeros((u.shape[1], self.x0.size))  # the open loop
-            no_reference = np.empty((0, self.x0.size))
             J = kernels.adjoint_kernel(
-                self.x0, u, no_reference, no_gain, False, h, self.substeps, data, u, q
+                self.x0, u, _NO_REFERENCE, no_gain, False, h, self.substeps, data, u, q, True
             )
         else:
             J = kernels.sensitivity_kernel(

@@ -52,23 +52,23 @@ class StabilisedProblem:
     def input_upper(self) -> FloatArray:
         return self.problem.input_upper
 
-    def _run(self, v: FloatArray) -> tuple[float, FloatArray, FloatArray]:
+    def _run(self, v: FloatArray, sweep: bool = True) -> tuple[float, FloatArray, FloatArray]:
         problem = self.problem
         v = problem._input(v)
         kernels, data, _ = problem._compiled
         u, q = np.empty_like(v), np.empty_like(v)
         h = problem.Ts / problem.substeps
         J = kernels.adjoint_kernel(
-            problem.x0, v, self.reference, self.gain, True, h, problem.substeps, data, u, q
+            problem.x0, v, self.reference, self.gain, True, h, problem.substeps, data, u, q, sweep
         )
         return float(J), q, u
 
     def inputs(self, v: FloatArray) -> FloatArray:
         """The nominal held input ``u (N, m)`` that ``v (N, m)`` produces."""
-        return self._run(v)[2]
+        return self._run(v, sweep=False)[2]
 
     def cost(self, v: FloatArray) -> float:
-        return self._run(v)[0]
+        return self._run(v, sweep=False)[0]
 
     def cost_and_gradient(self, v: FloatArray, method: str = "adjoint") -> tuple[float, FloatArray]:
         """``J(u(v))`` and ``dJ/dv (N, m)``; only the adjoint method exists here."""

@@ -66,33 +66,6 @@ def simulate_kernel(x0, U, h, s, X):
 
 
 @njit(cache=True)
-def cost_kernel(x0, U, h, s, P):
-    """``J(u)``; ``+inf`` as soon as a grid state is inside Unsafe or not finite."""
-    n = x0.size
-    N = U.shape[0]
-    w = 1.0 / s
-    K = np.empty((4, n))
-    Y = np.empty((4, n))
-    gx = np.empty(n)
-    gu = np.empty(U.shape[1])
-    J = 0.0
-    for k in range(N):
-        J += input_penalty(U[k], gu, P, k)
-    x = x0.copy()
-    x_next = np.empty(n)
-    J += state_penalty(x, w, gx, P, 0)
-    for i in range(N * s):
-        rk4_step(x, U[i // s], h, K, Y, x_next)
-        x, x_next = x_next, x
-        if not all_finite(x):
-            return np.inf
-        J += state_penalty(x, w, gx, P, i + 1)
-        if J == np.inf:
-            return J
-    return J + final_penalty(x, gx, P)
-
-
-@njit(cache=True)
 def forward_kernel(x0, U, h, s, P, X, Y, J_x, J_u):
     """Forward pass for the adjoint: grid ``X``, stages ``Y (N s, 4, n)``, partials ``J_x``,
     ``J_u``. Returns J (``nan`` if a state is not finite)."""
@@ -176,9 +149,11 @@ def feedback_inputs(x0, V, Z, G, h, s, U):
 
 
 @njit(cache=True)
-def adjoint_kernel(x0, V, Z, G, feedback, h, s, P, U, q):
+def adjoint_kernel(x0, V, Z, G, feedback, h, s, P, U, q, sweep):
     """``J(U)`` and ``q = dJ/dV`` into ``q (N, m)`` by one forward pass and one backward sweep
-    (one kernel for both cases: numba compiles it once per scenario, not twice).
+    (one kernel for both cases: numba compiles it once per scenario, not twice). Without
+    ``sweep``, ``J`` alone (``q`` then holds the input penalties' partials): the cost, with no
+    kernel of its own to compile.
 
     With ``feedback``, ``U (N, m)`` receives the inputs of the sampled feedback
     ``U[k] = V[k] + G (x(k Ts) - Z[k])`` (``Z (N, n)``, ``G (m, n)``); without, the open loop:
@@ -200,7 +175,8 @@ def adjoint_kernel(x0, V, Z, G, feedback, h, s, P, U, q):
     if math.isnan(J):
         q[:] = np.nan
         return np.inf
-    adjoint_sweep(U, h, s, Y, J_x, q, G)
+    if sweep:
+        adjoint_sweep(U, h, s, Y, J_x, q, G)
     return J
 
 
