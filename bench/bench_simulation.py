@@ -7,6 +7,9 @@
     (``x0 (1, n)``: ``rk4_step`` on arrays, ``f`` through ``np.moveaxis``, the path every
     one-trajectory call took before), and whether their states are bitwise equal.
 (d) ``Dynamics.f`` at one point ``x (n,)`` against the same point as a batch ``(1, n)``.
+(e) The scalar RK4 of (c) on Python floats (``Dynamics.float_function``, what ``simulate`` runs)
+    against the same steps on np.float64 scalars (its fallback), and whether they are bitwise
+    equal.
 """
 
 from __future__ import annotations
@@ -15,7 +18,7 @@ import numpy as np
 
 from bench.timing import best_time
 from pipeline.model.scenario import load_scenario
-from pipeline.model.simulate import DEFAULT_SUBSTEPS, simulate, simulate_reference
+from pipeline.model.simulate import DEFAULT_SUBSTEPS, _rk4_loop, simulate, simulate_reference
 
 BATCH = 10_000
 ONE_AT_A_TIME = 100
@@ -53,6 +56,17 @@ def run() -> None:
     equal = np.array_equal(
         simulate(D, x0, us, Ts).dense_xs, simulate(D, x0[None], us[None], Ts).dense_xs[0]
     )
+    loop, h = _rk4_loop(scenario.n), Ts / DEFAULT_SUBSTEPS
+
+    def on_floats() -> list:
+        return loop(D.float_function, x0.tolist(), us.tolist(), h, DEFAULT_SUBSTEPS)
+
+    def on_numpy_scalars() -> list:
+        return loop(D.scalar_function, list(x0), [list(u) for u in us], h, DEFAULT_SUBSTEPS)
+
+    floats = best_time(on_floats, repeat=5)
+    numpy_scalars = best_time(on_numpy_scalars, repeat=5)
+    floats_equal = np.array_equal(np.array(on_floats()), np.array(on_numpy_scalars()))
     point, inputs = x0, us[0]
     f_point = best_time(lambda: D.f(point, inputs), repeat=5, number=2000)
     f_batch = best_time(lambda: D.f(point[None], inputs[None]), repeat=5, number=2000)
@@ -72,6 +86,7 @@ def run() -> None:
         ),
         ("(c) one flight", "x0 (n,): scalars", one, "x0 (1, n): arrays, moveaxis", batch_of_one),
         ("(d) f at one point", "x (n,)", f_point, "x (1, n)", f_batch),
+        ("(e) one flight", "Python floats", floats, "np.float64 scalars", numpy_scalars),
     ]
     print(
         f"{'measurement':<22} {'fast path':<16} {'time':>10}   {'slow path':<29} "
@@ -83,6 +98,7 @@ def run() -> None:
             f"{_duration(slow):>10}   {slow / fast:>7.1f}x"
         )
     print(f"(c) states bitwise equal: {'yes' if equal else 'NO'}")
+    print(f"(e) states bitwise equal: {'yes' if floats_equal else 'NO'}")
 
 
 def _duration(seconds: float) -> str:
