@@ -187,8 +187,13 @@ def test_one_trajectory_is_bitwise_rk4_step_on_arrays(name: str) -> None:
 
 @pytest.mark.parametrize(
     ("expression", "x0"),
-    [("1 / x", 0.0), ("x ** 0.5", -1.0), ("x ** 3", 1e120)],
-    ids=["division by zero", "complex power", "overflow"],
+    [
+        ("1 / x", 0.0),
+        ("x ** 0.5", -1.0),
+        ("x ** 3", 1e120),
+        ("sin(x ** 1.5)", -1.0),
+    ],
+    ids=["division by zero", "complex power", "overflow", "sin of a complex power"],
 )
 def test_where_python_floats_raise_the_trajectory_is_numpys(expression: str, x0: float) -> None:
     """One trajectory runs on Python floats, which raise (or turn complex) where NumPy's scalars
@@ -219,3 +224,25 @@ def test_one_trajectory_edge_shapes() -> None:
     np.testing.assert_array_equal(
         listed.dense_xs, simulate(scenario.dynamics, X0, us, scenario.Ts).dense_xs
     )
+
+
+def test_every_function_of_the_scenario_language_returns_a_float_on_the_float_path() -> None:
+    """Each function a scenario may use is printed as a NumPy name that the float path wraps (an
+    unwrapped one would still be exact, on np.float64, but slower)."""
+    from pipeline.model.dynamics import FLOAT_FUNCTIONS, _returning_float
+    from pipeline.model.expressions import ALLOWED_FUNCTIONS, ARITY
+
+    x, y, u = sympy.symbols("x y u", real=True)
+    for name, function in ALLOWED_FUNCTIONS.items():
+        expression = function(x, y) if ARITY[name] == 2 else function(x)
+        D = Dynamics.from_expressions([x, y], [u], [expression, y + u])
+        value = D.float_function(0.3, 0.7, 0.0)[0]
+        assert type(value) is float, (name, type(value))
+        printed = sympy.printing.numpy.NumPyPrinter().doprint(expression).split("(")[0]
+        assert printed.rsplit(".", 1)[-1] in FLOAT_FUNCTIONS, (name, printed)
+    # a complex argument (a negative base's fractional power) is refused, not made real again
+    # (abs would give its magnitude, float() of sin's result its real part)
+    for name in FLOAT_FUNCTIONS:
+        arguments = (-1.0) ** 1.5, *([1.0] if name == "arctan2" else [])
+        with pytest.raises(TypeError, match="complex"):
+            _returning_float(getattr(np, name))(*arguments)

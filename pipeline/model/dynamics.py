@@ -30,6 +30,11 @@ FLOAT_FUNCTIONS = ("sin", "cos", "tan", "exp", "log", "sqrt", "tanh", "arctan", 
 
 def _returning_float(function: Callable[..., object]) -> Callable[..., float]:
     def call(*args: float) -> float:
+        if any(isinstance(arg, complex) for arg in args):
+            # a negative base's fractional power left the reals (NumPy: nan); abs or float()
+            # of the function's result would make it real again: refuse, so the caller falls
+            # back to np.float64
+            raise TypeError("complex argument on the float path")
         return float(function(*args))  # type: ignore[arg-type]
 
     return call
@@ -147,13 +152,15 @@ class Dynamics:
     @property
     def float_function(self) -> Callable[..., list]:
         """``scalar_function`` on Python floats: the same values, bit for bit, where no
-        operation overflows, divides by zero or leaves the reals (there Python raises or turns
-        complex, where NumPy's scalars give inf or nan)."""
+        operation overflows, divides by zero or leaves the reals; there Python raises (or turns
+        complex, which the wrapped functions refuse and the caller's float conversion rejects)
+        where NumPy's scalars give inf or nan."""
         return self._f_floats
 
     def f_scalars(self, x: Sequence[np.float64], u: Sequence[np.float64]) -> list:
         """The vector field at one point on scalars: ``n`` and ``m`` np.float64 -> ``n`` values,
-        the numbers ``f`` returns for ``x (n,)``, ``u (m,)`` (for RK4 along one trajectory)."""
+        the numbers ``f`` returns for ``x (n,)``, ``u (m,)`` (RK4 along one trajectory runs it
+        where ``float_function`` cannot)."""
         return self._f_scalars(*x, *u)
 
     def f_x(self, x: FloatArray, u: FloatArray) -> FloatArray:

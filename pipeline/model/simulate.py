@@ -104,9 +104,11 @@ def _rk4_one(
 
     Each entry goes through the operations ``rk4_step`` applies to it elementwise, in its order
     (``x + (0.5 h) k1``, ..., ``x + (h/6) (((k1 + 2 k2) + 2 k3) + k4)``), each rounded once in
-    IEEE double as NumPy's do, and ``Dynamics.f_scalars`` is what ``f`` evaluates at one point
-    (``float_function`` the same on Python floats, with NumPy's functions): the result is
-    bitwise ``rk4_step``'s, without the per-step cost of small arrays.
+    IEEE double as NumPy's do, and ``Dynamics.float_function`` (NumPy's functions, the
+    arithmetic on Python floats) is what ``f`` evaluates at one point: the result is bitwise
+    ``rk4_step``'s, without the per-step cost of small arrays. Where Python floats raise (or
+    leave the reals), the steps run again on np.float64 (``scalar_function``), which give inf
+    or nan as NumPy does.
     """
     loop = _rk4_loop(len(x0))
     try:  # Python floats: the same IEEE operations as np.float64's, ~1.5-2x faster
