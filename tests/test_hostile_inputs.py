@@ -312,13 +312,15 @@ def test_libyaml_composes_what_the_reference_loader_does(name: str, tmp_path: Pa
 
 @pytest.mark.skipif(safe_yaml._LIBYAML is None, reason="PyYAML without libyaml")
 def test_what_libyaml_refuses_the_reference_loader_reports(tmp_path: Path) -> None:
-    """A syntax error, too many aliases, nesting past libyaml's limit: the fast path steps
-    aside and the message is the reference loader's (PyYAML's words and place)."""
+    """A syntax error, too many aliases, nesting past libyaml's limit, a tab (which libyaml
+    would accept): the fast path steps aside and the message is the reference loader's
+    (PyYAML's words and place)."""
     many = "a: &a 1\nb: [" + ", ".join(["*a"] * (safe_yaml.MAX_ALIASES + 1)) + "]\n"
     cases = {
         "a: [1, 2\nb: 3\n": "line 2, column 2: expected ',' or ']', but got ':'",
         many: f"more than {safe_yaml.MAX_ALIASES} aliases",
         "a: " + "[" * 2000 + "]" * 2000 + "\n": "nested too deeply",
+        "a:\t1\n": "line 1, column 3: found character '\\t' that cannot start any token",
     }
     for text, message in cases.items():
         assert safe_yaml._compose_with_libyaml(text) is None

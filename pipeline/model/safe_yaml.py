@@ -60,15 +60,18 @@ class _ScenarioLoader(_UniqueKeys, yaml.SafeLoader):
 
 
 _LIBYAML = getattr(yaml, "CSafeLoader", None)  # PyYAML built with libyaml (the wheels are)
+# libyaml's parser, the same constructor with the duplicate-key check
+_FAST_LOADER: Any = None if _LIBYAML is None else type("_FastLoader", (_UniqueKeys, _LIBYAML), {})
 
 
 def _compose_with_libyaml(text: str) -> tuple[yaml.Node | None, Any] | None:
     """``(node, loader)`` composed by libyaml (~10x faster than the pure-Python composer), or
-    None where the reference loader must decide: no libyaml, a document libyaml refuses, or
-    more than ``MAX_ALIASES`` aliases (counted as the extra references to anchored nodes)."""
-    if _LIBYAML is None:
+    None where the reference loader must decide: no libyaml, a tab anywhere (libyaml accepts
+    tabs where PyYAML refuses them), a document libyaml refuses, or more than ``MAX_ALIASES``
+    aliases (counted as the extra references to anchored nodes)."""
+    if _FAST_LOADER is None or "\t" in text:
         return None
-    loader = type("_FastLoader", (_UniqueKeys, _LIBYAML), {})(text)
+    loader = _FAST_LOADER(text)
     try:
         node = loader.get_single_node()
     except (yaml.YAMLError, RecursionError):
