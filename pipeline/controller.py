@@ -77,6 +77,8 @@ class BeyondHorizonError(ValueError):
 def _named(index: np.ndarray, count: int) -> np.ndarray:
     """The trajectories ``index (...)`` names, sorted; an ``IndexError`` if one is not in
     ``0 .. count - 1``."""
+    if index.size and not np.issubdtype(index.dtype, np.integer):
+        raise IndexError(f"trajectory indices must be integers, found dtype {index.dtype}")
     named = np.unique(index)
     if len(named) and (named[0] < 0 or named[-1] >= count):
         bad = named[-1] if named[-1] >= count else named[0]

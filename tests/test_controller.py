@@ -108,6 +108,10 @@ def test_a_mixed_batch_is_each_row_alone_and_a_bad_index_is_refused(tmp_path):
     for bad in (2, -1):
         with pytest.raises(IndexError, match=f"trajectory index {bad} out of range"):
             controller(0.25, x, np.array([0, bad, 0, 1]))
+        with pytest.raises(IndexError, match=f"trajectory index {bad} out of range"):
+            controller.gains(0.25, np.array([bad]))
+    with pytest.raises(IndexError, match="must be integers, found dtype float64"):
+        controller.metric(0.25, np.array([0.5]))
 
 
 def test_the_controller_is_immutable_and_with_gain_builds_a_new_one(tmp_path):

@@ -100,6 +100,9 @@ def test_cost_is_exactly_zero_when_every_constraint_holds(quadrotor, backend):
     assert problem.cost(u) == 0.0
     J, q = problem.cost_and_gradient(u)
     assert J == 0.0 and not q.any()
+    frozen = u.copy()
+    frozen.flags.writeable = False  # e.g. a controller file's u_ref: read, never written
+    assert problem.cost(frozen) == 0.0 and problem.cost_and_gradient(frozen)[0] == 0.0
 
 
 @pytest.mark.parametrize("backend", ["numba", "numpy"])

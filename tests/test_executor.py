@@ -25,6 +25,10 @@ def _always_fails(x):
     raise ValueError(f"bad chunk {x}")
 
 
+def _environment_variable(name):
+    return os.environ.get(name)
+
+
 def _fails_once(path_and_value):
     """Fails the first time it sees a value (a marker file records it), then succeeds."""
     folder, value = path_and_value
@@ -72,6 +76,21 @@ def test_a_dead_worker_is_replaced_and_its_chunk_retried(tmp_path):
         assert pool.map(_dies_once, [(str(tmp_path), v) for v in range(4)]) == [0, 1, 2, 3]
     finally:
         pool.close()
+
+
+def test_workers_see_the_environment_of_their_pool_not_of_the_fork_server(monkeypatch):
+    first = ProcessExecutor(2)
+    try:
+        assert first.map(_environment_variable, ["SAFETY_TEST_SETTING"]) == [None]
+    finally:
+        first.close()  # the fork server keeps running, with the environment it started with
+    monkeypatch.setenv("SAFETY_TEST_SETTING", "set after the server started")
+    second = ProcessExecutor(2)
+    try:
+        names = ["SAFETY_TEST_SETTING", "OPENBLAS_NUM_THREADS"]
+        assert second.map(_environment_variable, names) == ["set after the server started", "1"]
+    finally:
+        second.close()
 
 
 def test_unknown_executor_is_a_user_error():

@@ -6,8 +6,9 @@ the order of ``items``) and ``close()``:
 - ``None`` / ``"local"``: in this process when ``jobs == 1``, else ``jobs`` local processes
   (``concurrent.futures`` with BLAS threads pinned to 1, forked from multiprocessing's fork
   server, a clean single-threaded process that imported the modules registered with
-  ``preload_in_workers`` once, so a pool starts without each worker importing the stages
-  again; each worker exits when the run's process dies, so a killed run leaves no worker
+  ``preload_in_workers`` once per process, so a pool starts without each worker importing the
+  stages again (spawned where the platform has no fork server); each worker takes the run's
+  environment and exits when the run's process dies, so a killed run leaves no worker
   behind);
 - ``"dask-local"``: a ``dask.distributed`` LocalCluster with ``jobs`` workers;
 - ``"dask://HOST:PORT"``: an existing Dask scheduler (``pip install .[dask]``).
@@ -102,11 +103,15 @@ def _running(pid: int) -> bool:
         return True
 
 
-def _worker_setup(run: int) -> None:
-    """Worker initializer: single-threaded BLAS (whatever the fork server's environment), and
-    exit as soon as the run's process ``run`` is gone (e.g. ``kill -9``), so that no orphaned
-    worker keeps computing (the fork server, the worker's parent, exits once its workers
-    have). A daemon thread polls it."""
+def _worker_setup(run: int, environment: dict[str, str]) -> None:
+    """Worker initializer: the run's ``environment`` as the pool started (a forked worker has
+    the fork server's, from when it started; what is read at call time, e.g. the kernel cache
+    folder, must be the run's), single-threaded BLAS whatever the server loaded, and exit as
+    soon as the run's process ``run`` is gone (e.g. ``kill -9``), so that no orphaned worker
+    keeps computing (the fork server, the worker's parent, exits once its workers have). A
+    daemon thread polls it."""
+    os.environ.clear()
+    os.environ.update(environment)
     threadpool_limits(limits=1)
 
     def watch() -> None:
@@ -127,6 +132,10 @@ def preload_in_workers(module: str) -> None:
     _PRELOAD.add(module)
 
 
+# fork server where the platform has one (Linux, macOS), else spawned workers
+START_METHOD = "forkserver" if "forkserver" in multiprocessing.get_all_start_methods() else "spawn"
+
+
 class ProcessExecutor:
     """``jobs`` local processes with single-threaded BLAS, forked from the fork server (which
     imported the ``preload_in_workers`` modules when this process's first pool started it)."""
@@ -140,15 +149,16 @@ class ProcessExecutor:
             saved = {name: os.environ.get(name) for name in PINNED_THREADS}
             os.environ.update(PINNED_THREADS)  # inherited by the fork server if it starts now
             try:
-                context = multiprocessing.get_context("forkserver")
-                context.set_forkserver_preload(sorted(_PRELOAD))
+                context = multiprocessing.get_context(START_METHOD)
+                if START_METHOD == "forkserver":
+                    context.set_forkserver_preload(sorted(_PRELOAD))
                 self._pool = ProcessPoolExecutor(
                     max_workers=self.jobs,
                     mp_context=context,
                     initializer=_worker_setup,
-                    initargs=(os.getpid(),),
+                    initargs=(os.getpid(), dict(os.environ)),
                 )
-                self._pool.submit(int).result()  # start the workers under the pinned env
+                self._pool.submit(int).result()  # the server (if new) starts under the pinned env
             finally:
                 for name, value in saved.items():
                     if value is None:

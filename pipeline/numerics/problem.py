@@ -127,7 +127,10 @@ class Problem:
             raise ValueError(
                 f"input is not finite at sample {k}, '{self.scenario.input_names[j]}': {u[k, j]}"
             )
-        return np.ascontiguousarray(u)
+        u = np.ascontiguousarray(u)
+        # a read-only input (e.g. a controller file's u_ref) as a writable copy: the kernels
+        # take one array type (numba compiles per read-only flag too)
+        return u if u.flags.writeable else u.copy()
 
     def trajectory(self, u: FloatArray) -> Trajectory:
         """The RK4 states the cost sees (``dense_xs`` is the penalty grid)."""
@@ -155,10 +158,10 @@ class Problem:
             return self.constraints.evaluate(dense, u, self.substeps).cost
         kernels, data, _ = self._compiled
         no_gain = np.zeros((u.shape[1], self.x0.size))  # the open loop
-        h, q = self.Ts / self.substeps, np.empty_like(u)
+        h, U, q = self.Ts / self.substeps, np.empty_like(u), np.empty_like(u)  # u is only read
         return float(
             kernels.adjoint_kernel(
-                self.x0, u, _NO_REFERENCE, no_gain, False, h, self.substeps, data, u, q, False
+                self.x0, u, _NO_REFERENCE, no_gain, False, h, self.substeps, data, U, q, False
             )
         )
 

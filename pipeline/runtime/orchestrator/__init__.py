@@ -141,8 +141,8 @@ def _radii_and_coverage(
 def run_synthesis(
     scenario_name: Scenario | str | Path, out: Path | None = None, options: RunOptions | None = None
 ) -> Synthesis:
-    """Run every stage on a scenario (the public form is ``pipeline.synthesize``): a loaded
-    ``Scenario``, or its name or path.
+    """Run every stage on a scenario (the public form is ``pipeline.synthesize``): a
+    ``Scenario`` from ``load_scenario`` (its demos checked, the default), or its name or path.
 
     Bad input (the scenario, the output folder, a folder in use) raises ``UserError`` before any
     work. A run that fails writes ``summary.json`` saying so, renames the previous
@@ -168,7 +168,7 @@ def run_synthesis(
     out = (Path(out) if out is not None else default_output_folder(scenario.name)).absolute()
     check_output_folder(out, scenario.name)
     log.info(f"outputs: {out}")
-    # single-threaded BLAS in this process too, as in the spawned workers: the matrices are
+    # single-threaded BLAS in this process too, as in the workers: the matrices are
     # small, and OpenBLAS's threads made L-BFGS-B 5x slower in CPU (2.4 s -> 0.44 s on one demo)
     with folder_lock(out), threadpool_limits(limits=1, user_api="blas"):
         for folder in (out, out / "artifacts"):
