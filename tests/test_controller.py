@@ -142,6 +142,14 @@ def test_a_file_loaded_again_is_parsed_again_only_when_its_bytes_changed(tmp_pat
     for _ in range(2):  # a bad file is refused every time, never served from before
         with pytest.raises(ControllerFormatError, match="invalid JSON"):
             load(path)
+    copies = []
+    for i in range(6):  # same bytes at other paths: each its own controller (its source)
+        copy = tmp_path / f"copy{i}.json"
+        copy.write_text(json.dumps(_document()))
+        copies.append(load(copy))
+        assert copies[-1].source == str(copy)
+    assert load(tmp_path / "copy5.json") is copies[5]  # among the last four loaded
+    assert load(tmp_path / "copy0.json") is not copies[0]  # evicted: parsed again
 
 
 def _mutations():
