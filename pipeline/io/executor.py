@@ -8,9 +8,8 @@ the order of ``items``) and ``close()``:
   server, a clean single-threaded process that imported the modules registered with
   ``preload_in_workers`` once per process and stays, idle, until the process exits, so a pool
   starts without each worker importing the stages again (spawned where the platform has no
-  fork server); each worker takes the run's
-  environment and exits when the run's process dies, so a killed run leaves no worker
-  behind);
+  fork server); each worker takes the run's environment and exits when the run's process
+  dies, so a killed run leaves no worker behind);
 - ``"dask-local"``: a ``dask.distributed`` LocalCluster with ``jobs`` workers;
 - ``"dask://HOST:PORT"``: an existing Dask scheduler (``pip install .[dask]``).
 
