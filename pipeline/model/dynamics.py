@@ -40,14 +40,16 @@ def _returning_float(function: Callable[..., object]) -> Callable[..., float]:
     return call
 
 
+_ON_FLOATS = {name: _returning_float(getattr(np, name)) for name in FLOAT_FUNCTIONS}
+
+
 def _compiled_on_floats(
     entries: Sequence[sympy.Expr], args: Sequence[sympy.Symbol]
 ) -> Callable[..., list]:
     """``_compiled`` for Python floats: the same NumPy functions, their results as Python floats,
     so that the arithmetic between them runs on floats (the same IEEE operations as on
     np.float64, about twice as fast; but an error where NumPy's scalars give inf or nan)."""
-    on_floats = {name: _returning_float(getattr(np, name)) for name in FLOAT_FUNCTIONS}
-    return sympy.lambdify(list(args), list(entries), modules=[on_floats, "numpy"], cse=True)
+    return sympy.lambdify(list(args), list(entries), modules=[_ON_FLOATS, "numpy"], cse=True)
 
 
 def _vectorised(

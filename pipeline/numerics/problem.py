@@ -156,14 +156,18 @@ class Problem:
             if not np.all(np.isfinite(dense)):
                 return np.inf
             return self.constraints.evaluate(dense, u, self.substeps).cost
+        return self._open_loop_adjoint(u, np.empty_like(u), sweep=False)
+
+    def _open_loop_adjoint(self, u: FloatArray, q: FloatArray, sweep: bool) -> float:
+        """The compiled adjoint of the open loop at ``u (N, m)`` (only read): ``J``, and with
+        ``sweep`` ``dJ/du`` into ``q (N, m)``."""
         kernels, data, _ = self._compiled
-        no_gain = np.zeros((u.shape[1], self.x0.size))  # the open loop
-        h, U, q = self.Ts / self.substeps, np.empty_like(u), np.empty_like(u)  # u is only read
-        return float(
-            kernels.adjoint_kernel(
-                self.x0, u, _NO_REFERENCE, no_gain, False, h, self.substeps, data, U, q, False
-            )
-        )
+        no_gain = np.zeros((u.shape[1], self.x0.size))
+        J = kernels.adjoint_kernel(
+            self.x0, u, _NO_REFERENCE, no_gain, False, self.Ts / self.substeps, self.substeps,
+            data, np.empty_like(u), q, sweep,
+        )  # fmt: skip
+        return float(J)
 
     def cost_and_gradient(self, u: FloatArray, method: str = "adjoint") -> tuple[float, FloatArray]:
         """``J(u)`` and ``q = dJ/du`` (N, m).
@@ -186,10 +190,7 @@ class Problem:
         kernels, data, pattern = self._compiled
         q = np.empty_like(u)
         if method == "adjoint":
-            no_gain = np.zeros((u.shape[1], self.x0.size))  # the open loop
-            J = kernels.adjoint_kernel(
-                self.x0, u, _NO_REFERENCE, no_gain, False, h, self.substeps, data, u, q, True
-            )
+            J = self._open_loop_adjoint(u, q, sweep=True)
         else:
             J = kernels.sensitivity_kernel(
                 self.x0,
