@@ -71,6 +71,10 @@ class OptimizeOptions:
     eps_r: float = 0.01  # operating-region states: room for motion between penalty points
     overshoot: float = 0.01  # the descent's extra margin (m, N, rad: the constraints' units)
     max_iterations: int = 1000
+    # a try stops early when its J, falling at its rate over the last ``stall_window``
+    # evaluations, would end its budget above ``stall_margin`` x the goal (descent.Stall)
+    stall_window: int = 100
+    stall_margin: float = 100.0
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -81,6 +85,11 @@ class OptimizeOptions:
             raise ValueError(f"search must be one of {SEARCHES}, got {self.search!r}")
         if not self.overshoot >= 0.0:
             raise ValueError(f"overshoot must be >= 0, got {self.overshoot!r}")
+        if not (self.stall_window >= 1 and self.stall_margin >= 1.0):
+            raise ValueError(
+                f"need stall_window >= 1 and stall_margin >= 1, got {self.stall_window!r} "
+                f"and {self.stall_margin!r}"
+            )
         if self.parameterization not in PARAMETERIZATIONS:
             raise ValueError(
                 f"parameterization must be one of {PARAMETERIZATIONS}, "

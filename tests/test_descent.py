@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 import pytest
 
-from pipeline.numerics.descent import gradient_descent, lbfgs
+from pipeline.numerics.descent import Stall, gradient_descent, lbfgs
 
 
 @dataclass(frozen=True)
@@ -37,6 +38,19 @@ class Bowl(Hinge):
 
     def cost_and_gradient(self, u: np.ndarray, method: str = "adjoint") -> tuple[float, np.ndarray]:
         return self.cost(u), 2 * (u - self.centre)
+
+
+@dataclass(frozen=True)
+class Ridge(Hinge):
+    """``J(u) = 1 + 1 / (1 + |u - c|^2)``: falls for ever towards 1 ever more slowly (a descent
+    on a plateau that never reaches its goal)."""
+
+    def cost(self, u: np.ndarray) -> float:
+        return float(1.0 + 1.0 / (1.0 + np.sum((u - self.centre) ** 2)))
+
+    def cost_and_gradient(self, u: np.ndarray, method: str = "adjoint") -> tuple[float, np.ndarray]:
+        r2 = float(np.sum((u - self.centre) ** 2))
+        return 1.0 + 1.0 / (1.0 + r2), -2 * (u - self.centre) / (1.0 + r2) ** 2
 
 
 def _problem(kind: type[Hinge] = Hinge) -> Hinge:
@@ -98,3 +112,36 @@ def test_a_goal_test_replaces_zero_cost(minimise):
     assert tested[-1] == early.cost  # stopped on the first iterate that passed the test
     never = minimise(_problem(), seed, reached=lambda u, J: False, max_iterations=40)
     assert not never.feasible and never.cost == 0.0  # J = 0 alone no longer stops it
+
+
+def test_stall_extrapolates_the_recent_rate_to_the_budget():
+    stall = Stall(target=1e-4, window=10, margin=100.0)
+    falling = [0.5 ** (k / 10) for k in range(11)]  # halves per window, now J = 0.5
+    assert not stall.hopeless(falling, budget=100)  # 9 windows left: 0.5^10 < 100 x 1e-4
+    assert stall.hopeless(falling, budget=50)  # 4 windows left: 0.5^5 > 100 x 1e-4
+    plateau = [1.0] * 11
+    assert stall.hopeless(plateau, budget=10_000)
+    assert not stall.hopeless(plateau[:10], budget=10_000)  # fewer than a window: too early
+    assert not Stall(target=1e-4, window=10, margin=1e6).hopeless([1e-3] * 11, budget=20)
+    assert not stall.hopeless([*plateau[:10], 0.0], budget=20)  # reached zero
+    with pytest.raises(ValueError, match="margin >= 1"):
+        Stall(target=1e-4, margin=0.5)
+
+
+# L-BFGS-B without the box: with it, it stops on the box's face before any window
+@pytest.mark.parametrize(
+    "minimise", [gradient_descent, partial(lbfgs, box=False)], ids=["gd", "lbfgs"]
+)
+def test_a_stalled_descent_stops_early_and_a_converging_one_is_untouched(minimise):
+    stall = Stall(target=1e-4, window=20)
+    ridge, seed = _problem(Ridge), _problem().centre + 0.3
+    capped = minimise(ridge, seed, max_iterations=300)
+    stopped = minimise(ridge, seed, max_iterations=300, stall=stall)
+    assert not capped.feasible and not stopped.feasible
+    assert 20 <= stopped.iterations < capped.iterations
+    assert "stalled at J" in stopped.message
+    assert stopped.cost >= capped.cost  # it gave up, so never better than going on
+    hinge, far = _problem(), np.full((20, 2), 3.0)
+    free, watched = minimise(hinge, far), minimise(hinge, far, stall=stall)
+    assert watched.feasible and watched.iterations == free.iterations
+    np.testing.assert_array_equal(watched.u, free.u)

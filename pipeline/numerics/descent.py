@@ -12,6 +12,12 @@ cost is zero, which a descent that approaches ``J = 0`` from outside only reache
 
 ``lbfgs`` minimises the same cost with the same exact gradient by L-BFGS-B, the input bounds as
 box bounds.
+
+Both also take an optional ``stall`` test (``Stall``): a descent whose cost, falling at its rate
+over the last ``window`` evaluations, would still be far above the goal at its evaluation budget
+is stopped there, as infeasible. Measured on the four shipped scenarios, three quarters of all
+descent steps went into horizons that ended infeasible at the iteration cap, most of them on a
+plateau; with the defaults below none of the horizons that were found feasible was stopped.
 """
 
 from __future__ import annotations
@@ -36,6 +42,48 @@ class CostProblem(Protocol):
     def cost(self, u: FloatArray) -> float: ...
 
     def cost_and_gradient(self, u: FloatArray, method: str = ...) -> tuple[float, FloatArray]: ...
+
+
+@dataclass(frozen=True, kw_only=True)
+class Stall:
+    """Stop a descent that cannot reach ``target`` in its budget at its recent rate.
+
+    After evaluation ``i`` with best cost ``J_i > 0``, the rate over the last ``window``
+    evaluations is ``r = J_i / J_{i - window}``; extrapolated geometrically to the budget of
+    ``B`` evaluations the cost would be ``J_i r^((B - i) / window)``. The descent is hopeless when
+    that is still above ``margin * target``. A descent's rate mostly slows down as it goes, so
+    the extrapolation is optimistic and the test errs towards going on.
+    """
+
+    target: float
+    window: int = 100
+    margin: float = 100.0
+
+    def __post_init__(self) -> None:
+        if not (self.target > 0.0 and self.window >= 1 and self.margin >= 1.0):
+            raise ValueError(
+                f"need target > 0, window >= 1 and margin >= 1, got target={self.target}, "
+                f"window={self.window}, margin={self.margin}"
+            )
+
+    def hopeless(self, costs: list[float], budget: int) -> bool:
+        """Is the descent whose best costs so far are ``costs`` (the seed's first; one per
+        evaluation, non-increasing) hopeless with ``budget`` evaluations in all?"""
+        i = len(costs) - 1
+        if i < self.window or not costs[i] > 0.0:
+            return False
+        rate = costs[i] / costs[i - self.window]
+        remaining = max(budget - i, 0) / self.window
+        return bool(costs[i] * rate**remaining > self.margin * self.target)
+
+    def message(self, costs: list[float]) -> str:
+        """Why the descent with best costs ``costs`` was stopped."""
+        J, before = costs[-1], costs[-1 - self.window]
+        return (
+            f"stalled at J = {J:.3e} > 0: {1 - J / before:.2%} lower than {self.window} "
+            f"evaluations before, at which rate the budget would end above "
+            f"{self.margin:g} x {self.target:g}"
+        )
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -113,11 +161,13 @@ def gradient_descent(
     max_iterations: int = 400,
     gradient_method: str = "adjoint",
     reached: Callable[[FloatArray, float], bool] = lambda _u, J: J == 0.0,
+    stall: Stall | None = None,
 ) -> DescentResult:
     """The paper's adaptive-step gradient descent (§III-B) from the seed ``u0 (N, m)``.
 
     ``step`` is the initial ``lam``; by default the step that moves the largest input entry by
-    a tenth of the smallest input range. ``reached(u, J)`` is the goal test (default ``J == 0``).
+    a tenth of the smallest input range. ``reached(u, J)`` is the goal test (default ``J == 0``);
+    ``stall`` (default none) stops a hopeless descent, its budget ``max_iterations``.
     """
     if not (alpha > 1.0 and 0.0 < beta < 1.0):
         raise ValueError(f"need alpha > 1 and 0 < beta < 1, got alpha={alpha}, beta={beta}")
@@ -141,9 +191,13 @@ def gradient_descent(
         step = 0.1 * span / max(float(np.max(np.abs(q))), 1e-12)
     lam = step
     rows = [(0, J, lam, True, 0.0)]
+    costs = [J]
     iteration = 0
-    done = reached(u, J)
+    done, stalled = reached(u, J), False
     while not done and lam >= eps and iteration < max_iterations:
+        if stall is not None and stall.hopeless(costs, max_iterations):
+            stalled = True
+            break
         iteration += 1
         candidate = u - lam * q  # eq. (38)
         J_new, q_new = problem.cost_and_gradient(candidate, method=gradient_method)
@@ -154,9 +208,12 @@ def gradient_descent(
             done = reached(u, J)
         else:
             lam *= beta
+        costs.append(J)
         rows.append((iteration, J, lam, accepted, time.perf_counter() - start))
     if done:
         message = f"feasible after {iteration} iterations"
+    elif stalled and stall is not None:
+        message = stall.message(costs)
     elif lam < eps:
         message = f"step size fell below {eps:g}: a local minimum with J = {J:.3e} > 0"
     else:
@@ -189,9 +246,12 @@ def lbfgs(
     gradient_method: str = "adjoint",
     box: bool = True,
     reached: Callable[[FloatArray, float], bool] = lambda _u, J: J == 0.0,
+    stall: Stall | None = None,
 ) -> DescentResult:
     """L-BFGS-B on the same cost and exact gradient; input bounds as box bounds when ``box``
-    (without, the input penalty alone keeps the inputs in bounds); stops when ``reached``."""
+    (without, the input penalty alone keeps the inputs in bounds); stops when ``reached``, or
+    when ``stall`` (default none) finds it hopeless, its budget the ``2 max_iterations``
+    evaluations L-BFGS-B is given."""
     start = time.perf_counter()
     shape = np.shape(u0)
     unbounded = np.full(shape, np.inf)
@@ -201,8 +261,14 @@ def lbfgs(
     seed_cost = problem.cost(np.asarray(u0).reshape(shape))
     rows: list[tuple[int, float, float, bool, float]] = [(0, seed_cost, np.nan, True, 0.0)]
     best: _Best = {"u": u0.copy(), "J": seed_cost, "reached": reached(u0.reshape(shape), seed_cost)}
+    costs = [seed_cost]  # the best cost after each evaluation, for ``stall``
+
+    budget = 2 * max_iterations
 
     class _Feasible(Exception):
+        pass
+
+    class _Stalled(Exception):
         pass
 
     def fun(flat: FloatArray) -> tuple[float, FloatArray]:
@@ -211,8 +277,11 @@ def lbfgs(
         if accepted:
             best.update({"u": flat.copy(), "J": J, "reached": reached(flat.reshape(shape), J)})
         rows.append((len(rows), best["J"], np.nan, accepted, time.perf_counter() - start))
+        costs.append(best["J"])
         if best["reached"]:
             raise _Feasible
+        if stall is not None and stall.hopeless(costs, budget):
+            raise _Stalled
         if not np.isfinite(J):
             return 1e300, np.zeros_like(flat)
         return J, q.ravel()
@@ -228,7 +297,7 @@ def lbfgs(
                 bounds=list(zip(lower, upper, strict=True)),
                 options={
                     "maxiter": max_iterations,
-                    "maxfun": 2 * max_iterations,
+                    "maxfun": budget,
                     "ftol": 0.0,
                     "gtol": 1e-12,
                 },
@@ -236,6 +305,8 @@ def lbfgs(
             message = str(outcome.message)
         except _Feasible:
             message = "feasible"
+        except _Stalled:
+            message = "" if stall is None else stall.message(costs)
     J = float(best["J"])
     u = np.asarray(best["u"]).reshape(shape)
     text = (

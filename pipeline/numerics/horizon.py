@@ -15,7 +15,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from pipeline.model.dynamics import FloatArray
-from pipeline.numerics.descent import DescentResult, gradient_descent, lbfgs
+from pipeline.numerics.descent import DescentResult, Stall, gradient_descent, lbfgs
 from pipeline.numerics.problem import Problem
 from pipeline.numerics.settings import DESCENT_METHODS
 from pipeline.numerics.shooting import StabilisedProblem
@@ -38,6 +38,12 @@ class DescentOptions(Protocol):
 
     @property
     def max_iterations(self) -> int: ...
+
+    @property
+    def stall_window(self) -> int: ...
+
+    @property
+    def stall_margin(self) -> float: ...
 
 
 def reseed(u: FloatArray, N: int, mode: str) -> FloatArray:
@@ -105,13 +111,14 @@ def minimise(
     else:
         raise ValueError(f"parameterization must be one of {PARAMETERIZATIONS}")
     gate = max(options.overshoot, 1e-6) ** 2  # evaluate the real cost only once this close
+    stall = Stall(target=gate, window=options.stall_window, margin=options.stall_margin)
 
     def reached(v: FloatArray, J_tightened: float) -> bool:
         return J_tightened == 0.0 or (J_tightened <= gate and check.cost(v) == 0.0)
 
     if options.method == "gd":
         outcome = gradient_descent(
-            target, seed, max_iterations=options.max_iterations, reached=reached
+            target, seed, max_iterations=options.max_iterations, reached=reached, stall=stall
         )
     elif options.method == "lbfgs":
         outcome = lbfgs(
@@ -120,6 +127,7 @@ def minimise(
             max_iterations=options.max_iterations,
             box=options.parameterization == "open_loop",
             reached=reached,
+            stall=stall,
         )
     else:
         raise ValueError(f"method must be one of {DESCENT_METHODS}, got {options.method!r}")
