@@ -92,7 +92,7 @@ class _Compiles(event.Listener):
 def test_two_dynamics_compile_their_loops_but_share_the_dynamics_free_functions(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """``feedback_inputs`` (generated per dynamics) compiles once per module; ``all_finite``,
+    """``rollout_grid`` (generated per dynamics) compiles once per module; ``all_finite``,
     which it calls, from ``shared``, at most once in the process (none if already compiled)."""
     monkeypatch.setenv("SAFETY_KERNEL_CACHE", str(tmp_path))
     v, u = sympy.symbols("v u", real=True)
@@ -100,11 +100,12 @@ def test_two_dynamics_compile_their_loops_but_share_the_dynamics_free_functions(
     with event.install_listener("numba:compile", compiles):
         for rate in (0.125, 0.25):
             kernels = load_kernels(Dynamics.from_expressions([v], [u], [u - rate * v]))
-            U = np.empty((3, 1))
+            U, X, Y = np.empty((3, 1)), np.empty((7, 1)), np.empty((6, 4, 1))
             one = np.ones((3, 1))
-            assert kernels.feedback_inputs(np.zeros(1), one, np.zeros((3, 1)), one, 0.1, 2, U)
+            zero = np.zeros((3, 1))
+            assert kernels.rollout_grid(np.zeros(1), one, zero, one, True, 0.1, 2, U, X, Y)
             assert U[0, 0] == 1.0 and U[1, 0] > 1.0  # u = 1 + x, x grows from 0
-    assert compiles.count["feedback_inputs"] == 2
+    assert compiles.count["rollout_grid"] == 2
     assert compiles.count["all_finite"] <= 1
 
 

@@ -11,8 +11,6 @@ tuple. The penalties and other functions that do not depend on the dynamics live
 ``pipeline.numerics.kernels.shared`` (compiled once per machine, not once per scenario).
 """
 
-import math
-
 import numpy as np
 from numba import njit
 
@@ -66,23 +64,39 @@ def simulate_kernel(x0, U, h, s, X):
 
 
 @njit(cache=True)
-def forward_kernel(x0, U, h, s, P, X, Y, J_x, J_u):
-    """Forward pass for the adjoint: grid ``X``, stages ``Y (N s, 4, n)``, partials ``J_x``,
-    ``J_u``. Returns J (``nan`` if a state is not finite)."""
+def rollout_grid(x0, V, Z, G, feedback, h, s, U, X, Y):
+    """The RK4 grid ``X (N s + 1, n)``, its stages ``Y (N s, 4, n)`` and the held inputs
+    ``U (N, m)``: with ``feedback`` those of the sampled feedback ``U[k] = V[k] + G (X[k s] -
+    Z[k])``, set as the grid reaches each sample; without, ``U = V`` (``U`` may be ``V``).
+    Returns False if a state is not finite."""
     n = x0.size
+    K = np.empty((4, n))
+    copy_vector(x0, X[0])
+    for k in range(V.shape[0]):
+        for r in range(V.shape[1]):
+            U[k, r] = V[k, r]
+            if feedback:
+                for j in range(n):
+                    U[k, r] += G[r, j] * (X[k * s, j] - Z[k, j])
+        for j in range(s):
+            i = k * s + j
+            rk4_step(X[i], U[k], h, K, Y[i], X[i + 1])
+            if not all_finite(X[i + 1]):
+                return False
+    return True
+
+
+@njit(cache=True)
+def grid_penalty(U, s, P, X, J_x, J_u):
+    """``J`` of the inputs ``U (N, m)`` and the grid ``X (N s + 1, n)``, with its partials
+    ``J_x`` (per grid point) and ``J_u`` (per sample)."""
     N = U.shape[0]
     w = 1.0 / s
-    K = np.empty((4, n))
     J = 0.0
     for k in range(N):
         J += input_penalty(U[k], J_u[k], P, k)
-    copy_vector(x0, X[0])
-    J += state_penalty(X[0], w, J_x[0], P, 0)
-    for i in range(N * s):
-        rk4_step(X[i], U[i // s], h, K, Y[i], X[i + 1])
-        if not all_finite(X[i + 1]):
-            return np.nan
-        J += state_penalty(X[i + 1], w, J_x[i + 1], P, i + 1)
+    for i in range(N * s + 1):
+        J += state_penalty(X[i], w, J_x[i], P, i)
     return J + final_penalty(X[N * s], J_x[N * s], P)
 
 
@@ -127,28 +141,6 @@ def adjoint_sweep(U, h, s, Y, J_x, q, G):
 
 
 @njit(cache=True)
-def feedback_inputs(x0, V, Z, G, h, s, U):
-    """Held inputs of the sampled feedback ``U[k] = V[k] + G (x(k Ts) - Z[k])`` into ``U (N, m)``;
-    returns False if a state is not finite."""
-    n = x0.size
-    K = np.empty((4, n))
-    Y = np.empty((4, n))
-    x = x0.copy()
-    x_next = np.empty(n)
-    for k in range(V.shape[0]):
-        for r in range(V.shape[1]):
-            U[k, r] = V[k, r]
-            for j in range(n):
-                U[k, r] += G[r, j] * (x[j] - Z[k, j])
-        for _ in range(s):
-            rk4_step(x, U[k], h, K, Y, x_next)
-            x, x_next = x_next, x
-        if not all_finite(x):
-            return False
-    return True
-
-
-@njit(cache=True)
 def adjoint_kernel(x0, V, Z, G, feedback, h, s, P, U, q, sweep):
     """``J(U)`` and ``q = dJ/dV`` into ``q (N, m)`` by one forward pass and one backward sweep
     (one kernel for both cases: numba compiles it once per scenario, not twice). Without
@@ -159,22 +151,14 @@ def adjoint_kernel(x0, V, Z, G, feedback, h, s, P, U, q, sweep):
     ``U[k] = V[k] + G (x(k Ts) - Z[k])`` (``Z (N, n)``, ``G (m, n)``); without, the open loop:
     ``U = V`` (``U`` may be ``V``), ``G`` must be zeros and ``Z`` is not read."""
     n = x0.size
-    if feedback:
-        if not feedback_inputs(x0, V, Z, G, h, s, U):
-            q[:] = np.nan
-            return np.inf
-    else:
-        for k in range(V.shape[0]):
-            for r in range(V.shape[1]):
-                U[k, r] = V[k, r]
-    Ns = U.shape[0] * s
+    Ns = V.shape[0] * s
     X = np.empty((Ns + 1, n))
     Y = np.empty((Ns, 4, n))
     J_x = np.empty((Ns + 1, n))
-    J = forward_kernel(x0, U, h, s, P, X, Y, J_x, q)
-    if math.isnan(J):
+    if not rollout_grid(x0, V, Z, G, feedback, h, s, U, X, Y):
         q[:] = np.nan
         return np.inf
+    J = grid_penalty(U, s, P, X, J_x, q)
     if sweep:
         adjoint_sweep(U, h, s, Y, J_x, q, G)
     return J
