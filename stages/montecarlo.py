@@ -8,9 +8,9 @@ clipping, error inside the predicted tube ``||e(t)||_P <= e^{-lambda t} ||e(0)||
 (``delta``: the stated interpolation error of the emitted reference). A
 non-finite state is a failure. The runs go through the compiled kernel
 (``pipeline.numerics.rollouts``), which agrees with the NumPy oracle
-(``pipeline.numerics.closed_loop.check_runs``, a test checks 1e-9); the oracle draws the few paths
-the report shows. The failure probability gets an exact one-sided 95% Clopper-Pearson
-upper bound (``scipy.stats.binomtest``), valid because the samples are i.i.d.
+(``pipeline.numerics.closed_loop.check_runs``, a test checks 1e-9), and so do the few paths the
+report shows (``run_paths_compiled``). The failure probability gets an exact one-sided 95%
+Clopper-Pearson upper bound (``scipy.stats.binomtest``), valid because the samples are i.i.d.
 
 When the file has a terminal controller, every covered run is continued to ``T +
 HOLD_SECONDS`` on the kernel (``hold_runs_compiled``, which agrees with the oracle
@@ -38,7 +38,11 @@ from pipeline.io.executor import Executor, SerialExecutor, preload_in_workers
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario, load_scenario_cached
 from pipeline.numerics.closed_loop import RunChecks, check_runs
-from pipeline.numerics.rollouts import check_runs_compiled, hold_runs_compiled
+from pipeline.numerics.rollouts import (
+    check_runs_compiled,
+    hold_runs_compiled,
+    run_paths_compiled,
+)
 
 preload_in_workers(__name__)  # its chunks run in worker processes
 
@@ -162,12 +166,11 @@ def _drawn_paths(
     streams: list[np.random.SeedSequence],
     count: int,
 ) -> list[FloatArray]:
-    """The first ``count`` paths drawn in the report, each ``(K, n)`` thinned to about 200
-    points: the first two runs around each trajectory of chunk 0, then chunk 1, ..., simulated
-    by the NumPy oracle from the same starts the chunks drew (only as many chunks as needed),
-    in one batch (the oracle's cost is per step, nearly whatever the batch size)."""
+    """The first ``count`` paths drawn in the report, each ``(K, 2)`` positions thinned to about
+    200 points: the first two runs around each trajectory of chunk 0, then chunk 1, ...,
+    simulated on the compiled kernel from the same starts the chunks drew (only as many chunks
+    as needed), in one batch."""
     starts: list[FloatArray] = []
-    owners: list[int] = []  # the trajectory each start selects
     for size, stream in zip(chunks, streams, strict=True):
         if len(starts) >= count:
             break
@@ -175,17 +178,10 @@ def _drawn_paths(
         index, _ = controller.select(x0)
         drawn = np.concatenate([np.flatnonzero(index == i)[:2] for i in np.unique(index)])
         starts += list(x0[drawn])  # by trajectory, then by draw
-        owners += list(index[drawn])
     if not starts:
         return []
-    x0, index = np.array(starts[:count]), np.array(owners[:count])
-    _, groups = check_runs(scenario, controller, x0)
-    paths: list[FloatArray] = [np.empty((0, 0))] * len(x0)
-    for i, group in zip(np.unique(index), groups, strict=True):
-        thinned = group[:, :: max(1, group.shape[1] // 200)]
-        for row, path in zip(np.flatnonzero(index == i), thinned, strict=True):
-            paths[row] = path
-    return paths
+    paths = run_paths_compiled(scenario, controller, np.array(starts[:count]))
+    return [path[:: max(1, len(path) // 200)] for path in paths]
 
 
 def _run_chunk_in_worker(

@@ -4,7 +4,9 @@
 NumPy oracle ``pipeline.numerics.closed_loop.check_runs`` (same integration, same law, same
 continuous-time checks; see ``pipeline.numerics.kernels.rollout``), without materialising the
 ``(runs, steps, n)`` paths: memory stays ``O(runs)`` and a rollout costs one pass of scalar code.
-``hold_runs_compiled`` continues the runs past ``T`` under the terminal law, as ``hold_runs``.
+``hold_runs_compiled`` continues the runs past ``T`` under the terminal law, as ``hold_runs``;
+``run_paths_compiled`` gives the position paths of a few runs (the report draws them), as the
+oracle's ``check_runs`` does.
 """
 
 from __future__ import annotations
@@ -73,8 +75,18 @@ def check_runs_compiled(
     scenario: Scenario, controller: Controller, x0: FloatArray, substeps: int = 4
 ) -> RunChecks:
     """The margins of every closed-loop run from ``x0 (B, n)``, as ``check_runs`` computes them."""
-    kernels, out = _rollouts(scenario, controller, x0, substeps)
+    kernels, out, _ = _rollouts(scenario, controller, x0, substeps)
     return _checks(kernels, out, controller.select(x0)[1] < 1.0)
+
+
+def run_paths_compiled(
+    scenario: Scenario, controller: Controller, x0: FloatArray, substeps: int = 4
+) -> list[FloatArray]:
+    """The position path ``(K + 1, 2)`` of each run from ``x0 (B, n)`` on the RK4 grid (``K``
+    steps of its trajectory), in the order of ``x0``; as in ``check_runs``, a state that is not
+    finite is drawn at +-1e9."""
+    _, _, paths = _rollouts(scenario, controller, x0, substeps, record=True)
+    return [np.nan_to_num(path, nan=1e9, posinf=1e9, neginf=-1e9) for path in paths]
 
 
 def hold_runs_compiled(
@@ -91,7 +103,7 @@ def hold_runs_compiled(
     terminal = controller.terminal
     if terminal is None:
         raise ValueError("hold_runs_compiled: the controller has no terminal law")
-    kernels, out = _rollouts(scenario, controller, x0, substeps)
+    kernels, out, _ = _rollouts(scenario, controller, x0, substeps)
     x_end = np.ascontiguousarray(out[:, kernels.CHECKS :])
     N = int(round(duration / controller.Ts))
     law = (
@@ -116,6 +128,7 @@ def hold_runs_compiled(
         0.0,
         *_scene(scenario),
         after,
+        np.empty((0, 1, 2)),
     )
     start = np.maximum(np.sqrt(terminal.value(x_end) / terminal.level), 1e-12)
     return HoldChecks(
@@ -159,20 +172,23 @@ def _scene(scenario: Scenario) -> tuple:
 
 
 def _rollouts(
-    scenario: Scenario, controller: Controller, x0: FloatArray, substeps: int
-) -> tuple[Any, FloatArray]:
-    """``(kernels, out (B, CHECKS + n))``: each run's checks and final state."""
+    scenario: Scenario, controller: Controller, x0: FloatArray, substeps: int, record: bool = False
+) -> tuple[Any, FloatArray, list[FloatArray]]:
+    """``(kernels, out (B, CHECKS + n), paths)``: each run's checks and final state, and with
+    ``record`` each run's positions ``(K + 1, 2)`` on the RK4 grid (else no paths)."""
     x0 = np.ascontiguousarray(x0, dtype=np.float64)
     substeps, hold = held_steps(controller, substeps)
     kernels = load_kernels(scenario.dynamics)
     out = np.empty((len(x0), kernels.CHECKS + x0.shape[1]))
     slack = INTERPOLATION_SLACK * controller.interpolation_error
     index, _ = controller.select(x0)
+    paths: list[FloatArray] = [np.empty((0, 2))] * (len(x0) if record else 0)
     for i in np.unique(index):
         rows = np.flatnonzero(index == i)
         reference = controller.trajectories[int(i)]
         grid = controller.Ts / substeps * np.arange(len(reference.u_ref) * substeps + 1)
         checks = np.empty((len(rows), out.shape[1]))
+        recorded = np.empty((len(rows) if record else 0, len(grid), 2))
         law = (
             controller.Ts,
             _read_only(reference.u_ref),
@@ -192,9 +208,12 @@ def _rollouts(
             slack + 1e-9,
             *_scene(scenario),
             checks,
+            recorded,
         )
         out[rows] = checks
-    return kernels, out
+        for row, path in zip(rows[: len(recorded)], recorded, strict=True):
+            paths[row] = path
+    return kernels, out, paths
 
 
 def _checks(kernels: Any, out: FloatArray, covered: np.ndarray) -> RunChecks:

@@ -23,9 +23,10 @@ def test_monte_carlo_and_stress_fly_a_funnel_file(quadrotor_funnel_artifact):
 
 
 def test_the_reports_paths_are_the_first_runs_drawn_each_simulated_alone(synthesized):
-    """The drawn paths come from one batch of the oracle: the same paths, in the same order, as
-    simulating each chunk's first two runs around each trajectory on its own (quadrotor_hill's
-    nine funnels: the batch regroups the runs by trajectory), cut at ``count``."""
+    """The drawn paths come from one batch of the compiled kernel: the same paths, in the same
+    order, as the oracle simulating each chunk's first two runs around each trajectory on its
+    own (quadrotor_hill's nine funnels: the batch regroups the runs by trajectory), cut at
+    ``count``."""
     import numpy as np
 
     from pipeline.controller import load

@@ -69,9 +69,13 @@ def closed_loop_slope(t, x, xr, law, raw, u, out):
 
 
 @njit(cache=True)
-def rollout_kernel(x0, s, hold, law, t_ref, x_ref, M, rate, slack, position, scene, goal, out):
+def rollout_kernel(
+    x0, s, hold, law, t_ref, x_ref, M, rate, slack, position, scene, goal, out, path
+):
     """Roll out every ``x0[b] (n,)`` around one reference; write its checks into
-    ``out (B, CHECKS + n)``: the checks, then the final state.
+    ``out (B, CHECKS + n)``: the checks, then the final state; and the positions of the first
+    ``R`` runs at every grid point into ``path (R, N s + 1, 2)`` (``R = 0``: none, the path is
+    not stored).
 
     Args: ``hold``: RK4 steps per zero-order-hold window (0: the law at every stage); ``law`` as
     in ``closed_loop_slope`` (``K[k]`` held on sample interval ``k``),
@@ -115,6 +119,9 @@ def rollout_kernel(x0, s, hold, law, t_ref, x_ref, M, rate, slack, position, sce
         ratio = 0.0
         for j in range(N * s + 1):
             # the checks at grid point j (its state x(j h)), then the step to j + 1
+            if b < path.shape[0]:
+                path[b, j, 0] = x[p0]
+                path[b, j, 1] = x[p1]
             nearest = unsafe_distance(x[p0], x[p1], nearest, scene)
             norm = metric_norm(x, XR[j, 0], M, j)
             if j == 0:
