@@ -24,9 +24,11 @@ from numba import njit
 SOURCE = Path(__file__).read_text()  # as imported: what the generated modules' key hashes
 _SERIES_BELOW = 1e-4  # as pipeline.numerics.penalties
 
-# The functions below except ``copy_vector`` are not inlined (``inline="always"`` would type and
-# lower a copy in every caller, once per scenario): a call costs the closed loop nothing
-# measurable (bench montecarlo, same rollouts/s).
+# The functions below except ``copy_vector`` and the penalties are not inlined
+# (``inline="always"`` types and lowers a copy in every caller, once per scenario): a call costs
+# the closed loop nothing measurable (bench montecarlo, same rollouts/s). The penalties, called
+# at every grid point of every cost evaluation, are: unicycle_slalom demo 1's cost and
+# gradient 157 -> 139 us, for 0.24 s more compilation per scenario.
 
 
 @njit(cache=True, inline="always")
@@ -73,7 +75,7 @@ def polygon_query(px, py, V, ring_start, r0, r1):
     return inside, math.sqrt(best), cx, cy
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def state_penalty(x, w, grad, P, i_grid):
     """``w (g_unsafe + g_reg)(x)`` at RK4 grid point ``i_grid`` (its margins); sets ``grad (n,)``
     to its derivative."""
@@ -118,7 +120,7 @@ def state_penalty(x, w, grad, P, i_grid):
     return w * value
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def input_penalty(u, grad, P, k):
     """``(g_in + g_reg)(u)`` (eq. (40)) for sample ``k`` (its margins); sets ``grad (m,)``."""
     value = 0.0
