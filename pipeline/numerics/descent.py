@@ -262,7 +262,6 @@ def lbfgs(
     rows: list[tuple[int, float, float, bool, float]] = [(0, seed_cost, np.nan, True, 0.0)]
     best: _Best = {"u": u0.copy(), "J": seed_cost, "reached": reached(u0.reshape(shape), seed_cost)}
     costs = [seed_cost]  # the best cost after each evaluation, for ``stall``
-
     budget = 2 * max_iterations
 
     class _Feasible(Exception):

@@ -71,8 +71,9 @@ def optimization(data: ReportData) -> tuple:
         Paragraph(
             f"Method: {method} on the penalty cost J (eqs. (40)-(42)); {options.parameterization} "
             f"parameterization; at most {options.max_iterations} iterations per horizon, fewer "
-            f"when J, falling at its rate over the last {options.stall_window} iterations, would "
-            f"end them above {options.stall_margin:g} times the goal; Unsafe "
+            f"when J, extrapolated at its rate over the last {options.stall_window} iterations, "
+            f"would still be above {options.stall_margin:g} times the goal's threshold at that "
+            "cap (the horizon then counts as infeasible); Unsafe "
             f"bloated by d + {options.eps_d:g}, Goal shrunk by d + {options.eps_g:g}. A horizon N' "
             "is feasible when J reaches 0; the descent minimises J with every margin tightened "
             f"by {options.overshoot:g} and stops as soon as the untightened J is exactly 0. The "

@@ -10,12 +10,12 @@ integrated by RK4 with ``s`` substeps per sample interval, the controller evalua
 stage (the stage at an interval's right end uses the left limit of the input), ``x_ref``
 linearly interpolated on the emitted grid ``t_ref``; with ``hold > 0`` the input is computed at the
 first stage of every ``hold``-th step and held (zero-order-hold feedback). Per run it returns,
-without storing the path: clearance to Unsafe minus half the longest grid step (the motion bound
-between grid points), the signed distance of the final position to Goal's boundary, the smallest
-input slack before clipping, the tube ratio ``max_t max(|e(t)|_P(t) - slack, 0) e^(rate t) /
-|e(0)|_P(0)`` and its value at ``T`` (``P(t)`` given on the RK4 grid: one metric repeated for a
-``/1`` file, a funnel's time-varying metric for ``/2``), whether every state stayed finite, and
-the final state.
+without storing the path (only the positions of the first few runs, when asked): clearance to
+Unsafe minus half the longest grid step (the motion bound between grid points), the signed
+distance of the final position to Goal's boundary, the smallest input slack before clipping, the
+tube ratio ``max_t max(|e(t)|_P(t) - slack, 0) e^(rate t) / |e(0)|_P(0)`` and its value at ``T``
+(``P(t)`` given on the RK4 grid: one metric repeated for a ``/1`` file, a funnel's time-varying
+metric for ``/2``), whether every state stayed finite, and the final state.
 
 Shapes: ``B`` runs, ``n`` states, ``m`` inputs, ``N`` sample intervals, ``r`` reference points.
 """
