@@ -2,12 +2,14 @@
 
 The page's print style (``templates/report.html.j2``, ``@media print``) lays it out on A4: the
 title on page 1, sections flowing on without half-empty pages, no figure or table row cut in
-two. The browser is a system program, not a Python package: where none is found (``chromium``,
-``chromium-browser``, ``google-chrome`` on ``PATH``) or it fails, no PDF is written, an older
-``report.pdf`` is removed (never left looking current) and the outcome's message says why and
-how to get one. The browser is started before the figures are drawn and driven over a pipe
-(``reporting.browser``), so that its start-up overlaps the drawing. A PDF printed from the same
-HTML is reused (kept by the HTML's digest).
+two. The browser is a system program, not a Python package: the first of ``BROWSERS`` on
+``PATH``. Chromium's headless shell comes first: the same engine without the browser around it,
+it prints the same PDF (quadrotor_hill: 8 of 9 pages pixel-identical, one line of the last
+wrapped at another letter) for 0.8 s of CPU instead of 2.1 s. Where none is found or it fails,
+no PDF is written, an older ``report.pdf`` is removed (never left looking current) and the
+outcome's message says why and how to get one. The browser is started before the figures are
+drawn and driven over a pipe (``reporting.browser``), so that its start-up overlaps the drawing.
+A PDF printed from the same HTML is reused (kept by the HTML's digest).
 """
 
 from __future__ import annotations
@@ -22,9 +24,15 @@ from pipeline.io.artifacts import atomic_save
 from pipeline.reporting.browser import BrowserError, Printer
 from pipeline.reporting.figure_cache import FigureStore, digest_of
 
-BROWSERS = ("chromium", "chromium-browser", "google-chrome", "google-chrome-stable")
+BROWSERS = (
+    "chromium-headless-shell",
+    "chromium",
+    "chromium-browser",
+    "google-chrome",
+    "google-chrome-stable",
+)
 TIMEOUT = 120.0  # s
-INSTALL = "Debian/Ubuntu: apt-get install chromium"
+INSTALL = "Debian/Ubuntu: apt-get install chromium-headless-shell, or chromium"
 
 
 @dataclass(frozen=True, kw_only=True)

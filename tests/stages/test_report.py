@@ -188,7 +188,23 @@ def test_without_a_browser_no_pdf_is_written_and_an_old_one_is_removed(
 ) -> None:
     result = _with_browser(run, tmp_path / "copy", None, monkeypatch)
     assert "report.pdf not written: no Chromium on PATH" in result.message
-    assert "apt-get install chromium" in result.message
+    assert "apt-get install chromium-headless-shell, or chromium" in result.message
+
+
+def test_the_headless_shell_is_preferred_to_the_full_browser(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Both on PATH: the headless shell prints (the same PDF for less CPU); alone, either."""
+    for name in ("chromium", "chromium-headless-shell"):
+        program = tmp_path / name
+        program.write_text("#!/bin/sh\n")
+        program.chmod(0o755)
+    monkeypatch.setenv("PATH", str(tmp_path))
+    assert pdf_module.find_browser() == tmp_path / "chromium-headless-shell"
+    (tmp_path / "chromium-headless-shell").unlink()
+    assert pdf_module.find_browser() == tmp_path / "chromium"
+    (tmp_path / "chromium").unlink()
+    assert pdf_module.find_browser() is None
 
 
 def test_a_failing_browser_is_a_message_not_a_crash(
