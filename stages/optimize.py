@@ -35,7 +35,7 @@ import numpy as np
 from pipeline.io.executor import Executor, SerialExecutor, preload_in_workers
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario, load_scenario_cached
-from pipeline.numerics.descent import DescentResult, IterationLog
+from pipeline.numerics.descent import DescentResult, IterationLog, check_stall_settings
 from pipeline.numerics.footprint import ConstraintMargins, verify_within
 from pipeline.numerics.funnel_check import Funnel
 from pipeline.numerics.horizon import (
@@ -85,11 +85,7 @@ class OptimizeOptions:
             raise ValueError(f"search must be one of {SEARCHES}, got {self.search!r}")
         if not self.overshoot >= 0.0:
             raise ValueError(f"overshoot must be >= 0, got {self.overshoot!r}")
-        if not (self.stall_window >= 1 and self.stall_margin >= 1.0):
-            raise ValueError(
-                f"need stall_window >= 1 and stall_margin >= 1, got {self.stall_window!r} "
-                f"and {self.stall_margin!r}"
-            )
+        check_stall_settings(self.stall_window, self.stall_margin)
         if self.parameterization not in PARAMETERIZATIONS:
             raise ValueError(
                 f"parameterization must be one of {PARAMETERIZATIONS}, "

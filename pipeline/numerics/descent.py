@@ -44,6 +44,14 @@ class CostProblem(Protocol):
     def cost_and_gradient(self, u: FloatArray, method: str = ...) -> tuple[float, FloatArray]: ...
 
 
+def check_stall_settings(window: int, margin: float) -> None:
+    """``ValueError`` unless ``window >= 1`` and ``margin >= 1`` (``Stall``'s own settings)."""
+    if not (window >= 1 and margin >= 1.0):
+        raise ValueError(
+            f"need a stall window >= 1 and a stall margin >= 1, got {window} and {margin}"
+        )
+
+
 @dataclass(frozen=True, kw_only=True)
 class Stall:
     """Stop a descent that cannot reach ``target`` in its budget at its recent rate.
@@ -60,11 +68,9 @@ class Stall:
     margin: float = 100.0
 
     def __post_init__(self) -> None:
-        if not (self.target > 0.0 and self.window >= 1 and self.margin >= 1.0):
-            raise ValueError(
-                f"need target > 0, window >= 1 and margin >= 1, got target={self.target}, "
-                f"window={self.window}, margin={self.margin}"
-            )
+        if not self.target > 0.0:
+            raise ValueError(f"need target > 0, got {self.target}")
+        check_stall_settings(self.window, self.margin)
 
     def hopeless(self, costs: list[float], budget: int) -> bool:
         """Is the descent whose best costs so far are ``costs`` (the seed's first; one per

@@ -139,7 +139,7 @@ def _radii_and_coverage(
 
 
 def run_synthesis(
-    scenario_name: Scenario | str | Path, out: Path | None = None, options: RunOptions | None = None
+    scenario: Scenario | str | Path, out: Path | None = None, options: RunOptions | None = None
 ) -> Synthesis:
     """Run every stage on a scenario (the public form is ``pipeline.synthesize``): a
     ``Scenario`` from ``load_scenario`` (its demos checked, the default), or its name or path.
@@ -151,10 +151,8 @@ def run_synthesis(
     """
     started = time.perf_counter()
     options = options or RunOptions()
-    if isinstance(scenario_name, Scenario):
-        scenario = scenario_name
-    else:
-        scenario = load_scenario(scenario_name)
+    if not isinstance(scenario, Scenario):
+        scenario = load_scenario(scenario)
     if not scenario.demos:
         raise ScenarioError(
             "no demonstrations to synthesize from",
