@@ -293,7 +293,7 @@ def test_the_coverage_figure_of_a_funnel_run_draws_the_shipped_initial_ellipsoid
 
 
 @pytest.mark.chromium
-@pytest.mark.skipif(not CHROMIUM.exists(), reason="needs /usr/bin/chromium")
+@pytest.mark.skipif(not CHROMIUM.exists(), reason="needs chromium")
 def test_the_funnel_report_fits_a_phone(funnel_report, tmp_path):
     """The browser measurement of tests/stages/test_report.py on the funnel run's page at
     390 px: the seven figures (the funnel figure too) inside the column, every legend and
