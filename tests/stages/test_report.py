@@ -34,8 +34,9 @@ from pipeline.runtime.stored import load_report_data
 from stages.report import ReportResult, write_reports
 
 # The rendering tests' browser: Chromium's headless shell where it is installed (the same Blink
-# engine and layout; about a third of the CPU: 0.24 s against 0.7-0.8 s per --dump-dom of
-# report.html, 0.75 s against 2.1 s per full-page screenshot), else the full browser
+# engine and layout for less than half the CPU, counted machine-wide: 0.6-0.7 s against 1.5-1.9 s
+# per --dump-dom of report.html, 1.8-2.0 s against 3.9-4.1 s per full-page screenshot), else the
+# full browser
 HEADLESS_SHELL = Path("/usr/bin/chromium-headless-shell")
 CHROMIUM = HEADLESS_SHELL if HEADLESS_SHELL.exists() else Path("/usr/bin/chromium")
 BROWSER = pdf_module.find_browser()  # what the report prints its PDF with
