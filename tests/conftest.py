@@ -429,7 +429,7 @@ def _freeze_the_heap() -> None:
     """Take every object alive now out of the cyclic garbage collector's reach (``gc.freeze``,
     after a full collection so that no garbage is kept). Each full collection walks every object
     it tracks: with the imports and the session syntheses in the heap they cost the two workers
-    21.8 s of CPU per run with an empty kernel cache, 10.6 s with these freezes (measured with
-    ``gc.callbacks``). Reference counting frees frozen objects as before."""
+    19.8-21.8 s of CPU per run with an empty kernel cache, 9.5-10.7 s with these freezes
+    (measured with ``gc.callbacks``). Reference counting frees frozen objects as before."""
     gc.collect()
     gc.freeze()

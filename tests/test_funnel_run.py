@@ -27,7 +27,7 @@ from pipeline.runtime.options import RunOptions
 from pipeline.runtime.orchestrator import run_synthesis
 from pipeline.runtime.registry import RESULT_TYPES
 from pipeline.runtime.stored import load_report_data
-from tests.stages.test_report import CHROMIUM, assert_figures_fit, measure_in_browser
+from tests.stages.test_report import assert_figures_fit, measure_in_browser, needs_browser
 
 SCENARIO = "quadrotor_hill"
 SAMPLES = 200  # the command line's runs on a copy (the session run has 1,000)
@@ -293,7 +293,7 @@ def test_the_coverage_figure_of_a_funnel_run_draws_the_shipped_initial_ellipsoid
 
 
 @pytest.mark.chromium
-@pytest.mark.skipif(not CHROMIUM.exists(), reason="needs chromium")
+@needs_browser
 def test_the_funnel_report_fits_a_phone(funnel_report, tmp_path):
     """The browser measurement of tests/stages/test_report.py on the funnel run's page at
     390 px: the seven figures (the funnel figure too) inside the column, every legend and

@@ -199,10 +199,10 @@ def gradient_descent(
     rows = [(0, J, lam, True, 0.0)]
     costs = [J]
     iteration = 0
-    done, stalled = reached(u, J), False
+    done, stalled = reached(u, J), ""  # stalled: why a hopeless descent was stopped
     while not done and lam >= eps and iteration < max_iterations:
         if stall is not None and stall.hopeless(costs, max_iterations):
-            stalled = True
+            stalled = stall.message(costs)
             break
         iteration += 1
         candidate = u - lam * q  # eq. (38)
@@ -218,8 +218,8 @@ def gradient_descent(
         rows.append((iteration, J, lam, accepted, time.perf_counter() - start))
     if done:
         message = f"feasible after {iteration} iterations"
-    elif stalled and stall is not None:
-        message = stall.message(costs)
+    elif stalled:
+        message = stalled
     elif lam < eps:
         message = f"step size fell below {eps:g}: a local minimum with J = {J:.3e} > 0"
     else:
@@ -286,7 +286,7 @@ def lbfgs(
         if best["reached"]:
             raise _Feasible
         if stall is not None and stall.hopeless(costs, budget):
-            raise _Stalled
+            raise _Stalled(stall.message(costs))
         if not np.isfinite(J):
             return 1e300, np.zeros_like(flat)
         return J, q.ravel()
@@ -310,8 +310,8 @@ def lbfgs(
             message = str(outcome.message)
         except _Feasible:
             message = "feasible"
-        except _Stalled:
-            message = "" if stall is None else stall.message(costs)
+        except _Stalled as stopped:
+            message = str(stopped)
     J = float(best["J"])
     u = np.asarray(best["u"]).reshape(shape)
     text = (

@@ -33,14 +33,10 @@ from pipeline.runtime.cli import main
 from pipeline.runtime.stored import load_report_data
 from stages.report import ReportResult, write_reports
 
-# The rendering tests' browser: Chromium's headless shell where it is installed (the same Blink
-# engine and layout for less than half the CPU, counted machine-wide: 0.6-0.7 s against 1.5-1.9 s
-# per --dump-dom of report.html, 1.8-2.0 s against 3.9-4.1 s per full-page screenshot), else the
-# full browser
-HEADLESS_SHELL = Path("/usr/bin/chromium-headless-shell")
-CHROMIUM = HEADLESS_SHELL if HEADLESS_SHELL.exists() else Path("/usr/bin/chromium")
-BROWSER = pdf_module.find_browser()  # what the report prints its PDF with
-needs_browser = pytest.mark.skipif(BROWSER is None, reason="no Chromium to print the PDF")
+# what prints the PDF, and what the rendering tests run: the first of ``pdf.BROWSERS`` on PATH
+# (Chromium's headless shell before the full browser: the same engine for less than half the CPU)
+BROWSER = pdf_module.find_browser()
+needs_browser = pytest.mark.skipif(BROWSER is None, reason="no Chromium on PATH")
 
 
 @pytest.fixture(scope="module")
@@ -344,7 +340,7 @@ def test_cli_report_of_a_missing_run_is_one_clear_line(
 def _chromium(*arguments: str, profile: Path) -> subprocess.CompletedProcess[str]:
     return subprocess.run(
         [
-            str(CHROMIUM),
+            str(BROWSER),
             "--headless",
             "--no-sandbox",
             "--disable-gpu",
@@ -366,7 +362,7 @@ def _chromium(*arguments: str, profile: Path) -> subprocess.CompletedProcess[str
 
 
 @pytest.mark.chromium
-@pytest.mark.skipif(not CHROMIUM.exists(), reason="needs chromium")
+@needs_browser
 def test_chromium_renders_the_report(run: tuple[Scenario, Path], tmp_path: Path) -> None:
     url = (run[1] / "report.html").resolve().as_uri()
     profile = tmp_path / "profile"
@@ -424,7 +420,7 @@ def _measuring_page(report: str, width: int) -> str:
 
 
 @pytest.mark.chromium
-@pytest.mark.skipif(not CHROMIUM.exists(), reason="needs chromium")
+@needs_browser
 @pytest.mark.parametrize("width", [1400, 390])
 def test_figures_fit_their_box_at_desktop_and_phone_width(
     run: tuple[Scenario, Path], tmp_path: Path, width: int
