@@ -14,11 +14,18 @@ at ``t_k = k Ts``, with ``Q = P^-1`` linear in t between samples (``metric_inter
    for it (``select(x0, strict=True)`` raises ``UncoveredStartError`` instead);
 2. ``controller(t, x, index)``: for ``t <= T_i``, ``u = clip(u_ref_i[k] + K_i[k] (x -
    x_ref_i(t)), lower, upper)``, ``k = floor(t / Ts)``, with ``x_ref_i`` linearly
-   interpolated on the trajectory's fine grid ``t``; for ``t > T_i`` the terminal law ``u =
+   interpolated on the trajectory's grid ``t`` (equal RK4 steps inside each sample interval,
+   finer on some intervals than others); for ``t > T_i`` the terminal law ``u =
    clip(u_eq + K_T (x - x_eq))`` of the optional ``terminal`` block (its certified invariant
    ellipsoid ``(x - x_eq)^T P_T (x - x_eq) <= level`` lies in Goal and holds every end
    tube), or ``BeyondHorizonError`` when the file has none: the law is never extrapolated past
    ``T``.
+
+What a ``/2`` file certifies: the funnel ``E_i(t) = {x : (x - x_ref_i(t))^T P_i(t) (x -
+x_ref_i(t)) <= radius_i^2 e^{-2 rate_i t}}`` about the exact nominal (the solution from ``x0_i``
+under ``u_ref_i``; ``t`` and ``x_ref`` carry it on a grid) is invariant under this law, its
+interpolation of ``x_ref`` included (the pipeline's certify stage bounds that error). A state
+with ``||x - reference(t)||_P(t) <= radius - interpolation_error`` is therefore inside it.
 
 Gain convention: ``u = u_ref + K e`` with ``e = x - x_ref``, so a stabilising ``K`` is the
 *negative* of ``control.lqr``'s gain (which is written ``u = -K x``).

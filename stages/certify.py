@@ -26,7 +26,8 @@ nothing but the file and the scenario (no stage result). A ``safety-controller/1
    Unsafe, keeps the inputs in their bounds and the tube in the operating region, and ends in
    Goal, on the dense grid with a bound between grid points (``pipeline.numerics.tube_radius``);
 5. Init is covered by the initial balls ``||x - x0_i||_P <= radius_i`` (sound box subdivision,
-   ``pipeline.numerics.cover``);
+   ``pipeline.numerics.cover``), each box's corners within ``1 - COVER_MARGIN`` of a ball's
+   squared radius;
 6. the optional ``terminal`` block (``pipeline.numerics.terminal``): ``V = e^T P_T e`` decreases
    on ``V <= level`` at every vertex of a sound hull over its bounding box (numpy eigenvalues,
    (T1) with the equilibrium's residual), the law does not clip there, the ellipsoid lies in
@@ -40,10 +41,16 @@ radius_i``) replaces steps 2-3 and the radius of step 4: each funnel is rebuilt 
 (``pipeline.numerics.recertify``: local sound hulls per sample interval, then
 ``funnel_check.check_funnel``: ``P[k] > 0``, the vertex inequalities (F3) at both ends of every
 interval by numpy eigenvalues, the tube in Unsafe's clearance, the inputs and state bounds, and
-``E(T)`` in Goal). The reference checks of step 4 measure in the tube's metric at the time,
-``P_i(t)``; step 5 covers Init by the balls ``||x - x0_i||_{P_i[0]} <= radius_i``; step 6's end
-tubes are ``||x - x_ref_i(T)||_{P_i[N]} <= radius_i e^{-rate_i T}``. The funnel certificate is
-for continuous feedback: a ``/2`` file with ``feedback_period > 0`` is not certified.
+``E(T)`` in Goal). The law tracks ``x_ref`` interpolated on the file's grid: its error bound
+enters the inequality and the inputs (``pipeline.numerics.funnel_law`` (I1)-(I3)), so the proof
+covers the law as shipped; the grid may be finer on some sample intervals than on others. Margins:
+(F2) plus that term below ``-LMI_MARGIN``, each level within ``1 - LEVEL_MARGIN`` of its limits,
+and the RK4 error of ``x_ref`` (estimated against a grid twice as fine) below ``LEVEL_MARGIN``
+radius (both 1e-6: far above rounding, and the integration error is checked against it). The
+reference checks of step 4 measure in the tube's metric at the time, ``P_i(t)``; step 5
+covers Init by the balls ``||x - x0_i||_{P_i[0]} <= radius_i``; step 6's end tubes are
+``||x - x_ref_i(T)||_{P_i[N]} <= radius_i e^{-rate_i T}``. The funnel certificate is for
+continuous feedback: a ``/2`` file with ``feedback_period > 0`` is not certified.
 """
 
 from __future__ import annotations
@@ -56,8 +63,9 @@ import numpy as np
 from pipeline.controller import Controller, ControllerFormatError, load
 from pipeline.io.artifacts import file_hash
 from pipeline.model.scenario import Scenario
-from pipeline.model.simulate import Trajectory, simulate
+from pipeline.model.simulate import simulate
 from pipeline.numerics.cover import DEFAULT_DEPTH, subdivide
+from pipeline.numerics.funnel_law import BASE_SUBSTEPS, LEVEL_MARGIN
 from pipeline.numerics.hull import DEFAULT_SEGMENTS, HullError, jacobian_hull
 from pipeline.numerics.recertify import check_reference, recheck_funnel
 from pipeline.numerics.sampled import contraction_rate, held_rate
@@ -71,6 +79,9 @@ RADIUS_TOLERANCE = 1e-12  # relative: a radius may exceed the re-verified one by
 ROUNDING_MARGIN = 1e-9  # times ||P||: the contraction eigenvalue must clear rounding
 INTERPOLATION_TOLERANCE = 1e-2  # ||interpolated x_ref - dynamics||_P / radius
 STATED_ERROR_RANGE = (0.5, 4.0)  # the file's interpolation_error_P_norm / the one measured here
+# Init's corners must lie within this fraction of a ball's squared radius: floating-point rounding
+# of the quadratic form (~1e-15 relative) cannot decide coverage
+COVER_MARGIN = 1e-6
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -227,8 +238,8 @@ def _constant(
     )
     verified, errors = [], (0.0, 0.0)
     for i, tr in enumerate(controller.trajectories):
-        errors, fine = _reference(scenario, controller, i, failures, errors)
-        if fine is None:
+        errors, substeps = _reference(scenario, controller, i, failures, errors)
+        if substeps is None:
             verified.append(0.0)
             continue
         nominal = simulate(scenario.dynamics, tr.x0, tr.u_ref, scenario.Ts, VERIFY_SUBSTEPS)
@@ -256,12 +267,13 @@ def _funnels(
         )
     margin, vertices, verified, errors = -np.inf, 0, [], (0.0, 0.0)
     for i, tr in enumerate(controller.trajectories):
-        errors, fine = _reference(scenario, controller, i, failures, errors)
-        if fine is None:
+        errors, substeps = _reference(scenario, controller, i, failures, errors)
+        if substeps is None:
             verified.append(0.0)
             continue
+        nominal = simulate(scenario.dynamics, tr.x0, tr.u_ref, scenario.Ts, BASE_SUBSTEPS)
         check = recheck_funnel(
-            scenario, fine, tr.K, tr.P, tr.radius, tr.rate, scenario.state_bounds
+            scenario, nominal, tr.K, tr.P, tr.radius, tr.rate, scenario.state_bounds, substeps
         )
         margin, vertices = max(margin, check.margin), vertices + check.vertices
         verified.append(check.radius)
@@ -276,19 +288,27 @@ def _reference(
     i: int,
     failures: list[str],
     errors: tuple[float, float],
-) -> tuple[tuple[float, float], Trajectory | None]:
+) -> tuple[tuple[float, float], np.ndarray | None]:
     """Step 4's reference checks of trajectory ``i`` in its tube metric ``P_i(t)``
     (``recertify.check_reference``). Returns ``(largest (reference error, interpolation error)
-    so far, the re-simulated trajectory (None: not on a uniform grid))``."""
+    so far, the file grid's RK4 steps on each sample interval (None: not an RK4 grid))``."""
     tr = controller.trajectories[i]
     check = check_reference(scenario, tr, controller.Ts, VERIFY_SUBSTEPS)
-    if check.trajectory is None:
-        failures.append(f"trajectories[{i}]: t is not a uniform RK4 grid of the samples")
+    if check.substeps is None:
+        failures.append(
+            f"trajectories[{i}]: t is not an RK4 grid of the samples (every sample time, equal "
+            "steps inside each sample interval)"
+        )
         return errors, None
     if not check.error <= REFERENCE_TOLERANCE:
         failures.append(
             f"trajectories[{i}]: x_ref is not the dynamics under u_ref from x0 "
             f"(P-norm error {check.error:.3g} radius)"
+        )
+    if controller.funnel and not check.integration <= LEVEL_MARGIN:
+        failures.append(
+            f"trajectories[{i}]: the RK4 error of x_ref is estimated at {check.integration:.3g} "
+            f"radius, not below the level margin {LEVEL_MARGIN:g} that must absorb it"
         )
     if not check.interpolation <= INTERPOLATION_TOLERANCE * tr.radius:
         failures.append(
@@ -296,7 +316,7 @@ def _reference(
             f"radius from the dynamics (> {INTERPOLATION_TOLERANCE:g}); emit it on a finer grid"
         )
     errors = (max(errors[0], check.error), max(errors[1], check.interpolation))
-    return errors, check.trajectory
+    return errors, check.substeps
 
 
 def certify_controller(
@@ -362,6 +382,7 @@ def certify_controller(
         np.stack([tr.x0 for tr in controller.trajectories]),
         np.array([tr.radius for tr in controller.trajectories]),
         max_depth,
+        margin=COVER_MARGIN,
     )
     if not cover.covered:
         failures.append(
