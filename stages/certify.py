@@ -23,17 +23,19 @@ nothing but the file and the scenario (no stage result). A ``safety-controller/1
    dynamics on a finer grid, the file's ``interpolation_error_P_norm`` (the Monte Carlo's slack)
    agrees with that measurement within ``STATED_ERROR_RANGE``, and its radius is
    at most the largest radius whose tube ``||x - x_ref(t)||_P <= r e^{-lambda t}`` avoids
-   Unsafe, keeps the inputs in their bounds and the tube in the operating region, and ends in
-   Goal, on the dense grid with a bound between grid points (``pipeline.numerics.tube_radius``);
+   Unsafe, keeps the inputs in their bounds and the tube in the operating region and the
+   scenario's ``state_bounds``, and ends in Goal, on the dense grid with a bound between grid
+   points (``pipeline.numerics.tube_radius``);
 5. Init is covered by the initial balls ``||x - x0_i||_P <= radius_i`` (sound box subdivision,
    ``pipeline.numerics.cover``), each box's corners within ``1 - COVER_MARGIN`` of a ball's
    squared radius;
 6. the optional ``terminal`` block (``pipeline.numerics.terminal``): ``V = e^T P_T e`` decreases
    on ``V <= level`` at every vertex of a sound hull over its bounding box (numpy eigenvalues,
    (T1) with the equilibrium's residual), the law does not clip there, the ellipsoid lies in
-   Goal, and it holds every end tube ``||x - x_ref(T)||_P <= radius e^{-lambda T}`` (exact
-   S-procedure containment). Then "safe for all time" is certified; without the block the law
-   refuses ``t > T``, and a scenario with ``terminal: hold`` is not certified.
+   Goal and in the ``state_bounds``, and it holds every end tube ``||x - x_ref(T)||_P <= radius
+   e^{-lambda T}`` (exact S-procedure containment). Then "safe for all time" is certified;
+   without the block the law refuses ``t > T``, and a scenario with ``terminal: hold`` is not
+   certified.
 
 A ``safety-controller/2`` file (a funnel per trajectory: ``K_i[k]``, ``P_i[k]``, ``rho_i =
 radius_i``) replaces steps 2-3 and the radius of step 4: each funnel is rebuilt from the file's

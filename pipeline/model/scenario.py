@@ -7,8 +7,8 @@ field path (or CSV row), what was found and what was expected:
 2. the schema (``pipeline.model.schema``: types, missing and extra keys, ordered bounds, ``Ts >
 0``);
 3. cross-field rules here: names that must match, symbols in the dynamics, valid polygons,
-   Init and Goal clear of Unsafe, demo files (inputs within bounds), and each demo's flight
-   (avoids Unsafe, ends in Goal).
+   Init and Goal clear of Unsafe, Init inside ``state_bounds``, demo files (inputs within
+   bounds), and each demo's flight (avoids Unsafe, stays in ``state_bounds``, ends in Goal).
 """
 
 from __future__ import annotations
@@ -188,7 +188,8 @@ def load_scenario(name_or_path: str | Path, check_demos: bool = True) -> Scenari
     """Load and validate a scenario by name (``./scenarios/NAME``, else the shipped one) or by
     path (a folder holding ``scenario.yaml``, or the YAML file).
 
-    With ``check_demos`` every demo is simulated and must avoid Unsafe and end in Goal.
+    With ``check_demos`` every demo is simulated and must avoid Unsafe, stay in ``state_bounds``
+    and end in Goal.
     """
     path = resolve_scenario_path(name_or_path)
     spec = _parse_spec(path)
@@ -386,6 +387,7 @@ def _build(path: Path, spec: ScenarioSpec) -> Scenario:
     position_index = (states.index(spec.position[0]), states.index(spec.position[1]))
     init_lower = np.array([spec.init[s][0] for s in states])
     init_upper = np.array([spec.init[s][1] for s in states])
+    _check_init_in_bounds(path, spec, init_lower, init_upper)
     # The Init box projected on position; a point or a segment when an interval is degenerate.
     corners = [init_lower[list(position_index)], init_upper[list(position_index)]]
     init_box = MultiPoint(corners).envelope
@@ -431,6 +433,23 @@ def _build(path: Path, spec: ScenarioSpec) -> Scenario:
         units=dict(spec.units),
         labels=dict(spec.labels),
     )
+
+
+def _check_init_in_bounds(
+    path: Path, spec: ScenarioSpec, init_lower: FloatArray, init_upper: FloatArray
+) -> None:
+    """Every start must be admissible: the Init box inside ``state_bounds``."""
+    for name, (lower, upper) in spec.state_bounds.items():
+        i = list(spec.states).index(name)
+        if init_lower[i] < lower or init_upper[i] > upper:
+            raise ScenarioError(
+                f"Init leaves state_bounds.{name} = [{lower:g}, {upper:g}]",
+                file=path,
+                field=f"init.{name}",
+                found=[float(init_lower[i]), float(init_upper[i])],
+                expected=f"an interval inside [{lower:g}, {upper:g}] (every start must lie in"
+                " the state bounds)",
+            )
 
 
 def _build_dynamics(path: Path, spec: ScenarioSpec) -> Dynamics:
@@ -521,7 +540,8 @@ def _demo_path(path: Path, index: int, file: str) -> Path:
 
 
 def check_demo_flight(scenario: Scenario, demo: Demo) -> None:
-    """Simulate ``demo`` and raise if it enters Unsafe or ends outside Goal (saying where/when)."""
+    """Simulate ``demo`` and raise if it enters Unsafe, leaves ``state_bounds`` or ends outside
+    Goal (saying where/when)."""
     with np.errstate(over="ignore", invalid="ignore"):
         trajectory = simulate(scenario.dynamics, demo.x0, demo.us, scenario.Ts)
     if not np.all(np.isfinite(trajectory.dense_xs)):
@@ -542,6 +562,17 @@ def check_demo_flight(scenario: Scenario, demo: Demo) -> None:
                 f" position ({X:.3f}, {Y:.3f})",
                 file=demo.file,
                 expected="a flight that never touches Unsafe",
+            )
+    for name, (lower, upper) in scenario.state_bounds.items():
+        values = trajectory.dense_xs[:, scenario.state_names.index(name)]
+        outside = np.flatnonzero((values < lower) | (values > upper))
+        if outside.size:
+            k = outside[0]
+            raise ScenarioError(
+                f"demo '{demo.name}' leaves state_bounds.{name} = [{lower:g}, {upper:g}]"
+                f" at t = {trajectory.dense_ts[k]:.2f} s ({name} = {values[k]:.4g})",
+                file=demo.file,
+                expected="a flight inside the state bounds",
             )
     if not scenario.in_goal(trajectory.final_state):
         X, Y = positions[-1]

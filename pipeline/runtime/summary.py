@@ -262,7 +262,9 @@ def _certificate_claims(run: StageResults, certified: bool) -> tuple[Claim, ...]
             f"controller.json as written (largest eigenvalue {check.contraction_margin:.2e})",
         ),
         Claim(
-            claim="every start in Init lies in a tube that avoids Unsafe and ends in Goal",
+            claim="every start in Init lies in a tube that avoids Unsafe"
+            + (", keeps the state bounds," if run.scenario.state_bounds else "")
+            + " and ends in Goal",
             kind=ClaimKind.CERTIFIED if certified else ClaimKind.NOT_ESTABLISHED,
             how="robustness radii on a dense grid with a bound between grid points; "
             f"Init covered by box subdivision ({run.final_coverage.message}); both re-verified "
