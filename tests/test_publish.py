@@ -333,11 +333,16 @@ def test_a_forged_controller_hash_in_the_manifest_is_refused_in_one_line(run, ca
     assert "synthesize" in error
 
 
-def test_an_untampered_run_is_reported_as_it_summarised_itself(run):
-    """Derived again from the folder, the summary is the run's own, field for field."""
+@pytest.mark.parametrize(
+    "options", [(), pytest.param(("--feedback-period", "0.01"), marks=pytest.mark.slow)]
+)
+def test_an_untampered_run_is_reported_as_it_summarised_itself(run, options):
+    """Derived again from the folder, the summary is the run's own, field for field (with a
+    feedback period: the feedback block at the held law's rate, as the run had it)."""
     scenario, out = run
+    if options:
+        command = ["synthesize", str(scenario), "--out", str(out), "--samples", SAMPLES, "-q"]
+        assert main([*command, *options]) == 0
     data = load_report_data(load_scenario(scenario), out)
-    assert (
-        data.summary.to_json()
-        == Summary.from_json(json.loads((out / "summary.json").read_text())).to_json()
-    )
+    stored = Summary.from_json(json.loads((out / "summary.json").read_text()))
+    assert data.summary.to_json() == stored.to_json()

@@ -226,10 +226,16 @@ def load_report_data(scenario: Scenario, out: Path, write_to: Path | None = None
         law = load(controller)
     except ControllerFormatError as error:
         raise _rerun(controller, scenario, f"controller.json unreadable ({error})") from None
+    feedback = results["feedback"]
+    if law.feedback_period > 0 and not law.funnel:  # the run's tube was at the held rate
+        feedback, held = run_inputs.held_feedback(scenario, feedback, law.feedback_period)
+        if not held.success:
+            what = f"no held feedback every {law.feedback_period:g} s: {held.held_rate:.3g}/s"
+            raise _rerun(controller, scenario, what)
     evidence = Evidence(
         scenario=scenario,
         certificate="funnel" if law.funnel else "constant",
-        feedback=results["feedback"],
+        feedback=feedback,
         covering=results["covering_radius"],
         demo_coverage=results["coverage_demos"],
         coverage=_shipped_coverage(scenario, law, results["coverage_optimized"]),
