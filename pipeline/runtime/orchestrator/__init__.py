@@ -442,8 +442,8 @@ def _synthesize(
         None if stress is None else runner.digest("stress"),
         controller_sha,
     )
-    evidence = (*EVIDENCE_STAGES, *(("stress",) if stress is not None else ()))
-    digests = {name: runner.digest(name) for name in evidence}
+    named = (*EVIDENCE_STAGES, *(("stress",) if stress is not None else ()))
+    digests = {name: runner.digest(name) for name in named}  # what report reads, by content
     write_manifest(scenario, staging, controller_sha, digests, report_key)
     # the published reports are this run's when their key is this one (else written anew)
     current = published_report_key(out) == report_key and _reports_present(out)
