@@ -22,6 +22,7 @@ from pathlib import Path
 from pipeline.io.artifacts import atomic_write_text
 from pipeline.io.errors import UserError
 from pipeline.reporting.summary import Summary
+from pipeline.runtime.outdir import check_complete
 from pipeline.runtime.terminal import format_summary, units_of
 
 COMMAND = "python -m pipeline.runtime.readme_results"
@@ -55,8 +56,9 @@ def results_block(summary: Summary) -> str:
 
 
 def read_summary(folder: Path) -> Summary:
-    """The ``Summary`` of ``folder/summary.json``; a missing or unreadable one is a
-    ``UserError`` naming it."""
+    """The ``Summary`` of ``folder/summary.json``; a missing or unreadable one, or a folder
+    whose publish was cut short (``outdir.check_complete``), is a ``UserError`` naming it."""
+    check_complete(Path(folder), Path(folder).name)
     path = Path(folder) / "summary.json"
     try:
         return Summary.from_json(json.loads(path.read_text()))
