@@ -171,7 +171,7 @@ def simulate_graded(
     """``simulate`` with its own number of RK4 steps on each sample interval: ``x0 (n,)``,
     ``us (N, m)``, ``substeps (N,)`` -> a trajectory whose dense grid has ``substeps[k]`` equal
     steps on ``[t_k, t_k+1)`` (``sum(substeps) + 1`` points). With every ``substeps[k]`` equal it
-    is ``simulate``'s grid, bitwise."""
+    is ``simulate``'s trajectory, bitwise (times included)."""
     x0 = np.asarray(x0, dtype=np.float64)
     us = np.asarray(us, dtype=np.float64)
     steps = np.asarray(substeps)
@@ -184,6 +184,8 @@ def simulate_graded(
         states.append(dense[1:])
         x = dense[-1]
     dense_xs = np.concatenate(states)
+    if np.all(steps == steps[0]):  # simulate's own times
+        times = [(Ts / steps[0]) * np.arange(len(dense_xs))]
     return Trajectory(
         ts=Ts * np.arange(len(us) + 1),
         xs=dense_xs[np.concatenate([[0], np.cumsum(steps)])],
