@@ -187,7 +187,7 @@ def simulate_graded(
     if np.all(steps == steps[0]):  # simulate's own times
         times = [(Ts / steps[0]) * np.arange(len(dense_xs))]
     return Trajectory(
-        ts=Ts * np.arange(len(us) + 1),
+        ts=Ts * np.arange(len(us) + 1, dtype=np.float64),
         xs=dense_xs[np.concatenate([[0], np.cumsum(steps)])],
         us=us,
         dense_ts=np.concatenate(times),
