@@ -18,6 +18,7 @@ from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from types import FrameType
+from typing import NoReturn
 
 from pipeline.controller import ControllerFormatError
 from pipeline.io.errors import UserError
@@ -28,8 +29,16 @@ SCENARIO_HELP = (
 )
 
 
+class _Parser(argparse.ArgumentParser):
+    """A wrong command line is one line too (``error: argument --seed: found '-1'; expected
+    ...``), with where to find the usage instead of printing it; exit code 2."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"error: {message} (usage: {self.prog} --help)\n")
+
+
 def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="python -m pipeline", description=__doc__)
+    parser = _Parser(prog="python -m pipeline", description=__doc__)
     commands = parser.add_subparsers(dest="command", required=True)
 
     synthesize = commands.add_parser("synthesize", help="run the synthesis pipeline on a scenario")
