@@ -93,7 +93,7 @@ def test_ctrl_c_with_workers_prints_one_line_and_exits_130(
             fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)  # released: free at once
         finally:
             os.close(handle)
-        deadline = time.monotonic() + 10  # the fork server ends after its imports
+        deadline = time.monotonic() + 30  # the fork server ends after its imports (seconds)
         while _group(process.pid) and time.monotonic() < deadline:
             time.sleep(0.1)
         assert not _group(process.pid), "processes of the interrupted run remain"
