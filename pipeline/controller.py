@@ -20,16 +20,15 @@ at ``t_k = k Ts``, with ``Q = P^-1`` linear in t between samples (``metric_inter
    tube), or ``BeyondHorizonError`` when the file has none: the law is never extrapolated past
    ``T``.
 
-A NaN or infinite component of ``x0``, ``x`` or ``t`` is a ``ValueError`` naming it (field,
-index, state name), from ``select`` and the law alike: NaN would pass the clip to the actuator.
-
 Gain convention: ``u = u_ref + K e`` with ``e = x - x_ref``, so a stabilising ``K`` is the
 *negative* of ``control.lqr``'s gain (which is written ``u = -K x``).
 
 The controller is immutable (a frozen dataclass over read-only arrays): nothing is stored by
 ``select``, the caller passes the selected ``index`` to every call, and ``with_gain(scale)``
 returns a new controller. Both accept a batch: ``x0 (B, n)`` gives ``index (B,)``, and ``x (B,
-n)`` is then controlled row by row; a single state ``(n,)`` with a scalar index works too.
+n)`` is then controlled row by row; a single state ``(n,)`` with a scalar index works too. A NaN
+or infinite component of ``x0``, ``x`` or ``t`` is a ``ValueError`` naming it (field, index,
+state name), from ``select`` and the law alike: NaN would pass the clip to the actuator.
 
 ``load`` validates every field of the file; anything wrong (a missing or mistyped field, a
 shape, a non-positive radius or ``Ts``, ``lower > upper``, ``P`` not positive definite, times

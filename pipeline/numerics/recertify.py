@@ -161,8 +161,7 @@ def recheck_funnel(
             continue
         failure = check_funnel(scenario, trajectory, funnel, state_bounds)
         margin = float(certificate_margins(Q, K, funnel.vertices, rate, scenario.Ts).max())
-        if funnel.enclosure is None:  # rebuild_funnel always sets it: not an assert (-O)
-            raise TypeError("rebuild_funnel returned a funnel without its enclosure")
+        assert funnel.enclosure is not None
         limits = funnel_limits(scenario, trajectory, Q, K, funnel.enclosure, state_bounds)
         binding = min(limits, key=lambda key: limits[key][0])
         last = FunnelRecheck(
