@@ -33,7 +33,9 @@ Gain convention: ``u = u_ref + K e`` with ``e = x - x_ref``, so a stabilising ``
 The controller is immutable (a frozen dataclass over read-only arrays): nothing is stored by
 ``select``, the caller passes the selected ``index`` to every call, and ``with_gain(scale)``
 returns a new controller. Both accept a batch: ``x0 (B, n)`` gives ``index (B,)``, and ``x (B,
-n)`` is then controlled row by row; a single state ``(n,)`` with a scalar index works too.
+n)`` is then controlled row by row; a single state ``(n,)`` with a scalar index works too. A NaN
+or infinite component of ``x0``, ``x`` or ``t`` is a ``ValueError`` naming it (field, index,
+state name), from ``select`` and the law alike: NaN would pass the clip to the actuator.
 
 ``load`` validates every field of the file; anything wrong (a missing or mistyped field, a
 shape, a non-positive radius or ``Ts``, ``lower > upper``, ``P`` not positive definite, times
@@ -114,6 +116,18 @@ def _frozen(array: np.ndarray) -> np.ndarray:
 def _repeated(matrix: np.ndarray, count: int) -> np.ndarray:
     """``(count, *matrix.shape)``: one matrix repeated, as a read-only view (a /1 file)."""
     return np.broadcast_to(matrix, (count, *matrix.shape))
+
+
+def _finite(field: str, value: np.ndarray, expected: str, names: tuple[str, ...] = ()) -> None:
+    """``ValueError`` naming the first entry of ``value (...)`` that is NaN or infinite: the
+    ``field``, the entry's index and, with ``names`` (of the last axis), its component."""
+    if np.isfinite(value).all():  # 1.5-3 us on a state, against ~60 us for the law's call
+        return
+    where = tuple(int(i) for i in np.argwhere(~np.isfinite(value))[0])
+    label = field + (f"[{', '.join(map(str, where))}]" if where else "")
+    if where and len(names) == value.shape[-1]:
+        label += f" ({names[where[-1]]})"
+    raise ValueError(f"{label} = {value[where]}; expected {expected}")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -267,8 +281,11 @@ class Controller:
 
         A ratio ``< 1`` means covered. A start with ratio ``>= 1`` lies outside every certified
         ball: it still gets the nearest trajectory (in the ratio), with no guarantee; with
-        ``strict=True`` such a start raises ``UncoveredStartError`` instead.
+        ``strict=True`` such a start raises ``UncoveredStartError`` instead. A start with a NaN
+        or infinite component is a ``ValueError`` naming it (it has no ratio to compare).
         """
+        x0 = np.asarray(x0, dtype=np.float64)
+        _finite("x0", x0, "a finite start", self.state_names)
         ratios = self.ratios(x0)
         index = np.argmin(ratios, axis=-1)
         ratio = np.take_along_axis(ratios, index[..., None], axis=-1)[..., 0]
@@ -317,9 +334,14 @@ class Controller:
         ``index (...)`` (from ``select``) -> ``(..., m)``.
 
         Past a trajectory's ``T`` the terminal law applies; without a terminal controller
-        ``t > T`` raises ``BeyondHorizonError`` (the certificate ends at ``T``).
+        ``t > T`` raises ``BeyondHorizonError`` (the certificate ends at ``T``). A NaN or
+        infinite ``t`` or state component is a ``ValueError`` naming it: no input is certified
+        for it, and a NaN would pass through the clip to the actuator.
         """
         x = np.asarray(x, dtype=np.float64)
+        if not math.isfinite(t):
+            raise ValueError(f"t = {t}; expected a finite time (s)")
+        _finite("x", x, "a finite state", self.state_names)
         T = self.horizons(index)
         after = t > T * (1 + TIME_TOLERANCE)  # (...)
         if not np.any(after):

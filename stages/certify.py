@@ -126,20 +126,28 @@ class CertificationResult:
     terminal_fit: float = float("nan")
 
 
+def _feedback(controller: Controller) -> tuple[np.ndarray, np.ndarray, float]:
+    """``(P (n, n), K (m, n), rate)`` of a ``/1`` file's ``feedback`` block (``load`` requires
+    it; a ``TypeError``, not an ``assert`` that ``python -O`` would drop, if it is missing)."""
+    if controller.P is None or controller.K is None or controller.rate is None:
+        raise TypeError(f"{controller.source}: no feedback block (P, K, rate): not a /1 file")
+    return controller.P, controller.K, controller.rate
+
+
 def _held(controller: Controller, A: np.ndarray, B: np.ndarray) -> list[str]:
     """Step 3 for held feedback: ``h`` divides ``Ts`` and the file's rate is at most
     ``lambda_h`` (from the largest rate (C) certifies at the vertices ``A (V, n, n)``, ``B (V, n,
     m)``)."""
-    assert controller.P is not None and controller.K is not None and controller.rate is not None
+    P, K, file_rate = _feedback(controller)
     h = controller.feedback_period
     steps = controller.Ts / h
     if abs(steps - round(steps)) > 1e-9 * steps or steps < 1 - 1e-9:
         return [f"feedback_period {h:g} s does not divide Ts {controller.Ts:g} s"]
-    rate = contraction_rate(controller.P, controller.K, A, B)
-    held = held_rate(controller.P, controller.K, A, B, rate, h)
-    if not controller.rate <= held.held_rate:
+    rate = contraction_rate(P, K, A, B)
+    held = held_rate(P, K, A, B, rate, h)
+    if not file_rate <= held.held_rate:
         return [
-            f"the rate {controller.rate:g} exceeds {held.held_rate:.4g}, the tube rate of the "
+            f"the rate {file_rate:g} exceeds {held.held_rate:.4g}, the tube rate of the "
             f"law held every {h:g} s (continuous rate {rate:.4g})"
         ]
     return []
@@ -148,7 +156,8 @@ def _held(controller: Controller, A: np.ndarray, B: np.ndarray) -> list[str]:
 def verify_terminal(scenario: Scenario, controller: Controller) -> tuple[float, float, list[str]]:
     """Step 6: ``(decay, fit, failures)`` of the file's terminal block."""
     terminal = controller.terminal
-    assert terminal is not None
+    if terminal is None:
+        raise TypeError(f"{controller.source}: no terminal block to verify")
     check = check_level(
         scenario,
         terminal.x_eq,
@@ -193,10 +202,9 @@ def _same_scenario(scenario: Scenario, controller: Controller) -> list[str]:
 def _contraction_margin(controller: Controller, A: np.ndarray, B: np.ndarray) -> float:
     """Largest eigenvalue of ``A_cl^T P + P A_cl + 2 lambda P`` over ``A (V, n, n)``,
     ``B (V, n, m)`` with ``A_cl = A + B K`` (eq. (C) of the module docstring)."""
-    P, K = controller.P, controller.K
-    assert P is not None and K is not None and controller.rate is not None  # a /1 file
+    P, K, rate = _feedback(controller)
     A_cl = A + B @ K  # (V, n, n)
-    M = np.swapaxes(A_cl, 1, 2) @ P + P @ A_cl + 2.0 * controller.rate * P
+    M = np.swapaxes(A_cl, 1, 2) @ P + P @ A_cl + 2.0 * rate * P
     return float(np.linalg.eigvalsh((M + np.swapaxes(M, 1, 2)) / 2).max())
 
 
@@ -205,9 +213,9 @@ def _constant(
 ) -> tuple[float, int, list[float], tuple[float, float]]:
     """Steps 2-4 for a ``/1`` file: ``(contraction margin, vertices, verified radii, (reference
     error, interpolation error))``; what fails is appended to ``failures``."""
-    assert controller.P is not None and controller.K is not None and controller.rate is not None
+    P, K, rate = _feedback(controller)
     # 2. The metric.
-    metric = float(np.linalg.eigvalsh(controller.P)[0])
+    metric = float(np.linalg.eigvalsh(P)[0])
     if not metric > 0:
         failures.append(f"P is not positive definite (smallest eigenvalue {metric:.3g})")
 
@@ -221,18 +229,18 @@ def _constant(
     if controller.feedback_period > 0 and vertices:
         failures += _held(controller, hull.A, hull.B)
     # strictly below zero by more than floating-point rounding of M and of the hull's vertices
-    rounding = ROUNDING_MARGIN * max(1.0, float(np.linalg.norm(controller.P, 2)))
+    rounding = ROUNDING_MARGIN * max(1.0, float(np.linalg.norm(P, 2)))
     if not margin < -rounding:
         failures.append(
-            f"the contraction inequality fails at rate {controller.rate:g}: largest eigenvalue "
+            f"the contraction inequality fails at rate {rate:g}: largest eigenvalue "
             f"{margin:.3g} >= -{rounding:.1g} over {vertices} hull vertices"
         )
 
     # 4. Each reference and its radius, in the file's tube.
     tube = Tube(
-        K=controller.K,
-        P=controller.P,
-        rate=controller.rate,
+        K=K,
+        P=P,
+        rate=rate,
         region=scenario.operating_region,
         state_names=scenario.state_names,
         input_names=scenario.input_names,
@@ -329,7 +337,8 @@ def certify_controller(
     max_depth: int = DEFAULT_DEPTH,
 ) -> CertificationResult:
     """Re-verify the emitted ``controller.json`` at ``path`` against ``scenario`` (steps 1-5 of
-    the module docstring); ``success`` only when every check passes."""
+    the module docstring); ``success`` only when every check passes. No check is an ``assert``:
+    the outcome is the same under ``python -O`` (``tests/stages/test_certify.py`` runs there)."""
     path = Path(path)
 
     def refused(sha256: str, failures: list[str]) -> CertificationResult:
