@@ -508,7 +508,16 @@ def _demo_path(path: Path, index: int, file: str) -> Path:
     """``file`` inside the scenario's folder; an absolute path, or one leading out of the folder
     (``..``, a symbolic link), is refused: a scenario may only read its own files."""
     folder = path.parent.resolve()
-    target = (folder / file).resolve()
+    try:
+        target = (folder / file).resolve()
+    except (RuntimeError, OSError):  # a symbolic-link loop (RuntimeError before Python 3.13)
+        raise ScenarioError(
+            "demo file is a symbolic-link loop",
+            file=path,
+            field=f"demos.{index}.file",
+            found=file,
+            expected="a CSV file inside the scenario folder",
+        ) from None
     if Path(file).is_absolute() or not target.is_relative_to(folder):
         raise ScenarioError(
             "demo file outside the scenario folder",

@@ -2,8 +2,9 @@
 run fails so that nothing it did not certify looks current.
 
 - ``check_output_folder``: ``--out`` must be a folder we can write (``check_report_folder``),
-  and must not hold another scenario's ``controller.json``; each mistake is a ``UserError``
-  (exit 2) before any work.
+  whose own folders (``OWN_FOLDERS``) are folders, not links or files, with no folder where the
+  run writes a file (``check_layout``), and must not hold another scenario's
+  ``controller.json``; each mistake is a ``UserError`` (exit 2) before any work.
 - ``mark_failed``: a run that fails writes ``summary.json`` saying so (stage and reason) and
   renames the previous ``controller.json`` and reports to ``*.stale.*``.
 """
@@ -12,13 +13,17 @@ from __future__ import annotations
 
 import json
 import os
+import stat
 import tempfile
 from pathlib import Path
 
+from pipeline.controller import MAX_BYTES as CONTROLLER_MAX_BYTES
 from pipeline.io.artifacts import atomic_write_json
 from pipeline.io.errors import UserError
+from pipeline.io.files import FileRefused, PathRefused, open_folder, output_root, read_bytes
 
 STALE_FILES = ("controller.json", "report.html", "report.pdf", "scenario.png")
+OWN_FOLDERS = ("artifacts", "artifacts/figures")  # the folders a run writes into, inside OUT
 
 
 def stale_name(path: Path) -> Path:
@@ -29,16 +34,17 @@ def stale_name(path: Path) -> Path:
 def _owner(controller: Path) -> object:
     """The scenario named by an existing ``controller.json`` (``None`` if it names none)."""
     try:
-        document = json.loads(controller.read_text())
-    except (OSError, UnicodeDecodeError, ValueError, RecursionError):
-        return None  # unreadable: ours to regenerate
+        document = json.loads(read_bytes(controller, CONTROLLER_MAX_BYTES))
+    except (OSError, FileRefused, ValueError, RecursionError):
+        return None  # unreadable (or not a regular file): ours to regenerate
     return document.get("scenario") if isinstance(document, dict) else None
 
 
 def check_output_folder(out: Path, scenario_name: str) -> None:
     """Create ``out`` if needed and check, before any computing, that a run can use it."""
-    check_report_folder(out / "artifacts", named=out)
     check_report_folder(out)
+    check_layout(out)
+    check_report_folder(out / "artifacts", named=out)
     owner = _owner(out / "controller.json")
     if owner is not None and owner != scenario_name:
         raise UserError(
@@ -47,6 +53,29 @@ def check_output_folder(out: Path, scenario_name: str) -> None:
             found=owner,
             expected=f"'{scenario_name}'; choose another --out or remove that folder",
         )
+
+
+def check_layout(out: Path) -> None:
+    """``out``'s own folders (``OWN_FOLDERS``, where present) are folders, not links or files,
+    and no folder stands where the run writes a file; else ``PathRefused`` in one line."""
+    written = ("summary.json", *STALE_FILES, *(stale_name(Path(n)).name for n in STALE_FILES))
+    with output_root(out):
+        for name in OWN_FOLDERS:
+            try:
+                os.close(open_folder(out / name))
+            except FileNotFoundError:
+                pass
+        for name in written:
+            try:
+                mode = os.lstat(out / name).st_mode
+            except FileNotFoundError:
+                continue
+            if stat.S_ISDIR(mode):
+                raise PathRefused(
+                    "is a folder where the run writes a file",
+                    file=out / name,
+                    expected="a file: remove or rename that folder",
+                )
 
 
 def check_report_folder(out: Path, named: Path | None = None) -> None:

@@ -19,6 +19,7 @@ from pipeline.io.artifacts import (
     read_stored,
 )
 from pipeline.io.errors import UserError
+from pipeline.io.files import TEXT_MAX_BYTES, FileRefused, is_regular, read_text
 from pipeline.model.scenario import Scenario
 from pipeline.reporting.data import STAGES, ReportData, report_data
 from pipeline.reporting.summary import Summary
@@ -57,11 +58,14 @@ def _rerun(path: Path, scenario: Scenario, what: str) -> UserError:
 
 
 def _read_json(path: Path, scenario: Scenario, what: str) -> Any:
-    if not path.is_file():
-        raise _rerun(path, scenario, f"{what} not found")
+    """``path`` parsed: a regular file of at most ``TEXT_MAX_BYTES`` (``pipeline.io.files``)."""
     try:
-        return json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, ValueError, RecursionError) as error:
+        return json.loads(read_text(path, TEXT_MAX_BYTES))
+    except FileNotFoundError:
+        raise _rerun(path, scenario, f"{what} not found") from None
+    except FileRefused as error:
+        raise _rerun(path, scenario, f"{what} {error.reason}") from None
+    except (OSError, ValueError, RecursionError) as error:
         raise _rerun(path, scenario, f"{what} unreadable ({type(error).__name__})") from None
 
 
@@ -114,9 +118,9 @@ def load_report_data(scenario: Scenario, out: Path, write_to: Path | None = None
             raise _rerun(stem.with_suffix(".json"), scenario, what)
         results[stage], keys[stage] = stored.result, stored.key
     controller = out / "controller.json"
-    if not controller.is_file():
+    if not is_regular(controller):
         raise _rerun(controller, scenario, "controller.json not found")
-    manifest = json.loads((out / "artifacts" / MANIFEST).read_text())  # read by _check_inputs
+    manifest = _read_json(out / "artifacts" / MANIFEST, scenario, "the run's input manifest")
     if file_hash(controller) != manifest.get("controller_sha256"):
         raise _rerun(controller, scenario, "controller.json is not the file the run wrote")
     if len(results["optimize"].trajectories) != len(scenario.demos):
