@@ -103,7 +103,10 @@ def remove_temporaries(folder: Path) -> list[Path]:
 def atomic_write_text(path: Path, text: str, cache: bool = False) -> None:
     """Write ``text`` to ``path`` atomically, as UTF-8; a byte of a file name that is not UTF-8
     (a lone surrogate, ``os.fsdecode``) is written back as that byte (``os.fsencode``)."""
-    data = text.encode("utf-8", "surrogateescape")
+    try:
+        data = text.encode("utf-8", "surrogateescape")
+    except UnicodeEncodeError:  # a lone surrogate that is not an escaped byte: shown, as text
+        data = printable(text).encode("utf-8")
     _atomic(path, lambda stream: stream.write(data), cache=cache)
 
 

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import errno
 import os
+import re
 import stat
 import threading
 from collections.abc import Callable, Iterator
@@ -65,10 +66,19 @@ class FileTooLarge(FileRefused):
     """A file larger than the cap of what reads it."""
 
 
+_SURROGATE = re.compile("[\ud800-\udfff]")
+
+
+def _escaped(match: re.Match[str]) -> str:
+    code = ord(match.group())
+    return f"\\x{code - 0xDC00:02x}" if 0xDC80 <= code <= 0xDCFF else f"\\u{code:04x}"
+
+
 def printable(text: str) -> str:
     """``text`` with each byte of a file name that is not UTF-8 (a lone surrogate from
-    ``os.fsdecode``) written as ``\\xNN``: valid UTF-8 for a page or a terminal."""
-    return text.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+    ``os.fsdecode``) written as ``\\xNN`` (any other lone surrogate as ``\\uNNNN``): valid
+    UTF-8 for a page or a terminal."""
+    return _SURROGATE.sub(_escaped, text)
 
 
 def kind_of(mode: int) -> str:
