@@ -303,6 +303,28 @@ def test_a_demo_that_is_a_fifo_or_a_link_loop_is_one_line(tmp_path, kind):
     assert "demo_01.csv" in line and said in line
 
 
+@pytest.mark.parametrize("kind", ["fifo", "/dev/zero", "loop"])
+def test_a_scenario_file_that_is_not_a_regular_file_is_one_line(tmp_path, kind):
+    """A scenario file that is a FIFO, a device or a link loop is named as such (it was an
+    "unknown scenario"), at once."""
+    scenario = tmp_path / "scenario"
+    shutil.copytree(ROOT / "scenarios" / "double_integrator", scenario)
+    path = scenario / "scenario.yaml"
+    path.unlink()
+    if kind == "fifo":
+        os.mkfifo(path)
+    else:
+        path.symlink_to("/dev/zero" if kind == "/dev/zero" else path)
+    run = run_python("-m", "pipeline", "synthesize", str(scenario), "--out", str(tmp_path / "o"))
+    assert run.returncode == 2
+    said = {
+        "fifo": "is a FIFO (named pipe)",
+        "/dev/zero": "is a character device",
+        "loop": "is a symbolic-link loop",
+    }[kind]
+    assert f"{path}: cannot read scenario file ({said}" in one_line(run.stderr)
+
+
 # --- item 9: any valid path ----------------------------------------------------------------------
 
 

@@ -169,9 +169,10 @@ def resolve_scenario_path(name_or_path: str | Path, root: Path | None = None) ->
     scenarios, ``SCENARIOS_ROOT``); an unknown name lists the known ones.
     """
     candidate = Path(name_or_path)
-    if candidate.is_file():
+    # anything there but a folder is read (a FIFO, device or link loop is refused in one line)
+    if os.path.lexists(candidate) and not candidate.is_dir():
         return candidate
-    if (candidate / "scenario.yaml").is_file():
+    if os.path.lexists(candidate / "scenario.yaml"):
         return candidate / "scenario.yaml"
     roots = [Path.cwd() / LOCAL_SCENARIOS, Path(root if root is not None else SCENARIOS_ROOT)]
     for folder in roots:
