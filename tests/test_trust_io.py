@@ -20,7 +20,7 @@ import pytest
 
 from pipeline.io.artifacts import atomic_save, atomic_write_text
 from pipeline.io.errors import UserError
-from pipeline.io.files import output_root
+from pipeline.io.files import output_root, replace
 from pipeline.io.lock import folder_lock
 from pipeline.runtime.cli import main
 from pipeline.runtime.runner import StageRunner
@@ -181,6 +181,20 @@ def test_a_write_keeps_the_folder_it_opened_when_that_is_swapped_mid_write(tmp_p
         with pytest.raises(UserError, match="is a symbolic link inside the output folder"):
             runner.run("feedback", "key", lambda: 1.0)
     assert list(elsewhere.iterdir()) == []
+
+
+def test_a_move_inside_the_output_folder_follows_no_link(tmp_path):
+    """``replace`` (for publishing staged files) refuses a folder on either way that is a link."""
+    out, elsewhere = tmp_path / "out", tmp_path / "elsewhere"
+    (out / ".staging").mkdir(parents=True)
+    elsewhere.mkdir()
+    (out / ".staging" / "summary.json").write_text("{}")
+    (out / "artifacts").symlink_to(elsewhere, target_is_directory=True)
+    with output_root(out):
+        with pytest.raises(UserError, match="artifacts: is a symbolic link inside the output"):
+            replace(out / ".staging" / "summary.json", out / "artifacts" / "inputs.json")
+        replace(out / ".staging" / "summary.json", out / "summary.json")
+    assert list(elsewhere.iterdir()) == [] and (out / "summary.json").read_text() == "{}"
 
 
 # --- a folder where a file belongs --------------------------------------------------------------

@@ -6,8 +6,9 @@ unbounded, any valid file name works.
   path under it is opened from the held folder's descriptor with ``O_NOFOLLOW``, and so is the
   file itself: a symbolic link, or a file where a folder belongs, planted there before or during
   the run is refused in one line (``PathRefused``, exit 2), never followed, so no write, delete
-  or read leaves the folder. Writes and renames go through those descriptors (``dir_fd``): a
-  folder swapped for a link after it was opened cannot redirect them. The held folder itself,
+  or read leaves the folder. Writes, renames (``replace``) and deletes (``unlink``,
+  ``remove_files``) go through those descriptors (``dir_fd``): a folder swapped for a link after
+  it was opened cannot redirect them. The held folder itself,
   and every path outside one, may be a link (the user's own choice of path).
 - **Bounded reads** (``read_bytes``, ``read_text``, ``open_regular``): only a regular file is
   read (a FIFO, device, socket or folder is refused; opened with ``O_NONBLOCK``, so that a FIFO
@@ -252,6 +253,27 @@ def unlink(path: Path | str) -> None:
         pass
     finally:
         os.close(folder)
+
+
+def replace(source: Path | str, target: Path | str) -> None:
+    """``os.replace(source, target)`` through the descriptors of both folders
+    (``open_folder``): inside a held output folder no link on either way is followed, so a
+    folder swapped for a link cannot redirect the move (``PathRefused``)."""
+    source, target = os.path.abspath(source), os.path.abspath(target)
+    origin = open_folder(os.path.dirname(source))
+    try:
+        destination = open_folder(os.path.dirname(target))
+        try:
+            os.replace(
+                os.path.basename(source),
+                os.path.basename(target),
+                src_dir_fd=origin,
+                dst_dir_fd=destination,
+            )
+        finally:
+            os.close(destination)
+    finally:
+        os.close(origin)
 
 
 def remove_files(folder: Path | str, remove: Callable[[str], bool]) -> list[str]:
