@@ -37,7 +37,9 @@ n)`` is then controlled row by row; a single state ``(n,)`` with a scalar index 
 or infinite component of ``x0``, ``x`` or ``t`` is a ``ValueError`` naming it (field, index,
 state name), from ``select`` and the law alike: NaN would pass the clip to the actuator.
 
-``load`` validates every field of the file; anything wrong (a missing or mistyped field, a
+``load`` reads a regular file of at most ``MAX_BYTES`` (256 MiB; a FIFO, device or folder is
+refused without waiting on it, a symbolic-link loop is one line) and validates every field of the
+file; anything wrong (a missing or mistyped field, a
 shape, a non-positive radius or ``Ts``, ``lower > upper``, ``P`` not positive definite, times
 that do not increase, ``T`` that disagrees with ``t`` and ``u_ref``, bytes that are not UTF-8
 JSON) raises ``ControllerFormatError`` naming the field. The optional fields (``terminal``,
@@ -51,6 +53,8 @@ import dataclasses
 import hashlib
 import json
 import math
+import os
+import stat
 import threading
 from collections import OrderedDict
 from collections.abc import Callable, Mapping
@@ -66,6 +70,7 @@ INVERSE_LINEAR = "inverse-linear"  # Q = P^-1 linear in t between samples
 TIME_TOLERANCE = 1e-9  # relative, for t[0] = 0 and t[-1] = T
 SAMPLE_TOLERANCE = 1e-6  # in samples, for T = N Ts
 SYMMETRY_TOLERANCE = 1e-9  # relative, for P = P^T
+MAX_BYTES = 256 * 2**20  # a controller.json read: 9 funnel trajectories take 1.5 MB
 
 
 class ControllerFormatError(ValueError):
@@ -606,10 +611,7 @@ def load(path: str | Path) -> Controller:
     one of the last few loaded in this process gives that (immutable) controller again instead
     of being parsed anew (~30 ms for a 1.5 MB file): any change of the bytes is a new parse."""
     path = Path(path)
-    try:
-        raw = path.read_bytes()
-    except OSError as error:
-        raise ControllerFormatError(f"{path}: cannot read ({error.strerror})") from None
+    raw = _read(path)
     key = (str(path), hashlib.sha256(raw).hexdigest())
     with _LOADED_LOCK:
         if key in _LOADED:
@@ -621,6 +623,37 @@ def load(path: str | Path) -> Controller:
         while len(_LOADED) > _LOADED_MAX:
             _LOADED.popitem(last=False)
     return controller
+
+
+_KINDS = {
+    stat.S_IFDIR: "a folder",
+    stat.S_IFIFO: "a FIFO (named pipe)",
+    stat.S_IFCHR: "a character device",
+    stat.S_IFBLK: "a block device",
+    stat.S_IFSOCK: "a socket",
+}
+
+
+def _read(path: Path) -> bytes:
+    """The bytes of the regular file ``path``, at most ``MAX_BYTES``: opened with
+    ``O_NONBLOCK`` so that a FIFO cannot hang the open, checked with ``fstat`` before reading."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
+    except OSError as error:
+        raise ControllerFormatError(f"{path}: cannot read ({error.strerror})") from None
+    status = os.fstat(fd)
+    if not stat.S_ISREG(status.st_mode):
+        os.close(fd)
+        kind = _KINDS.get(stat.S_IFMT(status.st_mode), "not a regular file")
+        raise ControllerFormatError(f"{path}: is {kind}; expected a controller.json file")
+    with os.fdopen(fd, "rb") as stream:
+        raw = stream.read(MAX_BYTES + 1) if status.st_size <= MAX_BYTES else b""
+    if status.st_size > MAX_BYTES or len(raw) > MAX_BYTES:
+        raise ControllerFormatError(
+            f"{path}: larger than {MAX_BYTES // 2**20} MiB; expected a controller.json file "
+            "(9 funnel trajectories take 1.5 MB)"
+        )
+    return raw
 
 
 def _parse_bytes(raw: bytes, path: Path) -> Controller:

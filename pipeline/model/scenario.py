@@ -169,9 +169,10 @@ def resolve_scenario_path(name_or_path: str | Path, root: Path | None = None) ->
     scenarios, ``SCENARIOS_ROOT``); an unknown name lists the known ones.
     """
     candidate = Path(name_or_path)
-    if candidate.is_file():
+    # anything there but a folder is read (a FIFO, device or link loop is refused in one line)
+    if os.path.lexists(candidate) and not candidate.is_dir():
         return candidate
-    if (candidate / "scenario.yaml").is_file():
+    if os.path.lexists(candidate / "scenario.yaml"):
         return candidate / "scenario.yaml"
     roots = [Path.cwd() / LOCAL_SCENARIOS, Path(root if root is not None else SCENARIOS_ROOT)]
     for folder in roots:
@@ -527,7 +528,16 @@ def _demo_path(path: Path, index: int, file: str) -> Path:
     """``file`` inside the scenario's folder; an absolute path, or one leading out of the folder
     (``..``, a symbolic link), is refused: a scenario may only read its own files."""
     folder = path.parent.resolve()
-    target = (folder / file).resolve()
+    try:
+        target = (folder / file).resolve()
+    except (RuntimeError, OSError):  # a symbolic-link loop (RuntimeError before Python 3.13)
+        raise ScenarioError(
+            "demo file is a symbolic-link loop",
+            file=path,
+            field=f"demos.{index}.file",
+            found=file,
+            expected="a CSV file inside the scenario folder",
+        ) from None
     if Path(file).is_absolute() or not target.is_relative_to(folder):
         raise ScenarioError(
             "demo file outside the scenario folder",

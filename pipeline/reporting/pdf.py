@@ -17,10 +17,17 @@ from __future__ import annotations
 import hashlib
 import shutil
 from dataclasses import dataclass
-from functools import partial
 from pathlib import Path
 
 from pipeline.io.artifacts import atomic_save
+from pipeline.io.files import (
+    ARTIFACT_MAX_BYTES,
+    TEXT_MAX_BYTES,
+    FileRefused,
+    is_regular,
+    read_bytes,
+    unlink,
+)
 from pipeline.reporting.browser import BrowserError, Printer
 from pipeline.reporting.figure_cache import FigureStore, digest_of
 
@@ -54,14 +61,6 @@ def find_browser() -> Path | None:
     return None
 
 
-def _write(content: bytes, target: Path) -> None:
-    target.write_bytes(content)
-
-
-def _copy(source: Path, target: Path) -> None:
-    shutil.copyfile(source, target)
-
-
 def _pages(path: Path) -> int:
     from pypdf import PdfReader
 
@@ -92,7 +91,7 @@ class PdfJob:
         """Print the written ``html`` file to ``target`` (or reuse the PDF of the same HTML);
         see the module docstring for a missing or failing browser."""
         if self.browser is None:
-            target.unlink(missing_ok=True)
+            unlink(target)
             return PdfOutcome(
                 path=None,
                 pages=0,
@@ -101,20 +100,22 @@ class PdfJob:
                 f"({INSTALL}; or print report.html from any browser)",
             )
         stat = self.browser.resolve().stat()
-        text = hashlib.sha256(html.read_bytes()).hexdigest()
+        text = hashlib.sha256(read_bytes(html, TEXT_MAX_BYTES)).hexdigest()
         kept = self.store.pdf_file(digest_of("pdf", text, str(self.browser), stat.st_mtime_ns))
-        reused = kept.is_file()
+        reused = is_regular(kept)
         try:
             if not reused:
                 printer = self.printer or self._start(self.browser)
                 if printer is None:
                     raise BrowserError(self.error)
                 printed = printer.print_pdf(html)
-                atomic_save(kept, partial(_write, printed), ".pdf")
-            atomic_save(target, partial(_copy, kept), ".pdf")
-        except (OSError, BrowserError) as error:
-            target.unlink(missing_ok=True)
-            kept.unlink(missing_ok=True)
+                atomic_save(kept, lambda stream: stream.write(printed), ".pdf", cache=True)
+            else:
+                printed = read_bytes(kept, ARTIFACT_MAX_BYTES)
+            atomic_save(target, lambda stream: stream.write(printed), ".pdf")
+        except (OSError, BrowserError, FileRefused) as error:
+            unlink(target)
+            unlink(kept)
             return PdfOutcome(
                 path=None, pages=0, reused=False, message=f"report.pdf not written: {error}"
             )

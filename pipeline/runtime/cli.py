@@ -22,6 +22,7 @@ from typing import NoReturn
 
 from pipeline.controller import ControllerFormatError
 from pipeline.io.errors import UserError
+from pipeline.io.files import printable
 from pipeline.runtime.options import RunOptions, add_arguments, from_arguments
 
 SCENARIO_HELP = (
@@ -146,7 +147,7 @@ def _run(args: argparse.Namespace) -> int:
         with show_progress(verbose=options.verbose, quiet=options.quiet):
             result = synthesize(args.scenario, out=args.out, **computed)
         scenario = None if options.quiet else units_of(args.scenario)
-        print(format_result(result, scenario=scenario, quiet=options.quiet))
+        print(printable(format_result(result, scenario=scenario, quiet=options.quiet)))
         return result.exit_code
     if args.command == "demos":
         from pipeline.demonstrations.pilot import regenerate_demos
@@ -158,7 +159,7 @@ def _run(args: argparse.Namespace) -> int:
 
         written = rebuild_reports(args.scenario, source=args.source, out=args.out)
         files = [written.html, *([written.pdf] if written.pdf is not None else [])]
-        print(f"{written.message}:" + "".join(f"\n  {path}" for path in files))
+        print(printable(f"{written.message}:" + "".join(f"\n  {path}" for path in files)))
         return 0
     if args.command == "schema":
         from pipeline.model.schema import json_schema

@@ -32,6 +32,7 @@ from pipeline.io.artifacts import (
     read_stored,
 )
 from pipeline.io.errors import UserError
+from pipeline.io.files import TEXT_MAX_BYTES, FileRefused, is_regular, read_text
 from pipeline.model.scenario import Scenario
 from pipeline.reporting.data import STAGES, ReportData, report_data
 from pipeline.reporting.summary import StressSummary, Summary, Verdict
@@ -92,8 +93,8 @@ def published_report_key(out: Path) -> str | None:
     if (Path(out) / INCOMPLETE).exists():
         return None
     try:
-        manifest = json.loads((Path(out) / "artifacts" / MANIFEST).read_text())
-    except (OSError, UnicodeDecodeError, ValueError, RecursionError):
+        manifest = json.loads(read_text(Path(out) / "artifacts" / MANIFEST, TEXT_MAX_BYTES))
+    except (OSError, FileRefused, ValueError, RecursionError):
         return None
     key = manifest.get("report_key") if isinstance(manifest, dict) else None
     return key if isinstance(key, str) else None
@@ -109,11 +110,14 @@ def _rerun(path: Path, scenario: Scenario, what: str) -> UserError:
 
 
 def _read_json(path: Path, scenario: Scenario, what: str) -> Any:
-    if not path.is_file():
-        raise _rerun(path, scenario, f"{what} not found")
+    """``path`` parsed: a regular file of at most ``TEXT_MAX_BYTES`` (``pipeline.io.files``)."""
     try:
-        return json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, ValueError, RecursionError) as error:
+        return json.loads(read_text(path, TEXT_MAX_BYTES))
+    except FileNotFoundError:
+        raise _rerun(path, scenario, f"{what} not found") from None
+    except FileRefused as error:
+        raise _rerun(path, scenario, f"{what} {error.reason}") from None
+    except (OSError, ValueError, RecursionError) as error:
         raise _rerun(path, scenario, f"{what} unreadable ({type(error).__name__})") from None
 
 
@@ -202,7 +206,7 @@ def load_report_data(scenario: Scenario, out: Path, write_to: Path | None = None
     except ValueError as error:
         raise _rerun(summary_path, scenario, f"not a run summary ({error})") from None
     controller = out / "controller.json"
-    if not controller.is_file():
+    if not is_regular(controller):
         raise _rerun(controller, scenario, "controller.json not found")
     sha256 = file_hash(controller)
     if sha256 != manifest.get("controller_sha256"):
