@@ -1,4 +1,5 @@
-"""Executors: identical results on any of them, retries, and failures reported by chunk.
+"""Executors: identical results on any of them, a lost worker's chunk retried once, an error
+raised by the work never re-run, and failures reported by chunk with the work's traceback.
 
 The local worker processes are forked from multiprocessing's fork server and import this module
 to find the functions they run: it imports only the executor at the top (the stages, ~2 s of
@@ -8,6 +9,7 @@ imports per process, only where a test needs them).
 from __future__ import annotations
 
 import os
+import traceback
 from pathlib import Path
 
 import numpy as np
@@ -29,23 +31,39 @@ def _environment_variable(name):
     return os.environ.get(name)
 
 
-def _fails_once(path_and_value):
-    """Fails the first time it sees a value (a marker file records it), then succeeds."""
+def _count_call(folder, value):
+    """Append ``value`` to ``folder/calls`` (one line per call, from any process)."""
+    with open(Path(folder) / "calls", "a") as calls:
+        calls.write(f"{value}\n")
+
+
+def calls(folder):
+    path = Path(folder) / "calls"
+    return path.read_text().split() if path.exists() else []
+
+
+def _type_error_in_chunk_2(path_and_value):
+    """A deterministic bug in chunk 2; every call is counted."""
     folder, value = path_and_value
-    marker = Path(folder) / f"seen_{value}"
-    if not marker.exists():
-        marker.write_text("x")
-        raise RuntimeError("transient")
+    _count_call(folder, value)
+    if value == 2:
+        return value + "2"  # TypeError, raised here
     return value
 
 
 def _dies_once(path_and_value):
+    """Chunk 2's worker process dies the first time (a marker file records it)."""
     folder, value = path_and_value
+    _count_call(folder, value)
     marker = Path(folder) / f"died_{value}"
     if value == 2 and not marker.exists():
         marker.write_text("x")
         os._exit(1)  # the worker process dies
     return value
+
+
+def _always_dies(value):
+    os._exit(1)
 
 
 @pytest.fixture(scope="module", params=["serial", "processes"])
@@ -59,13 +77,19 @@ def test_results_keep_the_order_of_the_items(executor):
     assert executor.map(_square, [3, 1, 2]) == [9, 1, 4]
 
 
-def test_a_chunk_that_fails_once_is_retried(executor, tmp_path):
+def test_an_error_raised_by_the_work_is_not_rerun_and_keeps_its_traceback(executor, tmp_path):
     items = [(str(tmp_path), v) for v in range(4)]
-    assert executor.map(_fails_once, items) == [0, 1, 2, 3]
+    with pytest.raises(ChunkFailed, match="chunk 2 failed: TypeError") as error:
+        executor.map(_type_error_in_chunk_2, items)
+    assert error.value.chunk == 2 and not error.value.lost
+    assert isinstance(error.value.__cause__, TypeError)
+    assert calls(tmp_path).count("2") == 1  # run once, not retried
+    # where it was raised, in the worker for processes: in the text a failed run saves
+    assert "in _type_error_in_chunk_2" in "".join(traceback.format_exception(error.value))
 
 
-def test_a_chunk_that_keeps_failing_is_reported_with_its_id(executor):
-    with pytest.raises(ChunkFailed, match="chunk 0 failed twice") as error:
+def test_a_chunk_that_fails_is_reported_with_its_id(executor):
+    with pytest.raises(ChunkFailed, match="chunk 0 failed: ValueError: bad chunk 7") as error:
         executor.map(_always_fails, [7, 8])
     assert error.value.chunk == 0
 
@@ -74,8 +98,37 @@ def test_a_dead_worker_is_replaced_and_its_chunk_retried(tmp_path):
     pool = ProcessExecutor(2)
     try:
         assert pool.map(_dies_once, [(str(tmp_path), v) for v in range(4)]) == [0, 1, 2, 3]
+        assert calls(tmp_path).count("2") == 2  # lost once, retried once
+        assert pool.map(_square, [5]) == [25]  # the fresh pool serves the next map
     finally:
         pool.close()
+
+
+def test_a_chunk_whose_worker_dies_twice_is_reported_as_lost():
+    pool = ProcessExecutor(1)
+    try:
+        with pytest.raises(ChunkFailed, match="chunk 0 lost its worker twice") as error:
+            pool.map(_always_dies, [0])
+        assert error.value.lost
+    finally:
+        pool.close()
+
+
+def test_dask_reruns_a_lost_worker_s_chunk_but_not_an_error_of_the_work(tmp_path):
+    pytest.importorskip("dask.distributed")
+    made = make_executor("dask-local", 2)
+    try:
+        items = [(str(tmp_path / "bug"), v) for v in range(4)]
+        (tmp_path / "bug").mkdir()
+        with pytest.raises(ChunkFailed, match="chunk 2 failed: TypeError") as error:
+            made.map(_type_error_in_chunk_2, items)
+        assert calls(tmp_path / "bug").count("2") == 1
+        assert "in _type_error_in_chunk_2" in "".join(traceback.format_exception(error.value))
+        items = [(str(tmp_path), v) for v in range(4)]
+        assert made.map(_dies_once, items) == [0, 1, 2, 3]
+        assert calls(tmp_path).count("2") == 2
+    finally:
+        made.close()
 
 
 def test_workers_see_the_environment_of_their_pool_not_of_the_fork_server(monkeypatch):

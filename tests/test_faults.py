@@ -164,6 +164,7 @@ def test_failed_stage_writes_a_failed_summary_and_stales_old_outputs(run, capsys
     summary = json.loads((out / "summary.json").read_text())
     assert summary["status"] == "failed" and summary["stage"] == "montecarlo"
     assert "worker lost" in summary["reason"] and summary["verdict"]["certified"] is False
+    assert "in broken" in "\n".join(summary["traceback"])
     assert not (out / "controller.json").exists() and (out / "controller.stale.json").is_file()
     assert not (out / "report.html").exists() and (out / "report.stale.html").is_file()
 
@@ -173,6 +174,45 @@ def test_failed_stage_writes_a_failed_summary_and_stales_old_outputs(run, capsys
     monkeypatch.undo()  # the next good run clears the stale files
     assert synthesize(run, "-q") == 0
     assert (out / "controller.json").is_file() and not list(out.glob("*.stale.*"))
+
+
+def _type_error_in_a_worker(folder: str) -> None:
+    """A deterministic bug in a Monte Carlo chunk; each call appends a line to ``folder/calls``.
+    Module level: a worker process imports this module to find it."""
+    with open(Path(folder) / "calls", "a") as calls:
+        calls.write("called\n")
+    return folder + 1  # type: ignore[operator]  # TypeError, raised here
+
+
+def test_a_crash_in_a_worker_is_run_once_and_its_traceback_saved(
+    run, tmp_path, capsys, monkeypatch
+):
+    scenario, out = run
+
+    def montecarlo(*args, executor, **kwargs):
+        return executor.map(_type_error_in_a_worker, [str(tmp_path)])
+
+    monkeypatch.setattr(orchestrator, "validate_closed_loop", montecarlo)
+    rerun = ["synthesize", str(scenario), "--out", str(out), "--samples", "200"]  # a new key
+    assert main([*rerun, "--jobs", "2", "-q"]) == 1
+    printed = capsys.readouterr()
+    assert (tmp_path / "calls").read_text() == "called\n"  # not retried
+    # one line, saying where the traceback is; no traceback on the terminal
+    assert (
+        printed.out.startswith("failed: stage montecarlo: ChunkFailed: chunk 0 failed: TypeError: ")
+        and printed.out.count("\n") == 1
+    ), printed.out
+    assert f"({out / 'summary.json'}, with the traceback;" in printed.out
+    assert printed.err == ""
+    summary = json.loads((out / "summary.json").read_text())
+    saved = "\n".join(summary["traceback"])
+    assert "in _type_error_in_a_worker" in saved and "return folder + 1" in saved  # the worker's
+
+    assert main([*rerun, "-v"]) == 1  # in this process (one job); -v prints the traceback
+    printed = capsys.readouterr()
+    assert (tmp_path / "calls").read_text() == "called\n" * 2
+    assert "stage montecarlo raised\nTraceback (most recent call last):" in printed.err
+    assert "in _type_error_in_a_worker" in printed.err
 
 
 def test_uncertifiable_feedback_is_exit_1_with_a_failed_summary(run, capsys, monkeypatch):

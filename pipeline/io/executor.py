@@ -13,8 +13,14 @@ the order of ``items``) and ``close()``:
 - ``"dask-local"``: a ``dask.distributed`` LocalCluster with ``jobs`` workers;
 - ``"dask://HOST:PORT"``: an existing Dask scheduler (``pip install .[dask]``).
 
-A chunk that raises (or whose worker dies) is retried once; a second failure raises
-``ChunkFailed`` naming the chunk, so no work is ever silently dropped.
+A chunk whose worker is lost (killed, out of memory: ``BrokenProcessPool``) is retried once,
+alone on a fresh pool; lost again, it raises ``ChunkFailed`` naming the chunk, so no work is
+ever silently dropped. (Dask's scheduler reruns a lost worker's tasks itself, up to
+``distributed.scheduler.allowed-failures`` times; a ``KilledWorker`` after that, or a closed
+connection, is retried once the same way.) An exception raised by the
+work itself (a bug, bad input) is never re-run: ``map`` raises ``ChunkFailed`` at once, the
+work's exception, with its traceback (the worker's, for a worker), as its ``__cause__``, and the
+chunks not yet started are cancelled.
 
 Ctrl-C is the run's alone: the terminal sends SIGINT to the whole process group, but the fork
 server and the local workers never act on it (the server starts with SIGINT blocked, the workers
@@ -47,13 +53,14 @@ PINNED_THREADS = {
 
 
 class ChunkFailed(RuntimeError):
-    """A chunk failed twice; ``chunk`` is its index in the submitted items."""
+    """Chunk ``chunk`` (its index in the submitted items) raised ``error`` (its ``__cause__``),
+    or its worker was lost twice (``lost``)."""
 
-    def __init__(self, chunk: int, error: BaseException) -> None:
+    def __init__(self, chunk: int, error: BaseException, *, lost: bool = False) -> None:
         self.chunk = chunk
-        super().__init__(
-            f"chunk {chunk} failed twice (retried once): {type(error).__name__}: {error}"
-        )
+        self.lost = lost
+        what = "lost its worker twice (retried once)" if lost else "failed"
+        super().__init__(f"chunk {chunk} {what}: {type(error).__name__}: {error}")
 
 
 class Executor(Protocol):
@@ -80,11 +87,8 @@ class SerialExecutor:
         for index, item in enumerate(items):
             try:
                 results.append(function(item))
-            except Exception:
-                try:
-                    results.append(function(item))
-                except Exception as error:
-                    raise ChunkFailed(index, error) from error
+            except Exception as error:  # no worker to lose: the work's own error
+                raise ChunkFailed(index, error) from error
             if done:
                 done(index)
         return results
@@ -211,16 +215,19 @@ class ProcessExecutor:
         done: Callable[[int], None] | None = None,
     ) -> list[Any]:
         try:
-            futures: list[Future[Any]] = [self._start().submit(function, item) for item in items]
+            pool = self._start()
+            futures: list[Future[Any]] = [pool.submit(function, item) for item in items]
             results = []
             for index, future in enumerate(futures):
                 try:
                     result = future.result()
-                except BrokenProcessPool:
-                    self._pool = None  # a worker died: a fresh pool for the retry
+                except BrokenProcessPool:  # a worker died: once more, alone, on a fresh pool
+                    self._discard(pool)
                     result = self._retry(function, items[index], index)
-                except Exception:
-                    result = self._retry(function, items[index], index)
+                except Exception as error:  # raised by the work: never re-run
+                    for queued in futures:
+                        queued.cancel()
+                    raise ChunkFailed(index, error) from error
                 results.append(result)
                 if done:
                     done(index)
@@ -230,13 +237,21 @@ class ProcessExecutor:
             raise
 
     def _retry(self, function: Callable[[Any], Any], item: Any, index: int) -> Any:
+        pool = self._start()
         try:
-            return self._start().submit(function, item).result()
+            return pool.submit(function, item).result()
         except BrokenProcessPool as error:
-            self._pool = None
-            raise ChunkFailed(index, error) from error
+            self._discard(pool)
+            raise ChunkFailed(index, error, lost=True) from error
         except Exception as error:
             raise ChunkFailed(index, error) from error
+
+    def _discard(self, pool: ProcessPoolExecutor) -> None:
+        """Forget the broken ``pool`` (once: the chunks after a lost one find it broken too, and
+        keep the fresh pool their predecessor's retry started)."""
+        if self._pool is pool:
+            self._pool = None
+            pool.shutdown(wait=False)
 
     def close(self) -> None:
         if self._pool is not None:
@@ -288,13 +303,25 @@ class DaskExecutor:
         items: Sequence[Any],
         done: Callable[[int], None] | None = None,
     ) -> list[Any]:
-        futures = [self.client.submit(function, item, retries=1, pure=False) for item in items]
+        from distributed import KilledWorker
+        from distributed.comm import CommClosedError
+
+        futures = [self.client.submit(function, item, pure=False) for item in items]
         results = []
         for index, future in enumerate(futures):
             try:
-                results.append(future.result())
-            except Exception as error:
+                result = future.result()
+            except (KilledWorker, CommClosedError):  # its worker was lost: once more
+                try:
+                    result = self.client.submit(function, items[index], pure=False).result()
+                except (KilledWorker, CommClosedError) as error:
+                    raise ChunkFailed(index, error, lost=True) from error
+                except Exception as error:
+                    raise ChunkFailed(index, error) from error
+            except Exception as error:  # raised by the work: never re-run
+                self.client.cancel(futures)
                 raise ChunkFailed(index, error) from error
+            results.append(result)
             if done:
                 done(index)
         return results

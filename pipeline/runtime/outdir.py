@@ -186,11 +186,13 @@ def publish(out: Path, staging: Path, certified: bool) -> None:
     _remove(staging)
 
 
-def mark_failed(out: Path, scenario_name: str, stage: str, reason: str) -> list[Path]:
-    """Write ``out/summary.json`` for a failed run and rename the previous run's controller and
-    reports to ``*.stale.*``; returns the renamed files (their new names). What the run staged
-    is removed, and so is the ``INCOMPLETE`` marker: the failed summary says what the folder
-    holds."""
+def mark_failed(
+    out: Path, scenario_name: str, stage: str, reason: str, traceback: list[str] | None = None
+) -> list[Path]:
+    """Write ``out/summary.json`` for a failed run (with the ``traceback`` lines of a crash) and
+    rename the previous run's controller and reports to ``*.stale.*``; returns the renamed files
+    (their new names). What the run staged is removed, and so is the ``INCOMPLETE`` marker: the
+    failed summary says what the folder holds."""
     _remove(out / STAGING)
     renamed = []
     for name in STALE_FILES:
@@ -207,6 +209,7 @@ def mark_failed(out: Path, scenario_name: str, stage: str, reason: str) -> list[
             "reason": reason,
             "verdict": {"text": f"failed at stage {stage}", "certified": False},
             "stale": [p.name for p in renamed],
+            **({"traceback": traceback} if traceback else {}),
         },
     )
     files.unlink(out / INCOMPLETE)

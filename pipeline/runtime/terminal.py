@@ -52,11 +52,15 @@ MEANING = {
 @contextmanager
 def show_progress(*, verbose: bool = False, quiet: bool = False) -> Iterator[None]:
     """While open, print the ``pipeline`` logger's messages: each stage's line (INFO) on stdout,
-    with ``verbose`` the optimizer's iteration logs (DEBUG), with ``quiet`` warnings only (on
-    stderr). The logger is left as it was found."""
+    with ``verbose`` the optimizer's iteration logs (DEBUG) and a crashed stage's traceback, with
+    ``quiet`` warnings only (on stderr). Without ``verbose`` a message that carries a traceback
+    is not printed: the result's one line says what failed and where the traceback is saved.
+    The logger is left as it was found."""
     logger = logging.getLogger(LOGGER)
     handler = _StdoutHandler()
     handler.setFormatter(logging.Formatter("%(message)s"))
+    if not verbose:
+        handler.addFilter(lambda record: record.exc_info is None)
     level = logger.level
     logger.setLevel(logging.DEBUG if verbose else logging.WARNING if quiet else logging.INFO)
     logger.addHandler(handler)

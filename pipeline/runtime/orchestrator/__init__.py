@@ -35,6 +35,7 @@ import dataclasses
 import logging
 import sys
 import time
+import traceback
 from collections.abc import Sequence
 from pathlib import Path
 from typing import TypeVar
@@ -193,21 +194,28 @@ def run_synthesis(
             return _synthesize(scenario, out, staging, options, executor, runner, started)
         except (UserError, KeyboardInterrupt):
             raise
-        except Exception as error:
-            return _failed(out, scenario, runner.current, f"{type(error).__name__}: {error}")
+        except Exception as error:  # a crash: its traceback logged and saved
+            log.error(f"stage {runner.current} raised", exc_info=error)
+            reason = f"{type(error).__name__}: {error}"
+            return _failed(out, scenario, runner.current, reason, crash=error)
         finally:
             executor.close()
 
 
-def _failed(out: Path, scenario: Scenario, stage: str, reason: str) -> Synthesis:
-    """Record a failed run (``summary.json``, stale outputs renamed); its ``Synthesis``."""
-    stale = mark_failed(out, scenario.name, stage, reason)
+def _failed(
+    out: Path, scenario: Scenario, stage: str, reason: str, crash: Exception | None = None
+) -> Synthesis:
+    """Record a failed run (``summary.json``, with the traceback of the exception ``crash`` if
+    one ended it; stale outputs renamed); its ``Synthesis``."""
+    lines = "".join(traceback.format_exception(crash)).splitlines() if crash else None
+    stale = mark_failed(out, scenario.name, stage, reason, traceback=lines)
+    saved = f"{out / 'summary.json'}{', with the traceback' if crash else ''}"
     renamed = f"; previous outputs renamed: {', '.join(p.name for p in stale)}" if stale else ""
     return Synthesis(
         scenario=scenario.name,
         verdict=Verdict.FAILED,
         success=False,
-        message=f"failed: stage {stage}: {reason} ({out / 'summary.json'}{renamed})",
+        message=f"failed: stage {stage}: {reason} ({saved}{renamed})",
         claims=(),
         controller=None,
         demos=(),
