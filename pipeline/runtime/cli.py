@@ -11,6 +11,7 @@ import argparse
 import errno
 import json
 import sys
+import time
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -90,7 +91,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 def _run(args: argparse.Namespace) -> int:
     if args.command == "synthesize":
         from pipeline.runtime.api import synthesize
-        from pipeline.runtime.terminal import format_result, show_progress, units_of
+        from pipeline.runtime.terminal import format_done, format_result, show_progress, units_of
 
         options = from_arguments(RunOptions, args)
         computed = {  # every option but how much to print
@@ -98,10 +99,13 @@ def _run(args: argparse.Namespace) -> int:
             for name in RunOptions.__dataclass_fields__
             if name not in ("verbose", "quiet")
         }
+        started = time.monotonic()
         with show_progress(verbose=options.verbose, quiet=options.quiet):
             result = synthesize(args.scenario, out=args.out, **computed)
         scenario = None if options.quiet else units_of(args.scenario)
         print(format_result(result, scenario=scenario, quiet=options.quiet))
+        if not options.quiet:
+            print(f"\n{format_done(result, time.monotonic() - started)}")
         return result.exit_code
     if args.command == "demos":
         from pipeline.demonstrations.pilot import regenerate_demos
