@@ -7,8 +7,8 @@ the pipeline is run into the temporary folder first (``--samples 1000``).
 (a) Report stage, as ``synthesize`` runs it (``write_reports(load_report_data(...))``: read the
     artifacts, write report.html, scenario.png and report.pdf (typeset by Typst); the scenario
     loaded before): with an empty figure cache (every figure drawn, the PDF typeset) and again
-    with the cache of the first (nothing changed: every figure and the PDF reused); limit 3 s. ``bench_report`` runs the
-    same stage side by side with the code before the report rework.
+    with the cache of the first (nothing changed: every figure and the PDF reused); limit 3 s.
+    ``bench_report`` runs the same stage side by side with the code before the report rework.
 (b) Monte Carlo stage at the default size (``RunOptions().samples``) with 2 worker processes,
     as ``synthesize --jobs 2`` runs it (pool start-up and the falsification search included);
     limit 10 s. The rollouts/s against the flop anchor and the 10^6-run wall time are in

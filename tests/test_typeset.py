@@ -139,3 +139,14 @@ def test_a_figure_fits_the_column_and_the_page() -> None:
 def test_a_figure_without_its_svg_is_an_error() -> None:
     with pytest.raises(ValueError, match=r"no SVG for the figures \['plot'\]"):
         typeset.document_inputs("Report", "", _sections(), "", {})
+
+
+def test_a_long_token_breaks_within_the_column() -> None:
+    """A digest or a path has no space to break at: it breaks every few characters instead of
+    running off the page (600 narrow letters are about four lines of the column)."""
+    inputs = typeset.document_inputs(
+        "Report", "", [Section("s", 1, "S", (Paragraph("digest " + "f" * 600),))], "", {}
+    )
+    text = PdfReader(io.BytesIO(typeset.typeset(inputs))).pages[0].extract_text()
+    runs = [len(line) for line in text.replace("\u200b", "").split() if set(line) == {"f"}]
+    assert sum(runs) == 600 and len(runs) >= 3 and max(runs) < 200, runs

@@ -8,7 +8,7 @@ DejaVu Sans (the figures' own font, shipped in matplotlib's wheel) and Typst's e
 system fonts are ignored. It reads SVG (the figures stay vectors, their text set in the same
 font) and breaks long tables across pages with their header repeated. It replaced a headless
 Chromium printing ``report.html``, a system program absent on a fresh machine; WeasyPrint needs
-the Pango system library; ReportLab draws no SVG.
+the Pango system library; ReportLab has no SVG reader of its own.
 
 Escaping: the template (``templates/report.typ``) is fixed; the content enters it as one JSON
 document in ``sys.inputs`` and every text (scenario names and descriptions, captions, cells)
