@@ -14,11 +14,18 @@ at ``t_k = k Ts``, with ``Q = P^-1`` linear in t between samples (``metric_inter
    for it (``select(x0, strict=True)`` raises ``UncoveredStartError`` instead);
 2. ``controller(t, x, index)``: for ``t <= T_i``, ``u = clip(u_ref_i[k] + K_i[k] (x -
    x_ref_i(t)), lower, upper)``, ``k = floor(t / Ts)``, with ``x_ref_i`` linearly
-   interpolated on the trajectory's fine grid ``t``; for ``t > T_i`` the terminal law ``u =
+   interpolated on the trajectory's grid ``t`` (equal RK4 steps inside each sample interval,
+   finer on some intervals than others); for ``t > T_i`` the terminal law ``u =
    clip(u_eq + K_T (x - x_eq))`` of the optional ``terminal`` block (its certified invariant
    ellipsoid ``(x - x_eq)^T P_T (x - x_eq) <= level`` lies in Goal and holds every end
    tube), or ``BeyondHorizonError`` when the file has none: the law is never extrapolated past
    ``T``.
+
+What a ``/2`` file certifies: the funnel ``E_i(t) = {x : (x - x_ref_i(t))^T P_i(t) (x -
+x_ref_i(t)) <= radius_i^2 e^{-2 rate_i t}}`` about the exact nominal (the solution from ``x0_i``
+under ``u_ref_i``; ``t`` and ``x_ref`` carry it on a grid) is invariant under this law, its
+interpolation of ``x_ref`` included (the pipeline's certify stage bounds that error). A state
+with ``||x - reference(t)||_P(t) <= radius - interpolation_error`` is therefore inside it.
 
 Gain convention: ``u = u_ref + K e`` with ``e = x - x_ref``, so a stabilising ``K`` is the
 *negative* of ``control.lqr``'s gain (which is written ``u = -K x``).
@@ -26,9 +33,13 @@ Gain convention: ``u = u_ref + K e`` with ``e = x - x_ref``, so a stabilising ``
 The controller is immutable (a frozen dataclass over read-only arrays): nothing is stored by
 ``select``, the caller passes the selected ``index`` to every call, and ``with_gain(scale)``
 returns a new controller. Both accept a batch: ``x0 (B, n)`` gives ``index (B,)``, and ``x (B,
-n)`` is then controlled row by row; a single state ``(n,)`` with a scalar index works too.
+n)`` is then controlled row by row; a single state ``(n,)`` with a scalar index works too. A NaN
+or infinite component of ``x0``, ``x`` or ``t`` is a ``ValueError`` naming it (field, index,
+state name), from ``select`` and the law alike: NaN would pass the clip to the actuator.
 
-``load`` validates every field of the file; anything wrong (a missing or mistyped field, a
+``load`` reads a regular file of at most ``MAX_BYTES`` (256 MiB; a FIFO, device or folder is
+refused without waiting on it, a symbolic-link loop is one line) and validates every field of the
+file; anything wrong (a missing or mistyped field, a
 shape, a non-positive radius or ``Ts``, ``lower > upper``, ``P`` not positive definite, times
 that do not increase, ``T`` that disagrees with ``t`` and ``u_ref``, bytes that are not UTF-8
 JSON) raises ``ControllerFormatError`` naming the field. The optional fields (``terminal``,
@@ -42,6 +53,8 @@ import dataclasses
 import hashlib
 import json
 import math
+import os
+import stat
 import threading
 from collections import OrderedDict
 from collections.abc import Callable, Mapping
@@ -57,6 +70,7 @@ INVERSE_LINEAR = "inverse-linear"  # Q = P^-1 linear in t between samples
 TIME_TOLERANCE = 1e-9  # relative, for t[0] = 0 and t[-1] = T
 SAMPLE_TOLERANCE = 1e-6  # in samples, for T = N Ts
 SYMMETRY_TOLERANCE = 1e-9  # relative, for P = P^T
+MAX_BYTES = 256 * 2**20  # a controller.json read: 9 funnel trajectories take 1.5 MB
 
 
 class ControllerFormatError(ValueError):
@@ -107,6 +121,18 @@ def _frozen(array: np.ndarray) -> np.ndarray:
 def _repeated(matrix: np.ndarray, count: int) -> np.ndarray:
     """``(count, *matrix.shape)``: one matrix repeated, as a read-only view (a /1 file)."""
     return np.broadcast_to(matrix, (count, *matrix.shape))
+
+
+def _finite(field: str, value: np.ndarray, expected: str, names: tuple[str, ...] = ()) -> None:
+    """``ValueError`` naming the first entry of ``value (...)`` that is NaN or infinite: the
+    ``field``, the entry's index and, with ``names`` (of the last axis), its component."""
+    if np.isfinite(value).all():  # 1.5-3 us on a state, against ~60 us for the law's call
+        return
+    where = tuple(int(i) for i in np.argwhere(~np.isfinite(value))[0])
+    label = field + (f"[{', '.join(map(str, where))}]" if where else "")
+    if where and len(names) == value.shape[-1]:
+        label += f" ({names[where[-1]]})"
+    raise ValueError(f"{label} = {value[where]}; expected {expected}")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -260,8 +286,11 @@ class Controller:
 
         A ratio ``< 1`` means covered. A start with ratio ``>= 1`` lies outside every certified
         ball: it still gets the nearest trajectory (in the ratio), with no guarantee; with
-        ``strict=True`` such a start raises ``UncoveredStartError`` instead.
+        ``strict=True`` such a start raises ``UncoveredStartError`` instead. A start with a NaN
+        or infinite component is a ``ValueError`` naming it (it has no ratio to compare).
         """
+        x0 = np.asarray(x0, dtype=np.float64)
+        _finite("x0", x0, "a finite start", self.state_names)
         ratios = self.ratios(x0)
         index = np.argmin(ratios, axis=-1)
         ratio = np.take_along_axis(ratios, index[..., None], axis=-1)[..., 0]
@@ -310,9 +339,14 @@ class Controller:
         ``index (...)`` (from ``select``) -> ``(..., m)``.
 
         Past a trajectory's ``T`` the terminal law applies; without a terminal controller
-        ``t > T`` raises ``BeyondHorizonError`` (the certificate ends at ``T``).
+        ``t > T`` raises ``BeyondHorizonError`` (the certificate ends at ``T``). A NaN or
+        infinite ``t`` or state component is a ``ValueError`` naming it: no input is certified
+        for it, and a NaN would pass through the clip to the actuator.
         """
         x = np.asarray(x, dtype=np.float64)
+        if not math.isfinite(t):
+            raise ValueError(f"t = {t}; expected a finite time (s)")
+        _finite("x", x, "a finite state", self.state_names)
         T = self.horizons(index)
         after = t > T * (1 + TIME_TOLERANCE)  # (...)
         if not np.any(after):
@@ -577,10 +611,7 @@ def load(path: str | Path) -> Controller:
     one of the last few loaded in this process gives that (immutable) controller again instead
     of being parsed anew (~30 ms for a 1.5 MB file): any change of the bytes is a new parse."""
     path = Path(path)
-    try:
-        raw = path.read_bytes()
-    except OSError as error:
-        raise ControllerFormatError(f"{path}: cannot read ({error.strerror})") from None
+    raw = _read(path)
     key = (str(path), hashlib.sha256(raw).hexdigest())
     with _LOADED_LOCK:
         if key in _LOADED:
@@ -592,6 +623,37 @@ def load(path: str | Path) -> Controller:
         while len(_LOADED) > _LOADED_MAX:
             _LOADED.popitem(last=False)
     return controller
+
+
+_KINDS = {
+    stat.S_IFDIR: "a folder",
+    stat.S_IFIFO: "a FIFO (named pipe)",
+    stat.S_IFCHR: "a character device",
+    stat.S_IFBLK: "a block device",
+    stat.S_IFSOCK: "a socket",
+}
+
+
+def _read(path: Path) -> bytes:
+    """The bytes of the regular file ``path``, at most ``MAX_BYTES``: opened with
+    ``O_NONBLOCK`` so that a FIFO cannot hang the open, checked with ``fstat`` before reading."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
+    except OSError as error:
+        raise ControllerFormatError(f"{path}: cannot read ({error.strerror})") from None
+    status = os.fstat(fd)
+    if not stat.S_ISREG(status.st_mode):
+        os.close(fd)
+        kind = _KINDS.get(stat.S_IFMT(status.st_mode), "not a regular file")
+        raise ControllerFormatError(f"{path}: is {kind}; expected a controller.json file")
+    with os.fdopen(fd, "rb") as stream:
+        raw = stream.read(MAX_BYTES + 1) if status.st_size <= MAX_BYTES else b""
+    if status.st_size > MAX_BYTES or len(raw) > MAX_BYTES:
+        raise ControllerFormatError(
+            f"{path}: larger than {MAX_BYTES // 2**20} MiB; expected a controller.json file "
+            "(9 funnel trajectories take 1.5 MB)"
+        )
+    return raw
 
 
 def _parse_bytes(raw: bytes, path: Path) -> Controller:

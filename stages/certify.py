@@ -23,16 +23,19 @@ nothing but the file and the scenario (no stage result). A ``safety-controller/1
    dynamics on a finer grid, the file's ``interpolation_error_P_norm`` (the Monte Carlo's slack)
    agrees with that measurement within ``STATED_ERROR_RANGE``, and its radius is
    at most the largest radius whose tube ``||x - x_ref(t)||_P <= r e^{-lambda t}`` avoids
-   Unsafe, keeps the inputs in their bounds and the tube in the operating region, and ends in
-   Goal, on the dense grid with a bound between grid points (``pipeline.numerics.tube_radius``);
+   Unsafe, keeps the inputs in their bounds and the tube in the operating region and the
+   scenario's ``state_bounds``, and ends in Goal, on the dense grid with a bound between grid
+   points (``pipeline.numerics.tube_radius``);
 5. Init is covered by the initial balls ``||x - x0_i||_P <= radius_i`` (sound box subdivision,
-   ``pipeline.numerics.cover``);
+   ``pipeline.numerics.cover``), each box's corners within ``1 - COVER_MARGIN`` of a ball's
+   squared radius;
 6. the optional ``terminal`` block (``pipeline.numerics.terminal``): ``V = e^T P_T e`` decreases
    on ``V <= level`` at every vertex of a sound hull over its bounding box (numpy eigenvalues,
    (T1) with the equilibrium's residual), the law does not clip there, the ellipsoid lies in
-   Goal, and it holds every end tube ``||x - x_ref(T)||_P <= radius e^{-lambda T}`` (exact
-   S-procedure containment). Then "safe for all time" is certified; without the block the law
-   refuses ``t > T``, and a scenario with ``terminal: hold`` is not certified.
+   Goal and in the ``state_bounds``, and it holds every end tube ``||x - x_ref(T)||_P <= radius
+   e^{-lambda T}`` (exact S-procedure containment). Then "safe for all time" is certified;
+   without the block the law refuses ``t > T``, and a scenario with ``terminal: hold`` is not
+   certified.
 
 A ``safety-controller/2`` file (a funnel per trajectory: ``K_i[k]``, ``P_i[k]``, ``rho_i =
 radius_i``) replaces steps 2-3 and the radius of step 4: each funnel is rebuilt from the file's
@@ -40,10 +43,16 @@ radius_i``) replaces steps 2-3 and the radius of step 4: each funnel is rebuilt 
 (``pipeline.numerics.recertify``: local sound hulls per sample interval, then
 ``funnel_check.check_funnel``: ``P[k] > 0``, the vertex inequalities (F3) at both ends of every
 interval by numpy eigenvalues, the tube in Unsafe's clearance, the inputs and state bounds, and
-``E(T)`` in Goal). The reference checks of step 4 measure in the tube's metric at the time,
-``P_i(t)``; step 5 covers Init by the balls ``||x - x0_i||_{P_i[0]} <= radius_i``; step 6's end
-tubes are ``||x - x_ref_i(T)||_{P_i[N]} <= radius_i e^{-rate_i T}``. The funnel certificate is
-for continuous feedback: a ``/2`` file with ``feedback_period > 0`` is not certified.
+``E(T)`` in Goal). The law tracks ``x_ref`` interpolated on the file's grid: its error bound
+enters the inequality and the inputs (``pipeline.numerics.funnel_law`` (I1)-(I3)), so the proof
+covers the law as shipped; the grid may be finer on some sample intervals than on others. Margins:
+(F2) plus that term below ``-LMI_MARGIN``, each level within ``1 - LEVEL_MARGIN`` of its limits,
+and the RK4 error of ``x_ref`` (estimated against a grid twice as fine) below ``LEVEL_MARGIN``
+radius (both 1e-6: far above rounding, and the integration error is checked against it). The
+reference checks of step 4 measure in the tube's metric at the time, ``P_i(t)``; step 5
+covers Init by the balls ``||x - x0_i||_{P_i[0]} <= radius_i``; step 6's end tubes are
+``||x - x_ref_i(T)||_{P_i[N]} <= radius_i e^{-rate_i T}``. The funnel certificate is for
+continuous feedback: a ``/2`` file with ``feedback_period > 0`` is not certified.
 """
 
 from __future__ import annotations
@@ -56,8 +65,9 @@ import numpy as np
 from pipeline.controller import Controller, ControllerFormatError, load
 from pipeline.io.artifacts import file_hash
 from pipeline.model.scenario import Scenario
-from pipeline.model.simulate import Trajectory, simulate
+from pipeline.model.simulate import simulate
 from pipeline.numerics.cover import DEFAULT_DEPTH, subdivide
+from pipeline.numerics.funnel_law import BASE_SUBSTEPS, LEVEL_MARGIN
 from pipeline.numerics.hull import DEFAULT_SEGMENTS, HullError, jacobian_hull
 from pipeline.numerics.recertify import check_reference, recheck_funnel
 from pipeline.numerics.sampled import contraction_rate, held_rate
@@ -71,6 +81,9 @@ RADIUS_TOLERANCE = 1e-12  # relative: a radius may exceed the re-verified one by
 ROUNDING_MARGIN = 1e-9  # times ||P||: the contraction eigenvalue must clear rounding
 INTERPOLATION_TOLERANCE = 1e-2  # ||interpolated x_ref - dynamics||_P / radius
 STATED_ERROR_RANGE = (0.5, 4.0)  # the file's interpolation_error_P_norm / the one measured here
+# Init's corners must lie within this fraction of a ball's squared radius: floating-point rounding
+# of the quadratic form (~1e-15 relative) cannot decide coverage
+COVER_MARGIN = 1e-6
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -113,20 +126,28 @@ class CertificationResult:
     terminal_fit: float = float("nan")
 
 
+def _feedback(controller: Controller) -> tuple[np.ndarray, np.ndarray, float]:
+    """``(P (n, n), K (m, n), rate)`` of a ``/1`` file's ``feedback`` block (``load`` requires
+    it; a ``TypeError``, not an ``assert`` that ``python -O`` would drop, if it is missing)."""
+    if controller.P is None or controller.K is None or controller.rate is None:
+        raise TypeError(f"{controller.source}: no feedback block (P, K, rate): not a /1 file")
+    return controller.P, controller.K, controller.rate
+
+
 def _held(controller: Controller, A: np.ndarray, B: np.ndarray) -> list[str]:
     """Step 3 for held feedback: ``h`` divides ``Ts`` and the file's rate is at most
     ``lambda_h`` (from the largest rate (C) certifies at the vertices ``A (V, n, n)``, ``B (V, n,
     m)``)."""
-    assert controller.P is not None and controller.K is not None and controller.rate is not None
+    P, K, file_rate = _feedback(controller)
     h = controller.feedback_period
     steps = controller.Ts / h
     if abs(steps - round(steps)) > 1e-9 * steps or steps < 1 - 1e-9:
         return [f"feedback_period {h:g} s does not divide Ts {controller.Ts:g} s"]
-    rate = contraction_rate(controller.P, controller.K, A, B)
-    held = held_rate(controller.P, controller.K, A, B, rate, h)
-    if not controller.rate <= held.held_rate:
+    rate = contraction_rate(P, K, A, B)
+    held = held_rate(P, K, A, B, rate, h)
+    if not file_rate <= held.held_rate:
         return [
-            f"the rate {controller.rate:g} exceeds {held.held_rate:.4g}, the tube rate of the "
+            f"the rate {file_rate:g} exceeds {held.held_rate:.4g}, the tube rate of the "
             f"law held every {h:g} s (continuous rate {rate:.4g})"
         ]
     return []
@@ -135,7 +156,8 @@ def _held(controller: Controller, A: np.ndarray, B: np.ndarray) -> list[str]:
 def verify_terminal(scenario: Scenario, controller: Controller) -> tuple[float, float, list[str]]:
     """Step 6: ``(decay, fit, failures)`` of the file's terminal block."""
     terminal = controller.terminal
-    assert terminal is not None
+    if terminal is None:
+        raise TypeError(f"{controller.source}: no terminal block to verify")
     check = check_level(
         scenario,
         terminal.x_eq,
@@ -180,10 +202,9 @@ def _same_scenario(scenario: Scenario, controller: Controller) -> list[str]:
 def _contraction_margin(controller: Controller, A: np.ndarray, B: np.ndarray) -> float:
     """Largest eigenvalue of ``A_cl^T P + P A_cl + 2 lambda P`` over ``A (V, n, n)``,
     ``B (V, n, m)`` with ``A_cl = A + B K`` (eq. (C) of the module docstring)."""
-    P, K = controller.P, controller.K
-    assert P is not None and K is not None and controller.rate is not None  # a /1 file
+    P, K, rate = _feedback(controller)
     A_cl = A + B @ K  # (V, n, n)
-    M = np.swapaxes(A_cl, 1, 2) @ P + P @ A_cl + 2.0 * controller.rate * P
+    M = np.swapaxes(A_cl, 1, 2) @ P + P @ A_cl + 2.0 * rate * P
     return float(np.linalg.eigvalsh((M + np.swapaxes(M, 1, 2)) / 2).max())
 
 
@@ -192,9 +213,9 @@ def _constant(
 ) -> tuple[float, int, list[float], tuple[float, float]]:
     """Steps 2-4 for a ``/1`` file: ``(contraction margin, vertices, verified radii, (reference
     error, interpolation error))``; what fails is appended to ``failures``."""
-    assert controller.P is not None and controller.K is not None and controller.rate is not None
+    P, K, rate = _feedback(controller)
     # 2. The metric.
-    metric = float(np.linalg.eigvalsh(controller.P)[0])
+    metric = float(np.linalg.eigvalsh(P)[0])
     if not metric > 0:
         failures.append(f"P is not positive definite (smallest eigenvalue {metric:.3g})")
 
@@ -208,18 +229,18 @@ def _constant(
     if controller.feedback_period > 0 and vertices:
         failures += _held(controller, hull.A, hull.B)
     # strictly below zero by more than floating-point rounding of M and of the hull's vertices
-    rounding = ROUNDING_MARGIN * max(1.0, float(np.linalg.norm(controller.P, 2)))
+    rounding = ROUNDING_MARGIN * max(1.0, float(np.linalg.norm(P, 2)))
     if not margin < -rounding:
         failures.append(
-            f"the contraction inequality fails at rate {controller.rate:g}: largest eigenvalue "
+            f"the contraction inequality fails at rate {rate:g}: largest eigenvalue "
             f"{margin:.3g} >= -{rounding:.1g} over {vertices} hull vertices"
         )
 
     # 4. Each reference and its radius, in the file's tube.
     tube = Tube(
-        K=controller.K,
-        P=controller.P,
-        rate=controller.rate,
+        K=K,
+        P=P,
+        rate=rate,
         region=scenario.operating_region,
         state_names=scenario.state_names,
         input_names=scenario.input_names,
@@ -227,8 +248,8 @@ def _constant(
     )
     verified, errors = [], (0.0, 0.0)
     for i, tr in enumerate(controller.trajectories):
-        errors, fine = _reference(scenario, controller, i, failures, errors)
-        if fine is None:
+        errors, substeps = _reference(scenario, controller, i, failures, errors)
+        if substeps is None:
             verified.append(0.0)
             continue
         nominal = simulate(scenario.dynamics, tr.x0, tr.u_ref, scenario.Ts, VERIFY_SUBSTEPS)
@@ -256,12 +277,13 @@ def _funnels(
         )
     margin, vertices, verified, errors = -np.inf, 0, [], (0.0, 0.0)
     for i, tr in enumerate(controller.trajectories):
-        errors, fine = _reference(scenario, controller, i, failures, errors)
-        if fine is None:
+        errors, substeps = _reference(scenario, controller, i, failures, errors)
+        if substeps is None:
             verified.append(0.0)
             continue
+        nominal = simulate(scenario.dynamics, tr.x0, tr.u_ref, scenario.Ts, BASE_SUBSTEPS)
         check = recheck_funnel(
-            scenario, fine, tr.K, tr.P, tr.radius, tr.rate, scenario.state_bounds
+            scenario, nominal, tr.K, tr.P, tr.radius, tr.rate, scenario.state_bounds, substeps
         )
         margin, vertices = max(margin, check.margin), vertices + check.vertices
         verified.append(check.radius)
@@ -276,19 +298,27 @@ def _reference(
     i: int,
     failures: list[str],
     errors: tuple[float, float],
-) -> tuple[tuple[float, float], Trajectory | None]:
+) -> tuple[tuple[float, float], np.ndarray | None]:
     """Step 4's reference checks of trajectory ``i`` in its tube metric ``P_i(t)``
     (``recertify.check_reference``). Returns ``(largest (reference error, interpolation error)
-    so far, the re-simulated trajectory (None: not on a uniform grid))``."""
+    so far, the file grid's RK4 steps on each sample interval (None: not an RK4 grid))``."""
     tr = controller.trajectories[i]
     check = check_reference(scenario, tr, controller.Ts, VERIFY_SUBSTEPS)
-    if check.trajectory is None:
-        failures.append(f"trajectories[{i}]: t is not a uniform RK4 grid of the samples")
+    if check.substeps is None:
+        failures.append(
+            f"trajectories[{i}]: t is not an RK4 grid of the samples (every sample time, equal "
+            "steps inside each sample interval)"
+        )
         return errors, None
     if not check.error <= REFERENCE_TOLERANCE:
         failures.append(
             f"trajectories[{i}]: x_ref is not the dynamics under u_ref from x0 "
             f"(P-norm error {check.error:.3g} radius)"
+        )
+    if controller.funnel and not check.integration <= LEVEL_MARGIN:
+        failures.append(
+            f"trajectories[{i}]: the RK4 error of x_ref is estimated at {check.integration:.3g} "
+            f"radius, not below the level margin {LEVEL_MARGIN:g} that must absorb it"
         )
     if not check.interpolation <= INTERPOLATION_TOLERANCE * tr.radius:
         failures.append(
@@ -296,7 +326,7 @@ def _reference(
             f"radius from the dynamics (> {INTERPOLATION_TOLERANCE:g}); emit it on a finer grid"
         )
     errors = (max(errors[0], check.error), max(errors[1], check.interpolation))
-    return errors, check.trajectory
+    return errors, check.substeps
 
 
 def certify_controller(
@@ -307,7 +337,8 @@ def certify_controller(
     max_depth: int = DEFAULT_DEPTH,
 ) -> CertificationResult:
     """Re-verify the emitted ``controller.json`` at ``path`` against ``scenario`` (steps 1-5 of
-    the module docstring); ``success`` only when every check passes."""
+    the module docstring); ``success`` only when every check passes. No check is an ``assert``:
+    the outcome is the same under ``python -O`` (``tests/stages/test_certify.py`` runs there)."""
     path = Path(path)
 
     def refused(sha256: str, failures: list[str]) -> CertificationResult:
@@ -362,6 +393,7 @@ def certify_controller(
         np.stack([tr.x0 for tr in controller.trajectories]),
         np.array([tr.radius for tr in controller.trajectories]),
         max_depth,
+        margin=COVER_MARGIN,
     )
     if not cover.covered:
         failures.append(

@@ -8,7 +8,10 @@ negligible against the tube. Format ``safety-controller/2`` (``emit_funnel_contr
 same per trajectory plus its funnel (``pipeline.numerics.funnel``): gains ``K (N, m, n)``,
 metrics ``P (N+1, n, n)`` at the samples with ``Q = P^-1`` linear in t between them
 (``metric_interpolation: "inverse-linear"``), ``radius = rho`` and ``rate``; no ``feedback``
-block. The interpolation error is measured in the tube's metric at the time, ``P(t)``.
+block. Its reference grid has ``REFERENCE_SUBSTEPS`` RK4 steps per sample, more on the sample
+intervals where the law's tracking of the interpolated ``x_ref`` needs them to stay inside the
+certificate (``pipeline.numerics.funnel_law``). The interpolation error is measured in the tube's
+metric at the time, ``P(t)``.
 
 The law after ``T`` (``pipeline.numerics.terminal``): an equilibrium at Goal's centre, its LQR
 gain and the largest certified invariant ellipsoid. The ``terminal`` block is written only when
@@ -28,8 +31,10 @@ from pipeline.controller import FORMAT, FUNNEL_FORMAT, INVERSE_LINEAR, inverse_l
 from pipeline.io.artifacts import atomic_write_json
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
-from pipeline.model.simulate import Trajectory, simulate
+from pipeline.model.simulate import Trajectory, simulate, simulate_graded
 from pipeline.numerics.funnel_check import Funnel
+from pipeline.numerics.funnel_law import BASE_SUBSTEPS
+from pipeline.numerics.recertify import reference_substeps
 from pipeline.numerics.terminal import TerminalError, design_terminal
 
 REFERENCE_SUBSTEPS = 20
@@ -97,13 +102,15 @@ def terminal_block(
 
 
 def _reference(
-    scenario: Scenario, x0: FloatArray, us: FloatArray, radius: float, substeps: int
+    scenario: Scenario, x0: FloatArray, us: FloatArray, radius: float, substeps: int | np.ndarray
 ) -> tuple[dict, FloatArray, FloatArray]:
     """The trajectory's entry (``x0``, ``radius``, ``T``, ``u_ref``, ``t``, ``x_ref`` on the RK4
-    grid of ``substeps`` per sample) and the error of interpolating that grid linearly: the
-    midpoints' times ``(M,)`` and errors ``(M, n)`` against a 2x finer simulation."""
-    fine = simulate(scenario.dynamics, x0, us, scenario.Ts, substeps=substeps)
-    finer = simulate(scenario.dynamics, x0, us, scenario.Ts, substeps=2 * substeps)
+    grid of ``substeps`` per sample, one number or ``(N,)``) and the error of interpolating that
+    grid linearly: the midpoints' times ``(M,)`` and errors ``(M, n)`` against a 2x finer
+    simulation."""
+    steps = np.broadcast_to(np.asarray(substeps, dtype=np.int64), (len(us),))
+    fine = simulate_graded(scenario.dynamics, x0, us, scenario.Ts, steps)
+    finer = simulate_graded(scenario.dynamics, x0, us, scenario.Ts, 2 * steps)
     mid = 0.5 * (fine.dense_xs[:-1] + fine.dense_xs[1:])
     item = {
         "x0": np.asarray(x0).tolist(),
@@ -246,9 +253,24 @@ def emit_funnel_controller(
                 f"funnel {i}: K {funnel.K.shape}, P {funnel.P.shape} do not fit its trajectory "
                 f"of N = {N} intervals; expected K ({N}, {m}, {n}), P ({N + 1}, {n}, {n})"
             )
-        item, times, error = _reference(
-            scenario, trajectory.xs[0], trajectory.us, funnel.rho, substeps
+        # the law tracks x_ref interpolated on this grid: fine enough where the funnel needs it
+        # (pipeline.numerics.funnel_law), at least `substeps` per sample elsewhere
+        nominal = simulate(
+            scenario.dynamics, trajectory.xs[0], trajectory.us, scenario.Ts, BASE_SUBSTEPS
         )
+        grid = np.maximum(
+            substeps,
+            reference_substeps(
+                scenario,
+                nominal,
+                funnel.K,
+                funnel.P,
+                funnel.rho,
+                funnel.rate,
+                scenario.state_bounds,
+            ),
+        )
+        item, times, error = _reference(scenario, trajectory.xs[0], trajectory.us, funnel.rho, grid)
         metric = inverse_linear(funnel.P, scenario.Ts, times)  # (M, n, n): P(t), eq. (F1)
         worst = max(worst, float(np.sqrt(np.einsum("ki,kij,kj->k", error, metric, error)).max()))
         item |= {"K": funnel.K.tolist(), "P": funnel.P.tolist(), "rate": funnel.rate}

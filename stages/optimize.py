@@ -2,18 +2,17 @@
 
 For one demo with ``N_demo`` samples (paper §IV-A, Remark 4): the feasibility test of a horizon
 ``N'`` is ``min_u J(u) == 0`` for the penalty cost whose Unsafe sets are bloated by ``d + eps_d``,
-Goal shrunk by ``d + eps_g``, inputs shrunk by ``eps_i`` plus the feedback's margin at the
-required radius, and operating region shrunk by the tube's extent. Once the demo itself is made
-feasible at ``N_demo``, a short feasible ``N'`` is searched by bisection between 0 and ``N_demo``
-(the paper's Remark 4, ``search="bisection"``) or by continuation, shortening the last feasible
-horizon by a tenth at a time (the default: feasibility is not monotone in ``N'`` for a local
-optimiser, and small steps keep each seed near a solution). Each try is seeded from the
-nearest feasible solution, time-compressed (default) or truncated (the paper) to ``N'``
-samples. Each descent runs on the cost with every margin tightened by ``overshoot`` and stops
-as soon as the problem's own cost is zero: a descent that approaches ``J = 0`` from outside only
-reaches it in the limit (measured: most failed tries ended at J ~ 1e-10 after the iteration cap).
-The result is re-verified in continuous time independently of the cost
-(``pipeline.numerics.verify``).
+Goal shrunk by ``d + eps_g``, inputs shrunk by ``eps_i`` plus the feedback's margin at the required
+radius, and operating region and ``state_bounds`` shrunk by the tube's extent. Once the demo itself
+is made feasible at ``N_demo``, a short feasible ``N'`` is searched by bisection between 0 and
+``N_demo`` (the paper's Remark 4, ``search="bisection"``) or by continuation, shortening the last
+feasible horizon by a tenth at a time (the default: feasibility is not monotone in ``N'`` for a
+local optimiser, and small steps keep each seed near a solution). Each try is seeded from the
+nearest feasible solution, time-compressed (default) or truncated (the paper) to ``N'`` samples.
+Each descent runs on the cost with every margin tightened by ``overshoot`` and stops as soon as the
+problem's own cost is zero: a descent that approaches ``J = 0`` from outside only reaches it in the
+limit (measured: most failed tries ended at J ~ 1e-10 after the iteration cap). The result is
+re-verified in continuous time independently of the cost (``pipeline.numerics.verify``).
 
 Funnels (issue 16 part 4): ``reoptimize_with_funnels`` runs the same search from each optimized
 nominal again, with the margins of the funnel synthesized around it (per sample interval,
@@ -171,7 +170,8 @@ def optimize_from(
     shortened, never below ``N_min`` samples (a horizon under it counts as infeasible without a
     try). ``N_demo``: the demonstration's length, for the speedup; ``infeasible_hint``: what to do
     when the flight cannot be made feasible at its own length."""
-    box = scenario.operating_region if margins.region is None else margins.region
+    region, region_margin = margins.nominal_box(scenario)  # a constant tube's: in state_bounds
+    box = scenario.operating_region if region is None else region
 
     def constrained(extra: float) -> Problem:
         return make_problem(
@@ -180,7 +180,7 @@ def optimize_from(
             u_seed=us,
             input_margin=margins.input_margin,
             region_margin={
-                key: margins.region_margin.get(key, 0.0)
+                key: region_margin.get(key, 0.0)
                 + extra
                 + (options.eps_r if key in scenario.state_names else 0.0)
                 for key in box
@@ -190,7 +190,7 @@ def optimize_from(
             eps_i=options.eps_i + extra,
             clearance=margins.clearance,
             goal_margin={key: extent + extra for key, extent in margins.goal_margin.items()},
-            region=margins.region,
+            region=region,
             profile=margins.profile,
         )
 

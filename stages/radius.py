@@ -2,10 +2,10 @@
 
 The tube of P-norm radius ``r`` around ``x_ref`` is
 ``E(t) = {x : ||x - x_ref(t)||_P <= r e^{-lambda t}}``; the radius is the largest ``r`` for which
-``E(t)`` avoids Unsafe, stays in the operating region and the input bounds, and ends in Goal, on
-the whole of ``[0, T]`` in continuous time. Each constraint's limit is computed by
-``pipeline.numerics.tube_radius`` (the maths is in its docstring), which the final certificate
-check (stage ``certify``) uses as well.
+``E(t)`` avoids Unsafe, stays in the operating region, the ``state_bounds`` and the input bounds,
+and ends in Goal, on the whole of ``[0, T]`` in continuous time. Each constraint's limit is
+computed by ``pipeline.numerics.tube_radius`` (the maths is in its docstring), which the final
+certificate check (stage ``certify``) uses as well.
 """
 
 from __future__ import annotations

@@ -44,15 +44,16 @@ def _version() -> str:
 
 
 def write_reports(data: ReportData) -> ReportResult:
-    """Write ``report.html``, ``report.pdf`` and ``scenario.png`` into ``data.out`` from the run's
-    summary and stage results (read by the stage cache: ``pipeline.runtime.stored``).
+    """Write ``report.html``, ``report.pdf`` and ``scenario.png`` into ``data.out`` (a run's
+    staging folder during the run: ``data.staging``) from the run's summary and stage results
+    (read by the stage cache: ``pipeline.runtime.stored``).
 
     Each figure is drawn once (SVG for the HTML, and the overview's PNG from the same drawing);
     figures whose inputs did not change, and a PDF typeset from the same content, are reused
     from ``out/artifacts/figures/`` (``pipeline.reporting.figure_cache``). ``pdf`` is None when
     Typst failed (the message says why)."""
     start = time.perf_counter()
-    scenario, out = data.scenario, data.out
+    scenario, out, target = data.scenario, data.out, data.reports_folder
     sections = build_sections(data)
     verdict = data.summary.text
     title = f"Safety controller synthesis report: {scenario.name}"
@@ -76,13 +77,13 @@ def write_reports(data: ReportData) -> ReportResult:
             {"version": version, "out": run, "scenario": scenario.name},
             store.svgs,
         )
-        atomic_write_text(out / "report.html", html)
+        atomic_write_text(target / "report.html", html)
         for figure in figures:  # the scenario figure on its own, for slides and notes
             if figure.key == OVERVIEW:
-                store.copy_png(figure, out / "scenario.png")
+                store.copy_png(figure, target / "scenario.png")
         printed = write_pdf(
             store,
-            out / "report.pdf",
+            target / "report.pdf",
             title=title,
             subtitle=subtitle,
             sections=sections,
@@ -96,7 +97,7 @@ def write_reports(data: ReportData) -> ReportResult:
     seconds = time.perf_counter() - start
     drawn = f"{len(store.drawn)} figures drawn" if store.drawn else "every figure reused"
     return ReportResult(
-        html=out / "report.html",
+        html=target / "report.html",
         pdf=printed.path,
         success=True,
         message=f"report.html ({len(html) // 1024} KiB) and {printed.message} written in "

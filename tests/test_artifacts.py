@@ -81,8 +81,8 @@ def test_failed_write_keeps_the_previous_file(tmp_path):
     target = tmp_path / "report.txt"
     atomic_write_text(target, "good")
 
-    def broken(path):
-        path.write_text("half")
+    def broken(stream):
+        stream.write(b"half")
         raise RuntimeError("disk full")
 
     with pytest.raises(RuntimeError):
@@ -93,11 +93,12 @@ def test_failed_write_keeps_the_previous_file(tmp_path):
 
 @pytest.mark.parametrize("suffix", [".npz", ".pdf", ""])
 def test_failed_save_deletes_exactly_the_temporary_it_made(tmp_path, suffix):
-    """The writer creates the temporary's own name (``np.savez`` adds ``.npz`` unless present)."""
+    """The writer writes into the temporary's stream; a failure deletes that temporary."""
     made = []
 
-    def broken(path):
-        np.savez(path, x=np.arange(3))  # writes path (or path + .npz)
+    def broken(stream):
+        np.savez(stream, x=np.arange(3))
+        stream.flush()
         made.extend(tmp_path.iterdir())
         raise OSError("No space left on device")
 

@@ -538,3 +538,71 @@ def test_mutated_funnel_files_raise_nothing_but_controller_format_error(
     tmp_path, path, action, value, cut
 ):
     _load_mutated(tmp_path, _funnel_document(), path, action, value, cut)
+
+
+# NaN and infinity: the law refuses them, naming the field and component (issue 27, item 8).
+
+
+def test_select_refuses_a_nan_start_instead_of_trajectory_0_at_ratio_nan(tmp_path):
+    controller = load(_write(tmp_path, _document()))
+    for strict in (True, False):
+        with pytest.raises(ValueError, match=re.escape("x0[0] (p) = nan; expected a finite start")):
+            controller.select(np.array([np.nan, 0.0]), strict=strict)
+    with pytest.raises(ValueError, match=re.escape("x0[1, 1] (v) = -inf; expected a finite")):
+        controller.select(np.array([[0.2, 0.0], [0.1, -np.inf]]))
+
+
+def test_the_law_refuses_a_nan_state_or_time_instead_of_sending_nan_to_the_actuator(tmp_path):
+    for document in (_document(terminal=True), _funnel_document()):
+        controller = load(_write(tmp_path, document))
+        index = np.array([0, 0])
+        with pytest.raises(ValueError, match=re.escape("x[0] (p) = nan; expected a finite state")):
+            controller(0.25, np.array([np.nan, 0.5]), np.array(0))
+        with pytest.raises(ValueError, match=re.escape("x[1, 1] (v) = inf; expected a finite")):
+            controller(0.25, np.array([[0.25, 0.5], [0.25, np.inf]]), index)
+        for t in (np.nan, np.inf, -np.inf):
+            with pytest.raises(ValueError, match=re.escape(f"t = {t}; expected a finite time")):
+                controller(t, np.array([0.25, 0.5]), np.array(0))
+
+
+SPECIAL = st.sampled_from([np.nan, np.inf, -np.inf])
+COMPONENT = st.floats(-1e6, 1e6) | SPECIAL
+
+
+@settings(
+    max_examples=300, deadline=2000, suppress_health_check=[HealthCheck.function_scoped_fixture]
+)
+@given(
+    funnel=st.booleans(),
+    t=st.floats(-1.0, 3.0) | SPECIAL,
+    x=st.lists(st.lists(COMPONENT, min_size=2, max_size=2), min_size=1, max_size=3),
+    data=st.data(),
+)
+def test_the_law_gives_finite_inputs_within_bounds_or_refuses_naming_the_field(
+    tmp_path, funnel, t, x, data
+):
+    """Property: for any start and state (finite, NaN or infinite components) and any time,
+    ``select`` and the law return finite values (inputs within their bounds) or raise
+    ``ValueError`` naming the non-finite field (``BeyondHorizonError`` past ``T``)."""
+    controller = load(_write(tmp_path, _funnel_document() if funnel else _document(True)))
+    x = np.array(x)
+    bad = [f"[{i}, {j}] ({'pv'[j]})" for i, j in zip(*np.nonzero(~np.isfinite(x)), strict=True)]
+    try:
+        index, ratio = controller.select(x)
+    except ValueError as error:
+        assert bad and str(error).startswith(f"x0{bad[0]} = ")
+    else:
+        assert not bad and np.all(np.isfinite(ratio)) and np.all(ratio >= 0)
+    index = np.array(data.draw(st.lists(st.integers(0, 1), min_size=len(x), max_size=len(x))))
+    try:
+        u = controller(t, x, index)
+    except BeyondHorizonError:
+        assert funnel and t > 1.0  # the /2 toy has no terminal controller
+    except ValueError as error:
+        if np.isfinite(t):
+            assert bad and str(error).startswith(f"x{bad[0]} = ")
+        else:
+            assert str(error).startswith(f"t = {t}; ")
+    else:
+        assert np.isfinite(t) and not bad
+        assert np.all((controller.lower <= u) & (u <= controller.upper))

@@ -21,6 +21,7 @@ from pipeline.io.artifacts import read_stored
 from pipeline.model import geometry
 from pipeline.numerics.cover import subdivide
 from pipeline.reporting import figures
+from pipeline.reporting.summary import Summary
 from pipeline.runtime import orchestrator
 from pipeline.runtime.cli import main
 from pipeline.runtime.options import RunOptions
@@ -226,6 +227,15 @@ def test_the_report_of_a_funnel_run_shows_the_funnels_and_both_certificates(funn
     # The gains are per trajectory: their range is shown, the constant K is labelled as such.
     assert "Shipped gains: the gains are per trajectory and per sample interval" in text
     assert "Feedback gain K (inputs × states) of the constant certificate" in text
+
+
+def test_the_report_derives_the_funnel_runs_own_summary(funnel_report):
+    """``report`` derives the verdict and its numbers again (certify on controller.json, the
+    Monte Carlo result of that file, Init covered by the file's E_i(0)): for an untampered run
+    they are the run's own, field for field (issue 27, item 3)."""
+    data, _, _ = funnel_report
+    stored = json.loads((data.run_folder / "summary.json").read_text())
+    assert data.summary.to_json() == Summary.from_json(stored).to_json()
 
 
 def test_the_funnel_figure_draws_the_position_projection_of_each_shipped_funnel(funnel_report):

@@ -6,6 +6,7 @@ Each case compares against exact rationals (``fractions.Fraction`` of the floats
 
 from __future__ import annotations
 
+import re
 from fractions import Fraction
 
 import mpmath
@@ -65,3 +66,24 @@ def test_compact_arc_polygon_contains_the_arc_exactly(lower, width, segments) ->
             for angle in angles:  # every arc point on the inner side of every edge (CCW)
                 px, py = mpmath.cos(angle), mpmath.sin(angle)
                 assert (bx - ax) * (py - ay) - (by - ay) * (px - ax) > 0
+
+
+@pytest.mark.parametrize(
+    ("region", "message"),
+    [
+        ({"theta": (-0.6, 0.6), "u1": (15.8, 14.9)}, "u1 in [15.8, 14.9]: not an interval"),
+        ({"theta": (0.6, -0.6), "u1": (5.0, 14.9)}, "theta in [0.6, -0.6]: not an interval"),
+        ({"theta": (-0.6, 0.6), "u1": (np.nan, 14.9)}, "u1 in [nan, 14.9]: not an interval"),
+    ],
+    ids=["interval block", "arc block", "nan"],
+)
+def test_a_box_that_is_not_an_interval_is_refused_by_name(region, message) -> None:
+    """Issue 27, item 10: an empty box (an input box clipped to bounds it lies beyond) stopped
+    on mpmath's ``assert`` (gone under ``python -O``), or for an angle gave the hull of a single
+    point; either way it is now a ``HullError`` naming the variable."""
+    from pipeline.model.scenario import load_scenario
+    from pipeline.numerics.hull import jacobian_hull
+
+    dynamics = load_scenario("quadrotor_hill", check_demos=False).dynamics
+    with pytest.raises(HullError, match=re.escape(message)):
+        jacobian_hull(dynamics, region)

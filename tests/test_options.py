@@ -5,15 +5,18 @@ from __future__ import annotations
 
 import dataclasses
 import inspect
+import re
 import typing
 
+import numpy as np
 import pytest
 
+import pipeline
 from pipeline.model.schema import ScenarioSpec
 from pipeline.numerics import settings
 from pipeline.numerics.penalties import build_constraints
 from pipeline.numerics.problem import make_problem
-from pipeline.runtime.cli import _parser
+from pipeline.runtime.cli import _parser, main
 from pipeline.runtime.options import RunOptions, from_arguments
 from stages.optimize import OptimizeOptions
 
@@ -69,9 +72,9 @@ def test_bad_choices_exit_2(argv: list[str], capsys: pytest.CaptureFixture[str])
 
 def test_choices_come_from_the_optimizer() -> None:
     run = {f.name: f.metadata["cli"] for f in dataclasses.fields(RunOptions)}
-    assert run["method"].choices == settings.DESCENT_METHODS
-    assert run["search"].choices == settings.HORIZON_SEARCHES
-    assert run["certificate"].choices == settings.CERTIFICATES
+    assert run["method"].values.choices == settings.DESCENT_METHODS
+    assert run["search"].values.choices == settings.HORIZON_SEARCHES
+    assert run["certificate"].values.choices == settings.CERTIFICATES
     assert RunOptions().method is None  # the scenario's `optimizer` decides
     assert ScenarioSpec.model_fields["optimizer"].default == OptimizeOptions().method
     assert RunOptions().search == OptimizeOptions().search
@@ -107,3 +110,130 @@ def test_the_scenario_chooses_the_optimizer_unless_the_command_line_does() -> No
     assert method_of(quadrotor, RunOptions()) == "lbfgs"
     assert method_of(plain, RunOptions()) == "gd"
     assert method_of(quadrotor, parse("--method", "gd")) == "gd"
+
+
+# --- every bad value is refused before any work, on the command line and in the API -----------
+
+USAGE = " (usage: python -m pipeline synthesize --help)"
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--seed", "-1"], "argument --seed: found '-1'; expected a whole number >= 0"),
+        (["--seed", "1.5"], "argument --seed: found '1.5'; expected a whole number >= 0"),
+        (["--seed", "abc"], "argument --seed: found 'abc'; expected a whole number >= 0"),
+        (
+            ["--feedback-period", "1e-300"],
+            "argument --feedback-period: found '1e-300'; expected 0 or a finite number of "
+            "seconds >= 0.0001",
+        ),
+        (
+            ["--feedback-period", "inf"],
+            "argument --feedback-period: found 'inf'; expected 0 or a finite number of "
+            "seconds >= 0.0001",
+        ),
+        (
+            ["--samples", "0"],
+            "argument --samples: found '0'; expected a whole number from 1 to 1,000,000,000",
+        ),
+        (
+            ["--samples", "1000000000000"],
+            "argument --samples: found '1000000000000'; expected a whole number from 1 to "
+            "1,000,000,000",
+        ),
+        (["--jobs", "1.5"], "argument --jobs: found '1.5'; expected a whole number >= 1"),
+        (
+            ["--method", "newton"],
+            "argument --method: found 'newton'; expected one of ('gd', 'lbfgs')",
+        ),
+        (
+            ["--executor", "5"],
+            "argument --executor: found '5'; expected None, 'local', 'dask-local' or "
+            "'dask://HOST:PORT'",
+        ),
+        (["-v", "-q"], "argument -q/--quiet: not allowed with argument -v/--verbose"),
+    ],
+    ids=lambda value: " ".join(value) if isinstance(value, list) else "",
+)
+def test_a_bad_option_is_one_line_and_exit_2_before_the_output_folder_is_touched(
+    argv: list[str], message: str, tmp_path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "controller.json").write_text("{}")  # a previous run's outputs: left as they are
+    with pytest.raises(SystemExit) as raised:
+        main(["synthesize", "double_integrator", "--out", str(out), *argv])
+    assert raised.value.code == 2
+    assert capsys.readouterr().err == f"error: {message}{USAGE}\n"
+    assert sorted(p.name for p in out.iterdir()) == ["controller.json"]
+
+
+@pytest.mark.parametrize(
+    ("keywords", "message"),
+    [
+        ({"seed": "abc"}, "seed='abc'; expected a whole number >= 0"),
+        ({"seed": -1}, "seed=-1; expected a whole number >= 0"),
+        ({"seed": 1.5}, "seed=1.5; expected a whole number >= 0"),
+        ({"seed": True}, "seed=True; expected a whole number >= 0"),
+        ({"samples": 0}, "samples=0; expected a whole number from 1 to 1,000,000,000"),
+        ({"jobs": "2"}, "jobs='2'; expected a whole number >= 1"),
+        ({"stress": "no"}, "stress='no'; expected True or False"),
+        ({"force": "no"}, "force='no'; expected True or False"),
+        ({"force": 1}, "force=1; expected True or False"),
+        (
+            {"executor": 5},
+            "executor=5; expected None, 'local', 'dask-local' or 'dask://HOST:PORT'",
+        ),
+        (
+            {"executor": "dask"},
+            "executor='dask'; expected None, 'local', 'dask-local' or 'dask://HOST:PORT'",
+        ),
+        (
+            {"feedback_period": "0.01"},
+            "feedback_period='0.01'; expected 0 or a finite number of seconds >= 0.0001",
+        ),
+        (
+            {"feedback_period": 1e-300},
+            "feedback_period=1e-300; expected 0 or a finite number of seconds >= 0.0001",
+        ),
+        (
+            {"feedback_period": float("nan")},
+            "feedback_period=nan; expected 0 or a finite number of seconds >= 0.0001",
+        ),
+        ({"search": None}, "search=None; expected one of ('continuation', 'bisection')"),
+        ({"certificate": 1}, "certificate=1; expected one of ('constant', 'funnel')"),
+    ],
+    ids=lambda value: "" if isinstance(value, str) else repr(value),
+)
+def test_a_bad_option_is_a_value_error_before_the_output_folder_is_touched(
+    keywords: dict[str, object], message: str, tmp_path
+) -> None:
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "controller.json").write_text("{}")
+    with pytest.raises(ValueError) as raised:
+        pipeline.synthesize("double_integrator", out=out, **keywords)  # type: ignore[arg-type]
+    assert str(raised.value) == message
+    assert sorted(p.name for p in out.iterdir()) == ["controller.json"]
+    with pytest.raises(ValueError, match=re.escape(message)):
+        RunOptions(**keywords)  # type: ignore[arg-type]
+
+
+def test_verbose_and_quiet_exclude_each_other_in_the_dataclass_too() -> None:
+    with pytest.raises(ValueError, match=r"^verbose=True and quiet=True; expected at most one$"):
+        RunOptions(verbose=True, quiet=True)
+
+
+def test_values_are_stored_normalized() -> None:
+    """``feedback_period`` is hashed into cache keys and written to ``controller.json``: an
+    integer 0 from the API must be the command line's ``0.0``; NumPy scalars become Python's."""
+    seed, samples = np.int64(3), np.uint16(7)
+    options = RunOptions(feedback_period=0, seed=seed, samples=samples)  # type: ignore[arg-type]
+    assert options == parse("--seed", "3", "--samples", "7")
+    assert type(options.feedback_period) is float and type(options.seed) is int
+    assert type(options.samples) is int
+    assert RunOptions(feedback_period=np.float64(0.01)).feedback_period == 0.01
+    assert parse("--feedback-period", "1e-4").feedback_period == 1e-4  # the stated minimum
+    for spec in ("local", "", "dask-local", "dask://10.0.0.5:8786"):
+        assert RunOptions(executor=spec).executor == spec

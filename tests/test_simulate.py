@@ -17,7 +17,13 @@ import sympy
 
 from pipeline import ScenarioError, available_scenarios, load_scenario
 from pipeline.model.dynamics import Dynamics
-from pipeline.model.simulate import _rk4_loop, rk4_step, simulate, simulate_reference
+from pipeline.model.simulate import (
+    _rk4_loop,
+    rk4_step,
+    simulate,
+    simulate_graded,
+    simulate_reference,
+)
 from tests.test_dynamics import batch_code, every_function_dynamics
 
 
@@ -246,3 +252,26 @@ def test_every_function_of_the_scenario_language_returns_a_float_on_the_float_pa
         arguments = (-1.0) ** 1.5, *([1.0] if name == "arctan2" else [])
         with pytest.raises(TypeError, match="complex"):
             _returning_float(getattr(np, name))(*arguments)
+
+
+def test_a_graded_grid_is_simulate_on_each_interval() -> None:
+    """``simulate_graded``: equal steps everywhere is ``simulate`` bitwise (times too); another
+    count on one interval changes only that interval's grid, and its states agree with a uniform
+    fine simulation at the sample times to RK4's accuracy."""
+    scenario = load_scenario("quadrotor_hill", check_demos=False)
+    demo = scenario.demos[0]
+    us = demo.us[:6]
+    uniform = simulate(scenario.dynamics, demo.x0, us, scenario.Ts, 20)
+    same = simulate_graded(scenario.dynamics, demo.x0, us, scenario.Ts, np.full(6, 20))
+    assert np.array_equal(same.dense_ts, uniform.dense_ts)
+    assert np.array_equal(same.dense_xs, uniform.dense_xs) and np.array_equal(same.xs, uniform.xs)
+    graded = simulate_graded(
+        scenario.dynamics, demo.x0, us, scenario.Ts, np.array([80, 20, 20, 5, 20, 20])
+    )
+    assert len(graded.dense_ts) == 80 + 4 * 20 + 5 + 1
+    assert np.allclose(graded.dense_ts[80:101], uniform.dense_ts[20:41], rtol=0, atol=1e-15)
+    assert np.allclose(graded.xs, uniform.xs, rtol=0, atol=1e-6)
+    with pytest.raises(ValueError, match="6 whole numbers >= 1"):
+        simulate_graded(
+            scenario.dynamics, demo.x0, us, scenario.Ts, np.array([20, 20, 0, 20, 20, 20])
+        )

@@ -6,12 +6,14 @@ embedded with their text; the same content gives the same bytes."""
 from __future__ import annotations
 
 import io
+import os
 import unicodedata
 from pathlib import Path
 
 import pytest
 from pypdf import PdfReader
 
+from pipeline.io.files import output_root
 from pipeline.reporting import typeset
 from pipeline.reporting.content import (
     Figure,
@@ -23,7 +25,7 @@ from pipeline.reporting.content import (
     Verdict,
 )
 from pipeline.reporting.figure_cache import FigureStore
-from pipeline.reporting.pdf import write_pdf
+from pipeline.reporting.pdf import PdfOutcome, write_pdf
 
 HOSTILE = (
     '#panic("injected") #read("/etc/passwd")',
@@ -150,3 +152,48 @@ def test_a_long_token_breaks_within_the_column() -> None:
     text = PdfReader(io.BytesIO(typeset.typeset(inputs))).pages[0].extract_text()
     runs = [len(line) for line in text.replace("\u200b", "").split() if set(line) == {"f"}]
     assert sum(runs) == 600 and len(runs) >= 3 and max(runs) < 200, runs
+
+
+def test_a_path_that_is_not_utf8_is_shown_with_its_byte_escaped() -> None:
+    """A run folder named with byte 0xff (a lone surrogate once decoded) in the text and in a
+    figure's SVG: Typst takes only valid Unicode (the report stage failed with
+    UnicodeEncodeError); the byte is shown as \\xff, as in report.html."""
+    odd = os.fsdecode(b"/tmp/out\xff")
+    figure = Figure("plot", "caption", _plot, (3.0, 2.0), "inputs")
+    store = FigureStore(None)
+    svg = store.svg(figure).replace("figure-text-marker", f"marker {odd}")
+    store.close()
+    section = Section("s", 1, "S", (Paragraph(f"run {odd}"), figure))
+    inputs = typeset.document_inputs("Report", "", [section], f"from {odd}", {"plot": svg})
+    text = _text(typeset.typeset(inputs))
+    assert text.count("/tmp/out\\xff") == 3, text  # the paragraph, the figure, the colophon
+
+
+def test_a_kept_pdf_that_is_a_link_is_neither_read_nor_written_through(tmp_path: Path) -> None:
+    """The kept PDF (``artifacts/figures/report-DIGEST.pdf``) swapped for a link to a file
+    outside the output folder: it is typeset again and replaced by a file; the link's target is
+    neither copied into report.pdf nor written."""
+    out, outside = tmp_path / "out", tmp_path / "outside.pdf"
+    out.mkdir()
+    outside.write_bytes(b"not the report")
+    sections = [Section("s", 1, "S", (Paragraph("text"),))]
+
+    def write() -> PdfOutcome:
+        store = FigureStore(out / "figures")
+        try:
+            return write_pdf(
+                store, out / "report.pdf", title="R", subtitle="", sections=sections, colophon=""
+            )
+        finally:
+            store.close()
+
+    with output_root(out):  # as in a run (folder_lock)
+        write()
+        [kept] = (out / "figures").glob("report-*.pdf")
+        kept.unlink()
+        kept.symlink_to(outside)
+        outcome = write()
+    assert outcome.path == out / "report.pdf" and not outcome.reused, outcome.message
+    assert (out / "report.pdf").read_bytes().startswith(b"%PDF-")
+    assert not kept.is_symlink() and kept.read_bytes() == (out / "report.pdf").read_bytes()
+    assert outside.read_bytes() == b"not the report"

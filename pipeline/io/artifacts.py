@@ -1,65 +1,113 @@
 """Atomic artifact writing: write to a temporary file beside the target, then rename.
 
-A run that fails or is interrupted never leaves a half-written file where a good one was.
+A run that fails or is interrupted never leaves a half-written file where a good one was. Every
+write and read goes through ``pipeline.io.files``: no link followed inside an output folder, the
+folder written through its descriptor, reads bounded (``ARTIFACT_MAX_BYTES`` per artifact file).
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
-import glob
 import hashlib
+import io
 import json
+import logging
 import os
-import tempfile
+import secrets
+import shutil
 import zipfile
 import zlib
 from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import numpy as np
 
+from pipeline.io.files import (
+    ARTIFACT_MAX_BYTES,
+    FileRefused,
+    PathRefused,
+    open_folder,
+    open_regular,
+    printable,
+    read_bytes,
+    remove_files,
+)
+
 TEMPORARY = ".tmp"
+log = logging.getLogger(__name__)
 
 
-def _atomic(path: Path, write: Callable[[Path], object], suffix: str = "") -> None:
-    """Call ``write(temporary)`` and rename the temporary to ``path``; on any failure delete
-    exactly that temporary (``.NAME.XXXX.tmp`` + ``suffix``, and whatever a writer appended to
-    that unique name), so nothing is left behind."""
+def _atomic(
+    path: Path, write: Callable[[BinaryIO], object], suffix: str = "", cache: bool = False
+) -> None:
+    """Call ``write(stream)`` on a new temporary file beside ``path`` (``.NAME.XXXX.tmp`` +
+    ``suffix``) and rename it to ``path``; on any failure delete exactly that temporary.
+
+    The folder is opened once (``pipeline.io.files.open_folder``: inside a held output folder,
+    no link followed) and the temporary is created (``O_EXCL | O_NOFOLLOW``), renamed and deleted
+    through its descriptor, so a folder swapped for a link meanwhile cannot redirect the write.
+    A folder where ``path`` belongs is replaced when ``cache`` (a cache file's place: the
+    pipeline's own), else refused in one line (``PathRefused``)."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle, name = tempfile.mkstemp(
-        prefix=f".{path.name}.", suffix=f"{TEMPORARY}{suffix}", dir=path.parent
-    )
-    os.close(handle)
-    temporary = Path(name)
+    folder = open_folder(path.parent, create=True)
     try:
-        write(temporary)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(temporary, 0o666 & ~umask)  # mkstemp creates 0600; a report is for reading
-        os.replace(temporary, path)
-    except BaseException:
-        # the temporary, and anything a writer made by appending to its (unique) name
-        for left in path.parent.glob(f"{glob.escape(temporary.name)}*"):
-            left.unlink(missing_ok=True)
-        raise
+        temporary, handle = _temporary(folder, path.name, suffix)
+        try:
+            with os.fdopen(handle, "wb") as stream:
+                write(stream)
+            _replace(folder, temporary, path, cache)
+        except BaseException:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(temporary, dir_fd=folder)
+            raise
+    finally:
+        os.close(folder)
+
+
+def _temporary(folder: int, name: str, suffix: str) -> tuple[str, int]:
+    """A new file ``.NAME.XXXXXXXXXXXX.tmp`` + ``suffix`` in ``folder``: its name and a
+    descriptor open for writing (mode 0666 less the umask, as for any file the user makes)."""
+    flags = os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW | os.O_CLOEXEC
+    while True:
+        temporary = f".{name}.{secrets.token_hex(6)}{TEMPORARY}{suffix}"
+        try:
+            return temporary, os.open(temporary, flags, 0o666, dir_fd=folder)
+        except FileExistsError:
+            continue  # 2^-48 per try
+
+
+def _replace(folder: int, temporary: str, path: Path, cache: bool) -> None:
+    try:
+        os.replace(temporary, path.name, src_dir_fd=folder, dst_dir_fd=folder)
+    except IsADirectoryError:
+        if not cache:
+            raise PathRefused(
+                "is a folder where the run writes a file",
+                file=printable(str(path)),
+                expected="a file: remove or rename that folder",
+            ) from None
+        log.warning(f"{printable(str(path))}: a folder where a cache file belongs; replaced")
+        shutil.rmtree(path.name, dir_fd=folder)
+        os.replace(temporary, path.name, src_dir_fd=folder, dst_dir_fd=folder)
 
 
 def remove_temporaries(folder: Path) -> list[Path]:
     """Delete the temporaries that killed writers left in ``folder`` (call it only while holding
     the folder's lock, when no writer can be active); returns what was deleted."""
-    removed = []
-    for candidate in Path(folder).glob(f".*{TEMPORARY}*"):
-        if candidate.is_file():
-            candidate.unlink(missing_ok=True)
-            removed.append(candidate)
-    return removed
+    removed = remove_files(folder, lambda name: name.startswith(".") and TEMPORARY in name)
+    return [Path(folder) / name for name in removed]
 
 
-def atomic_write_text(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` atomically."""
-    _atomic(path, lambda temporary: temporary.write_text(text))
+def atomic_write_text(path: Path, text: str, cache: bool = False) -> None:
+    """Write ``text`` to ``path`` atomically, as UTF-8; a byte of a file name that is not UTF-8
+    (a lone surrogate, ``os.fsdecode``) is written back as that byte (``os.fsencode``)."""
+    try:
+        data = text.encode("utf-8", "surrogateescape")
+    except UnicodeEncodeError:  # a lone surrogate that is not an escaped byte: shown, as text
+        data = printable(text).encode("utf-8")
+    _atomic(path, lambda stream: stream.write(data), cache=cache)
 
 
 def atomic_write_json(path: Path, data: Any) -> None:
@@ -67,19 +115,23 @@ def atomic_write_json(path: Path, data: Any) -> None:
     atomic_write_text(path, json.dumps(data, indent=2, sort_keys=False) + "\n")
 
 
-def atomic_save(path: Path, save: Callable[[Path], None], suffix: str = "") -> None:
-    """Call ``save(temporary_path)`` (e.g. ``fig.savefig``) and rename the result to ``path``.
-
-    The temporary's name ends in ``suffix`` (for writers that infer the format from it, or
-    append it when missing, like ``np.savez``), so the file the writer creates is the one deleted
-    on failure.
+def atomic_save(
+    path: Path, save: Callable[[BinaryIO], object], suffix: str = "", cache: bool = False
+) -> None:
+    """Call ``save(stream)`` (e.g. ``fig.savefig(stream, format="png")``) on a binary file
+    that is then renamed to ``path`` (see ``_atomic``); the temporary's name ends in ``suffix``.
     """
-    _atomic(path, save, suffix)
+    _atomic(path, save, suffix, cache)
 
 
-def file_hash(path: Path) -> str:
-    """SHA-256 of a file's bytes, hex."""
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+def file_hash(path: Path, limit: int = ARTIFACT_MAX_BYTES) -> str:
+    """SHA-256 of a regular file's bytes (at most ``limit``: ``FileRefused`` beyond), hex."""
+    fd = open_regular(path)
+    with os.fdopen(fd, "rb") as stream:
+        size = os.fstat(fd).st_size
+        if size > limit:
+            raise FileRefused(path, f"is {size:,} bytes; expected at most {limit:,}")
+        return hashlib.file_digest(stream, "sha256").hexdigest()
 
 
 # --- Stage results as artifacts: JSON for the structure, .npz for the larger arrays. ---------
@@ -192,11 +244,15 @@ def save_result(stem: Path, key: str, result: Any) -> str:
     npz = stem.with_suffix(".npz")
     atomic_save(
         npz,
-        lambda p: np.savez_compressed(p, allow_pickle=True, __key__=np.array(key), **arrays),
+        lambda stream: np.savez_compressed(
+            stream, allow_pickle=True, __key__=np.array(key), **arrays
+        ),
         suffix=".npz",
+        cache=True,
     )
     document = {"format": FORMAT, "key": key, "sha256": sha256, "result": tree}
-    atomic_write_text(stem.with_suffix(".json"), json.dumps(document, indent=1) + "\n")
+    text = json.dumps(document, indent=1) + "\n"
+    atomic_write_text(stem.with_suffix(".json"), text, cache=True)
     return sha256
 
 
@@ -220,24 +276,34 @@ _DAMAGE = (
     RecursionError,
     zipfile.BadZipFile,
     zlib.error,
+    MemoryError,  # an array header that declares more than memory holds
 )
 
 
 def read_stored(stem: Path, registry: Mapping[str, type]) -> Stored | None:
     """The artifact ``stem.json`` + ``stem.npz``; ``None`` when either file is missing.
 
-    Raises ``ArtifactError`` (one line, naming the file) when it is unreadable, corrupt, does not
-    match its content hash, or names a type or field outside ``registry``.
+    Raises ``ArtifactError`` (one line, naming the file) when it is unreadable, not a regular
+    file, larger than ``ARTIFACT_MAX_BYTES`` (its arrays expanded: 4 times that), corrupt, does
+    not match its content hash, or names a type or field outside ``registry``.
     """
     json_path, npz_path = stem.with_suffix(".json"), stem.with_suffix(".npz")
-    if not (json_path.is_file() and npz_path.is_file()):
-        return None
     try:
-        document = json.loads(json_path.read_text())
+        raw_json = read_bytes(json_path, ARTIFACT_MAX_BYTES)
+        raw_npz = read_bytes(npz_path, ARTIFACT_MAX_BYTES)
+    except FileNotFoundError:
+        return None
+    except FileRefused as error:
+        raise ArtifactError(f"{error.path.name} {error.reason}", json_path) from None
+    try:
+        document = json.loads(raw_json)
         if not isinstance(document, dict) or document.get("format") != FORMAT:
             raise ArtifactError("not a stage artifact of this version")
         key, sha256, tree = document["key"], document["sha256"], document["result"]
-        with np.load(npz_path, allow_pickle=False) as stored:
+        with np.load(io.BytesIO(raw_npz), allow_pickle=False) as stored:
+            expanded = sum(info.file_size for info in stored.zip.infolist())
+            if expanded > 4 * ARTIFACT_MAX_BYTES:
+                raise ArtifactError(f"{npz_path.name} expands to {expanded:,} bytes")
             arrays = {name: stored[name] for name in stored.files}
         if str(arrays.pop("__key__")) != key:
             raise ArtifactError(f"{npz_path.name} belongs to another run than {json_path.name}")

@@ -15,12 +15,20 @@ the order of ``items``) and ``close()``:
 
 A chunk that raises (or whose worker dies) is retried once; a second failure raises
 ``ChunkFailed`` naming the chunk, so no work is ever silently dropped.
+
+Ctrl-C is the run's alone: the terminal sends SIGINT to the whole process group, but the fork
+server and the local workers never act on it (the server starts with SIGINT blocked, the workers
+ignore it), so they print no ``KeyboardInterrupt`` of their own; the run's process gets it, and
+``map`` then ends its workers at once (they would otherwise finish their chunks) and re-raises.
 """
 
 from __future__ import annotations
 
 import multiprocessing
+import multiprocessing.forkserver
+import multiprocessing.resource_tracker
 import os
+import signal
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -109,7 +117,9 @@ def _worker_setup(run: int, environment: dict[str, str]) -> None:
     folder, must be the run's), single-threaded BLAS whatever the server loaded, and exit as
     soon as the run's process ``run`` is gone (e.g. ``kill -9``), so that no orphaned worker
     keeps computing (the fork server, the worker's parent, exits once its workers have). A
-    daemon thread polls it."""
+    daemon thread polls it. SIGINT is ignored: Ctrl-C is the run's to handle (module docstring)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})  # blocked when forked (below)
     os.environ.clear()
     os.environ.update(environment)
     threadpool_limits(limits=1)
@@ -136,6 +146,33 @@ def preload_in_workers(module: str) -> None:
 START_METHOD = "forkserver" if "forkserver" in multiprocessing.get_all_start_methods() else "spawn"
 
 
+def _start_fork_server(preload: list[str]) -> None:
+    """Start multiprocessing's fork server, if not running, with SIGINT blocked, and wait until it
+    has imported the modules ``preload``.
+
+    Blocked: the server (and every worker it forks) inherits the blocked signal, so a Ctrl-C while
+    it imports (seconds: cvxpy, scipy) or while a worker unpickles its task prints no traceback;
+    the server ignores SIGINT itself once ready. Blocked, not ignored, here: a SIGINT meanwhile
+    is delivered to this process when unblocked. The resource tracker is started first: starting
+    it unblocks SIGINT whatever the mask was.
+
+    Waited for with a process that does nothing (``int()``): the server serves requests only once
+    its imports are done, and a request it serves after this process has exited (interrupted
+    while waiting) forks a child that cannot unpickle a pool worker's queues, whose semaphores
+    are gone, and prints that traceback; this one needs nothing from here, and just exits."""
+    context = multiprocessing.get_context("forkserver")
+    context.set_forkserver_preload(preload)
+    multiprocessing.resource_tracker.ensure_running()
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        multiprocessing.forkserver.ensure_running()
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+    ready = context.Process(target=int, name="fork-server-ready", daemon=True)
+    ready.start()
+    ready.join()
+
+
 class ProcessExecutor:
     """``jobs`` local processes with single-threaded BLAS, forked from the fork server (which
     imported the ``preload_in_workers`` modules when this process's first pool started it)."""
@@ -151,14 +188,14 @@ class ProcessExecutor:
             try:
                 context = multiprocessing.get_context(START_METHOD)
                 if START_METHOD == "forkserver":
-                    context.set_forkserver_preload(sorted(_PRELOAD))
+                    _start_fork_server(sorted(_PRELOAD))
                 self._pool = ProcessPoolExecutor(
                     max_workers=self.jobs,
                     mp_context=context,
                     initializer=_worker_setup,
                     initargs=(os.getpid(), dict(os.environ)),
                 )
-                self._pool.submit(int).result()  # the server (if new) starts under the pinned env
+                self._pool.submit(int).result()  # a worker starts under the pinned env
             finally:
                 for name, value in saved.items():
                     if value is None:
@@ -173,20 +210,24 @@ class ProcessExecutor:
         items: Sequence[Any],
         done: Callable[[int], None] | None = None,
     ) -> list[Any]:
-        futures: list[Future[Any]] = [self._start().submit(function, item) for item in items]
-        results = []
-        for index, future in enumerate(futures):
-            try:
-                result = future.result()
-            except BrokenProcessPool:
-                self._pool = None  # a worker died: a fresh pool for the retry
-                result = self._retry(function, items[index], index)
-            except Exception:
-                result = self._retry(function, items[index], index)
-            results.append(result)
-            if done:
-                done(index)
-        return results
+        try:
+            futures: list[Future[Any]] = [self._start().submit(function, item) for item in items]
+            results = []
+            for index, future in enumerate(futures):
+                try:
+                    result = future.result()
+                except BrokenProcessPool:
+                    self._pool = None  # a worker died: a fresh pool for the retry
+                    result = self._retry(function, items[index], index)
+                except Exception:
+                    result = self._retry(function, items[index], index)
+                results.append(result)
+                if done:
+                    done(index)
+            return results
+        except KeyboardInterrupt:
+            self._terminate()
+            raise
 
     def _retry(self, function: Callable[[Any], Any], item: Any, index: int) -> Any:
         try:
@@ -201,6 +242,19 @@ class ProcessExecutor:
         if self._pool is not None:
             self._pool.shutdown(cancel_futures=True)
             self._pool = None
+
+    def _terminate(self) -> None:
+        """Stop now (Ctrl-C): cancel the queued chunks and end the workers, which ignore SIGINT
+        and would otherwise finish their running chunks first."""
+        pool, self._pool = self._pool, None
+        if pool is None:
+            return
+        workers = list((pool._processes or {}).values())  # no public handle on them
+        pool.shutdown(wait=False, cancel_futures=True)
+        for worker in workers:
+            worker.terminate()
+        for worker in workers:
+            worker.join(timeout=5)
 
 
 class DaskExecutor:

@@ -27,6 +27,7 @@ import numpy as np
 
 from pipeline.io.artifacts import atomic_write_text
 from pipeline.io.errors import ScenarioError
+from pipeline.io.files import TEXT_MAX_BYTES, FileRefused, read_bytes
 from pipeline.model.dynamics import FloatArray
 
 # A decimal number in ASCII (nan and inf too, refused below with their own message).
@@ -49,21 +50,28 @@ class Demo:
         return int(self.us.shape[0])
 
 
+def _unreadable(path: Path, reason: str | None) -> ScenarioError:
+    return ScenarioError(f"cannot read demo file ({reason})", file=path, expected="a readable CSV")
+
+
 def read_demo_csv(
     path: Path, input_names: Sequence[str], Ts: float, bounds: FloatArray | None = None
 ) -> FloatArray:
     """Read a demo CSV into inputs ``(N, m)``, with an error naming the row for any mistake.
 
+    The file must be a regular file of at most 64 MiB (``pipeline.io.files.TEXT_MAX_BYTES``).
+
     Args:
       bounds: optional (m, 2) input bounds ``[lower, upper]``; a value outside is an error.
     """
     try:
-        lines = path.read_text(encoding="utf-8").splitlines()
-    except (OSError, UnicodeDecodeError) as error:
-        reason = error.strerror if isinstance(error, OSError) else "not UTF-8 text"
-        raise ScenarioError(
-            f"cannot read demo file ({reason})", file=path, expected="a readable CSV"
-        ) from None
+        lines = read_bytes(path, TEXT_MAX_BYTES).decode("utf-8").splitlines()
+    except UnicodeDecodeError:
+        raise _unreadable(path, "not UTF-8 text") from None
+    except FileRefused as error:  # not a regular file, or larger than the cap
+        raise _unreadable(path, error.reason) from None
+    except OSError as error:
+        raise _unreadable(path, error.strerror) from None
     expected_header = ["t", *input_names]
     rows: list[list[float]] = []
     header_seen = False

@@ -16,8 +16,10 @@ from typing import Any
 import yaml
 
 from pipeline.io.errors import ScenarioError
+from pipeline.io.files import FileRefused, FileTooLarge, read_bytes
 
 MAX_BYTES = 1_000_000  # a scenario file is a few KB; demos live in their own CSV files
+# (read as a regular file only: a FIFO or device is refused, pipeline.io.files.read_bytes)
 MAX_ALIASES = 100  # '*name' references in one file
 MAX_NODES = 100_000  # YAML nodes after expanding every alias (the shipped files: < 500)
 
@@ -139,20 +141,20 @@ def load_yaml(path: Path) -> object:
     """The data of the YAML file ``path`` (plain dicts, lists, strings and numbers), or a
     ``ScenarioError`` for an unreadable, oversized, malformed or alias-bomb file."""
     try:
-        with path.open("rb") as stream:
-            raw = stream.read(MAX_BYTES + 1)
-    except OSError as error:
-        raise ScenarioError(
-            f"cannot read scenario file ({error.strerror})",
-            file=path,
-            expected="a readable YAML file",
-        ) from None
-    if len(raw) > MAX_BYTES:
+        raw = read_bytes(path, MAX_BYTES)
+    except FileTooLarge:
         raise ScenarioError(
             f"file is larger than {MAX_BYTES:,} bytes",
             file=path,
             expected="a scenario file of a few KB (demonstrations belong in their CSV files)",
-        )
+        ) from None
+    except (OSError, FileRefused) as error:
+        reason = error.strerror if isinstance(error, OSError) else error.reason
+        raise ScenarioError(
+            f"cannot read scenario file ({reason})",
+            file=path,
+            expected="a readable YAML file",
+        ) from None
     try:
         text = raw.decode("utf-8")
     except UnicodeDecodeError:

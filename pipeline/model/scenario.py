@@ -7,8 +7,8 @@ field path (or CSV row), what was found and what was expected:
 2. the schema (``pipeline.model.schema``: types, missing and extra keys, ordered bounds, ``Ts >
 0``);
 3. cross-field rules here: names that must match, symbols in the dynamics, valid polygons,
-   Init and Goal clear of Unsafe, demo files (inputs within bounds), and each demo's flight
-   (avoids Unsafe, ends in Goal).
+   Init and Goal clear of Unsafe, Init inside ``state_bounds``, demo files (inputs within
+   bounds), and each demo's flight (avoids Unsafe, stays in ``state_bounds``, ends in Goal).
 """
 
 from __future__ import annotations
@@ -169,9 +169,10 @@ def resolve_scenario_path(name_or_path: str | Path, root: Path | None = None) ->
     scenarios, ``SCENARIOS_ROOT``); an unknown name lists the known ones.
     """
     candidate = Path(name_or_path)
-    if candidate.is_file():
+    # anything there but a folder is read (a FIFO, device or link loop is refused in one line)
+    if os.path.lexists(candidate) and not candidate.is_dir():
         return candidate
-    if (candidate / "scenario.yaml").is_file():
+    if os.path.lexists(candidate / "scenario.yaml"):
         return candidate / "scenario.yaml"
     roots = [Path.cwd() / LOCAL_SCENARIOS, Path(root if root is not None else SCENARIOS_ROOT)]
     for folder in roots:
@@ -188,7 +189,8 @@ def load_scenario(name_or_path: str | Path, check_demos: bool = True) -> Scenari
     """Load and validate a scenario by name (``./scenarios/NAME``, else the shipped one) or by
     path (a folder holding ``scenario.yaml``, or the YAML file).
 
-    With ``check_demos`` every demo is simulated and must avoid Unsafe and end in Goal.
+    With ``check_demos`` every demo is simulated and must avoid Unsafe, stay in ``state_bounds``
+    and end in Goal.
     """
     path = resolve_scenario_path(name_or_path)
     spec = _parse_spec(path)
@@ -386,6 +388,7 @@ def _build(path: Path, spec: ScenarioSpec) -> Scenario:
     position_index = (states.index(spec.position[0]), states.index(spec.position[1]))
     init_lower = np.array([spec.init[s][0] for s in states])
     init_upper = np.array([spec.init[s][1] for s in states])
+    _check_init_in_bounds(path, spec, init_lower, init_upper)
     # The Init box projected on position; a point or a segment when an interval is degenerate.
     corners = [init_lower[list(position_index)], init_upper[list(position_index)]]
     init_box = MultiPoint(corners).envelope
@@ -431,6 +434,23 @@ def _build(path: Path, spec: ScenarioSpec) -> Scenario:
         units=dict(spec.units),
         labels=dict(spec.labels),
     )
+
+
+def _check_init_in_bounds(
+    path: Path, spec: ScenarioSpec, init_lower: FloatArray, init_upper: FloatArray
+) -> None:
+    """Every start must be admissible: the Init box inside ``state_bounds``."""
+    for name, (lower, upper) in spec.state_bounds.items():
+        i = list(spec.states).index(name)
+        if init_lower[i] < lower or init_upper[i] > upper:
+            raise ScenarioError(
+                f"Init leaves state_bounds.{name} = [{lower:g}, {upper:g}]",
+                file=path,
+                field=f"init.{name}",
+                found=[float(init_lower[i]), float(init_upper[i])],
+                expected=f"an interval inside [{lower:g}, {upper:g}] (every start must lie in"
+                " the state bounds)",
+            )
 
 
 def _build_dynamics(path: Path, spec: ScenarioSpec) -> Dynamics:
@@ -508,7 +528,16 @@ def _demo_path(path: Path, index: int, file: str) -> Path:
     """``file`` inside the scenario's folder; an absolute path, or one leading out of the folder
     (``..``, a symbolic link), is refused: a scenario may only read its own files."""
     folder = path.parent.resolve()
-    target = (folder / file).resolve()
+    try:
+        target = (folder / file).resolve()
+    except (RuntimeError, OSError):  # a symbolic-link loop (RuntimeError before Python 3.13)
+        raise ScenarioError(
+            "demo file is a symbolic-link loop",
+            file=path,
+            field=f"demos.{index}.file",
+            found=file,
+            expected="a CSV file inside the scenario folder",
+        ) from None
     if Path(file).is_absolute() or not target.is_relative_to(folder):
         raise ScenarioError(
             "demo file outside the scenario folder",
@@ -521,7 +550,8 @@ def _demo_path(path: Path, index: int, file: str) -> Path:
 
 
 def check_demo_flight(scenario: Scenario, demo: Demo) -> None:
-    """Simulate ``demo`` and raise if it enters Unsafe or ends outside Goal (saying where/when)."""
+    """Simulate ``demo`` and raise if it enters Unsafe, leaves ``state_bounds`` or ends outside
+    Goal (saying where/when)."""
     with np.errstate(over="ignore", invalid="ignore"):
         trajectory = simulate(scenario.dynamics, demo.x0, demo.us, scenario.Ts)
     if not np.all(np.isfinite(trajectory.dense_xs)):
@@ -542,6 +572,17 @@ def check_demo_flight(scenario: Scenario, demo: Demo) -> None:
                 f" position ({X:.3f}, {Y:.3f})",
                 file=demo.file,
                 expected="a flight that never touches Unsafe",
+            )
+    for name, (lower, upper) in scenario.state_bounds.items():
+        values = trajectory.dense_xs[:, scenario.state_names.index(name)]
+        outside = np.flatnonzero((values < lower) | (values > upper))
+        if outside.size:
+            k = outside[0]
+            raise ScenarioError(
+                f"demo '{demo.name}' leaves state_bounds.{name} = [{lower:g}, {upper:g}]"
+                f" at t = {trajectory.dense_ts[k]:.2f} s ({name} = {values[k]:.4g})",
+                file=demo.file,
+                expected="a flight inside the state bounds",
             )
     if not scenario.in_goal(trajectory.final_state):
         X, Y = positions[-1]

@@ -29,6 +29,13 @@ def _ordered(interval: tuple[float, float]) -> tuple[float, float]:
     return interval
 
 
+def _proper(interval: tuple[float, float]) -> tuple[float, float]:
+    lower, upper = interval
+    if not lower < upper:
+        raise ValueError("an interval [lower, upper] with lower < upper (room for the state)")
+    return interval
+
+
 def _number_as_text(value: object) -> object:
     if isinstance(value, (int, float)) and not isinstance(value, bool):
         return str(value)
@@ -36,6 +43,8 @@ def _number_as_text(value: object) -> object:
 
 
 Interval = Annotated[tuple[float, float], AfterValidator(_ordered)]
+# A bound on a physical quantity: a proper interval, with room inside (lower < upper).
+ProperInterval = Annotated[tuple[float, float], AfterValidator(_proper)]
 Vertex = tuple[float, float]
 Name = Annotated[str, Field(pattern=r"^[A-Za-z_][A-Za-z0-9_]*$")]
 # A dynamics expression: text in the grammar of ``pipeline.model.expressions``; a bare number is
@@ -129,10 +138,11 @@ class ScenarioSpec(_Strict):
         description="how the nominal trajectories are optimized: 'gd' (the paper's gradient "
         "descent, §III-B) or 'lbfgs' (L-BFGS-B on the same cost); --method overrides it",
     )
-    state_bounds: dict[str, Interval] = Field(
+    state_bounds: dict[str, ProperInterval] = Field(
         default_factory=dict,
         description="the physical envelope of the states (e.g. a small-angle limit), apart from "
-        "any certificate region; the funnel certificate and the uncertified comparison use it",
+        "any certificate region, each [lower, upper] with lower < upper and holding Init: every "
+        "certificate keeps its tubes inside it, and the uncertified comparison uses it",
     )
     units: dict[str, str] = Field(
         default_factory=dict,

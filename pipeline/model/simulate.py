@@ -165,6 +165,36 @@ def simulate(
     )
 
 
+def simulate_graded(
+    dynamics: Dynamics, x0: FloatArray, us: FloatArray, Ts: float, substeps: np.ndarray
+) -> Trajectory:
+    """``simulate`` with its own number of RK4 steps on each sample interval: ``x0 (n,)``,
+    ``us (N, m)``, ``substeps (N,)`` -> a trajectory whose dense grid has ``substeps[k]`` equal
+    steps on ``[t_k, t_k+1)`` (``sum(substeps) + 1`` points). With every ``substeps[k]`` equal it
+    is ``simulate``'s trajectory, bitwise (times included)."""
+    x0 = np.asarray(x0, dtype=np.float64)
+    us = np.asarray(us, dtype=np.float64)
+    steps = np.asarray(substeps)
+    if steps.shape != (len(us),) or not np.issubdtype(steps.dtype, np.integer) or steps.min() < 1:
+        raise ValueError(f"substeps must be {len(us)} whole numbers >= 1, got {substeps!r}")
+    times, states, x = [np.zeros(1)], [x0[None]], x0
+    for k, s in enumerate(steps.tolist()):
+        dense = _rk4_one(dynamics, x, us[k : k + 1], Ts / s, s)
+        times.append(k * Ts + (Ts / s) * np.arange(1, s + 1))
+        states.append(dense[1:])
+        x = dense[-1]
+    dense_xs = np.concatenate(states)
+    if np.all(steps == steps[0]):  # simulate's own times
+        times = [(Ts / steps[0]) * np.arange(len(dense_xs))]
+    return Trajectory(
+        ts=Ts * np.arange(len(us) + 1, dtype=np.float64),
+        xs=dense_xs[np.concatenate([[0], np.cumsum(steps)])],
+        us=us,
+        dense_ts=np.concatenate(times),
+        dense_xs=dense_xs,
+    )
+
+
 def simulate_reference(
     dynamics: Dynamics,
     x0: FloatArray,

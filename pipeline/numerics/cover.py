@@ -74,10 +74,12 @@ def subdivide(
     centers: FloatArray,
     radii: FloatArray,
     max_depth: int = DEFAULT_DEPTH,
+    margin: float = 0.0,
 ) -> Subdivision:
     """Certify that the box ``[lower0, upper0]`` (n,) lies in the union of the balls with
     ``centers (k, n)``, ``radii (k,)`` (radii <= 0 are ignored) and metrics ``P (k, n, n)``, one
-    per ball (``P (n, n)``: the same metric for every ball)."""
+    per ball (``P (n, n)``: the same metric for every ball); a box is covered when its vertices
+    are within ``(1 - margin)`` of a ball's squared radius."""
     lower0 = np.asarray(lower0, dtype=np.float64)
     upper0 = np.asarray(upper0, dtype=np.float64)
     n = lower0.shape[0]
@@ -116,13 +118,13 @@ def subdivide(
         vertices = np.repeat(lower[:, None, :], len(corners), axis=1)
         vertices[:, :, free_index] += corners[None] * (upper - lower)[:, None, free_index]
         worst = _farthest_vertex(vertices, centers, P)  # (B, k)
-        fits = (worst <= r2[None]) & usable[None]
-        margin = np.where(fits, 1.0 - worst / np.where(usable, r2, 1.0)[None], -np.inf)
+        fits = (worst <= (1.0 - margin) * r2[None]) & usable[None]
+        room = np.where(fits, 1.0 - worst / np.where(usable, r2, 1.0)[None], -np.inf)
         done = fits.any(axis=1)
         widths = (upper - lower)[:, free_index]
         volumes = np.prod(widths, axis=1) if D else np.ones(len(lower))
         covered_boxes.append(np.stack([lower[done], upper[done]], axis=1))
-        assignment.append(np.argmax(margin[done], axis=1))
+        assignment.append(np.argmax(room[done], axis=1))
         covered_volume += float(volumes[done].sum())
         # Boxes that some ball may still cover (nearest point of the box inside the ball).
         nearest = np.clip(centers[None], lower[:, None], upper[:, None])  # (B, k, n)

@@ -39,7 +39,10 @@ class ConstraintMargins:
       profile: margins that vary along the trajectory (a funnel's extents per sample interval,
         ``pipeline.numerics.margins``), added to the constant ones above; None: none.
       region: name -> (lower, upper), the box the nominal stays in (None: the scenario's
-        operating region; a funnel's: the scenario's ``state_bounds``).
+        operating region and ``state_bounds``, ``nominal_box``; a funnel's: the scenario's
+        ``state_bounds``).
+      state_extent: state name -> how far the tube extends along it (a constant tube's: shrinks
+        the scenario's ``state_bounds`` when ``region`` is None).
     """
 
     input_margin: FloatArray
@@ -49,19 +52,37 @@ class ConstraintMargins:
     goal_margin: Mapping[str, float] = field(default_factory=dict)
     profile: MarginProfile | None = None
     region: Mapping[str, tuple[float, float]] | None = None
+    state_extent: Mapping[str, float] = field(default_factory=dict)
 
     @classmethod
     def of_tube(cls, tube: Tube, radius: float) -> ConstraintMargins:
         """The footprint of the feedback's tube of P-norm radius ``radius``."""
+        extent = dict(zip(tube.state_names, map(float, tube.state_extent(radius)), strict=True))
         return cls(
             input_margin=tube.input_margin(radius),
             region_margin=tube.region_extent(radius),
             gain=tube.K,
             clearance=tube.position_extent(radius),
-            goal_margin=dict(
-                zip(tube.state_names, map(float, tube.state_extent(radius)), strict=True)
-            ),
+            goal_margin=extent,
+            state_extent=dict(extent),
         )
+
+    def nominal_box(
+        self, scenario: Scenario
+    ) -> tuple[Mapping[str, tuple[float, float]] | None, dict[str, float]]:
+        """``(region, shrink)``: the box the nominal stays in (None: the operating region) and
+        the tube's extent along each of its names. ``region`` when set (a funnel's); else the
+        operating region intersected with the scenario's ``state_bounds``, each state bound
+        shrunk by ``state_extent``: a nominal kept that far inside holds its constant tube in
+        the physical envelope (None, ``region_margin``, when there are no state bounds)."""
+        if self.region is not None or not scenario.state_bounds:
+            return self.region, dict(self.region_margin)
+        box, shrink = dict(scenario.operating_region), dict(self.region_margin)
+        for name, (lower, upper) in scenario.state_bounds.items():
+            low, high = box.get(name, (lower, upper))
+            box[name] = (max(low, lower), min(high, upper))
+            shrink[name] = max(shrink.get(name, 0.0), self.state_extent.get(name, 0.0))
+        return box, shrink
 
     @classmethod
     def of_funnel(
@@ -101,7 +122,8 @@ def verify_within(
 ) -> Verification:
     """``pipeline.numerics.verify`` of ``u (N, m)`` against ``problem``'s margins on its horizon
     (without the descent's eps_r: the region shrunk by the tube's extents only)."""
-    box = scenario.operating_region if margins.region is None else margins.region
+    region, region_margin = margins.nominal_box(scenario)
+    box = scenario.operating_region if region is None else region
     on = margins.profile.on_grid(problem.N) if margins.profile is not None else None
     extents: dict[str, FloatArray | float] = {key: 0.0 for key in box}
     final = np.zeros(scenario.n)
@@ -110,7 +132,7 @@ def verify_within(
         extents |= {k: on.input[:, j] for j, k in enumerate(scenario.input_names) if k in box}
         final = on.final_state
     d = scenario.clearance if margins.clearance is None else margins.clearance
-    shrink = {key: margins.region_margin.get(key, 0.0) + extents[key] for key in box}
+    shrink = {key: region_margin.get(key, 0.0) + extents[key] for key in box}
     goal_shrink = {
         key: margins.goal_margin.get(key, 0.0) + final[scenario.state_names.index(key)]
         for key in scenario.goal_bounds

@@ -36,6 +36,10 @@ in ``(s, J)``; the two steps above need only affinity in each.) ``Q`` is continu
 and ``K`` switches there, so ``V`` is continuous and the bound holds across samples.
 Invariance: while ``V <= rho^2`` the state is in ``Z_k`` (the box holds the tube at level rho,
 checked below), so ``V`` cannot grow and no solution starting in ``E(0)`` leaves the funnel.
+That is for a law tracking the exact nominal. The shipped law tracks it interpolated on a grid;
+the offset adds a bounded term (``funnel_law`` (I1)-(I3)) under which only the level set is
+invariant (``V`` may grow deep inside the funnel, never across its boundary): the certify stage
+and the funnel stage's re-check prove that, and the controller stage picks the grid.
 
 Pieces (HOLD). The LMIs are imposed on pieces of ``HOLD`` sample intervals ``[t_a, t_b)``: ``K``
 is held (``K[k] = K[a]``, the LQR gain at the piece's start), ``Q`` is linear in t over the whole

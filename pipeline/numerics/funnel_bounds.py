@@ -140,10 +140,12 @@ def funnel_limits(
     K: FloatArray,
     enclosure: Enclosure,
     state_bounds: Mapping[str, tuple[float, float]],
+    input_offset: FloatArray | None = None,
 ) -> dict[str, tuple[float, float]]:
     """Constraint -> (largest level ``rho`` it allows, time it binds), (a)-(d) of the docstring.
 
-    ``Q (N+1, n, n)`` the inverse metrics at ``t_k``, ``K (N, m, n)`` the gains."""
+    ``Q (N+1, n, n)`` the inverse metrics at ``t_k``, ``K (N, m, n)`` the gains, ``input_offset
+    (N, m)`` the shipped law's input offset (``funnel_law`` (I3); none by default)."""
     ts, us = trajectory.ts, trajectory.us
     s, h = substeps(trajectory), float(trajectory.dense_ts[1] - trajectory.dense_ts[0])
     s_ext, g, sigma = tube_extents(Q, K, scenario.position_index)
@@ -163,11 +165,12 @@ def funnel_limits(
     for name, polygon in scenario.unsafe.items():
         distance = _interval_distance(geometry.distance(positions, polygon), speed, s, h)
         record(f"unsafe '{name}'", np.where(distance > 0, distance, 0.0) / sigma)
-    # (b) inputs (held reference: exact).
+    # (b) inputs (held reference: exact), less the law's offset (funnel_law (I3)).
+    offset = np.zeros(us.shape) if input_offset is None else input_offset
     for j, name in enumerate(scenario.input_names):
         lower, upper = scenario.input_lower[j], scenario.input_upper[j]
-        record(f"input '{name}' lower", ratio(us[:, j] - lower, g[:, j]))
-        record(f"input '{name}' upper", ratio(upper - us[:, j], g[:, j]))
+        record(f"input '{name}' lower", ratio(us[:, j] - offset[:, j] - lower, g[:, j]))
+        record(f"input '{name}' upper", ratio(upper - offset[:, j] - us[:, j], g[:, j]))
     # (c) state bounds on the sound range (E2).
     for name, (lower, upper) in state_bounds.items():
         i = scenario.state_names.index(name)

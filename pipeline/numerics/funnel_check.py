@@ -3,7 +3,12 @@
 ``check_funnel`` re-verifies a funnel with numpy alone, independently of the solver that built it:
 positive definite metrics, the vertex inequalities (F3) at both ends of every interval, the
 nominal's enclosure (E1), the tube inside every hull box, and the level within every constraint
-(``funnel_bounds.funnel_limits``). A funnel that fails it is rejected.
+(``funnel_bounds.funnel_limits``). A funnel that fails it is rejected. Given the shipped law's
+offset (``funnel_law``: the law tracks an interpolated reference) it checks the funnel under that
+law: (F3)'s eigenvalue plus the offset's term (I2), and the inputs with their offset (I3).
+
+Margins: the eigenvalue must be below ``-LMI_MARGIN``, the level at most ``1 - LEVEL_MARGIN``
+of every limit (``funnel_law``), so that rounding cannot decide a bound.
 """
 
 from __future__ import annotations
@@ -17,6 +22,7 @@ from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import Trajectory
 from pipeline.numerics.funnel_bounds import Enclosure, funnel_limits, rate_bound, substeps
+from pipeline.numerics.funnel_law import LEVEL_MARGIN, LMI_MARGIN, LawOffset
 
 LEVEL_SLACK = 1e-4  # rho is shrunk by this relative amount so that no bound holds with equality
 # (1e-9 was too little: certify rebuilds the enclosure from the file, and its limits may be lower
@@ -90,15 +96,19 @@ def check_funnel(
     trajectory: Trajectory,
     funnel: Funnel,
     state_bounds: Mapping[str, tuple[float, float]],
+    law: LawOffset | None = None,
 ) -> str | None:
     """Re-verify ``funnel`` with numpy alone; ``None`` if it holds, else what fails.
 
     Checks: every ``P[k]`` symmetric positive definite; (F3) at every vertex and both ends of
-    every interval; the a priori enclosure (E1: ``F h < pad`` with ``F`` recomputed from the
-    stored vertices) and its box inside the hull box; the tube at level rho inside every hull
-    box; rho within every constraint's limit (funnel_bounds (a)-(d))."""
+    every interval, plus the law's term (I2) when ``law`` is given, below ``-LMI_MARGIN``; the a
+    priori enclosure (E1: ``F h < pad`` with ``F`` recomputed from the stored vertices) and its
+    box inside the hull box; the tube at level rho (inputs widened by the law's offset (I3))
+    inside every hull box; rho within ``1 - LEVEL_MARGIN`` of every constraint's limit
+    (funnel_bounds (a)-(d))."""
     P, K, rho, Ts = funnel.P, funnel.K, funnel.rho, scenario.Ts
     N, n = len(K), scenario.n
+    law = LawOffset.none(N, n, scenario.m, Ts) if law is None else law
     if P.shape != (N + 1, n, n) or K.shape != (N, scenario.m, n):
         return f"shapes P {P.shape}, K {K.shape} do not fit N = {N}, n = {n}, m = {scenario.m}"
     if not (np.all(np.isfinite(P)) and np.all(np.isfinite(K)) and np.isfinite(rho)):
@@ -111,10 +121,14 @@ def check_funnel(
     Q = np.linalg.inv(P)
     Q = (Q + np.swapaxes(Q, 1, 2)) / 2
     margins = certificate_margins(Q, K, funnel.vertices, funnel.rate, Ts)
-    if margins.max() >= 0:
-        k, e = map(int, np.unravel_index(int(np.argmax(margins)), margins.shape))
-        worst = margins.max()
-        return f"(F2) fails at t = {Ts * (k + e):.2f} s, interval {k} (eigenvalue {worst:.3g})"
+    effective = margins.max(axis=1) + law.lmi_term  # funnel_law (I2)
+    if effective.max() >= -LMI_MARGIN:
+        k = int(np.argmax(effective))
+        return (
+            f"(F2) fails on interval {k} (t = {Ts * k:.2f}-{Ts * (k + 1):.2f} s): eigenvalue "
+            f"{margins[k].max():.3g} + the interpolated reference's term {law.lmi_term[k]:.3g} "
+            f"is not below -{LMI_MARGIN:g}"
+        )
     h = Ts / substeps(trajectory)
     enclosure = funnel.enclosure
     if enclosure is None:
@@ -133,6 +147,7 @@ def check_funnel(
             if name in scenario.input_names:
                 j = scenario.input_names.index(name)
                 g = rho * np.sqrt(max(K[k, j] @ Q[e] @ K[k, j] for e in (k, k + 1)))
+                g += law.input_offset[k, j]  # funnel_law (I3)
                 inner = (trajectory.us[k, j] - g, trajectory.us[k, j] + g)
             else:
                 i = scenario.state_names.index(name)
@@ -144,8 +159,11 @@ def check_funnel(
                     return f"the enclosure leaves the hull box of '{name}' on interval {k}"
             if not (lo <= inner[0] and inner[1] <= hi):
                 return f"the tube leaves the hull box of '{name}' on interval {k}"
-    limits = funnel_limits(scenario, trajectory, Q, K, enclosure, state_bounds)
+    limits = funnel_limits(scenario, trajectory, Q, K, enclosure, state_bounds, law.input_offset)
     name = min(limits, key=lambda key: limits[key][0])
-    if rho > limits[name][0]:
-        return f"rho {rho:.4g} exceeds the limit {limits[name][0]:.4g} of {name}"
+    if rho > (1 - LEVEL_MARGIN) * limits[name][0]:
+        return (
+            f"rho {rho:.6g} exceeds the limit {limits[name][0]:.6g} of {name} less its margin "
+            f"({LEVEL_MARGIN:g}, relative)"
+        )
     return None

@@ -84,12 +84,14 @@ def piece_hulls(
     bounds: np.ndarray,
     tight: bool,
     pad_rounds: int = PAD_ROUNDS,
+    input_offset: FloatArray | None = None,
 ) -> tuple[tuple[str, ...], FloatArray, tuple[FloatArray, ...], Enclosure]:
     """The boxes and hulls of the module docstring for seed ``Q_seed (N+1, n, n)``, held gains
     ``K (N, m, n)`` and pieces ``bounds (S+1,)``: ``(variables (d names), boxes (N, 2, d),
     vertices (N arrays (V, n, n+m)), enclosure)``, per sample interval (its piece's box and hull).
     ``pipeline.numerics.recertify`` rebuilds a shipped funnel's hulls with it too: pieces of one
-    interval, the file's ``Q`` as the seed, ``allowance`` its level.
+    interval, the file's ``Q`` as the seed, ``allowance`` its level, and ``input_offset (N, m)``
+    the shipped law's input offset (``funnel_law`` (I3)) added to the inputs' widths.
 
     Raises:
       HullError: no hull over a box, or no a priori enclosure (E1) in ``pad_rounds`` rounds.
@@ -115,6 +117,8 @@ def piece_hulls(
                 if name in scenario.input_names:
                     j = scenario.input_names.index(name)
                     w = allowance * g_seed[a:b, j].max()
+                    if input_offset is not None:
+                        w += input_offset[a:b, j].max()  # funnel_law (I3)
                     centre = trajectory.us[a:b, j].min(), trajectory.us[a:b, j].max()
                 else:
                     i = scenario.state_names.index(name)

@@ -328,7 +328,8 @@ def jacobian_hull(
 ) -> JacobianHull:
     """A sound polytope of ``[f_x f_u]`` over the box ``region`` (name -> (lower, upper)).
 
-    Every variable the Jacobian depends on must be bounded by ``region``; ``segments`` is the
+    Every variable the Jacobian depends on must be bounded by ``region``, by an interval
+    (``lower <= upper``, else ``HullError``: an empty box has no hull); ``segments`` is the
     number of pieces per angle-like block (the arc polygon's tangents, or interval boxes);
     ``compact`` asks for the arc polygon with fewer vertices (``arc_polygon``).
     """
@@ -345,6 +346,12 @@ def jacobian_hull(
         symbols[name]: (float(region[name][0]), float(region[name][1]))
         for name in structure.depends_on
     }
+    for z, (lower, upper) in box.items():  # mpmath's iv.mpf only asserts this (gone under -O)
+        if not lower <= upper:
+            raise HullError(
+                f"{z} in [{lower:.6g}, {upper:.6g}]: not an interval (expected lower <= upper; "
+                "a box clipped to bounds it lies outside of is empty)"
+            )
     J0, parts, whole = structure.J0, structure.parts, structure.whole
 
     # Blocks: vertices (k_b, p_b) and the coordinate of each (variable, g) or whole feature.

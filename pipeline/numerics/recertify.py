@@ -1,8 +1,9 @@
 """Re-verify a ``safety-controller`` file's trajectories from the file's data alone.
 
 ``check_reference`` (either format): ``x_ref`` is the dynamics from ``x0`` under ``u_ref`` on the
-file's RK4 grid, and its linear interpolation (what the law tracks) is measured against a finer
-simulation, both in the tube's metric at the time, ``P(t)``.
+file's RK4 grid (equal steps on each sample interval, their number may differ between intervals),
+and its linear interpolation (what the law tracks) is measured against a finer simulation, both
+in the tube's metric at the time, ``P(t)``.
 
 ``recheck_funnel`` (``/2``). The file carries, per trajectory, ``x_ref`` (re-simulated by
 ``check_reference`` from ``x0`` and ``u_ref``), ``K (N, m, n)``, ``P (N+1, n, n)`` (``Q =
@@ -17,10 +18,17 @@ synthesis's boxes and its solver:
    scenario's state and input bounds (sound: the limits re-checked below keep the tube inside
    them), and a sound hull of ``[f_x f_u]`` over ``Z_k`` (``pipeline.numerics.hull``, outward
    rounded);
-3. ``funnel_check.check_funnel`` on the funnel so rebuilt: ``P[k]`` positive definite, (F3) at
-   every vertex at both ends of every interval (numpy eigenvalues), the enclosure (E1) and the
-   tube inside every hull box, ``rho`` within the limits of Unsafe, the inputs, the state bounds
-   and Goal at ``T`` (``funnel_bounds.funnel_limits``).
+3. the shipped law's offset (``funnel_law``): it tracks ``x_ref`` interpolated on the file's grid,
+   whose error (I1) enters the inequality (I2) and the inputs (I3); the input boxes of step 2 are
+   widened by ``OFFSET_ALLOWANCE`` times the offset (I3) of hulls without it, and the offset of
+   the hulls so built must fit that allowance;
+4. ``funnel_check.check_funnel`` on the funnel so rebuilt, under that law: ``P[k]`` positive
+   definite, (F3) plus (I2) at every vertex at both ends of every interval (numpy eigenvalues),
+   the enclosure (E1) and the tube inside every hull box, ``rho`` within the limits of Unsafe,
+   the inputs, the state bounds and Goal at ``T`` (``funnel_bounds.funnel_limits``).
+
+Steps 1-2 run on a uniform RK4 grid of ``BASE_SUBSTEPS`` per sample (the nominal is the same
+whatever grid the file carries its reference on).
 
 A hull over a box is sound for any number of segments, so ``SEGMENTS`` are tried in turn and the
 funnel is accepted when one of them certifies it (a finer hull is tighter, not always a subset).
@@ -37,15 +45,23 @@ import numpy as np
 from pipeline.controller import ReferenceTrajectory
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
-from pipeline.model.simulate import Trajectory, simulate
-from pipeline.numerics.funnel_bounds import funnel_limits
+from pipeline.model.simulate import Trajectory, simulate, simulate_graded
+from pipeline.numerics.funnel_bounds import funnel_limits, tube_extents
 from pipeline.numerics.funnel_check import Funnel, certificate_margins, check_funnel
+from pipeline.numerics.funnel_law import (
+    BASE_SUBSTEPS,
+    LawOffset,
+    grid_substeps,
+    law_offset,
+    law_substeps,
+)
 from pipeline.numerics.funnel_pieces import piece_hulls
 from pipeline.numerics.hull import HullError
 
 SEGMENTS = (1, 4)
 WIDEN = 1e-9  # relative widening of the tube's extent in the hull boxes (rounding of E3)
 PAD_ROUNDS = 8
+OFFSET_ALLOWANCE = 2.0  # the input boxes hold this multiple of the law's input offset (step 3)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -53,39 +69,54 @@ class ReferenceCheck:
     """One trajectory's reference as the file states it.
 
     Attributes:
-      trajectory: ``x0``, ``u_ref`` simulated on the file's grid (None: ``t`` is not a uniform
-        RK4 grid of the samples, and nothing else was measured).
+      trajectory: ``x0``, ``u_ref`` simulated on the file's grid (None: ``t`` is not an RK4
+        grid of the samples, and nothing else was measured).
+      substeps: (N,) the grid's steps on each sample interval (None with ``trajectory``).
       error: ``max ||x_ref - simulated||_P(t) / radius`` on that grid.
       interpolation: ``max ||x_ref interpolated - the dynamics||_P(t)`` on the finer grid.
+      integration: the RK4 error of the file's grid at the sample times, estimated from the
+        finer grid (Richardson, order 4: ``16/15 |x_s - x_2s|``), in ``P(t_k)`` per unit radius.
     """
 
     trajectory: Trajectory | None
+    substeps: np.ndarray | None = None
     error: float
     interpolation: float
+    integration: float = np.inf
 
 
 def check_reference(
     scenario: Scenario, reference: ReferenceTrajectory, Ts: float, least_substeps: int
 ) -> ReferenceCheck:
     """``reference``'s ``x_ref`` against the dynamics, in ``P(t)``; the interpolation measured
-    on a grid of ``2 max(file's substeps, least_substeps)`` RK4 steps per sample (finer than the
-    file's, midpoints included)."""
+    on a grid of ``2 max(file's substeps, least_substeps)`` RK4 steps on each sample interval
+    (finer than the file's, midpoints included)."""
     tr, N = reference, len(reference.u_ref)
-    substeps = (len(tr.t) - 1) // N
-    fine = simulate(scenario.dynamics, tr.x0, tr.u_ref, Ts, substeps=max(substeps, 1))
-    if substeps * N + 1 != len(tr.t) or not np.allclose(fine.dense_ts, tr.t, rtol=0, atol=1e-9):
+    substeps = grid_substeps(tr.t, N, Ts)
+    if substeps is None:
         return ReferenceCheck(trajectory=None, error=np.inf, interpolation=np.inf)
+    fine = simulate_graded(scenario.dynamics, tr.x0, tr.u_ref, Ts, substeps)
     e = tr.x_ref - fine.dense_xs
     metric = tr.metric(tr.t, Ts)  # (r, n, n)
     error = float(np.sqrt(np.einsum("ki,kij,kj->k", e, metric, e)).max()) / tr.radius
-    finer = simulate(scenario.dynamics, tr.x0, tr.u_ref, Ts, 2 * max(substeps, least_substeps))
+    finer = simulate_graded(
+        scenario.dynamics, tr.x0, tr.u_ref, Ts, 2 * np.maximum(substeps, least_substeps)
+    )
     tracked = np.stack(
         [np.interp(finer.dense_ts, tr.t, tr.x_ref[:, j]) for j in range(tr.x_ref.shape[1])], -1
     )
     gap = tracked - finer.dense_xs
     metric = tr.metric(finer.dense_ts, Ts)
     interpolation = float(np.sqrt(np.einsum("ki,kij,kj->k", gap, metric, gap)).max())
-    return ReferenceCheck(trajectory=fine, error=error, interpolation=interpolation)
+    d = fine.xs - finer.xs
+    integration = 16 / 15 * np.sqrt(np.einsum("ki,kij,kj->k", d, tr.metric(fine.ts, Ts), d)).max()
+    return ReferenceCheck(
+        trajectory=fine,
+        substeps=substeps,
+        error=error,
+        interpolation=interpolation,
+        integration=float(integration) / tr.radius,
+    )
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -116,6 +147,7 @@ def rebuild_funnel(
     rate: float,
     state_bounds: Mapping[str, tuple[float, float]],
     segments: int,
+    input_offset: FloatArray | None = None,
 ) -> Funnel:
     """The funnel ``K (N, m, n)``, ``P (N+1, n, n)``, ``rho``, ``rate`` around ``trajectory``
     with hulls and enclosure rebuilt by steps 1-2 of the module docstring
@@ -129,12 +161,52 @@ def rebuild_funnel(
     variables, boxes, vertices, enclosure = piece_hulls(
         scenario, trajectory, Q, K, state_bounds,
         rho * (1 + WIDEN), segments, np.arange(N + 1), tight=False, pad_rounds=PAD_ROUNDS,
+        input_offset=input_offset,
     )  # fmt: skip
     return Funnel(
         K=K, P=P, rho=rho, rate=rate, margins=np.full((N, 2), np.nan), boxes=boxes,
         variables=variables, vertices=vertices, enclosure=enclosure, limits={},
         binding="", seconds=0.0, success=True, message="rebuilt from controller.json",
     )  # fmt: skip
+
+
+def _under_law(
+    scenario: Scenario,
+    trajectory: Trajectory,
+    K: FloatArray,
+    P: FloatArray,
+    Q: FloatArray,
+    rho: float,
+    rate: float,
+    state_bounds: Mapping[str, tuple[float, float]],
+    segments: int,
+    substeps: np.ndarray,
+) -> tuple[Funnel, LawOffset]:
+    """Steps 1-3: the funnel rebuilt with its input boxes widened by ``OFFSET_ALLOWANCE`` times the
+    law's input offset (I3) found on hulls without it, and the law's offset on the hulls so built
+    for a reference grid of ``substeps (N,)`` per sample.
+
+    Raises:
+      HullError: no hull or enclosure, or the offset outgrew the widening.
+    """
+    plain = rebuild_funnel(scenario, trajectory, K, P, Q, rho, rate, state_bounds, segments)
+    if plain.enclosure is None:
+        raise HullError("no a priori enclosure of the nominal")
+    first = law_offset(
+        plain.vertices, plain.enclosure.rate_bound, K, P, rho, rate, scenario.Ts, substeps
+    )
+    allowance = OFFSET_ALLOWANCE * first.input_offset
+    funnel = rebuild_funnel(
+        scenario, trajectory, K, P, Q, rho, rate, state_bounds, segments, allowance
+    )
+    if funnel.enclosure is None:
+        raise HullError("no a priori enclosure of the nominal")
+    law = law_offset(
+        funnel.vertices, funnel.enclosure.rate_bound, K, P, rho, rate, scenario.Ts, substeps
+    )
+    if np.any(law.input_offset > allowance):
+        raise HullError("the interpolated reference's input offset (I3) outgrew its hull box")
+    return funnel, law
 
 
 def recheck_funnel(
@@ -145,28 +217,35 @@ def recheck_funnel(
     rho: float,
     rate: float,
     state_bounds: Mapping[str, tuple[float, float]],
+    substeps: np.ndarray,
 ) -> FunnelRecheck:
-    """Steps 1-3 of the module docstring for one funnel (``K (N, m, n)``, ``P (N+1, n, n)``)."""
+    """Steps 1-4 of the module docstring for one funnel (``K (N, m, n)``, ``P (N+1, n, n)``)
+    around the nominal ``trajectory`` (a uniform RK4 grid), its law tracking the reference on a
+    grid of ``substeps (N,)`` per sample. The margin reported is (F2)'s eigenvalue plus (I2)."""
     Q = np.linalg.inv(P)
     Q = (Q + np.swapaxes(Q, 1, 2)) / 2
     failures: list[str] = []
     last = FunnelRecheck(failure="", margin=float("nan"), vertices=0, radius=0.0, binding="")
     for segments in SEGMENTS:
         try:
-            funnel = rebuild_funnel(
-                scenario, trajectory, K, P, Q, rho, rate, state_bounds, segments
+            funnel, law = _under_law(
+                scenario, trajectory, K, P, Q, rho, rate, state_bounds, segments, substeps
             )
         except (HullError, np.linalg.LinAlgError) as error:
             failures.append(f"{segments} segment(s): {error}")
             continue
-        failure = check_funnel(scenario, trajectory, funnel, state_bounds)
-        margin = float(certificate_margins(Q, K, funnel.vertices, rate, scenario.Ts).max())
-        assert funnel.enclosure is not None
-        limits = funnel_limits(scenario, trajectory, Q, K, funnel.enclosure, state_bounds)
+        failure = check_funnel(scenario, trajectory, funnel, state_bounds, law)
+        margins = certificate_margins(Q, K, funnel.vertices, rate, scenario.Ts)
+        enclosure = funnel.enclosure
+        if enclosure is None:  # _under_law raises first; narrows the type
+            raise HullError("no a priori enclosure of the nominal")
+        limits = funnel_limits(
+            scenario, trajectory, Q, K, enclosure, state_bounds, law.input_offset
+        )
         binding = min(limits, key=lambda key: limits[key][0])
         last = FunnelRecheck(
             failure=failure,
-            margin=margin,
+            margin=float((margins.max(axis=1) + law.lmi_term).max()),
             vertices=sum(len(v) for v in funnel.vertices),
             radius=limits[binding][0],
             binding=binding,
@@ -175,3 +254,58 @@ def recheck_funnel(
             return last
         failures.append(f"{segments} segment(s): {failure}")
     return dataclasses.replace(last, failure="; ".join(failures))
+
+
+def reference_substeps(
+    scenario: Scenario,
+    trajectory: Trajectory,
+    K: FloatArray,
+    P: FloatArray,
+    rho: float,
+    rate: float,
+    state_bounds: Mapping[str, tuple[float, float]],
+) -> np.ndarray:
+    """(N,) RK4 steps per sample on which to ship a funnel's reference so that the law's offset
+    fits what (F2) and the inputs leave (``funnel_law.law_substeps``), from the first hull of
+    ``SEGMENTS`` on which the funnel holds for the exact nominal; ``BASE_SUBSTEPS`` everywhere
+    when none does (it will not be certified). ``trajectory``: the nominal on a uniform grid."""
+    N = len(K)
+    Q = np.linalg.inv(P)
+    Q = (Q + np.swapaxes(Q, 1, 2)) / 2
+    base = np.full(N, BASE_SUBSTEPS)
+    for segments in SEGMENTS:
+        try:
+            funnel, law = _under_law(
+                scenario, trajectory, K, P, Q, rho, rate, state_bounds, segments, base
+            )
+        except (HullError, np.linalg.LinAlgError):
+            continue
+        if check_funnel(scenario, trajectory, funnel, state_bounds) is not None:
+            continue
+        margins = certificate_margins(Q, K, funnel.vertices, rate, scenario.Ts).max(axis=1)
+        _, g, _ = tube_extents(Q, K, scenario.position_index)
+        room = (
+            np.minimum(trajectory.us - scenario.input_lower, scenario.input_upper - trajectory.us)
+            - rho * g
+        )
+        return law_substeps(law, margins, room, scenario.Ts)
+    return base
+
+
+def recheck_as_shipped(
+    scenario: Scenario,
+    trajectory: Trajectory,
+    K: FloatArray,
+    P: FloatArray,
+    rho: float,
+    rate: float,
+    state_bounds: Mapping[str, tuple[float, float]],
+) -> FunnelRecheck:
+    """``recheck_funnel`` as the certify stage will run it on the emitted file: the nominal from
+    ``trajectory``'s start and inputs on a uniform grid of ``BASE_SUBSTEPS``, the law tracking the
+    reference on the grid the controller stage ships (``reference_substeps``)."""
+    nominal = simulate(
+        scenario.dynamics, trajectory.xs[0], trajectory.us, scenario.Ts, BASE_SUBSTEPS
+    )
+    substeps = reference_substeps(scenario, nominal, K, P, rho, rate, state_bounds)
+    return recheck_funnel(scenario, nominal, K, P, rho, rate, state_bounds, substeps)

@@ -16,8 +16,9 @@ so with ``M_v = (A_v + B_v K_T)^T P_T + P_T (A_v + B_v K_T) <= -alpha P_T`` at e
 which is negative on the boundary ``V = c`` when ``alpha sqrt(c) > 2 ||r||_{P_T}``: ``E_c`` is
 invariant. It is certified when, in addition, ``E_c`` keeps ``u_eq + K_T e`` inside the input
 bounds (no clipping, so the law is the linear one), its position projection lies in Goal (the
-disk test of ``pipeline.numerics.tube``) and its states in Goal's extra bounds. ``Z_c`` holds the
-states ``x_eq +- sqrt(c (P_T^-1)_ii)`` and inputs ``u_eq +- sqrt(c) ||K_j P_T^-1/2||``.
+disk test of ``pipeline.numerics.tube``) and its states in Goal's extra bounds and in the
+scenario's ``state_bounds``. ``Z_c`` holds the states ``x_eq +- sqrt(c (P_T^-1)_ii)`` and inputs
+``u_eq +- sqrt(c) ||K_j P_T^-1/2||``.
 
 End tubes. Trajectory ``i`` ends in ``{x : ||x - a||_P <= rho}``, ``a = x_ref_i(T_i)``, ``rho =
 r_i e^{-lambda T_i}``. The smallest level ``c_i`` whose ``E_c`` holds it is ``max_{||y||_P <= rho}
@@ -67,7 +68,8 @@ class TerminalCheck:
       level: ``c``; decay: ``alpha`` (1/s, > 0 for a certificate, ``-inf`` without a hull);
       residual: ``||f(x_eq, u_eq)||_{P_T}``; input_slack: smallest room (input units) between
       ``u_eq + K_T e`` over ``E_c`` and the bounds; goal_margin: smallest room (P_T-norm radius)
-      between ``E_c`` and Goal's boundary and extra bounds; failures: one line per failed check.
+      between ``E_c`` and Goal's boundary, its extra bounds and the scenario's ``state_bounds``;
+      failures: one line per failed check.
     """
 
     level: float
@@ -93,15 +95,17 @@ def equilibrium(
     scenario: Scenario, position: FloatArray | None = None
 ) -> tuple[FloatArray, FloatArray]:
     """``(x_eq (n,), u_eq (m,))`` with ``f = 0``, the position at ``position (2,)`` (default
-    ``goal_centre``), the other states in Goal's bounds and the operating region and the inputs
-    within their bounds; ``TerminalError`` when the least-squares search finds none."""
+    ``goal_centre``), the other states in Goal's bounds, the operating region and the state
+    bounds and the inputs within their bounds; ``TerminalError`` when the least-squares search
+    finds none."""
     dynamics, spec = scenario.dynamics, scenario.feedback
     n, m = len(scenario.state_names), len(scenario.input_names)
     position_index = list(scenario.position_index)
     free = [i for i in range(n) if i not in position_index]
     lower = np.concatenate([np.full(n, -np.inf), scenario.input_lower])
     upper = np.concatenate([np.full(n, np.inf), scenario.input_upper])
-    for name, (lo, hi) in {**scenario.operating_region, **scenario.goal_bounds}.items():
+    boxes = {**scenario.operating_region, **scenario.goal_bounds}
+    for name, (lo, hi) in [*boxes.items(), *scenario.state_bounds.items()]:
         k = (scenario.state_names + scenario.input_names).index(name)
         lower[k], upper[k] = max(lower[k], lo), min(upper[k], hi)
     z0 = np.concatenate([np.array(spec.reference_state, float), np.array(spec.reference_input)])
@@ -194,9 +198,20 @@ def check_level(
     for name, (lo, hi) in scenario.goal_bounds.items():
         i = scenario.state_names.index(name)
         room = min(room, (x_eq[i] - lo) / extent[i], (hi - x_eq[i]) / extent[i])
-    margin = room - r
-    if not margin >= 0:
+    if not room - r >= 0:
         failures.append(f"E_c leaves Goal (radius {r:.3g} > room {room:.3g} in P_T-norm)")
+    # inside the physical envelope (state_bounds), which holds after T too
+    envelope = np.inf
+    for name, (lo, hi) in scenario.state_bounds.items():
+        i = scenario.state_names.index(name)
+        inside = min((x_eq[i] - lo) / extent[i], (hi - x_eq[i]) / extent[i])
+        if not inside - r >= 0:
+            failures.append(
+                f"E_c leaves state_bounds.{name} = [{lo:g}, {hi:g}] (radius {r:.3g} > room "
+                f"{inside:.3g} in P_T-norm)"
+            )
+        envelope = min(envelope, inside)
+    margin = min(room, envelope) - r
     # decay (T1) at every vertex of a sound hull over the bounding box Z_c
     centre_z = np.concatenate([x_eq, u_eq])  # (n + m,)
     half = np.concatenate([r * extent, reach])  # (n + m,)

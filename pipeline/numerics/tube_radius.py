@@ -9,9 +9,11 @@ operating region). The radius is the largest ``r`` such that for all ``t`` in ``
    ``Sigma = C P^-1 C^T`` and ``W = Sigma^-1/2`` the projection is the disk of radius
    ``rho(t) = r e^{-lambda t}`` about ``W p_ref(t)`` in the coordinates ``W p``, so the exact
    test is ``dist(W p_ref(t), W U) >= rho(t)``;
-2. ``E(t)`` stays in the operating region: ``|e_i| <= rho sqrt((P^-1)_ii)`` along each state,
-   and the tube's input ``u_ref + K e`` (``|K_j e| <= rho ||K_j P^-1/2||``) stays in the region
-   and in the input bounds;
+2. ``E(t)`` stays in the operating region and in the scenario's ``state_bounds`` (the physical
+   envelope): ``|e_i| <= rho sqrt((P^-1)_ii)`` along each state (the support function of the
+   ball in direction ``c`` is ``rho sqrt(c^T P^-1 c)``, here ``c = e_i``), and the tube's input
+   ``u_ref + K e`` (``|K_j e| <= rho ||K_j P^-1/2||``) stays in the region and in the input
+   bounds;
 3. at ``T``, ``E(T)`` lies in Goal: the disk inside ``W Goal`` and Goal's extra state bounds.
 
 Continuous time: the constraints are evaluated on the trajectory's dense grid; on a grid
@@ -43,8 +45,9 @@ class RadiusLimits:
     """Each constraint's largest tube radius around one nominal trajectory.
 
     Attributes:
-      limits: constraint name (e.g. "unsafe 'NAME'", "goal", "input 'NAME' upper") ->
-        (largest radius it allows on its own, when it binds in s).
+      limits: constraint name (e.g. "unsafe 'NAME'", "goal", "input 'NAME' upper", "state
+        'NAME' lower" for state_bounds) -> (largest radius it allows on its own, when it binds
+        in s).
       nominal_clearance: lower bound on the nominal position's distance to Unsafe over [0, T].
       position_scale: ``sqrt(lambda_max(C P^-1 C^T))``, the position extent per unit radius.
     """
@@ -116,7 +119,7 @@ def radius_limits(scenario: Scenario, tube: Tube, trajectory: Trajectory) -> Rad
             nominal_clearance, float(_interval_lower_bound(plain, raw_speed, h).min())
         )
 
-    # 2. Operating region (states with their rates; held inputs exactly) and input bounds.
+    # 2. Operating region (states with their rates; held inputs exactly), state and input bounds.
     t_N = trajectory.ts[:-1]  # (N,) sample times
     growth_N = np.exp(lam * t_N)
     for name, (lower, upper) in region.items():
@@ -131,6 +134,11 @@ def radius_limits(scenario: Scenario, tube: Tube, trajectory: Trajectory) -> Rad
                 record(f"region '{name}' {side}", _input_limit(q, gain[j], growth_N), t_N)
         else:
             raise ValueError(f"radius: operating region names unknown variable '{name}'")
+    for name, (lower, upper) in scenario.state_bounds.items():  # as the region's states
+        i = scenario.state_names.index(name)
+        for side, q in (("lower", xs[:, i] - lower), ("upper", upper - xs[:, i])):
+            bound = _interval_lower_bound(q, rates[:, :, i], h) * growth / extent[i]
+            record(f"state '{name}' {side}", bound, ts)
     for j, name in enumerate(scenario.input_names):
         lower, upper = scenario.input_lower[j], scenario.input_upper[j]
         for side, q in (("lower", us[:, j] - lower), ("upper", upper - us[:, j])):

@@ -68,6 +68,9 @@ class ReportData:
     demo_paths: tuple[Trajectory, ...]
     final_paths: tuple[Trajectory, ...]
     source: Path | None = None  # the run's folder when the report is written elsewhere
+    # a run's staging folder (OUT/.staging, ``pipeline.runtime.outdir``): its controller.json
+    # is the one reported, and the reports are written there, then published into ``out``
+    staging: Path | None = None
 
     @property
     def run_folder(self) -> Path:
@@ -75,8 +78,13 @@ class ReportData:
         return self.out if self.source is None else self.source
 
     @property
+    def reports_folder(self) -> Path:
+        """Where the report files are written: ``staging`` during a run, else ``out``."""
+        return self.out if self.staging is None else self.staging
+
+    @property
     def controller_path(self) -> Path:
-        return self.run_folder / "controller.json"
+        return (self.run_folder if self.staging is None else self.staging) / "controller.json"
 
     @functools.cached_property
     def law(self) -> Controller:
@@ -163,6 +171,7 @@ def report_data(
     results: Mapping[str, Any],
     keys: Mapping[str, str],
     source: Path | None = None,
+    staging: Path | None = None,
 ) -> ReportData:
     """``ReportData`` from a run's summary and stage ``results`` (stage name -> result, as read by
     the stage cache, ``pipeline.runtime.stored``); re-simulates the nominal trajectories."""
@@ -182,5 +191,6 @@ def report_data(
         demo_paths=tuple(demo_paths),
         final_paths=tuple(final_paths),
         source=None if source is None else Path(source),
+        staging=None if staging is None else Path(staging),
         **{stage: results[stage] for stage in STAGES},
     )

@@ -6,6 +6,8 @@ data did not change is not drawn again: its SVG (for the HTML, ``KEY-DIGEST.svg`
 (``scenario.png``, ``KEY-DIGEST.png``) are read back. Each figure is drawn once; the PNG is saved
 from the same drawing as the SVG. The PDF is kept as ``report-DIGEST.pdf`` by the digest of its
 inputs (``reporting.pdf``). Files this report did not use are deleted at the end (``prune``).
+The folder is the run's cache: read and written without following links (``pipeline.io.files``);
+a cached file that is not a regular file is drawn again and replaced.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ import functools
 import hashlib
 import io
 import json
+import os
 import shutil
 import tempfile
 from pathlib import Path
@@ -22,6 +25,15 @@ import matplotlib
 from matplotlib.figure import Figure as MplFigure
 
 from pipeline.io.artifacts import atomic_save, atomic_write_text
+from pipeline.io.files import (
+    TEXT_MAX_BYTES,
+    FileRefused,
+    is_regular,
+    open_folder,
+    read_bytes,
+    read_text,
+    remove_files,
+)
 from pipeline.reporting.content import Figure
 from pipeline.reporting.html import inline_svg
 from pipeline.reporting.plotting import STYLE
@@ -60,7 +72,7 @@ class FigureStore:
     def __init__(self, folder: Path | None) -> None:
         self._scratch = Path(tempfile.mkdtemp(prefix="report_figures_"))
         self.folder = Path(folder) if folder is not None else self._scratch
-        self.folder.mkdir(parents=True, exist_ok=True)
+        os.close(open_folder(self.folder, create=True))  # a link or a file there is refused
         self.used: set[Path] = set()
         self.svgs: dict[str, str] = {}  # figure key -> inline SVG, for the HTML
         self.drawn: list[str] = []  # figure keys drawn in this run (not reused)
@@ -87,10 +99,12 @@ class FigureStore:
         inputs did not change, else drawn once at its size and saved in both formats."""
         svg_file = self.figure_file(figure, ".svg")
         png_file = self.figure_file(figure, ".png") if png else None
-        if svg_file.parent != self._scratch and svg_file.is_file():
-            if png_file is None or png_file.is_file():
-                self.svgs[figure.key] = svg_file.read_text()
+        if svg_file.parent != self._scratch and (png_file is None or is_regular(png_file)):
+            try:
+                self.svgs[figure.key] = read_text(svg_file, TEXT_MAX_BYTES)
                 return self.svgs[figure.key]
+            except (OSError, FileRefused):
+                pass  # not kept (or not a regular file there): drawn and replaced below
         with matplotlib.rc_context({**STYLE, "svg.hashsalt": figure.key}):
             # a bare Figure, not pyplot: no global backend or figure registry is touched
             fig = MplFigure(figsize=figure.size, layout="constrained")
@@ -98,29 +112,29 @@ class FigureStore:
             buffer = io.StringIO()
             fig.savefig(buffer, format="svg", metadata={"Date": None})
             svg = inline_svg(buffer.getvalue(), figure.key)
-            atomic_write_text(svg_file, svg)
+            atomic_write_text(svg_file, svg, cache=True)
             if png_file is not None:
                 fig.set_layout_engine("none")  # keep the SVG's layout: not computed again
-                atomic_save(png_file, lambda p: fig.savefig(p, format="png", dpi=PNG_DPI), ".png")
+                atomic_save(
+                    png_file,
+                    lambda stream: fig.savefig(stream, format="png", dpi=PNG_DPI),
+                    ".png",
+                    cache=True,
+                )
         self.svgs[figure.key] = svg
         self.drawn.append(figure.key)
         return svg
 
     def copy_png(self, figure: Figure, target: Path) -> None:
         """The figure's PNG (saved with its SVG) to ``target``, atomically."""
-        source = self.figure_file(figure, ".png")
-
-        def copy(path: Path) -> None:
-            shutil.copyfile(source, path)
-
-        atomic_save(target, copy, ".png")
+        png = read_bytes(self.figure_file(figure, ".png"), TEXT_MAX_BYTES)
+        atomic_save(target, lambda stream: stream.write(png), ".png")
 
     def prune(self) -> None:
         """Delete this folder's cached files that this report did not use."""
         if self.folder != self._scratch:
-            for path in self.folder.iterdir():
-                if path.is_file() and path not in self.used and not path.name.startswith("."):
-                    path.unlink(missing_ok=True)
+            used = {path.name for path in self.used}
+            remove_files(self.folder, lambda name: name not in used and not name.startswith("."))
 
     def close(self) -> None:
         """Delete the private temporary folder (after the report is written, or failed)."""

@@ -18,6 +18,7 @@ import matplotlib
 from matplotlib.figure import Figure as MplFigure
 
 from pipeline.io.artifacts import atomic_save
+from pipeline.io.files import printable
 from pipeline.reporting.content import Figure, Section
 from pipeline.reporting.plotting import STYLE
 
@@ -49,7 +50,12 @@ def figure_svg(figure: Figure) -> str:
 
 def save_figure_png(figure: Figure, path: Path, dpi: int = 130) -> None:
     """The figure as a PNG file, written atomically (e.g. ``scenario.png`` beside the report)."""
-    _render(figure, lambda fig: atomic_save(path, lambda p: fig.savefig(p, dpi=dpi), ".png"))
+    _render(
+        figure,
+        lambda fig: atomic_save(
+            path, lambda stream: fig.savefig(stream, format="png", dpi=dpi), ".png"
+        ),
+    )
 
 
 def inline_svg(svg: str, key: str) -> str:
@@ -95,4 +101,6 @@ def render_html(
         if isinstance(block, Figure)
     }
     template = environment.get_template("report.html.j2")
-    return template.render(title=title, subtitle=subtitle, sections=sections, svgs=svgs, **context)
+    # a path with bytes that are not UTF-8 (lone surrogates) is shown with them as \xNN
+    page = template.render(title=title, subtitle=subtitle, sections=sections, svgs=svgs, **context)
+    return printable(page)

@@ -11,15 +11,15 @@ current) and the outcome's message says why.
 from __future__ import annotations
 
 import hashlib
-import shutil
+import io
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from functools import partial
 from pathlib import Path
 
 from pypdf import PdfReader
 
 from pipeline.io.artifacts import atomic_save
+from pipeline.io.files import ARTIFACT_MAX_BYTES, FileRefused, is_regular, read_bytes, unlink
 from pipeline.reporting.content import Section
 from pipeline.reporting.figure_cache import FigureStore, digest_of
 from pipeline.reporting.typeset import ENGINE, TypesetError, document_inputs, typeset
@@ -35,14 +35,6 @@ class PdfOutcome:
     message: str
 
 
-def _write(content: bytes, target: Path) -> None:
-    target.write_bytes(content)
-
-
-def _copy(source: Path, target: Path) -> None:
-    shutil.copyfile(source, target)
-
-
 def write_pdf(
     store: FigureStore,
     target: Path,
@@ -53,21 +45,25 @@ def write_pdf(
     colophon: str,
 ) -> PdfOutcome:
     """Typeset ``sections`` (their figures' SVGs read from ``store.svgs``) into ``target``, or
-    reuse the PDF kept for the same inputs; ``colophon``: the closing line."""
+    reuse the PDF kept for the same inputs (read without following a link; a kept file that is
+    not a regular file is typeset again and replaced); ``colophon``: the closing line."""
     inputs = document_inputs(title, subtitle, sections, colophon, store.svgs)
     kept = store.pdf_file(digest_of("pdf", ENGINE, _digests(inputs)))
-    reused = kept.is_file()
+    reused = is_regular(kept)
     try:
-        if not reused:
-            atomic_save(kept, partial(_write, typeset(inputs)), ".pdf")
-        atomic_save(target, partial(_copy, kept), ".pdf")
-    except (OSError, TypesetError) as error:
-        target.unlink(missing_ok=True)
-        kept.unlink(missing_ok=True)
+        if reused:
+            content = read_bytes(kept, ARTIFACT_MAX_BYTES)
+        else:
+            content = typeset(inputs)
+            atomic_save(kept, lambda stream: stream.write(content), ".pdf", cache=True)
+        atomic_save(target, lambda stream: stream.write(content), ".pdf")
+    except (OSError, FileRefused, TypesetError) as error:
+        unlink(target)
+        unlink(kept)
         return PdfOutcome(
             path=None, pages=0, reused=False, message=f"report.pdf not written: {error}"
         )
-    pages = len(PdfReader(target).pages)
+    pages = len(PdfReader(io.BytesIO(content)).pages)
     return PdfOutcome(
         path=target,
         pages=pages,

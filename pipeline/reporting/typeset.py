@@ -13,7 +13,9 @@ the Pango system library; ReportLab has no SVG reader of its own.
 Escaping: the template (``templates/report.typ``) is fixed; the content enters it as one JSON
 document in ``sys.inputs`` and every text (scenario names and descriptions, captions, cells)
 is a Typst string, shown verbatim. No user string is parsed as Typst markup or code, so ``#``,
-``$``, ``*``, ``_``, ``<``, ``@``, brackets and backslashes need no escaping.
+``$``, ``*``, ``_``, ``<``, ``@``, brackets and backslashes need no escaping. Typst takes only
+valid Unicode: a path's bytes that are not UTF-8 (lone surrogates, ``os.fsdecode``) are shown as
+``\\xNN``, as in ``report.html`` (``pipeline.io.files.printable``).
 
 Layout: A4; figures at their drawn size (their 10 pt text beside the 8.5 pt body), never wider
 than the column nor taller than ``TALLEST``; a table of at most 15 rows on one page, a longer
@@ -31,6 +33,7 @@ from typing import Any
 import matplotlib
 import typst
 
+from pipeline.io.files import printable
 from pipeline.reporting.content import Block, Figure, Headlines, Paragraph, Section, Table, Verdict
 from pipeline.reporting.html import BADGES
 
@@ -113,9 +116,21 @@ def document_inputs(
     missing = [key for key in figures if key not in svgs]
     if missing:
         raise ValueError(f"no SVG for the figures {missing}")
-    inputs = {"report": json.dumps(report, ensure_ascii=False)}
-    inputs.update({f"figure-{key}": svgs[key] for key in figures})
+    inputs = {"report": json.dumps(_printable(report), ensure_ascii=False)}
+    inputs.update({f"figure-{key}": printable(svgs[key]) for key in figures})
     return inputs
+
+
+def _printable(value: Any) -> Any:
+    """``value`` (JSON-like) with every string ``printable``: before the JSON encoding, which
+    then escapes the backslash of ``\\xNN`` as JSON requires."""
+    if isinstance(value, str):
+        return printable(value)
+    if isinstance(value, list):
+        return [_printable(item) for item in value]
+    if isinstance(value, dict):
+        return {key: _printable(item) for key, item in value.items()}
+    return value
 
 
 def typeset(inputs: Mapping[str, str]) -> bytes:

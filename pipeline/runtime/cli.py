@@ -2,6 +2,7 @@
 (``pipeline.synthesize``): it shows the ``pipeline`` logger's lines and prints the result.
 
 User mistakes (``UserError``) print one line on stderr and exit with code 2, no traceback.
+Ctrl-C prints one line and exits with code 130 (a second Ctrl-C while the run stops is ignored).
 Outputs go to ``./reports/NAME`` under the current directory unless ``--out DIR``.
 """
 
@@ -10,13 +11,19 @@ from __future__ import annotations
 import argparse
 import errno
 import json
+import signal
 import sys
+import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
+from types import FrameType
+from typing import NoReturn
 
 from pipeline.controller import ControllerFormatError
 from pipeline.io.errors import UserError
+from pipeline.io.files import printable
 from pipeline.runtime.options import RunOptions, add_arguments, from_arguments
 
 SCENARIO_HELP = (
@@ -24,8 +31,16 @@ SCENARIO_HELP = (
 )
 
 
+class _Parser(argparse.ArgumentParser):
+    """A wrong command line is one line too (``error: argument --seed: found '-1'; expected
+    ...``), with where to find the usage instead of printing it; exit code 2."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"error: {message} (usage: {self.prog} --help)\n")
+
+
 def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="python -m pipeline", description=__doc__)
+    parser = _Parser(prog="python -m pipeline", description=__doc__)
     commands = parser.add_subparsers(dest="command", required=True)
 
     synthesize = commands.add_parser("synthesize", help="run the synthesis pipeline on a scenario")
@@ -64,8 +79,39 @@ def _parser() -> argparse.ArgumentParser:
 WRITE_FAILURES = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES)
 
 
+def _interrupted(signum: int, frame: FrameType | None) -> None:
+    """The first SIGINT: ignore the next ones, then stop the command (``KeyboardInterrupt``)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    raise KeyboardInterrupt
+
+
+@contextmanager
+def _one_interrupt() -> Iterator[None]:
+    """While open, only the first Ctrl-C acts: a second one, while the first unwinds the run
+    (workers ended, the folder's lock released), could cut that short or, once the command has
+    returned, kill the interpreter while it joins its threads (exit -2 instead of 130). After
+    an interrupt SIGINT stays ignored (the process is ending), else the old handler is back."""
+    previous = signal.getsignal(signal.SIGINT)
+    if previous is not signal.default_int_handler or (
+        threading.current_thread() is not threading.main_thread()
+    ):  # Ctrl-C already handled otherwise (or ignored), or not ours to handle
+        yield
+        return
+    signal.signal(signal.SIGINT, _interrupted)
+    try:
+        yield
+    finally:
+        if signal.getsignal(signal.SIGINT) is _interrupted:
+            signal.signal(signal.SIGINT, previous)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = _parser().parse_args(argv)
+    with _one_interrupt():
+        return _main(args)
+
+
+def _main(args: argparse.Namespace) -> int:
     try:
         return _run(args)
     except (UserError, ControllerFormatError) as error:
@@ -103,7 +149,7 @@ def _run(args: argparse.Namespace) -> int:
         with show_progress(verbose=options.verbose, quiet=options.quiet):
             result = synthesize(args.scenario, out=args.out, **computed)
         scenario = None if options.quiet else units_of(args.scenario)
-        print(format_result(result, scenario=scenario, quiet=options.quiet))
+        print(printable(format_result(result, scenario=scenario, quiet=options.quiet)))
         if not options.quiet:
             print(f"\n{format_done(result, time.monotonic() - started)}")
         return result.exit_code
@@ -117,7 +163,7 @@ def _run(args: argparse.Namespace) -> int:
 
         written = rebuild_reports(args.scenario, source=args.source, out=args.out)
         files = [written.html, *([written.pdf] if written.pdf is not None else [])]
-        print(f"{written.message}:" + "".join(f"\n  {path}" for path in files))
+        print(printable(f"{written.message}:" + "".join(f"\n  {path}" for path in files)))
         return 0
     if args.command == "schema":
         from pipeline.model.schema import json_schema

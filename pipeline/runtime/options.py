@@ -1,5 +1,6 @@
 """The options of ``synthesize``: one frozen dataclass whose fields are the single source of
-their defaults, choices and help; the command line (``pipeline.runtime.cli``) is derived from it.
+their defaults, values and help; the command line (``pipeline.runtime.cli``) is derived from it,
+and the one check of each value (``Values``) serves the command line and the Python API alike.
 
 Light on purpose (standard library and ``pipeline.numerics.settings`` only): the parser is built
 for every command, and must not load the numerics.
@@ -8,9 +9,12 @@ for every command, and must not load the numerics.
 from __future__ import annotations
 
 import argparse
+import math
+import numbers
+import re
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, TypeVar
+from typing import TYPE_CHECKING, Any, Protocol, TypeVar
 
 from pipeline.numerics.settings import CERTIFICATES, DESCENT_METHODS, HORIZON_SEARCHES
 
@@ -20,104 +24,249 @@ if TYPE_CHECKING:
 MONTE_CARLO_SEED = 20261122
 
 
+class Values(Protocol):
+    """What an option takes: the one check of its values, for the command line and the API."""
+
+    @property
+    def expected(self) -> str:
+        """The values, in words (e.g. ``a whole number >= 1``)."""
+        ...
+
+    def value(self, found: object) -> Any:
+        """``found`` as the option's value (normalized: ``int``, ``float``), or ``ValueError``."""
+        ...
+
+    def parse(self, text: str) -> Any:
+        """The command line's ``text`` as the option's value, or ``ValueError``."""
+        ...
+
+
+@dataclass(frozen=True)
+class Whole:
+    """A whole number (``int`` or another integral type, not ``bool``) in ``[minimum,
+    maximum]``."""
+
+    minimum: int
+    maximum: int | None = None
+
+    @property
+    def expected(self) -> str:
+        if self.maximum is None:
+            return f"a whole number >= {self.minimum}"
+        return f"a whole number from {self.minimum} to {self.maximum:,}"
+
+    def value(self, found: object) -> int:
+        if isinstance(found, bool) or not isinstance(found, numbers.Integral):
+            raise ValueError(self.expected)
+        number = int(found)
+        if number < self.minimum or (self.maximum is not None and number > self.maximum):
+            raise ValueError(self.expected)
+        return number
+
+    def parse(self, text: str) -> int:
+        return self.value(int(text))
+
+
+@dataclass(frozen=True)
+class Period:
+    """Seconds, a real number (not ``bool`` or text): 0 (off), or finite and >= ``minimum``."""
+
+    minimum: float
+
+    @property
+    def expected(self) -> str:
+        return f"0 or a finite number of seconds >= {self.minimum:g}"
+
+    def value(self, found: object) -> float:
+        if isinstance(found, bool) or not isinstance(found, numbers.Real):
+            raise ValueError(self.expected)
+        seconds = float(found)
+        if not (seconds == 0 or self.minimum <= seconds < math.inf):
+            raise ValueError(self.expected)
+        return seconds
+
+    def parse(self, text: str) -> float:
+        return self.value(float(text))
+
+
+@dataclass(frozen=True)
+class Flag:
+    """A ``bool`` (``'no'`` or ``0`` are refused, not taken for their truth value); on the
+    command line, the flag's presence."""
+
+    @property
+    def expected(self) -> str:
+        return "True or False"
+
+    def value(self, found: object) -> bool:
+        if not isinstance(found, bool):
+            raise ValueError(self.expected)
+        return found
+
+    def parse(self, text: str) -> bool:
+        raise TypeError("a flag takes no value on the command line")
+
+
+@dataclass(frozen=True)
+class Choice:
+    """One of ``choices``; with ``unset``, also ``None`` (the scenario decides)."""
+
+    choices: tuple[str, ...]
+    unset: bool = False
+
+    @property
+    def expected(self) -> str:
+        return f"one of {self.choices}"
+
+    def value(self, found: object) -> str | None:
+        if found is None and self.unset:
+            return None
+        if isinstance(found, str) and found in self.choices:
+            return found
+        raise ValueError(self.expected)
+
+    def parse(self, text: str) -> str | None:
+        return self.value(text)
+
+
+@dataclass(frozen=True)
+class ExecutorSpec:
+    """Where parallel work runs, as ``pipeline.io.executor.make_executor`` reads it: ``None``
+    (or ``''``, ``'local'``), ``'dask-local'`` or ``'dask://HOST:PORT'``."""
+
+    @property
+    def expected(self) -> str:
+        return "None, 'local', 'dask-local' or 'dask://HOST:PORT'"
+
+    def value(self, found: object) -> str | None:
+        if found is None:
+            return None
+        if isinstance(found, str) and (
+            found in ("", "local", "dask-local") or re.fullmatch(r"dask://\S+", found)
+        ):
+            return found
+        raise ValueError(self.expected)
+
+    def parse(self, text: str) -> str | None:
+        return self.value(text)
+
+
+# The most Monte Carlo runs: 10^9 is some 10 hours of CPU on quadrotor_hill (100,000 take 3.6 s),
+# and its chunks' 400,000 seed streams take 150 MB; far beyond, they alone exhaust the memory.
+MAX_SAMPLES = 10**9
+
+# The shortest --feedback-period (s). Monte Carlo flies the held law with at least one RK4 step
+# per period, Ts / h steps per sample (1000 for Ts = 0.1 s at 0.1 ms, 250 times the 4 steps of
+# continuous feedback; double_integrator, 1000 runs: certified and validated, 17 s of CPU), while
+# the held rate falls short of the continuous one by about (lambda^2 + C1) h / 2
+# (pipeline.numerics.sampled): a shorter hold is continuous feedback in all but cost (use 0).
+MIN_FEEDBACK_PERIOD = 1e-4
+
+
 @dataclass(frozen=True, kw_only=True)
 class CommandLine:
-    """How one option appears on the command line.
+    """How one option appears on the command line, and the values it takes.
 
     Attributes:
       help: the help text (the default is appended).
+      values: what it takes (``Values``), checked for the command line and the API alike.
       flags: option strings (default ``--NAME`` with ``_`` as ``-``).
-      choices: allowed values; parse: text -> value (default: the default's type).
       group: options sharing a group exclude each other (e.g. ``-v`` and ``-q``).
     """
 
     help: str
+    values: Values
     flags: tuple[str, ...] = ()
-    choices: tuple[str, ...] | None = None
-    parse: Callable[[str], Any] | None = None
     group: str | None = None
 
 
-def option(default: Any, help: str, **command_line: Any) -> Any:
+def option(default: Any, help: str, values: Values, **command_line: Any) -> Any:
     """A dataclass field with ``default`` and its command-line form (``CommandLine``)."""
-    return field(default=default, metadata={"cli": CommandLine(help=help, **command_line)})
+    spec = CommandLine(help=help, values=values, **command_line)
+    return field(default=default, metadata={"cli": spec})
 
 
-def positive_int(text: str) -> int:
-    """``text`` as a whole number >= 1 (an ``argparse`` type)."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, found {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, found {value}")
-    return value
+def _argument_type(values: Values) -> Callable[[str], Any]:
+    """An ``argparse`` type: the text parsed and checked by ``values``, one line if it fails."""
 
+    def parse(text: str) -> Any:
+        try:
+            return values.parse(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"found {text!r}; expected {values.expected}"
+            ) from None
 
-def period(text: str) -> float:
-    """``text`` as a feedback period in seconds, a finite number >= 0 (an ``argparse`` type)."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number of seconds, found {text!r}") from None
-    if not (value >= 0 and value < float("inf")):
-        raise argparse.ArgumentTypeError(f"expected a finite number of seconds >= 0, found {text}")
-    return value
+    return parse
 
 
 @dataclass(frozen=True, kw_only=True)
 class RunOptions:
-    """Command-line choices of ``synthesize``."""
+    """Command-line choices of ``synthesize``. Every value is checked on construction (a bad one
+    is a ``ValueError`` before any work, from the API as from the command line) and stored
+    normalized (``feedback_period=0`` as ``0.0``: it is hashed into cache keys and written to
+    the controller file)."""
 
     certificate: str | None = option(
         None,
         "what certifies the controller: one constant metric and gain for all time, or a "
         "time-varying funnel per trajectory (default: the scenario's `certificate`)",
-        choices=CERTIFICATES,
-        parse=str,
+        Choice(CERTIFICATES, unset=True),
     )
     method: str | None = option(
         None,
         "optimizer: the paper's gradient descent (gd) or L-BFGS-B (default: the scenario's "
         "`optimizer`)",
-        choices=DESCENT_METHODS,
-        parse=str,
+        Choice(DESCENT_METHODS, unset=True),
     )
     search: str = option(
         HORIZON_SEARCHES[0],
         "how the final time is shortened (bisection: the paper's Remark 4)",
-        choices=HORIZON_SEARCHES,
+        Choice(HORIZON_SEARCHES),
     )
-    samples: int = option(100_000, "Monte Carlo closed-loop runs", parse=positive_int)
-    jobs: int = option(1, "worker processes", parse=positive_int)
+    samples: int = option(100_000, "Monte Carlo closed-loop runs", Whole(1, MAX_SAMPLES))
+    jobs: int = option(1, "worker processes", Whole(1))
     executor: str | None = option(
         None,
         "where parallel work runs: local (default), dask-local, or dask://HOST:PORT",
-        parse=str,
+        ExecutorSpec(),
     )
-    force: bool = option(False, "rerun every stage")
-    verbose: bool = option(False, "print iteration logs", flags=("-v", "--verbose"), group="say")
-    quiet: bool = option(False, "print only the verdict", flags=("-q", "--quiet"), group="say")
-    stress: bool = option(False, "also run the stress test (wind, noise; not certified)")
-    seed: int = option(MONTE_CARLO_SEED, "seed of the Monte Carlo and stress runs", parse=int)
+    force: bool = option(False, "rerun every stage", Flag())
+    verbose: bool = option(
+        False, "print iteration logs", Flag(), flags=("-v", "--verbose"), group="say"
+    )
+    quiet: bool = option(
+        False, "print only the verdict", Flag(), flags=("-q", "--quiet"), group="say"
+    )
+    stress: bool = option(False, "also run the stress test (wind, noise; not certified)", Flag())
+    seed: int = option(MONTE_CARLO_SEED, "seed of the Monte Carlo and stress runs", Whole(0))
     feedback_period: float = option(
         0.0,
         "certify zero-order-hold feedback recomputed every h seconds (must divide the sampling "
-        "time; 0: continuous feedback)",
-        parse=period,
+        f"time and be at least {MIN_FEEDBACK_PERIOD:g}; 0: continuous feedback)",
+        Period(MIN_FEEDBACK_PERIOD),
     )
 
     def __post_init__(self) -> None:
-        """The command line checks these while parsing; the Python API (``pipeline.synthesize``)
-        relies on this: a value outside its choices, or a count below 1, is a ``ValueError``."""
+        """Each value checked and normalized by its field's ``CommandLine.values``; at most one
+        option of a ``group`` set (the command line checks that while parsing)."""
+        chosen: dict[str, str] = {}
         for item in self.__dataclass_fields__.values():
             spec: CommandLine = item.metadata["cli"]
-            value = getattr(self, item.name)
-            unset = value is None and item.default is None  # None: the scenario decides
-            if spec.choices is not None and value not in spec.choices and not unset:
-                raise ValueError(f"{item.name}={value!r}; expected one of {spec.choices}")
-            if spec.parse is positive_int and (type(value) is not int or value < 1):
-                raise ValueError(f"{item.name}={value!r}; expected a whole number >= 1")
+            found = getattr(self, item.name)
+            try:
+                value = spec.values.value(found)
+            except ValueError:
+                raise ValueError(
+                    f"{item.name}={found!r}; expected {spec.values.expected}"
+                ) from None
+            object.__setattr__(self, item.name, value)
+            if spec.group is not None and value:
+                if spec.group in chosen:
+                    raise ValueError(
+                        f"{chosen[spec.group]}=True and {item.name}=True; expected at most one"
+                    )
+                chosen[spec.group] = item.name
 
 
 def add_arguments(parser: argparse.ArgumentParser, options: type[DataclassInstance]) -> None:
@@ -133,14 +282,15 @@ def add_arguments(parser: argparse.ArgumentParser, options: type[DataclassInstan
             if spec.group not in groups:
                 groups[spec.group] = parser.add_mutually_exclusive_group()
             target = groups[spec.group]
-        if item.default is False:
+        if isinstance(spec.values, Flag):
             target.add_argument(*flags, dest=item.name, action="store_true", help=spec.help)
             continue
+        choices = spec.values.choices if isinstance(spec.values, Choice) else None
         target.add_argument(
             *flags,
             dest=item.name,
-            type=spec.parse or type(item.default),
-            choices=spec.choices,
+            type=_argument_type(spec.values),
+            choices=choices,
             default=item.default,
             help=f"{spec.help} (default: {item.default})"
             if item.default is not None

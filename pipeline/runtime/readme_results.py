@@ -21,7 +21,9 @@ from pathlib import Path
 
 from pipeline.io.artifacts import atomic_write_text
 from pipeline.io.errors import UserError
+from pipeline.io.files import TEXT_MAX_BYTES, read_text
 from pipeline.reporting.summary import Summary
+from pipeline.runtime.outdir import check_complete
 from pipeline.runtime.terminal import format_summary, units_of
 
 COMMAND = "python -m pipeline.runtime.readme_results"
@@ -55,11 +57,12 @@ def results_block(summary: Summary) -> str:
 
 
 def read_summary(folder: Path) -> Summary:
-    """The ``Summary`` of ``folder/summary.json``; a missing or unreadable one is a
-    ``UserError`` naming it."""
+    """The ``Summary`` of ``folder/summary.json``; a missing or unreadable one, or a folder
+    whose publish was cut short (``outdir.check_complete``), is a ``UserError`` naming it."""
+    check_complete(Path(folder), Path(folder).name)
     path = Path(folder) / "summary.json"
     try:
-        return Summary.from_json(json.loads(path.read_text()))
+        return Summary.from_json(json.loads(read_text(path, TEXT_MAX_BYTES)))
     except OSError as error:
         raise UserError(
             f"cannot read ({error.strerror})", file=path, expected="a finished run's summary"

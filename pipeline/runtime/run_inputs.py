@@ -18,6 +18,7 @@ from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import Trajectory, simulate
 from pipeline.numerics.sampled import HeldRate, held_rate
 from pipeline.numerics.verify import VERIFY_SUBSTEPS
+from pipeline.runtime.codekey import code_key
 from pipeline.runtime.options import RunOptions
 
 if TYPE_CHECKING:  # stage result types: only the orchestrator imports stages
@@ -81,3 +82,17 @@ def spec_key(scenario: Scenario, *exclude: str) -> str:
     """A hash of the scenario's parsed values (not the file's bytes), without ``exclude``."""
     spec = scenario.spec.model_dump(mode="json", exclude={"demos", *exclude})
     return inputs_key(scenario.name, spec)
+
+
+def montecarlo_key(scenario: Scenario, controller_sha256: str, samples: int, seed: int) -> str:
+    """The Monte Carlo stage's key: its code, the scenario's parsed values, the SHA-256 of the
+    ``controller.json`` it flew, the number of runs and the seed. ``report`` computes it again
+    to check that the stored result is of the ``controller.json`` beside it."""
+    core = spec_key(scenario, "description", "stress", "optimizer")
+    return inputs_key(code_key("stages.montecarlo"), core, controller_sha256, samples, seed)
+
+
+def stress_key(scenario: Scenario, controller_sha256: str, seed: int) -> str:
+    """The stress test's key, as ``montecarlo_key`` (its runs are fixed by the scenario)."""
+    spec = spec_key(scenario, "description")
+    return inputs_key(code_key("stages.stress"), spec, controller_sha256, seed)

@@ -20,20 +20,12 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from pipeline.model import geometry
-from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import Trajectory
 from pipeline.reporting.summary import (
-    CertificationSummary,
     Claim,
-    ClaimKind,
-    ControllerSummary,
     DemoSummary,
-    FalsificationSummary,
-    FeedbackSummary,
     Headline,
-    MonteCarloSummary,
-    Quantiles,
     Reproducibility,
     StressRunSummary,
     StressSummary,
@@ -41,6 +33,16 @@ from pipeline.reporting.summary import (
     Verdict,
 )
 from pipeline.runtime.terminal import length_unit
+from pipeline.runtime.verdict import (
+    Evidence,
+    after_horizon,
+    certificate_kinds,
+    certification_summary,
+    controller_summary,
+    feedback_summary,
+    montecarlo_claims,
+    montecarlo_summary,
+)
 
 if TYPE_CHECKING:  # stage result types: only the orchestrator imports stages
     from stages.certify import CertificationResult
@@ -117,6 +119,27 @@ class StageResults:
             return self.funnel_coverage
         return self.final_coverage
 
+    @property
+    def evidence(self) -> Evidence:
+        """What the verdict is derived from (``pipeline.runtime.verdict``)."""
+        no_funnel = None
+        if self.funnels is not None and not self.funnels.usable:
+            no_funnel = self.funnels.message
+        return Evidence(
+            scenario=self.scenario,
+            certificate=self.certificate,
+            feedback=self.feedback,
+            covering=self.covering,
+            demo_coverage=self.demo_coverage,
+            coverage=self.coverage,
+            optimized=self.optimized,
+            final_radii=self.final_radii,
+            no_funnel=no_funnel,
+            controller=self.controller,
+            certification=self.certification,
+            montecarlo=self.montecarlo,
+        )
+
 
 def _funnel_fields(run: StageResults, i: int) -> dict[str, Any]:
     """Trajectory ``i``'s funnel in ``DemoSummary``'s terms (empty for the constant one)."""
@@ -177,73 +200,39 @@ def _demos(run: StageResults) -> tuple[DemoSummary, ...]:
     return tuple(demos)
 
 
-def _reasons(run: StageResults, demos: Sequence[DemoSummary]) -> tuple[str, ...]:
-    """Why the run is not certified and validated (empty when it is)."""
-    reasons = []
-    if not run.coverage.covered:
-        gap = run.coverage.largest_gap()
-        where = (
-            "" if gap is None else f"; record a new demonstration from {np.round(gap, 3).tolist()}"
-        )
-        reasons.append(f"coverage gap: {run.coverage.message}{where}")
-    failed = [d.demo for d in demos if not d.optimized]
-    if failed:
-        reasons.append(f"not optimized (kept as flown): {', '.join(failed)}")
-    if run.funnels is None and any(r.radius <= 0 for r in run.final_radii):
-        reasons.append("a nominal trajectory has no robustness radius")
-    if run.funnels is not None and not run.funnels.usable:
-        reasons.append(f"no funnel certified: {run.funnels.message}")
-    if not run.certification.success:
-        reasons.append(run.certification.message)
-    if not run.montecarlo.success:
-        reasons.append(f"Monte Carlo failure: {run.montecarlo.message}")
-    return tuple(reasons)
-
-
-def _claims(run: StageResults, certified: bool) -> tuple[Claim, ...]:
-    mc = run.montecarlo
-    falsification = mc.falsification
+def _claims(run: StageResults, evidence: Evidence, certified: bool) -> tuple[Claim, ...]:
     return (
         *_certificate_claims(run, certified),
-        _after_horizon(run, certified),
-        Claim(
-            claim=f"failure probability <= {mc.failure_bound:.2e}",
-            kind=ClaimKind.STATISTICALLY_VALIDATED,
-            how=f"{mc.samples} i.i.d. closed-loop runs from controller.json, "
-            "one-sided 95% Clopper-Pearson bound",
-        ),
-        Claim(
-            claim=f"worst safety margin found {falsification.worst_margin:.3f}"
-            + (f" ({falsification.binding})" if falsification.binding else ""),
-            kind=ClaimKind.FALSIFICATION_SEARCHED,
-            how=f"Init corners, Sobol points and Nelder-Mead ({falsification.evaluations} "
-            "closed-loop runs); evidence, not a bound",
-        ),
+        after_horizon(evidence, certified),
+        *montecarlo_claims(run.montecarlo),
     )
 
 
 def _certificate_claims(run: StageResults, certified: bool) -> tuple[Claim, ...]:
     """What the certificate proves, "certified" only where the check of controller.json as
-    written (stage ``certify``) proved it."""
+    written (stage ``certify``) proved it (``verdict.certificate_kinds``)."""
     feedback, check = run.feedback, run.certification
-    contraction = ClaimKind.CERTIFIED if check.contraction_margin < 0 else ClaimKind.NOT_ESTABLISHED
+    contraction, covered = certificate_kinds(run.evidence, certified)
     if run.funnels is not None:
         dropped = "" if not run.funnels.rejected else f"; {'; '.join(run.funnels.rejected)}"
         shipped = len(run.funnels.usable)
         return (
             Claim(
-                claim=f"each of the {shipped} shipped funnels is invariant: e^T P_i(t) e never "
-                "grows under the time-varying gain K_i[k] while the state is in the funnel",
-                kind=contraction if check.success else ClaimKind.NOT_ESTABLISHED,
+                claim=f"each of the {shipped} shipped funnels is invariant under the law as "
+                "shipped: no flight that starts in E_i(0) leaves E_i(t) = {||x - x_ref_i(t)||_"
+                "P_i(t) <= rho_i} before T_i (the law tracks x_ref interpolated; its error is in "
+                "the proof)",
+                kind=contraction,
                 how=f"LMIs (F3) at every vertex of a sound Jacobian hull of each interval's tube, "
                 "at both ends of every interval, solved by Clarabel; re-verified on "
-                f"controller.json as written (largest eigenvalue {check.contraction_margin:.2e})"
+                "controller.json as written with the interpolated reference's bounded term "
+                f"(largest eigenvalue plus term {check.contraction_margin:.2e} < -1e-6)"
                 f"{dropped}",
             ),
             Claim(
                 claim="every start in Init lies in a funnel that avoids Unsafe, keeps the "
                 "inputs and state bounds, and ends in Goal",
-                kind=ClaimKind.CERTIFIED if certified else ClaimKind.NOT_ESTABLISHED,
+                kind=covered,
                 how="funnel levels bounded on a dense grid with a bound between grid points; "
                 f"Init covered by the funnels' initial ellipsoids by box subdivision "
                 f"({run.coverage.message}); both re-verified on controller.json as written",
@@ -259,72 +248,14 @@ def _certificate_claims(run: StageResults, certified: bool) -> tuple[Claim, ...]
             f"controller.json as written (largest eigenvalue {check.contraction_margin:.2e})",
         ),
         Claim(
-            claim="every start in Init lies in a tube that avoids Unsafe and ends in Goal",
-            kind=ClaimKind.CERTIFIED if certified else ClaimKind.NOT_ESTABLISHED,
+            claim="every start in Init lies in a tube that avoids Unsafe"
+            + (", keeps the state bounds," if run.scenario.state_bounds else "")
+            + " and ends in Goal",
+            kind=covered,
             how="robustness radii on a dense grid with a bound between grid points; "
             f"Init covered by box subdivision ({run.final_coverage.message}); both re-verified "
             "on controller.json as written",
         ),
-    )
-
-
-def _after_horizon(run: StageResults, certified: bool) -> Claim:
-    """After ``T``: safe for all time when the file's terminal controller is certified; else
-    not established (the law refuses ``t > T``), with the reason."""
-    check = run.certification
-    if check.terminal and certified:
-        return Claim(
-            claim="after T every covered start stays in Goal for all time (terminal controller)",
-            kind=ClaimKind.CERTIFIED,
-            how=f"invariant ellipsoid of the terminal law re-verified on controller.json "
-            f"(decay {check.terminal_decay:.3g}/s at every hull vertex over its bounding box, "
-            f"inside Goal, no clipping) holding every end tube (at most {check.terminal_fit:.0%} "
-            "of its radius, exact S-procedure test)",
-        )
-    return Claim(
-        claim="after T: nothing (the law refuses t > T)",
-        kind=ClaimKind.NOT_ESTABLISHED,
-        how=run.controller.terminal_message or "no terminal controller",
-    )
-
-
-def _feedback(run: StageResults) -> FeedbackSummary:
-    feedback, covering = run.feedback, run.covering
-    r_d = feedback.required_radius(run.scenario.clearance)
-    return FeedbackSummary(
-        gain=feedback.gain,
-        K=tuple(tuple(row) for row in np.asarray(feedback.K).tolist()),
-        P_eigenvalues=tuple(np.linalg.eigvalsh(feedback.certified_tube.P).tolist()),
-        rate=feedback.rate,
-        region={k: (float(v[0]), float(v[1])) for k, v in feedback.region.items()},
-        required_radius=r_d,
-        covering_radius=covering.radius if covering.covered else None,
-        kept_radius=covering.kept_radius(r_d),
-        input_margin_at_r_d=tuple(feedback.input_margin(r_d).tolist()),
-        region_extent_at_r_d=feedback.region_extent(r_d),
-        vertices=len(feedback.vertices),
-        message=feedback.message,
-    )
-
-
-def _montecarlo(mc: MonteCarloResult) -> MonteCarloSummary:
-    falsification = mc.falsification
-    return MonteCarloSummary(
-        samples=mc.samples,
-        seed=mc.seed,
-        failures=dict(mc.failures),
-        failure_bound_95=mc.failure_bound,
-        min_clearance=mc.min_clearance,
-        min_goal_margin=mc.min_goal_margin,
-        max_tube_tightness=mc.max_tube_tightness,
-        tube_ratio_at_T=_quantiles(mc.tube_final),
-        falsification=FalsificationSummary(
-            worst_x0=tuple(falsification.worst_x0.tolist()),
-            worst_margin=falsification.worst_margin,
-            binding=falsification.binding,
-            evaluations=falsification.evaluations,
-        ),
-        message=mc.message,
     )
 
 
@@ -337,26 +268,18 @@ def summarise(
     stress: StressResult | None = None,
 ) -> Summary:
     """The run's typed summary; "certified" only when the final check of controller.json as
-    written (stage ``certify``) passed and the stages' own results agree."""
-    scenario, mc = run.scenario, run.montecarlo
+    written (stage ``certify``) passed and the stages' own results agree
+    (``pipeline.runtime.verdict``, which ``report`` derives it from again)."""
+    scenario, mc, evidence = run.scenario, run.montecarlo, run.evidence
     demos = _demos(run)
-    if run.funnels is not None:  # what certify proved on the shipped funnels, and coverage
-        certified = bool(run.certification.success and run.coverage.covered and run.funnels.usable)
-    else:
-        certified = bool(
-            run.certification.success
-            and run.feedback.success
-            and run.final_coverage.covered
-            and all(r.radius > 0 for r in run.final_radii)
-        )
+    certified = evidence.certified
     T_before = np.array([d.T_demo for d in demos])
     T_after = np.array([d.T_optimized for d in demos])
-    check = run.certification
     return Summary(
         scenario=scenario.name,
         verdict=Verdict.of(certified=certified, validated=bool(mc.success)),
-        reasons=_reasons(run, demos),
-        claims=_claims(run, certified),
+        reasons=evidence.reasons(),
+        claims=_claims(run, evidence, certified),
         headline=Headline(
             T_demo_mean=float(T_before.mean()),
             T_optimized_mean=float(T_after.mean()),
@@ -364,31 +287,13 @@ def summarise(
             min_clearance_before=float(min(d.clearance_before for d in demos)),
             min_clearance_after=float(min(d.clearance_after for d in demos)),
             required_clearance=scenario.clearance,
-            coverage_before=run.demo_coverage.covered_fraction,
-            coverage_after=run.coverage.covered_fraction,
-            covered_before=bool(run.demo_coverage.covered),
-            covered_after=bool(run.coverage.covered),
-            montecarlo_samples=mc.samples,
-            montecarlo_failures=int(sum(mc.failures.values())),
-            failure_bound_95=mc.failure_bound,
+            **evidence.headline(),
         ),
-        feedback=_feedback(run),
+        feedback=feedback_summary(evidence),
         demos=demos,
-        montecarlo=_montecarlo(mc),
-        controller=ControllerSummary(
-            path=str(run.controller.path),
-            trajectories=run.controller.trajectories,
-            interpolation_error_P=run.controller.interpolation_error,
-        ),
-        certification=CertificationSummary(
-            certified=check.success,
-            sha256=check.sha256,
-            metric_eigenvalue=check.metric_eigenvalue,
-            contraction_margin=check.contraction_margin,
-            vertices=check.vertices,
-            covered_fraction=check.covered_fraction,
-            message=check.message,
-        ),
+        montecarlo=montecarlo_summary(mc),
+        controller=controller_summary(evidence),
+        certification=certification_summary(run.certification),
         timings=dict(timings),
         total_seconds=total_seconds,
         reproducibility=Reproducibility(
@@ -400,15 +305,6 @@ def summarise(
         stress=None if stress is None else stress_summary(stress),
         certificate=run.certificate,
     )
-
-
-def _quantiles(values: FloatArray) -> Quantiles | None:
-    """Median, 95th percentile and maximum of ``values (k,)``; None when empty."""
-    values = np.asarray(values, dtype=np.float64)
-    if values.size == 0:
-        return None
-    median, p95, top = np.quantile(values, [0.5, 0.95, 1.0])
-    return Quantiles(median=float(median), p95=float(p95), max=float(top))
 
 
 def demo_table(scenario: Scenario, trajectories: Sequence[Trajectory]) -> str:

@@ -12,6 +12,11 @@ level or ``x_ref``, held feedback, or a level past the one its constraints allow
 from __future__ import annotations
 
 import json
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -22,6 +27,8 @@ from pipeline.numerics.funnel import synthesize_funnel
 from stages.certify import certify_controller
 from stages.controller import emit_funnel_controller
 from tests.stages.conftest import emit_at_rest
+
+ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture
@@ -321,3 +328,64 @@ def test_a_quadrotor_funnel_is_rebuilt_from_the_file_and_perturbations_are_caugh
         _tamper(path, change)
         result = certify_controller(scenario, path)
         assert "trajectories[0]: the funnel is not certified" in result.message, result.message
+
+
+# certify never depends on `assert` (issue 27, item 10): the same outcome under python -O.
+
+
+@pytest.mark.slow
+def test_a_quadrotor_funnel_with_a_u_ref_sample_past_its_bound_is_not_certified_also_under_O(
+    quadrotor_funnel_artifact, tmp_path
+):
+    """``u_ref[5]``'s thrust moved 5 N up, past the 14.9 N bound: the input box of interval 5,
+    clipped to the bounds, is empty. That stopped certify on mpmath's ``AssertionError:
+    endpoints must be properly ordered`` (and under ``python -O``, without the assert, gave
+    "not certified" for another reason); now it is "not certified" naming the empty box, with
+    the same failures under ``python -O``."""
+    scenario, original = quadrotor_funnel_artifact
+    path = tmp_path / "controller.json"
+    path.write_text(original.read_text())
+
+    def shift(document):
+        document["trajectories"][0]["u_ref"][5][0] += 5.0
+
+    _tamper(path, shift)
+    result = certify_controller(scenario, path)
+    assert not result.success
+    assert re.search(r"the funnel is not certified: 1 segment\(s\): u1 in \[[\d.]+, 14\.9\]: "
+                     r"not an interval", result.message), result.message  # fmt: skip
+    script = (
+        "import json, sys; from pipeline.model.scenario import load_scenario; "
+        "from stages.certify import certify_controller; "
+        "scenario = load_scenario('quadrotor_hill', check_demos=False); "
+        "print(json.dumps(certify_controller(scenario, sys.argv[1]).failures))"
+    )
+    optimized = subprocess.run(
+        [sys.executable, "-O", "-c", script, str(path)],
+        cwd=ROOT,
+        env={**os.environ, "PYTHONPATH": str(ROOT), "PYTHONDONTWRITEBYTECODE": "1"},
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert optimized.returncode == 0, optimized.stderr
+    assert json.loads(optimized.stdout) == list(result.failures)
+
+
+@pytest.mark.slow
+def test_the_certify_tests_pass_under_python_O():
+    """This file's tests (but those that need a session's synthesis or the quadrotor's funnel,
+    20-25 s, and this one) and the hull's, with ``assert`` statements removed: pytest still
+    rewrites the tests' own asserts into checks, the code under test runs as under -O."""
+    selected = "not quadrotor and not tracked_reference and not under_python_O"
+    run = subprocess.run(
+        [sys.executable, "-O", "-m", "pytest", "-q", "-p", "no:cacheprovider", "-k", selected]
+        + ["tests/stages/test_certify.py", "tests/test_hull_rounding.py"],
+        cwd=ROOT,
+        env={**os.environ, "PYTHONPATH": str(ROOT), "PYTHONDONTWRITEBYTECODE": "1"},
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
+    assert re.search(r"\b(2\d|[3-9]\d) passed\b", run.stdout), run.stdout[-500:]

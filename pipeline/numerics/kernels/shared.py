@@ -196,12 +196,14 @@ def reference_state(t, t_ref, x_ref, out):
         for i in range(out.size):
             out[i] = x_ref[r - 1, i]
         return
-    # the emitted grid is uniform up to rounding: guess the interval, then correct the guess
-    j = min(max(int((t - t_ref[0]) / (t_ref[r - 1] - t_ref[0]) * (r - 1)), 0), r - 2)
-    while j > 0 and t_ref[j] > t:
-        j -= 1
-    while j < r - 2 and t_ref[j + 1] <= t:
-        j += 1
+    # bisection: the emitted grid may be finer on some sample intervals than on others
+    j, high = 0, r - 1  # t_ref[j] <= t < t_ref[high]
+    while high - j > 1:
+        middle = (j + high) // 2
+        if t_ref[middle] <= t:
+            j = middle
+        else:
+            high = middle
     w = (t - t_ref[j]) / (t_ref[j + 1] - t_ref[j])
     for i in range(out.size):
         out[i] = x_ref[j, i] + w * (x_ref[j + 1, i] - x_ref[j, i])

@@ -14,6 +14,11 @@ stage writes ``controller.json`` on every run, from this run's certified results
 stage then re-verifies that file as written (never cached), and the verdict's "certified" is
 its result.
 
+The run writes ``controller.json``, ``summary.json``, its input manifest and the reports into
+``OUT/.staging`` and publishes them as a whole after the report (``pipeline.runtime.outdir``):
+until then the folder holds the previous run's files, all of them; a run stopped while
+publishing leaves the marker ``OUT/INCOMPLETE``, which every reader refuses.
+
 The optimizer keeps every tube at the required radius ``max(r_d, covering radius)``: ``r_d`` is
 the radius that the clearance ``d`` certifies, and the covering radius the smallest common one
 whose balls around the demo starts cover Init, so that coverage survives the optimization.
@@ -26,12 +31,13 @@ outcome is the returned ``Synthesis``; the command line prints both.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
-import os
 import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 from threadpoolctl import threadpool_limits
@@ -51,14 +57,21 @@ from pipeline.runtime.codekey import code_key
 from pipeline.runtime.options import RunOptions
 from pipeline.runtime.orchestrator.funnels import FunnelRun, funnel_stages, reoptimize_rounds
 from pipeline.runtime.outdir import (
+    INCOMPLETE,
     check_output_folder,
     check_report_folder,
-    clear_stale,
     mark_failed,
-    stale_name,
+    publish,
+    staging_folder,
 )
 from pipeline.runtime.runner import StageRunner
-from pipeline.runtime.stored import load_report_data, write_manifest
+from pipeline.runtime.stored import (
+    EVIDENCE_STAGES,
+    load_report_data,
+    published_report_key,
+    staged_report_data,
+    write_manifest,
+)
 from pipeline.runtime.summary import StageResults, demo_table, summarise
 from pipeline.runtime.synthesis import Outputs, Synthesis
 from pipeline.runtime.terminal import (
@@ -89,6 +102,7 @@ from stages.report import ReportResult, write_reports
 from stages.stress import stress_test
 
 log = logging.getLogger(__name__)
+T = TypeVar("T")
 REPORT_FILES = ("report.html", "report.pdf", "scenario.png")
 # the code each cached stage's key covers besides its own module (see pipeline.runtime.codekey)
 RADIUS_CODE = ("stages.radius", "pipeline.model.simulate", "pipeline.numerics.verify")
@@ -144,9 +158,10 @@ def run_synthesis(
     ``Scenario`` from ``load_scenario`` (its demos checked, the default), or its name or path.
 
     Bad input (the scenario, the output folder, a folder in use) raises ``UserError`` before any
-    work. A run that fails writes ``summary.json`` saying so, renames the previous
-    ``controller.json`` and reports to ``*.stale.*`` (``pipeline.runtime.outdir``) and returns a
-    ``Synthesis`` with ``Verdict.FAILED``.
+    work. The new files are staged in ``out/.staging`` and published together at the end
+    (``pipeline.runtime.outdir.publish``). A run that fails writes ``summary.json`` saying so,
+    renames the previous ``controller.json`` and reports to ``*.stale.*``
+    (``pipeline.runtime.outdir``) and returns a ``Synthesis`` with ``Verdict.FAILED``.
     """
     started = time.perf_counter()
     options = options or RunOptions()
@@ -170,10 +185,11 @@ def run_synthesis(
     with folder_lock(out), threadpool_limits(limits=1, user_api="blas"):
         for folder in (out, out / "artifacts"):
             remove_temporaries(folder)  # left by killed writers; none can be active now
+        staging = staging_folder(out)  # emptied: what a killed run staged is not this run's
         runner = StageRunner(out, force=options.force)
         executor = make_executor(options.executor, options.jobs)
         try:
-            return _synthesize(scenario, out, options, executor, runner, started)
+            return _synthesize(scenario, out, staging, options, executor, runner, started)
         except (UserError, KeyboardInterrupt):
             raise
         except Exception as error:
@@ -202,6 +218,7 @@ def _failed(out: Path, scenario: Scenario, stage: str, reason: str) -> Synthesis
 def _synthesize(
     scenario: Scenario,
     out: Path,
+    staging: Path,
     options: RunOptions,
     executor: Executor,
     runner: StageRunner,
@@ -282,7 +299,7 @@ def _synthesize(
         scenario, runner, feedback, tube, "optimized", final_trajectories, final_inputs
     )
 
-    controller_path = out / "controller.json"
+    controller_path = staging / "controller.json"  # published as out / "controller.json"
     certificate = run_inputs.certificate_of(scenario, options)
     funnels: FunnelStageResult | None = None
     funnel_coverage: CoverageResult | None = None
@@ -314,12 +331,15 @@ def _synthesize(
         controller = runner.run(
             "controller",
             inputs_key(code_key("stages.controller"), runner.digest("funnel"), usable),
-            lambda: emit_funnel_controller(
-                scenario,
-                [final_trajectories[i] for i in usable],
-                [funnels.funnels[i] for i in usable],
-                controller_path,
-                feedback_period=options.feedback_period,
+            lambda: _published(
+                out,
+                emit_funnel_controller(
+                    scenario,
+                    [final_trajectories[i] for i in usable],
+                    [funnels.funnels[i] for i in usable],
+                    controller_path,
+                    feedback_period=options.feedback_period,
+                ),
             ),
             rerun=True,  # always written from this run's certified results
             describe=lambda result: result.message,
@@ -337,17 +357,20 @@ def _synthesize(
                 [final_radii[i].radius for i in usable],
                 r_required,
             ),
-            lambda: emit_controller(
-                scenario,
-                feedback.certified_tube.K,
-                feedback.certified_tube.P,
-                feedback.rate,
-                [demo_starts[i] for i in usable],
-                [final_inputs[i] for i in usable],
-                [final_radii[i].radius for i in usable],
-                controller_path,
-                radius_floor=r_required,
-                feedback_period=options.feedback_period,
+            lambda: _published(
+                out,
+                emit_controller(
+                    scenario,
+                    feedback.certified_tube.K,
+                    feedback.certified_tube.P,
+                    feedback.rate,
+                    [demo_starts[i] for i in usable],
+                    [final_inputs[i] for i in usable],
+                    [final_radii[i].radius for i in usable],
+                    controller_path,
+                    radius_floor=r_required,
+                    feedback_period=options.feedback_period,
+                ),
             ),
             rerun=True,  # always written from this run's certified results
             describe=lambda result: result.message,
@@ -358,17 +381,11 @@ def _synthesize(
     certification = certify_controller(scenario, controller_path)
     certify_seconds = time.perf_counter() - started_certify
     log.info(f"[certify] {certify_seconds:.1f} s: {certification.message}")
-    controller_sha = file_hash(controller_path)  # unchanged from here until it may be renamed below
+    controller_sha = file_hash(controller_path)  # unchanged from here until it is published
     with progress_bar(options.samples, "closed-loop runs", quiet) as advance:
         montecarlo = runner.run(
             "montecarlo",
-            inputs_key(
-                code_key("stages.montecarlo"),
-                core,
-                controller_sha,
-                options.samples,
-                options.seed,
-            ),
+            run_inputs.montecarlo_key(scenario, controller_sha, options.samples, options.seed),
             lambda: validate_closed_loop(
                 scenario,
                 controller_path,
@@ -383,12 +400,7 @@ def _synthesize(
     if options.stress:
         stress = runner.run(
             "stress",
-            inputs_key(
-                code_key("stages.stress"),
-                run_inputs.spec_key(scenario, "description"),
-                controller_sha,
-                options.seed,
-            ),
+            run_inputs.stress_key(scenario, controller_sha, options.seed),
             lambda: stress_test(scenario, controller_path, seed=options.seed),
             describe=lambda result: result.message,
         )
@@ -419,43 +431,56 @@ def _synthesize(
         command=sys.argv,
         stress=stress,
     )
-    atomic_write_json(out / "summary.json", summary.to_json())
-    write_manifest(scenario, out, controller_sha)
-    runner.run(  # keyed on what the report shows: never on this run's timings
+    atomic_write_json(staging / "summary.json", summary.to_json())
+    report_key = inputs_key(  # what the report shows: never this run's timings
+        code_key(*REPORT_CODE),
+        scenario.source_hash,
+        run_inputs.spec_key(scenario),
+        [runner.digest(name) for name in REPORT_STAGES],
+        [runner.digest(name) for name in FUNNEL_STAGES if funnels is not None],
+        None if stress is None else runner.digest("stress"),
+        controller_sha,
+    )
+    named = (*EVIDENCE_STAGES, *(("stress",) if stress is not None else ()))
+    digests = {name: runner.digest(name) for name in named}  # what report reads, by content
+    write_manifest(scenario, staging, controller_sha, digests, report_key)
+    # the published reports are this run's when their key is this one (else written anew)
+    current = published_report_key(out) == report_key and _reports_present(out)
+    runner.run(
         "report",
-        inputs_key(
-            code_key(*REPORT_CODE),
-            scenario.source_hash,
-            run_inputs.spec_key(scenario),
-            [runner.digest(name) for name in REPORT_STAGES],
-            [runner.digest(name) for name in FUNNEL_STAGES if funnels is not None],
-            None if stress is None else runner.digest("stress"),
-            controller_sha,
-        ),
-        lambda: write_reports(load_report_data(scenario, out)),
-        rerun=not _reports_present(out),
+        report_key,
+        lambda: _published(out, write_reports(staged_report_data(scenario, out, staging, summary))),
+        rerun=not current,
         describe=lambda result: result.message,
     )
-    clear_stale(out)
-    if not summary.certified:  # this run did not certify it: no current-looking controller.json
-        os.replace(controller_path, stale_name(controller_path))
-        log.info(f"controller.json renamed to {stale_name(controller_path).name}: not certified")
+    publish(out, staging, certified=summary.certified)
     return Synthesis(
         scenario=scenario.name,
         verdict=summary.verdict,
         success=summary.verdict is Verdict.CERTIFIED_AND_VALIDATED,
         message=summary.text,
         claims=summary.claims,
-        controller=load_controller(controller_path) if summary.certified else None,
+        controller=load_controller(out / "controller.json") if summary.certified else None,
         demos=summary.demos,
         summary=summary,
         outputs=Outputs.of(out),
     )
 
 
+def _published(out: Path, result: T) -> T:
+    """A result naming a staged file (``path``, ``html``, ``pdf`` in ``out/.staging``) with the
+    name it is published under in ``out``."""
+    moved = {
+        name: out / value.name
+        for name in ("path", "html", "pdf")
+        if isinstance(value := getattr(result, name, None), Path)
+    }
+    return dataclasses.replace(result, **moved)  # type: ignore[type-var]
+
+
 def _reports_present(out: Path) -> bool:
-    """Every report file is there."""
-    return all((out / name).is_file() for name in REPORT_FILES)
+    """Every report file is there (and no publish was cut short)."""
+    return not (out / INCOMPLETE).exists() and all((out / name).is_file() for name in REPORT_FILES)
 
 
 def rebuild_reports(
@@ -463,8 +488,10 @@ def rebuild_reports(
 ) -> ReportResult:
     """The report stage alone (``python -m pipeline report``): reads a finished run's saved
     artifacts in ``source`` (default ``./reports/NAME``) and writes ``report.html``,
-    ``report.pdf`` and ``scenario.png`` into ``out`` (default: ``source``). A missing, corrupt or
-    stale artifact is a ``UserError`` naming it."""
+    ``report.pdf`` and ``scenario.png`` into ``out`` (default: ``source``). The verdict is
+    derived again (``controller.json`` certified again, the Monte Carlo result of that file:
+    ``pipeline.runtime.stored``), never read from ``summary.json``. A missing, corrupt, stale or
+    mismatched file, or a folder whose publish was cut short, is a ``UserError`` naming it."""
     scenario = load_scenario(scenario_name)
     source = Path(source) if source is not None else default_output_folder(scenario.name)
     out = Path(out) if out is not None else source
@@ -472,5 +499,5 @@ def rebuild_reports(
         return write_reports(load_report_data(scenario, source))
     if out != source:
         check_report_folder(out)
-    with folder_lock(source):
+    with folder_lock(source), threadpool_limits(limits=1, user_api="blas"):
         return write_reports(load_report_data(scenario, source, write_to=out))

@@ -1,0 +1,156 @@
+"""The law as shipped inside the funnel certificate: the reference it tracks is interpolated.
+
+Problem. The funnel ``E(t) = {x : e^T P(t) e <= rho_t^2}``, ``e = x - x_ref(t)``, ``rho_t = rho
+e^{-lambda t}``, is certified about the exact nominal ``x_ref`` (the solution of ``xdot = f(x,
+u_ref[k])``; its RK4 values on a grid are taken as exact, as everywhere in the pipeline). The
+shipped law (``pipeline.controller``) tracks ``xhat``, the linear interpolation of ``x_ref`` on the
+file's grid, with ``h_k`` the grid's spacing on sample interval ``k``:
+
+    u = u_ref[k] + K[k] (x - xhat) = u_ref[k] + K[k] e + K[k] delta,  delta = x_ref - xhat.
+
+(I1) Interpolation error. On a grid step inside interval ``k`` the input is held, so ``x_ref`` is
+C^2 with ``xddot = f_x(x_ref, u_ref[k]) xdot``. While ``x_ref`` is in the a priori box ``B_k``,
+``|xdot| <= F`` (E1 of ``funnel_bounds``) and ``f_x`` is in the hull ``conv{A_v}`` over ``Z_k``
+(which holds ``B_k x {u_ref[k]}``), so by convexity ``|xddot_i| <= max_v sum_l |A_v[i, l]| F_l``.
+Linear interpolation of a C^2 function between two points ``h`` apart errs by at most ``h^2 / 8
+max |xddot|``:
+
+    |delta_i(t)| <= Delta_i[k] = h_k^2 / 8  max_v sum_l |A_v[i, l]| F_l   on interval k.     (I1)
+
+(I2) Invariance with the offset. ``de/dt = f(x_ref + e, u_ref + K e + K delta) - f(x_ref, u_ref) =
+Acl e + Bbar K delta`` with ``[Abar Bbar]`` the Jacobian averaged on the segment, in the hull while
+``x`` is in the funnel and the input in the widened box (I3). With ``m_k`` the largest (F2)
+eigenvalue of ``Q^-1/2 L Q^-1/2`` over the vertices at both ends of the interval
+(``funnel_check.certificate_margins``; ``L <= m_k Q`` at both ends gives it on the whole interval,
+as (F3) does), ``P L P <= m_k P`` and
+
+    d/dt (V e^{2 lambda t}) e^{-2 lambda t} = e^T P L P e + 2 e^T P Bbar K delta
+                                            <= m_k V + 2 ||e||_P ||Bbar K delta||_P.
+
+On the boundary ``V = rho_t^2`` this is ``rho_t (m_k rho_t + 2 w_k)`` with ``w_k`` the largest
+``||Bbar K delta||_P(t)`` on the interval. ``||Bbar K delta||_P(t)`` is convex in ``Bbar`` and in
+``delta`` separately and convex in ``t`` (the matrix-fractional ``v^T Q(t)^-1 v`` with ``Q`` linear
+in t, eq. (F1)), so its maximum over the hull, the box ``|delta| <= Delta[k]`` and the interval is
+at a hull vertex, a corner of the box and an end of the interval:
+
+    w_k = max_v max_corners max_ends ||B_v K[k] (sigma o Delta[k])||_P,                      (I2)
+
+and the funnel is invariant under the shipped law when ``m_k + 2 w_k / (rho e^{-lambda t_k+1}) <
+0`` on every interval (``rho_t`` is smallest at the interval's end). ``LMI_MARGIN`` is required
+below zero on top: the eigenvalues are rounded in floating point and the RK4 values stand in for
+the exact nominal (the certify stage checks that their estimated error is below ``LEVEL_MARGIN``).
+
+(I3) Inputs. The applied input is ``u_ref + K e + K delta`` with ``|K_j e| <= rho_t g_j[k]`` (E3)
+and ``|K_j delta| <= sum_i |K[k, j, i]| Delta_i[k]``: the hull's input box and the input limits
+take the second term as an offset.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from pipeline.model.dynamics import FloatArray
+
+LMI_MARGIN = 1e-6  # 1/s: how far below 0 the (F2) eigenvalue with the law's term (I2) must be
+LEVEL_MARGIN = 1e-6  # relative: a funnel's level must stay this far inside every limit
+BASE_SUBSTEPS = 20  # the reference grid's RK4 steps per sample where the law needs no finer one
+MAX_SUBSTEPS = 2000
+SAFETY = 2.0  # the grid is made fine enough for (I2) and (I3) to use at most 1 / SAFETY of the room
+
+
+@dataclass(frozen=True, kw_only=True)
+class LawOffset:
+    """The shipped law's offset from the certified centre, per sample interval (N intervals).
+
+    Attributes:
+      steps: (N,) the reference grid's spacing ``h_k`` (s) on each interval.
+      deviation: (N, n) ``Delta``, (I1): ``|x_ref - xhat| <= Delta[k]`` on interval k.
+      input_offset: (N, m) ``sum_i |K[k, j, i]| Delta_i[k]``, (I3).
+      lmi_term: (N,) ``2 w_k / (rho e^{-lambda t_k+1})``, (I2): added to the (F2) eigenvalue.
+    """
+
+    steps: FloatArray
+    deviation: FloatArray
+    input_offset: FloatArray
+    lmi_term: FloatArray
+
+    @staticmethod
+    def none(N: int, n: int, m: int, Ts: float) -> LawOffset:
+        """No offset: a law that tracks the exact nominal (the synthesis's own check)."""
+        return LawOffset(
+            steps=np.full(N, Ts), deviation=np.zeros((N, n)), input_offset=np.zeros((N, m)),
+            lmi_term=np.zeros(N),
+        )  # fmt: skip
+
+
+def grid_substeps(t: FloatArray, N: int, Ts: float) -> np.ndarray | None:
+    """(N,) the number of equal steps of the grid ``t (r,)`` on each sample interval ``[k Ts, (k +
+    1) Ts]``, or None when ``t`` does not hold every sample time or is not uniform inside an
+    interval (to 1e-9 s)."""
+    samples = np.searchsorted(t, Ts * np.arange(N + 1) - 1e-9)
+    if samples[-1] >= len(t) or not np.allclose(t[samples], Ts * np.arange(N + 1), atol=1e-9):
+        return None
+    substeps = np.diff(samples)
+    if substeps.min() < 1 or samples[0] != 0 or samples[-1] != len(t) - 1:
+        return None
+    for k, (a, b) in enumerate(itertools.pairwise(samples)):
+        expected = k * Ts + (Ts / (b - a)) * np.arange(b - a + 1)
+        if not np.allclose(t[a : b + 1], expected, rtol=0, atol=1e-9):
+            return None
+    return substeps
+
+
+def law_offset(
+    vertices: tuple[FloatArray, ...],
+    rate_bound: FloatArray,
+    K: FloatArray,
+    P: FloatArray,
+    rho: float,
+    rate: float,
+    Ts: float,
+    substeps: np.ndarray,
+) -> LawOffset:
+    """(I1)-(I3) for a funnel ``K (N, m, n)``, ``P (N+1, n, n)``, level ``rho``, ``rate``, with its
+    hull ``vertices`` (N arrays (V, n, n+m) of ``[A_v B_v]``), the nominal's rate bound
+    ``rate_bound (N, n)`` (E1) and the reference grid's ``substeps (N,)`` per sample."""
+    N, m, n = K.shape
+    steps = Ts / np.asarray(substeps, dtype=np.float64)
+    deviation, input_offset, lmi_term = np.zeros((N, n)), np.zeros((N, m)), np.zeros(N)
+    corners = np.array(list(itertools.product((-1.0, 1.0), repeat=n)))[: 2 ** (n - 1)]  # +-pairs
+    for k in range(N):
+        A, B = vertices[k][:, :, :n], vertices[k][:, :, n:]
+        acceleration = (np.abs(A) @ rate_bound[k]).max(axis=0)  # (n,) bound on |xddot|
+        deviation[k] = steps[k] ** 2 / 8 * acceleration  # eq. (I1)
+        input_offset[k] = np.abs(K[k]) @ deviation[k]  # eq. (I3)
+        offsets = (B @ K[k]) @ (corners * deviation[k]).T  # (V, n, corners)
+        w = max(
+            float(np.sqrt(np.einsum("vic,ij,vjc->vc", offsets, P[k + e], offsets).max()))
+            for e in (0, 1)
+        )  # eq. (I2)
+        lmi_term[k] = 2 * w / (rho * math.exp(-rate * Ts * (k + 1)))
+    return LawOffset(steps=steps, deviation=deviation, input_offset=input_offset, lmi_term=lmi_term)
+
+
+def law_substeps(
+    offset: LawOffset, margins: FloatArray, input_room: FloatArray, Ts: float
+) -> np.ndarray:
+    """(N,) RK4 steps per sample for the reference grid: at least ``BASE_SUBSTEPS``, and enough
+    that (I2) uses at most ``1 / SAFETY`` of what the (F2) eigenvalues ``margins (N,)`` leave below
+    ``-LMI_MARGIN``, and (I3) at most ``1 / SAFETY`` of ``input_room (N, m)`` (the distance from
+    the tube's inputs to their bounds). ``offset`` is (I1)-(I3) on some grid; every term scales
+    with ``h_k^2``. Where the room is already gone the grid stays at ``BASE_SUBSTEPS`` (the
+    funnel is not certifiable on any grid)."""
+    lmi_room = np.maximum(-margins - LMI_MARGIN, 0.0) / SAFETY
+    input_room = np.maximum(input_room, 0.0) / SAFETY
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lmi_fit = np.where(offset.lmi_term > 0, lmi_room / offset.lmi_term, np.inf)
+        input_fit = np.where(offset.input_offset > 0, input_room / offset.input_offset, np.inf)
+    shrink = np.minimum(lmi_fit, input_fit.min(axis=1))  # the largest factor on h_k^2 that fits
+    needed = np.where(
+        shrink > 0, np.ceil(Ts / (offset.steps * np.sqrt(np.minimum(shrink, 1.0)))), BASE_SUBSTEPS
+    )
+    return np.clip(needed, BASE_SUBSTEPS, MAX_SUBSTEPS).astype(np.int64)

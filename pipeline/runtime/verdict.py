@@ -1,0 +1,244 @@
+"""A run's verdict and the numbers that carry it, derived from its evidence (``Evidence``): the
+certify stage's check of ``controller.json`` as written, the Monte Carlo result of that file, and
+the stage results the certificate rests on.
+
+``pipeline.runtime.summary.summarise`` derives them for a run; ``report`` derives them again from
+the output folder (``pipeline.runtime.stored``), with the same functions, and never reads them
+from ``summary.json``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from pipeline.model.scenario import Scenario
+from pipeline.reporting.summary import (
+    CertificationSummary,
+    Claim,
+    ClaimKind,
+    ControllerSummary,
+    FalsificationSummary,
+    FeedbackSummary,
+    MonteCarloSummary,
+    Quantiles,
+)
+
+if TYPE_CHECKING:  # stage result types: only the orchestrator imports stages
+    from pipeline.model.dynamics import FloatArray
+    from stages.certify import CertificationResult
+    from stages.controller import ControllerResult
+    from stages.coverage import CoverageResult, CoveringRadius
+    from stages.feedback import FeedbackResult
+    from stages.montecarlo import MonteCarloResult
+    from stages.optimize import OptimizeResult
+    from stages.radius import RadiusResult
+
+
+@dataclass(frozen=True, kw_only=True)
+class Evidence:
+    """What a run's verdict is derived from.
+
+    Attributes:
+      certificate: what the run shipped, ``"constant"`` or ``"funnel"``.
+      coverage: Init's coverage by the shipped certificate's initial sets (the constant balls,
+        or the funnels' initial ellipsoids ``E_i(0)``); demo_coverage: by the demos' balls.
+      final_radii: the robustness radius of each final nominal (one per demo).
+      no_funnel: a funnel run that kept no funnel: the funnel stage's message (else None).
+      certification: stage ``certify`` on ``controller.json`` as written; montecarlo: the
+        closed-loop runs of that file.
+    """
+
+    scenario: Scenario
+    certificate: str
+    feedback: FeedbackResult
+    covering: CoveringRadius
+    demo_coverage: CoverageResult
+    coverage: CoverageResult
+    optimized: OptimizeResult
+    final_radii: Sequence[RadiusResult]
+    no_funnel: str | None = None
+    controller: ControllerResult
+    certification: CertificationResult
+    montecarlo: MonteCarloResult
+
+    @property
+    def certified(self) -> bool:
+        """The check of controller.json as written passed and the stages' own results agree."""
+        if self.certificate == "funnel":
+            return bool(
+                self.certification.success and self.coverage.covered and self.no_funnel is None
+            )
+        if self.certificate == "constant":
+            return bool(
+                self.certification.success
+                and self.feedback.success
+                and self.coverage.covered
+                and all(r.radius > 0 for r in self.final_radii)
+            )
+        raise ValueError(f"certificate {self.certificate!r}; expected 'constant' or 'funnel'")
+
+    def reasons(self) -> tuple[str, ...]:
+        """Why the run is not certified and validated (empty when it is)."""
+        reasons = []
+        if not self.coverage.covered:
+            gap = self.coverage.largest_gap()
+            where = (
+                ""
+                if gap is None
+                else f"; record a new demonstration from {np.round(gap, 3).tolist()}"
+            )
+            reasons.append(f"coverage gap: {self.coverage.message}{where}")
+        failed = [
+            demo.name
+            for demo, tried in zip(self.scenario.demos, self.optimized.trajectories, strict=True)
+            if not tried.success
+        ]
+        if failed:
+            reasons.append(f"not optimized (kept as flown): {', '.join(failed)}")
+        if self.certificate == "constant" and any(r.radius <= 0 for r in self.final_radii):
+            reasons.append("a nominal trajectory has no robustness radius")
+        if self.no_funnel is not None:
+            reasons.append(f"no funnel certified: {self.no_funnel}")
+        if not self.certification.success:
+            reasons.append(self.certification.message)
+        if not self.montecarlo.success:
+            reasons.append(f"Monte Carlo failure: {self.montecarlo.message}")
+        return tuple(reasons)
+
+    def headline(self) -> dict[str, Any]:
+        """The headline's coverage and Monte Carlo fields (``Headline``'s keywords)."""
+        mc = self.montecarlo
+        return {
+            "coverage_before": self.demo_coverage.covered_fraction,
+            "coverage_after": self.coverage.covered_fraction,
+            "covered_before": bool(self.demo_coverage.covered),
+            "covered_after": bool(self.coverage.covered),
+            "montecarlo_samples": mc.samples,
+            "montecarlo_failures": int(sum(mc.failures.values())),
+            "failure_bound_95": mc.failure_bound,
+        }
+
+
+def certificate_kinds(evidence: Evidence, certified: bool) -> tuple[ClaimKind, ClaimKind]:
+    """The kinds of the certificate's two claims: the contraction (constant) or invariance
+    (funnel) claim, certified where the check of controller.json found the inequality strict
+    (and, for the funnels, passed), and the coverage claim, certified with the run."""
+    check = evidence.certification
+    contraction = ClaimKind.CERTIFIED if check.contraction_margin < 0 else ClaimKind.NOT_ESTABLISHED
+    if evidence.certificate == "funnel" and not check.success:
+        contraction = ClaimKind.NOT_ESTABLISHED
+    return contraction, ClaimKind.CERTIFIED if certified else ClaimKind.NOT_ESTABLISHED
+
+
+def after_horizon(evidence: Evidence, certified: bool) -> Claim:
+    """After ``T``: safe for all time when the file's terminal controller is certified; else
+    not established (the law refuses ``t > T``), with the reason."""
+    check = evidence.certification
+    if check.terminal and certified:
+        return Claim(
+            claim="after T every covered start stays in Goal for all time (terminal controller)",
+            kind=ClaimKind.CERTIFIED,
+            how=f"invariant ellipsoid of the terminal law re-verified on controller.json "
+            f"(decay {check.terminal_decay:.3g}/s at every hull vertex over its bounding box, "
+            f"inside Goal, no clipping) holding every end tube (at most {check.terminal_fit:.0%} "
+            "of its radius, exact S-procedure test)",
+        )
+    return Claim(
+        claim="after T: nothing (the law refuses t > T)",
+        kind=ClaimKind.NOT_ESTABLISHED,
+        how=evidence.controller.terminal_message or "no terminal controller",
+    )
+
+
+def montecarlo_claims(mc: MonteCarloResult) -> tuple[Claim, Claim]:
+    """The statistical claim of the closed-loop runs and the falsification search's."""
+    falsification = mc.falsification
+    return (
+        Claim(
+            claim=f"failure probability <= {mc.failure_bound:.2e}",
+            kind=ClaimKind.STATISTICALLY_VALIDATED,
+            how=f"{mc.samples} i.i.d. closed-loop runs from controller.json, "
+            "one-sided 95% Clopper-Pearson bound",
+        ),
+        Claim(
+            claim=f"worst safety margin found {falsification.worst_margin:.3f}"
+            + (f" ({falsification.binding})" if falsification.binding else ""),
+            kind=ClaimKind.FALSIFICATION_SEARCHED,
+            how=f"Init corners, Sobol points and Nelder-Mead ({falsification.evaluations} "
+            "closed-loop runs); evidence, not a bound",
+        ),
+    )
+
+
+def feedback_summary(evidence: Evidence) -> FeedbackSummary:
+    feedback, covering = evidence.feedback, evidence.covering
+    r_d = feedback.required_radius(evidence.scenario.clearance)
+    return FeedbackSummary(
+        gain=feedback.gain,
+        K=tuple(tuple(row) for row in np.asarray(feedback.K).tolist()),
+        P_eigenvalues=tuple(np.linalg.eigvalsh(feedback.certified_tube.P).tolist()),
+        rate=feedback.rate,
+        region={k: (float(v[0]), float(v[1])) for k, v in feedback.region.items()},
+        required_radius=r_d,
+        covering_radius=covering.radius if covering.covered else None,
+        kept_radius=covering.kept_radius(r_d),
+        input_margin_at_r_d=tuple(feedback.input_margin(r_d).tolist()),
+        region_extent_at_r_d=feedback.region_extent(r_d),
+        vertices=len(feedback.vertices),
+        message=feedback.message,
+    )
+
+
+def montecarlo_summary(mc: MonteCarloResult) -> MonteCarloSummary:
+    falsification = mc.falsification
+    return MonteCarloSummary(
+        samples=mc.samples,
+        seed=mc.seed,
+        failures=dict(mc.failures),
+        failure_bound_95=mc.failure_bound,
+        min_clearance=mc.min_clearance,
+        min_goal_margin=mc.min_goal_margin,
+        max_tube_tightness=mc.max_tube_tightness,
+        tube_ratio_at_T=quantiles(mc.tube_final),
+        falsification=FalsificationSummary(
+            worst_x0=tuple(falsification.worst_x0.tolist()),
+            worst_margin=falsification.worst_margin,
+            binding=falsification.binding,
+            evaluations=falsification.evaluations,
+        ),
+        message=mc.message,
+    )
+
+
+def controller_summary(evidence: Evidence) -> ControllerSummary:
+    controller = evidence.controller
+    return ControllerSummary(
+        path=str(controller.path),
+        trajectories=controller.trajectories,
+        interpolation_error_P=controller.interpolation_error,
+    )
+
+
+def certification_summary(check: CertificationResult) -> CertificationSummary:
+    return CertificationSummary(
+        certified=check.success,
+        sha256=check.sha256,
+        metric_eigenvalue=check.metric_eigenvalue,
+        contraction_margin=check.contraction_margin,
+        vertices=check.vertices,
+        covered_fraction=check.covered_fraction,
+        message=check.message,
+    )
+
+
+def quantiles(values: FloatArray) -> Quantiles | None:
+    """Median, 95th percentile and maximum of ``values (k,)``; None when empty."""
+    values = np.asarray(values, dtype=np.float64)
+    if values.size == 0:
+        return None
+    median, p95, top = np.quantile(values, [0.5, 0.95, 1.0])
+    return Quantiles(median=float(median), p95=float(p95), max=float(top))

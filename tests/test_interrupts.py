@@ -1,0 +1,105 @@
+"""Ctrl-C on a run with worker processes (issue 27, item 6).
+
+A terminal's Ctrl-C sends SIGINT to the whole foreground process group: the run, the fork server
+and the workers. Only the run may act on it: one "interrupted" line on stderr, exit code 130, no
+traceback from any process, the folder's lock released and no process left behind, also when a
+second Ctrl-C follows 0.3 s later, while the first is being handled.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from pipeline.io.lock import LOCK_NAME
+
+ROOT = Path(__file__).resolve().parents[1]
+INTERRUPTED = "interrupted: finished artifacts are kept; re-run to resume"
+
+
+def _group(pgid: int) -> list[int]:
+    """The live (not zombie) processes of process group ``pgid``."""
+    found = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[2]) == pgid and fields[0] != "Z":
+            found.append(int(stat.parent.name))
+    return found
+
+
+def _fork_server_started(pgid: int) -> bool:
+    return any(
+        b"multiprocessing.forkserver" in Path(f"/proc/{pid}/cmdline").read_bytes()
+        for pid in _group(pgid)
+    )
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("signals", [1, 2], ids=["one Ctrl-C", "two Ctrl-C 0.3 s apart"])
+@pytest.mark.parametrize(
+    "when",
+    ["fork server importing", "workers computing"],  # optimize starts it; the Monte Carlo's
+)
+def test_ctrl_c_with_workers_prints_one_line_and_exits_130(
+    tmp_path: Path, when: str, signals: int
+) -> None:
+    out = tmp_path / "out"
+    process = subprocess.Popen(
+        [sys.executable, "-m", "pipeline", "synthesize", "double_integrator"]
+        + ["--jobs", "2", "--out", str(out)],  # the default 100,000 Monte Carlo runs: long
+        cwd=ROOT,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,  # its own process group, as a terminal's foreground job
+    )
+    try:
+        assert process.stdout is not None
+        after = "[covering_radius]" if when == "fork server importing" else "[certify]"
+        printed = []
+        for line in process.stdout:  # each stage's line is flushed as it is logged
+            printed.append(line)
+            if line.startswith(after):
+                break
+        assert printed and printed[-1].startswith(after), "".join(printed)
+        if when == "fork server importing":  # its imports take seconds (cvxpy, scipy)
+            deadline = time.monotonic() + 30
+            while not _fork_server_started(process.pid) and time.monotonic() < deadline:
+                time.sleep(0.02)
+            assert _fork_server_started(process.pid)
+        else:
+            time.sleep(0.5)
+        for index in range(signals):
+            if index:
+                time.sleep(0.3)
+            os.killpg(process.pid, signal.SIGINT)
+        rest, error = process.communicate(timeout=120)
+        assert process.returncode == 130, error
+        assert error.splitlines() == [INTERRUPTED]
+        assert "Traceback" not in rest
+        handle = os.open(out / LOCK_NAME, os.O_RDONLY)
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)  # released: free at once
+        finally:
+            os.close(handle)
+        deadline = time.monotonic() + 30  # the fork server ends after its imports (seconds)
+        while _group(process.pid) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert not _group(process.pid), "processes of the interrupted run remain"
+    finally:  # whatever happened, leave nothing of this test running
+        if process.poll() is None:
+            process.kill()
+        for pid in _group(process.pid):
+            os.kill(pid, signal.SIGKILL)
+        process.communicate()
