@@ -5,12 +5,11 @@ folder (so that a concurrent ``make synthesize`` cannot change it mid-run); if i
 the pipeline is run into the temporary folder first (``--samples 1000``).
 
 (a) Report stage, as ``synthesize`` runs it (``write_reports(staged_report_data(...))``: read
-    the artifacts, write report.html, scenario.png and report.pdf into the staging folder
-    (printed by Chromium where it is installed; the message says whether it was); the scenario
-    and the run's summary loaded before; ``report`` adds certify, ~0.3 s): with an empty
-    figure cache (every figure drawn, the PDF printed) and again with the cache of the first
-    (nothing changed: every figure and the PDF reused); limit 3 s. ``bench_report`` runs the
-    same stage side by side with the code before the report rework.
+    the artifacts, write report.html, scenario.png and report.pdf (typeset by Typst) into the
+    staging folder; the scenario and the run's summary loaded before; ``report`` adds certify,
+    ~0.3 s): with an empty figure cache (every figure drawn, the PDF typeset) and again with the
+    cache of the first (nothing changed: every figure and the PDF reused); limit 3 s.
+    ``bench_report`` runs the same stage side by side with the code before the report rework.
 (b) Monte Carlo stage at the default size (``RunOptions().samples``) with 2 worker processes,
     as ``synthesize --jobs 2`` runs it (pool start-up and the falsification search included);
     limit 10 s. The rollouts/s against the flop anchor and the 10^6-run wall time are in

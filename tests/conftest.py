@@ -66,7 +66,7 @@ def pytest_addoption(parser: pytest.Parser) -> None:
         help="after the run, list the N tests with the most CPU time (setup, call and teardown "
         "of the worker plus its finished subprocesses; 0: all) and each worker's totals. Not "
         "counted: processes reaped by init, such as the helpers of a Chromium killed with its "
-        "process group (most of the CPU of printing report.pdf)",
+        "process group (the rendering tests' browser)",
     )
 
 

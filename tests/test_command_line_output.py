@@ -14,7 +14,13 @@ from tqdm import tqdm
 from pipeline.model.scenario import load_scenario
 from pipeline.reporting.summary import Verdict
 from pipeline.runtime.synthesis import Outputs, Synthesis
-from pipeline.runtime.terminal import explain_binding, format_outputs, length_unit, show_progress
+from pipeline.runtime.terminal import (
+    explain_binding,
+    format_done,
+    format_outputs,
+    length_unit,
+    show_progress,
+)
 
 
 @pytest.fixture(scope="module")
@@ -101,6 +107,15 @@ def test_the_outputs_name_the_folder_and_each_main_file(tmp_path):
     (tmp_path / "controller.stale.json").write_text("{}")  # a run that did not certify it
     stale = format_outputs(_synthesis(tmp_path)).splitlines()[3]
     assert stale.split()[0] == "controller.stale.json" and "NOT certified" in stale
+
+
+def test_the_last_line_gives_the_wall_time_and_the_verdict_alone(tmp_path):
+    passed = dataclasses.replace(
+        _synthesis(tmp_path), verdict=Verdict.CERTIFIED_AND_VALIDATED, message="ok"
+    )
+    assert format_done(passed, 48.6) == "done in 49 s: certified and validated"
+    failed = dataclasses.replace(passed, verdict=Verdict.NOT_CERTIFIED, message="not: a; b")
+    assert format_done(failed, 3.04) == "done in 3.0 s: not certified"  # reasons above it
 
 
 def test_a_stage_line_starts_its_own_line_while_a_progress_bar_is_open(capsys):

@@ -14,7 +14,7 @@ import sys
 import matplotlib
 before = dict.__getitem__(matplotlib.rcParams, "backend")
 import stages.report
-from pipeline.reporting import figures, html, pdf, plotting
+from pipeline.reporting import figures, html, pdf, plotting, typeset
 from pipeline.reporting.content import Figure
 figure = Figure(key="k", caption="", size=(2, 1), draw=lambda fig: fig.subplots().plot([0, 1]))
 svg = html.figure_svg(figure)

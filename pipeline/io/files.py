@@ -15,7 +15,7 @@ unbounded, any valid file name works.
   cannot hang the open), of at most a stated number of bytes (checked with ``fstat`` before
   reading, and again while reading), and a symbolic-link loop is one line (``FileRefused``).
   The caps: ``TEXT_MAX_BYTES`` (64 MiB: ``summary.json``, ``inputs.json``, a demo CSV, a cached
-  figure), ``ARTIFACT_MAX_BYTES`` (1 GiB: a stage artifact's ``.json`` or ``.npz``, a printed
+  figure), ``ARTIFACT_MAX_BYTES`` (1 GiB: a stage artifact's ``.json`` or ``.npz``, a typeset
   PDF); elsewhere a scenario file (1 MB, ``pipeline.model.safe_yaml``) and ``controller.json``
   (256 MiB, ``pipeline.controller.MAX_BYTES``).
 - **Any valid name** (``printable``): a name with bytes that are not UTF-8 is held by Python as

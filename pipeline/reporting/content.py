@@ -1,7 +1,7 @@
 """The report's content, independent of its format: sections made of blocks.
 
-Both writers (``reporting.html``, ``reporting.pdf``) render the same ``Section`` list, so the two
-formats cannot drift apart. Numbers are formatted here, once.
+Both writers (``reporting.html``, ``reporting.typeset``) render the same ``Section`` list, so the
+two formats cannot drift apart. Numbers are formatted here, once.
 """
 
 from __future__ import annotations

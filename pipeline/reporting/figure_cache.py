@@ -1,13 +1,13 @@
-"""Rendered figures and the printed PDF, kept under ``OUT/artifacts/figures/`` by what they draw.
+"""Rendered figures and the typeset PDF, kept under ``OUT/artifacts/figures/`` by what they draw.
 
 A figure's digest hashes its key, size and ``inputs`` (the fingerprint of the data it reads,
 ``ReportData.fingerprint``) with the reporting code and the matplotlib version, so a figure whose
 data did not change is not drawn again: its SVG (for the HTML, ``KEY-DIGEST.svg``) and PNG
 (``scenario.png``, ``KEY-DIGEST.png``) are read back. Each figure is drawn once; the PNG is saved
-from the same drawing as the SVG. The PDF printed from the HTML is kept as ``report-DIGEST.pdf``
-by the digest of the HTML (``reporting.pdf``). Files this report did not use are deleted at the
-end (``prune``). The folder is the run's cache: read and written without following links
-(``pipeline.io.files``); a cached file that is not a regular file is drawn again and replaced.
+from the same drawing as the SVG. The PDF is kept as ``report-DIGEST.pdf`` by the digest of its
+inputs (``reporting.pdf``). Files this report did not use are deleted at the end (``prune``).
+The folder is the run's cache: read and written without following links (``pipeline.io.files``);
+a cached file that is not a regular file is drawn again and replaced.
 """
 
 from __future__ import annotations
@@ -65,7 +65,7 @@ def figure_digest(figure: Figure) -> str | None:
 
 
 class FigureStore:
-    """SVGs (``KEY-DIGEST.svg``), PNGs (``KEY-DIGEST.png``) and printed PDFs
+    """SVGs (``KEY-DIGEST.svg``), PNGs (``KEY-DIGEST.png``) and typeset PDFs
     (``report-DIGEST.pdf``) in ``folder``; with ``folder=None`` (or for a figure without a
     digest) a private temporary folder, nothing reused."""
 
@@ -91,20 +91,8 @@ class FigureStore:
         return self._file(None if digest is None else f"{figure.key}-{digest}", suffix)
 
     def pdf_file(self, digest: str) -> Path:
-        """Where the PDF printed from the HTML of ``digest`` is kept."""
+        """Where the PDF typeset from the inputs of ``digest`` is kept."""
         return self._file(f"report-{digest}", ".pdf")
-
-    def scratch_folder(self) -> Path:
-        """A new empty folder in the private temporary folder (e.g. a browser profile)."""
-        self._count += 1
-        folder = self._scratch / f"folder-{self._count}"
-        folder.mkdir()
-        return folder
-
-    def cached(self, figure: Figure) -> bool:
-        """Is ``figure``'s SVG kept from an earlier report (its inputs unchanged)?"""
-        path = self.figure_file(figure, ".svg")
-        return path.parent != self._scratch and is_regular(path)
 
     def svg(self, figure: Figure, png: bool = False) -> str:
         """``figure`` as an inline SVG (and its PNG on disk if ``png``): read back when its

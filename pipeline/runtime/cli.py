@@ -14,6 +14,7 @@ import json
 import signal
 import sys
 import threading
+import time
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
@@ -136,7 +137,7 @@ def _main(args: argparse.Namespace) -> int:
 def _run(args: argparse.Namespace) -> int:
     if args.command == "synthesize":
         from pipeline.runtime.api import synthesize
-        from pipeline.runtime.terminal import format_result, show_progress, units_of
+        from pipeline.runtime.terminal import format_done, format_result, show_progress, units_of
 
         options = from_arguments(RunOptions, args)
         computed = {  # every option but how much to print
@@ -144,10 +145,13 @@ def _run(args: argparse.Namespace) -> int:
             for name in RunOptions.__dataclass_fields__
             if name not in ("verbose", "quiet")
         }
+        started = time.monotonic()
         with show_progress(verbose=options.verbose, quiet=options.quiet):
             result = synthesize(args.scenario, out=args.out, **computed)
         scenario = None if options.quiet else units_of(args.scenario)
         print(printable(format_result(result, scenario=scenario, quiet=options.quiet)))
+        if not options.quiet:
+            print(f"\n{format_done(result, time.monotonic() - started)}")
         return result.exit_code
     if args.command == "demos":
         from pipeline.demonstrations.pilot import regenerate_demos

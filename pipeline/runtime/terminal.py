@@ -95,6 +95,13 @@ def format_result(
     return f"{format_summary(result.summary, scenario)}\n\n{format_outputs(result)}"
 
 
+def format_done(result: Synthesis, seconds: float) -> str:
+    """The last line of a run: its wall time ``seconds`` and verdict, e.g. ``done in 49 s:
+    certified and validated`` (the reasons are printed above it)."""
+    shown = f"{seconds:.1f}" if seconds < 10 else f"{seconds:.0f}"
+    return f"done in {shown} s: {result.verdict.value}"
+
+
 def units_of(scenario: str | Path) -> Scenario | None:
     """The scenario whose units and labels the summary is printed in (``None``, numbers bare,
     when it no longer loads: the run already said what it found)."""

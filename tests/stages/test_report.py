@@ -1,9 +1,10 @@
 """The report stage: built from the artifacts of the session's run of quadrotor_hill.
 
-The HTML parses, is self-contained and holds the headline numbers of summary.json; the PDF (the
-page printed by Chromium) has the title on page 1 and every section in order, on few pages; a
-missing or failing browser is a message and no PDF, never a stale one; a missing input is a
-clear error; headless Chromium renders the page at 1400 px and 390 px with every legend and
+The HTML parses, is self-contained and holds the headline numbers of summary.json; the PDF
+(typeset by Typst, a pip dependency) is written without any browser, has the title on page 1
+and every section in order, on few pages, and shows the HTML's verdict and numbers; a failure
+to typeset is a message and no PDF, never a stale one; a missing input is a clear error;
+headless Chromium (where installed) renders the page at 1400 px and 390 px with every legend and
 colour bar inside its figure, no sideways scrolling and legible figure text.
 """
 
@@ -31,11 +32,12 @@ from pipeline.reporting.sections import headline_items, section_headings
 from pipeline.reporting.summary import Summary
 from pipeline.runtime.cli import main
 from pipeline.runtime.stored import load_report_data
-from stages.report import ReportResult, write_reports
+from stages.report import write_reports
 
-# what prints the PDF, and what the rendering tests run: the first of ``pdf.BROWSERS`` on PATH
-# (Chromium's headless shell before the full browser: the same engine for less than half the CPU)
-BROWSER = pdf_module.find_browser()
+# what the rendering tests run: the first of these on PATH (Chromium's headless shell before the
+# full browser: the same engine for less than half the CPU); the reports need none
+BROWSERS = ("chromium-headless-shell", "chromium", "chromium-browser", "google-chrome")
+BROWSER = next((Path(found) for name in BROWSERS if (found := shutil.which(name))), None)
 needs_browser = pytest.mark.skipif(BROWSER is None, reason="no Chromium on PATH")
 
 
@@ -149,11 +151,18 @@ def test_html_holds_the_headline_numbers_of_summary_json(run: tuple[Scenario, Pa
     assert not missing, f"not in report.html: {missing}"
 
 
-@needs_browser
+def _pdf_pages(path: Path) -> list[str]:
+    """The text of each page (NFKC, no zero-width spaces: where a long token may break)."""
+    return [
+        unicodedata.normalize("NFKC", page.extract_text()).replace("\u200b", "")
+        for page in PdfReader(path).pages
+    ]
+
+
 def test_pdf_has_the_title_first_and_every_section_in_order(run: tuple[Scenario, Path]) -> None:
+    assert (run[1] / "report.pdf").read_bytes().startswith(b"%PDF-")
     reader = PdfReader(run[1] / "report.pdf")
-    # NFKC: the browser's fonts set ligatures ("ﬁ" in "certificate")
-    texts = [unicodedata.normalize("NFKC", page.extract_text()) for page in reader.pages]
+    texts = _pdf_pages(run[1] / "report.pdf")
     assert texts[0].startswith("Safety controller synthesis report: quadrotor_hill")
     summary = json.loads((run[1] / "summary.json").read_text())
     assert f"{summary['headline']['faster_percent_mean']:.0f}%" in texts[0]
@@ -165,58 +174,83 @@ def test_pdf_has_the_title_first_and_every_section_in_order(run: tuple[Scenario,
         starts.append(pages[0])
     assert starts == sorted(starts)
     # sections flow on: no page per section, no nearly empty page before the last
-    assert len(reader.pages) <= 10, len(reader.pages)
+    assert len(reader.pages) <= 12, len(reader.pages)
     assert all(len(text) > 600 for text in texts[:-1]), [len(t) for t in texts]
 
 
-def _with_browser(
-    run: tuple[Scenario, Path], out: Path, browser: Path | None, monkeypatch: pytest.MonkeyPatch
-) -> ReportResult:
-    """The report of a copy of the run in ``out`` (with an old report.pdf) printed by
-    ``browser`` (None: no browser found)."""
+def _copy_without_pdf(run: tuple[Scenario, Path], out: Path) -> Path:
+    """A copy of the run in ``out`` with an old report.pdf and none kept to reuse."""
     shutil.copytree(run[1], out)
     (out / "report.pdf").write_bytes(b"%PDF- an old report")
-    monkeypatch.setattr(pdf_module, "find_browser", lambda: browser)
+    for kept in (out / "artifacts" / "figures").glob("report-*.pdf"):
+        kept.unlink()
+    return out
+
+
+def test_the_pdf_is_written_without_any_browser(
+    run: tuple[Scenario, Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """No program on PATH at all (no Chromium, nothing): report.pdf is typeset anyway."""
+    out = _copy_without_pdf(run, tmp_path / "copy")
+    empty = tmp_path / "bin"
+    empty.mkdir()
+    monkeypatch.setenv("PATH", str(empty))
+    result = write_reports(load_report_data(run[0], out))
+    assert result.success and result.pdf == out / "report.pdf"
+    content = (out / "report.pdf").read_bytes()
+    assert content.startswith(b"%PDF-") and content.rstrip().endswith(b"%%EOF")
+    pages = len(PdfReader(out / "report.pdf").pages)
+    assert f"report.pdf ({pages} pages)" in result.message and pages >= 5
+    assert _pdf_pages(out / "report.pdf")[0].startswith(
+        "Safety controller synthesis report: quadrotor_hill"
+    )
+
+
+def test_a_typesetting_failure_is_a_message_and_no_stale_pdf(
+    run: tuple[Scenario, Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    out = _copy_without_pdf(run, tmp_path / "copy")
+
+    def fail(inputs: object) -> bytes:
+        raise pdf_module.TypesetError("typst: the template failed")
+
+    monkeypatch.setattr(pdf_module, "typeset", fail)
     result = write_reports(load_report_data(run[0], out))
     assert result.success and result.pdf is None
+    assert result.message.endswith("; report.pdf not written: typst: the template failed")
     assert not (out / "report.pdf").exists()  # never a stale PDF beside a new HTML
     assert (out / "report.html").stat().st_size > 0
-    return result
+    assert not list((out / "artifacts" / "figures").glob("report-*.pdf"))
 
 
-def test_without_a_browser_no_pdf_is_written_and_an_old_one_is_removed(
-    run: tuple[Scenario, Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    result = _with_browser(run, tmp_path / "copy", None, monkeypatch)
-    assert "report.pdf not written: no Chromium on PATH" in result.message
-    assert "apt-get install chromium-headless-shell, or chromium" in result.message
+def _words(text: str) -> str:
+    """``text`` with single spaces, none after a hyphen (where a line may break)."""
+    return re.sub(r"- ", "-", " ".join(text.split()))
 
 
-def test_the_headless_shell_is_preferred_to_the_full_browser(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    """Both on PATH: the headless shell prints (the same PDF for less CPU); alone, either."""
-    for name in ("chromium", "chromium-headless-shell"):
-        program = tmp_path / name
-        program.write_text("#!/bin/sh\n")
-        program.chmod(0o755)
-    monkeypatch.setenv("PATH", str(tmp_path))
-    assert pdf_module.find_browser() == tmp_path / "chromium-headless-shell"
-    (tmp_path / "chromium-headless-shell").unlink()
-    assert pdf_module.find_browser() == tmp_path / "chromium"
-    (tmp_path / "chromium").unlink()
-    assert pdf_module.find_browser() is None
-
-
-def test_a_failing_browser_is_a_message_not_a_crash(
-    run: tuple[Scenario, Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    broken = tmp_path / "chromium"
-    broken.write_text("#!/bin/sh\necho 'cannot open display' >&2\nexit 3\n")
-    broken.chmod(0o755)
-    result = _with_browser(run, tmp_path / "copy", broken, monkeypatch)
-    assert "report.pdf not written: chromium exited with code 3" in result.message
-    assert result.message.endswith(": cannot open display")  # the browser's last words
+def test_html_and_pdf_agree_on_the_verdict_and_the_numbers(run: tuple[Scenario, Path]) -> None:
+    """The verdict line, every headline card and the per-demonstration table as report.html
+    shows them are in report.pdf's text, and the PDF states the verdict as often as the page."""
+    html = (run[1] / "report.html").read_text()
+    pdf = _words(" ".join(_pdf_pages(run[1] / "report.pdf")))
+    verdict = re.search(r"<strong>(Verdict: [^<]*)</strong>", html)
+    assert verdict, "no verdict in report.html"
+    shown = [unescape(verdict.group(1))]
+    cards = re.findall(r'<div class="(?:label|value|note)">([^<]*)</div>', html)
+    assert len(cards) >= 18, cards
+    shown += [unescape(card) for card in cards]
+    demos = html[html.index("<caption>Per demonstration") :]
+    demos = demos[: demos.index("</table>")]
+    rows = re.findall(r"<tr>(.*?)</tr>", demos, flags=re.S)[1:]
+    assert len(rows) == len(run[0].demos)
+    for row in rows:  # the cells of a row, in order, on one line of the PDF's text
+        cells = [unescape(c.strip()) for c in re.findall(r"<td[^>]*>(.*?)</td>", row, re.S)]
+        shown.append(" ".join(cells))
+    missing = [text for text in shown if _words(text) not in pdf]
+    assert not missing, f"in report.html, not in report.pdf: {missing}"
+    page = _words(" ".join(_parse(html).text))  # the subtitle says the verdict too
+    assert pdf.count("Verdict: ") == page.count("Verdict: ") == 2
+    assert pdf.count(shown[0]) == page.count(shown[0])
 
 
 def test_units_and_labels_in_tables_and_figures(run: tuple[Scenario, Path]) -> None:
@@ -258,19 +292,15 @@ def test_cli_rebuilds_the_report_from_saved_artifacts(
     out = run[1]
     stages = sorted((out / "artifacts").glob("*.npz"))
     before = {p.name: p.stat().st_mtime_ns for p in stages}
-    written = [out / "report.html", *([out / "report.pdf"] if BROWSER else [])]
+    written = [out / "report.html", out / "report.pdf"]
     reports = {p: p.stat().st_mtime_ns for p in written}
     assert main(["report", "quadrotor_hill", "--from", str(out)]) == 0
     printed = capsys.readouterr().out
     assert str(out / "report.html") in printed
-    assert (str(out / "report.pdf") in printed) == (BROWSER is not None)
+    assert str(out / "report.pdf") in printed
     assert {p.name: p.stat().st_mtime_ns for p in stages} == before  # nothing recomputed
     assert all(p.stat().st_mtime_ns > t for p, t in reports.items())  # both rewritten
     assert not list(out.glob(".report.*"))  # no temporary files left by the atomic writes
-
-
-def _pdf_text(path: Path) -> list[str]:
-    return [page.extract_text() for page in PdfReader(path).pages] if BROWSER else []
 
 
 def test_a_rebuild_reuses_exactly_the_figures_whose_inputs_did_not_change(
@@ -283,15 +313,15 @@ def test_a_rebuild_reuses_exactly_the_figures_whose_inputs_did_not_change(
     data = load_report_data(scenario, out)
     cold = write_reports(data)
     assert "(6 figures drawn)" in cold.message
-    html, pdf = (out / "report.html").read_text(), _pdf_text(out / "report.pdf")
+    html, pdf = (out / "report.html").read_text(), (out / "report.pdf").read_bytes()
     figures = sorted(p.name for p in (out / "artifacts" / "figures").iterdir())
     assert sum(name.endswith(".svg") for name in figures) == 6
-    assert sum(name.startswith("report-") for name in figures) == (1 if BROWSER else 0)
+    assert sum(name.startswith("report-") for name in figures) == 1
 
     warm = write_reports(data)  # nothing changed: every figure and the PDF reused, same files
     assert "(every figure reused)" in warm.message
-    assert (", reused)" in warm.message) == (BROWSER is not None)
-    assert (out / "report.html").read_text() == html and _pdf_text(out / "report.pdf") == pdf
+    assert ", reused)" in warm.message
+    assert (out / "report.html").read_text() == html and (out / "report.pdf").read_bytes() == pdf
     assert sorted(p.name for p in (out / "artifacts" / "figures").iterdir()) == figures
 
     # another Monte Carlo result: its figure and the inputs figure (worst start) are redrawn
@@ -312,8 +342,7 @@ def test_cli_report_writes_into_out_and_reads_from_from(
     before = files()
     assert main(["report", "quadrotor_hill", "--from", str(source), "--out", str(target)]) == 0
     assert str(target / "report.html") in capsys.readouterr().out
-    printed = {"report.pdf"} if BROWSER else set()
-    assert {p.name for p in target.iterdir()} == {"report.html", "scenario.png", *printed}
+    assert {p.name for p in target.iterdir()} == {"report.html", "scenario.png", "report.pdf"}
     assert files() == before
     assert str(source) in (target / "report.html").read_text()  # names the run it shows
 

@@ -52,7 +52,6 @@ from pipeline.io.lock import folder_lock
 from pipeline.io.progress import progress_bar
 from pipeline.model.scenario import Scenario, load_scenario
 from pipeline.model.simulate import Trajectory
-from pipeline.reporting.pdf import find_browser
 from pipeline.reporting.summary import Verdict
 from pipeline.runtime import run_inputs
 from pipeline.runtime.codekey import code_key
@@ -105,7 +104,7 @@ from stages.stress import stress_test
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
-REPORT_FILES = ("report.html", "scenario.png")  # report.pdf too where a browser prints it
+REPORT_FILES = ("report.html", "report.pdf", "scenario.png")
 # the code each cached stage's key covers besides its own module (see pipeline.runtime.codekey)
 RADIUS_CODE = ("stages.radius", "pipeline.model.simulate", "pipeline.numerics.verify")
 REPORT_CODE = ("stages.report", "pipeline.runtime.summary", "pipeline.runtime.stored")
@@ -488,9 +487,8 @@ def _published(out: Path, result: T) -> T:
 
 
 def _reports_present(out: Path) -> bool:
-    """Every report file is there (the PDF only where a browser can print it)."""
-    names = REPORT_FILES if find_browser() is None else (*REPORT_FILES, "report.pdf")
-    return not (out / INCOMPLETE).exists() and all((out / name).is_file() for name in names)
+    """Every report file is there (and no publish was cut short)."""
+    return not (out / INCOMPLETE).exists() and all((out / name).is_file() for name in REPORT_FILES)
 
 
 def rebuild_reports(
