@@ -69,25 +69,28 @@ class PilotConfig:
       noise: std of the hand's noise per channel (the steering law says what each perturbs).
       grid: ``(state name, cells)`` pairs, slowest first: flights start on the cell centres of
         this grid over Init, other states at Init's midpoint; ``extra_starts`` (n,) follow.
+
+    Fields with a default need not be set (``python -m pipeline new`` writes a pilot with only
+    the others and lists these, with their meaning, in a comment).
     """
 
     waypoints: tuple[tuple[float, float], ...]
-    waypoint_jitter: float  # std of the per-flight waypoint deviation
+    waypoint_jitter: float = 0.1  # std of the per-flight waypoint deviation
     cruise_speed: float
-    capture_radius: float
-    k_position: float  # (1/s) approach gain at the last waypoint
+    capture_radius: float = 1.0
+    k_position: float = 0.5  # (1/s) approach gain at the last waypoint
     variant_flights: tuple[int, ...] = ()  # flight numbers (1-based) that move one waypoint
     variant_waypoint: int = 0
     variant_shift: tuple[float, float] = (0.0, 0.0)
     variant_note: str = ""  # a line for the CSV header of those flights
-    delay: int  # reaction delay (samples)
+    delay: int = 2  # reaction delay (samples)
     noise: tuple[float, ...]
-    noise_memory: float  # AR(1) coefficient of the noise, in [0, 1)
+    noise_memory: float = 0.8  # AR(1) coefficient of the noise, in [0, 1)
     stick_step: tuple[float, ...]
     stick_range: tuple[tuple[float, float], ...]
-    goal_margin: float  # stop only this far inside Goal
-    stop_speed: float
-    max_duration: float  # give up after this long
+    goal_margin: float = 0.3  # stop only this far inside Goal
+    stop_speed: float = 0.5
+    max_duration: float = 40.0  # give up after this long
     grid: tuple[tuple[str, int], ...]
     extra_starts: tuple[tuple[float, ...], ...] = ()
 
@@ -342,3 +345,25 @@ def regenerate_demos(scenario_name: str | Path) -> list[Demo]:
     )
     load_scenario(path, check_demos=True)
     return demos
+
+
+def describe_demos(demos: list[Demo], Ts: float, path: Path) -> str:
+    """One line for ``regenerate_demos``'s result, e.g. ``wrote demo_01..04 (T 10.3-10.8 s, all
+    valid); updated scenario.yaml demos: in scenarios/NAME`` (``path``: the scenario's YAML)."""
+    updated = f"updated {path.name} demos: in {_shown(path.parent)}"
+    if not demos:
+        return f"wrote no demos (the pilot's grid has no cells); {updated}"
+    last = demos[-1].name.removeprefix("demo_")
+    names = demos[0].name if len(demos) == 1 else f"{demos[0].name}..{last}"
+    T = [len(demo.us) * Ts for demo in demos]
+    span = f"{min(T):.1f}" if len(demos) == 1 else f"{min(T):.1f}-{max(T):.1f}"
+    return f"wrote {names} (T {span} s, all valid); {updated}"
+
+
+def _shown(folder: Path) -> str:
+    """``folder`` relative to the current directory when inside it, else absolute."""
+    folder = folder.resolve()
+    try:
+        return str(folder.relative_to(Path.cwd().resolve()))
+    except ValueError:
+        return str(folder)

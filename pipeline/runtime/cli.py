@@ -53,6 +53,12 @@ def _parser() -> argparse.ArgumentParser:
     demos = commands.add_parser("demos", help="regenerate a scenario's synthetic demonstrations")
     demos.add_argument("scenario")
 
+    new = commands.add_parser("new", help="start ./scenarios/NAME from a shipped scenario")
+    new.add_argument("name", help="the new scenario's name (a letter, then letters, digits, _)")
+    new.add_argument(
+        "--like", default="double_integrator", help="the shipped scenario to start from"
+    )
+
     report = commands.add_parser(
         "report", help="rebuild report.html and report.pdf from a finished run's artifacts"
     )
@@ -154,9 +160,17 @@ def _run(args: argparse.Namespace) -> int:
             print(f"\n{format_done(result, time.monotonic() - started)}")
         return result.exit_code
     if args.command == "demos":
-        from pipeline.demonstrations.pilot import regenerate_demos
+        from pipeline.demonstrations.pilot import describe_demos, regenerate_demos
+        from pipeline.model.scenario import load_scenario, resolve_scenario_path
 
-        regenerate_demos(args.scenario)
+        path = resolve_scenario_path(args.scenario)
+        demos = regenerate_demos(path)
+        print(printable(describe_demos(demos, load_scenario(path, check_demos=False).Ts, path)))
+        return 0
+    if args.command == "new":
+        from pipeline.runtime.scaffold import new_scenario, next_steps
+
+        print(printable(next_steps(new_scenario(args.name, like=args.like), args.like)))
         return 0
     if args.command == "report":
         from pipeline.runtime.orchestrator import rebuild_reports
