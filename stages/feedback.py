@@ -290,6 +290,14 @@ def lqr_gain(scenario: Scenario) -> FloatArray:
     return -np.asarray(K, dtype=np.float64)
 
 
+def _advice(scenario: Scenario, rate: float) -> str:
+    """What to edit in the scenario file: the rate, and the operating region only over the
+    variables the Jacobian depends on (narrowing any other leaves the hull unchanged)."""
+    narrow = [name for name in scenario.dynamics.depends_on() if name in scenario.operating_region]
+    region = f" or narrow operating_region ({', '.join(narrow)})" if narrow else ""
+    return f"try a feedback.rate below {rate:g}{region}"
+
+
 def design_feedback(
     scenario: Scenario,
     *,
@@ -334,7 +342,9 @@ def design_feedback(
     K_lqr = None
     if gain in ("auto", "lqr"):
         try:
-            K_lqr = lqr_gain(scenario)
+            with warnings.catch_warnings():  # SciPy's Riccati warnings: the status says it
+                warnings.simplefilter("ignore")
+                K_lqr = lqr_gain(scenario)
             tries["lqr"] = _solve_lqr_design(scenario, K_lqr, A, B, rate, margin_weight)
         except (ValueError, np.linalg.LinAlgError, control.ControlArgument) as error:
             tries["lqr"] = f"LQR failed ({error})"
@@ -360,7 +370,7 @@ def design_feedback(
     if not certified:
         return failed(
             f"feedback: no contraction certificate at rate {rate:g} 1/s over {where} "
-            f"({'; '.join(notes)}); try a smaller feedback.rate or operating_region",
+            f"({'; '.join(notes)}); {_advice(scenario, rate)}",
             K=K_lqr,
             vertices=hull.vertices,
             status=status,

@@ -13,16 +13,13 @@ field path (or CSV row), what was found and what was expected:
 
 from __future__ import annotations
 
-import difflib
 import functools
 import keyword
-import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import pydantic
 import shapely
 import sympy
 from shapely.geometry import MultiPoint, Polygon
@@ -39,23 +36,13 @@ from pipeline.model.expressions import (
     ExpressionError,
     parse_expression,
 )
-from pipeline.model.safe_yaml import load_yaml
-from pipeline.model.schema import FeedbackSpec, ScenarioSpec, field_names
+from pipeline.model.scenario_file import LOCAL_SCENARIOS as LOCAL_SCENARIOS  # re-exported
+from pipeline.model.scenario_file import SCENARIOS_ROOT as SCENARIOS_ROOT
+from pipeline.model.scenario_file import available_scenarios as available_scenarios
+from pipeline.model.scenario_file import parse_spec
+from pipeline.model.scenario_file import resolve_scenario_path as resolve_scenario_path
+from pipeline.model.schema import FeedbackSpec, ScenarioSpec
 from pipeline.model.simulate import simulate
-
-
-def _shipped_scenarios() -> Path:
-    """The scenarios shipped with the package: ``pipeline/scenarios`` when installed (package
-    data, see ``pyproject.toml``), the repository's ``scenarios/`` in a source checkout."""
-    package = Path(__file__).resolve().parents[1]
-    installed = package / "scenarios"
-    return installed if installed.is_dir() else package.parent / "scenarios"
-
-
-# A scenario name is looked up in ./scenarios (the user's own), then here; a path works anywhere.
-SCENARIOS_ROOT = Path(os.environ.get("SAFETY_SCENARIOS", _shipped_scenarios()))
-LOCAL_SCENARIOS = "scenarios"
-
 
 # The largest lambda T of a demo: e^{lambda T} stays far below float64's limit e^709.78 (room for
 # the factors it multiplies).
@@ -156,35 +143,6 @@ class Scenario:
         return inside
 
 
-def available_scenarios(root: Path = SCENARIOS_ROOT) -> list[str]:
-    """Names of the scenario folders under ``root`` that hold a ``scenario.yaml``."""
-    return sorted(p.parent.name for p in Path(root).glob("*/scenario.yaml"))
-
-
-def resolve_scenario_path(name_or_path: str | Path, root: Path | None = None) -> Path:
-    """A scenario name, folder or YAML path -> the YAML path.
-
-    A path (file, or folder holding ``scenario.yaml``) is used as is. A name is looked up in
-    ``./scenarios/NAME`` under the current directory, then in ``root`` (default: the shipped
-    scenarios, ``SCENARIOS_ROOT``); an unknown name lists the known ones.
-    """
-    candidate = Path(name_or_path)
-    # anything there but a folder is read (a FIFO, device or link loop is refused in one line)
-    if os.path.lexists(candidate) and not candidate.is_dir():
-        return candidate
-    if os.path.lexists(candidate / "scenario.yaml"):
-        return candidate / "scenario.yaml"
-    roots = [Path.cwd() / LOCAL_SCENARIOS, Path(root if root is not None else SCENARIOS_ROOT)]
-    for folder in roots:
-        if (folder / str(name_or_path) / "scenario.yaml").is_file():
-            return folder / str(name_or_path) / "scenario.yaml"
-    known = ", ".join(sorted({name for folder in roots for name in available_scenarios(folder)}))
-    raise ScenarioError(
-        f"unknown scenario '{name_or_path}'",
-        expected=f"one of: {known or 'none'} (or a path to a scenario folder or YAML file)",
-    )
-
-
 def load_scenario(name_or_path: str | Path, check_demos: bool = True) -> Scenario:
     """Load and validate a scenario by name (``./scenarios/NAME``, else the shipped one) or by
     path (a folder holding ``scenario.yaml``, or the YAML file).
@@ -193,7 +151,7 @@ def load_scenario(name_or_path: str | Path, check_demos: bool = True) -> Scenari
     and end in Goal.
     """
     path = resolve_scenario_path(name_or_path)
-    spec = _parse_spec(path)
+    spec = parse_spec(path)
     scenario = _build(path, spec)
     if check_demos:
         for demo in scenario.demos:
@@ -207,59 +165,6 @@ def load_scenario_cached(path: Path, source_hash: str) -> Scenario:
     of an executor; ``source_hash`` keys the cache so that an edited file is reloaded)."""
     del source_hash
     return load_scenario(path, check_demos=False)
-
-
-def _parse_spec(path: Path) -> ScenarioSpec:
-    data = load_yaml(path)  # plain data only; size, aliases and duplicate keys checked
-    if not isinstance(data, dict):
-        raise ScenarioError(
-            "not a mapping",
-            file=path,
-            found=type(data).__name__,
-            expected="a YAML mapping of scenario fields",
-        )
-    try:
-        return ScenarioSpec.model_validate(data)
-    except pydantic.ValidationError as error:
-        raise _schema_error(path, error) from None
-
-
-def _schema_error(path: Path, error: pydantic.ValidationError) -> ScenarioError:
-    errors = error.errors()
-    # A misspelled key gives "missing X" and "unknown Y"; the unknown key is the one to name.
-    extra = [e for e in errors if e["type"] == "extra_forbidden"]
-    first = extra[0] if extra else errors[0]
-    location = ".".join(str(part) for part in first["loc"]) or "(top level)"
-    more = len(errors) - 1
-    suffix = f" (and {more} more error{'s' if more > 1 else ''})" if more else ""
-    kind = first["type"]
-    if kind == "missing":
-        return ScenarioError(
-            f"missing field{suffix}",
-            file=path,
-            field=location,
-            expected="this field (see the README's scenario reference)",
-        )
-    if kind == "extra_forbidden":
-        key = str(first["loc"][-1])
-        known = field_names(first["loc"][:-1])
-        close = difflib.get_close_matches(key, known, n=1, cutoff=0.5)
-        hint = f" (did you mean '{close[0]}'?)" if close else ""
-        parent = ".".join(str(part) for part in first["loc"][:-1])
-        return ScenarioError(
-            f"unknown field '{key}'{hint}{suffix}",
-            file=path,
-            field=location,
-            expected=f"one of the fields of {parent or 'the scenario'}: {', '.join(known)}",
-        )
-    message = first["msg"].removeprefix("Value error, ").removeprefix("Input should be ")
-    return ScenarioError(
-        f"invalid value{suffix}",
-        file=path,
-        field=location,
-        found=first.get("input"),
-        expected=message[:1].lower() + message[1:],
-    )
 
 
 def _require_names(

@@ -142,6 +142,9 @@ def _main(args: argparse.Namespace) -> int:
 
 def _run(args: argparse.Namespace) -> int:
     if args.command == "synthesize":
+        from pipeline.model.scenario_file import check_scenario_file
+
+        check_scenario_file(args.scenario)  # syntax and fields in < 1 s, before the numerics
         from pipeline.runtime.api import synthesize
         from pipeline.runtime.terminal import format_done, format_result, show_progress, units_of
 

@@ -52,6 +52,7 @@ from pipeline.io.lock import folder_lock
 from pipeline.io.progress import progress_bar
 from pipeline.model.scenario import Scenario, load_scenario
 from pipeline.model.simulate import Trajectory
+from pipeline.numerics.prechecks import check_scenario
 from pipeline.reporting.summary import Verdict
 from pipeline.runtime import run_inputs
 from pipeline.runtime.codekey import code_key
@@ -176,6 +177,7 @@ def run_synthesis(
             found=[],
             expected=f"at least one demo (record one: python -m pipeline record {scenario.name})",
         )
+    check_scenario(scenario)  # hull, demo inputs in the region, a controllable reference
     certificate = run_inputs.certificate_of(scenario, options)
     run_inputs.check_period(scenario, options.feedback_period, certificate)
     out = (Path(out) if out is not None else default_output_folder(scenario.name)).absolute()
