@@ -177,7 +177,11 @@ def test_a_rerun_reuses_every_stage(synthesized, capsys):
     # controller.json is written on every run from the certified results, then re-verified
     assert re.search(r"^\[controller\] \d+\.\d s: ", printed, flags=re.MULTILINE)
     assert re.search(r"^\[certify\] \d+\.\d s: controller.json re-verified", printed, re.M)
-    assert "running" not in printed and "done in" not in printed  # one line per stage
+    # one line per stage: no "running ..." line before it, no "... done in" after it (the run's
+    # own last line, "done in N s: verdict", is the only one)
+    assert "running" not in printed
+    assert re.findall(r"^.*done in.*$", printed, flags=re.M) == [printed.rstrip().splitlines()[-1]]
+    assert printed.rstrip().splitlines()[-1].startswith("done in ")
     assert f"outputs in {out}" in printed
 
 
