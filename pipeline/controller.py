@@ -279,8 +279,9 @@ class Controller:
         labels = [
             f"{i}: {tr.name}" if tr.name else str(i) for i, tr in enumerate(self.trajectories)
         ]
-        if len(labels) > 8:
-            labels = [*labels[:6], "...", labels[-1]]
+        if len(labels) > 6:
+            labels = [*labels[:4], "...", labels[-1]]
+        named = ", index: name" if any(tr.name for tr in self.trajectories) else ""
         if self.funnel:
             kind = "funnel (a gain K_i[k] and metric P_i(t) per trajectory; /2)"
         else:
@@ -302,7 +303,7 @@ class Controller:
             f"  states: {', '.join(self.state_names)}; Ts {self.Ts:g} s",
             f"  inputs: {inputs}",
             f"  certificate: {kind}",
-            f"  trajectories ({len(self.trajectories)}, index: name): {', '.join(labels)}",
+            f"  trajectories ({len(self.trajectories)}{named}): {', '.join(labels)}",
             f"  horizons T: {span} s",
             f"  terminal: {terminal}",
             f"  feedback period: {period}",
