@@ -326,13 +326,13 @@ class Controller:
         e = np.asarray(x0, dtype=np.float64)[..., None, :] - centres  # (..., k, n)
         return np.sqrt(np.einsum("...ki,kij,...kj->...k", e, metrics, e)) / radii
 
-    def metric(self, t: float, index: np.ndarray) -> np.ndarray:
+    def metric(self, t: float, index: np.ndarray | int) -> np.ndarray:
         """The tube metric ``P_i(t)`` of trajectories ``index (...)`` -> ``(..., n, n)``: the
         tube is ``||x - x_ref_i(t)||_{P_i(t)} <= radius_i e^{-rate_i t}``."""
         return self._gather(index, (self.n, self.n), lambda tr: tr.metric(t, self.Ts))
 
     def _gather(
-        self, index: np.ndarray, shape: tuple[int, ...], value: Callable[..., np.ndarray]
+        self, index: np.ndarray | int, shape: tuple[int, ...], value: Callable[..., np.ndarray]
     ) -> np.ndarray:
         """``value(trajectory) (*shape)`` of trajectories ``index (...)`` -> ``(..., *shape)``."""
         index = np.asarray(index)
@@ -341,12 +341,11 @@ class Controller:
             out[rows] = value(self.trajectories[i])
         return out
 
-    def select(
-        self, x0: np.ndarray, *, strict: bool = False
-    ) -> tuple[int | np.ndarray, float | np.ndarray]:
+    def select(self, x0: np.ndarray, *, strict: bool = False) -> tuple[Any, Any]:
         """For initial states ``x0 (..., n)``: ``(index (...), coverage_ratio (...))``, the
         trajectory to follow and ``min_i ||x0 - x0_i||_P / radius_i``; for one state ``(n,)``
-        a Python ``int`` and ``float``.
+        a Python ``int`` and ``float`` (hence ``Any`` in the signature: the kind follows the
+        shape, which the type does not carry).
 
         A ratio ``< 1`` means covered. A start with ratio ``>= 1`` lies outside every certified
         ball: it still gets the nearest trajectory (in the ratio), with no guarantee; with
@@ -383,7 +382,7 @@ class Controller:
             )
         return x
 
-    def reference(self, t: float, index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def reference(self, t: float, index: np.ndarray | int) -> tuple[np.ndarray, np.ndarray]:
         """``(u_ref (..., m), x_ref (..., n))`` of trajectories ``index (...)`` at time ``t``."""
         index = np.asarray(index)
         u = np.empty((*index.shape, self.m))
@@ -395,24 +394,24 @@ class Controller:
             x[rows] = [np.interp(t, tr.t, tr.x_ref[:, j]) for j in range(self.n)]
         return u, x
 
-    def gains(self, t: float, index: np.ndarray) -> np.ndarray:
+    def gains(self, t: float, index: np.ndarray | int) -> np.ndarray:
         """``K_i[floor(t / Ts)]`` of trajectories ``index (...)`` -> ``(..., m, n)``."""
         k = max(int(np.floor(t / self.Ts + 1e-9)), 0)
         return self._gather(index, (self.m, self.n), lambda tr: tr.K[min(k, len(tr.K) - 1)])
 
-    def unclipped(self, t: float, x: np.ndarray, index: np.ndarray) -> np.ndarray:
+    def unclipped(self, t: float, x: np.ndarray, index: np.ndarray | int) -> np.ndarray:
         """``u_ref + K[k] (x - x_ref)`` before clipping, ``x (..., n)`` -> ``(..., m)``."""
         u_ref, x_ref = self.reference(t, index)
         e = np.asarray(x) - x_ref
         return u_ref + np.einsum("...ji,...i->...j", self.gains(t, index), e)
 
-    def horizons(self, index: np.ndarray) -> np.ndarray:
+    def horizons(self, index: np.ndarray | int) -> np.ndarray:
         """``T_i`` (s) of trajectories ``index (...)`` -> ``(...)``."""
         index = np.asarray(index)
         _named(index, len(self.trajectories))  # refuses an index out of range
         return np.array([tr.T for tr in self.trajectories])[index]
 
-    def __call__(self, t: float, x: np.ndarray, index: np.ndarray) -> np.ndarray:
+    def __call__(self, t: float, x: np.ndarray, index: np.ndarray | int) -> np.ndarray:
         """The control input at time ``t`` for states ``x (..., n)`` following trajectories
         ``index (...)`` (from ``select``) -> ``(..., m)``.
 

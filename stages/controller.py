@@ -118,7 +118,7 @@ def _reference(
     fine = simulate_graded(scenario.dynamics, x0, us, scenario.Ts, steps)
     finer = simulate_graded(scenario.dynamics, x0, us, scenario.Ts, 2 * steps)
     mid = 0.5 * (fine.dense_xs[:-1] + fine.dense_xs[1:])
-    item = {} if name is None else {"name": name}
+    item: dict[str, object] = {} if name is None else {"name": name}
     item |= {
         "x0": np.asarray(x0).tolist(),
         "radius": float(radius),
