@@ -1,24 +1,22 @@
-"""Fly ``controller.json`` in your own simulation loop: the quadrotor_hill example.
+"""Fly ``controller.json`` in its scenario's model and say what happened (any scenario).
 
-Needs only NumPy, matplotlib and ``pipeline/controller.py`` (copy that one file next to this one
-if the pipeline is not installed). The vehicle model is written out by hand below, as a user of
-the controller would, and the feedback is sampled every ``--period`` seconds and held in between
-(a real flight computer), while the plant is integrated by RK4 with a finer step.
+Uses ``pipeline.fly``: the scenario's own dynamics (``load_scenario(name).dynamics.f``) by RK4 at
+a fine step, the law evaluated continuously (``--period 0``, what the certificate assumes unless
+the file says otherwise) or sampled every ``--period`` seconds and held in between (a flight
+computer: certified only when it is the file's ``feedback_period``).
 
     python examples/fly_controller.py reports/quadrotor_hill/controller.json \
         --start 1.5 2.5 0 0 0 0 --period 0.01 --plot flight.png
 
-It prints whether the start is covered by the certificate (coverage ratio < 1), the closest
-approach to the hill and the ceiling, and whether the flight ends in Goal; the plot shows the
-flight over the nominal trajectory, the position projection of the certified tube
-``||x - x_ref(t)||_P(t) <= e^(-rate t) radius`` (filled) and of the flight's own bound
-``e^(-rate t) ||x0 - x_ref(0)||_P(0)`` (outlined) at a few times. Both file formats fly the same
-way: ``safety-controller/1`` (one gain ``K`` and metric ``P``) and ``/2`` (a funnel per
-trajectory: ``K[k]`` per sample interval, a metric ``P(t)`` that varies along the flight,
-``controller.metric(t, index)``).
-
-Note: the certificate assumes continuous-time feedback; a held feedback is not certified here,
-so a long period is flown at your own risk (the printout says which one was flown).
+The scenario is the file's (``--scenario NAME_OR_PATH`` for another copy of it); the start
+defaults to the centre of Init. It prints whether the start is covered by the certificate
+(coverage ratio < 1) and which trajectory it follows (``index: name``, the numbering of
+``controller.trajectories``), the closest approach to each Unsafe region, and whether the
+flight is in Goal at ``T`` (and at the end, when the file's terminal controller flies on);
+the plot shows the flight over the nominal in the position plane with the position projection
+of the certified tube at a few times. Both file formats fly the same way:
+``safety-controller/1`` (one gain and metric) and ``/2`` (a funnel per trajectory, its metric
+``controller.metric(t, index)`` varying along the flight).
 """
 
 from __future__ import annotations
@@ -30,107 +28,43 @@ from pathlib import Path
 
 import numpy as np
 
-try:
-    from pipeline.controller import ControllerFormatError, load
-except ImportError:  # the copied-file layout: controller.py beside this script
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from controller import ControllerFormatError, load  # type: ignore[no-redef]
-
-# quadrotor_hill's model and sets, written out by hand (scenarios/quadrotor_hill/scenario.yaml)
-MASS, GRAVITY, DRAG, WIND_X, WIND_Y = 1.0, 9.81, 0.5, -0.5, 0.0
-HILL = [(-5, -5), (35, -5), (35, 0), (15, 0), (12, 3.5), (10, 4.5), (8, 3.5), (5, 0), (-5, 0)]
-CEILING = [(-5, 8), (35, 8), (35, 13), (-5, 13)]
-GOAL = (17.0, 21.0, 1.0, 4.0)  # x from, x to, y from, y to
+import pipeline
+from pipeline.model import geometry
 
 
-def quadrotor(x: np.ndarray, u: np.ndarray) -> np.ndarray:
-    """``xdot (6,)`` for state ``(X, Y, theta, vX, vY, omega)``, input ``(thrust, pitch acc)``."""
-    X, Y, theta, vX, vY, omega = x
-    thrust, pitch = u
-    return np.array(
-        [
-            vX,
-            vY,
-            omega,
-            DRAG * (WIND_X - vX) - thrust / MASS * math.sin(theta),
-            DRAG * (WIND_Y - vY) + thrust / MASS * math.cos(theta) - GRAVITY,
-            pitch,
-        ]
-    )
-
-
-def fly(controller, x0: np.ndarray, period: float, step: float = 0.0025):
-    """Sampled feedback held for ``period`` s, plant by RK4 with step ``<= step``.
-
-    Returns ``(index, ratio, ts (K+1,), xs (K+1, n))``.
-    """
-    index, ratio = controller.select(x0)
-    T = controller.trajectories[int(index)].T
-    substeps = max(1, math.ceil(period / step))
-    h = period / substeps
-    ts, xs, x, t = [0.0], [x0.copy()], x0.copy(), 0.0
-    while t < T - 1e-12:
-        u = controller(t, x, index)  # sampled now, held for one period
-        for _ in range(substeps):
-            k1 = quadrotor(x, u)
-            k2 = quadrotor(x + h / 2 * k1, u)
-            k3 = quadrotor(x + h / 2 * k2, u)
-            k4 = quadrotor(x + h * k3, u)
-            x = x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
-            t += h
-            ts.append(t)
-            xs.append(x.copy())
-    return int(index), float(ratio), np.array(ts), np.array(xs)
-
-
-def _distance_to_polygon(points: np.ndarray, polygon: list[tuple[float, float]]) -> np.ndarray:
-    """Distance from ``points (k, 2)`` to a polygon's boundary, 0 inside (even-odd rule)."""
-    V = np.array(polygon, dtype=float)
-    A, B = V, np.roll(V, -1, axis=0)
-    d = B - A
-    t = np.clip(np.einsum("kvi,vi->kv", points[:, None] - A, d) / np.einsum("vi,vi->v", d, d), 0, 1)
-    nearest = A + t[..., None] * d
-    distance = np.linalg.norm(points[:, None] - nearest, axis=-1).min(axis=1)
-    crosses = (A[:, 1] > points[:, None, 1]) != (B[:, 1] > points[:, None, 1])
-    x_cross = A[:, 0] + (points[:, None, 1] - A[:, 1]) * d[:, 0] / np.where(
-        d[:, 1] == 0, 1, d[:, 1]
-    )
-    inside = np.sum(crosses & (points[:, None, 0] < x_cross), axis=1) % 2 == 1
-    return np.where(inside, 0.0, distance)
-
-
-def plot(controller, index: int, ts, xs, path: Path) -> None:
+def plot(controller, scenario, flight, path: Path) -> None:
+    """The flight ``flight.xs`` over trajectory ``flight.index`` and its tube, in the position
+    plane, with Unsafe and Goal."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from matplotlib.patches import Ellipse, Polygon
 
+    index, (a, b) = flight.index, scenario.position_index
     reference = controller.trajectories[index]
-    e0 = xs[0] - reference.x_ref[0]
-    level = math.sqrt(e0 @ controller.metric(0.0, index) @ e0)
-    figure, axes = plt.subplots(figsize=(8, 4), layout="constrained")
-    for shape, colour in ((HILL, "0.6"), (CEILING, "0.6")):
-        axes.add_patch(Polygon(shape, color=colour))
-    x_from, x_to, y_from, y_to = GOAL
-    axes.add_patch(Polygon([(x_from, y_from), (x_to, y_from), (x_to, y_to), (x_from, y_to)],
-                           color="tab:green", alpha=0.3, label="Goal"))  # fmt: skip
+    figure, axes = plt.subplots(figsize=(8, 5), layout="constrained")
+    for region in scenario.unsafe.values():
+        axes.add_patch(Polygon(np.asarray(region.exterior.coords), color="0.6"))
+    axes.add_patch(Polygon(np.asarray(scenario.goal.exterior.coords), color="tab:green",
+                           alpha=0.3, label="Goal"))  # fmt: skip
     for t in np.linspace(0, reference.T, 12):
-        # position projection of {e : e^T P(t) e <= 1}
-        Q = np.linalg.inv(controller.metric(t, index))[:2, :2]
+        # position projection of {e : e^T P(t) e <= radius^2 e^(-2 rate t)}
+        Q = np.linalg.inv(controller.metric(t, index))[np.ix_([a, b], [a, b])]
         values, vectors = np.linalg.eigh(Q)
         angle = math.degrees(math.atan2(vectors[1, 1], vectors[0, 1]))
-        centre = [np.interp(t, reference.t, reference.x_ref[:, j]) for j in (0, 1)]
-        decay = math.exp(-reference.rate * t)
-        for scale, style in ((reference.radius, {"color": "tab:orange", "alpha": 0.15}),
-                             (level, {"fill": False, "color": "tab:blue", "lw": 0.8})):  # fmt: skip
-            width, height = (2 * scale * decay * math.sqrt(v) for v in values[::-1])
-            axes.add_patch(Ellipse(centre, width, height, angle=angle, **style))
-    label = f"nominal {index} and its certified tube (radius {reference.radius:.2f})"
-    axes.plot(reference.x_ref[:, 0], reference.x_ref[:, 1], "--", color="tab:orange", label=label)
-    axes.plot(xs[:, 0], xs[:, 1], color="tab:blue", label="flight and its own tube bound")
-    axes.set(xlim=(-2, 25), ylim=(-1, 9), xlabel="X (m)", ylabel="Y (m)", aspect="equal")
-    axes.legend(loc="upper right", fontsize=8)
+        centre = [np.interp(t, reference.t, reference.x_ref[:, j]) for j in (a, b)]
+        scale = reference.radius * math.exp(-reference.rate * t)
+        width, height = (2 * scale * math.sqrt(v) for v in values[::-1])
+        axes.add_patch(Ellipse(centre, width, height, angle=angle, color="tab:orange", alpha=0.15))
+    name = f"{index}: {reference.name}" if reference.name else f"{index}"
+    axes.plot(reference.x_ref[:, a], reference.x_ref[:, b], "--", color="tab:orange",
+              label=f"nominal {name} and its certified tube")  # fmt: skip
+    axes.plot(flight.xs[:, a], flight.xs[:, b], color="tab:blue", label="flight")
+    names = scenario.state_names
+    axes.set(xlabel=names[a], ylabel=names[b], aspect="equal")
+    axes.autoscale_view()
+    axes.legend(loc="best", fontsize=8)
     figure.savefig(path, dpi=120)
     plt.close(figure)
 
@@ -138,36 +72,54 @@ def plot(controller, index: int, ts, xs, path: Path) -> None:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("controller", type=Path, help="path to controller.json")
-    parser.add_argument("--start", type=float, nargs=6, default=[1.5, 2.5, 0, 0, 0, 0])
-    parser.add_argument("--period", type=float, default=0.01, help="feedback period (s)")
+    parser.add_argument("--scenario", default=None, help="name or path (default: the file's)")
+    parser.add_argument("--start", type=float, nargs="+", default=None, help="x0 (n numbers)")
+    parser.add_argument("--period", type=float, default=None,
+                        help="feedback period (s); default the file's (0: continuous)")  # fmt: skip
+    parser.add_argument("--until", type=float, default=None, help="end time (s)")
     parser.add_argument("--plot", type=Path, default=None, help="write the flight's figure here")
     args = parser.parse_args(argv)
     try:
-        controller = load(args.controller)
-    except ControllerFormatError as error:
+        controller = pipeline.load_controller(args.controller)
+        scenario = pipeline.load_scenario(args.scenario or controller.scenario)
+    except (pipeline.ControllerFormatError, pipeline.UserError) as error:
         print(error, file=sys.stderr)
         return 2
-    x0 = np.array(args.start, dtype=float)
-    index, ratio, ts, xs = fly(controller, x0, args.period)
-    covered = "covered" if ratio < 1 else "NOT covered (outside the certificate)"
+    if args.start is None:
+        x0 = (scenario.init_lower + scenario.init_upper) / 2  # the centre of Init
+    else:
+        x0 = np.array(args.start, dtype=float)
+    period = controller.feedback_period if args.period is None else args.period
+    try:
+        flight = pipeline.fly(controller, scenario, x0, period=period, until=args.until)
+    except ValueError as error:  # a start of the wrong length, an until past T, ...
+        print(error, file=sys.stderr)
+        return 2
+    reference = controller.trajectories[flight.index]
+    name = f"{flight.index}: {reference.name}" if reference.name else f"{flight.index}"
+    covered = "covered" if flight.covered else "NOT covered (outside the certificate)"
     kind = "funnel" if controller.funnel else "constant"
     print(
-        f"start {x0.tolist()}: {covered}, coverage ratio {ratio:.3f}, trajectory {index} "
+        f"start {x0.tolist()}: {covered}, coverage ratio {flight.ratio:.3f}, trajectory {name} "
         f"({kind} certificate)"
     )
-    positions = xs[:, :2]
-    hill = _distance_to_polygon(positions, HILL).min()
-    ceiling = _distance_to_polygon(positions, CEILING).min()
-    X, Y = positions[-1]
-    x_from, x_to, y_from, y_to = GOAL
-    in_goal = x_from <= X <= x_to and y_from <= Y <= y_to
-    print(
-        f"feedback held {args.period:g} s; flight of {ts[-1]:.2f} s: closest to the hill "
-        f"{hill:.3f} m, to the ceiling {ceiling:.3f} m; ends at ({X:.2f}, {Y:.2f}) "
-        f"{'in' if in_goal else 'OUTSIDE'} Goal"
+    positions = scenario.positions(flight.xs)
+    distances = ", ".join(
+        f"'{region}' {geometry.distance(positions, shape).min():.3f} m"
+        for region, shape in scenario.unsafe.items()
     )
+    at_T = flight.xs[np.searchsorted(flight.ts, reference.T - 1e-9)]
+    in_goal = "in" if scenario.in_goal(at_T) else "OUTSIDE"
+    held = f"held {period:g} s" if period > 0 else "continuous"
+    print(
+        f"feedback {held}; flight of {flight.ts[-1]:.2f} s: closest to Unsafe {distances} "
+        f"(clearance d = {scenario.clearance:g} m); at T = {reference.T:g} s {in_goal} Goal"
+    )
+    if flight.ts[-1] > reference.T + 1e-9:
+        end = "in" if scenario.in_goal(flight.xs[-1]) else "OUTSIDE"
+        print(f"terminal controller after T: {end} Goal at t = {flight.ts[-1]:.2f} s")
     if args.plot is not None:
-        plot(controller, index, ts, xs, args.plot)
+        plot(controller, scenario, flight, args.plot)
         print(f"figure: {args.plot}")
     return 0
 

@@ -19,6 +19,7 @@ The public API (documented in the README, "Python API")::
     result = pipeline.synthesize("double_integrator")    # -> pipeline.Synthesis
     scenario = pipeline.load_scenario("quadrotor_hill")  # name or path
     controller = pipeline.load_controller("reports/double_integrator/controller.json")
+    flight = pipeline.fly(controller, "double_integrator", x0)  # -> pipeline.Flight
 
 The names are imported lazily: ``import pipeline`` loads none of the numerics, and
 ``import pipeline.controller`` stays light. The library prints nothing; it logs on the
@@ -35,6 +36,7 @@ if TYPE_CHECKING:
     from pipeline.controller import load as load_controller
     from pipeline.io.errors import ScenarioError, UserError
     from pipeline.model.scenario import Scenario, available_scenarios, load_scenario
+    from pipeline.numerics.flight import Flight, fly
     from pipeline.reporting.summary import Claim, ClaimKind, DemoSummary, Summary, Verdict
     from pipeline.runtime.api import synthesize
     from pipeline.runtime.synthesis import Outputs, Synthesis
@@ -45,6 +47,7 @@ __all__ = [
     "Controller",
     "ControllerFormatError",
     "DemoSummary",
+    "Flight",
     "Outputs",
     "Scenario",
     "ScenarioError",
@@ -53,6 +56,7 @@ __all__ = [
     "UserError",
     "Verdict",
     "available_scenarios",
+    "fly",
     "load_controller",
     "load_scenario",
     "synthesize",
@@ -74,6 +78,8 @@ _WHERE = {
     "Scenario": ("pipeline.model.scenario", "Scenario"),
     "available_scenarios": ("pipeline.model.scenario", "available_scenarios"),
     "load_scenario": ("pipeline.model.scenario", "load_scenario"),
+    "fly": ("pipeline.numerics.flight", "fly"),
+    "Flight": ("pipeline.numerics.flight", "Flight"),
     "ScenarioError": ("pipeline.io.errors", "ScenarioError"),
     "UserError": ("pipeline.io.errors", "UserError"),
 }

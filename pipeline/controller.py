@@ -43,8 +43,9 @@ file; anything wrong (a missing or mistyped field, a
 shape, a non-positive radius or ``Ts``, ``lower > upper``, ``P`` not positive definite, times
 that do not increase, ``T`` that disagrees with ``t`` and ``u_ref``, bytes that are not UTF-8
 JSON) raises ``ControllerFormatError`` naming the field. The optional fields (``terminal``,
-``feedback_period``, ``interpolation_error_P_norm``; in ``/2`` also ``feedback`` and each
-trajectory's ``rate``) may be absent: files written before they existed still load.
+``feedback_period``, ``interpolation_error_P_norm``, each trajectory's ``name``, the demo it
+was made from; in ``/2`` also ``feedback`` and each trajectory's ``rate``) may be absent:
+files written before they existed still load.
 """
 
 from __future__ import annotations
@@ -118,6 +119,11 @@ def _frozen(array: np.ndarray) -> np.ndarray:
     return array
 
 
+def _short(vector: np.ndarray) -> str:
+    """``vector (k,)`` as a short list for a repr: 4 significant digits."""
+    return "[" + ", ".join(f"{v:.4g}" for v in np.asarray(vector).ravel()) + "]"
+
+
 def _repeated(matrix: np.ndarray, count: int) -> np.ndarray:
     """``(count, *matrix.shape)``: one matrix repeated, as a read-only view (a /1 file)."""
     return np.broadcast_to(matrix, (count, *matrix.shape))
@@ -142,7 +148,8 @@ class ReferenceTrajectory:
     Attributes:
       x0: (n,); u_ref: (N, m); t: (r,) and x_ref: (r, n) the fine grid; K: (N, m, n) the gain
       on sample interval ``k``; P: (N+1, n, n) the metric at ``t_k``; rate: lambda (1/s). In a
-      ``/1`` file K and P are the ``feedback`` block's, repeated (read-only views).
+      ``/1`` file K and P are the ``feedback`` block's, repeated (read-only views). name: the
+      demonstration it was made from (``"demo_01"``; None in a file written without names).
     """
 
     x0: np.ndarray
@@ -154,6 +161,14 @@ class ReferenceTrajectory:
     K: np.ndarray
     P: np.ndarray
     rate: float
+    name: str | None = None
+
+    def __repr__(self) -> str:
+        name = "" if self.name is None else f"{self.name!r}, "
+        return (
+            f"ReferenceTrajectory({name}T={self.T:g} s, radius={self.radius:.4g}, "
+            f"rate={self.rate:.4g}, N={len(self.u_ref)} samples, x0={_short(self.x0)})"
+        )
 
     def metric(self, t: np.ndarray | float, Ts: float) -> np.ndarray:
         """``P(t)`` for times ``t (...)`` -> ``(..., n, n)`` (``inverse_linear``); a repeated
@@ -193,6 +208,12 @@ class TerminalController:
     K: np.ndarray
     P: np.ndarray
     level: float
+
+    def __repr__(self) -> str:
+        return (
+            f"TerminalController(x_eq={_short(self.x_eq)}, u_eq={_short(self.u_eq)}, "
+            f"level={self.level:.4g})"
+        )
 
     def value(self, x: np.ndarray) -> np.ndarray:
         """``V(x) = (x - x_eq)^T P (x - x_eq)`` for ``x (..., n)`` -> ``(...)``."""
@@ -249,6 +270,46 @@ class Controller:
     def m(self) -> int:
         return len(self.input_names)
 
+    def __repr__(self) -> str:
+        """A few lines: what the file is, its trajectories (``index: name``) and its law."""
+        horizons = [tr.T for tr in self.trajectories]
+        span = f"{min(horizons):g}" + (
+            "" if min(horizons) == max(horizons) else f"-{max(horizons):g}"
+        )
+        labels = [
+            f"{i}: {tr.name}" if tr.name else str(i) for i, tr in enumerate(self.trajectories)
+        ]
+        if len(labels) > 6:
+            labels = [*labels[:4], "...", labels[-1]]
+        named = ", index: name" if any(tr.name for tr in self.trajectories) else ""
+        if self.funnel:
+            kind = "funnel (a gain K_i[k] and metric P_i(t) per trajectory; /2)"
+        else:
+            kind = f"constant (one gain K and metric P, rate {self.rate:.3g}/s; /1)"
+        inputs = ", ".join(
+            f"{name} in [{lo:g}, {hi:g}]"
+            for name, lo, hi in zip(self.input_names, self.lower, self.upper, strict=True)
+        )
+        if self.terminal is None:
+            terminal = "no (the law refuses t > T)"
+        else:
+            terminal = (
+                f"yes (after T: u = u_eq + K_T (x - x_eq), x_eq {_short(self.terminal.x_eq)})"
+            )
+        h = self.feedback_period
+        period = f"{h:g} s (held between samples)" if h > 0 else "0 (continuous)"
+        return "\n".join([
+            f"Controller({self.format}, scenario {self.scenario!r}, from {self.source})",
+            f"  states: {', '.join(self.state_names)}; Ts {self.Ts:g} s",
+            f"  inputs: {inputs}",
+            f"  certificate: {kind}",
+            f"  trajectories ({len(self.trajectories)}{named}): {', '.join(labels)}",
+            f"  horizons T: {span} s",
+            f"  terminal: {terminal}",
+            f"  feedback period: {period}",
+            "  use: index, ratio = c.select(x0); u = c(t, x, index)",
+        ])  # fmt: skip
+
     def with_gain(self, scale: float) -> Controller:
         """A new controller with gain ``scale K`` (e.g. 0: the reference replayed open loop)."""
         K = None if self.K is None else _frozen(scale * self.K)
@@ -265,13 +326,13 @@ class Controller:
         e = np.asarray(x0, dtype=np.float64)[..., None, :] - centres  # (..., k, n)
         return np.sqrt(np.einsum("...ki,kij,...kj->...k", e, metrics, e)) / radii
 
-    def metric(self, t: float, index: np.ndarray) -> np.ndarray:
+    def metric(self, t: float, index: np.ndarray | int) -> np.ndarray:
         """The tube metric ``P_i(t)`` of trajectories ``index (...)`` -> ``(..., n, n)``: the
         tube is ``||x - x_ref_i(t)||_{P_i(t)} <= radius_i e^{-rate_i t}``."""
         return self._gather(index, (self.n, self.n), lambda tr: tr.metric(t, self.Ts))
 
     def _gather(
-        self, index: np.ndarray, shape: tuple[int, ...], value: Callable[..., np.ndarray]
+        self, index: np.ndarray | int, shape: tuple[int, ...], value: Callable[..., np.ndarray]
     ) -> np.ndarray:
         """``value(trajectory) (*shape)`` of trajectories ``index (...)`` -> ``(..., *shape)``."""
         index = np.asarray(index)
@@ -280,16 +341,19 @@ class Controller:
             out[rows] = value(self.trajectories[i])
         return out
 
-    def select(self, x0: np.ndarray, *, strict: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    def select(self, x0: np.ndarray, *, strict: bool = False) -> tuple[Any, Any]:
         """For initial states ``x0 (..., n)``: ``(index (...), coverage_ratio (...))``, the
-        trajectory to follow and ``min_i ||x0 - x0_i||_P / radius_i``.
+        trajectory to follow and ``min_i ||x0 - x0_i||_P / radius_i``; for one state ``(n,)``
+        a Python ``int`` and ``float`` (hence ``Any`` in the signature: the kind follows the
+        shape, which the type does not carry).
 
         A ratio ``< 1`` means covered. A start with ratio ``>= 1`` lies outside every certified
         ball: it still gets the nearest trajectory (in the ratio), with no guarantee; with
         ``strict=True`` such a start raises ``UncoveredStartError`` instead. A start with a NaN
-        or infinite component is a ``ValueError`` naming it (it has no ratio to compare).
+        or infinite component, or whose last dimension is not ``n``, is a ``ValueError`` naming
+        it (it has no ratio to compare).
         """
-        x0 = np.asarray(x0, dtype=np.float64)
+        x0 = self._states("x0", x0)
         _finite("x0", x0, "a finite start", self.state_names)
         ratios = self.ratios(x0)
         index = np.argmin(ratios, axis=-1)
@@ -297,15 +361,28 @@ class Controller:
         if strict and np.any(ratio >= 1.0):
             flat = np.ravel(ratio)
             k = int(np.argmax(flat >= 1.0))
-            start = np.asarray(x0, dtype=np.float64).reshape(-1, self.n)[k]
+            start = x0.reshape(-1, self.n)[k]
             raise UncoveredStartError(
                 f"start {np.round(start, 6).tolist()} is not covered by the certificate "
                 f"(coverage ratio {flat[k]:.3g} >= 1; nothing is claimed for it): start inside "
                 "Init, or pass strict=False to fly the nearest trajectory without a guarantee"
             )
+        if x0.ndim == 1:
+            return int(index), float(ratio)
         return index, ratio
 
-    def reference(self, t: float, index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _states(self, field: str, x: np.ndarray) -> np.ndarray:
+        """``x`` as float64 ``(..., n)``; a ``ValueError`` naming ``field`` and the expected
+        shape otherwise."""
+        x = np.asarray(x, dtype=np.float64)
+        if x.ndim == 0 or x.shape[-1] != self.n:
+            raise ValueError(
+                f"{field} has shape {x.shape}; expected ({self.n},) for one state "
+                f"({', '.join(self.state_names)}) or (B, {self.n}) for a batch of B"
+            )
+        return x
+
+    def reference(self, t: float, index: np.ndarray | int) -> tuple[np.ndarray, np.ndarray]:
         """``(u_ref (..., m), x_ref (..., n))`` of trajectories ``index (...)`` at time ``t``."""
         index = np.asarray(index)
         u = np.empty((*index.shape, self.m))
@@ -317,35 +394,38 @@ class Controller:
             x[rows] = [np.interp(t, tr.t, tr.x_ref[:, j]) for j in range(self.n)]
         return u, x
 
-    def gains(self, t: float, index: np.ndarray) -> np.ndarray:
+    def gains(self, t: float, index: np.ndarray | int) -> np.ndarray:
         """``K_i[floor(t / Ts)]`` of trajectories ``index (...)`` -> ``(..., m, n)``."""
         k = max(int(np.floor(t / self.Ts + 1e-9)), 0)
         return self._gather(index, (self.m, self.n), lambda tr: tr.K[min(k, len(tr.K) - 1)])
 
-    def unclipped(self, t: float, x: np.ndarray, index: np.ndarray) -> np.ndarray:
+    def unclipped(self, t: float, x: np.ndarray, index: np.ndarray | int) -> np.ndarray:
         """``u_ref + K[k] (x - x_ref)`` before clipping, ``x (..., n)`` -> ``(..., m)``."""
         u_ref, x_ref = self.reference(t, index)
         e = np.asarray(x) - x_ref
         return u_ref + np.einsum("...ji,...i->...j", self.gains(t, index), e)
 
-    def horizons(self, index: np.ndarray) -> np.ndarray:
+    def horizons(self, index: np.ndarray | int) -> np.ndarray:
         """``T_i`` (s) of trajectories ``index (...)`` -> ``(...)``."""
         index = np.asarray(index)
         _named(index, len(self.trajectories))  # refuses an index out of range
         return np.array([tr.T for tr in self.trajectories])[index]
 
-    def __call__(self, t: float, x: np.ndarray, index: np.ndarray) -> np.ndarray:
+    def __call__(self, t: float, x: np.ndarray, index: np.ndarray | int) -> np.ndarray:
         """The control input at time ``t`` for states ``x (..., n)`` following trajectories
         ``index (...)`` (from ``select``) -> ``(..., m)``.
 
         Past a trajectory's ``T`` the terminal law applies; without a terminal controller
         ``t > T`` raises ``BeyondHorizonError`` (the certificate ends at ``T``). A NaN or
         infinite ``t`` or state component is a ``ValueError`` naming it: no input is certified
-        for it, and a NaN would pass through the clip to the actuator.
+        for it, and a NaN would pass through the clip to the actuator; so is a negative ``t`` and
+        ``x`` whose last dimension is not ``n``.
         """
-        x = np.asarray(x, dtype=np.float64)
+        x = self._states("x", x)
         if not math.isfinite(t):
             raise ValueError(f"t = {t}; expected a finite time (s)")
+        if t < 0:
+            raise ValueError(f"t = {t:g} s; expected a time >= 0 (s) since the start")
         _finite("x", x, "a finite state", self.state_names)
         T = self.horizons(index)
         after = t > T * (1 + TIME_TOLERANCE)  # (...)
@@ -490,9 +570,12 @@ def _trajectory(
             read.fail(f"{where}.rate", rate, "a number >= 0")
     else:
         K, P, rate = _repeated(feedback[0], N), _repeated(feedback[1], N + 1), feedback[2]
+    name = item.get("name")
+    if name is not None and not (isinstance(name, str) and name):
+        read.fail(f"{where}.name", _scalar_or_kind(name), "a non-empty string (the demo's name)")
     return ReferenceTrajectory(
         x0=_frozen(x0), radius=radius, T=T, u_ref=_frozen(u_ref), t=_frozen(t),
-        x_ref=_frozen(x_ref), K=K, P=P, rate=rate,
+        x_ref=_frozen(x_ref), K=K, P=P, rate=rate, name=name,
     )  # fmt: skip
 
 

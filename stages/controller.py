@@ -2,15 +2,16 @@
 
 Format ``safety-controller/1`` (``emit_controller``; documented in the README and read by
 ``pipeline.controller``): the feedback ``K``, metric ``P`` and rate, and for every nominal
-trajectory its start ``x0``, robustness radius, duration ``T``, held inputs ``u_ref (N, m)`` and
-states ``x_ref`` on a fine grid ``t`` (RK4 substeps), so that linear interpolation error is
-negligible against the tube. Format ``safety-controller/2`` (``emit_funnel_controller``): the
-same per trajectory plus its funnel (``pipeline.numerics.funnel``): gains ``K (N, m, n)``,
-metrics ``P (N+1, n, n)`` at the samples with ``Q = P^-1`` linear in t between them
-(``metric_interpolation: "inverse-linear"``), ``radius = rho`` and ``rate``; no ``feedback``
-block. Its reference grid has ``REFERENCE_SUBSTEPS`` RK4 steps per sample, more on the sample
-intervals where the law's tracking of the interpolated ``x_ref`` needs them to stay inside the
-certificate (``pipeline.numerics.funnel_law``). The interpolation error is measured in the tube's
+trajectory its demo's ``name``, start ``x0``, robustness radius, duration ``T``, held inputs
+``u_ref (N, m)`` and states ``x_ref`` on a fine grid ``t`` (RK4 substeps), so that linear
+interpolation error is negligible against the tube. Format ``safety-controller/2``
+(``emit_funnel_controller``): the same per trajectory plus its funnel
+(``pipeline.numerics.funnel``): gains ``K (N, m, n)``, metrics ``P (N+1, n, n)`` at the samples
+with ``Q = P^-1`` linear in t between them (``metric_interpolation: "inverse-linear"``),
+``radius = rho`` and ``rate``; no ``feedback`` block. Its reference grid has
+``REFERENCE_SUBSTEPS`` RK4 steps per sample, more on the sample intervals where the law's
+tracking of the interpolated ``x_ref`` needs them to stay inside the certificate
+(``pipeline.numerics.funnel_law``). The interpolation error is measured in the tube's
 metric at the time, ``P(t)``.
 
 The law after ``T`` (``pipeline.numerics.terminal``): an equilibrium at Goal's centre, its LQR
@@ -102,17 +103,23 @@ def terminal_block(
 
 
 def _reference(
-    scenario: Scenario, x0: FloatArray, us: FloatArray, radius: float, substeps: int | np.ndarray
+    scenario: Scenario,
+    x0: FloatArray,
+    us: FloatArray,
+    radius: float,
+    substeps: int | np.ndarray,
+    name: str | None = None,
 ) -> tuple[dict, FloatArray, FloatArray]:
-    """The trajectory's entry (``x0``, ``radius``, ``T``, ``u_ref``, ``t``, ``x_ref`` on the RK4
-    grid of ``substeps`` per sample, one number or ``(N,)``) and the error of interpolating that
-    grid linearly: the midpoints' times ``(M,)`` and errors ``(M, n)`` against a 2x finer
-    simulation."""
+    """The trajectory's entry (its demo's ``name`` when given, ``x0``, ``radius``, ``T``,
+    ``u_ref``, ``t``, ``x_ref`` on the RK4 grid of ``substeps`` per sample, one number or
+    ``(N,)``) and the error of interpolating that grid linearly: the midpoints' times ``(M,)``
+    and errors ``(M, n)`` against a 2x finer simulation."""
     steps = np.broadcast_to(np.asarray(substeps, dtype=np.int64), (len(us),))
     fine = simulate_graded(scenario.dynamics, x0, us, scenario.Ts, steps)
     finer = simulate_graded(scenario.dynamics, x0, us, scenario.Ts, 2 * steps)
     mid = 0.5 * (fine.dense_xs[:-1] + fine.dense_xs[1:])
-    item = {
+    item: dict[str, object] = {} if name is None else {"name": name}
+    item |= {
         "x0": np.asarray(x0).tolist(),
         "radius": float(radius),
         "T": fine.duration,
@@ -171,6 +178,7 @@ def emit_controller(
     substeps: int = REFERENCE_SUBSTEPS,
     radius_floor: float | None = None,
     feedback_period: float = 0.0,
+    names: Sequence[str] | None = None,
 ) -> ControllerResult:
     """Write ``controller.json`` (``safety-controller/1``) and read it back.
 
@@ -182,10 +190,12 @@ def emit_controller(
         (smaller balls, still covering Init: the certify stage re-checks) if that makes them fit.
       feedback_period: the zero-order-hold period ``h`` (s) the tube's ``rate`` was certified
         for (``pipeline.numerics.sampled``; 0: continuous feedback).
+      names: each trajectory's demo (``"demo_01"``), written as its ``name``; None: no names.
     """
     trajectories, worst, ends, end_radii = [], 0.0, [], []
-    for x0, us, radius in zip(starts, inputs, radii, strict=True):
-        item, _, error = _reference(scenario, x0, us, radius, substeps)
+    labels = [None] * len(starts) if names is None else list(names)
+    for x0, us, radius, name in zip(starts, inputs, radii, labels, strict=True):
+        item, _, error = _reference(scenario, x0, us, radius, substeps, name)
         worst = max(worst, float(np.sqrt(np.einsum("ki,ij,kj->k", error, P, error)).max()))
         ends.append(np.asarray(item["x_ref"][-1]))
         end_radii.append(float(radius) * float(np.exp(-rate * item["T"])))
@@ -228,6 +238,7 @@ def emit_funnel_controller(
     *,
     feedback_period: float = 0.0,
     substeps: int = REFERENCE_SUBSTEPS,
+    names: Sequence[str] | None = None,
 ) -> ControllerResult:
     """Write ``controller.json`` as ``safety-controller/2`` (one funnel per trajectory) and read
     it back.
@@ -238,11 +249,14 @@ def emit_funnel_controller(
         ``rho``, ``rate``), in the same order.
       feedback_period: recorded in the file; the funnel certificate is for continuous feedback
         (0), and the certify stage refuses a funnel file with ``h > 0``.
+      names: each trajectory's demo (``"demo_01"``), written as its ``name``; None: no names.
 
     Raises:
       ValueError: a funnel that was not certified (``success`` False), or whose shapes do not
         fit its trajectory.
     """
+    if names is not None and len(names) != len(trajectories):
+        raise ValueError(f"{len(names)} names for {len(trajectories)} trajectories")
     items, worst, ends, end_radii, end_metrics = [], 0.0, [], [], []
     for i, (trajectory, funnel) in enumerate(zip(trajectories, funnels, strict=True)):
         N, n, m = len(trajectory.us), scenario.n, scenario.m
@@ -270,7 +284,10 @@ def emit_funnel_controller(
                 scenario.state_bounds,
             ),
         )
-        item, times, error = _reference(scenario, trajectory.xs[0], trajectory.us, funnel.rho, grid)
+        name = None if names is None else names[i]
+        item, times, error = _reference(
+            scenario, trajectory.xs[0], trajectory.us, funnel.rho, grid, name
+        )
         metric = inverse_linear(funnel.P, scenario.Ts, times)  # (M, n, n): P(t), eq. (F1)
         worst = max(worst, float(np.sqrt(np.einsum("ki,kij,kj->k", error, metric, error)).max()))
         item |= {"K": funnel.K.tolist(), "P": funnel.P.tolist(), "rate": funnel.rate}

@@ -599,10 +599,88 @@ def test_the_law_gives_finite_inputs_within_bounds_or_refuses_naming_the_field(
     except BeyondHorizonError:
         assert funnel and t > 1.0  # the /2 toy has no terminal controller
     except ValueError as error:
-        if np.isfinite(t):
+        if np.isfinite(t) and t >= 0:
             assert bad and str(error).startswith(f"x{bad[0]} = ")
+        elif np.isfinite(t):
+            assert str(error) == f"t = {t:g} s; expected a time >= 0 (s) since the start"
         else:
             assert str(error).startswith(f"t = {t}; ")
     else:
-        assert np.isfinite(t) and not bad
+        assert np.isfinite(t) and t >= 0 and not bad
         assert np.all((controller.lower <= u) & (u <= controller.upper))
+
+
+# At the prompt (issue 31, item 5): short reprs, Python scalars for one state, readable errors.
+
+
+def _named(document: dict) -> dict:
+    for i, item in enumerate(document["trajectories"]):
+        item["name"] = f"demo_{i + 1:02d}"
+    return document
+
+
+@pytest.mark.parametrize("funnel", [False, True])
+def test_repr_is_a_few_lines_with_the_trajectories_by_index_and_name(tmp_path, funnel):
+    document = _named(_funnel_document() if funnel else _document(terminal=True))
+    document["trajectories"] *= 20  # 40 trajectories: still a few lines
+    controller = load(_write(tmp_path, document))
+    text = repr(controller)
+    lines = text.splitlines()
+    assert len(lines) < 15 and max(map(len, lines)) < 200, text
+    assert f"safety-controller/{2 if funnel else 1}, scenario 'toy'" in lines[0]
+    assert "trajectories (40, index: name): 0: demo_01, 1: demo_02," in text
+    assert "39: demo_02" in text and "horizons T: 1 s" in text
+    assert ("certificate: funnel" if funnel else "certificate: constant") in text
+    assert ("terminal: no" if funnel else "terminal: yes") in text
+    assert "feedback period: 0 (continuous)" in text
+    assert controller.trajectories[0].name == "demo_01"
+    assert repr(controller.trajectories[1]) == (
+        "ReferenceTrajectory('demo_02', T=1 s, radius=0.5, rate="
+        + ("0" if funnel else "0.5")
+        + ", N=2 samples, x0=[3, 0])"
+    )
+    if not funnel:
+        assert repr(controller.terminal) == "TerminalController(x_eq=[3, 0], u_eq=[0], level=0.5)"
+
+
+def test_trajectory_names_are_optional_and_must_be_strings(tmp_path):
+    controller = load(_write(tmp_path, _document()))
+    assert [tr.name for tr in controller.trajectories] == [None, None]
+    assert "trajectories (2): 0, 1" in repr(controller)
+    document = _document()
+    document["trajectories"][1]["name"] = 7
+    with pytest.raises(ControllerFormatError, match=re.escape("trajectories[1].name: found 7")):
+        load(_write(tmp_path, document))
+
+
+def test_select_on_one_state_gives_a_python_int_and_float_and_a_batch_arrays(tmp_path):
+    controller = load(_write(tmp_path, _document()))
+    index, ratio = controller.select(np.array([2.9, 0.0]))
+    assert type(index) is int and type(ratio) is float and index == 1
+    assert ratio == pytest.approx(0.1 * np.sqrt(2) / 0.5)
+    index, ratio = controller.select([[2.9, 0.0]])  # a batch of one stays a batch
+    assert index.shape == (1,) and ratio.shape == (1,)
+
+
+@pytest.mark.parametrize(
+    ("call", "message"),
+    [
+        (
+            lambda c: c.select(np.zeros(3)),
+            "x0 has shape (3,); expected (2,) for one state (p, v) or (B, 2) for a batch of B",
+        ),
+        (lambda c: c.select(np.float64(0.0)), "x0 has shape (); expected (2,) for one state"),
+        (lambda c: c.select(np.zeros((4, 1))), "x0 has shape (4, 1); expected (2,)"),
+        (lambda c: c(0.5, np.zeros(3), 0), "x has shape (3,); expected (2,) for one state (p, v)"),
+        (lambda c: c(0.5, np.zeros((2, 3)), np.array([0, 1])), "x has shape (2, 3); expected"),
+        (lambda c: c(-0.1, np.zeros(2), 0), "t = -0.1 s; expected a time >= 0 (s) since the start"),
+        (lambda c: c(-1e-12, np.zeros(2), 0), "t = -1e-12 s; expected a time >= 0"),
+    ],
+)
+def test_wrong_shapes_and_negative_times_are_value_errors_naming_what_is_expected(
+    tmp_path, call, message
+):
+    for document in (_document(terminal=True), _funnel_document()):
+        controller = load(_write(tmp_path, document))
+        with pytest.raises(ValueError, match=re.escape(message)):
+            call(controller)

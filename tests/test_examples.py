@@ -8,6 +8,10 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
+from pipeline.model.scenario import available_scenarios, load_scenario
+
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "fly_controller.py"
 
 
@@ -26,9 +30,13 @@ def _fly(controller: Path, tmp_path: Path, *extra: str) -> str:
 def test_example_flies_a_covered_start_into_goal_at_100_hz(synthesized, tmp_path):
     _, out = synthesized
     figure = tmp_path / "flight.png"
-    text = _fly(out / "controller.json", tmp_path, "--period", "0.01", "--plot", str(figure))
+    start = ("--start", "1.5", "2.5", "0", "0", "0", "0")
+    text = _fly(
+        out / "controller.json", tmp_path, *start, "--period", "0.01", "--plot", str(figure)
+    )
     assert "covered, coverage ratio" in text and "NOT covered" not in text
-    hill = float(re.search(r"closest to the hill ([\d.]+) m", text).group(1))
+    assert re.search(r"trajectory \d+: demo_\d\d ", text), text  # the index and its demo
+    hill = float(re.search(r"closest to Unsafe 'hill' ([\d.]+) m", text).group(1))
     assert hill > 0.5  # the tube keeps d = 1 m; a held 100 Hz feedback stays well clear
     assert " in Goal" in text
     assert figure.stat().st_size > 10_000
@@ -59,6 +67,35 @@ def test_example_flies_a_funnel_file_into_goal(quadrotor_funnel_artifact, tmp_pa
     text = _fly(path, tmp_path, *start, "--period", "0.01", "--plot", str(figure))
     assert "covered, coverage ratio" in text and "(funnel certificate)" in text
     assert "NOT covered" not in text
-    hill = float(re.search(r"closest to the hill ([\d.]+) m", text).group(1))
+    hill = float(re.search(r"closest to Unsafe 'hill' ([\d.]+) m", text).group(1))
     assert hill > 0.5 and " in Goal" in text
     assert figure.stat().st_size > 10_000
+
+
+@pytest.mark.parametrize("name", available_scenarios())
+def test_example_flies_every_shipped_scenario(name, tmp_path):
+    """Nothing in the example is any one scenario's: a controller.json for each shipped scenario
+    (emitted cheaply: the scenario's feedback around its first demo, which ends in Goal) flies
+    from that demo's start along it into Goal, naming the trajectory by index and demo and every
+    Unsafe region of the scenario, and draws the figure."""
+    from stages.controller import emit_controller
+    from stages.feedback import design_feedback
+
+    scenario = load_scenario(name)
+    feedback = design_feedback(scenario)
+    demo = scenario.demos[0]
+    path = tmp_path / "controller.json"
+    emit_controller(
+        scenario, feedback.K, feedback.P, feedback.rate, [demo.x0], [demo.us], [0.01], path,
+        names=[demo.name],
+    )  # fmt: skip
+    figure = tmp_path / "flight.png"
+    start = ("--start", *(repr(float(v)) for v in demo.x0))
+    text = _fly(path, tmp_path, *start, "--plot", str(figure))
+    assert f"covered, coverage ratio 0.000, trajectory 0: {demo.name} (constant" in text, text
+    for region in scenario.unsafe:
+        assert f"'{region}' " in text
+    T = len(demo.us) * scenario.Ts
+    assert f"at T = {T:g} s in Goal" in text, text
+    assert figure.stat().st_size > 10_000
+    assert float(re.search(r"flight of ([\d.]+) s", text).group(1)) >= round(T, 2)

@@ -134,3 +134,30 @@ def test_the_load_and_fly_example_runs_and_reaches_goal(synthesis, tmp_path):
     scenario = load_scenario("double_integrator")
     assert ratio < 1
     assert bool(scenario.in_goal(np.array([x, y, 0.0, 0.0]))), run.stdout
+
+
+@pytest.mark.xdist_group("synthesis-double_integrator")  # with its session run (conftest)
+def test_the_fly_api_example_runs_and_reaches_goal(synthesis, tmp_path):
+    """The README's ``pipeline.fly`` example, run as written where ``reports/double_integrator``
+    holds a fresh controller: its repr names demo_01 beside index 0, ``dynamics.f`` works on a
+    batch, and the flight is covered and ends in Goal."""
+    _, out = synthesis("double_integrator")
+    found = re.search(
+        r"<!-- example fly-api -->\n```python\n(.*?)```\n<!-- /example fly-api -->",
+        README.read_text(),
+        flags=re.DOTALL,
+    )
+    assert found is not None, "README.md has no pipeline.fly example"
+    (tmp_path / "reports" / "double_integrator").mkdir(parents=True)
+    shutil.copy(out / "controller.json", tmp_path / "reports" / "double_integrator")
+    (tmp_path / "fly.py").write_text(found.group(1))
+    run = subprocess.run(
+        [sys.executable, "fly.py"], cwd=tmp_path, capture_output=True, text=True, timeout=120
+    )
+    assert run.returncode == 0, run.stderr
+    lines = run.stdout.splitlines()
+    assert len(lines) < 17 and "0: demo_01, 1: demo_02" in run.stdout, run.stdout
+    assert "(3, 4)" in lines
+    printed = re.search(r"coverage ratio (\S+), in Goal at the end: (\w+)", run.stdout)
+    assert printed is not None, run.stdout
+    assert float(printed.group(1)) < 1 and printed.group(2) == "True"

@@ -349,6 +349,7 @@ def _synthesize(
                     [funnels.funnels[i] for i in usable],
                     controller_path,
                     feedback_period=options.feedback_period,
+                    names=[scenario.demos[i].name for i in usable],
                 ),
             ),
             rerun=True,  # always written from this run's certified results
@@ -380,6 +381,7 @@ def _synthesize(
                     controller_path,
                     radius_floor=r_required,
                     feedback_period=options.feedback_period,
+                    names=[scenario.demos[i].name for i in usable],
                 ),
             ),
             rerun=True,  # always written from this run's certified results
