@@ -106,6 +106,7 @@ from pipeline.numerics.funnel_check import (
     certificate_margins,
     check_funnel,
 )
+from pipeline.numerics.funnel_law import LawOffset, corners
 from pipeline.numerics.funnel_lmi import FunnelProgram, solve_clarabel
 from pipeline.numerics.funnel_pieces import interpolate, piece_hulls, pieces
 from pipeline.numerics.hull import HullError, arc_variables
@@ -138,6 +139,11 @@ class _Hulls(TypedDict):
 # meets (F3) only to its tolerance, relative to the largest entries of Q) is solved again with a
 # larger margin.
 MARGINS = (1e-3, 1e-2)
+# With a disturbance (funnel_law (I4)): the (F3) margins tried (1/s), and the share of each that
+# the disturbance's term may take at the design level (the rest: the interpolated reference's
+# term and rounding).
+ROBUST_MARGINS = (0.1, 0.3, 1.0, 3.0)
+ROBUST_SHARE = 0.8
 # Sample intervals per LMI piece: K is held and Q = P^-1 linear in t over each piece (see HOLD in
 # the module docstring).
 HOLD = 2
@@ -183,8 +189,9 @@ def _weights(scenario: Scenario, state_bounds: Mapping[str, tuple[float, float]]
 
 
 def _program(
-    scenario, trajectory, K, vertices, boxes, variables, enclosure, Q_init, Q_seed, c, bounds
-):
+    scenario, trajectory, K, vertices, boxes, variables, enclosure, Q_init, Q_seed, c, bounds,
+    disturbance=None, gamma=0.0,
+):  # fmt: skip
     """(F3) on the LMI pieces ``bounds`` (unknowns: ``Q`` at the piece ends), with the initial set
     and the tube at level 1 inside every hull box, clear of Unsafe (a disk bound) and inside Goal
     (``funnel_lmi``). On a piece ``Q`` is linear and ``K`` held, so the tube's extents are largest
@@ -232,6 +239,8 @@ def _program(
         caps=tuple(caps),
         W=W,
         initial_weight=100 * float(np.einsum("kij,kji->", W, Q_seed[bounds])),
+        disturbance=None if disturbance is None else corners(disturbance),
+        gamma=gamma,
     )
 
 
@@ -244,6 +253,7 @@ def synthesize_funnel(
     rate: float = 0.0,
     allowance: float = 1.0,
     segments: int = 1,
+    disturbance: FloatArray | None = None,
 ) -> Funnel:
     """Synthesize and check the funnel around ``trajectory`` (one: ``xs (N+1, n)``, ``us (N, m)``,
     its dense grid); see the module docstring.
@@ -260,9 +270,19 @@ def synthesize_funnel(
         too, so a positive rate only restricts the shape); the LMI margin stays (``MARGINS``).
       allowance: the hull boxes are the nominal's enclosure widened by this times the seed tube.
       segments: pieces per angle-like block of the local hulls.
+      disturbance: (n,) ``d``: the funnel must hold for ``xdot = f(x, u) + w`` with any
+        ``|w_i| <= d_i`` (``funnel_law`` (I4)). (F3) is then imposed with each margin ``eps`` of
+        ``ROBUST_MARGINS`` and ``||w_c||_{Q^-1} <= ROBUST_SHARE eps / 2`` at every corner ``w_c``
+        (``funnel_lmi``), so that the disturbance's term uses ``ROBUST_SHARE`` of ``eps`` at the
+        design level; the funnel with the highest checked level is kept.
     """
     start = time.perf_counter()
     state_bounds = dict(state_bounds or {})
+    robust = None if disturbance is None else np.asarray(disturbance, dtype=np.float64)
+    if robust is not None and (robust.shape != (scenario.n,) or not np.all(robust >= 0)):
+        raise ValueError(f"funnel: disturbance {disturbance!r}; expected {scenario.n} bounds >= 0")
+    if robust is not None and not np.any(robust > 0):
+        robust = None  # no disturbance: exactly the nominal design
     rate = float(rate)
     xs = trajectory.dense_xs
     if xs.ndim != 2 or trajectory.us.ndim != 2:
@@ -323,21 +343,28 @@ def synthesize_funnel(
         common: _Hulls = {
             "boxes": boxes, "variables": variables, "vertices": vertices, "enclosure": enclosure
         }  # fmt: skip
-        failures = []
-        for margin in MARGINS:  # a solution within the solver's tolerance may fail the check
+        failures: list[str] = []
+        best: tuple[Funnel, float, str, float] | None = None
+        for margin in MARGINS if robust is None else ROBUST_MARGINS:
+            # a solution within the solver's tolerance may fail the check: the next margin
+            gamma = 0.0 if robust is None else ROBUST_SHARE * margin / 2
             program = _program(
                 scenario, trajectory, K, vertices, boxes, variables, enclosure, Q_init, Q_seed,
-                2 * rate + margin, bounds,
+                2 * rate + margin, bounds, robust, gamma,
             )  # fmt: skip
             solution = solve_clarabel(program)
-            if isinstance(solution, str):
-                return result(False, f"funnel: {solution} over {N} intervals", **common)
+            failure: str | None
+            if isinstance(solution, str) or solution[1] <= 1e-6:
+                failure = (
+                    f"{solution} over {N} intervals"
+                    if isinstance(solution, str)
+                    else f"no funnel holds any of the initial set (tau {solution[1]:.2g})"
+                )
+                if robust is None:
+                    return result(False, f"funnel: {failure}", **common)
+                failures.append(f"margin {margin:g}: {failure}")
+                continue
             Q_ends, tau = solution
-            if tau <= 1e-6:
-                return result(
-                    False, f"funnel: no funnel holds any of the initial set (tau {tau:.2g})",
-                    **common,
-                )  # fmt: skip
             # eq. (P1) at every sample time; E(0) at level 1 holds the initial set, the caps
             # hold at level sqrt(tau)
             Q = interpolate(Q_ends, bounds) / tau
@@ -351,14 +378,23 @@ def synthesize_funnel(
                 binding=binding, margins=certificate_margins(Q, K, vertices, rate, scenario.Ts),
                 limits={key: value[0] for key, value in limits.items()}, **common,
             )  # fmt: skip
-            failure = check_funnel(scenario, trajectory, funnel, state_bounds)
+            law = LawOffset.none(N, scenario.n, scenario.m, scenario.Ts)
+            if robust is not None:
+                law = law.with_disturbance(funnel.P, rho, rate, scenario.Ts, robust)
+            failure = check_funnel(scenario, trajectory, funnel, state_bounds, law)
             if rho <= 0:
                 failure = failure or f"the nominal itself violates {binding} at t = {when:.2f} s"
-            if not failure:
+            if not failure and robust is None:
                 break
-            failures.append(f"margin {margin:g}: {failure}")
+            if not failure and (best is None or rho > best[0].rho):
+                best = (funnel, margin, binding, when)
+            if failure:
+                failures.append(f"margin {margin:g}: {failure}")
         else:
-            return result(False, f"funnel rejected: {'; '.join(failures)}", **common)
+            if best is None:
+                return result(False, f"funnel rejected: {'; '.join(failures)}", **common)
+            funnel, margin, binding, when = best
+            rho = funnel.rho
         message = (
             f"funnel level {rho:.4g} (E(0) holds {min(rho, 1.0):.3g} x the required initial "
             f"set) over {N} intervals ({len(bounds) - 1} pieces, K held over {HOLD}), bound by "

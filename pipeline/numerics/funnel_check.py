@@ -121,13 +121,18 @@ def check_funnel(
     Q = np.linalg.inv(P)
     Q = (Q + np.swapaxes(Q, 1, 2)) / 2
     margins = certificate_margins(Q, K, funnel.vertices, funnel.rate, Ts)
-    effective = margins.max(axis=1) + law.lmi_term  # funnel_law (I2)
+    effective = margins.max(axis=1) + law.total  # funnel_law (I2), (I4)
     if effective.max() >= -LMI_MARGIN:
         k = int(np.argmax(effective))
+        disturbance = (
+            f" + the disturbance's term {law.disturbance_term[k]:.3g}"
+            if law.disturbance_term[k] > 0
+            else ""
+        )
         return (
             f"(F2) fails on interval {k} (t = {Ts * k:.2f}-{Ts * (k + 1):.2f} s): eigenvalue "
-            f"{margins[k].max():.3g} + the interpolated reference's term {law.lmi_term[k]:.3g} "
-            f"is not below -{LMI_MARGIN:g}"
+            f"{margins[k].max():.3g} + the interpolated reference's term {law.lmi_term[k]:.3g}"
+            f"{disturbance} is not below -{LMI_MARGIN:g}"
         )
     h = Ts / substeps(trajectory)
     enclosure = funnel.enclosure

@@ -40,6 +40,13 @@ and the funnel is invariant under the shipped law when ``m_k + 2 w_k / (rho e^{-
 below zero on top: the eigenvalues are rounded in floating point and the RK4 values stand in for
 the exact nominal (the certify stage checks that their estimated error is below ``LEVEL_MARGIN``).
 
+(I4) A bounded disturbance. With ``xdot = f(x, u) + w``, ``|w_i| <= d_i`` for every measurable
+``w`` (a box, ``d (n,)``, zero for states it does not act on), the error gains ``+ w`` and the
+same argument gives ``+ 2 ||e||_P ||w||_P`` on the boundary: ``m_k + 2 (w_k + v_k) / rho_t < 0``
+with ``v_k = max_corners max_ends ||sigma o d||_P`` (convex in ``w`` and in ``t``, as above). Unlike
+(I2) it does not shrink with the grid: the funnel must be designed for it (``funnel_lmi``'s
+disturbance constraint), and it bounds the level from below (``rho_t > 2 (w_k + v_k) / -m_k``).
+
 (I3) Inputs. The applied input is ``u_ref + K e + K delta`` with ``|K_j e| <= rho_t g_j[k]`` (E3)
 and ``|K_j delta| <= sum_i |K[k, j, i]| Delta_i[k]``: the hull's input box and the input limits
 take the second term as an offset.
@@ -47,6 +54,7 @@ take the second term as an offset.
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 from dataclasses import dataclass
@@ -71,20 +79,61 @@ class LawOffset:
       deviation: (N, n) ``Delta``, (I1): ``|x_ref - xhat| <= Delta[k]`` on interval k.
       input_offset: (N, m) ``sum_i |K[k, j, i]| Delta_i[k]``, (I3).
       lmi_term: (N,) ``2 w_k / (rho e^{-lambda t_k+1})``, (I2): added to the (F2) eigenvalue.
+      disturbance_term: (N,) ``2 v_k / (rho e^{-lambda t_k+1})``, (I4): added too (0: none).
     """
 
     steps: FloatArray
     deviation: FloatArray
     input_offset: FloatArray
     lmi_term: FloatArray
+    disturbance_term: FloatArray
 
     @staticmethod
     def none(N: int, n: int, m: int, Ts: float) -> LawOffset:
         """No offset: a law that tracks the exact nominal (the synthesis's own check)."""
         return LawOffset(
             steps=np.full(N, Ts), deviation=np.zeros((N, n)), input_offset=np.zeros((N, m)),
-            lmi_term=np.zeros(N),
+            lmi_term=np.zeros(N), disturbance_term=np.zeros(N),
         )  # fmt: skip
+
+    def with_disturbance(
+        self, P: FloatArray, rho: float, rate: float, Ts: float, bound: FloatArray
+    ) -> LawOffset:
+        """This offset with (I4) for a disturbance box ``bound (n,)`` on the state derivatives."""
+        term = disturbance_term(P, rho, rate, Ts, bound)
+        return dataclasses.replace(self, disturbance_term=term)
+
+    @property
+    def total(self) -> FloatArray:
+        """(N,) everything added to the (F2) eigenvalue: (I2) and (I4)."""
+        return self.lmi_term + self.disturbance_term
+
+
+def corners(bound: FloatArray) -> FloatArray:
+    """(C, n) the corners of the box ``|w| <= bound (n,)``, one of each pair ``+-w`` (a norm is
+    even), over the states it acts on (``bound > 0``); ``(0, n)`` without any."""
+    n = len(bound)
+    active = np.flatnonzero(bound > 0)
+    if not len(active):
+        return np.zeros((0, n))
+    signs = np.array(list(itertools.product((-1.0, 1.0), repeat=len(active))))
+    out = np.zeros((2 ** (len(active) - 1), n))
+    out[:, active] = signs[: len(out)] * bound[active]
+    return out
+
+
+def disturbance_term(
+    P: FloatArray, rho: float, rate: float, Ts: float, bound: FloatArray
+) -> FloatArray:
+    """(N,) (I4) for metrics ``P (N+1, n, n)`` at the samples, level ``rho``, ``rate`` and the
+    disturbance box ``|w| <= bound (n,)``."""
+    w = corners(np.asarray(bound, dtype=np.float64))  # (C, n)
+    N = len(P) - 1
+    if not len(w):
+        return np.zeros(N)
+    norms = np.sqrt(np.einsum("ci,kij,cj->kc", w, P, w).max(axis=1))  # (N+1,) eq. (I4)
+    ends = np.maximum(norms[:-1], norms[1:])
+    return 2 * ends / (rho * np.exp(-rate * Ts * np.arange(1, N + 1)))
 
 
 def grid_substeps(t: FloatArray, N: int, Ts: float) -> np.ndarray | None:
@@ -120,19 +169,22 @@ def law_offset(
     N, m, n = K.shape
     steps = Ts / np.asarray(substeps, dtype=np.float64)
     deviation, input_offset, lmi_term = np.zeros((N, n)), np.zeros((N, m)), np.zeros(N)
-    corners = np.array(list(itertools.product((-1.0, 1.0), repeat=n)))[: 2 ** (n - 1)]  # +-pairs
+    signs = np.array(list(itertools.product((-1.0, 1.0), repeat=n)))[: 2 ** (n - 1)]  # +-pairs
     for k in range(N):
         A, B = vertices[k][:, :, :n], vertices[k][:, :, n:]
         acceleration = (np.abs(A) @ rate_bound[k]).max(axis=0)  # (n,) bound on |xddot|
         deviation[k] = steps[k] ** 2 / 8 * acceleration  # eq. (I1)
         input_offset[k] = np.abs(K[k]) @ deviation[k]  # eq. (I3)
-        offsets = (B @ K[k]) @ (corners * deviation[k]).T  # (V, n, corners)
+        offsets = (B @ K[k]) @ (signs * deviation[k]).T  # (V, n, corners)
         w = max(
             float(np.sqrt(np.einsum("vic,ij,vjc->vc", offsets, P[k + e], offsets).max()))
             for e in (0, 1)
         )  # eq. (I2)
         lmi_term[k] = 2 * w / (rho * math.exp(-rate * Ts * (k + 1)))
-    return LawOffset(steps=steps, deviation=deviation, input_offset=input_offset, lmi_term=lmi_term)
+    return LawOffset(
+        steps=steps, deviation=deviation, input_offset=input_offset, lmi_term=lmi_term,
+        disturbance_term=np.zeros(N),
+    )  # fmt: skip
 
 
 def law_substeps(

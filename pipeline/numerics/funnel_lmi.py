@@ -7,7 +7,9 @@ Unknowns ``Q[0..N]`` (n, n symmetric), ``x = (q_0, .., q_N)``, ``q_k`` the upper
     subject to  -(Q[k+1] - Q[k]) / Ts_k + G_kv(Q[k+e]) <= 0,  G(X) = Acl X + X Acl^T + c X,
                 Acl = A_v + B_v K[k], every vertex v of interval k, e in {0, 1};           (F3)
                 Q[0] >= tau Q_init[j] (every j), tau <= 1;  Q[k] >= floor I;
-                C Q[k] C^T <= bound (caps).
+                C Q[k] C^T <= bound (caps);
+                [[Q[k], w_c], [w_c^T, gamma^2]] >= 0  (every k, every corner w_c of a
+                disturbance box, when there is one: funnel_law (I4)).
 
 ``tau`` is the fraction of the required initial set held (``w`` large: it is maximised first), so
 a program that cannot hold all of it still returns the funnel that holds the most.
@@ -51,6 +53,8 @@ class FunnelProgram:
         floor: smallest eigenvalue of each Q[k].
       caps: ``(k, C (r, n), bound (r, r))``: ``C Q[k] C^T <= bound`` (a scalar if r = 1).
       W: (N+1, n, n) objective weights; initial_weight: ``w``.
+      disturbance: (C, n) corners ``w_c`` of a disturbance box (None: none); gamma: the bound on
+        their ``||w_c||_{Q[k]^-1}`` (by the Schur complement, the constraint above).
     """
 
     Ts: float | FloatArray
@@ -62,6 +66,8 @@ class FunnelProgram:
     caps: tuple[tuple[int, FloatArray, FloatArray], ...] = field(repr=False)
     W: FloatArray = field(repr=False)
     initial_weight: float
+    disturbance: FloatArray | None = field(default=None, repr=False)
+    gamma: float = 0.0
 
 
 def _triangle(n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -155,6 +161,21 @@ def solve_clarabel(program: FunnelProgram) -> tuple[FloatArray, float] | str:
     triplets.append(_block(rows(N + 1, p), of(everyone), np.broadcast_to(-sE.T, (N + 1, p, p))))
     b_parts.append(np.tile(-svec(program.floor * np.eye(n)), N + 1))
     cones.extend(clarabel.PSDTriangleConeT(n) for _ in range(N + 1))
+    # [[Q[k], w], [w^T, gamma^2]] >= 0: s = svec(that) = b - A x, b its constant part.
+    if program.disturbance is not None and len(program.disturbance):
+        big = np.zeros((len(E), n + 1, n + 1))
+        big[:, :n, :n] = E
+        sB = svec(big)  # (p, (n+1)(n+2)/2)
+        for w in program.disturbance:
+            constant = np.zeros((n + 1, n + 1))
+            constant[:n, n] = constant[n, :n] = w
+            constant[n, n] = program.gamma**2
+            cone_rows = rows(N + 1, sB.shape[1])
+            triplets.append(
+                _block(cone_rows, of(everyone), np.broadcast_to(-sB.T, (N + 1, *sB.T.shape)))
+            )
+            b_parts.append(np.tile(svec(constant), N + 1))
+            cones.extend(clarabel.PSDTriangleConeT(n + 1) for _ in range(N + 1))
     # (F3): s = -M(x), M(Q[k], Q[k+1]) = -(Q[k+1] - Q[k]) / Ts[k] + G(Q[k+e]), every vertex.
     J = np.concatenate(program.vertices)  # (T, n, n+m), T = sum_k V_k
     k_of = np.repeat(np.arange(N), [len(v) for v in program.vertices])  # (T,)
@@ -198,6 +219,11 @@ def solve_cvxpy(program: FunnelProgram) -> tuple[FloatArray, float] | str:
     constraints = [Q[0] - tau * Q_j >> 0 for Q_j in Q_init] + [tau <= 1]
     constraints += [Qk >> program.floor * np.eye(n) for Qk in Q]
     constraints += [bound - C @ Q[k] @ C.T >> 0 for k, C, bound in program.caps]
+    for w in program.disturbance if program.disturbance is not None else ():
+        column = w[:, None]
+        constraints += [
+            cp.bmat([[Qk, column], [column.T, np.array([[program.gamma**2]])]]) >> 0 for Qk in Q
+        ]
     for k in range(N):
         D = (Q[k + 1] - Q[k]) / Ts[k]  # eq. (F1)
         for J in program.vertices[k]:

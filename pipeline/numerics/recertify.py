@@ -245,7 +245,7 @@ def recheck_funnel(
         binding = min(limits, key=lambda key: limits[key][0])
         last = FunnelRecheck(
             failure=failure,
-            margin=float((margins.max(axis=1) + law.lmi_term).max()),
+            margin=float((margins.max(axis=1) + law.total).max()),
             vertices=sum(len(v) for v in funnel.vertices),
             radius=limits[binding][0],
             binding=binding,

@@ -19,11 +19,9 @@ from pathlib import Path
 
 from pipeline.demonstrations.pilot import PILOT_FILE, PilotConfig, load_pilot
 from pipeline.io.errors import UserError
-from pipeline.model.scenario import (
-    LOCAL_SCENARIOS,
+from pipeline.model.scenario import LOCAL_SCENARIOS, available_scenarios, load_scenario
+from pipeline.model.scenario_file import (
     _shipped_scenarios,  # the templates: not SCENARIOS_ROOT, which SAFETY_SCENARIOS may move
-    available_scenarios,
-    load_scenario,
 )
 
 TEMPLATES = ("double_integrator", "unicycle_slalom", "quadrotor_hill")

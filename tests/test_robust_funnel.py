@@ -1,0 +1,132 @@
+"""Funnels that hold under a bounded disturbance (pipeline.numerics.funnel_law (I4), funnel_lmi).
+
+``xdot = f(x, u) + w`` with any ``|w_i| <= d_i``: the check adds ``2 max ||w_c||_P / rho`` to the
+(F3) eigenvalue; the synthesis asks ``||w_c||_{Q^-1} <= gamma`` at every corner ``w_c``. A
+known answer for the check, the LMI against cvxpy, a double integrator's robust funnel flown
+from its boundary under the worst disturbance, and the reduction to today's funnels without one.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+from shapely.geometry import box
+
+from pipeline.controller import inverse_linear
+from pipeline.model.scenario import load_scenario
+from pipeline.model.simulate import simulate
+from pipeline.numerics.funnel import synthesize_funnel
+from pipeline.numerics.funnel_check import check_funnel
+from pipeline.numerics.funnel_law import LawOffset, corners, disturbance_term
+from pipeline.numerics.funnel_lmi import FunnelProgram, solve_clarabel, solve_cvxpy
+
+DISTURBANCE = np.array([0.0, 0.0, 0.05, 0.05])  # m/s^2 on both speeds of the double integrator
+
+
+def test_the_disturbance_term_has_the_scalar_closed_form():
+    """``edot = -a e + w``, ``|w| <= d``: the interval ``|e| <= d / a`` is the smallest invariant
+    one. In the metric ``P = p`` at level rho the half-width is ``rho / sqrt(p)``, the (F2)
+    eigenvalue is ``-2 a``, and the check ``-2 a + term < 0`` holds exactly when ``rho / sqrt(p)
+    > d / a``."""
+    a, d, p = 0.7, 0.3, 4.0
+    P = np.full((3, 1, 1), p)
+    exact = d / a * np.sqrt(p)  # the level at which the interval is d / a wide
+    for level, holds in ((exact * (1 + 1e-9), True), (exact * (1 - 1e-9), False)):
+        term = disturbance_term(P, level, 0.0, 0.1, np.array([d]))
+        assert (-2 * a + term.max() < 0) == holds
+
+
+def test_corners_are_one_of_each_pair_over_the_disturbed_states():
+    assert corners(np.zeros(3)).shape == (0, 3)
+    w = corners(np.array([0.0, 0.2, 0.5]))
+    assert w.shape == (2, 3) and np.all(w[:, 0] == 0)
+    assert {tuple(np.abs(c)) for c in w} == {(0.0, 0.2, 0.5)}
+    assert not np.allclose(w[0], -w[1])  # not both of a +- pair
+
+
+def test_the_disturbance_constraint_is_the_same_program_in_cvxpy():
+    """The Clarabel assembly of ``[[Q, w], [w^T, gamma^2]] >= 0`` against cvxpy's statement, and
+    the bound it imposes: ``w^T Q^-1 w <= gamma^2`` at every knot (binding here)."""
+    A, B, K = np.array([[0, 1], [0, 0.0]]), np.array([[0], [1.0]]), np.array([[-1.0, -1.4]])
+    N, w, gamma = 5, np.array([0.0, 0.1]), 0.25
+    vertices = tuple(np.hstack([A, B])[None] for _ in range(N))
+    program = FunnelProgram(
+        Ts=0.1, K=np.repeat(K[None], N, 0), vertices=vertices, c=0.5, Q_init=np.eye(2) * 0.01,
+        floor=1e-6, caps=(), W=np.repeat(np.eye(2)[None], N + 1, 0), initial_weight=100.0,
+        disturbance=corners(w), gamma=gamma,
+    )  # fmt: skip
+    ours, reference = solve_clarabel(program), solve_cvxpy(program)
+    assert not isinstance(ours, str) and not isinstance(reference, str)
+    assert np.allclose(ours[0], reference[0], atol=1e-4) and ours[1] == pytest.approx(1.0)
+    bound = [w @ np.linalg.solve(Q, w) for Q in ours[0]]
+    assert np.allclose(bound, gamma**2, rtol=1e-5)
+
+
+def _double_integrator():
+    """The double integrator's first demo over 3 s, Goal around where it ends, and a small
+    initial set (as tests/conftest.py's ``funnel_artifact``)."""
+    scenario = load_scenario("double_integrator", check_demos=False)
+    demo = scenario.demos[0]
+    trajectory = simulate(scenario.dynamics, demo.x0, demo.us[:30], scenario.Ts)
+    end = trajectory.xs[-1, :2]
+    scenario = dataclasses.replace(scenario, goal=box(*(end - 1.0), *(end + 1.0)))
+    return scenario, trajectory, 2 * np.diag([0.05, 0.05, 0.0, 0.0]) ** 2
+
+
+def _robust(funnel, scenario, bound):
+    law = LawOffset.none(len(funnel.K), scenario.n, scenario.m, scenario.Ts)
+    return law.with_disturbance(funnel.P, funnel.rho, funnel.rate, scenario.Ts, bound)
+
+
+def test_a_robust_funnel_holds_under_the_worst_disturbance_from_its_boundary():
+    """The robust funnel passes the check with the disturbance's term; flown from 40 boundary
+    points with ``w = d sign(P e)`` (the disturbance pushing outward hardest in each state), RK4
+    at Ts / 40, the state never leaves it. The nominal design fails that check, naming the
+    term."""
+    scenario, trajectory, initial = _double_integrator()
+    funnel = synthesize_funnel(scenario, trajectory, initial=initial, disturbance=DISTURBANCE)
+    assert funnel.success, funnel.message
+    assert (
+        check_funnel(scenario, trajectory, funnel, {}, _robust(funnel, scenario, DISTURBANCE))
+        is None
+    )
+    nominal = synthesize_funnel(scenario, trajectory, initial=initial)
+    failure = check_funnel(
+        scenario, trajectory, nominal, {}, _robust(nominal, scenario, DISTURBANCE)
+    )
+    assert failure is not None and "the disturbance's term" in failure
+
+    rng = np.random.default_rng(3)
+    Ts, h, N = scenario.Ts, scenario.Ts / 40, len(funnel.K)
+    fine = simulate(scenario.dynamics, trajectory.xs[0], trajectory.us, Ts, 40)
+    P_t = inverse_linear(funnel.P, Ts, fine.dense_ts)  # (M, n, n)
+    v = rng.standard_normal((40, scenario.n))
+    e = funnel.rho * v / np.sqrt(np.einsum("bi,ij,bj->b", v, funnel.P[0], v))[:, None]
+    x, worst = fine.dense_xs[0] + e, 0.0
+    for j in range(N * 40):
+        k = j // 40
+        u = trajectory.us[k] + (x - fine.dense_xs[j]) @ funnel.K[k].T
+
+        def f(state, j=j, u=u):
+            w = DISTURBANCE * np.sign((state - fine.dense_xs[j]) @ P_t[j])
+            return scenario.dynamics.f(state, u) + w
+
+        k1 = f(x)
+        k2 = f(x + h / 2 * k1)
+        k3 = f(x + h / 2 * k2)
+        k4 = f(x + h * k3)
+        x = x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+        e = x - fine.dense_xs[j + 1]
+        worst = max(worst, np.sqrt(np.einsum("bi,ij,bj->b", e, P_t[j + 1], e)).max() / funnel.rho)
+    assert worst <= 1 + 1e-6, worst
+
+
+def test_no_disturbance_is_exactly_the_nominal_funnel():
+    scenario, trajectory, initial = _double_integrator()
+    nominal = synthesize_funnel(scenario, trajectory, initial=initial)
+    zero = synthesize_funnel(scenario, trajectory, initial=initial, disturbance=np.zeros(4))
+    assert np.array_equal(nominal.P, zero.P) and nominal.rho == zero.rho
+    with pytest.raises(ValueError, match="expected 4 bounds >= 0"):
+        synthesize_funnel(scenario, trajectory, initial=initial, disturbance=-DISTURBANCE)
