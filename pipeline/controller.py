@@ -21,11 +21,11 @@ at ``t_k = k Ts``, with ``Q = P^-1`` linear in t between samples (``metric_inter
    tube), or ``BeyondHorizonError`` when the file has none: the law is never extrapolated past
    ``T``.
 
-What a ``/2`` file certifies: the funnel ``E_i(t) = {x : (x - x_ref_i(t))^T P_i(t) (x -
-x_ref_i(t)) <= radius_i^2 e^{-2 rate_i t}}`` about the exact nominal (the solution from ``x0_i``
-under ``u_ref_i``; ``t`` and ``x_ref`` carry it on a grid) is invariant under this law, its
-interpolation of ``x_ref`` included (the pipeline's certify stage bounds that error). A state
-with ``||x - reference(t)||_P(t) <= radius - interpolation_error`` is therefore inside it.
+What a ``/2`` file certifies: the funnel ``E_i(t) = {x : (x - x_ref_i(t))^T P_i(t) (x - x_ref_i(t))
+<= radius_i^2 e^{-2 rate_i t}}`` about the exact nominal (the solution from ``x0_i`` under
+``u_ref_i``; ``t`` and ``x_ref`` carry it on a grid) is invariant under this law, its interpolation
+of ``x_ref`` included: the pipeline's certify stage bounds that interpolation error soundly on
+every sample interval (``interpolation_error_P_norm`` is only a measured estimate of it).
 
 Gain convention: ``u = u_ref + K e`` with ``e = x - x_ref``, so a stabilising ``K`` is the
 *negative* of ``control.lqr``'s gain (which is written ``u = -K x``).

@@ -67,9 +67,9 @@ from pipeline.io.artifacts import file_hash
 from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import simulate
 from pipeline.numerics.cover import DEFAULT_DEPTH, subdivide
-from pipeline.numerics.funnel_law import BASE_SUBSTEPS, LEVEL_MARGIN
+from pipeline.numerics.funnel_law import BASE_SUBSTEPS, LEVEL_MARGIN, LMI_MARGIN
 from pipeline.numerics.hull import DEFAULT_SEGMENTS, HullError, jacobian_hull
-from pipeline.numerics.recertify import check_reference, recheck_funnel
+from pipeline.numerics.recertify import ReferenceCheck, check_reference, recheck_funnel
 from pipeline.numerics.sampled import contraction_rate, held_rate
 from pipeline.numerics.terminal import check_level, end_levels
 from pipeline.numerics.tube import Tube
@@ -106,6 +106,7 @@ class CertificationResult:
       covered_fraction: the part of Init certified covered by the file's balls (volume).
       terminal: the file has a terminal block; terminal_decay: its certified ``alpha`` (1/s);
         terminal_fit: the largest end tube's share of the ellipsoid's radius (<= 1 to fit).
+      contraction_bound: what ``contraction_margin`` must be below (``contraction_bound``).
       failures: one line per failed check; empty when the file is certified.
     """
 
@@ -124,6 +125,7 @@ class CertificationResult:
     terminal: bool = False
     terminal_decay: float = float("nan")
     terminal_fit: float = float("nan")
+    contraction_bound: float = 0.0
 
 
 def _feedback(controller: Controller) -> tuple[np.ndarray, np.ndarray, float]:
@@ -182,6 +184,15 @@ def verify_terminal(scenario: Scenario, controller: Controller) -> tuple[float, 
     return check.decay, fit, failures
 
 
+def contraction_bound(controller: Controller) -> float:
+    """What the largest contraction eigenvalue must be below: ``-ROUNDING_MARGIN ||P||`` (at
+    least ``ROUNDING_MARGIN``) for a ``/1`` file, ``-LMI_MARGIN`` (the (F2) eigenvalue plus the
+    law's terms, ``funnel_law``) for a ``/2`` file."""
+    if controller.funnel or controller.P is None:
+        return -LMI_MARGIN
+    return -ROUNDING_MARGIN * max(1.0, float(np.linalg.norm(controller.P, 2)))
+
+
 def _same_scenario(scenario: Scenario, controller: Controller) -> list[str]:
     """Where the file's names, ``Ts`` and input bounds disagree with the scenario's."""
     problems = []
@@ -229,11 +240,10 @@ def _constant(
     if controller.feedback_period > 0 and vertices:
         failures += _held(controller, hull.A, hull.B)
     # strictly below zero by more than floating-point rounding of M and of the hull's vertices
-    rounding = ROUNDING_MARGIN * max(1.0, float(np.linalg.norm(P, 2)))
-    if not margin < -rounding:
+    if not margin < contraction_bound(controller):
         failures.append(
             f"the contraction inequality fails at rate {rate:g}: largest eigenvalue "
-            f"{margin:.3g} >= -{rounding:.1g} over {vertices} hull vertices"
+            f"{margin:.3g} >= {contraction_bound(controller):.1g} over {vertices} hull vertices"
         )
 
     # 4. Each reference and its radius, in the file's tube.
@@ -248,8 +258,8 @@ def _constant(
     )
     verified, errors = [], (0.0, 0.0)
     for i, tr in enumerate(controller.trajectories):
-        errors, substeps = _reference(scenario, controller, i, failures, errors)
-        if substeps is None:
+        errors, reference = _reference(scenario, controller, i, failures, errors)
+        if reference.substeps is None:
             verified.append(0.0)
             continue
         nominal = simulate(scenario.dynamics, tr.x0, tr.u_ref, scenario.Ts, VERIFY_SUBSTEPS)
@@ -277,14 +287,15 @@ def _funnels(
         )
     margin, vertices, verified, errors = -np.inf, 0, [], (0.0, 0.0)
     for i, tr in enumerate(controller.trajectories):
-        errors, substeps = _reference(scenario, controller, i, failures, errors)
-        if substeps is None:
+        errors, reference = _reference(scenario, controller, i, failures, errors)
+        if reference.substeps is None:
             verified.append(0.0)
             continue
         nominal = simulate(scenario.dynamics, tr.x0, tr.u_ref, scenario.Ts, BASE_SUBSTEPS)
         check = recheck_funnel(
-            scenario, nominal, tr.K, tr.P, tr.radius, tr.rate, scenario.state_bounds, substeps
-        )
+            scenario, nominal, tr.K, tr.P, tr.radius, tr.rate, scenario.state_bounds,
+            reference.substeps, centre_error=reference.integration * tr.radius,
+        )  # fmt: skip
         margin, vertices = max(margin, check.margin), vertices + check.vertices
         verified.append(check.radius)
         if check.failure is not None:
@@ -298,10 +309,11 @@ def _reference(
     i: int,
     failures: list[str],
     errors: tuple[float, float],
-) -> tuple[tuple[float, float], np.ndarray | None]:
+) -> tuple[tuple[float, float], ReferenceCheck]:
     """Step 4's reference checks of trajectory ``i`` in its tube metric ``P_i(t)``
     (``recertify.check_reference``). Returns ``(largest (reference error, interpolation error)
-    so far, the file grid's RK4 steps on each sample interval (None: not an RK4 grid))``."""
+    so far, the check: the file grid's RK4 steps on each sample interval (None: not an RK4
+    grid) and the estimated RK4 error)``."""
     tr = controller.trajectories[i]
     check = check_reference(scenario, tr, controller.Ts, VERIFY_SUBSTEPS)
     if check.substeps is None:
@@ -309,7 +321,7 @@ def _reference(
             f"trajectories[{i}]: t is not an RK4 grid of the samples (every sample time, equal "
             "steps inside each sample interval)"
         )
-        return errors, None
+        return errors, check
     if not check.error <= REFERENCE_TOLERANCE:
         failures.append(
             f"trajectories[{i}]: x_ref is not the dynamics under u_ref from x0 "
@@ -326,7 +338,7 @@ def _reference(
             f"radius from the dynamics (> {INTERPOLATION_TOLERANCE:g}); emit it on a finer grid"
         )
     errors = (max(errors[0], check.error), max(errors[1], check.interpolation))
-    return errors, check.substeps
+    return errors, check
 
 
 def certify_controller(
@@ -456,4 +468,5 @@ def certify_controller(
         terminal=controller.terminal is not None,
         terminal_decay=decay,
         terminal_fit=fit,
+        contraction_bound=contraction_bound(controller),
     )

@@ -142,7 +142,7 @@ USAGE = " (usage: python -m pipeline synthesize --help)"
             "argument --samples: found '1000000000000'; expected a whole number from 1 to "
             "1,000,000,000",
         ),
-        (["--jobs", "1.5"], "argument --jobs: found '1.5'; expected a whole number >= 1"),
+        (["--jobs", "1.5"], "argument --jobs: found '1.5'; expected a whole number from 1 to 1,024"),
         (
             ["--method", "newton"],
             "argument --method: found 'newton'; expected one of ('gd', 'lbfgs')",
@@ -177,7 +177,12 @@ def test_a_bad_option_is_one_line_and_exit_2_before_the_output_folder_is_touched
         ({"seed": 1.5}, "seed=1.5; expected a whole number >= 0"),
         ({"seed": True}, "seed=True; expected a whole number >= 0"),
         ({"samples": 0}, "samples=0; expected a whole number from 1 to 1,000,000,000"),
-        ({"jobs": "2"}, "jobs='2'; expected a whole number >= 1"),
+        ({"jobs": "2"}, "jobs='2'; expected a whole number from 1 to 1,024"),
+        ({"jobs": 10**6}, "jobs=1000000; expected a whole number from 1 to 1,024"),
+        (
+            {"feedback_period": 10**400},
+            f"feedback_period={10**400}; expected 0 or a finite number of seconds >= 0.0001",
+        ),
         ({"stress": "no"}, "stress='no'; expected True or False"),
         ({"force": "no"}, "force='no'; expected True or False"),
         ({"force": 1}, "force=1; expected True or False"),

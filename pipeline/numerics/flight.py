@@ -121,13 +121,13 @@ def fly(
             t = start + j * h
             t_end = end - LEFT_LIMIT if j == substeps - 1 else t + h
             if held is None:
-                u1 = law(t, x)
-                k1 = f(x, u1)
+                u_start = law(t, x)
+                k1 = f(x, u_start)
                 k2 = f(x + h / 2 * k1, law(t + h / 2, x + h / 2 * k1))
                 k3 = f(x + h / 2 * k2, law(t + h / 2, x + h / 2 * k2))
                 k4 = f(x + h * k3, law(t_end, x + h * k3))
             else:
-                u1 = held
+                u_start = held
                 k1 = f(x, held)
                 k2 = f(x + h / 2 * k1, held)
                 k3 = f(x + h / 2 * k2, held)
@@ -135,7 +135,7 @@ def fly(
             x = x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
             ts.append(float(start + (j + 1) * h))
             xs.append(x)
-            us.append(u1)
+            us.append(u_start)
     return Flight(
         ts=np.array(ts),
         xs=np.array(xs),

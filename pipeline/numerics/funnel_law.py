@@ -37,8 +37,10 @@ at a hull vertex, a corner of the box and an end of the interval:
 
 and the funnel is invariant under the shipped law when ``m_k + 2 w_k / (rho e^{-lambda t_k+1}) <
 0`` on every interval (``rho_t`` is smallest at the interval's end). ``LMI_MARGIN`` is required
-below zero on top: the eigenvalues are rounded in floating point and the RK4 values stand in for
-the exact nominal (the certify stage checks that their estimated error is below ``LEVEL_MARGIN``).
+below zero on top, for the eigenvalues' rounding. The RK4 values stand in for the exact nominal:
+their estimated error (Richardson, against a grid twice as fine) moves the law's centre as the
+interpolation does, and the certify stage adds it to ``Delta`` (``law_offset``'s
+``centre_error``) and requires it below ``LEVEL_MARGIN`` of the radius (the levels' limits).
 
 (I4) A bounded disturbance. With ``xdot = f(x, u) + w``, ``|w_i| <= d_i`` for every measurable
 ``w`` (a box, ``d (n,)``, zero for states it does not act on), the error gains ``+ w`` and the
@@ -162,18 +164,24 @@ def law_offset(
     rate: float,
     Ts: float,
     substeps: np.ndarray,
+    centre_error: float = 0.0,
 ) -> LawOffset:
     """(I1)-(I3) for a funnel ``K (N, m, n)``, ``P (N+1, n, n)``, level ``rho``, ``rate``, with its
     hull ``vertices`` (N arrays (V, n, n+m) of ``[A_v B_v]``), the nominal's rate bound
-    ``rate_bound (N, n)`` (E1) and the reference grid's ``substeps (N,)`` per sample."""
+    ``rate_bound (N, n)`` (E1) and the reference grid's ``substeps (N,)`` per sample.
+    ``centre_error``: the P-norm error of the RK4 values standing in for the exact nominal
+    (estimated by the caller); it moves the law's centre too, so it joins ``Delta`` (a P-norm
+    error ``eps`` is at most ``eps sqrt(Q_ii)`` in state ``i``)."""
     N, m, n = K.shape
     steps = Ts / np.asarray(substeps, dtype=np.float64)
+    Q_diagonal = np.diagonal(np.linalg.inv(P), axis1=1, axis2=2)  # (N+1, n)
+    centre = centre_error * np.sqrt(np.maximum(Q_diagonal[:-1], Q_diagonal[1:]))  # (N, n)
     deviation, input_offset, lmi_term = np.zeros((N, n)), np.zeros((N, m)), np.zeros(N)
     signs = np.array(list(itertools.product((-1.0, 1.0), repeat=n)))[: 2 ** (n - 1)]  # +-pairs
     for k in range(N):
         A, B = vertices[k][:, :, :n], vertices[k][:, :, n:]
         acceleration = (np.abs(A) @ rate_bound[k]).max(axis=0)  # (n,) bound on |xddot|
-        deviation[k] = steps[k] ** 2 / 8 * acceleration  # eq. (I1)
+        deviation[k] = steps[k] ** 2 / 8 * acceleration + centre[k]  # eq. (I1)
         input_offset[k] = np.abs(K[k]) @ deviation[k]  # eq. (I3)
         offsets = (B @ K[k]) @ (signs * deviation[k]).T  # (V, n, corners)
         w = max(

@@ -74,8 +74,9 @@ class ReferenceCheck:
       substeps: (N,) the grid's steps on each sample interval (None with ``trajectory``).
       error: ``max ||x_ref - simulated||_P(t) / radius`` on that grid.
       interpolation: ``max ||x_ref interpolated - the dynamics||_P(t)`` on the finer grid.
-      integration: the RK4 error of the file's grid at the sample times, estimated from the
-        finer grid (Richardson, order 4: ``16/15 |x_s - x_2s|``), in ``P(t_k)`` per unit radius.
+      integration: the RK4 error at the sample times, estimated against a grid twice as fine
+        (Richardson, order 4: ``16/15 |x_s - x_2s|``), in ``P(t_k)`` per unit radius: the larger
+        of the file's grid and the proof's (``BASE_SUBSTEPS``).
     """
 
     trajectory: Trajectory | None
@@ -108,8 +109,17 @@ def check_reference(
     gap = tracked - finer.dense_xs
     metric = tr.metric(finer.dense_ts, Ts)
     interpolation = float(np.sqrt(np.einsum("ki,kij,kj->k", gap, metric, gap)).max())
-    d = fine.xs - finer.xs
-    integration = 16 / 15 * np.sqrt(np.einsum("ki,kij,kj->k", d, tr.metric(fine.ts, Ts), d)).max()
+    metric = tr.metric(fine.ts, Ts)  # (N+1, n, n)
+    proof = simulate(scenario.dynamics, tr.x0, tr.u_ref, Ts, BASE_SUBSTEPS)  # the proof's nominal
+    twice = simulate(scenario.dynamics, tr.x0, tr.u_ref, Ts, 2 * BASE_SUBSTEPS)
+    integration = (
+        16
+        / 15
+        * max(
+            np.sqrt(np.einsum("ki,kij,kj->k", d, metric, d)).max()
+            for d in (fine.xs - finer.xs, proof.xs - twice.xs)
+        )
+    )
     return ReferenceCheck(
         trajectory=fine,
         substeps=substeps,
@@ -181,6 +191,7 @@ def _under_law(
     state_bounds: Mapping[str, tuple[float, float]],
     segments: int,
     substeps: np.ndarray,
+    centre_error: float = 0.0,
 ) -> tuple[Funnel, LawOffset]:
     """Steps 1-3: the funnel rebuilt with its input boxes widened by ``OFFSET_ALLOWANCE`` times the
     law's input offset (I3) found on hulls without it, and the law's offset on the hulls so built
@@ -193,8 +204,9 @@ def _under_law(
     if plain.enclosure is None:
         raise HullError("no a priori enclosure of the nominal")
     first = law_offset(
-        plain.vertices, plain.enclosure.rate_bound, K, P, rho, rate, scenario.Ts, substeps
-    )
+        plain.vertices, plain.enclosure.rate_bound, K, P, rho, rate, scenario.Ts, substeps,
+        centre_error,
+    )  # fmt: skip
     allowance = OFFSET_ALLOWANCE * first.input_offset
     funnel = rebuild_funnel(
         scenario, trajectory, K, P, Q, rho, rate, state_bounds, segments, allowance
@@ -202,8 +214,9 @@ def _under_law(
     if funnel.enclosure is None:
         raise HullError("no a priori enclosure of the nominal")
     law = law_offset(
-        funnel.vertices, funnel.enclosure.rate_bound, K, P, rho, rate, scenario.Ts, substeps
-    )
+        funnel.vertices, funnel.enclosure.rate_bound, K, P, rho, rate, scenario.Ts, substeps,
+        centre_error,
+    )  # fmt: skip
     if np.any(law.input_offset > allowance):
         raise HullError("the interpolated reference's input offset (I3) outgrew its hull box")
     return funnel, law
@@ -218,6 +231,7 @@ def recheck_funnel(
     rate: float,
     state_bounds: Mapping[str, tuple[float, float]],
     substeps: np.ndarray,
+    centre_error: float = 0.0,
 ) -> FunnelRecheck:
     """Steps 1-4 of the module docstring for one funnel (``K (N, m, n)``, ``P (N+1, n, n)``)
     around the nominal ``trajectory`` (a uniform RK4 grid), its law tracking the reference on a
@@ -229,8 +243,9 @@ def recheck_funnel(
     for segments in SEGMENTS:
         try:
             funnel, law = _under_law(
-                scenario, trajectory, K, P, Q, rho, rate, state_bounds, segments, substeps
-            )
+                scenario, trajectory, K, P, Q, rho, rate, state_bounds, segments, substeps,
+                centre_error,
+            )  # fmt: skip
         except (HullError, np.linalg.LinAlgError) as error:
             failures.append(f"{segments} segment(s): {error}")
             continue

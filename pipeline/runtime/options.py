@@ -80,7 +80,10 @@ class Period:
     def value(self, found: object) -> float:
         if isinstance(found, bool) or not isinstance(found, numbers.Real):
             raise ValueError(self.expected)
-        seconds = float(found)
+        try:
+            seconds = float(found)
+        except OverflowError:  # an int beyond float64
+            raise ValueError(self.expected) from None
         if not (seconds == 0 or self.minimum <= seconds < math.inf):
             raise ValueError(self.expected)
         return seconds
@@ -154,6 +157,7 @@ class ExecutorSpec:
 # The most Monte Carlo runs: 10^9 is some 10 hours of CPU on quadrotor_hill (100,000 take 3.6 s),
 # and its chunks' 400,000 seed streams take 150 MB; far beyond, they alone exhaust the memory.
 MAX_SAMPLES = 10**9
+MAX_JOBS = 1024  # worker processes: far beyond any machine's cores, below its process limits
 
 # The shortest --feedback-period (s). Monte Carlo flies the held law with at least one RK4 step
 # per period, Ts / h steps per sample (1000 for Ts = 0.1 s at 0.1 ms, 250 times the 4 steps of
@@ -225,7 +229,7 @@ class RunOptions:
         Choice(HORIZON_SEARCHES),
     )
     samples: int = option(100_000, "Monte Carlo closed-loop runs", Whole(1, MAX_SAMPLES))
-    jobs: int = option(1, "worker processes", Whole(1))
+    jobs: int = option(1, "worker processes", Whole(1, MAX_JOBS))
     executor: str | None = option(
         None,
         "where parallel work runs: local (default), dask-local, or dask://HOST:PORT",

@@ -194,6 +194,7 @@ def mark_failed(
     (their new names). What the run staged is removed, and so is the ``INCOMPLETE`` marker: the
     failed summary says what the folder holds."""
     _remove(out / STAGING)
+    files.unlink(out / "summary.json")  # the previous verdict goes first (as in publish)
     renamed = []
     for name in STALE_FILES:
         path = out / name

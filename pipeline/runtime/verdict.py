@@ -128,7 +128,8 @@ def certificate_kinds(evidence: Evidence, certified: bool) -> tuple[ClaimKind, C
     (funnel) claim, certified where the check of controller.json found the inequality strict
     (and, for the funnels, passed), and the coverage claim, certified with the run."""
     check = evidence.certification
-    contraction = ClaimKind.CERTIFIED if check.contraction_margin < 0 else ClaimKind.NOT_ESTABLISHED
+    holds = check.contraction_margin < check.contraction_bound  # certify's own criterion
+    contraction = ClaimKind.CERTIFIED if holds else ClaimKind.NOT_ESTABLISHED
     if evidence.certificate == "funnel" and not check.success:
         contraction = ClaimKind.NOT_ESTABLISHED
     return contraction, ClaimKind.CERTIFIED if certified else ClaimKind.NOT_ESTABLISHED
