@@ -10,7 +10,7 @@ encodes exactly (``inputs_key``):
   and compiled functions are derived from these by ``Dynamics.from_expressions``;
 - shapely geometries (Unsafe, Goal): their WKB, little-endian, hex (vertex coordinates as the
   float64 bits, rings and holes included);
-- pydantic models (``spec``, ``feedback``): their fields (``model_dump``), so ``spec.stress``
+- pydantic models (``spec``, ``feedback``): their type and declared fields, so ``spec.stress``
   and ``spec.description``, read through the spec, are keyed too;
 - dataclasses (``Demo``): their type and fields;
 - anything else: ``TypeError`` naming the field and the type (nothing is keyed by ``str()``).

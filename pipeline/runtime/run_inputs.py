@@ -79,6 +79,14 @@ def method_of(scenario: Scenario, options: RunOptions) -> str:
     return options.method or scenario.optimizer
 
 
+# The scenario's fields that the numerical stages keyed on ``scenario_key(scenario,
+# *NOT_NUMERICAL)`` do not read: the description and stress settings (the report, the stress
+# test), the optimizer (optimize keys the one it runs: --method, else the scenario's) and the
+# demos (the stages get their starts and inputs as arguments, which their keys carry; optimize,
+# the one stage that reads scenario.demos, keys their names, starts and inputs too).
+NOT_NUMERICAL = ("description", "stress", "optimizer", "demos")
+
+
 def scenario_key(scenario: Scenario, *exclude: str) -> str:
     """A hash of every field of the ``Scenario`` the stages read (``scenario_data``: arrays,
     polygons, the dynamics' expressions, the parsed file...), not of the file's bytes, without
@@ -91,7 +99,7 @@ def montecarlo_key(scenario: Scenario, controller_sha256: str, samples: int, see
     """The Monte Carlo stage's key: its code, the scenario's fields, the SHA-256 of the
     ``controller.json`` it flew, the number of runs and the seed. ``report`` computes it again
     to check that the stored result is of the ``controller.json`` beside it."""
-    core = scenario_key(scenario, "description", "stress", "optimizer")
+    core = scenario_key(scenario, *NOT_NUMERICAL)
     return inputs_key(code_key("stages.montecarlo"), core, controller_sha256, samples, seed)
 
 

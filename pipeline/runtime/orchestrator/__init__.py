@@ -225,8 +225,8 @@ def _synthesize(
     runner: StageRunner,
     started: float,
 ) -> Synthesis:
-    # what the numerical stages read (optimize keys on the optimizer it runs, --method or not)
-    core = run_inputs.scenario_key(scenario, "description", "stress", "optimizer")
+    # the scenario's fields the numerical stages read (all but run_inputs.NOT_NUMERICAL)
+    core = run_inputs.scenario_key(scenario, *run_inputs.NOT_NUMERICAL)
     demo_starts = [d.x0 for d in scenario.demos]
     demo_inputs = [d.us for d in scenario.demos]
     demos = inputs_key([d.name for d in scenario.demos], *demo_starts, *demo_inputs)
