@@ -30,13 +30,12 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
-from pathlib import Path
 
 import numpy as np
 
 from pipeline.io.executor import Executor, SerialExecutor, preload_in_workers
 from pipeline.model.dynamics import FloatArray
-from pipeline.model.scenario import Scenario, load_scenario_cached
+from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import Trajectory
 from pipeline.numerics.cells import init_cells
 from pipeline.numerics.funnel import synthesize_funnel
@@ -118,11 +117,10 @@ def required_sets(
 
 @dataclass(frozen=True, kw_only=True)
 class _Task:
-    """One funnel for a worker: the scenario (loaded there), the nominal and ``Q_init (p, n, n)``
-    (``v v^T`` per corner of its cell, or the ball slice (I1))."""
+    """One funnel for a worker: the scenario (pickled to a worker process), the nominal and
+    ``Q_init (p, n, n)`` (``v v^T`` per corner of its cell, or the ball slice (I1))."""
 
-    path: Path
-    source_hash: str
+    scenario: Scenario
     trajectory: Trajectory
     initial: FloatArray
     rate: float
@@ -151,7 +149,7 @@ def _accepted(
 
 
 def _funnel_in_worker(task: _Task) -> tuple[Funnel, str | None]:
-    scenario = load_scenario_cached(task.path, task.source_hash)
+    scenario = task.scenario
     bounds = dict(scenario.state_bounds)
     funnel = synthesize_funnel(
         scenario, task.trajectory, state_bounds=bounds, initial=task.initial, rate=task.rate
@@ -211,8 +209,7 @@ def synthesize_funnels(
         )
     tasks = {
         i: _Task(
-            path=scenario.path,
-            source_hash=scenario.source_hash,
+            scenario=scenario,
             trajectory=trajectory,
             initial=Q_init,
             rate=rate,

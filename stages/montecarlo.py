@@ -36,7 +36,7 @@ from scipy.stats import binomtest, qmc
 from pipeline.controller import Controller, load
 from pipeline.io.executor import Executor, SerialExecutor, preload_in_workers
 from pipeline.model.dynamics import FloatArray
-from pipeline.model.scenario import Scenario, load_scenario_cached
+from pipeline.model.scenario import Scenario
 from pipeline.numerics.closed_loop import RunChecks, check_runs
 from pipeline.numerics.rollouts import (
     check_runs_compiled,
@@ -185,10 +185,10 @@ def _drawn_paths(
 
 
 def _run_chunk_in_worker(
-    task: tuple[Path, str, Path, int, np.random.SeedSequence],
+    task: tuple[Scenario, Path, int, np.random.SeedSequence],
 ) -> tuple[RunChecks, FloatArray, Hold]:
-    path, source_hash, controller_path, size, stream = task
-    return _run_chunk(load_scenario_cached(path, source_hash), controller_path, size, stream)
+    scenario, controller_path, size, stream = task  # the scenario given, pickled to a worker
+    return _run_chunk(scenario, controller_path, size, stream)
 
 
 def validate_closed_loop(
@@ -210,7 +210,7 @@ def validate_closed_loop(
     chunks = [chunk] * (samples // chunk) + ([samples % chunk] if samples % chunk else [])
     streams = np.random.SeedSequence(seed).spawn(len(chunks))
     tasks = [
-        (scenario.path, scenario.source_hash, Path(controller_path), size, stream)
+        (scenario, Path(controller_path), size, stream)
         for size, stream in zip(chunks, streams, strict=True)
     ]
     executor = executor or SerialExecutor()

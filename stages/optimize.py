@@ -27,13 +27,12 @@ import dataclasses
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
 from pipeline.io.executor import Executor, SerialExecutor, preload_in_workers
 from pipeline.model.dynamics import FloatArray
-from pipeline.model.scenario import Scenario, load_scenario_cached
+from pipeline.model.scenario import Scenario
 from pipeline.numerics.descent import DescentResult, IterationLog, check_stall_settings
 from pipeline.numerics.footprint import ConstraintMargins, verify_within
 from pipeline.numerics.funnel_check import Funnel
@@ -290,10 +289,10 @@ def optimize_from(
 
 
 def _optimize_in_worker(
-    task: tuple[Path, str, int, ConstraintMargins, OptimizeOptions],
+    task: tuple[Scenario, int, ConstraintMargins, OptimizeOptions],
 ) -> TrajectoryOptimization:
-    path, source_hash, demo, margins, options = task
-    return optimize_demo(load_scenario_cached(path, source_hash), demo, margins, options)
+    scenario, demo, margins, options = task  # the scenario given, pickled to a worker process
+    return optimize_demo(scenario, demo, margins, options)
 
 
 def optimize(
@@ -307,7 +306,7 @@ def optimize(
     """Optimise the given demos (default all) on ``executor`` (default: here, in order); the
     result does not depend on the executor (every demo's computation is deterministic)."""
     indices = list(range(len(scenario.demos))) if demos is None else list(demos)
-    tasks = [(scenario.path, scenario.source_hash, i, margins, options) for i in indices]
+    tasks = [(scenario, i, margins, options) for i in indices]
     executor = executor or SerialExecutor()
     results = executor.map(
         _optimize_in_worker, tasks, done=None if progress is None else lambda _i: progress(1)
@@ -331,10 +330,9 @@ def _result(
 
 
 def _reoptimize_in_worker(
-    task: tuple[Path, str, TrajectoryOptimization, ConstraintMargins, OptimizeOptions, int],
+    task: tuple[Scenario, TrajectoryOptimization, ConstraintMargins, OptimizeOptions, int],
 ) -> TrajectoryOptimization:
-    path, source_hash, previous, margins, options, N_min = task
-    scenario = load_scenario_cached(path, source_hash)
+    scenario, previous, margins, options, N_min = task
     return optimize_from(
         scenario,
         previous.demo,
@@ -422,7 +420,7 @@ def reoptimize_with_funnels(
             level=level,
             at_least=scenario.clearance if at_least is None else at_least,
         )
-        task = (scenario.path, scenario.source_hash, previous, margins, options, floors[i])
+        task = (scenario, previous, margins, options, floors[i])
         tasks.append((i, task))
     executor = executor or SerialExecutor()
     done = [] if not tasks else executor.map(

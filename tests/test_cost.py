@@ -3,6 +3,8 @@ kernels against the NumPy/shapely reference, and the ``Problem`` API."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -196,6 +198,17 @@ def test_demo_problem_and_horizons():
     )
     assert long._cache is problem._cache  # compiled kernels shared across horizons
     assert np.isfinite(problem.cost(problem.u_seed))
+
+
+def test_a_replaced_problem_does_not_reuse_the_penalty_data_of_another():
+    scenario = load_scenario("double_integrator", check_demos=False)
+    problem = make_problem(scenario, demo=0)
+    u = problem.u_seed
+    assert problem.cost(u) == 0.0  # the demo keeps d = 0.5 (its penalty data now memoised)
+    wider = make_problem(scenario, demo=0, clearance=0.9)
+    replaced = dataclasses.replace(problem, constraints=wider.constraints)
+    assert replaced._cache is not problem._cache
+    assert replaced.cost(u) == wider.cost(u) > 0.0
 
 
 def test_margins_shrink_the_bounds_and_the_region(quadrotor):

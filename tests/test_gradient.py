@@ -96,7 +96,7 @@ def test_gradient_matches_central_differences(case, method):
 
 def test_methods_and_backends_agree(case):
     problem, u, _ = case
-    reference = dataclasses.replace(problem, backend="numpy", _cache={})
+    reference = dataclasses.replace(problem, backend="numpy")  # its own (empty) cache
     results = {
         (backend.backend, method): backend.cost_and_gradient(u, method=method)
         for backend in (problem, reference)
@@ -158,7 +158,7 @@ def test_gradient_with_margins_along_the_trajectory_matches_central_differences(
     J, q = problem.cost_and_gradient(u, method=method)
     assert np.isfinite(J) and J > constant.cost(u)  # the time-varying margins add cost
     assert _relative_error(q, q_fd) <= 1e-6
-    reference = dataclasses.replace(problem, backend="numpy", _cache={})
+    reference = dataclasses.replace(problem, backend="numpy")  # its own (empty) cache
     J_numpy, q_numpy = reference.cost_and_gradient(u, method=method)
     assert J_numpy == pytest.approx(J, rel=1e-12)
     assert _relative_error(q_numpy, q) <= 1e-9

@@ -142,7 +142,10 @@ USAGE = " (usage: python -m pipeline synthesize --help)"
             "argument --samples: found '1000000000000'; expected a whole number from 1 to "
             "1,000,000,000",
         ),
-        (["--jobs", "1.5"], "argument --jobs: found '1.5'; expected a whole number from 1 to 1,024"),
+        (
+            ["--jobs", "1.5"],
+            "argument --jobs: found '1.5'; expected a whole number from 1 to 1,024",
+        ),
         (
             ["--method", "newton"],
             "argument --method: found 'newton'; expected one of ('gd', 'lbfgs')",

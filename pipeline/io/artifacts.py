@@ -158,15 +158,30 @@ def type_name(cls: type) -> str:
     return f"{cls.__module__}:{cls.__qualname__}"
 
 
-def _encode(value: Any, arrays: dict[str, np.ndarray]) -> Any:
+def _encode(value: Any, arrays: dict[str, np.ndarray], exact: bool = False) -> Any:
+    """``value`` as a JSON tree, its larger arrays moved to ``arrays`` (named in the tree).
+
+    Every node is tagged (``__dataclass__`` with its type's name, ``__tuple__``, ``__dict__`` as
+    ``[key, value]`` pairs in order, ``__path__``, ``__array__`` with dtype and shape, ``__npz__``),
+    so two values of different types or structure never give one tree. With ``exact`` (the
+    cache keys, ``inputs_key``) a NumPy scalar keeps its dtype (a 0-d array), a ``str``, ``int``
+    or ``float`` subclass (an enum) and an array of another kind than bool, integer or float
+    are refused; the store (``save_result``) keeps its format, NumPy scalars as Python numbers.
+    Anything else raises ``TypeError`` naming its type: nothing is encoded by ``str()``.
+    """
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
         fields = {
-            f.name: _encode(getattr(value, f.name), arrays) for f in dataclasses.fields(value)
+            f.name: _encode(getattr(value, f.name), arrays, exact)
+            for f in dataclasses.fields(value)
         }
         return {"__dataclass__": type_name(type(value)), "fields": fields}
+    if isinstance(value, np.generic) and exact:
+        value = np.asarray(value)  # its dtype kept: np.float32(1) is not 1.0
     if isinstance(value, np.ndarray):
         if value.dtype == object:
-            raise TypeError("object arrays cannot be stored as artifacts")
+            raise TypeError("cannot encode an object array (in an artifact or a cache key)")
+        if exact and value.dtype.kind not in "biuf":
+            raise TypeError(f"cannot encode an array of dtype {value.dtype} in a cache key")
         if value.size <= SMALL_ARRAY:
             return {"__array__": value.tolist(), "dtype": value.dtype.str, "shape": value.shape}
         key = f"a{len(arrays)}"
@@ -177,14 +192,17 @@ def _encode(value: Any, arrays: dict[str, np.ndarray]) -> Any:
     if isinstance(value, Path):
         return {"__path__": str(value)}
     if isinstance(value, tuple):
-        return {"__tuple__": [_encode(v, arrays) for v in value]}
+        return {"__tuple__": [_encode(v, arrays, exact) for v in value]}
     if isinstance(value, list):
-        return [_encode(v, arrays) for v in value]
+        return [_encode(v, arrays, exact) for v in value]
     if isinstance(value, Mapping):
-        return {"__dict__": [[_encode(k, arrays), _encode(v, arrays)] for k, v in value.items()]}
-    if value is None or isinstance(value, (bool, int, float, str)):
+        pairs = [[_encode(k, arrays, exact), _encode(v, arrays, exact)] for k, v in value.items()]
+        return {"__dict__": pairs}
+    if value is None or type(value) in (bool, int, float, str):
         return value
-    raise TypeError(f"cannot store a {type(value).__name__} in an artifact")
+    if isinstance(value, (bool, int, float, str)) and not exact:
+        return value
+    raise TypeError(f"cannot encode a {type(value).__qualname__} (in an artifact or a cache key)")
 
 
 def _decode(value: Any, arrays: Mapping[str, np.ndarray], registry: Mapping[str, type]) -> Any:
@@ -318,12 +336,19 @@ def read_stored(stem: Path, registry: Mapping[str, type]) -> Stored | None:
 
 
 def inputs_key(*parts: Any) -> str:
-    """A content hash of a stage's inputs (strings, numbers, arrays, JSON-able structures)."""
-    digest = hashlib.sha256()
-    for part in parts:
-        if isinstance(part, np.ndarray):
-            digest.update(np.ascontiguousarray(part, dtype=np.float64).tobytes())
-        else:
-            digest.update(json.dumps(part, sort_keys=True, default=str).encode())
-        digest.update(b"\x00")
-    return digest.hexdigest()[:16]
+    """A hash of a stage's inputs: SHA-256 (first 16 hex digits) of ``parts`` as the artifact
+    store encodes them (``_encode`` with ``exact``), over ``content_hash``.
+
+    The encoding is injective: every node is tagged with its type (a dataclass by its name and
+    fields; tuple, list, mapping and path apart; ``1``, ``1.0`` and ``True`` apart; floats by
+    their shortest exact ``repr``), every array carries its dtype and shape (a ``(2, 3)``, a
+    ``(3, 2)`` and an int ``(6, 1)`` array of the same bytes differ) and is hashed whole, JSON is
+    self-delimiting and the bytes of each array follow a header fixing their length, so no two
+    values give one byte stream (``("ab", "c")`` is not ``("a", "bc")``). A mapping is encoded in
+    its order: the stages iterate mappings (the Unsafe sets, the operating region), and sums in
+    another order can differ in the last bits. A value it cannot encode exactly (a set, an enum,
+    a sympy expression, an object array) raises ``TypeError`` naming its type.
+    """
+    arrays: dict[str, np.ndarray] = {}
+    tree = _encode(parts, arrays, exact=True)
+    return content_hash("inputs", tree, arrays)[:16]

@@ -29,6 +29,7 @@ from pipeline.io.artifacts import atomic_write_text
 from pipeline.io.errors import ScenarioError
 from pipeline.io.files import TEXT_MAX_BYTES, FileRefused, read_bytes
 from pipeline.model.dynamics import FloatArray
+from pipeline.model.frozen import freeze_fields, reduce_fields
 
 # A decimal number in ASCII (nan and inf too, refused below with their own message).
 NUMBER = re.compile(r"[+-]?(?:(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?|nan|inf|infinity)", re.I | re.A)
@@ -38,12 +39,19 @@ BOUND_TOLERANCE = 1e-9
 
 @dataclass(frozen=True)
 class Demo:
-    """A demonstration: ``x0 (n,)`` and held inputs ``us (N, m)``; lasts ``N Ts``."""
+    """A demonstration: ``x0 (n,)`` and held inputs ``us (N, m)``; lasts ``N Ts``. Deeply
+    frozen: the arrays are read-only copies."""
 
     name: str
     file: Path
     x0: FloatArray
     us: FloatArray
+
+    def __post_init__(self) -> None:
+        freeze_fields(self)
+
+    def __reduce__(self) -> tuple[object, ...]:
+        return reduce_fields(self)
 
     @property
     def N(self) -> int:

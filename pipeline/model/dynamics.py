@@ -8,12 +8,15 @@ are identically zero) drive the pruned sensitivity system of the paper's Remark 
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
 import sympy
+
+from pipeline.model.frozen import frozen_array
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
@@ -100,6 +103,15 @@ class Dynamics:
     _f_scalars: Callable[..., list] = field(repr=False)
     _f_floats: Callable[..., list] = field(repr=False)
 
+    def __post_init__(self) -> None:
+        for name in ("sparsity_x", "sparsity_u"):
+            object.__setattr__(self, name, frozen_array(getattr(self, name)))
+
+    def __reduce__(self) -> tuple[object, ...]:
+        """Pickled as the expressions it is built from (its compiled functions cannot be
+        pickled): a worker process rebuilds it once per set of expressions (``_rebuilt``)."""
+        return _rebuilt, (self.state_symbols, self.input_symbols, self.expressions)
+
     @classmethod
     def from_expressions(
         cls,
@@ -185,3 +197,25 @@ class Dynamics:
         """Names of the states and inputs that the Jacobians depend on (the certified region)."""
         free = set().union(*(e.free_symbols for e in (*self.jacobian_x, *self.jacobian_u)))
         return tuple(s.name for s in (*self.state_symbols, *self.input_symbols) if s in free)
+
+
+_REBUILT: dict[str, Dynamics] = {}
+_REBUILT_LOCK = threading.Lock()
+REBUILT_KEPT = 16
+
+
+def _rebuilt(
+    state_symbols: Sequence[sympy.Symbol],
+    input_symbols: Sequence[sympy.Symbol],
+    expressions: Sequence[sympy.Expr],
+) -> Dynamics:
+    """``Dynamics.from_expressions``, once per process for each set of expressions (their
+    ``srepr``, exact to the last bit of every Float): the tasks of one run unpickle the same
+    object, so the caches keyed on it (compiled kernels, the hull's structure) are shared."""
+    key = sympy.srepr((tuple(state_symbols), tuple(input_symbols), tuple(expressions)))
+    with _REBUILT_LOCK:
+        if key not in _REBUILT:
+            if len(_REBUILT) >= REBUILT_KEPT:
+                del _REBUILT[next(iter(_REBUILT))]
+            _REBUILT[key] = Dynamics.from_expressions(state_symbols, input_symbols, expressions)
+        return _REBUILT[key]

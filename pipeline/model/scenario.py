@@ -13,7 +13,6 @@ field path (or CSV row), what was found and what was expected:
 
 from __future__ import annotations
 
-import functools
 import keyword
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -36,6 +35,7 @@ from pipeline.model.expressions import (
     ExpressionError,
     parse_expression,
 )
+from pipeline.model.frozen import freeze_fields, reduce_fields
 from pipeline.model.scenario_file import LOCAL_SCENARIOS as LOCAL_SCENARIOS  # re-exported
 from pipeline.model.scenario_file import SCENARIOS_ROOT as SCENARIOS_ROOT
 from pipeline.model.scenario_file import available_scenarios as available_scenarios
@@ -67,6 +67,10 @@ class Scenario:
       optimizer: "gd" (the paper's gradient descent) or "lbfgs": how nominals are optimized.
       state_bounds: state name -> (lower, upper), the physical envelope (not a certificate region).
       units, labels: state or input name -> unit / human name (optional; see ``label``).
+
+    Deeply frozen: every array is a read-only copy and every mapping a read-only view of a copy
+    (``pipeline.model.frozen``), so ``dataclasses.replace(scenario, clearance=0.5)`` is the way to
+    another scenario. Its cache key encodes these fields (``pipeline.model.scenario_data``).
     """
 
     name: str
@@ -93,6 +97,14 @@ class Scenario:
     state_bounds: Mapping[str, tuple[float, float]] = field(default_factory=dict)
     units: Mapping[str, str] = field(default_factory=dict)
     labels: Mapping[str, str] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        freeze_fields(self)
+
+    def __reduce__(self) -> tuple[object, ...]:
+        """Pickled by its fields (an executor's worker gets the scenario it is given, also one
+        made by ``dataclasses.replace``); unpickling constructs, hence freezes, it again."""
+        return reduce_fields(self)
 
     @property
     def state_names(self) -> tuple[str, ...]:
@@ -157,14 +169,6 @@ def load_scenario(name_or_path: str | Path, check_demos: bool = True) -> Scenari
         for demo in scenario.demos:
             check_demo_flight(scenario, demo)
     return scenario
-
-
-@functools.cache
-def load_scenario_cached(path: Path, source_hash: str) -> Scenario:
-    """``load_scenario(path, check_demos=False)`` once per process and file content (for workers
-    of an executor; ``source_hash`` keys the cache so that an edited file is reloaded)."""
-    del source_hash
-    return load_scenario(path, check_demos=False)
 
 
 def _require_names(

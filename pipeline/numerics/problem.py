@@ -60,7 +60,12 @@ class Problem:
     constraints: Constraints = field(repr=False)
     penalty_points: int
     backend: str
-    _cache: dict[str, Any] = field(default_factory=dict, repr=False)  # shared by with_horizon
+    # Memo of what depends only on the fields above (the compiled kernels and the sensitivity
+    # pattern: on scenario.dynamics; each horizon's penalty data: on constraints, N, substeps).
+    # Private to this instance: init=False, so dataclasses.replace starts an empty one for a
+    # problem with other fields; only with_horizon, which changes u_seed (hence N, part of the
+    # data's key) and nothing else, shares it.
+    _cache: dict[str, Any] = field(default_factory=dict, init=False, repr=False, compare=False)
 
     @property
     def N(self) -> int:
@@ -110,7 +115,7 @@ class Problem:
             kernels = compiled.load_kernels(self.scenario.dynamics)
             pattern = compiled.pattern_data(self.pattern, self.scenario.dynamics.sparsity_x)
             self._cache["compiled"] = (kernels, pattern)
-        key = f"data N={self.N}"  # the margins on the grid depend on the horizon
+        key = f"data N={self.N} s={self.substeps}"  # the margins on this grid
         if key not in self._cache:
             self._cache[key] = compiled.penalty_data(self.constraints, self.N, self.substeps)
         kernels, pattern = self._cache["compiled"]
@@ -215,7 +220,9 @@ class Problem:
         """The same problem with horizon ``N`` and seed ``u_seed`` (N, m) (default: this seed
         truncated to ``N``, or padded by repeating its last row)."""
         seed = _seed(self.u_seed if u_seed is None else u_seed, N, self.scenario.m)
-        return dataclasses.replace(self, u_seed=seed)
+        problem = dataclasses.replace(self, u_seed=seed)
+        object.__setattr__(problem, "_cache", self._cache)  # the kernels, compiled once
+        return problem
 
 
 def _seed(us: FloatArray, N: int | None, m: int) -> FloatArray:

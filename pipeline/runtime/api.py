@@ -13,13 +13,17 @@ shows them; the command line (``pipeline.runtime.cli``) is this function plus th
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from pipeline.runtime.options import RunOptions
 from pipeline.runtime.synthesis import Synthesis
 
+if TYPE_CHECKING:
+    from pipeline.model.scenario import Scenario
+
 
 def synthesize(
-    scenario: str | Path,
+    scenario: str | Path | Scenario,
     *,
     out: str | Path | None = None,
     certificate: str | None = RunOptions.certificate,
@@ -36,8 +40,11 @@ def synthesize(
     """Synthesize and certify a safety controller for ``scenario``, then validate it.
 
     Args:
-      scenario: a name (``./scenarios/NAME``, else the shipped scenario of that name) or the
-        path of a scenario folder or its ``scenario.yaml``.
+      scenario: a name (``./scenarios/NAME``, else the shipped scenario of that name), the
+        path of a scenario folder or its ``scenario.yaml``, or a ``Scenario`` (from
+        ``load_scenario``, or another one made from it by ``dataclasses.replace(scenario,
+        clearance=0.5)``: a parameter sweep; each stage's key covers every field it reads, so a
+        changed field recomputes what depends on it).
       out: the output folder (default ``./reports/NAME`` under the current directory); stages
         whose inputs did not change since the last run there are reused.
       certificate: ``"constant"`` (one contraction metric ``P`` and gain ``K`` for all of
@@ -70,10 +77,10 @@ def synthesize(
         force=force,
         feedback_period=feedback_period,
     )
-    from pipeline.model.scenario import load_scenario
+    from pipeline.model.scenario import Scenario, load_scenario
 
     # a mistake in the scenario is reported before the heavy imports (~2 s: numerics, stages)
-    loaded = load_scenario(scenario)
+    loaded = scenario if isinstance(scenario, Scenario) else load_scenario(scenario)
     from pipeline.runtime.orchestrator import run_synthesis
 
     return run_synthesis(loaded, out=None if out is None else Path(out), options=options)

@@ -1,5 +1,5 @@
 """What a run settles before its stages: the certificate it ships, the feedback period checked
-against it, the scenario's parsed values as a cache key, the nominal trajectories simulated, and
+against it, the scenario's fields as a cache key, the nominal trajectories simulated, and
 the feedback's tube at the held law's rate. No stage is imported here (only the orchestrator
 imports stages); stage results are read by their fields.
 """
@@ -15,6 +15,7 @@ import numpy as np
 from pipeline.io.artifacts import inputs_key
 from pipeline.io.errors import UserError
 from pipeline.model.scenario import Scenario
+from pipeline.model.scenario_data import scenario_data
 from pipeline.model.simulate import Trajectory, simulate
 from pipeline.numerics.sampled import HeldRate, held_rate
 from pipeline.numerics.verify import VERIFY_SUBSTEPS
@@ -78,21 +79,31 @@ def method_of(scenario: Scenario, options: RunOptions) -> str:
     return options.method or scenario.optimizer
 
 
-def spec_key(scenario: Scenario, *exclude: str) -> str:
-    """A hash of the scenario's parsed values (not the file's bytes), without ``exclude``."""
-    spec = scenario.spec.model_dump(mode="json", exclude={"demos", *exclude})
-    return inputs_key(scenario.name, spec)
+# The scenario's fields that the numerical stages keyed on ``scenario_key(scenario,
+# *NOT_NUMERICAL)`` do not read: the description and stress settings (the report, the stress
+# test), the optimizer (optimize keys the one it runs: --method, else the scenario's) and the
+# demos (the stages get their starts and inputs as arguments, which their keys carry; optimize,
+# the one stage that reads scenario.demos, keys their names, starts and inputs too).
+NOT_NUMERICAL = ("description", "stress", "optimizer", "demos")
+
+
+def scenario_key(scenario: Scenario, *exclude: str) -> str:
+    """A hash of every field of the ``Scenario`` the stages read (``scenario_data``: arrays,
+    polygons, the dynamics' expressions, the parsed file...), not of the file's bytes, without
+    ``exclude`` (names of fields of the scenario or of its ``spec``). ``dataclasses.replace(
+    scenario, clearance=0.25)`` has another key than ``scenario``."""
+    return inputs_key(scenario_data(scenario, exclude))
 
 
 def montecarlo_key(scenario: Scenario, controller_sha256: str, samples: int, seed: int) -> str:
-    """The Monte Carlo stage's key: its code, the scenario's parsed values, the SHA-256 of the
+    """The Monte Carlo stage's key: its code, the scenario's fields, the SHA-256 of the
     ``controller.json`` it flew, the number of runs and the seed. ``report`` computes it again
     to check that the stored result is of the ``controller.json`` beside it."""
-    core = spec_key(scenario, "description", "stress", "optimizer")
+    core = scenario_key(scenario, *NOT_NUMERICAL)
     return inputs_key(code_key("stages.montecarlo"), core, controller_sha256, samples, seed)
 
 
 def stress_key(scenario: Scenario, controller_sha256: str, seed: int) -> str:
     """The stress test's key, as ``montecarlo_key`` (its runs are fixed by the scenario)."""
-    spec = spec_key(scenario, "description")
-    return inputs_key(code_key("stages.stress"), spec, controller_sha256, seed)
+    core = scenario_key(scenario, "description")
+    return inputs_key(code_key("stages.stress"), core, controller_sha256, seed)

@@ -234,8 +234,8 @@ def _synthesize(
     runner: StageRunner,
     started: float,
 ) -> Synthesis:
-    # what the numerical stages read (optimize keys on the optimizer it runs, --method or not)
-    core = run_inputs.spec_key(scenario, "description", "stress", "optimizer")
+    # the scenario's fields the numerical stages read (all but run_inputs.NOT_NUMERICAL)
+    core = run_inputs.scenario_key(scenario, *run_inputs.NOT_NUMERICAL)
     demo_starts = [d.x0 for d in scenario.demos]
     demo_inputs = [d.us for d in scenario.demos]
     demos = inputs_key([d.name for d in scenario.demos], *demo_starts, *demo_inputs)
@@ -447,7 +447,7 @@ def _synthesize(
     report_key = inputs_key(  # what the report shows: never this run's timings
         code_key(*REPORT_CODE),
         scenario.source_hash,
-        run_inputs.spec_key(scenario),
+        run_inputs.scenario_key(scenario),
         [runner.digest(name) for name in REPORT_STAGES],
         [runner.digest(name) for name in FUNNEL_STAGES if funnels is not None],
         None if stress is None else runner.digest("stress"),
