@@ -43,7 +43,7 @@ from pipeline.runtime.summary import stress_summary
 from pipeline.runtime.verdict import (
     Evidence,
     after_horizon,
-    certificate_kinds,
+    certificate_claims,
     certification_summary,
     controller_summary,
     feedback_summary,
@@ -294,12 +294,8 @@ def rederive(stored: Summary, evidence: Evidence, stress: StressSummary | None) 
     if len(stored.claims) != CLAIMS:
         raise ValueError(f"claims: {len(stored.claims)} found, expected {CLAIMS}")
     certified = evidence.certified
-    kinds = certificate_kinds(evidence, certified)
     claims = (
-        *(
-            dataclasses.replace(claim, kind=kind)
-            for claim, kind in zip(stored.claims[:2], kinds, strict=True)
-        ),
+        *certificate_claims(evidence, certified),
         after_horizon(evidence, certified),
         *montecarlo_claims(mc),
     )

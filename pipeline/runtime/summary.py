@@ -36,7 +36,7 @@ from pipeline.runtime.terminal import length_unit
 from pipeline.runtime.verdict import (
     Evidence,
     after_horizon,
-    certificate_kinds,
+    certificate_claims,
     certification_summary,
     controller_summary,
     feedback_summary,
@@ -202,60 +202,9 @@ def _demos(run: StageResults) -> tuple[DemoSummary, ...]:
 
 def _claims(run: StageResults, evidence: Evidence, certified: bool) -> tuple[Claim, ...]:
     return (
-        *_certificate_claims(run, certified),
+        *certificate_claims(evidence, certified, run.funnels.rejected if run.funnels else ()),
         after_horizon(evidence, certified),
         *montecarlo_claims(run.montecarlo),
-    )
-
-
-def _certificate_claims(run: StageResults, certified: bool) -> tuple[Claim, ...]:
-    """What the certificate proves, "certified" only where the check of controller.json as
-    written (stage ``certify``) proved it (``verdict.certificate_kinds``)."""
-    feedback, check = run.feedback, run.certification
-    contraction, covered = certificate_kinds(run.evidence, certified)
-    if run.funnels is not None:
-        dropped = "" if not run.funnels.rejected else f"; {'; '.join(run.funnels.rejected)}"
-        shipped = len(run.funnels.usable)
-        return (
-            Claim(
-                claim=f"each of the {shipped} shipped funnels is invariant under the law as "
-                "shipped: no flight that starts in E_i(0) leaves E_i(t) = {||x - x_ref_i(t)||_"
-                "P_i(t) <= rho_i} before T_i (the law tracks x_ref interpolated; its error is in "
-                "the proof)",
-                kind=contraction,
-                how=f"LMIs (F3) at every vertex of a sound Jacobian hull of each interval's tube, "
-                "at both ends of every interval, solved by Clarabel; re-verified on "
-                "controller.json as written with the interpolated reference's bounded term "
-                f"(largest eigenvalue plus term {check.contraction_margin:.2e} < -1e-6)"
-                f"{dropped}",
-            ),
-            Claim(
-                claim="every start in Init lies in a funnel that avoids Unsafe, keeps the "
-                "inputs and state bounds, and ends in Goal",
-                kind=covered,
-                how="funnel levels bounded on a dense grid with a bound between grid points; "
-                f"Init covered by the funnels' initial ellipsoids by box subdivision "
-                f"({run.coverage.message}); both re-verified on controller.json as written",
-            ),
-        )
-    return (
-        Claim(
-            claim=f"contraction at rate {feedback.rate:g} over the operating region",
-            kind=contraction,
-            how=f"LMI ({feedback.gain} gain) solved by Clarabel, eigenvalues re-checked at "
-            f"all {len(feedback.vertices)} vertices of a sound Jacobian hull "
-            f"(largest eigenvalue {feedback.certified_margin:.2e} < 0); re-verified on "
-            f"controller.json as written (largest eigenvalue {check.contraction_margin:.2e})",
-        ),
-        Claim(
-            claim="every start in Init lies in a tube that avoids Unsafe"
-            + (", keeps the state bounds," if run.scenario.state_bounds else "")
-            + " and ends in Goal",
-            kind=covered,
-            how="robustness radii on a dense grid with a bound between grid points; "
-            f"Init covered by box subdivision ({run.final_coverage.message}); both re-verified "
-            "on controller.json as written",
-        ),
     )
 
 
