@@ -69,7 +69,12 @@ from pipeline.model.simulate import simulate
 from pipeline.numerics.cover import DEFAULT_DEPTH, subdivide
 from pipeline.numerics.funnel_law import BASE_SUBSTEPS, LEVEL_MARGIN, LMI_MARGIN
 from pipeline.numerics.hull import DEFAULT_SEGMENTS, HullError, jacobian_hull
-from pipeline.numerics.recertify import ReferenceCheck, check_reference, recheck_funnel
+from pipeline.numerics.recertify import (
+    ReferenceCheck,
+    ShippedFunnel,
+    check_reference,
+    recheck_funnel,
+)
 from pipeline.numerics.sampled import contraction_rate, held_rate
 from pipeline.numerics.terminal import check_level, end_levels
 from pipeline.numerics.tube import Tube
@@ -292,9 +297,10 @@ def _funnels(
             verified.append(0.0)
             continue
         nominal = simulate(scenario.dynamics, tr.x0, tr.u_ref, scenario.Ts, BASE_SUBSTEPS)
+        shipped = ShippedFunnel(K=tr.K, P=tr.P, rho=tr.radius, rate=tr.rate)
         check = recheck_funnel(
-            scenario, nominal, tr.K, tr.P, tr.radius, tr.rate, scenario.state_bounds,
-            reference.substeps, centre_error=reference.integration * tr.radius,
+            scenario, nominal, shipped, scenario.state_bounds, reference.substeps,
+            centre_error=reference.integration * tr.radius,
         )  # fmt: skip
         margin, vertices = max(margin, check.margin), vertices + check.vertices
         verified.append(check.radius)

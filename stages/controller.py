@@ -35,7 +35,7 @@ from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import Trajectory, simulate, simulate_graded
 from pipeline.numerics.funnel_check import Funnel
 from pipeline.numerics.funnel_law import BASE_SUBSTEPS
-from pipeline.numerics.recertify import reference_substeps
+from pipeline.numerics.recertify import ShippedFunnel, reference_substeps
 from pipeline.numerics.terminal import TerminalError, design_terminal
 
 REFERENCE_SUBSTEPS = 20
@@ -277,10 +277,7 @@ def emit_funnel_controller(
             reference_substeps(
                 scenario,
                 nominal,
-                funnel.K,
-                funnel.P,
-                funnel.rho,
-                funnel.rate,
+                ShippedFunnel(K=funnel.K, P=funnel.P, rho=funnel.rho, rate=funnel.rate),
                 scenario.state_bounds,
             ),
         )

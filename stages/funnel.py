@@ -40,7 +40,7 @@ from pipeline.model.simulate import Trajectory
 from pipeline.numerics.cells import init_cells
 from pipeline.numerics.funnel import synthesize_funnel
 from pipeline.numerics.funnel_check import Funnel, check_funnel
-from pipeline.numerics.recertify import recheck_as_shipped
+from pipeline.numerics.recertify import ShippedFunnel, recheck_as_shipped
 
 preload_in_workers(__name__)  # its chunks run in worker processes
 
@@ -142,9 +142,8 @@ def _accepted(
         return f"rejected by the independent check: {failure}"
     # as the certify stage will see it: rebuilt from K, P and rho alone (its own enclosure), the
     # law tracking the reference interpolated on the grid the controller stage ships
-    again = recheck_as_shipped(
-        scenario, trajectory, funnel.K, funnel.P, funnel.rho, funnel.rate, state_bounds
-    )
+    shipped = ShippedFunnel(K=funnel.K, P=funnel.P, rho=funnel.rho, rate=funnel.rate)
+    again = recheck_as_shipped(scenario, trajectory, shipped, state_bounds)
     return None if not again.failure else f"rejected when rebuilt as certify does: {again.failure}"
 
 

@@ -24,7 +24,7 @@ from pipeline.numerics.funnel_law import (
     law_offset,
     law_substeps,
 )
-from pipeline.numerics.recertify import rebuild_funnel
+from pipeline.numerics.recertify import ShippedFunnel, rebuild_funnel
 from stages.certify import certify_controller
 
 FUNNEL_SCENARIOS = ("quadrotor_hill", "unicycle_slalom")
@@ -34,11 +34,8 @@ FINER = 10  # the re-check's time grid against the file's
 def _rebuilt(scenario, tr, Ts):
     """The certificate's hull of each sample interval, rebuilt from the file (hulls only)."""
     nominal = simulate(scenario.dynamics, tr.x0, tr.u_ref, Ts, BASE_SUBSTEPS)
-    Q = np.linalg.inv(tr.P)
-    Q = (Q + np.swapaxes(Q, 1, 2)) / 2
-    return rebuild_funnel(
-        scenario, nominal, tr.K, tr.P, Q, tr.radius, tr.rate, scenario.state_bounds, 1
-    )
+    shipped = ShippedFunnel(K=tr.K, P=tr.P, rho=tr.radius, rate=tr.rate)
+    return rebuild_funnel(scenario, nominal, shipped, scenario.state_bounds, 1)
 
 
 def _worst_inequality(scenario, controller, i):
@@ -142,9 +139,9 @@ def test_the_interpolation_bound_holds_and_is_tight_on_a_double_integrator():
     N, n = len(us), scenario.n
     K = np.zeros((N, scenario.m, n))
     P = np.broadcast_to(np.eye(n), (N + 1, n, n))
-    funnel = rebuild_funnel(
-        scenario, nominal, K, np.array(P), np.array(P), 0.1, 0.0, {}, 1
-    )  # any hull over the nominal's box will do: the dynamics are linear
+    shipped = ShippedFunnel(K=K, P=np.array(P), rho=0.1, rate=0.0)
+    # any hull over the nominal's box will do: the dynamics are linear
+    funnel = rebuild_funnel(scenario, nominal, shipped, {}, 1)
     substeps = np.full(N, 4)
     offset = law_offset(
         funnel.vertices, funnel.enclosure.rate_bound, K, np.array(P), 0.1, 0.0, scenario.Ts,

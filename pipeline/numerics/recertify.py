@@ -130,6 +130,23 @@ def check_reference(
 
 
 @dataclass(frozen=True, kw_only=True)
+class ShippedFunnel:
+    """One funnel as ``controller.json`` carries it: ``K (N, m, n)``, ``P (N+1, n, n)``, the
+    level ``rho`` and ``rate``."""
+
+    K: FloatArray
+    P: FloatArray
+    rho: float
+    rate: float
+
+    @property
+    def Q(self) -> FloatArray:
+        """(N+1, n, n) ``P^-1``, symmetrized."""
+        Q = np.linalg.inv(self.P)
+        return (Q + np.swapaxes(Q, 1, 2)) / 2
+
+
+@dataclass(frozen=True, kw_only=True)
 class FunnelRecheck:
     """The re-verification of one funnel.
 
@@ -150,31 +167,28 @@ class FunnelRecheck:
 def rebuild_funnel(
     scenario: Scenario,
     trajectory: Trajectory,
-    K: FloatArray,
-    P: FloatArray,
-    Q: FloatArray,
-    rho: float,
-    rate: float,
+    shipped: ShippedFunnel,
     state_bounds: Mapping[str, tuple[float, float]],
     segments: int,
     input_offset: FloatArray | None = None,
 ) -> Funnel:
-    """The funnel ``K (N, m, n)``, ``P (N+1, n, n)``, ``rho``, ``rate`` around ``trajectory``
-    with hulls and enclosure rebuilt by steps 1-2 of the module docstring
-    (``funnel_pieces.piece_hulls`` on pieces of one sample interval, with the file's ``Q (N+1,
-    n, n) = P^-1`` (symmetrized) at level ``rho (1 + WIDEN)`` as the extents and no arc caps).
+    """The ``shipped`` funnel around ``trajectory`` with hulls and enclosure rebuilt by steps
+    1-2 of the module docstring (``funnel_pieces.piece_hulls`` on pieces of one sample interval,
+    with the file's ``Q`` at level ``rho (1 + WIDEN)`` as the extents, the inputs widened by
+    ``input_offset (N, m)`` (step 3), and no arc caps).
 
     Raises:
       HullError: no hull over a box, or no a priori enclosure within ``PAD_ROUNDS``.
     """
-    N = len(K)
+    K, N = shipped.K, len(shipped.K)
     variables, boxes, vertices, enclosure = piece_hulls(
-        scenario, trajectory, Q, K, state_bounds,
-        rho * (1 + WIDEN), segments, np.arange(N + 1), tight=False, pad_rounds=PAD_ROUNDS,
-        input_offset=input_offset,
+        scenario, trajectory, shipped.Q, K, state_bounds,
+        shipped.rho * (1 + WIDEN), segments, np.arange(N + 1), tight=False,
+        pad_rounds=PAD_ROUNDS, input_offset=input_offset,
     )  # fmt: skip
     return Funnel(
-        K=K, P=P, rho=rho, rate=rate, margins=np.full((N, 2), np.nan), boxes=boxes,
+        K=K, P=shipped.P, rho=shipped.rho, rate=shipped.rate, margins=np.full((N, 2), np.nan),
+        boxes=boxes,
         variables=variables, vertices=vertices, enclosure=enclosure, limits={},
         binding="", seconds=0.0, success=True, message="rebuilt from controller.json",
     )  # fmt: skip
@@ -183,11 +197,7 @@ def rebuild_funnel(
 def _under_law(
     scenario: Scenario,
     trajectory: Trajectory,
-    K: FloatArray,
-    P: FloatArray,
-    Q: FloatArray,
-    rho: float,
-    rate: float,
+    shipped: ShippedFunnel,
     state_bounds: Mapping[str, tuple[float, float]],
     segments: int,
     substeps: np.ndarray,
@@ -200,23 +210,19 @@ def _under_law(
     Raises:
       HullError: no hull or enclosure, or the offset outgrew the widening.
     """
-    plain = rebuild_funnel(scenario, trajectory, K, P, Q, rho, rate, state_bounds, segments)
-    if plain.enclosure is None:
-        raise HullError("no a priori enclosure of the nominal")
-    first = law_offset(
-        plain.vertices, plain.enclosure.rate_bound, K, P, rho, rate, scenario.Ts, substeps,
-        centre_error,
-    )  # fmt: skip
-    allowance = OFFSET_ALLOWANCE * first.input_offset
-    funnel = rebuild_funnel(
-        scenario, trajectory, K, P, Q, rho, rate, state_bounds, segments, allowance
-    )
-    if funnel.enclosure is None:
-        raise HullError("no a priori enclosure of the nominal")
-    law = law_offset(
-        funnel.vertices, funnel.enclosure.rate_bound, K, P, rho, rate, scenario.Ts, substeps,
-        centre_error,
-    )  # fmt: skip
+
+    def offset(funnel: Funnel) -> LawOffset:
+        if funnel.enclosure is None:
+            raise HullError("no a priori enclosure of the nominal")
+        return law_offset(
+            funnel.vertices, funnel.enclosure.rate_bound, shipped.K, shipped.P, shipped.rho,
+            shipped.rate, scenario.Ts, substeps, centre_error,
+        )  # fmt: skip
+
+    plain = rebuild_funnel(scenario, trajectory, shipped, state_bounds, segments)
+    allowance = OFFSET_ALLOWANCE * offset(plain).input_offset
+    funnel = rebuild_funnel(scenario, trajectory, shipped, state_bounds, segments, allowance)
+    law = offset(funnel)
     if np.any(law.input_offset > allowance):
         raise HullError("the interpolated reference's input offset (I3) outgrew its hull box")
     return funnel, law
@@ -225,32 +231,27 @@ def _under_law(
 def recheck_funnel(
     scenario: Scenario,
     trajectory: Trajectory,
-    K: FloatArray,
-    P: FloatArray,
-    rho: float,
-    rate: float,
+    shipped: ShippedFunnel,
     state_bounds: Mapping[str, tuple[float, float]],
     substeps: np.ndarray,
     centre_error: float = 0.0,
 ) -> FunnelRecheck:
-    """Steps 1-4 of the module docstring for one funnel (``K (N, m, n)``, ``P (N+1, n, n)``)
-    around the nominal ``trajectory`` (a uniform RK4 grid), its law tracking the reference on a
-    grid of ``substeps (N,)`` per sample. The margin reported is (F2)'s eigenvalue plus (I2)."""
-    Q = np.linalg.inv(P)
-    Q = (Q + np.swapaxes(Q, 1, 2)) / 2
+    """Steps 1-4 of the module docstring for one ``shipped`` funnel around the nominal
+    ``trajectory`` (a uniform RK4 grid), its law tracking the reference on a grid of ``substeps
+    (N,)`` per sample. The margin reported is (F2)'s eigenvalue plus (I2)."""
+    K, Q = shipped.K, shipped.Q
     failures: list[str] = []
     last = FunnelRecheck(failure="", margin=float("nan"), vertices=0, radius=0.0, binding="")
     for segments in SEGMENTS:
         try:
             funnel, law = _under_law(
-                scenario, trajectory, K, P, Q, rho, rate, state_bounds, segments, substeps,
-                centre_error,
-            )  # fmt: skip
+                scenario, trajectory, shipped, state_bounds, segments, substeps, centre_error
+            )
         except (HullError, np.linalg.LinAlgError) as error:
             failures.append(f"{segments} segment(s): {error}")
             continue
         failure = check_funnel(scenario, trajectory, funnel, state_bounds, law)
-        margins = certificate_margins(Q, K, funnel.vertices, rate, scenario.Ts)
+        margins = certificate_margins(Q, K, funnel.vertices, shipped.rate, scenario.Ts)
         enclosure = funnel.enclosure
         if enclosure is None:  # _under_law raises first; narrows the type
             raise HullError("no a priori enclosure of the nominal")
@@ -274,46 +275,36 @@ def recheck_funnel(
 def reference_substeps(
     scenario: Scenario,
     trajectory: Trajectory,
-    K: FloatArray,
-    P: FloatArray,
-    rho: float,
-    rate: float,
+    shipped: ShippedFunnel,
     state_bounds: Mapping[str, tuple[float, float]],
 ) -> np.ndarray:
     """(N,) RK4 steps per sample on which to ship a funnel's reference so that the law's offset
     fits what (F2) and the inputs leave (``funnel_law.law_substeps``), from the first hull of
     ``SEGMENTS`` on which the funnel holds for the exact nominal; ``BASE_SUBSTEPS`` everywhere
     when none does (it will not be certified). ``trajectory``: the nominal on a uniform grid."""
-    N = len(K)
-    Q = np.linalg.inv(P)
-    Q = (Q + np.swapaxes(Q, 1, 2)) / 2
-    base = np.full(N, BASE_SUBSTEPS)
+    K, Q = shipped.K, shipped.Q
+    base = np.full(len(K), BASE_SUBSTEPS)
     for segments in SEGMENTS:
         try:
-            funnel, law = _under_law(
-                scenario, trajectory, K, P, Q, rho, rate, state_bounds, segments, base
-            )
+            funnel, law = _under_law(scenario, trajectory, shipped, state_bounds, segments, base)
         except (HullError, np.linalg.LinAlgError):
             continue
         if check_funnel(scenario, trajectory, funnel, state_bounds) is not None:
             continue
-        margins = certificate_margins(Q, K, funnel.vertices, rate, scenario.Ts).max(axis=1)
+        margins = certificate_margins(Q, K, funnel.vertices, shipped.rate, scenario.Ts)
         _, g, _ = tube_extents(Q, K, scenario.position_index)
         room = (
             np.minimum(trajectory.us - scenario.input_lower, scenario.input_upper - trajectory.us)
-            - rho * g
+            - shipped.rho * g
         )
-        return law_substeps(law, margins, room, scenario.Ts)
+        return law_substeps(law, margins.max(axis=1), room, scenario.Ts)
     return base
 
 
 def recheck_as_shipped(
     scenario: Scenario,
     trajectory: Trajectory,
-    K: FloatArray,
-    P: FloatArray,
-    rho: float,
-    rate: float,
+    shipped: ShippedFunnel,
     state_bounds: Mapping[str, tuple[float, float]],
 ) -> FunnelRecheck:
     """``recheck_funnel`` as the certify stage will run it on the emitted file: the nominal from
@@ -322,5 +313,5 @@ def recheck_as_shipped(
     nominal = simulate(
         scenario.dynamics, trajectory.xs[0], trajectory.us, scenario.Ts, BASE_SUBSTEPS
     )
-    substeps = reference_substeps(scenario, nominal, K, P, rho, rate, state_bounds)
-    return recheck_funnel(scenario, nominal, K, P, rho, rate, state_bounds, substeps)
+    substeps = reference_substeps(scenario, nominal, shipped, state_bounds)
+    return recheck_funnel(scenario, nominal, shipped, state_bounds, substeps)
