@@ -73,7 +73,7 @@ def test_synthesize_takes_every_computing_option_with_its_default():
     [
         ({"certificate": "tube"}, "certificate='tube'; expected one of ('constant', 'funnel')"),
         ({"samples": 0}, "samples=0; expected a whole number from 1 to 1,000,000,000"),
-        ({"jobs": 1.5}, "jobs=1.5; expected a whole number >= 1"),
+        ({"jobs": 1.5}, "jobs=1.5; expected a whole number from 1 to 1,024"),
         ({"method": "newton"}, "method='newton'; expected one of ('gd', 'lbfgs')"),
     ],
 )
