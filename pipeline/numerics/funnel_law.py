@@ -42,16 +42,16 @@ their estimated error (Richardson, against a grid twice as fine) moves the law's
 interpolation does, and the certify stage adds it to ``Delta`` (``law_offset``'s
 ``centre_error``) and requires it below ``LEVEL_MARGIN`` of the radius (the levels' limits).
 
+(I3) Inputs. The applied input is ``u_ref + K e + K delta`` with ``|K_j e| <= rho_t g_j[k]`` (E3)
+and ``|K_j delta| <= sum_i |K[k, j, i]| Delta_i[k]``: the hull's input box and the input limits
+take the second term as an offset.
+
 (I4) A bounded disturbance. With ``xdot = f(x, u) + w``, ``|w_i| <= d_i`` for every measurable
 ``w`` (a box, ``d (n,)``, zero for states it does not act on), the error gains ``+ w`` and the
 same argument gives ``+ 2 ||e||_P ||w||_P`` on the boundary: ``m_k + 2 (w_k + v_k) / rho_t < 0``
 with ``v_k = max_corners max_ends ||sigma o d||_P`` (convex in ``w`` and in ``t``, as above). Unlike
 (I2) it does not shrink with the grid: the funnel must be designed for it (``funnel_lmi``'s
 disturbance constraint), and it bounds the level from below (``rho_t > 2 (w_k + v_k) / -m_k``).
-
-(I3) Inputs. The applied input is ``u_ref + K e + K delta`` with ``|K_j e| <= rho_t g_j[k]`` (E3)
-and ``|K_j delta| <= sum_i |K[k, j, i]| Delta_i[k]``: the hull's input box and the input limits
-take the second term as an offset.
 """
 
 from __future__ import annotations
