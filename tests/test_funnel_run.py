@@ -220,7 +220,7 @@ def test_the_report_of_a_funnel_run_shows_the_funnels_and_both_certificates(funn
     )
     assert vertices - step / 2 - 1e-3 <= shown <= vertices + 1e-3
     assert "certified and validated: certify re-checked controller.json (passed)" in funnel_row
-    assert f"0 failures in {samples} Monte Carlo runs" in funnel_row
+    assert f"Monte Carlo: 0 of {samples} runs failed" in funnel_row
     constant_row = table[table.index("constant (one K, P)") : table.index("funnel (K_i[k]")]
     assert constant_row.startswith("constant (one K, P) verified by the stages, not shipped 9 ")
     assert "no controller written or re-certified from a file" in constant_row

@@ -25,6 +25,7 @@ from pipeline.model.simulate import Trajectory
 from pipeline.reporting import figures
 from pipeline.reporting.content import Figure, Paragraph, Table, fixed, number, percent
 from pipeline.reporting.data import ReportData
+from pipeline.reporting.numbers import montecarlo_counts
 from pipeline.reporting.plotting import FIGURE_WIDTH
 
 CONSTANT_STATUS = "verified by the stages, not shipped"
@@ -67,7 +68,7 @@ def comparison(data: ReportData) -> tuple:
         else f"not verified: {len(kept)} of {len(data.final_paths)} radii positive, "
         f"Init {percent(coverage.covered_fraction)} covered (not shipped)"
     )
-    failures = sum(mc.failures.values())
+    counts = montecarlo_counts(mc.samples, summary.headline.montecarlo_failures, mc.failures)
     shipped = data.shipped_paths
     rows = (
         (
@@ -88,7 +89,7 @@ def comparison(data: ReportData) -> tuple:
             percent(summary.headline.coverage_after),
             f"{summary.text}: certify re-checked controller.json "
             f"({'passed' if summary.certification.certified else 'failed'}); "
-            f"{failures} failures in {mc.samples} Monte Carlo runs",
+            f"Monte Carlo: {counts}",
         ),
     )
     demos = []

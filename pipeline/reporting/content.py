@@ -1,18 +1,50 @@
 """The report's content, independent of its format: sections made of blocks.
 
 Both writers (``reporting.html``, ``reporting.typeset``) render the same ``Section`` list, so the
-two formats cannot drift apart. Numbers are formatted here, once.
+two formats cannot drift apart. Numbers are formatted once, in ``reporting.numbers`` (re-exported
+here).
 """
 
 from __future__ import annotations
 
-import math
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import ClassVar
 
 from matplotlib.figure import Figure as MplFigure
 from matplotlib.figure import SubFigure
+
+from pipeline.reporting.numbers import (
+    check,
+    fixed,
+    formatted,
+    number,
+    percent,
+    scientific,
+    seconds,
+    vector,
+)
+
+# the formatting helpers are re-exported: the writers and sections import them from here
+__all__ = [
+    "Block",
+    "Figure",
+    "FigureLike",
+    "Headline",
+    "Headlines",
+    "Paragraph",
+    "Section",
+    "Table",
+    "Verdict",
+    "check",
+    "fixed",
+    "formatted",
+    "number",
+    "percent",
+    "scientific",
+    "seconds",
+    "vector",
+]
 
 FigureLike = MplFigure | SubFigure
 
@@ -98,40 +130,3 @@ class Section:
     @property
     def heading(self) -> str:
         return f"{self.number}. {self.title}"
-
-
-# --- Formatting, shared by both writers and by the tests. -------------------------------------
-
-
-def number(value: float | None, digits: int = 3) -> str:
-    """``value`` with ``digits`` significant digits; "n/a" for None, "inf" for infinities."""
-    if value is None or (isinstance(value, float) and math.isnan(value)):
-        return "n/a"
-    if math.isinf(value):
-        return "inf" if value > 0 else "-inf"
-    return f"{value:.{digits}g}"
-
-
-def fixed(value: float, decimals: int = 2) -> str:
-    return f"{value:.{decimals}f}"
-
-
-def percent(fraction: float, decimals: int = 1) -> str:
-    """``fraction`` (0..1) as a percentage."""
-    return f"{fraction:.{decimals}%}"
-
-
-def seconds(value: float) -> str:
-    return f"{value:.1f} s"
-
-
-def scientific(value: float) -> str:
-    return f"{value:.2e}"
-
-
-def vector(values: Iterable[float], digits: int = 3) -> str:
-    return "[" + ", ".join(number(float(v), digits) for v in values) + "]"
-
-
-def check(flag: bool) -> str:
-    return "yes" if flag else "no"

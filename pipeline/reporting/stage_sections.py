@@ -24,6 +24,7 @@ from pipeline.reporting.content import (
 )
 from pipeline.reporting.data import ReportData
 from pipeline.reporting.law import gain_table, held_rate, labelled, law
+from pipeline.reporting.numbers import margin, montecarlo_counts
 from pipeline.reporting.plotting import FIGURE_WIDTH
 from pipeline.reporting.summary import Quantiles, StressRunSummary, StressSummary
 
@@ -331,16 +332,31 @@ def _stress(stress: StressSummary | None) -> tuple:
     )
 
 
+def _held(data: ReportData) -> str:
+    """The runs continued past T under the terminal law ("" when none were)."""
+    mc = data.montecarlo
+    if not mc.hold_runs or mc.failures.get("after_T"):
+        return ""
+    return (
+        f" {mc.hold_runs} covered runs, continued past T under the terminal law, stayed in Goal "
+        f"(V / level ≤ {number(mc.hold_max_level_ratio, 3)})."
+    )
+
+
 def montecarlo(data: ReportData) -> tuple:
     mc = data.montecarlo
     f = mc.falsification
+    h = data.summary.headline
+    counts = montecarlo_counts(h.montecarlo_samples, h.montecarlo_failures, mc.failures)
     stress_blocks = _stress(data.summary.stress)
+    inside = "its funnel E_i(t)" if data.funnel else "the predicted tube"
     return (
         Paragraph(
             f"{mc.samples} initial states drawn i.i.d. uniformly from Init (seed {mc.seed}); each "
             "closed loop simulated with the controller read back from controller.json and checked "
             "in continuous time: never in Unsafe, ends in Goal, no input clipping, error inside "
-            f"the predicted tube. {mc.message}."
+            f"{inside}. Result: {counts}; failure probability ≤ {scientific(mc.failure_bound)} "
+            f"(one-sided 95% Clopper-Pearson).{_held(data)}"
         ),
         Figure(
             "montecarlo",
@@ -355,7 +371,8 @@ def montecarlo(data: ReportData) -> tuple:
         Table(
             ("failure kind", "runs"),
             tuple((kind, str(count)) for kind, count in mc.failures.items()),
-            "Failures by kind",
+            f"Failures by kind ({counts}; a run can fail in several ways, so the kinds need not "
+            "add up to the runs failed)",
             numeric=(False, True),
         ),
         Table(
@@ -375,7 +392,7 @@ def montecarlo(data: ReportData) -> tuple:
                 ),
                 (
                     "falsification: worst margin found",
-                    number(f.worst_margin, 4) + (f" ({f.binding})" if f.binding else ""),
+                    margin(f.worst_margin, f.binding, 4),
                 ),
                 ("falsification: worst start", labelled(data.scenario, f.worst_x0)),
                 ("falsification: closed-loop runs", str(f.evaluations)),

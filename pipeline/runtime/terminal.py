@@ -12,6 +12,7 @@ clearances in the position unit, inputs in their own; radii are in the P-norm
 from __future__ import annotations
 
 import logging
+import math
 import re
 import sys
 from collections.abc import Iterator, Mapping, Sequence
@@ -22,6 +23,7 @@ from typing import TYPE_CHECKING
 from tqdm import tqdm
 
 from pipeline.io.errors import UserError
+from pipeline.reporting.numbers import fixed, formatted, montecarlo_counts, scientific
 from pipeline.reporting.summary import Summary
 from pipeline.runtime.outdir import stale_name
 from pipeline.runtime.synthesis import Synthesis
@@ -194,15 +196,15 @@ def format_summary(summary: Summary, scenario: Scenario | None = None) -> str:
             f"{fb.required_radius:.4g} (P-norm; balls of radius r_d about the demo starts miss"
             " parts of Init)"
         )
+    counts = montecarlo_counts(mc.samples, h.montecarlo_failures, mc.failures)
     lines.append(
-        f"Monte Carlo: {mc.samples} runs, {h.montecarlo_failures} failures, "
-        f"failure probability <= {mc.failure_bound_95:.2e} (95%)"
+        f"Monte Carlo: {counts}; failure probability <= {scientific(mc.failure_bound_95)} (95%)"
     )
     if mc.tube_ratio_at_T is not None:
         q = mc.tube_ratio_at_T
         lines.append(
             f"  tube ratio at the final time (closed-loop error / its certified bound; <= 1 "
-            f"inside the tube): median {q.median:.3f}, max {q.max:.3f}"
+            f"inside the tube): median {fixed(q.median, 3)}, max {fixed(q.max, 3)}"
         )
     for claim in summary.claims:
         lines.append(f"  [{claim.kind.value}] {claim.claim}")
@@ -300,8 +302,10 @@ def _input_units(scenario: Scenario | None) -> str:
 
 
 def _quantity(value: float, unit: str, spec: str) -> str:
-    """``value`` formatted by ``spec``, followed by its unit when there is one."""
-    return f"{value:{spec}} {unit}" if unit else f"{value:{spec}}"
+    """``value`` formatted by ``spec``, followed by its unit when there is one (``n/a (...)``,
+    without the unit, when it is not finite)."""
+    shown = formatted(value, spec)
+    return f"{shown} {unit}" if unit and math.isfinite(value) else shown
 
 
 def describe_radii(radii: Sequence[RadiusResult]) -> str:

@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from pipeline.model.scenario import Scenario
+from pipeline.reporting.numbers import margin, montecarlo_counts
 from pipeline.reporting.summary import (
     CertificationSummary,
     Claim,
@@ -106,7 +107,9 @@ class Evidence:
         if not self.certification.success:
             reasons.append(self.certification.message)
         if not self.montecarlo.success:
-            reasons.append(f"Monte Carlo failure: {self.montecarlo.message}")
+            mc = self.montecarlo
+            counts = montecarlo_counts(mc.samples, failed_runs(mc), mc.failures)
+            reasons.append(f"Monte Carlo failure: {counts}")
         return tuple(reasons)
 
     def headline(self) -> dict[str, Any]:
@@ -118,7 +121,7 @@ class Evidence:
             "covered_before": bool(self.demo_coverage.covered),
             "covered_after": bool(self.coverage.covered),
             "montecarlo_samples": mc.samples,
-            "montecarlo_failures": int(sum(mc.failures.values())),
+            "montecarlo_failures": failed_runs(mc),  # runs, not failure kinds
             "failure_bound_95": mc.failure_bound,
         }
 
@@ -209,6 +212,11 @@ def after_horizon(evidence: Evidence, certified: bool) -> Claim:
     )
 
 
+def failed_runs(mc: MonteCarloResult) -> int:
+    """The runs that failed in any way (each once; ``mc.failures`` counts failure kinds)."""
+    return len(mc.failed_x0)
+
+
 def montecarlo_claims(mc: MonteCarloResult) -> tuple[Claim, Claim]:
     """The statistical claim of the closed-loop runs and the falsification search's."""
     falsification = mc.falsification
@@ -220,8 +228,8 @@ def montecarlo_claims(mc: MonteCarloResult) -> tuple[Claim, Claim]:
             "one-sided 95% Clopper-Pearson bound",
         ),
         Claim(
-            claim=f"worst safety margin found {falsification.worst_margin:.3f}"
-            + (f" ({falsification.binding})" if falsification.binding else ""),
+            claim="worst safety margin found "
+            + margin(falsification.worst_margin, falsification.binding),
             kind=ClaimKind.FALSIFICATION_SEARCHED,
             how=f"Init corners, Sobol points and Nelder-Mead ({falsification.evaluations} "
             "closed-loop runs); evidence, not a bound",

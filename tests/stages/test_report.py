@@ -131,7 +131,7 @@ def test_html_holds_the_headline_numbers_of_summary_json(run: tuple[Scenario, Pa
         f"{summary['montecarlo']['min_clearance']:.2f} m",
         f"closest of the {summary['montecarlo']['samples']} closed-loop runs",
         f"{h['coverage_before']:.1%} → {h['coverage_after']:.1%}",
-        f"{h['montecarlo_failures']} / {h['montecarlo_samples']}",
+        f"{h['montecarlo_failures']} of {h['montecarlo_samples']} runs failed",
         f"≤ {h['failure_bound_95']:.2e}",
         *section_headings(),
     ]
