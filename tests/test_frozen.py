@@ -41,7 +41,7 @@ def test_a_frozen_array_is_a_read_only_copy_of_the_same_shape_and_dtype() -> Non
 
 
 def test_freeze_reaches_into_mappings_and_tuples_and_thaw_undoes_the_mappings() -> None:
-    value = {"a": np.zeros(2), "b": ({"c": 1.0}, "text")}
+    value: dict[str, Any] = {"a": np.zeros(2), "b": ({"c": 1.0}, "text")}
     frozen = freeze(value)
     assert isinstance(frozen, MappingProxyType) and isinstance(frozen["b"][0], MappingProxyType)
     with pytest.raises(TypeError):

@@ -4,6 +4,7 @@ known answer: ``feasible(N)`` is ``N >= 37``, so the shortest feasible horizon i
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -13,7 +14,7 @@ from pipeline.numerics.horizon import reseed, shortest_by_continuation, smallest
 SHORTEST = 37
 
 
-def counting_oracle() -> tuple[list[int], object]:
+def counting_oracle() -> tuple[list[int], Callable[[int], bool]]:
     """``feasible(N) = N >= SHORTEST``, and the horizons it was asked about, in order."""
     asked: list[int] = []
 
