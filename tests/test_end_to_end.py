@@ -29,6 +29,7 @@ from pipeline.numerics.closed_loop import RunChecks, check_runs, simulate_closed
 from pipeline.runtime.api import synthesize
 from pipeline.runtime.summary import demo_table
 from stages.montecarlo import falsify, validate_closed_loop
+from tests.helpers.controller_files import scale_gains
 
 ROOT = Path(__file__).resolve().parents[1]
 CI_SAMPLES = {"quadrotor_hill": 1000}  # closed-loop runs per scenario; others: CI_SAMPLES_OTHER
@@ -105,14 +106,6 @@ def _write_modified(out, tmp_path, change):
     path = tmp_path / "controller.json"
     path.write_text(json.dumps(document))
     return path
-
-
-def scale_gains(document: dict, factor: float) -> None:
-    """Every gain of a controller.json scaled by ``factor``: the constant ``feedback.K``
-    (safety-controller/1) or each trajectory's ``K[k]`` (/2)."""
-    holders = [document["feedback"]] if "K" in document.get("feedback", {}) else []
-    for holder in holders or document["trajectories"]:
-        holder["K"] = (factor * np.array(holder["K"])).tolist()
 
 
 def test_a_destabilising_gain_is_caught(synthesized, tmp_path):

@@ -28,7 +28,7 @@ from pipeline.runtime.options import RunOptions
 from pipeline.runtime.orchestrator import run_synthesis
 from pipeline.runtime.registry import RESULT_TYPES
 from pipeline.runtime.stored import load_report_data
-from tests.stages.test_report import assert_figures_fit, measure_in_browser, needs_browser
+from tests.helpers.browser import assert_figures_fit, measure_in_browser, needs_browser
 
 SCENARIO = "quadrotor_hill"
 SAMPLES = 200  # the command line's runs on a copy (the session run has 1,000)

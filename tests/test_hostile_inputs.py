@@ -8,21 +8,17 @@ coverage needs. Every case ends in exit 2 with one line, or in a finished run.
 
 from __future__ import annotations
 
-import contextlib
 import re
 import shutil
-import signal
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import sympy
-from test_scenario import chain, write_scenario, yaml_replace
 
 from pipeline import ScenarioError, load_scenario
 from pipeline.model import safe_yaml
@@ -31,27 +27,13 @@ from pipeline.model.scenario import Scenario
 from pipeline.numerics.hull import jacobian_hull
 from pipeline.runtime.cli import main
 from stages.coverage import MAX_BISECTIONS, cover_init, covering_radius
+from tests.helpers.scenario_files import chain, write_scenario, yaml_replace
+from tests.helpers.timing import time_limit
 
 REPO = Path(__file__).resolve().parents[1]
 SHIPPED = REPO / "scenarios"
 CLI_TIME_LIMIT = 300  # s, a whole small synthesis
 LOAD_TIME_LIMIT = 10  # s, loading one scenario
-
-
-@contextlib.contextmanager
-def time_limit(seconds: float) -> Iterator[None]:
-    """Raise ``TimeoutError`` in this (main) thread if the block runs longer than ``seconds``."""
-
-    def expire(_signum: int, _frame: object) -> None:
-        raise TimeoutError(f"still running after {seconds} s")
-
-    previous = signal.signal(signal.SIGALRM, expire)
-    signal.setitimer(signal.ITIMER_REAL, seconds)
-    try:
-        yield
-    finally:
-        signal.setitimer(signal.ITIMER_REAL, 0)
-        signal.signal(signal.SIGALRM, previous)
 
 
 def run_cli(*args: str, timeout: float = CLI_TIME_LIMIT) -> subprocess.CompletedProcess[str]:

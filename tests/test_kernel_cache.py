@@ -21,7 +21,7 @@ from pipeline.model.dynamics import Dynamics
 from pipeline.model.scenario import load_scenario
 from pipeline.numerics.kernels import compiled, shared
 from pipeline.numerics.kernels.compiled import dynamics_source, exact_units, load_kernels
-from tests.test_scenario import write_scenario
+from tests.helpers.scenario_files import write_scenario
 
 
 def test_a_kernel_waits_while_another_process_compiles_its_module(

@@ -10,23 +10,10 @@ from hypothesis import strategies as st
 
 from pipeline import load_scenario
 from pipeline.numerics.funnel_bounds import Enclosure
-from pipeline.numerics.funnel_check import Funnel
 from pipeline.numerics.margins import MarginProfile, funnel_margins, per_point
 from pipeline.numerics.problem import make_problem
 from pipeline.numerics.tube import Tube
-
-
-def _funnel(
-    K: np.ndarray, P: np.ndarray, rho: float, success: bool = True, enclosure=None
-) -> Funnel:
-    """A funnel with gains ``K (N, m, n)`` and metrics ``P (N+1, n, n)`` (no hull data: the
-    margins read only K, P, rho and the enclosure)."""
-    N = len(K)
-    return Funnel(
-        K=K, P=P, rho=rho, rate=0.0, margins=np.full((N, 2), -1.0), boxes=np.zeros((N, 2, 0)),
-        variables=(), vertices=(), enclosure=enclosure, limits={}, binding="", seconds=0.0,
-        success=success, message="" if success else "rejected for the test",
-    )  # fmt: skip
+from tests.helpers.funnels import make_funnel
 
 
 @pytest.fixture(scope="module")
@@ -42,7 +29,8 @@ def test_a_constant_funnel_has_the_constant_tubes_margins(quadrotor):
     P = A @ A.T + n * np.eye(n)
     K = rng.normal(size=(m, n))
     profile = funnel_margins(
-        quadrotor, _funnel(np.broadcast_to(K, (N, m, n)), np.broadcast_to(P, (N + 1, n, n)), rho)
+        quadrotor,
+        make_funnel(np.broadcast_to(K, (N, m, n)), np.broadcast_to(P, (N + 1, n, n)), rho),
     )
     tube = Tube(
         K=K, P=P, rate=0.0, region={}, state_names=quadrotor.state_names,
@@ -62,14 +50,14 @@ def test_a_growing_funnel_takes_each_intervals_larger_end(quadrotor):
     Q = (1.0 + np.arange(N + 1))[:, None, None] * np.eye(n)
     K = np.zeros((N, m, n))
     K[:, 0, 0] = 2.0  # u1 = 2 e_X: its extent is 2 rho sqrt(Q_00)
-    profile = funnel_margins(quadrotor, _funnel(K, np.linalg.inv(Q), rho))
+    profile = funnel_margins(quadrotor, make_funnel(K, np.linalg.inv(Q), rho))
     end = rho * np.sqrt(2.0 + np.arange(N))  # rho sqrt(1 + (k + 1))
     np.testing.assert_allclose(profile.clearance, end, rtol=1e-12)
     np.testing.assert_allclose(profile.state, np.tile(end[:, None], (1, n)), rtol=1e-12)
     np.testing.assert_allclose(profile.input[:, 0], 2 * end, rtol=1e-12)
     np.testing.assert_allclose(profile.input[:, 1], 0.0, atol=1e-15)
     assert profile.final_clearance == pytest.approx(rho * np.sqrt(N + 1.0))
-    assert funnel_margins(quadrotor, _funnel(K, np.linalg.inv(Q), rho), level=1.0).clearance[
+    assert funnel_margins(quadrotor, make_funnel(K, np.linalg.inv(Q), rho), level=1.0).clearance[
         0
     ] == pytest.approx(np.sqrt(2.0))
 
@@ -89,7 +77,7 @@ def test_the_nominals_enclosure_widens_the_state_margins(quadrotor):
         grid_range=grid,
         range=grid + np.stack([-drift, drift])[None],
     )
-    funnel = _funnel(np.zeros((N, m, n)), np.linalg.inv(Q), rho, enclosure=enclosure)
+    funnel = make_funnel(np.zeros((N, m, n)), np.linalg.inv(Q), rho, enclosure=enclosure)
     plain = funnel_margins(quadrotor, funnel, enclosure=False)
     np.testing.assert_allclose(plain.state[:, 2], [0.05, 0.2])
     wide = funnel_margins(quadrotor, funnel)
@@ -100,7 +88,7 @@ def test_the_nominals_enclosure_widens_the_state_margins(quadrotor):
 
 def test_a_rejected_funnel_has_no_margins(quadrotor):
     n, m = quadrotor.n, quadrotor.m
-    funnel = _funnel(np.zeros((2, m, n)), np.broadcast_to(np.eye(n), (3, n, n)), 0.0, False)
+    funnel = make_funnel(np.zeros((2, m, n)), np.broadcast_to(np.eye(n), (3, n, n)), 0.0, False)
     with pytest.raises(ValueError, match="not certified"):
         funnel_margins(quadrotor, funnel)
 

@@ -22,7 +22,7 @@ from stages.optimize import (
     optimize_from,
     reoptimize_with_funnels,
 )
-from tests.test_margins import _funnel
+from tests.helpers.funnels import make_funnel
 
 
 def _stage(levels: list[float], usable: list[int], scale: float, n: int = 2) -> FunnelStageResult:
@@ -30,7 +30,7 @@ def _stage(levels: list[float], usable: list[int], scale: float, n: int = 2) -> 
     dropped (``rejected`` names them)."""
     N = 3
     funnels = tuple(
-        _funnel(np.zeros((N, 1, n)), np.broadcast_to(scale * np.eye(n), (N + 1, n, n)), rho)
+        make_funnel(np.zeros((N, 1, n)), np.broadcast_to(scale * np.eye(n), (N + 1, n, n)), rho)
         for rho in levels
     )
     names = tuple(f"demo_{i}" for i in range(len(levels)))

@@ -12,7 +12,7 @@ from pipeline.controller import load
 from pipeline.model.scenario import load_scenario
 from pipeline.numerics.closed_loop import check_runs
 from pipeline.numerics.rollouts import check_runs_compiled
-from tests.test_end_to_end import scale_gains
+from tests.helpers.controller_files import scale_gains
 
 MARGINS = ("clearance", "goal_margin", "input_slack", "tube_tightness", "tube_final")
 

@@ -15,11 +15,11 @@ from typing import Any
 import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from test_hostile_inputs import time_limit
-from test_scenario import SCENARIO_YAML, STRAIGHT
 
 from pipeline import ScenarioError, load_scenario
 from pipeline.io.errors import UserError
+from tests.helpers.scenario_files import SCENARIO_YAML, STRAIGHT
+from tests.helpers.timing import time_limit
 
 VALID = yaml.safe_load(SCENARIO_YAML)
 EXAMPLE_TIME_LIMIT = 20  # s; a valid load of this fixture takes well under a second

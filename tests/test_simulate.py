@@ -24,7 +24,7 @@ from pipeline.model.simulate import (
     simulate_graded,
     simulate_reference,
 )
-from tests.test_dynamics import batch_code, every_function_dynamics
+from tests.helpers.dynamics import batch_code, every_function_dynamics
 
 
 @cache

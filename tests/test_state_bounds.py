@@ -28,7 +28,7 @@ from stages.certify import certify_controller
 from stages.feedback import design_feedback
 from stages.optimize import OptimizeOptions, optimize_demo
 from stages.radius import robustness_radius
-from tests.stages.conftest import DOUBLE_INTEGRATOR, emit_at_rest
+from tests.helpers.double_integrator import DOUBLE_INTEGRATOR, emit_at_rest
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -26,7 +26,7 @@ from pipeline.model.simulate import simulate
 from pipeline.numerics.funnel import synthesize_funnel
 from stages.certify import certify_controller
 from stages.controller import emit_funnel_controller
-from tests.stages.conftest import emit_at_rest
+from tests.helpers.double_integrator import emit_at_rest
 
 ROOT = Path(__file__).resolve().parents[2]
 

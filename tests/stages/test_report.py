@@ -14,9 +14,8 @@ import dataclasses
 import json
 import re
 import shutil
-import subprocess
 import unicodedata
-from html import escape, unescape
+from html import unescape
 from html.parser import HTMLParser
 from pathlib import Path
 
@@ -33,12 +32,7 @@ from pipeline.reporting.summary import Summary
 from pipeline.runtime.cli import main
 from pipeline.runtime.stored import load_report_data
 from stages.report import write_reports
-
-# what the rendering tests run: the first of these on PATH (Chromium's headless shell before the
-# full browser: the same engine for less than half the CPU); the reports need none
-BROWSERS = ("chromium-headless-shell", "chromium", "chromium-browser", "google-chrome")
-BROWSER = next((Path(found) for name in BROWSERS if (found := shutil.which(name))), None)
-needs_browser = pytest.mark.skipif(BROWSER is None, reason="no Chromium on PATH")
+from tests.helpers.browser import assert_figures_fit, chromium, measure_in_browser, needs_browser
 
 
 @pytest.fixture(scope="module")
@@ -366,37 +360,13 @@ def test_cli_report_of_a_missing_run_is_one_clear_line(
     assert error.count("\n") == 1  # one line, no traceback
 
 
-def _chromium(*arguments: str, profile: Path) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [
-            str(BROWSER),
-            "--headless",
-            "--no-sandbox",
-            "--disable-gpu",
-            "--disable-quic",
-            "--no-first-run",
-            "--disable-background-networking",
-            "--disable-component-update",
-            "--disable-sync",
-            "--enable-logging=stderr",
-            "--v=0",
-            f"--user-data-dir={profile}",
-            *arguments,
-        ],
-        capture_output=True,
-        text=True,
-        timeout=180,
-        check=False,
-    )
-
-
 @pytest.mark.chromium
 @needs_browser
 def test_chromium_renders_the_report(run: tuple[Scenario, Path], tmp_path: Path) -> None:
     url = (run[1] / "report.html").resolve().as_uri()
     profile = tmp_path / "profile"
     shot = tmp_path / "first_screen.png"
-    first = _chromium(f"--screenshot={shot}", "--window-size=1280,2000", url, profile=profile)
+    first = chromium(f"--screenshot={shot}", "--window-size=1280,2000", url, profile=profile)
     assert shot.is_file(), first.stderr[-2000:]
     pixels = matplotlib.image.imread(shot)[..., :3]  # (H, W, 3) in [0, 1]
     assert pixels.shape[:2] == (2000, 1280)
@@ -407,45 +377,14 @@ def test_chromium_renders_the_report(run: tuple[Scenario, Path], tmp_path: Path)
 
     # the whole page: tall enough to hold all sections, its DOM complete after loading
     tall = tmp_path / "page.png"
-    _chromium(f"--screenshot={tall}", "--window-size=1280,16000", url, profile=profile)
+    chromium(f"--screenshot={tall}", "--window-size=1280,16000", url, profile=profile)
     rows = np.flatnonzero(np.any(matplotlib.image.imread(tall)[..., :3] < 0.9, axis=(1, 2)))
     assert rows.max() > 6000, f"page content ends at {rows.max()} px"
-    dom = _chromium("--dump-dom", url, profile=profile)
+    dom = chromium("--dump-dom", url, profile=profile)
     assert dom.returncode == 0, dom.stderr[-2000:]
     assert dom.stdout.count("<svg") == 6 and dom.stdout.rstrip().endswith("</html>")
     for key in ("summary", "scenario", "optimization", "feedback", "coverage", "reproducibility"):
         assert f'id="{key}"' in dom.stdout
-
-
-MEASURE = """<script>
-const out = {scroll: document.documentElement.scrollWidth, view: window.innerWidth, figures: []};
-for (const svg of document.querySelectorAll("figure svg")) {
-  const box = svg.getBoundingClientRect();
-  const scale = box.width / svg.viewBox.baseVal.width;  // screen px per SVG unit
-  const parts = [...svg.querySelectorAll('g[id*="legend_"], g[id$="-colorbar"]')].map((g) => {
-    const r = g.getBoundingClientRect();
-    return [g.id, r.left - box.left, r.top - box.top, box.right - r.right, box.bottom - r.bottom];
-  });
-  const sizes = [...svg.querySelectorAll("text")].map(
-    (t) => parseFloat(getComputedStyle(t).fontSize) * scale);
-  out.figures.push({id: svg.closest("figure").id, left: box.left, right: box.right, parts,
-                    smallest: Math.min(...sizes)});
-}
-document.body.setAttribute("data-measured", JSON.stringify(out));
-</script>"""
-
-
-def _measuring_page(report: str, width: int) -> str:
-    """The report in an iframe ``width`` px wide (a headless window is never narrower than
-    500 px), measured by ``MEASURE`` inside it; the result copied into the outer page."""
-    inner = report.replace("</body>", MEASURE + "</body>")
-    return (
-        f'<!doctype html><html><body style="margin:0"><iframe id="f" style="border:0;'
-        f'width:{width}px;height:900px" srcdoc="{escape(inner, quote=True)}"></iframe>'
-        "<script>window.onload = () => document.body.setAttribute('data-measured', "
-        "document.getElementById('f').contentDocument.body.getAttribute('data-measured'));"
-        "</script></body></html>"
-    )
 
 
 @pytest.mark.chromium
@@ -463,29 +402,3 @@ def test_figures_fit_their_box_at_desktop_and_phone_width(
     assert len(measured["figures"]) == 6
     assert any(g[0] == "bisection-colorbar" for f in measured["figures"] for g in f["parts"])
     assert_figures_fit(measured, width)
-
-
-def measure_in_browser(html: str, width: int, folder: Path) -> dict:
-    """The measuring script's result for ``html`` shown ``width`` px wide in headless Chromium."""
-    page = folder / "measured.html"
-    page.write_text(_measuring_page(html, width))
-    dom = _chromium(
-        "--window-size=1400,1000",
-        "--virtual-time-budget=5000",
-        "--dump-dom",
-        page.as_uri(),
-        profile=folder / "profile",
-    )
-    found = re.search(r'data-measured="([^"]*)"', dom.stdout)
-    assert found, dom.stderr[-2000:]
-    return json.loads(unescape(found.group(1)))
-
-
-def assert_figures_fit(measured: dict, width: int) -> None:
-    """Each figure inside the page, with a legend or colour bar inside it and text >= 8 px."""
-    for figure in measured["figures"]:
-        assert figure["left"] >= 0 and figure["right"] <= width, figure
-        assert figure["parts"], f"{figure['id']}: no legend found"
-        for name, *margins in figure["parts"]:
-            assert min(margins) >= -1.0, f"{name} sticks out of its figure by {-min(margins)} px"
-        assert figure["smallest"] >= 8.0, f"{figure['id']}: text {figure['smallest']:.1f} px"

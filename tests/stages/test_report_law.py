@@ -19,7 +19,7 @@ import numpy as np
 from pipeline.controller import load
 from pipeline.model.scenario import Scenario, load_scenario
 from pipeline.reporting.law import gain_table, law, law_items
-from tests.stages.conftest import DOUBLE_INTEGRATOR, emit_at_rest
+from tests.helpers.double_integrator import DOUBLE_INTEGRATOR, emit_at_rest
 
 UNITS = """\
 units: {X: m, Y: m, vX: m/s, vY: m/s, aX: m/s^2, aY: m/s^2}

@@ -20,7 +20,7 @@ from pipeline.model.scenario import load_scenario
 from pipeline.numerics.closed_loop import hold_runs
 from pipeline.numerics.terminal import containing_level, design_terminal, equilibrium
 from stages.certify import certify_controller, verify_terminal
-from tests.stages.conftest import AT_REST_STARTS, emit_at_rest
+from tests.helpers.double_integrator import AT_REST_STARTS, DOUBLE_INTEGRATOR, emit_at_rest
 
 GOAL = "[[-1, 1], [2, 1], [2, 4], [-1, 4]]"
 
@@ -146,8 +146,6 @@ def test_quadrotor_hover_is_the_equilibrium_and_has_a_certified_ellipsoid():
 
 
 def test_a_hold_scenario_certifies_only_with_a_terminal_controller(tmp_path):
-    from tests.stages.conftest import DOUBLE_INTEGRATOR
-
     path = tmp_path / "hold" / "scenario.yaml"
     path.parent.mkdir()
     text = DOUBLE_INTEGRATOR % {"goal": GOAL, "region": "{aX: [-100.0, 100.0]}", "rate": 0.5}

@@ -1,0 +1,101 @@
+"""Headless Chromium for the rendering tests of the HTML report: the browser found on PATH, a
+skip mark without one, and the measurement of a page's figures at a given width."""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+import subprocess
+from html import escape, unescape
+from pathlib import Path
+
+import pytest
+
+# what the rendering tests run: the first of these on PATH (Chromium's headless shell before the
+# full browser: the same engine for less than half the CPU); the reports need none
+BROWSERS = ("chromium-headless-shell", "chromium", "chromium-browser", "google-chrome")
+BROWSER = next((Path(found) for name in BROWSERS if (found := shutil.which(name))), None)
+needs_browser = pytest.mark.skipif(BROWSER is None, reason="no Chromium on PATH")
+
+
+def chromium(*arguments: str, profile: Path) -> subprocess.CompletedProcess[str]:
+    """``BROWSER`` headless with ``arguments``, its profile in ``profile``; output captured."""
+    return subprocess.run(
+        [
+            str(BROWSER),
+            "--headless",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--disable-quic",
+            "--no-first-run",
+            "--disable-background-networking",
+            "--disable-component-update",
+            "--disable-sync",
+            "--enable-logging=stderr",
+            "--v=0",
+            f"--user-data-dir={profile}",
+            *arguments,
+        ],
+        capture_output=True,
+        text=True,
+        timeout=180,
+        check=False,
+    )
+
+
+MEASURE = """<script>
+const out = {scroll: document.documentElement.scrollWidth, view: window.innerWidth, figures: []};
+for (const svg of document.querySelectorAll("figure svg")) {
+  const box = svg.getBoundingClientRect();
+  const scale = box.width / svg.viewBox.baseVal.width;  // screen px per SVG unit
+  const parts = [...svg.querySelectorAll('g[id*="legend_"], g[id$="-colorbar"]')].map((g) => {
+    const r = g.getBoundingClientRect();
+    return [g.id, r.left - box.left, r.top - box.top, box.right - r.right, box.bottom - r.bottom];
+  });
+  const sizes = [...svg.querySelectorAll("text")].map(
+    (t) => parseFloat(getComputedStyle(t).fontSize) * scale);
+  out.figures.push({id: svg.closest("figure").id, left: box.left, right: box.right, parts,
+                    smallest: Math.min(...sizes)});
+}
+document.body.setAttribute("data-measured", JSON.stringify(out));
+</script>"""
+
+
+def measuring_page(report: str, width: int) -> str:
+    """The report in an iframe ``width`` px wide (a headless window is never narrower than
+    500 px), measured by ``MEASURE`` inside it; the result copied into the outer page."""
+    inner = report.replace("</body>", MEASURE + "</body>")
+    return (
+        f'<!doctype html><html><body style="margin:0"><iframe id="f" style="border:0;'
+        f'width:{width}px;height:900px" srcdoc="{escape(inner, quote=True)}"></iframe>'
+        "<script>window.onload = () => document.body.setAttribute('data-measured', "
+        "document.getElementById('f').contentDocument.body.getAttribute('data-measured'));"
+        "</script></body></html>"
+    )
+
+
+def measure_in_browser(html: str, width: int, folder: Path) -> dict:
+    """The measuring script's result for ``html`` shown ``width`` px wide in headless Chromium."""
+    page = folder / "measured.html"
+    page.write_text(measuring_page(html, width))
+    dom = chromium(
+        "--window-size=1400,1000",
+        "--virtual-time-budget=5000",
+        "--dump-dom",
+        page.as_uri(),
+        profile=folder / "profile",
+    )
+    found = re.search(r'data-measured="([^"]*)"', dom.stdout)
+    assert found, dom.stderr[-2000:]
+    return json.loads(unescape(found.group(1)))
+
+
+def assert_figures_fit(measured: dict, width: int) -> None:
+    """Each figure inside the page, with a legend or colour bar inside it and text >= 8 px."""
+    for figure in measured["figures"]:
+        assert figure["left"] >= 0 and figure["right"] <= width, figure
+        assert figure["parts"], f"{figure['id']}: no legend found"
+        for name, *margins in figure["parts"]:
+            assert min(margins) >= -1.0, f"{name} sticks out of its figure by {-min(margins)} px"
+        assert figure["smallest"] >= 8.0, f"{figure['id']}: text {figure['smallest']:.1f} px"
