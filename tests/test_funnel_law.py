@@ -191,3 +191,26 @@ def test_law_substeps_refines_where_the_term_does_not_fit():
     assert substeps.tolist() == [BASE_SUBSTEPS, 57, BASE_SUBSTEPS]
     tight_input = law_substeps(offset, margins, np.array([[1.0], [1.0], [2.5e-4]]), Ts)
     assert tight_input.tolist() == [BASE_SUBSTEPS, 57, 57]  # 1e-3 against 2.5e-4 / 2: 8x
+
+
+def test_the_centre_error_joins_the_interpolation_bound():
+    """``law_offset``'s ``centre_error`` (the RK4 error of the nominal, a P-norm) is added to
+    ``Delta`` as ``eps sqrt(Q_ii)`` in each state: the largest component a P-norm ``eps`` allows."""
+    rng = np.random.default_rng(5)
+    N, n, m = 3, 4, 2
+    A = rng.standard_normal((N + 1, n, n))
+    P = np.einsum("kij,klj->kil", A, A) + n * np.eye(n)
+    K, vertices = (
+        rng.standard_normal((N, m, n)),
+        tuple(rng.standard_normal((2, n, n + m)) for _ in range(N)),
+    )
+    rate_bound = np.abs(rng.standard_normal((N, n)))
+    substeps = np.full(N, 20)
+    plain = law_offset(vertices, rate_bound, K, P, 1.0, 0.0, 0.1, substeps)
+    shifted = law_offset(vertices, rate_bound, K, P, 1.0, 0.0, 0.1, substeps, centre_error=1e-3)
+    Q_ii = np.diagonal(np.linalg.inv(P), axis1=1, axis2=2)
+    expected = 1e-3 * np.sqrt(np.maximum(Q_ii[:-1], Q_ii[1:]))
+    assert np.allclose(shifted.deviation - plain.deviation, expected, rtol=1e-12)
+    assert np.all(shifted.lmi_term > plain.lmi_term) and np.all(
+        shifted.input_offset > plain.input_offset
+    )

@@ -105,3 +105,23 @@ def test_a_summary_without_a_certificate_is_a_constant_ones(summary):
         for name in ("funnel_level", "funnel_binding", "funnel_seconds"):
             del demo[name]
     assert Summary.from_json(document).certificate == "constant"
+
+
+@pytest.mark.parametrize(
+    ("margin", "bound", "kind"),
+    [
+        (-1e-3, -1e-9, ClaimKind.CERTIFIED),
+        (-1e-12, -1e-9, ClaimKind.NOT_ESTABLISHED),  # below 0, not below certify's bound
+        (0.0, -1e-9, ClaimKind.NOT_ESTABLISHED),
+    ],
+)
+def test_the_contraction_claim_uses_certifys_own_bound(margin, bound, kind):
+    """A /1 file whose contraction eigenvalue is negative but within rounding of 0 is not
+    certified by certify; its contraction claim must not say "certified" either."""
+    from types import SimpleNamespace
+
+    from pipeline.runtime.verdict import certificate_kinds
+
+    check = SimpleNamespace(contraction_margin=margin, contraction_bound=bound, success=False)
+    evidence = SimpleNamespace(certification=check, certificate="constant")
+    assert certificate_kinds(evidence, certified=False)[0] is kind  # type: ignore[arg-type]
