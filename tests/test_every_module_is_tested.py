@@ -53,7 +53,6 @@ COVERED_THROUGH_CALLER = {
     "pipeline.reporting.stage_sections": (
         "tests/stages/test_report.py::test_html_holds_the_headline_numbers_of_summary_json"
     ),
-    "pipeline.runtime.verdict": "tests/test_summary.py::test_the_verdict_of_a_finished_run",
 }
 
 DOTTED = re.compile(r"[A-Za-z_]\w*(\.[A-Za-z_]\w*)+")

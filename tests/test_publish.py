@@ -312,7 +312,9 @@ def test_edited_monte_carlo_counts_are_not_what_the_report_shows(run, capsys):
     assert main(["report", str(scenario), "--from", str(out)]) == 0
     html = (out / "report.html").read_text()
     assert "99999" not in html and "1.23e-09" not in html
-    assert f"0 of {SAMPLES} runs failed" in html and report_verdict(out) == "certified and validated"
+    assert (
+        f"0 of {SAMPLES} runs failed" in html and report_verdict(out) == "certified and validated"
+    )
 
 
 def test_a_forged_controller_hash_in_the_manifest_is_refused_in_one_line(run, capsys):
