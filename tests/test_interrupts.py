@@ -103,3 +103,26 @@ def test_ctrl_c_with_workers_prints_one_line_and_exits_130(
         for pid in _group(process.pid):
             os.kill(pid, signal.SIGKILL)
         process.communicate()
+
+
+def test_a_run_that_hangs_after_ctrl_c_still_ends_with_130() -> None:
+    """If unwinding hangs after the first Ctrl-C (a lock left held by the interrupted code), the
+    watchdog ends the process ``INTERRUPT_GRACE`` seconds later: the one line, exit 130."""
+    code = (
+        "import os, signal, time\n"
+        "import pipeline.runtime.cli as cli\n"
+        "cli.INTERRUPT_GRACE = 0.5\n"
+        "with cli._one_interrupt():\n"
+        "    try:\n"
+        "        os.kill(os.getpid(), signal.SIGINT)\n"
+        "        time.sleep(5)\n"
+        "    except KeyboardInterrupt:\n"
+        "        time.sleep(60)  # the unwinding that never ends\n"
+    )
+    started = time.monotonic()
+    done = subprocess.run(
+        [sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=30,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+    )  # fmt: skip
+    assert done.returncode == 130 and done.stderr.splitlines() == [INTERRUPTED], done.stderr
+    assert time.monotonic() - started < 20

@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import errno
 import json
+import os
 import signal
 import sys
 import threading
@@ -83,12 +84,30 @@ def _parser() -> argparse.ArgumentParser:
 
 
 WRITE_FAILURES = (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES)
+INTERRUPTED = "interrupted: finished artifacts are kept; re-run to resume"
+# Seconds the run has to unwind after Ctrl-C (workers ended, lock released: under 6 s) before the
+# process ends itself: a KeyboardInterrupt raised inside a library's critical section can leave
+# a lock held that the unwinding or the interpreter's exit then waits on forever
+INTERRUPT_GRACE = 30.0
+_said_interrupted = threading.Event()
 
 
 def _interrupted(signum: int, frame: FrameType | None) -> None:
-    """The first SIGINT: ignore the next ones, then stop the command (``KeyboardInterrupt``)."""
+    """The first SIGINT: ignore the next ones, then stop the command (``KeyboardInterrupt``);
+    if it has not ended ``INTERRUPT_GRACE`` seconds later, end the process (``_give_up``)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    watchdog = threading.Timer(INTERRUPT_GRACE, _give_up)
+    watchdog.daemon = True
+    watchdog.start()
     raise KeyboardInterrupt
+
+
+def _give_up() -> None:
+    """The interrupted run did not end in time: say so once and exit 130 at once (the kernel
+    releases the folder's lock with the process; nothing half-written is published)."""
+    if not _said_interrupted.is_set():
+        print(INTERRUPTED, file=sys.stderr, flush=True)
+    os._exit(130)
 
 
 @contextmanager
@@ -136,7 +155,8 @@ def _main(args: argparse.Namespace) -> int:
         )
         return 2
     except KeyboardInterrupt:
-        print("interrupted: finished artifacts are kept; re-run to resume", file=sys.stderr)
+        print(INTERRUPTED, file=sys.stderr, flush=True)
+        _said_interrupted.set()
         return 130
 
 
