@@ -38,7 +38,7 @@ from pipeline.numerics.funnel_law import BASE_SUBSTEPS
 from pipeline.numerics.recertify import ShippedFunnel, reference_substeps
 from pipeline.numerics.terminal import TerminalError, design_terminal
 
-REFERENCE_SUBSTEPS = 20
+REFERENCE_SUBSTEPS = BASE_SUBSTEPS  # the reference grid, finer where the funnel law needs it
 
 
 @dataclass(frozen=True, kw_only=True)

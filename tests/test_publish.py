@@ -19,7 +19,6 @@ import hashlib
 import json
 import os
 import re
-import shutil
 import signal
 import subprocess
 import sys
@@ -36,33 +35,22 @@ from pipeline.runtime.cli import main
 from pipeline.runtime.options import RunOptions
 from pipeline.runtime.orchestrator import run_synthesis
 from pipeline.runtime.stored import load_report_data
+from tests.helpers.runs import SAMPLES, finished_copy, private_copy
 
 ROOT = Path(__file__).resolve().parents[1]
-SAMPLES = "300"  # the session run's (conftest.CI_SYNTHESIS_SAMPLES): a rerun reuses its stages
 pytestmark = pytest.mark.xdist_group("synthesis-double_integrator")  # with its session run
 
 
 @pytest.fixture(scope="module")
 def finished(synthesis_run, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
-    """``(scenario folder, output folder)``: a copy of the scenario and of the session's run,
-    synthesized again there (every stage reused)."""
-    session = synthesis_run("double_integrator")
-    assert session.result.exit_code == 0 and session.samples == int(SAMPLES)
-    base = tmp_path_factory.mktemp("publish")
-    scenario, out = base / "double_integrator", base / "out"
-    shutil.copytree(ROOT / "scenarios" / "double_integrator", scenario)
-    shutil.copytree(session.out, out)
-    assert main(["synthesize", str(scenario), "--out", str(out), "--samples", SAMPLES, "-q"]) == 0
-    return scenario, out
+    """``(scenario folder, output folder)`` of one finished run on a copy of the scenario."""
+    return finished_copy(synthesis_run("double_integrator"), tmp_path_factory.mktemp("publish"))
 
 
 @pytest.fixture
 def run(finished: tuple[Path, Path], tmp_path: Path) -> tuple[Path, Path]:
     """A private copy of the finished run (scenario and output folder)."""
-    scenario, out = tmp_path / "double_integrator", tmp_path / "out"
-    shutil.copytree(finished[0], scenario)
-    shutil.copytree(finished[1], out)
-    return scenario, out
+    return private_copy(finished, tmp_path)
 
 
 def sha256(path: Path) -> str:

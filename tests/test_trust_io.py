@@ -24,9 +24,9 @@ from pipeline.io.files import output_root, replace
 from pipeline.io.lock import folder_lock
 from pipeline.runtime.cli import main
 from pipeline.runtime.runner import StageRunner
+from tests.helpers.runs import SAMPLES
 
 ROOT = Path(__file__).resolve().parents[1]
-SAMPLES = "300"  # the session run's (conftest.CI_SYNTHESIS_SAMPLES): a rerun reuses its stages
 pytestmark = pytest.mark.xdist_group("synthesis-double_integrator")  # with its session run
 
 

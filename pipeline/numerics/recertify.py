@@ -77,10 +77,13 @@ class ReferenceCheck:
       integration: the RK4 error at the sample times, estimated against a grid twice as fine
         (Richardson, order 4: ``16/15 |x_s - x_2s|``), in ``P(t_k)`` per unit radius: the larger
         of the file's grid and the proof's (``BASE_SUBSTEPS``).
+      nominal: the proof's nominal, ``x0`` and ``u_ref`` on a uniform grid of ``BASE_SUBSTEPS``
+        (None with ``trajectory``).
     """
 
     trajectory: Trajectory | None
     substeps: np.ndarray | None = None
+    nominal: Trajectory | None = None
     error: float
     interpolation: float
     integration: float = np.inf
@@ -112,17 +115,15 @@ def check_reference(
     metric = tr.metric(fine.ts, Ts)  # (N+1, n, n)
     proof = simulate(scenario.dynamics, tr.x0, tr.u_ref, Ts, BASE_SUBSTEPS)  # the proof's nominal
     twice = simulate(scenario.dynamics, tr.x0, tr.u_ref, Ts, 2 * BASE_SUBSTEPS)
-    integration = (
-        16
-        / 15
-        * max(
-            np.sqrt(np.einsum("ki,kij,kj->k", d, metric, d)).max()
-            for d in (fine.xs - finer.xs, proof.xs - twice.xs)
-        )
-    )
+    richardson = [  # order 4: the error of the coarser grid is 16/15 of the difference
+        16 / 15 * np.sqrt(np.einsum("ki,kij,kj->k", d, metric, d)).max()
+        for d in (fine.xs - finer.xs, proof.xs - twice.xs)
+    ]
+    integration = max(richardson)
     return ReferenceCheck(
         trajectory=fine,
         substeps=substeps,
+        nominal=proof,
         error=error,
         interpolation=interpolation,
         integration=float(integration) / tr.radius,
