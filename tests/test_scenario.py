@@ -107,6 +107,38 @@ BAD_INPUTS: list[tuple[str, Mutation, str | None, list[str]]] = [
         ["optimizer", "'gd' or 'lbfgs'"],
     ),
     (
+        "negative disturbance bound",
+        yaml_replace(
+            "clearance: 0.25\n", "clearance: 0.25\nuncertainty: {disturbance: {vX: -0.1}}\n"
+        ),
+        YAML,
+        ["uncertainty.disturbance.vX", "greater than or equal to 0"],
+    ),
+    (
+        "disturbance on an unknown state",
+        yaml_replace(
+            "clearance: 0.25\n", "clearance: 0.25\nuncertainty: {disturbance: {vZ: 0.1}}\n"
+        ),
+        YAML,
+        ["uncertainty.disturbance", "unknown name 'vZ'", "names from ['X', 'Y', 'vX', 'vY']"],
+    ),
+    (
+        "interval of an unknown parameter",
+        yaml_replace(
+            "clearance: 0.25\n", "clearance: 0.25\nuncertainty: {parameters: {mass: [0.9, 1.1]}}\n"
+        ),
+        YAML,
+        ["uncertainty.parameters", "unknown name 'mass'", "names from ['k']"],
+    ),
+    (
+        "parameter interval excluding the nominal value",
+        yaml_replace(
+            "clearance: 0.25\n", "clearance: 0.25\nuncertainty: {parameters: {k: [1.1, 1.2]}}\n"
+        ),
+        YAML,
+        ["uncertainty.parameters.k", "excludes the nominal value 1", "an interval holding 1"],
+    ),
+    (
         "unit of an unknown name",
         yaml_replace("clearance: 0.25\n", "clearance: 0.25\nunits: {speed: m/s}\n"),
         YAML,

@@ -43,6 +43,7 @@ from pipeline.model.scenario_file import parse_spec
 from pipeline.model.scenario_file import resolve_scenario_path as resolve_scenario_path
 from pipeline.model.schema import FeedbackSpec, ScenarioSpec
 from pipeline.model.simulate import simulate
+from pipeline.model.uncertainty import Uncertainty
 
 # The largest lambda T of a demo: e^{lambda T} stays far below float64's limit e^709.78 (room for
 # the factors it multiplies).
@@ -67,6 +68,8 @@ class Scenario:
       optimizer: "gd" (the paper's gradient descent) or "lbfgs": how nominals are optimized.
       state_bounds: state name -> (lower, upper), the physical envelope (not a certificate region).
       units, labels: state or input name -> unit / human name (optional; see ``label``).
+      uncertainty: the declared disturbance and parameter bounds (``pipeline.model.uncertainty``;
+        empty for the exact model).
 
     Deeply frozen: every array is a read-only copy and every mapping a read-only view of a copy
     (``pipeline.model.frozen``), so ``dataclasses.replace(scenario, clearance=0.5)`` is the way to
@@ -97,6 +100,7 @@ class Scenario:
     state_bounds: Mapping[str, tuple[float, float]] = field(default_factory=dict)
     units: Mapping[str, str] = field(default_factory=dict)
     labels: Mapping[str, str] = field(default_factory=dict)
+    uncertainty: Uncertainty = field(repr=False, kw_only=True)
 
     def __post_init__(self) -> None:
         freeze_fields(self)
@@ -342,6 +346,7 @@ def _build(path: Path, spec: ScenarioSpec) -> Scenario:
         state_bounds=dict(spec.state_bounds),
         units=dict(spec.units),
         labels=dict(spec.labels),
+        uncertainty=_uncertainty(path, spec),
     )
 
 
@@ -362,12 +367,16 @@ def _check_init_in_bounds(
             )
 
 
-def _build_dynamics(path: Path, spec: ScenarioSpec) -> Dynamics:
+def _build_dynamics(path: Path, spec: ScenarioSpec, keep: Sequence[str] = ()) -> Dynamics:
+    """The scenario's dynamics with every parameter substituted but those named in ``keep``,
+    which become trailing inputs (in that order): ``f(x, (u, p_keep))``."""
     state_symbols = [sympy.Symbol(name, real=True) for name in spec.states]
     input_symbols = [sympy.Symbol(name, real=True) for name in spec.inputs]
     parameter_symbols = {name: sympy.Symbol(name, real=True) for name in spec.parameters}
     symbols = {s.name: s for s in (*state_symbols, *input_symbols)} | parameter_symbols
-    values = {parameter_symbols[k]: sympy.Float(v) for k, v in spec.parameters.items()}
+    values = {
+        parameter_symbols[k]: sympy.Float(v) for k, v in spec.parameters.items() if k not in keep
+    }
     expressions = []
     for name in spec.states:
         try:
@@ -386,7 +395,41 @@ def _build_dynamics(path: Path, spec: ScenarioSpec) -> Dynamics:
                 expected="no division by zero and no complex values",
             )
         expressions.append(expression)
-    return Dynamics.from_expressions(state_symbols, input_symbols, expressions)
+    kept = [parameter_symbols[k] for k in keep]
+    return Dynamics.from_expressions(state_symbols, [*input_symbols, *kept], expressions)
+
+
+def _uncertainty(path: Path, spec: ScenarioSpec) -> Uncertainty:
+    """The declared ``uncertainty:`` block, checked against the states and parameters."""
+    declared = spec.uncertainty
+    states = list(spec.states)
+    _require_names(path, "uncertainty.disturbance", list(declared.disturbance), states, exact=False)
+    _require_names(
+        path,
+        "uncertainty.parameters",
+        list(declared.parameters),
+        list(spec.parameters),
+        exact=False,
+    )
+    names = tuple(declared.parameters)
+    for name, (lower, upper) in declared.parameters.items():
+        nominal = spec.parameters[name]
+        if not lower <= nominal <= upper:
+            raise ScenarioError(
+                f"excludes the nominal value {nominal:g} (parameters.{name})",
+                file=path,
+                field=f"uncertainty.parameters.{name}",
+                found=[lower, upper],
+                expected=f"an interval holding {nominal:g}: the nominals are flown with it",
+            )
+    return Uncertainty(
+        disturbance=np.array([float(declared.disturbance.get(s, 0.0)) for s in states]),
+        parameter_names=names,
+        parameter_lower=np.array([declared.parameters[k][0] for k in names], dtype=float),
+        parameter_upper=np.array([declared.parameters[k][1] for k in names], dtype=float),
+        parameter_nominal=np.array([spec.parameters[k] for k in names], dtype=float),
+        parametric=_build_dynamics(path, spec, keep=names) if names else None,
+    )
 
 
 def _load_demo(

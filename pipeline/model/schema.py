@@ -17,6 +17,7 @@ from pydantic import (
     BeforeValidator,
     ConfigDict,
     Field,
+    NonNegativeFloat,
     PositiveFloat,
     WithJsonSchema,
 )
@@ -92,6 +93,21 @@ class StressSpec(_Strict):
     )
 
 
+class UncertaintySpec(_Strict):
+    """What every certificate must hold against (``pipeline.model.uncertainty``)."""
+
+    disturbance: dict[str, NonNegativeFloat] = Field(
+        default_factory=dict,
+        description="bound on an additive term in the named state's derivative, |w| <= bound, "
+        "at every instant (any signal inside the box, e.g. gusts, in the state's unit per s)",
+    )
+    parameters: dict[str, Interval] = Field(
+        default_factory=dict,
+        description="interval [lower, upper] of a parameter whose true value is unknown (held "
+        "constant during a flight); it must contain the value under parameters:",
+    )
+
+
 class DemoSpec(_Strict):
     """One demonstration: a CSV of held inputs and the initial state it was flown from."""
 
@@ -151,6 +167,11 @@ class ScenarioSpec(_Strict):
     labels: dict[str, str] = Field(
         default_factory=dict,
         description="optional human name of a state or input (e.g. force: thrust)",
+    )
+    uncertainty: UncertaintySpec = Field(
+        default_factory=UncertaintySpec,
+        description="declared disturbance and parameter bounds: every certificate holds for all "
+        "of them (omitted: the exact model)",
     )
     stress: StressSpec | None = Field(default=None, description="optional stress-test settings")
     demos: list[DemoSpec] = Field(default_factory=list)

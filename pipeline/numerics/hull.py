@@ -210,6 +210,14 @@ def _bounds(expression: sympy.Expr, box: Mapping[sympy.Symbol, tuple[float, floa
     return np.array([lower, upper])
 
 
+def interval_of(
+    expression: sympy.Expr, box: Mapping[sympy.Symbol, tuple[float, float]]
+) -> tuple[float, float]:
+    """Sound ``(lower, upper)`` floats of ``expression`` over ``box`` (``_bounds``)."""
+    lower, upper = _bounds(expression, box)
+    return float(lower), float(upper)
+
+
 def _block_vertices(
     z: sympy.Symbol,
     functions: Sequence[sympy.Expr],

@@ -69,6 +69,24 @@ def check_period(scenario: Scenario, period: float, certificate: str) -> None:
         )
 
 
+def check_uncertainty(scenario: Scenario, certificate: str) -> None:
+    """Every declared bound is held by the certificate that runs, or the run is refused: the
+    constant certificate holds no uncertainty (its contraction is of the exact model)."""
+    if scenario.uncertainty.empty:
+        return
+    if certificate == "constant":
+        raise UserError(
+            f"{scenario.path}: uncertainty: declared, but the constant certificate holds the exact "
+            "model only; expected certificate: funnel (robust funnels hold the declared bounds) "
+            "or no uncertainty block"
+        )
+    raise UserError(
+        f"{scenario.path}: uncertainty: declared, but robust funnels are not wired into "
+        "synthesize yet (pipeline.numerics.uncertainty bounds them); expected no uncertainty "
+        "block"
+    )
+
+
 def certificate_of(scenario: Scenario, options: RunOptions) -> str:
     """The certificate this run ships: ``--certificate``, else the scenario's."""
     return options.certificate or scenario.certificate

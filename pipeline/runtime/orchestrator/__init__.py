@@ -180,6 +180,7 @@ def run_synthesis(
     check_scenario(scenario)  # hull, demo inputs in the region, a controllable reference
     certificate = run_inputs.certificate_of(scenario, options)
     run_inputs.check_period(scenario, options.feedback_period, certificate)
+    run_inputs.check_uncertainty(scenario, certificate)
     out = (Path(out) if out is not None else default_output_folder(scenario.name)).absolute()
     check_output_folder(out, scenario.name)
     log.info(f"outputs: {out}")

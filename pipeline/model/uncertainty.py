@@ -1,0 +1,89 @@
+"""The uncertainty a scenario declares: what every certificate must hold against.
+
+The scenario file's ``uncertainty:`` block (``pipeline.model.schema.UncertaintySpec``) declares
+
+- ``disturbance``: a box ``|w_i| <= disturbance_i`` on an additive term in the named states'
+  derivatives, ``x' = f(x, u) + w(t)``, acting at every instant: ``w`` is any measurable signal
+  inside the box (a gust; states not named get 0);
+- ``parameters``: an interval for any of the scenario's parameters. The true value is unknown
+  and constant during a flight (or varying, the bound below does not use its rate). The nominals
+  are flown with the file's (nominal) values ``p0``; a certificate holds the difference
+  ``f(x, u, p) - f(x, u, p0)`` as a second additive term, bounded over its tube and the
+  parameter box by outward-rounded interval arithmetic (``pipeline.numerics.uncertainty``).
+
+Nothing else: a measurement error on the state the feedback sees is not declared here (no
+certificate of this pipeline holds one yet; ``stress.measurement_noise`` tests it, uncertified).
+
+An empty block (or none) is the exact model: every certificate reduces to its exact-model form.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from pipeline.model.dynamics import Dynamics, FloatArray
+from pipeline.model.frozen import freeze_fields, reduce_fields
+
+
+@dataclass(frozen=True, kw_only=True, eq=False)
+class Uncertainty:
+    """A scenario's declared uncertainty (``n`` states, ``q`` uncertain parameters).
+
+    Attributes:
+      disturbance: (n,) ``>= 0``, the box half-width of the additive term in each state's
+        derivative (0 for states not named).
+      parameter_names: (q,) the uncertain parameters, in the file's order.
+      parameter_lower, parameter_upper: (q,) their intervals; parameter_nominal: (q,) the values
+        the nominal model uses, inside the intervals.
+      parametric: ``f(x, v)`` with ``v = (u, p)``: the scenario's dynamics with the ``q``
+        uncertain parameters as trailing inputs (other parameters substituted); ``None`` when
+        ``q = 0``.
+    """
+
+    disturbance: FloatArray
+    parameter_names: tuple[str, ...] = ()
+    parameter_lower: FloatArray = field(default_factory=lambda: np.zeros(0))
+    parameter_upper: FloatArray = field(default_factory=lambda: np.zeros(0))
+    parameter_nominal: FloatArray = field(default_factory=lambda: np.zeros(0))
+    parametric: Dynamics | None = field(default=None, repr=False)
+
+    def __post_init__(self) -> None:
+        freeze_fields(self)
+
+    def __reduce__(self) -> tuple[object, ...]:
+        return reduce_fields(self)
+
+    @classmethod
+    def exact(cls, n: int) -> Uncertainty:
+        """No uncertainty over ``n`` states: the exact model."""
+        return cls(disturbance=np.zeros(n))
+
+    @property
+    def empty(self) -> bool:
+        """Nothing declared: the exact model."""
+        return not self.parameter_names and not np.any(self.disturbance > 0)
+
+    @property
+    def parameters(self) -> Mapping[str, tuple[float, float]]:
+        """Parameter name -> (lower, upper)."""
+        return {
+            name: (float(lo), float(hi))
+            for name, lo, hi in zip(
+                self.parameter_names, self.parameter_lower, self.parameter_upper, strict=True
+            )
+        }
+
+    def scaled(self, factor: float) -> Uncertainty:
+        """The same declaration ``factor`` times as wide about the nominal (``--stress``)."""
+        nominal = self.parameter_nominal
+        return Uncertainty(
+            disturbance=factor * self.disturbance,
+            parameter_names=self.parameter_names,
+            parameter_lower=nominal + factor * (self.parameter_lower - nominal),
+            parameter_upper=nominal + factor * (self.parameter_upper - nominal),
+            parameter_nominal=nominal,
+            parametric=self.parametric,
+        )
