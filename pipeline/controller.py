@@ -44,8 +44,8 @@ shape, a non-positive radius or ``Ts``, ``lower > upper``, ``P`` not positive de
 that do not increase, ``T`` that disagrees with ``t`` and ``u_ref``, bytes that are not UTF-8
 JSON) raises ``ControllerFormatError`` naming the field. The optional fields (``terminal``,
 ``feedback_period``, ``interpolation_error_P_norm``, each trajectory's ``name``, the demo it
-was made from; in ``/2`` also ``feedback`` and each trajectory's ``rate``) may be absent:
-files written before they existed still load.
+was made from; in ``/2`` also ``feedback``, each trajectory's ``rate`` and ``uncertainty``, the
+declared bounds the funnels hold) may be absent: files written before they existed still load.
 """
 
 from __future__ import annotations
@@ -239,6 +239,9 @@ class Controller:
       terminal: the certified law after ``T`` (None: the law refuses ``t > T``).
       feedback_period: the feedback period ``h`` (s) the certificate assumes: the state is
         measured and ``u`` recomputed every ``h`` seconds and held in between (0: continuous).
+      disturbance_bound: (n,) ``b``: the funnels hold for ``x' = f(x, u) + w``, ``|w_i| <= b_i``,
+        the scenario's declared disturbance and parameter intervals as one additive term (the
+        file's ``uncertainty.additive_bound``); None: the exact model.
     """
 
     scenario: str
@@ -254,6 +257,7 @@ class Controller:
     interpolation_error: float = 0.0
     terminal: TerminalController | None = None
     feedback_period: float = 0.0
+    disturbance_bound: np.ndarray | None = None
     source: str = "controller.json"
     format: str = FORMAT
 
@@ -298,6 +302,8 @@ class Controller:
             )
         h = self.feedback_period
         period = f"{h:g} s (held between samples)" if h > 0 else "0 (continuous)"
+        if self.disturbance_bound is not None:
+            kind += f", robust to |w| <= {_short(self.disturbance_bound)}"
         return "\n".join([
             f"Controller({self.format}, scenario {self.scenario!r}, from {self.source})",
             f"  states: {', '.join(self.state_names)}; Ts {self.Ts:g} s",
@@ -663,6 +669,14 @@ def parse(data: object, source: str = "controller.json") -> Controller:
         read.fail("feedback_period", period, "a number >= 0 (0: continuous feedback)")
     terminal = top.get("terminal")
     terminal = None if terminal is None else _terminal(read, terminal, n, m)
+    bound = None
+    if top.get("uncertainty") is not None:
+        block = read.mapping("uncertainty", top["uncertainty"], ("additive_bound",))
+        bound = read.array("uncertainty.additive_bound", block["additive_bound"], (n,))
+        if np.any(bound < 0):
+            i = int(np.argmin(bound))
+            read.fail(f"uncertainty.additive_bound[{i}]", float(bound[i]), "a number >= 0")
+        bound = _frozen(bound)
     return Controller(
         scenario=top["scenario"],
         state_names=state_names,
@@ -677,6 +691,7 @@ def parse(data: object, source: str = "controller.json") -> Controller:
         interpolation_error=error,
         terminal=terminal,
         feedback_period=period,
+        disturbance_bound=bound,
         source=source,
         format=top["format"],
     )

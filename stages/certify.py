@@ -53,6 +53,13 @@ reference checks of step 4 measure in the tube's metric at the time, ``P_i(t)``;
 covers Init by the balls ``||x - x0_i||_{P_i[0]} <= radius_i``; step 6's end tubes are
 ``||x - x_ref_i(T)||_{P_i[N]} <= radius_i e^{-rate_i T}``. The funnel certificate is for
 continuous feedback: a ``/2`` file with ``feedback_period > 0`` is not certified.
+
+Declared uncertainty (the scenario's ``uncertainty:``). The funnels are re-checked for ``x' =
+f(x, u) + w``, ``|w| <= b``, with ``b`` derived here from the scenario's declaration
+(``pipeline.numerics.uncertainty`` (U1)) and raised to the file's ``uncertainty.additive_bound``
+where that is larger: (F2) must keep its margin with the term (I4) added (``funnel_law``). A
+file that holds less than the scenario declares, or a ``/1`` file for a scenario that declares
+any uncertainty, is not certified.
 """
 
 from __future__ import annotations
@@ -64,6 +71,7 @@ import numpy as np
 
 from pipeline.controller import Controller, ControllerFormatError, load
 from pipeline.io.artifacts import file_hash
+from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import simulate
 from pipeline.numerics.cover import DEFAULT_DEPTH, subdivide
@@ -79,6 +87,7 @@ from pipeline.numerics.sampled import contraction_rate, held_rate
 from pipeline.numerics.terminal import check_level, end_levels
 from pipeline.numerics.tube import Tube
 from pipeline.numerics.tube_radius import radius_limits
+from pipeline.numerics.uncertainty import additive_bound
 from pipeline.numerics.verify import VERIFY_SUBSTEPS
 
 REFERENCE_TOLERANCE = 1e-9  # ||x_ref - simulated||_P / radius
@@ -290,6 +299,7 @@ def _funnels(
             f"feedback_period {controller.feedback_period:g} s: the funnel certificate is for "
             "continuous feedback (0); a held law is not certified by a safety-controller/2 file"
         )
+    disturbance = held_disturbance(scenario, controller, failures)
     margin, vertices, verified, errors = -np.inf, 0, [], (0.0, 0.0)
     for i, tr in enumerate(controller.trajectories):
         errors, reference = _reference(scenario, controller, i, failures, errors)
@@ -299,13 +309,38 @@ def _funnels(
         shipped = ShippedFunnel(K=tr.K, P=tr.P, rho=tr.radius, rate=tr.rate)
         check = recheck_funnel(
             scenario, reference.nominal, shipped, scenario.state_bounds, reference.substeps,
-            centre_error=reference.integration * tr.radius,
+            centre_error=reference.integration * tr.radius, disturbance=disturbance,
         )  # fmt: skip
         margin, vertices = max(margin, check.margin), vertices + check.vertices
         verified.append(check.radius)
         if check.failure is not None:
             failures.append(f"trajectories[{i}]: the funnel is not certified: {check.failure}")
     return margin, vertices, verified, errors
+
+
+def held_disturbance(
+    scenario: Scenario, controller: Controller, failures: list[str]
+) -> FloatArray | None:
+    """The additive bound ``(n,)`` the funnels are checked against: the scenario's declaration
+    (``pipeline.numerics.uncertainty``, derived here, never read from the file) and what the
+    file says it holds, whichever is larger in each state (both claims are then verified); None
+    when neither declares any. A file that holds less than the scenario declares is a failure
+    (it may still be re-checked, with the declaration)."""
+    declared = None if scenario.uncertainty.empty else additive_bound(scenario)
+    stated = controller.disturbance_bound
+    if declared is not None:
+        held = np.zeros(scenario.n) if stated is None else stated
+        short = np.flatnonzero(held < declared)
+        if len(short):
+            i = int(short[0])
+            failures.append(
+                f"uncertainty: the file holds |w_{scenario.state_names[i]}| <= {held[i]:.4g}, "
+                f"the scenario declares {declared[i]:.4g} (uncertainty: block); synthesize again"
+            )
+    if declared is None and stated is None:
+        return None
+    bounds = [b for b in (declared, stated) if b is not None]
+    return np.maximum.reduce(bounds) if len(bounds) > 1 else np.asarray(bounds[0])
 
 
 def _reference(
@@ -387,6 +422,11 @@ def certify_controller(
             scenario, controller, failures
         )
     else:
+        if not scenario.uncertainty.empty:
+            failures.append(
+                "uncertainty: the scenario declares disturbance or parameter bounds, which a "
+                "constant certificate (/1) does not hold; synthesize with certificate: funnel"
+            )
         margin, vertices, verified, (reference_error, interpolation) = _constant(
             scenario, controller, failures, segments
         )

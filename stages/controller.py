@@ -37,6 +37,7 @@ from pipeline.numerics.funnel_check import Funnel
 from pipeline.numerics.funnel_law import BASE_SUBSTEPS
 from pipeline.numerics.recertify import ShippedFunnel, reference_substeps
 from pipeline.numerics.terminal import TerminalError, design_terminal
+from pipeline.numerics.uncertainty import additive_bound
 
 REFERENCE_SUBSTEPS = BASE_SUBSTEPS  # the reference grid, finer where the funnel law needs it
 
@@ -144,6 +145,17 @@ def _document(scenario: Scenario, version: str, trajectories: list[dict], **fiel
         },
         **fields,
     } | {"trajectories": trajectories}
+
+
+def uncertainty_block(scenario: Scenario, bound: FloatArray) -> dict:
+    """The ``/2`` file's ``uncertainty``: the additive bound ``(n,)`` its funnels hold (what
+    certify checks against the scenario's declaration) and, for people, what it came from."""
+    declared = scenario.uncertainty
+    return {
+        "additive_bound": bound.tolist(),
+        "disturbance": dict(zip(scenario.state_names, declared.disturbance.tolist(), strict=True)),
+        "parameters": {name: list(interval) for name, interval in declared.parameters.items()},
+    }
 
 
 def _write(
@@ -257,6 +269,7 @@ def emit_funnel_controller(
     """
     if names is not None and len(names) != len(trajectories):
         raise ValueError(f"{len(names)} names for {len(trajectories)} trajectories")
+    disturbance = None if scenario.uncertainty.empty else additive_bound(scenario)
     items, worst, ends, end_radii, end_metrics = [], 0.0, [], [], []
     for i, (trajectory, funnel) in enumerate(zip(trajectories, funnels, strict=True)):
         N, n, m = len(trajectory.us), scenario.n, scenario.m
@@ -279,6 +292,7 @@ def emit_funnel_controller(
                 nominal,
                 ShippedFunnel(K=funnel.K, P=funnel.P, rho=funnel.rho, rate=funnel.rate),
                 scenario.state_bounds,
+                disturbance,
             ),
         )
         name = None if names is None else names[i]
@@ -299,6 +313,9 @@ def emit_funnel_controller(
         metric_interpolation=INVERSE_LINEAR,
         interpolation_error_P_norm=worst,
         feedback_period=feedback_period,
+        **(
+            {} if disturbance is None else {"uncertainty": uncertainty_block(scenario, disturbance)}
+        ),
     )
     first = funnels[0]  # the terminal design's "tube" candidate: the first funnel's end
     terminal, _, terminal_message = terminal_block(

@@ -7,7 +7,9 @@ every state starting in
     E_i(0) = {x : (x - x0_i)^T P_i[0] (x - x0_i) <= rho_i^2}
 
 stays in the tube ``E_i(t)`` around the nominal, clear of Unsafe, inside the input bounds and
-the scenario's ``state_bounds``, and ends in Goal. Each funnel is asked to hold its start's
+the scenario's ``state_bounds``, and ends in Goal; for every disturbance and parameter the
+scenario declares (``uncertainty:``, held as one additive bound, ``pipeline.numerics.uncertainty``
+(U1), by the funnel's (I4)). Each funnel is asked to hold its start's
 cell of Init (``pipeline.numerics.cells``: Init cut into equal boxes, each given to the start
 nearest its centre in the constant certificate's metric ``P``; funnel ``i`` must hold the corners
 of the hull of its boxes), so that the funnels together hold Init when every level reaches 1.
@@ -40,7 +42,9 @@ from pipeline.model.simulate import Trajectory
 from pipeline.numerics.cells import init_cells
 from pipeline.numerics.funnel import synthesize_funnel
 from pipeline.numerics.funnel_check import Funnel, check_funnel
+from pipeline.numerics.funnel_law import LawOffset
 from pipeline.numerics.recertify import ShippedFunnel, recheck_as_shipped
+from pipeline.numerics.uncertainty import additive_bound
 
 preload_in_workers(__name__)  # its chunks run in worker processes
 
@@ -117,13 +121,15 @@ def required_sets(
 
 @dataclass(frozen=True, kw_only=True)
 class _Task:
-    """One funnel for a worker: the scenario (pickled to a worker process), the nominal and
-    ``Q_init (p, n, n)`` (``v v^T`` per corner of its cell, or the ball slice (I1))."""
+    """One funnel for a worker: the scenario (pickled to a worker process), the nominal,
+    ``Q_init (p, n, n)`` (``v v^T`` per corner of its cell, or the ball slice (I1)) and the
+    additive bound ``(n,)`` of the declared uncertainty (None: the exact model)."""
 
     scenario: Scenario
     trajectory: Trajectory
     initial: FloatArray
     rate: float
+    disturbance: FloatArray | None
 
 
 def _accepted(
@@ -131,19 +137,24 @@ def _accepted(
     trajectory: Trajectory,
     funnel: Funnel,
     state_bounds: Mapping[str, tuple[float, float]],
+    disturbance: FloatArray | None = None,
 ) -> str | None:
-    """None if ``funnel`` certifies its trajectory, else why it is dropped."""
+    """None if ``funnel`` certifies its trajectory (for ``x' = f(x, u) + w``, ``|w| <=
+    disturbance (n,)`` when given), else why it is dropped."""
     if not funnel.success:
         return funnel.message
     if not funnel.rho > 0:
         return f"funnel level {funnel.rho:.3g} is not positive"
-    failure = check_funnel(scenario, trajectory, funnel, state_bounds)
+    law = LawOffset.none(len(funnel.K), scenario.n, scenario.m, scenario.Ts)
+    if disturbance is not None:
+        law = law.with_disturbance(funnel.P, funnel.rho, funnel.rate, scenario.Ts, disturbance)
+    failure = check_funnel(scenario, trajectory, funnel, state_bounds, law)
     if failure is not None:
         return f"rejected by the independent check: {failure}"
     # as the certify stage will see it: rebuilt from K, P and rho alone (its own enclosure), the
     # law tracking the reference interpolated on the grid the controller stage ships
     shipped = ShippedFunnel(K=funnel.K, P=funnel.P, rho=funnel.rho, rate=funnel.rate)
-    again = recheck_as_shipped(scenario, trajectory, shipped, state_bounds)
+    again = recheck_as_shipped(scenario, trajectory, shipped, state_bounds, disturbance)
     return None if not again.failure else f"rejected when rebuilt as certify does: {again.failure}"
 
 
@@ -151,9 +162,10 @@ def _funnel_in_worker(task: _Task) -> tuple[Funnel, str | None]:
     scenario = task.scenario
     bounds = dict(scenario.state_bounds)
     funnel = synthesize_funnel(
-        scenario, task.trajectory, state_bounds=bounds, initial=task.initial, rate=task.rate
-    )
-    return funnel, _accepted(scenario, task.trajectory, funnel, bounds)
+        scenario, task.trajectory, state_bounds=bounds, initial=task.initial, rate=task.rate,
+        disturbance=task.disturbance,
+    )  # fmt: skip
+    return funnel, _accepted(scenario, task.trajectory, funnel, bounds, task.disturbance)
 
 
 def _reused(earlier: tuple[Funnel, str | None]) -> tuple[Funnel, str | None]:
@@ -206,12 +218,14 @@ def synthesize_funnels(
             f"funnel: {len(reuse)} funnels to reuse for {len(trajectories)} trajectories; "
             "expected one (or None) per trajectory"
         )
+    disturbance = None if scenario.uncertainty.empty else additive_bound(scenario)
     tasks = {
         i: _Task(
             scenario=scenario,
             trajectory=trajectory,
             initial=Q_init,
             rate=rate,
+            disturbance=disturbance,
         )
         for i, (trajectory, Q_init) in enumerate(zip(trajectories, initial, strict=True))
         if reuse[i] is None

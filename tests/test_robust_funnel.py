@@ -8,21 +8,16 @@ from its boundary under the worst disturbance, and the reduction to today's funn
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 import pytest
-from shapely.geometry import box
 
 from pipeline.controller import inverse_linear
-from pipeline.model.scenario import load_scenario
 from pipeline.model.simulate import simulate
 from pipeline.numerics.funnel import synthesize_funnel
 from pipeline.numerics.funnel_check import check_funnel
 from pipeline.numerics.funnel_law import LawOffset, corners, disturbance_term
 from pipeline.numerics.funnel_lmi import FunnelProgram, solve_clarabel, solve_cvxpy
-
-DISTURBANCE = np.array([0.0, 0.0, 0.05, 0.05])  # m/s^2 on both speeds of the double integrator
+from tests.helpers.robust import DISTURBANCE, double_integrator_case
 
 
 def test_the_disturbance_term_has_the_scalar_closed_form():
@@ -64,17 +59,6 @@ def test_the_disturbance_constraint_is_the_same_program_in_cvxpy():
     assert np.allclose(bound, gamma**2, rtol=1e-5)
 
 
-def _double_integrator():
-    """The double integrator's first demo over 3 s, Goal around where it ends, and a small
-    initial set (as tests/conftest.py's ``funnel_artifact``)."""
-    scenario = load_scenario("double_integrator", check_demos=False)
-    demo = scenario.demos[0]
-    trajectory = simulate(scenario.dynamics, demo.x0, demo.us[:30], scenario.Ts)
-    end = trajectory.xs[-1, :2]
-    scenario = dataclasses.replace(scenario, goal=box(*(end - 1.0), *(end + 1.0)))
-    return scenario, trajectory, 2 * np.diag([0.05, 0.05, 0.0, 0.0]) ** 2
-
-
 def _robust(funnel, scenario, bound):
     law = LawOffset.none(len(funnel.K), scenario.n, scenario.m, scenario.Ts)
     return law.with_disturbance(funnel.P, funnel.rho, funnel.rate, scenario.Ts, bound)
@@ -85,7 +69,7 @@ def test_a_robust_funnel_holds_under_the_worst_disturbance_from_its_boundary():
     points with ``w = d sign(P e)`` (the disturbance pushing outward hardest in each state), RK4
     at Ts / 40, the state never leaves it. The nominal design fails that check, naming the
     term."""
-    scenario, trajectory, initial = _double_integrator()
+    scenario, trajectory, initial = double_integrator_case()
     funnel = synthesize_funnel(scenario, trajectory, initial=initial, disturbance=DISTURBANCE)
     assert funnel.success, funnel.message
     assert (
@@ -124,7 +108,7 @@ def test_a_robust_funnel_holds_under_the_worst_disturbance_from_its_boundary():
 
 
 def test_no_disturbance_is_exactly_the_nominal_funnel():
-    scenario, trajectory, initial = _double_integrator()
+    scenario, trajectory, initial = double_integrator_case()
     nominal = synthesize_funnel(scenario, trajectory, initial=initial)
     zero = synthesize_funnel(scenario, trajectory, initial=initial, disturbance=np.zeros(4))
     assert np.array_equal(nominal.P, zero.P) and nominal.rho == zero.rho

@@ -4,7 +4,9 @@ Each raises one ``ScenarioError`` naming the file, the field, the value and what
 
 1. The Jacobian hull over ``operating_region`` must exist (``pipeline.numerics.hull``): every
    variable the Jacobian depends on bounded, every entry bounded over the box.
-2. Every demo input named in ``operating_region`` stays inside its interval there.
+2. The declared uncertainty has a bound (``pipeline.numerics.uncertainty``): every variable the
+   dynamics' sensitivity to an uncertain parameter depends on is bounded.
+   Every demo input named in ``operating_region`` stays inside its interval there.
 3. An uncontrollable mode at the reference. With ``A = f_x(x*, u*)``, ``B = f_u(x*, u*)`` at
    ``feedback.reference_state``/``reference_input``, take the controllable subspace
    ``R = span[B, AB, ..., A^{n-1} B]`` (A-invariant) and an orthonormal basis ``N`` of its
@@ -29,6 +31,7 @@ from pipeline.io.errors import ScenarioError
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
 from pipeline.numerics.hull import HullError, jacobian_hull
+from pipeline.numerics.uncertainty import additive_bound
 
 RANK_TOLERANCE = 1e-9  # relative to the largest singular value of [A B] (and at least 1)
 
@@ -36,6 +39,7 @@ RANK_TOLERANCE = 1e-9  # relative to the largest singular value of [A B] (and at
 def check_scenario(scenario: Scenario) -> None:
     """Run the pre-checks of the module docstring; a ``ScenarioError`` for the first that fails."""
     _check_hull(scenario)
+    _check_uncertainty(scenario)
     _check_demo_inputs(scenario)
     _check_reference(scenario)
 
@@ -52,6 +56,20 @@ def _check_hull(scenario: Scenario) -> None:
             expected="a finite interval for every variable the Jacobian depends on "
             f"({', '.join(scenario.dynamics.depends_on()) or 'none'}) over which each entry is "
             "bounded",
+        ) from None
+
+
+def _check_uncertainty(scenario: Scenario) -> None:
+    try:
+        additive_bound(scenario)
+    except HullError as error:
+        raise ScenarioError(
+            f"the declared parameters' effect cannot be bounded: {error}",
+            file=scenario.path,
+            field="uncertainty.parameters",
+            found=dict(scenario.uncertainty.parameters),
+            expected="parameters whose effect on the dynamics is bounded over the state and "
+            "input bounds (pipeline.numerics.uncertainty)",
         ) from None
 
 

@@ -203,10 +203,12 @@ def _under_law(
     segments: int,
     substeps: np.ndarray,
     centre_error: float = 0.0,
+    disturbance: FloatArray | None = None,
 ) -> tuple[Funnel, LawOffset]:
     """Steps 1-3: the funnel rebuilt with its input boxes widened by ``OFFSET_ALLOWANCE`` times the
     law's input offset (I3) found on hulls without it, and the law's offset on the hulls so built
-    for a reference grid of ``substeps (N,)`` per sample.
+    for a reference grid of ``substeps (N,)`` per sample, with (I4) for the additive bound
+    ``disturbance (n,)`` when given.
 
     Raises:
       HullError: no hull or enclosure, or the offset outgrew the widening.
@@ -226,6 +228,8 @@ def _under_law(
     law = offset(funnel)
     if np.any(law.input_offset > allowance):
         raise HullError("the interpolated reference's input offset (I3) outgrew its hull box")
+    if disturbance is not None:
+        law = law.with_disturbance(shipped.P, shipped.rho, shipped.rate, scenario.Ts, disturbance)
     return funnel, law
 
 
@@ -236,18 +240,22 @@ def recheck_funnel(
     state_bounds: Mapping[str, tuple[float, float]],
     substeps: np.ndarray,
     centre_error: float = 0.0,
+    disturbance: FloatArray | None = None,
 ) -> FunnelRecheck:
     """Steps 1-4 of the module docstring for one ``shipped`` funnel around the nominal
     ``trajectory`` (a uniform RK4 grid), its law tracking the reference on a grid of ``substeps
-    (N,)`` per sample. The margin reported is (F2)'s eigenvalue plus (I2)."""
+    (N,)`` per sample, for ``x' = f(x, u) + w`` with ``|w| <= disturbance (n,)`` when given
+    (``pipeline.numerics.uncertainty``; (I4)). The margin reported is (F2)'s eigenvalue plus (I2)
+    and (I4)."""
     K, Q = shipped.K, shipped.Q
     failures: list[str] = []
     last = FunnelRecheck(failure="", margin=float("nan"), vertices=0, radius=0.0, binding="")
     for segments in SEGMENTS:
         try:
             funnel, law = _under_law(
-                scenario, trajectory, shipped, state_bounds, segments, substeps, centre_error
-            )
+                scenario, trajectory, shipped, state_bounds, segments, substeps, centre_error,
+                disturbance,
+            )  # fmt: skip
         except (HullError, np.linalg.LinAlgError) as error:
             failures.append(f"{segments} segment(s): {error}")
             continue
@@ -278,19 +286,26 @@ def reference_substeps(
     trajectory: Trajectory,
     shipped: ShippedFunnel,
     state_bounds: Mapping[str, tuple[float, float]],
+    disturbance: FloatArray | None = None,
 ) -> np.ndarray:
     """(N,) RK4 steps per sample on which to ship a funnel's reference so that the law's offset
     fits what (F2) and the inputs leave (``funnel_law.law_substeps``), from the first hull of
-    ``SEGMENTS`` on which the funnel holds for the exact nominal; ``BASE_SUBSTEPS`` everywhere
-    when none does (it will not be certified). ``trajectory``: the nominal on a uniform grid."""
+    ``SEGMENTS`` on which the funnel holds for the exact nominal (and the additive bound
+    ``disturbance (n,)``, whose term (I4) takes its share of (F2) first); ``BASE_SUBSTEPS``
+    everywhere when none does (it will not be certified). ``trajectory``: the nominal on a
+    uniform grid."""
     K, Q = shipped.K, shipped.Q
     base = np.full(len(K), BASE_SUBSTEPS)
     for segments in SEGMENTS:
         try:
-            funnel, law = _under_law(scenario, trajectory, shipped, state_bounds, segments, base)
+            funnel, law = _under_law(
+                scenario, trajectory, shipped, state_bounds, segments, base, 0.0, disturbance
+            )
         except (HullError, np.linalg.LinAlgError):
             continue
-        if check_funnel(scenario, trajectory, funnel, state_bounds) is not None:
+        exact = LawOffset.none(len(K), scenario.n, scenario.m, scenario.Ts)
+        robust = dataclasses.replace(exact, disturbance_term=law.disturbance_term)  # (I4) alone
+        if check_funnel(scenario, trajectory, funnel, state_bounds, robust) is not None:
             continue
         margins = certificate_margins(Q, K, funnel.vertices, shipped.rate, scenario.Ts)
         _, g, _ = tube_extents(Q, K, scenario.position_index)
@@ -298,7 +313,7 @@ def reference_substeps(
             np.minimum(trajectory.us - scenario.input_lower, scenario.input_upper - trajectory.us)
             - shipped.rho * g
         )
-        return law_substeps(law, margins.max(axis=1), room, scenario.Ts)
+        return law_substeps(law, margins.max(axis=1) + law.disturbance_term, room, scenario.Ts)
     return base
 
 
@@ -307,12 +322,16 @@ def recheck_as_shipped(
     trajectory: Trajectory,
     shipped: ShippedFunnel,
     state_bounds: Mapping[str, tuple[float, float]],
+    disturbance: FloatArray | None = None,
 ) -> FunnelRecheck:
     """``recheck_funnel`` as the certify stage will run it on the emitted file: the nominal from
     ``trajectory``'s start and inputs on a uniform grid of ``BASE_SUBSTEPS``, the law tracking the
-    reference on the grid the controller stage ships (``reference_substeps``)."""
+    reference on the grid the controller stage ships (``reference_substeps``), under the additive
+    bound ``disturbance (n,)`` when given."""
     nominal = simulate(
         scenario.dynamics, trajectory.xs[0], trajectory.us, scenario.Ts, BASE_SUBSTEPS
     )
-    substeps = reference_substeps(scenario, nominal, shipped, state_bounds)
-    return recheck_funnel(scenario, nominal, shipped, state_bounds, substeps)
+    substeps = reference_substeps(scenario, nominal, shipped, state_bounds, disturbance)
+    return recheck_funnel(
+        scenario, nominal, shipped, state_bounds, substeps, disturbance=disturbance
+    )

@@ -1,0 +1,87 @@
+"""Certify holds a /2 file to the scenario's declared uncertainty (stages/certify.py).
+
+One funnel of the double integrator, robust to a gust of 0.05 m/s^2 on both speeds, emitted by
+the controller stage: certify re-checks it under the bound it derives from the scenario, never
+under the file's word alone, and refuses a file that holds less than the scenario declares.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline.model.scenario import Scenario
+from pipeline.model.uncertainty import Uncertainty
+from pipeline.numerics.funnel import synthesize_funnel
+from stages.certify import certify_controller
+from stages.controller import emit_funnel_controller
+from tests.helpers.robust import DISTURBANCE, double_integrator_case
+
+
+def _declaring(scenario: Scenario, bound: np.ndarray) -> Scenario:
+    return dataclasses.replace(scenario, uncertainty=Uncertainty(disturbance=bound))
+
+
+def _funnel_failures(failures: tuple[str, ...]) -> list[str]:
+    """The failures about the funnels and the uncertainty (one funnel cannot cover Init)."""
+    return [f for f in failures if "funnel is not certified" in f or f.startswith("uncertainty")]
+
+
+@pytest.fixture(scope="module")
+def robust(tmp_path_factory: pytest.TempPathFactory) -> tuple[Scenario, Path, Path]:
+    """The gusty scenario, its robust funnel's file and the exact-model funnel's file."""
+    scenario, trajectory, initial = double_integrator_case()
+    gusty = _declaring(scenario, DISTURBANCE)
+    folder = tmp_path_factory.mktemp("robust")
+    paths = []
+    for declared, name in ((gusty, "robust.json"), (scenario, "exact.json")):
+        disturbance = None if declared.uncertainty.empty else DISTURBANCE
+        funnel = synthesize_funnel(declared, trajectory, initial=initial, disturbance=disturbance)
+        assert funnel.success, funnel.message
+        emit_funnel_controller(declared, [trajectory], [funnel], folder / name)
+        paths.append(folder / name)
+    return gusty, paths[0], paths[1]
+
+
+def test_the_robust_file_states_its_bound_and_certifies_under_the_declaration(robust):
+    gusty, path, _ = robust
+    document = json.loads(path.read_text())
+    assert document["uncertainty"]["additive_bound"] == DISTURBANCE.tolist()
+    assert document["uncertainty"]["disturbance"] == {"x": 0, "y": 0, "vx": 0.05, "vy": 0.05}
+    result = certify_controller(gusty, path)
+    assert _funnel_failures(result.failures) == []
+
+
+def test_a_file_holding_less_than_declared_is_refused(robust):
+    gusty, path, exact = robust
+    wider = _declaring(gusty, 4 * DISTURBANCE)
+    failures = _funnel_failures(certify_controller(wider, path).failures)
+    assert any("holds |w_vx| <= 0.05, the scenario declares 0.2" in f for f in failures)
+    assert any("funnel is not certified" in f for f in failures)  # and fails the re-check
+    exact_failures = _funnel_failures(certify_controller(gusty, exact).failures)
+    assert any("holds |w_vx| <= 0, the scenario declares 0.05" in f for f in exact_failures)
+
+
+def test_the_files_bound_is_verified_not_trusted(robust, tmp_path: Path):
+    """A file claiming 20x the bound it was made for: certify checks the claim, and fails."""
+    gusty, path, _ = robust
+    document = json.loads(path.read_text())
+    document["uncertainty"]["additive_bound"] = (20 * DISTURBANCE).tolist()
+    tampered = tmp_path / "tampered.json"
+    tampered.write_text(json.dumps(document))
+    failures = _funnel_failures(certify_controller(gusty, tampered).failures)
+    assert failures and all("funnel is not certified" in f for f in failures)
+    assert "disturbance's term" in failures[0]
+
+
+def test_an_exact_model_scenario_reads_the_exact_file_unchanged(robust):
+    """No declaration and no ``uncertainty`` block: the exact-model certificate, as before."""
+    gusty, _, exact = robust
+    document = json.loads(exact.read_text())
+    assert "uncertainty" not in document
+    scenario = dataclasses.replace(gusty, uncertainty=Uncertainty.exact(gusty.n))
+    assert _funnel_failures(certify_controller(scenario, exact).failures) == []
