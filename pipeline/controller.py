@@ -1,4 +1,5 @@
-"""The emitted lookup feedback controller, formats ``safety-controller/1`` and ``/2`` (README).
+"""The emitted lookup feedback controller, formats ``safety-controller/1`` and ``/2``
+(documented in docs/controller-file.md).
 
 This module needs only NumPy and the standard library, so ``controller.json`` can be run
 without the pipeline installed (copy this file). ``/1`` carries one gain ``K`` and metric ``P``
