@@ -20,10 +20,11 @@ synthesize: $(STAMP)
 test: $(STAMP)
 	$(PY) -m pytest -q -n 2 --dist loadgroup
 
-# the README's results blocks, from the runs in reports/ (run `make synthesize` for each first)
+# the results blocks of README.md and docs/results.md, from the runs in reports/ (run
+# `make synthesize SCENARIO=quadrotor_hill` and `SCENARIO=double_integrator` first)
 readme: $(STAMP)
 	$(PY) -m pipeline.runtime.readme_results reports/quadrotor_hill --write README.md
-	$(PY) -m pipeline.runtime.readme_results reports/double_integrator --write README.md
+	$(PY) -m pipeline.runtime.readme_results reports/double_integrator --write docs/results.md
 
 bench: $(STAMP)
 	$(PY) -m pip install --quiet -e '.[bench]'

@@ -1,4 +1,4 @@
-"""The optimizer's design choices on quadrotor_hill, side by side (the README's table).
+"""The optimizer's design choices on quadrotor_hill, side by side (docs/architecture.md).
 
 Every variant optimizes all demos with ``stages.optimize.optimize_demo`` and the feedback
 stage's margins; printed: demos feasible at their own length, demos optimized and verified, mean

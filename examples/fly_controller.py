@@ -57,7 +57,7 @@ def plot(controller, scenario, flight, path: Path) -> None:
         scale = reference.radius * math.exp(-reference.rate * t)
         width, height = (2 * scale * math.sqrt(v) for v in values[::-1])
         axes.add_patch(Ellipse(centre, width, height, angle=angle, color="tab:orange", alpha=0.15))
-    name = f"{index}: {reference.name}" if reference.name else f"{index}"
+    name = controller.label(index)
     axes.plot(reference.x_ref[:, a], reference.x_ref[:, b], "--", color="tab:orange",
               label=f"nominal {name} and its certified tube")  # fmt: skip
     axes.plot(flight.xs[:, a], flight.xs[:, b], color="tab:blue", label="flight")
@@ -96,7 +96,7 @@ def main(argv: list[str] | None = None) -> int:
         print(error, file=sys.stderr)
         return 2
     reference = controller.trajectories[flight.index]
-    name = f"{flight.index}: {reference.name}" if reference.name else f"{flight.index}"
+    name = controller.label(flight.index)
     covered = "covered" if flight.covered else "NOT covered (outside the certificate)"
     kind = "funnel" if controller.funnel else "constant"
     print(

@@ -13,7 +13,7 @@ The package is layered; a module imports only from its own layer or the ones bel
 
 ``pipeline.controller`` stands apart: NumPy and the standard library only, so users can copy it.
 
-The public API (documented in the README, "Python API")::
+The public API (documented in docs/api.md)::
 
     import pipeline
     result = pipeline.synthesize("double_integrator")    # -> pipeline.Synthesis

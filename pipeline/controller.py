@@ -1,4 +1,5 @@
-"""The emitted lookup feedback controller, formats ``safety-controller/1`` and ``/2`` (README).
+"""The emitted lookup feedback controller, formats ``safety-controller/1`` and ``/2``
+(documented in docs/controller-file.md).
 
 This module needs only NumPy and the standard library, so ``controller.json`` can be run
 without the pipeline installed (copy this file). ``/1`` carries one gain ``K`` and metric ``P``
@@ -274,17 +275,25 @@ class Controller:
     def m(self) -> int:
         return len(self.input_names)
 
+    def label(self, index: int) -> str:
+        """Trajectory ``index`` as every output names it (the report, the terminal, ``repr``,
+        the examples): ``"0: demo_01"``, its index in ``trajectories`` (from 0, what ``select``
+        returns) and the demonstration it was made from; ``"0"`` in a file without names."""
+        name = self.trajectories[index].name
+        return f"{index}: {name}" if name else str(index)
+
+    def labels(self, most: int = 6) -> list[str]:
+        """Every trajectory's ``label``; beyond ``most``, the first four, ``...`` and the last."""
+        labels = [self.label(i) for i in range(len(self.trajectories))]
+        return [*labels[:4], "...", labels[-1]] if len(labels) > most else labels
+
     def __repr__(self) -> str:
         """A few lines: what the file is, its trajectories (``index: name``) and its law."""
         horizons = [tr.T for tr in self.trajectories]
         span = f"{min(horizons):g}" + (
             "" if min(horizons) == max(horizons) else f"-{max(horizons):g}"
         )
-        labels = [
-            f"{i}: {tr.name}" if tr.name else str(i) for i, tr in enumerate(self.trajectories)
-        ]
-        if len(labels) > 6:
-            labels = [*labels[:4], "...", labels[-1]]
+        labels = self.labels()
         named = ", index: name" if any(tr.name for tr in self.trajectories) else ""
         if self.funnel:
             kind = "funnel (a gain K_i[k] and metric P_i(t) per trajectory; /2)"

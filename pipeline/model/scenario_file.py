@@ -92,7 +92,7 @@ def _schema_error(path: Path, error: pydantic.ValidationError) -> ScenarioError:
             f"missing field{suffix}",
             file=path,
             field=location,
-            expected="this field (see the README's scenario reference)",
+            expected="this field (see docs/scenario-file.md)",
         )
     if kind == "extra_forbidden":
         key = str(first["loc"][-1])

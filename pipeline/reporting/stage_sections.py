@@ -406,11 +406,14 @@ def montecarlo(data: ReportData) -> tuple:
 def inputs(data: ReportData) -> tuple:
     s = data.scenario
     index, starts = loop_figures.inputs_trajectory(data)
-    x0 = data.law.trajectories[index].x0
-    demo = next((d.name for d in s.demos if np.allclose(d.x0, x0)), "no demonstration")
+    label = data.law.label(index)  # "index: name", as controller.trajectories[index]
+    if data.law.trajectories[index].name is None:  # a file without names: the demo by its start
+        x0 = data.law.trajectories[index].x0
+        label += f" (from {next((d.name for d in s.demos if np.allclose(d.x0, x0)), 'none')})"
     return (
         Paragraph(
-            f"Reference trajectory {index + 1} of controller.json (from {demo}): the one the "
+            f"Reference trajectory {label} of controller.json (index from 0, as in "
+            "controller.trajectories, and its demonstration): the one the "
             f"controller selects for the falsification's worst start "
             f"({labelled(s, starts[0])}). "
             "Closed-loop inputs are the controller's output before clipping, simulated here from "

@@ -57,7 +57,7 @@ YAML_GUIDE = """\
 #   python -m pipeline demos {name}
 # (the synthetic pilot flies the demos and fills in demos:) and
 #   python -m pipeline synthesize {name}
-# The fields (every one: python -m pipeline schema; README "Scenario files"):
+# The fields (every one: docs/scenario-file.md, or python -m pipeline schema):
 #   states, inputs, dynamics  names in order; one expression per state: d(state)/dt
 #   position                  the two states of the position plane (Unsafe and Goal live there)
 #   sampling_time             Ts (s): each input is held for Ts

@@ -29,6 +29,7 @@ from pipeline.runtime.outdir import stale_name
 from pipeline.runtime.synthesis import Synthesis
 
 if TYPE_CHECKING:  # stage result types: only the orchestrator imports stages
+    from pipeline.controller import Controller
     from pipeline.model.scenario import Scenario
     from stages.coverage import CoverageResult, CoveringRadius
     from stages.optimize import OptimizeResult
@@ -126,6 +127,7 @@ def format_outputs(result: Synthesis) -> str:
     if files.controller is not None:
         lines.append(
             f"  {files.controller.name:<22} the certified controller (pipeline.controller)"
+            + ("" if result.controller is None else f", {_trajectories(result.controller)}")
         )
     elif (files.folder / STALE_CONTROLLER).is_file():
         lines.append(f"  {STALE_CONTROLLER:<22} NOT certified: kept for inspection only")
@@ -138,6 +140,12 @@ def format_outputs(result: Synthesis) -> str:
         f"  {files.artifacts.name + '/':<22} each stage's cached result (reused by re-runs)"
     )
     return "\n".join(lines)
+
+
+def _trajectories(controller: Controller) -> str:
+    """``trajectories 0: demo_01, 1: demo_02, ...``: the indices of ``controller.trajectories``
+    (what ``select`` returns) beside their demonstrations, as the report and ``repr`` say."""
+    return f"trajectories {', '.join(controller.labels())}"
 
 
 def format_summary(summary: Summary, scenario: Scenario | None = None) -> str:
