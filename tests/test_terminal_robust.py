@@ -176,3 +176,37 @@ def test_the_end_cap_is_sound_and_no_worse_than_the_triangle_inequality():
         )
     with pytest.raises(ValueError, match="outside"):
         target.end_cap(target.x_eq + 2 * d)
+
+
+def test_a_robust_funnel_ends_inside_the_terminal_ellipsoid_only_when_asked(scenario):
+    """A nominal flown to rest at Goal's centre in 2 s, the gust declared: the robust funnel
+    alone ends far outside the robust terminal ellipsoid (its floor keeps it wide); with
+    ``terminal=`` (T2) shapes it to end inside, by the exact level."""
+    from pipeline.model.simulate import simulate
+    from pipeline.numerics.funnel import synthesize_funnel
+
+    b = additive_bound(scenario)
+    design = hold_design(scenario, b)
+    target = TerminalTarget(x_eq=design.x_eq, P=design.P, level=design.check.level)
+    us = np.vstack([np.tile([1.0, 0.5], (10, 1)), np.tile([-1.0, -0.5], (10, 1))])
+    nominal = simulate(scenario.dynamics, np.array([9.0, 0.0, 0.0, 0.0]), us, scenario.Ts)
+    np.testing.assert_allclose(nominal.xs[-1], design.x_eq, atol=1e-12)
+
+    def needed(funnel):
+        return containing_level(target.P, nominal.xs[-1] - target.x_eq, funnel.P[-1], funnel.rho)
+
+    alone = synthesize_funnel(scenario, nominal, disturbance=b)
+    assert alone.success and needed(alone) > 2 * target.level
+    held = synthesize_funnel(scenario, nominal, disturbance=b, terminal=target)
+    assert held.success, held.message
+    assert needed(held) <= target.level and held.rho > 0.3
+    # a smaller target: the exact level binds rho (sound whatever the program returned)
+    small = TerminalTarget(x_eq=target.x_eq, P=target.P, level=0.3 * target.level)
+    tight = synthesize_funnel(scenario, nominal, terminal=small)
+    assert tight.success and needed(tight) <= small.level
+    assert tight.limits["terminal"] < 1.0
+    # a nominal that ends outside has no funnel
+    with pytest.raises(ValueError, match="outside the terminal ellipsoid"):
+        synthesize_funnel(scenario, nominal, terminal=TerminalTarget(
+            x_eq=target.x_eq + np.array([0.9, 0, 0, 0]), P=target.P, level=target.level
+        ))  # fmt: skip
