@@ -210,3 +210,78 @@ def test_a_robust_funnel_ends_inside_the_terminal_ellipsoid_only_when_asked(scen
         synthesize_funnel(scenario, nominal, terminal=TerminalTarget(
             x_eq=target.x_eq + np.array([0.9, 0, 0, 0]), P=target.P, level=target.level
         ))  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def shipped(scenario, tmp_path_factory):
+    """``(path, design)``: a ``/2`` file of one robust funnel ending in the robust terminal set."""
+    from pipeline.model.simulate import simulate
+    from pipeline.numerics.funnel import synthesize_funnel
+    from stages.controller import emit_funnel_controller
+
+    b = additive_bound(scenario)
+    design = hold_design(scenario, b)
+    target = TerminalTarget(x_eq=design.x_eq, P=design.P, level=design.check.level)
+    us = np.vstack([np.tile([1.0, 0.5], (10, 1)), np.tile([-1.0, -0.5], (10, 1))])
+    nominal = simulate(scenario.dynamics, np.array([9.0, 0.0, 0.0, 0.0]), us, scenario.Ts)
+    funnel = synthesize_funnel(scenario, nominal, disturbance=b, terminal=target)
+    path = tmp_path_factory.mktemp("shipped") / "controller.json"
+    result = emit_funnel_controller(
+        scenario, [nominal], [funnel], path, disturbance=b, terminal=design
+    )
+    assert result.terminal, result.terminal_message
+    return path, design
+
+
+def test_the_funnel_file_carries_the_robust_block_and_the_law_switches_at_T(scenario, shipped):
+    from pipeline.controller import load
+    from stages.certify import verify_terminal
+
+    path, design = shipped
+    controller = load(path)
+    terminal = controller.terminal
+    assert controller.funnel and terminal is not None
+    np.testing.assert_array_equal(terminal.disturbance, additive_bound(scenario))
+    assert terminal.level == design.check.level
+    decay, fit, failures = verify_terminal(scenario, controller)
+    assert not failures and decay > 0 and fit <= 1
+    x = design.x_eq + np.array([0.1, -0.1, 0.05, 0.0])
+    T = controller.trajectories[0].T
+    np.testing.assert_array_equal(
+        controller(T + 0.5, x, 0), np.clip(design.u_eq + design.K @ (x - design.x_eq), -2, 2)
+    )
+
+
+def _velocity_gains_flipped(block):
+    K = np.array(block["K"])
+    K[:, 2:] *= -1
+    block["K"] = K.tolist()
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        (lambda t: t.update(level=1.01 * t["level"]), "leaves Goal"),
+        (_velocity_gains_flipped, "does not decrease"),
+        (lambda t: t.update(disturbance=[0.0] * 4), "less than the scenario's declared"),
+        (lambda t: t.pop("disturbance"), "less than the scenario's declared"),
+        (lambda t: t.update(disturbance=[0, 0, 40 * BETA, 40 * BETA]), "disturbance"),
+    ],
+    ids=["level +1%", "K_T velocity gains flipped", "bound 0", "no bound", "bound 40x claimed"],
+)
+def test_a_tampered_robust_terminal_block_is_refused(scenario, shipped, tmp_path, change, message):
+    import json
+
+    from pipeline.controller import load
+    from stages.certify import certify_controller, verify_terminal
+
+    path, _ = shipped
+    document = json.loads(path.read_text())
+    change(document["terminal"])
+    tampered = tmp_path / "controller.json"
+    tampered.write_text(json.dumps(document))
+    failures = verify_terminal(scenario, load(tampered))[2]
+    assert any(message in failure for failure in failures), failures
+    result = certify_controller(scenario, tampered)
+    assert not result.success
+    assert any(message in failure for failure in result.failures if "terminal" in failure)
