@@ -30,6 +30,11 @@ synthesis's boxes and its solver:
 Steps 1-2 run on a uniform RK4 grid of ``BASE_SUBSTEPS`` per sample (the nominal is the same
 whatever grid the file carries its reference on).
 
+``recheck_terminal`` (either format): the ``terminal`` block by (T1') of
+``pipeline.numerics.terminal`` under the scenario's declared additive bound (``uncertainty.
+additive_bound``; the block's own ``disturbance`` only where it is larger), and every end tube
+inside its ellipsoid (``terminal_fit``).
+
 A hull over a box is sound for any number of segments, so ``SEGMENTS`` are tried in turn and the
 funnel is accepted when one of them certifies it (a finer hull is tighter, not always a subset).
 """
