@@ -19,8 +19,9 @@ at ``t_k = k Ts``, with ``Q = P^-1`` linear in t between samples (``metric_inter
    finer on some intervals than others); for ``t > T_i`` the terminal law ``u =
    clip(u_eq + K_T (x - x_eq))`` of the optional ``terminal`` block (its certified invariant
    ellipsoid ``(x - x_eq)^T P_T (x - x_eq) <= level`` lies in Goal and holds every end
-   tube), or ``BeyondHorizonError`` when the file has none: the law is never extrapolated past
-   ``T``.
+   tube; with its optional ``disturbance (n,)`` it is invariant for ``x' = f(x, u) + w``, any
+   ``|w_i| <= disturbance_i``), or ``BeyondHorizonError`` when the file has none: the law is
+   never extrapolated past ``T``.
 
 What a ``/2`` file certifies: the funnel ``E_i(t) = {x : (x - x_ref_i(t))^T P_i(t) (x - x_ref_i(t))
 <= radius_i^2 e^{-2 rate_i t}}`` about the exact nominal (the solution from ``x0_i`` under
@@ -202,6 +203,8 @@ class TerminalController:
       x_eq: (n,) and u_eq: (m,) an equilibrium, ``f(x_eq, u_eq) = 0``, inside Goal.
       K: (m, n) gain (sign of ``u = u_eq + K e``); P: (n, n) Lyapunov matrix.
       level: the certified invariant set is ``(x - x_eq)^T P (x - x_eq) <= level``.
+      disturbance: (n,) the additive bound ``|w_i| <= disturbance_i`` on ``x'`` the set was
+        certified invariant for (None: the file states none, the exact model).
     """
 
     x_eq: np.ndarray
@@ -209,6 +212,7 @@ class TerminalController:
     K: np.ndarray
     P: np.ndarray
     level: float
+    disturbance: np.ndarray | None = None
 
     def __repr__(self) -> str:
         return (
@@ -604,7 +608,17 @@ def _terminal(read: _Reader, item: object, n: int, m: int) -> TerminalController
         K=_frozen(read.array("terminal.K", item["K"], (m, n))),
         P=_frozen((P + P.T) / 2),
         level=read.number("terminal.level", item["level"], positive=True),
+        disturbance=None if item.get("disturbance") is None else _bound(read, item, n),
     )
+
+
+def _bound(read: _Reader, item: Mapping[str, Any], n: int) -> np.ndarray:
+    """The terminal block's ``disturbance (n,)``: finite and ``>= 0``."""
+    bound = read.array("terminal.disturbance", item["disturbance"], (n,))
+    if np.any(bound < 0):
+        j = int(np.argmax(bound < 0))
+        read.fail(f"terminal.disturbance[{j}]", float(bound[j]), "a number >= 0")
+    return _frozen(bound)
 
 
 def _metric(read: _Reader, field: str, P: np.ndarray) -> None:

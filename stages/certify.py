@@ -31,7 +31,9 @@ nothing but the file and the scenario (no stage result). A ``safety-controller/1
    squared radius;
 6. the optional ``terminal`` block (``pipeline.numerics.terminal``): ``V = e^T P_T e`` decreases
    on ``V <= level`` at every vertex of a sound hull over its bounding box (numpy eigenvalues,
-   (T1) with the equilibrium's residual), the law does not clip there, the ellipsoid lies in
+   (T1') with the equilibrium's residual and the scenario's declared additive bound, or the
+   file's ``disturbance`` where larger; a file stating less than the declaration fails), the
+   law does not clip there, the ellipsoid lies in
    Goal and in the ``state_bounds``, and it holds every end tube ``||x - x_ref(T)||_P <= radius
    e^{-lambda T}`` (exact S-procedure containment). Then "safe for all time" is certified;
    without the block the law refuses ``t > T``, and a scenario with ``terminal: hold`` is not
@@ -82,9 +84,9 @@ from pipeline.numerics.recertify import (
     ShippedFunnel,
     check_reference,
     recheck_funnel,
+    recheck_terminal,
 )
 from pipeline.numerics.sampled import contraction_rate, held_rate
-from pipeline.numerics.terminal import check_level, end_levels
 from pipeline.numerics.tube import Tube
 from pipeline.numerics.tube_radius import radius_limits
 from pipeline.numerics.uncertainty import additive_bound
@@ -170,32 +172,9 @@ def _held(controller: Controller, A: np.ndarray, B: np.ndarray) -> list[str]:
 
 
 def verify_terminal(scenario: Scenario, controller: Controller) -> tuple[float, float, list[str]]:
-    """Step 6: ``(decay, fit, failures)`` of the file's terminal block."""
-    terminal = controller.terminal
-    if terminal is None:
-        raise TypeError(f"{controller.source}: no terminal block to verify")
-    check = check_level(
-        scenario,
-        terminal.x_eq,
-        terminal.u_eq,
-        terminal.K,
-        terminal.P,
-        terminal.level,
-        period=controller.feedback_period,
-    )
-    ends = [tr.x_ref[-1] for tr in controller.trajectories]
-    radii = [tr.radius * float(np.exp(-tr.rate * tr.T)) for tr in controller.trajectories]
-    metrics = np.stack([tr.P[-1] for tr in controller.trajectories])  # each end tube's metric
-    needed = end_levels(terminal.P, terminal.x_eq, metrics, ends, radii)
-    fit = float(np.sqrt(needed.max() / terminal.level))
-    failures = [f"terminal: {failure}" for failure in check.failures]
-    if not fit <= 1:
-        i = int(np.argmax(needed))
-        failures.append(
-            f"terminal: trajectories[{i}]'s end tube is not inside the terminal ellipsoid (it "
-            f"needs level {needed[i]:.4g} > {terminal.level:.4g})"
-        )
-    return check.decay, fit, failures
+    """Step 6: ``(decay, fit, failures)`` of the file's terminal block
+    (``recertify.recheck_terminal``: (T1') under the declared bound, the end tubes inside)."""
+    return recheck_terminal(scenario, controller)
 
 
 def contraction_bound(controller: Controller) -> float:

@@ -17,11 +17,16 @@ metric at the time, ``P(t)``.
 The law after ``T`` (``pipeline.numerics.terminal``): an equilibrium at Goal's centre, its LQR
 gain and the largest certified invariant ellipsoid. The ``terminal`` block is written only when
 that ellipsoid holds every trajectory's end tube ``||x - x_ref(T)||_P <= radius e^{-lambda T}``;
-otherwise the file has none, the law refuses ``t > T``, and the message says why.
+otherwise the file has none, the law refuses ``t > T``, and the message says why. In a ``/2``
+file the block also states ``disturbance``, the additive bound ``b (n,)`` its ellipsoid was
+certified robustly invariant for (T1'; zeros: the exact model); a funnel run that designed its
+terminal controller before its funnels (``terminal.hold_design``, the funnels ending inside by
+``synthesize_funnel(terminal=...)``) passes that design, else one is designed for the ends here.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -36,7 +41,8 @@ from pipeline.model.simulate import Trajectory, simulate, simulate_graded
 from pipeline.numerics.funnel_check import Funnel
 from pipeline.numerics.funnel_law import BASE_SUBSTEPS
 from pipeline.numerics.recertify import ShippedFunnel, reference_substeps
-from pipeline.numerics.terminal import TerminalError, design_terminal
+from pipeline.numerics.terminal import TerminalDesign, TerminalError, design_terminal
+from pipeline.numerics.terminal_fit import end_levels
 from pipeline.numerics.uncertainty import additive_bound
 
 REFERENCE_SUBSTEPS = BASE_SUBSTEPS  # the reference grid, finer where the funnel law needs it
@@ -61,6 +67,8 @@ def terminal_block(
     end_radii: Sequence[float],
     period: float = 0.0,
     end_metrics: FloatArray | None = None,
+    disturbance: FloatArray | None = None,
+    design: TerminalDesign | None = None,
 ) -> tuple[dict | None, float, str]:
     """The ``terminal`` block (None when there is none), the end tubes' fit and a sentence.
 
@@ -68,11 +76,22 @@ def terminal_block(
       K: (m, n) tube gain; P: (n, n) tube metric; ends: ``x_ref_i(T_i) (n,)`` each; end_radii:
         ``radius_i e^{-lambda T_i}``, the end tubes' P-norm radii; end_metrics: (k, n, n) each
         end tube's own metric (a funnel's ``P_i[N]``) instead of ``P``.
+      disturbance: (n,) the additive bound the ellipsoid must be robustly invariant for, written
+        in the block (None: the exact model and no ``disturbance`` key, as in ``/1``).
+      design: a terminal controller designed already (for that bound); only its fit is found.
     """
-    try:
-        design = design_terminal(scenario, K, P, ends, end_radii, period, end_metrics)
-    except TerminalError as error:
-        return None, np.inf, f"no terminal controller ({error}); the law refuses t > T"
+    if design is None:
+        try:
+            design = design_terminal(
+                scenario, K, P, ends, end_radii, period, end_metrics, disturbance
+            )
+        except TerminalError as error:
+            return None, np.inf, f"no terminal controller ({error}); the law refuses t > T"
+    else:
+        metrics = P if end_metrics is None else end_metrics
+        needed = end_levels(design.P, design.x_eq, metrics, ends, end_radii)
+        fit = float(np.sqrt(needed.max() / design.check.level))
+        design = dataclasses.replace(design, fit=fit)
     where = np.round(design.x_eq, 3).tolist()
     if design.fit > 1:
         return (
@@ -92,6 +111,8 @@ def terminal_block(
         "P": design.P.tolist(),
         "level": design.check.level,
     }
+    if disturbance is not None:
+        block["disturbance"] = np.asarray(disturbance, dtype=np.float64).tolist()
     return (
         block,
         design.fit,
@@ -251,6 +272,8 @@ def emit_funnel_controller(
     feedback_period: float = 0.0,
     substeps: int = REFERENCE_SUBSTEPS,
     names: Sequence[str] | None = None,
+    disturbance: FloatArray | None = None,
+    terminal: TerminalDesign | None = None,
 ) -> ControllerResult:
     """Write ``controller.json`` as ``safety-controller/2`` (one funnel per trajectory) and read
     it back.
@@ -262,6 +285,12 @@ def emit_funnel_controller(
       feedback_period: recorded in the file; the funnel certificate is for continuous feedback
         (0), and the certify stage refuses a funnel file with ``h > 0``.
       names: each trajectory's demo (``"demo_01"``), written as its ``name``; None: no names.
+      disturbance: (n,) the additive bound the funnels hold (default: the scenario's declared
+        uncertainty's, ``pipeline.numerics.uncertainty.additive_bound``);
+        the terminal ellipsoid is certified robustly invariant for it and the block states it
+        (None: zeros, the exact model).
+      terminal: the terminal controller the funnels were made to end in (``hold_design``, for
+        the same bound); None: one is designed here for the ends (``design_terminal``).
 
     Raises:
       ValueError: a funnel that was not certified (``success`` False), or whose shapes do not
@@ -269,7 +298,8 @@ def emit_funnel_controller(
     """
     if names is not None and len(names) != len(trajectories):
         raise ValueError(f"{len(names)} names for {len(trajectories)} trajectories")
-    disturbance = None if scenario.uncertainty.empty else additive_bound(scenario)
+    if disturbance is None and not scenario.uncertainty.empty:
+        disturbance = additive_bound(scenario)  # the scenario's declaration, as certify derives it
     items, worst, ends, end_radii, end_metrics = [], 0.0, [], [], []
     for i, (trajectory, funnel) in enumerate(zip(trajectories, funnels, strict=True)):
         N, n, m = len(trajectory.us), scenario.n, scenario.m
@@ -318,7 +348,9 @@ def emit_funnel_controller(
         ),
     )
     first = funnels[0]  # the terminal design's "tube" candidate: the first funnel's end
-    terminal, _, terminal_message = terminal_block(
-        scenario, first.K[-1], first.P[-1], ends, end_radii, feedback_period, np.stack(end_metrics)
-    )
-    return _write(path, document, terminal, terminal_message)
+    bound = np.zeros(scenario.n) if disturbance is None else np.asarray(disturbance, float)
+    block, _, terminal_message = terminal_block(
+        scenario, first.K[-1], first.P[-1], ends, end_radii, feedback_period,
+        np.stack(end_metrics), bound, terminal,
+    )  # fmt: skip
+    return _write(path, document, block, terminal_message)

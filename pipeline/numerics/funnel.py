@@ -110,6 +110,7 @@ from pipeline.numerics.funnel_law import LawOffset, corners
 from pipeline.numerics.funnel_lmi import FunnelProgram, solve_clarabel
 from pipeline.numerics.funnel_pieces import interpolate, piece_hulls, pieces
 from pipeline.numerics.hull import HullError, arc_variables
+from pipeline.numerics.terminal_fit import TerminalTarget, containing_level
 
 
 class _Parts(TypedDict, total=False):
@@ -190,7 +191,7 @@ def _weights(scenario: Scenario, state_bounds: Mapping[str, tuple[float, float]]
 
 def _program(
     scenario, trajectory, K, vertices, boxes, variables, enclosure, Q_init, Q_seed, c, bounds,
-    disturbance=None, gamma=0.0,
+    disturbance=None, gamma=0.0, terminal=None,
 ):  # fmt: skip
     """(F3) on the LMI pieces ``bounds`` (unknowns: ``Q`` at the piece ends), with the initial set
     and the tube at level 1 inside every hull box, clear of Unsafe (a disk bound) and inside Goal
@@ -227,6 +228,8 @@ def _program(
         i = scenario.state_names.index(name)
         room = max(min(final_state[i] - lower, upper - final_state[i]), 0.0)
         caps.append((S, np.eye(n)[i : i + 1], np.full((1, 1), room**2)))
+    if terminal is not None:  # E(T) inside the terminal ellipsoid (terminal_fit (T2))
+        caps.append((S, *terminal.end_cap(final_state)))
     W = _weights(scenario, {}, K)
     W = np.concatenate([W, W[-1:]])[bounds]  # (S+1, n, n) at the piece ends
     return FunnelProgram(
@@ -244,6 +247,18 @@ def _program(
     )
 
 
+def _outside(terminal: TerminalTarget, end: FloatArray, funnel: Funnel, T: float) -> str | None:
+    """Why ``E(T)`` (around ``end (n,)``) is not inside ``terminal`` (exact level), or None."""
+    radius = funnel.rho * float(np.exp(-funnel.rate * T))
+    needed = containing_level(terminal.P, end - terminal.x_eq, funnel.P[-1], radius)
+    if needed <= terminal.level:
+        return None
+    return (
+        f"E(T) is not inside the terminal ellipsoid (it needs level {needed:.4g} > "
+        f"{terminal.level:.4g})"
+    )
+
+
 def synthesize_funnel(
     scenario: Scenario,
     trajectory: Trajectory,
@@ -254,6 +269,7 @@ def synthesize_funnel(
     allowance: float = 1.0,
     segments: int = 1,
     disturbance: FloatArray | None = None,
+    terminal: TerminalTarget | None = None,
 ) -> Funnel:
     """Synthesize and check the funnel around ``trajectory`` (one: ``xs (N+1, n)``, ``us (N, m)``,
     its dense grid); see the module docstring.
@@ -275,6 +291,10 @@ def synthesize_funnel(
         ``ROBUST_MARGINS`` and ``||w_c||_{Q^-1} <= ROBUST_SHARE eps / 2`` at every corner ``w_c``
         (``funnel_lmi``), so that the disturbance's term uses ``ROBUST_SHARE`` of ``eps`` at the
         design level; the funnel with the highest checked level is kept.
+      terminal: the terminal ellipsoid ``E(T)`` must lie in (``terminal_fit.TerminalTarget``,
+        e.g. from ``terminal.hold_design``): (T2) on ``Q`` at ``T`` in the program, and the exact
+        containment level as a limit on rho (``terminal``; sound whatever the solver returned)
+        and re-checked after ``check_funnel``. A nominal ending outside it has no funnel.
     """
     start = time.perf_counter()
     state_bounds = dict(state_bounds or {})
@@ -299,6 +319,11 @@ def synthesize_funnel(
             raise ValueError(
                 f"funnel: state_bounds names '{name}', not one of {scenario.state_names}"
             )
+    if terminal is not None and not terminal.share(xs[-1]) < 1:
+        raise ValueError(
+            f"funnel: the nominal ends at {np.round(xs[-1], 3).tolist()}, outside the terminal "
+            f"ellipsoid ({terminal.share(xs[-1]):.3g} of its radius from its centre)"
+        )
     K, P_lqr = lqr_seed(scenario, trajectory)
     N = len(K)
     bounds = pieces(N, HOLD)
@@ -350,7 +375,7 @@ def synthesize_funnel(
             gamma = 0.0 if robust is None else ROBUST_SHARE * margin / 2
             program = _program(
                 scenario, trajectory, K, vertices, boxes, variables, enclosure, Q_init, Q_seed,
-                2 * rate + margin, bounds, robust, gamma,
+                2 * rate + margin, bounds, robust, gamma, terminal,
             )  # fmt: skip
             solution = solve_clarabel(program)
             failure: str | None
@@ -370,6 +395,10 @@ def synthesize_funnel(
             Q = interpolate(Q_ends, bounds) / tau
             limits = funnel_limits(scenario, trajectory, Q, K, enclosure, state_bounds)
             limits["design"] = (float(np.sqrt(min(tau, 1.0))), 0.0)
+            if terminal is not None:  # E(T) = {||x - x_ref(T)||_P[N] <= rho e^{-lambda T}}
+                T = trajectory.dense_ts[-1]
+                reach = terminal.end_radius(xs[-1], np.linalg.inv(Q[-1]))
+                limits["terminal"] = (reach * float(np.exp(rate * T)), float(T))
             binding = min(limits, key=lambda key: limits[key][0])
             level, when = limits[binding]
             rho = level * (1 - LEVEL_SLACK)
@@ -382,6 +411,8 @@ def synthesize_funnel(
             if robust is not None:
                 law = law.with_disturbance(funnel.P, rho, rate, scenario.Ts, robust)
             failure = check_funnel(scenario, trajectory, funnel, state_bounds, law)
+            if terminal is not None and not failure:
+                failure = _outside(terminal, xs[-1], funnel, trajectory.dense_ts[-1])
             if rho <= 0:
                 failure = failure or f"the nominal itself violates {binding} at t = {when:.2f} s"
             if not failure and robust is None:

@@ -30,6 +30,11 @@ synthesis's boxes and its solver:
 Steps 1-2 run on a uniform RK4 grid of ``BASE_SUBSTEPS`` per sample (the nominal is the same
 whatever grid the file carries its reference on).
 
+``recheck_terminal`` (either format): the ``terminal`` block by (T1') of
+``pipeline.numerics.terminal`` under the scenario's declared additive bound (``uncertainty.
+additive_bound``; the block's own ``disturbance`` only where it is larger), and every end tube
+inside its ellipsoid (``terminal_fit``).
+
 A hull over a box is sound for any number of segments, so ``SEGMENTS`` are tried in turn and the
 funnel is accepted when one of them certifies it (a finer hull is tighter, not always a subset).
 """
@@ -42,7 +47,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.controller import ReferenceTrajectory
+from pipeline.controller import Controller, ReferenceTrajectory
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import Trajectory, simulate, simulate_graded
@@ -50,6 +55,7 @@ from pipeline.numerics.funnel_bounds import funnel_limits, tube_extents
 from pipeline.numerics.funnel_check import Funnel, certificate_margins, check_funnel
 from pipeline.numerics.funnel_law import (
     BASE_SUBSTEPS,
+    LEVEL_MARGIN,
     LawOffset,
     grid_substeps,
     law_offset,
@@ -57,6 +63,9 @@ from pipeline.numerics.funnel_law import (
 )
 from pipeline.numerics.funnel_pieces import piece_hulls
 from pipeline.numerics.hull import HullError
+from pipeline.numerics.terminal import check_level
+from pipeline.numerics.terminal_fit import end_levels
+from pipeline.numerics.uncertainty import additive_bound
 
 SEGMENTS = (1, 4)
 WIDEN = 1e-9  # relative widening of the tube's extent in the hull boxes (rounding of E3)
@@ -335,3 +344,63 @@ def recheck_as_shipped(
     return recheck_funnel(
         scenario, nominal, shipped, state_bounds, substeps, disturbance=disturbance
     )
+
+
+def terminal_bound(scenario: Scenario, controller: Controller) -> tuple[np.ndarray, list[str]]:
+    """``(b (n,), failures)``: the additive bound step 6 checks the terminal block under, the
+    scenario's declared one (``uncertainty.additive_bound``) or the file's if that is larger
+    in a component (never the file's where it is smaller: a block stating less than the
+    scenario declares is a failure)."""
+    terminal = controller.terminal
+    if terminal is None:
+        raise TypeError(f"{controller.source}: no terminal block to verify")
+    try:
+        declared = additive_bound(scenario)
+    except HullError as error:
+        return np.full(scenario.n, np.inf), [f"terminal: the declared uncertainty: {error}"]
+    claimed = np.zeros(scenario.n) if terminal.disturbance is None else terminal.disturbance
+    failures = []
+    if np.any(claimed < declared):
+        failures.append(
+            f"terminal: certified for the disturbance {np.asarray(claimed).tolist()}, less than "
+            f"the scenario's declared additive bound {declared.tolist()}"
+        )
+    return np.maximum(claimed, declared), failures
+
+
+def recheck_terminal(scenario: Scenario, controller: Controller) -> tuple[float, float, list[str]]:
+    """``(decay, fit, failures)`` of the file's terminal block (certify's step 6): (T1') of
+    ``pipeline.numerics.terminal`` under ``terminal_bound``, no clipping, inside Goal and the
+    state bounds, and every end tube inside (``terminal_fit.end_levels``). A funnel file's end
+    tubes are widened by ``LEVEL_MARGIN``: ``x_ref(T)`` is the RK4 value, within that share of
+    the radius of the exact nominal's (certify's step 4)."""
+    terminal = controller.terminal
+    if terminal is None:
+        raise TypeError(f"{controller.source}: no terminal block to verify")
+    bound, failures = terminal_bound(scenario, controller)
+    if not np.all(np.isfinite(bound)):
+        return float("nan"), float("nan"), failures
+    check = check_level(
+        scenario,
+        terminal.x_eq,
+        terminal.u_eq,
+        terminal.K,
+        terminal.P,
+        terminal.level,
+        period=controller.feedback_period,
+        disturbance=bound,
+    )
+    widen = 1 + LEVEL_MARGIN if controller.funnel else 1.0
+    ends = [tr.x_ref[-1] for tr in controller.trajectories]
+    radii = [widen * tr.radius * float(np.exp(-tr.rate * tr.T)) for tr in controller.trajectories]
+    metrics = np.stack([tr.P[-1] for tr in controller.trajectories])  # each end tube's metric
+    needed = end_levels(terminal.P, terminal.x_eq, metrics, ends, radii)
+    fit = float(np.sqrt(needed.max() / terminal.level))
+    failures += [f"terminal: {failure}" for failure in check.failures]
+    if not fit <= 1:
+        i = int(np.argmax(needed))
+        failures.append(
+            f"terminal: trajectories[{i}]'s end tube is not inside the terminal ellipsoid (it "
+            f"needs level {needed[i]:.4g} > {terminal.level:.4g})"
+        )
+    return check.decay, fit, failures

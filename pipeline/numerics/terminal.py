@@ -20,17 +20,21 @@ disk test of ``pipeline.numerics.tube``) and its states in Goal's extra bounds a
 scenario's ``state_bounds``. ``Z_c`` holds the states ``x_eq +- sqrt(c (P_T^-1)_ii)`` and inputs
 ``u_eq +- sqrt(c) ||K_j P_T^-1/2||``.
 
-End tubes. Trajectory ``i`` ends in ``{x : ||x - a||_P <= rho}``, ``a = x_ref_i(T_i)``, ``rho =
-r_i e^{-lambda T_i}``. The smallest level ``c_i`` whose ``E_c`` holds it is ``max_{||y||_P <= rho}
-(y + d)^T Q (y + d)`` with ``d = a - x_eq``, ``Q = P_T``. By the S-procedure (lossless for one
-constraint) containment in ``E_c`` holds iff some ``tau >= 0`` makes
+Robust (T1'). With the declared uncertainty as one additive term (``pipeline.numerics.
+uncertainty``), ``x' = f(x, u) + w``, ``|w_i| <= b_i`` for every measurable ``w``, the error gains
+``+ w``: ``e' = (A + B K_T) e + r + w`` and, by Cauchy-Schwarz in the ``P_T`` inner product,
 
-    [[tau P - Q, -Q d], [-d^T Q, c - d^T Q d - tau rho^2]] >= 0,
+    V' <= -alpha V + 2 sqrt(V) (||r||_{P_T} + omega),   omega = max_{|w| <= b} ||w||_{P_T}.   (T1')
 
-i.e. (Schur complement, ``tau > sigma_max``) ``c >= phi(tau) = d^T Q d + tau rho^2 + sum_k w_k^2 /
-(tau - sigma_k)`` with ``sigma_k`` the generalized eigenvalues of ``(Q, P)`` and ``w = U^T P^-1/2 Q
-d`` in their eigenbasis. ``phi`` is convex; its minimum is ``c_i`` and any ``tau`` gives a sound
-upper bound.
+``||w||_{P_T}`` is convex in ``w``, so its maximum over the box is at a corner
+(``funnel_law.corners``). ``E_c`` is invariant for every such ``w`` when ``alpha sqrt(c) > 2
+(||r||_{P_T} + omega)``: the level is bounded BELOW by ``floor = (2 (||r|| + omega) / alpha)^2``
+as well as above (inputs, Goal, the hull's decay). ``b`` holds only where ``(x, u)`` lies in
+``uncertainty.certified_box``, so with ``b > 0`` ``Z_c`` must lie in the operating region too
+for the states without ``state_bounds``. With ``b = 0`` (T1') is (T1), and every check and level
+is exactly the exact model's.
+
+End tubes: ``pipeline.numerics.terminal_fit`` (the exact containment level, and the funnel's LMI).
 """
 
 from __future__ import annotations
@@ -41,14 +45,17 @@ from dataclasses import dataclass
 import control
 import numpy as np
 import shapely
-from scipy.optimize import brentq, least_squares
+from scipy.optimize import least_squares
 from shapely.affinity import affine_transform
 from shapely.ops import polylabel
 
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
+from pipeline.numerics.funnel_law import corners
 from pipeline.numerics.hull import DEFAULT_SEGMENTS, HullError, jacobian_hull
 from pipeline.numerics.sampled import contraction_rate, held_rate
+from pipeline.numerics.terminal_fit import containing_level as containing_level
+from pipeline.numerics.terminal_fit import end_levels
 from pipeline.numerics.tube import Tube
 
 EQUILIBRIUM_TOLERANCE = 1e-9  # ||f(x_eq, u_eq)|| accepted as an equilibrium
@@ -62,14 +69,16 @@ class TerminalError(ValueError):
 
 @dataclass(frozen=True, kw_only=True)
 class TerminalCheck:
-    """What the certificate (T1) of one terminal ellipsoid found.
+    """What the certificate (T1') of one terminal ellipsoid found.
 
     Attributes:
       level: ``c``; decay: ``alpha`` (1/s, > 0 for a certificate, ``-inf`` without a hull);
       residual: ``||f(x_eq, u_eq)||_{P_T}``; input_slack: smallest room (input units) between
       ``u_eq + K_T e`` over ``E_c`` and the bounds; goal_margin: smallest room (P_T-norm radius)
       between ``E_c`` and Goal's boundary, its extra bounds and the scenario's ``state_bounds``;
-      failures: one line per failed check.
+      failures: one line per failed check; disturbance: ``omega = max ||w||_{P_T}`` over the
+      additive bound's box (0: the exact model); below_floor: the only failures are (T1')'s
+      lower bound on the level (a larger level may hold, a smaller one cannot).
     """
 
     level: float
@@ -79,6 +88,16 @@ class TerminalCheck:
     goal_margin: float
     vertices: int
     failures: tuple[str, ...]
+    disturbance: float = 0.0
+    below_floor: bool = False
+
+    @property
+    def floor(self) -> float:
+        """``(2 (||r||_{P_T} + omega) / alpha)^2``: the smallest level (T1') certifies at this
+        decay (``inf`` without a positive decay)."""
+        if not self.decay > 0:
+            return float("inf")
+        return (2 * (self.residual + self.disturbance) / self.decay) ** 2
 
     @property
     def success(self) -> bool:
@@ -174,12 +193,17 @@ def check_level(
     segments: int = DEFAULT_SEGMENTS,
     min_decay: float = 0.0,
     period: float = 0.0,
+    disturbance: FloatArray | None = None,
 ) -> TerminalCheck:
-    """Check (T1) and the bounds for ``E_c``, ``c = level`` (module docstring), from scratch:
+    """Check (T1') and the bounds for ``E_c``, ``c = level`` (module docstring), from scratch:
     hull over ``Z_c``, decay by ``numpy.linalg.eigvalsh``, no clipping, inside Goal. With a
     feedback ``period > 0`` (the law held) the decay is that of the held law: ``2 lambda_h`` of
-    ``pipeline.numerics.sampled`` at the continuous rate ``alpha / 2``."""
+    ``pipeline.numerics.sampled`` at the continuous rate ``alpha / 2``. ``disturbance (n,)``:
+    the additive bound ``b`` of (T1') (None or zeros: the exact model, (T1))."""
     tube, r = _tube(scenario, K, P), float(np.sqrt(level))
+    b = np.zeros(len(x_eq)) if disturbance is None else np.asarray(disturbance, dtype=np.float64)
+    w = corners(b)  # (C, n)
+    omega = float(np.sqrt(np.einsum("ci,ij,cj->c", w, P, w).max())) if len(w) else 0.0  # (T1')
     failures = []
     # no clipping: u_eq +- r ||K_j P^-1/2|| inside the bounds
     reach = tube.input_margin(r)
@@ -211,6 +235,18 @@ def check_level(
                 f"{inside:.3g} in P_T-norm)"
             )
         envelope = min(envelope, inside)
+    if len(w):  # the additive bound holds over uncertainty.certified_box only
+        for name, (lo, hi) in scenario.operating_region.items():
+            if name not in scenario.state_names or name in scenario.state_bounds:
+                continue
+            i = scenario.state_names.index(name)
+            inside = min((x_eq[i] - lo) / extent[i], (hi - x_eq[i]) / extent[i])
+            if not inside - r >= 0:
+                failures.append(
+                    f"E_c leaves operating_region.{name} = [{lo:g}, {hi:g}], where the "
+                    f"disturbance bound holds (radius {r:.3g} > room {inside:.3g} in P_T-norm)"
+                )
+            envelope = min(envelope, inside)
     margin = min(room, envelope) - r
     # decay (T1) at every vertex of a sound hull over the bounding box Z_c
     centre_z = np.concatenate([x_eq, u_eq])  # (n + m,)
@@ -227,10 +263,17 @@ def check_level(
     except HullError as error:
         decay, vertices = -np.inf, 0
         failures.append(f"no Jacobian hull over E_c's bounding box: {error}")
-    if vertices and not (decay * r > 2 * residual_norm and decay >= min_decay):
+    if vertices and not (decay > 0 and decay >= min_decay):
         failures.append(
             f"V does not decrease on the boundary of E_c (decay {decay:.3g}/s, required "
             f"{min_decay:.3g}/s; residual {residual_norm:.2g})"
+        )
+    others = len(failures)
+    floor = bool(vertices) and decay > 0 and not decay * r > 2 * (residual_norm + omega)  # (T1')
+    if floor:
+        failures.append(
+            f"V does not decrease on the boundary of E_c (decay {decay:.3g}/s x radius {r:.3g} "
+            f"<= 2 (residual {residual_norm:.2g} + disturbance {omega:.3g}) in P_T-norm)"
         )
     return TerminalCheck(
         level=float(level),
@@ -240,6 +283,8 @@ def check_level(
         goal_margin=float(margin),
         vertices=vertices,
         failures=tuple(failures),
+        disturbance=omega,
+        below_floor=floor and not others,
     )
 
 
@@ -257,9 +302,15 @@ def largest_level(
     K: FloatArray,
     P: FloatArray,
     period: float = 0.0,
+    disturbance: FloatArray | None = None,
 ) -> TerminalCheck:
     """The largest level ``c`` certified with at least ``DECAY_FRACTION`` of the linearisation's
-    decay (bisection on ``sqrt(c)``; the input and Goal bounds give the top)."""
+    decay (bisection on ``sqrt(c)``; the input and Goal bounds give the top), robust to the
+    additive bound ``disturbance (n,)`` (T1'). Every check but (T1')'s floor only gets harder
+    as ``c`` grows, so the bisection finds the largest level passing those, and (T1') is checked
+    there (it is the best chance: the floor is a lower bound); the returned check fails when
+    that level is below the floor."""
+    robust = disturbance is not None and bool(np.any(np.asarray(disturbance) > 0))
     A0, B0 = scenario.dynamics.f_x(x_eq, u_eq), scenario.dynamics.f_u(x_eq, u_eq)
     linear = decay_rate(P, K, A0[None], B0[None])
     if period > 0:
@@ -271,66 +322,25 @@ def largest_level(
     by_input = np.where(gain > 0, np.maximum(room, 0.0) / np.where(gain > 0, gain, 1.0), np.inf)
     by_goal = check_level(scenario, x_eq, u_eq, K, P, 1.0).goal_margin + 1.0  # room in Goal
     hi = float(min(np.min(by_input), max(by_goal, 0.0)))
-    best = check_level(scenario, x_eq, u_eq, K, P, hi**2, min_decay=need, period=period)
-    if best.success:
+
+    def at(radius: float) -> TerminalCheck:
+        return check_level(
+            scenario, x_eq, u_eq, K, P, radius**2, min_decay=need, period=period,
+            disturbance=disturbance,
+        )  # fmt: skip
+
+    best = at(hi)
+    if best.success or (robust and best.below_floor):
         return best
     lo = 0.0
     for _ in range(LEVEL_BISECTIONS):
         mid = 0.5 * (lo + hi)
-        trial = check_level(scenario, x_eq, u_eq, K, P, mid**2, min_decay=need, period=period)
-        if trial.success:
+        trial = at(mid)
+        if trial.success or (robust and trial.below_floor):
             lo, best = mid, trial
         else:
             hi = mid
     return best
-
-
-def containing_level(Q: FloatArray, centre: FloatArray, P: FloatArray, rho: float) -> float:
-    """The smallest ``c`` with ``{x : ||x - a||_P <= rho} in {e : e^T Q e <= c}`` for ``d =
-    centre = a - x_eq (n,)``: ``min_tau phi(tau)`` of the module docstring (an upper bound at any
-    ``tau``, exact at the minimum)."""
-    d = np.asarray(centre, dtype=np.float64)
-    values, vectors = np.linalg.eigh(P)
-    P_inv_half = vectors @ np.diag(values**-0.5) @ vectors.T
-    sigma, U = np.linalg.eigh(P_inv_half @ Q @ P_inv_half)
-    w = U.T @ (P_inv_half @ (Q @ d))
-    base = float(d @ Q @ d)
-    if rho <= 0:
-        return base
-    top = float(sigma[-1])
-
-    def phi(tau: float) -> float:
-        return base + tau * rho**2 + float(np.sum(w**2 / (tau - sigma)))
-
-    def slope(tau: float) -> float:
-        return rho**2 - float(np.sum(w**2 / (tau - sigma) ** 2))
-
-    near = top + 1e-12 * max(1.0, abs(top))
-    if slope(near) >= 0:  # the hard case: the infimum is at the pole
-        return phi(near)
-    far = top + 1.0
-    while slope(far) < 0:
-        far = top + 2 * (far - top)
-    return phi(brentq(slope, near, far, xtol=1e-14 * far, rtol=1e-14))
-
-
-def end_levels(
-    terminal_P: FloatArray,
-    x_eq: FloatArray,
-    P: FloatArray,
-    ends: Sequence[FloatArray],
-    radii: Sequence[float],
-) -> FloatArray:
-    """(k,) the smallest level holding each end tube ``||x - ends[i]||_P <= radii[i]``; ``P``
-    is ``(n, n)``, or ``(k, n, n)``: one metric per end tube (a funnel's ``P_i[N]``)."""
-    P = np.asarray(P, dtype=np.float64)
-    metrics = np.broadcast_to(P, (len(ends), *P.shape[-2:]))
-    return np.array(
-        [
-            containing_level(terminal_P, a - x_eq, P_i, rho)
-            for a, P_i, rho in zip(ends, metrics, radii, strict=True)
-        ]
-    )
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -360,6 +370,7 @@ def design_terminal(
     end_radii: Sequence[float],
     period: float = 0.0,
     end_metrics: FloatArray | None = None,
+    disturbance: FloatArray | None = None,
 ) -> TerminalDesign:
     """The best-fitting certified terminal controller for end tubes ``||x - ends[i]||_P <=
     end_radii[i]`` (tube gain ``K (m, n)``, metric ``P (n, n)``; ``end_metrics (k, n, n)``: each
@@ -368,7 +379,8 @@ def design_terminal(
     Candidates: equilibria at Goal's centre and at the mean end position (when in Goal), each
     with the LQR gain and Riccati matrix there and with the tube's own ``K`` and ``P``; the
     certified one with the smallest ``fit`` is kept (for the law held every ``period`` s when
-    it is > 0). ``TerminalError`` when none certifies.
+    it is > 0), robust to the additive bound ``disturbance (n,)`` (T1'). ``TerminalError`` when
+    none certifies.
     """
     positions = [goal_centre(scenario)]
     mean = np.mean([scenario.positions(a) for a in ends], axis=0)
@@ -388,7 +400,7 @@ def design_terminal(
         except TerminalError as error:
             reasons.append(str(error))
         for gain, K_T, P_T in gains:
-            check = largest_level(scenario, x_eq, u_eq, K_T, P_T, period)
+            check = largest_level(scenario, x_eq, u_eq, K_T, P_T, period, disturbance)
             if not check.success:
                 reasons.append(
                     f"{gain} gain at {np.round(position, 3).tolist()}: " + "; ".join(check.failures)
@@ -404,3 +416,19 @@ def design_terminal(
     if best is None:
         raise TerminalError("; ".join(dict.fromkeys(reasons)))
     return best
+
+
+def hold_design(
+    scenario: Scenario, disturbance: FloatArray | None = None, period: float = 0.0
+) -> TerminalDesign:
+    """The terminal controller a funnel run designs BEFORE its funnels, for them to end in: the
+    equilibrium at Goal's centre, its LQR gain and Riccati matrix, the largest level certified
+    robustly to ``disturbance (n,)`` (T1'); ``fit`` 0 (no end tube yet). ``TerminalError`` when
+    there is no equilibrium, no stabilising gain or no certified level."""
+    x_eq, u_eq = equilibrium(scenario)
+    K_T, P_T = lqr_terminal(scenario, x_eq, u_eq)
+    check = largest_level(scenario, x_eq, u_eq, K_T, P_T, period, disturbance)
+    if not check.success:
+        where = np.round(x_eq, 3).tolist()
+        raise TerminalError(f"lqr gain at {where}: " + "; ".join(check.failures))
+    return TerminalDesign(x_eq=x_eq, u_eq=u_eq, K=K_T, P=P_T, check=check, gain="lqr", fit=0.0)

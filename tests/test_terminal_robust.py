@@ -1,0 +1,287 @@
+"""The terminal ellipsoid robust to an additive disturbance (T1') and the funnel end in it (T2).
+
+Known answer: the planar double integrator ``x'' = u + w`` (two decoupled axes) with the fixed gain
+``u = -x - 2 v`` per axis, ``A_cl = [[0, 1], [-1, -2]]``, and ``P`` from the Lyapunov equation
+``A_cl^T P + P A_cl = -I``: ``P = [[3/2, 1/2], [1/2, 1/2]]`` per axis, so ``V' = -|e|^2 <= -V /
+lambda_max(P)`` and the decay is ``alpha = 1 / (1 + 1/sqrt 2) = 2 - sqrt 2`` (exact: the Jacobian is
+constant, the hull one vertex). A disturbance ``|w| <= beta`` on both velocity derivatives has
+``omega = max ||w||_P = beta sqrt(1/2 + 1/2) = beta``, so (T1') certifies exactly the levels above
+``c* = (2 beta / (2 - sqrt 2))^2``.
+"""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline.model.scenario import load_scenario
+from pipeline.numerics.terminal import (
+    check_level,
+    design_terminal,
+    equilibrium,
+    hold_design,
+    largest_level,
+    lqr_terminal,
+)
+from pipeline.numerics.terminal_fit import TerminalTarget, containing_level
+from pipeline.numerics.uncertainty import additive_bound
+
+BETA = 0.05
+ALPHA = 2 - np.sqrt(2)
+FLOOR = (2 * BETA / ALPHA) ** 2  # the closed form c*
+# states [x, y, vx, vy]: the per-axis gain and Lyapunov matrix, placed on both axes
+K_FIXED = np.array([[-1.0, 0.0, -2.0, 0.0], [0.0, -1.0, 0.0, -2.0]])
+P_FIXED = np.array(
+    [[1.5, 0.0, 0.5, 0.0], [0.0, 1.5, 0.0, 0.5], [0.5, 0.0, 0.5, 0.0], [0.0, 0.5, 0.0, 0.5]]
+)
+
+
+def gusty(tmp_path: Path, beta: float = BETA):
+    """double_integrator_hold with a declared gust ``|w| <= beta`` on vx' and vy'."""
+    source = Path(__file__).resolve().parents[1] / "scenarios" / "double_integrator_hold"
+    folder = tmp_path / "gusty"
+    shutil.copytree(source, folder)
+    path = folder / "scenario.yaml"
+    text = path.read_text().replace("name: double_integrator_hold", "name: gusty")
+    path.write_text(text + f"\nuncertainty: {{disturbance: {{vx: {beta}, vy: {beta}}}}}\n")
+    return load_scenario(folder, check_demos=False)
+
+
+@pytest.fixture(scope="module")
+def scenario(tmp_path_factory):
+    return gusty(tmp_path_factory.mktemp("terminal_robust"))
+
+
+def test_the_lyapunov_pair_is_the_stated_one(scenario):
+    A = scenario.dynamics.f_x(np.zeros(4), np.zeros(2))
+    B = scenario.dynamics.f_u(np.zeros(4), np.zeros(2))
+    A_cl = A + B @ K_FIXED
+    np.testing.assert_allclose(A_cl.T @ P_FIXED + P_FIXED @ A_cl, -np.eye(4), atol=1e-12)
+    np.testing.assert_allclose(additive_bound(scenario), [0, 0, BETA, BETA])
+
+
+def test_the_robust_level_is_the_closed_form(scenario):
+    x_eq, u_eq = equilibrium(scenario)
+    b = additive_bound(scenario)
+    above = check_level(scenario, x_eq, u_eq, K_FIXED, P_FIXED, FLOOR * 1.001, disturbance=b)
+    below = check_level(scenario, x_eq, u_eq, K_FIXED, P_FIXED, FLOOR * 0.999, disturbance=b)
+    assert above.decay == pytest.approx(ALPHA, rel=1e-12)
+    assert above.disturbance == pytest.approx(BETA, rel=1e-12)
+    assert above.floor == pytest.approx(FLOOR, rel=1e-9)
+    assert above.success, above.failures
+    assert not below.success and below.below_floor
+    assert any("disturbance" in failure for failure in below.failures)
+    # without the disturbance the small level is certified (the floor is 0)
+    assert check_level(scenario, x_eq, u_eq, K_FIXED, P_FIXED, FLOOR * 0.999).success
+
+
+def test_trajectories_from_the_boundary_stay_inside_under_bang_bang_and_random_gusts(scenario):
+    """``e' = A_cl e + w`` from the boundary of ``c = 1.01 c*``: the worst gust ``w = beta
+    sign(B^T P e)`` (it maximises ``V'``) and random piecewise-constant gusts never leave."""
+    x_eq, u_eq = equilibrium(scenario)
+    A = scenario.dynamics.f_x(x_eq, u_eq)
+    B = scenario.dynamics.f_u(x_eq, u_eq)
+    A_cl = A + B @ K_FIXED
+    level = 1.01 * FLOOR
+    rng = np.random.default_rng(0)
+    directions = rng.normal(size=(64, 4))
+    e = directions / np.sqrt(np.einsum("ki,ij,kj->k", directions, P_FIXED, directions))[:, None]
+    e = e * np.sqrt(level)  # (64, 4) on the boundary
+    dt, steps = 1e-3, 15000
+    worst, largest = e.copy(), 0.0
+    random = e.copy()
+    gust = BETA * rng.choice([-1.0, 1.0], size=(64, 2))
+    for k in range(steps):
+        w_worst = BETA * np.sign(worst @ P_FIXED @ B)  # (64, 2)
+        if k % 100 == 0:  # a new gust every 0.1 s
+            gust = rng.uniform(-BETA, BETA, size=(64, 2))
+        for state, w in ((worst, w_worst), (random, gust)):
+            # RK4 with the gust held over the step
+            def f(z, w=w):
+                return z @ A_cl.T + w @ B.T
+
+            k1 = f(state)
+            k2 = f(state + dt / 2 * k1)
+            k3 = f(state + dt / 2 * k2)
+            k4 = f(state + dt * k3)
+            state += dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+        for state in (worst, random):
+            largest = max(largest, float(np.einsum("ki,ij,kj->k", state, P_FIXED, state).max()))
+    assert largest <= level * (1 + 1e-9)
+    # the worst gust keeps the states away from the centre: they end near the floor, not at 0
+    assert np.einsum("ki,ij,kj->k", worst, P_FIXED, worst).max() > 0.2 * FLOOR
+
+
+def test_zero_disturbance_is_the_exact_model_exactly(scenario):
+    x_eq, u_eq = equilibrium(scenario)
+    K, P = lqr_terminal(scenario, x_eq, u_eq)
+    zeros = np.zeros(4)
+    for level in (0.01, 0.2, 0.29, 5.0):
+        assert check_level(scenario, x_eq, u_eq, K, P, level, disturbance=zeros) == check_level(
+            scenario, x_eq, u_eq, K, P, level
+        )
+    assert largest_level(scenario, x_eq, u_eq, K, P, disturbance=zeros) == largest_level(
+        scenario, x_eq, u_eq, K, P
+    )
+    end = [x_eq + 0.05]
+    exact = design_terminal(scenario, K, P, end, [0.01])
+    again = design_terminal(scenario, K, P, end, [0.01], disturbance=zeros)
+    assert exact.check == again.check and exact.fit == again.fit
+
+
+def test_the_robust_design_keeps_a_level_above_its_floor(scenario):
+    b = additive_bound(scenario)
+    design = hold_design(scenario, b)
+    exact = hold_design(scenario)
+    assert design.check.success and design.check.level > design.check.floor > 0
+    assert design.check.level <= exact.check.level  # the floor may only cost level
+    # a gust too strong for any level in Goal: no design
+    with pytest.raises(ValueError, match="disturbance"):
+        hold_design(scenario, 40 * b)
+
+
+def test_the_end_cap_is_sound_and_no_worse_than_the_triangle_inequality():
+    """(T2) with ``lambda = 1 - delta``: every ``Q`` it admits ends inside (the exact level), and
+    every ``Q <= (1 - delta)^2 c P_T^-1`` is admitted."""
+    rng = np.random.default_rng(3)
+    for _ in range(40):
+        M = rng.normal(size=(4, 4))
+        P_T = M @ M.T + 0.3 * np.eye(4)
+        target = TerminalTarget(x_eq=rng.normal(size=4), P=P_T, level=float(rng.uniform(0.5, 2)))
+        d = rng.normal(size=4)
+        d *= rng.uniform(0.0, 0.9) * np.sqrt(target.level / (d @ P_T @ d))
+        end = target.x_eq + d
+        C, bound = target.end_cap(end)
+        delta = max(target.share(end), 1e-2)
+        # the triangle inequality's ellipsoid is admitted
+        Q = (1 - delta) ** 2 * target.level * np.linalg.inv(P_T)
+        assert np.linalg.eigvalsh(bound - C @ Q @ C.T)[0] >= -1e-9
+        # a random admitted Q (scaled to the cap's edge) ends inside
+        L = rng.normal(size=(4, 4))
+        Q = L @ L.T + 0.1 * np.eye(4)
+        lo, hi = 0.0, 1e3
+        for _ in range(60):
+            mid = (lo + hi) / 2
+            ok = np.linalg.eigvalsh(bound - C @ (mid * Q) @ C.T)[0] >= 0
+            lo, hi = (mid, hi) if ok else (lo, mid)
+        needed = containing_level(P_T, d, np.linalg.inv(lo * Q), 1.0)
+        assert needed <= target.level * (1 + 1e-7)
+        # the radius limit is the exact level's
+        rho = target.end_radius(end, np.linalg.inv(Q))
+        assert containing_level(P_T, d, np.linalg.inv(Q), rho) == pytest.approx(
+            target.level, rel=1e-6
+        )
+    with pytest.raises(ValueError, match="outside"):
+        target.end_cap(target.x_eq + 2 * d)
+
+
+def test_a_robust_funnel_ends_inside_the_terminal_ellipsoid_only_when_asked(scenario):
+    """A nominal flown to rest at Goal's centre in 2 s, the gust declared: the robust funnel
+    alone ends far outside the robust terminal ellipsoid (its floor keeps it wide); with
+    ``terminal=`` (T2) shapes it to end inside, by the exact level."""
+    from pipeline.model.simulate import simulate
+    from pipeline.numerics.funnel import synthesize_funnel
+
+    b = additive_bound(scenario)
+    design = hold_design(scenario, b)
+    target = TerminalTarget(x_eq=design.x_eq, P=design.P, level=design.check.level)
+    us = np.vstack([np.tile([1.0, 0.5], (10, 1)), np.tile([-1.0, -0.5], (10, 1))])
+    nominal = simulate(scenario.dynamics, np.array([9.0, 0.0, 0.0, 0.0]), us, scenario.Ts)
+    np.testing.assert_allclose(nominal.xs[-1], design.x_eq, atol=1e-12)
+
+    def needed(funnel):
+        return containing_level(target.P, nominal.xs[-1] - target.x_eq, funnel.P[-1], funnel.rho)
+
+    alone = synthesize_funnel(scenario, nominal, disturbance=b)
+    assert alone.success and needed(alone) > 2 * target.level
+    held = synthesize_funnel(scenario, nominal, disturbance=b, terminal=target)
+    assert held.success, held.message
+    assert needed(held) <= target.level and held.rho > 0.3
+    # a smaller target: the exact level binds rho (sound whatever the program returned)
+    small = TerminalTarget(x_eq=target.x_eq, P=target.P, level=0.3 * target.level)
+    tight = synthesize_funnel(scenario, nominal, terminal=small)
+    assert tight.success and needed(tight) <= small.level
+    assert tight.limits["terminal"] < 1.0
+    # a nominal that ends outside has no funnel
+    with pytest.raises(ValueError, match="outside the terminal ellipsoid"):
+        synthesize_funnel(scenario, nominal, terminal=TerminalTarget(
+            x_eq=target.x_eq + np.array([0.9, 0, 0, 0]), P=target.P, level=target.level
+        ))  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def shipped(scenario, tmp_path_factory):
+    """``(path, design)``: a ``/2`` file of one robust funnel ending in the robust terminal set."""
+    from pipeline.model.simulate import simulate
+    from pipeline.numerics.funnel import synthesize_funnel
+    from stages.controller import emit_funnel_controller
+
+    b = additive_bound(scenario)
+    design = hold_design(scenario, b)
+    target = TerminalTarget(x_eq=design.x_eq, P=design.P, level=design.check.level)
+    us = np.vstack([np.tile([1.0, 0.5], (10, 1)), np.tile([-1.0, -0.5], (10, 1))])
+    nominal = simulate(scenario.dynamics, np.array([9.0, 0.0, 0.0, 0.0]), us, scenario.Ts)
+    funnel = synthesize_funnel(scenario, nominal, disturbance=b, terminal=target)
+    path = tmp_path_factory.mktemp("shipped") / "controller.json"
+    result = emit_funnel_controller(
+        scenario, [nominal], [funnel], path, disturbance=b, terminal=design
+    )
+    assert result.terminal, result.terminal_message
+    return path, design
+
+
+def test_the_funnel_file_carries_the_robust_block_and_the_law_switches_at_T(scenario, shipped):
+    from pipeline.controller import load
+    from stages.certify import verify_terminal
+
+    path, design = shipped
+    controller = load(path)
+    terminal = controller.terminal
+    assert controller.funnel and terminal is not None
+    np.testing.assert_array_equal(terminal.disturbance, additive_bound(scenario))
+    assert terminal.level == design.check.level
+    decay, fit, failures = verify_terminal(scenario, controller)
+    assert not failures and decay > 0 and fit <= 1
+    x = design.x_eq + np.array([0.1, -0.1, 0.05, 0.0])
+    T = controller.trajectories[0].T
+    np.testing.assert_array_equal(
+        controller(T + 0.5, x, 0), np.clip(design.u_eq + design.K @ (x - design.x_eq), -2, 2)
+    )
+
+
+def _velocity_gains_flipped(block):
+    K = np.array(block["K"])
+    K[:, 2:] *= -1
+    block["K"] = K.tolist()
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        (lambda t: t.update(level=1.01 * t["level"]), "leaves Goal"),
+        (_velocity_gains_flipped, "does not decrease"),
+        (lambda t: t.update(disturbance=[0.0] * 4), "less than the scenario's declared"),
+        (lambda t: t.pop("disturbance"), "less than the scenario's declared"),
+        (lambda t: t.update(disturbance=[0, 0, 40 * BETA, 40 * BETA]), "disturbance"),
+    ],
+    ids=["level +1%", "K_T velocity gains flipped", "bound 0", "no bound", "bound 40x claimed"],
+)
+def test_a_tampered_robust_terminal_block_is_refused(scenario, shipped, tmp_path, change, message):
+    import json
+
+    from pipeline.controller import load
+    from stages.certify import certify_controller, verify_terminal
+
+    path, _ = shipped
+    document = json.loads(path.read_text())
+    change(document["terminal"])
+    tampered = tmp_path / "controller.json"
+    tampered.write_text(json.dumps(document))
+    failures = verify_terminal(scenario, load(tampered))[2]
+    assert any(message in failure for failure in failures), failures
+    result = certify_controller(scenario, tampered)
+    assert not result.success
+    assert any(message in failure for failure in result.failures if "terminal" in failure)
