@@ -114,3 +114,14 @@ def test_no_disturbance_is_exactly_the_nominal_funnel():
     assert np.array_equal(nominal.P, zero.P) and nominal.rho == zero.rho
     with pytest.raises(ValueError, match="expected 4 bounds >= 0"):
         synthesize_funnel(scenario, trajectory, initial=initial, disturbance=-DISTURBANCE)
+
+
+def test_a_rejected_robust_funnel_says_each_reason_once():
+    """A disturbance no funnel can hold (100x): every LMI margin fails, and the message names
+    each distinct reason once, with the margins it applies to."""
+    scenario, trajectory, initial = double_integrator_case()
+    funnel = synthesize_funnel(scenario, trajectory, initial=initial, disturbance=100 * DISTURBANCE)
+    assert not funnel.success
+    reasons = funnel.message.removeprefix("funnel rejected: ").split("; ")
+    assert len(reasons) == len(set(r.partition(": ")[2] for r in reasons))
+    assert all(r.startswith("margin") for r in reasons)

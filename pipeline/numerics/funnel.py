@@ -423,7 +423,7 @@ def synthesize_funnel(
                 failures.append(f"margin {margin:g}: {failure}")
         else:
             if best is None:
-                return result(False, f"funnel rejected: {'; '.join(failures)}", **common)
+                return result(False, f"funnel rejected: {_grouped(failures)}", **common)
             funnel, margin, binding, when = best
             rho = funnel.rho
         message = (
@@ -441,3 +441,16 @@ def synthesize_funnel(
         wide = attempt(tight=False)
         funnel = max(funnel, wide, key=lambda f: (f.success, f.rho))
     return dataclasses.replace(funnel, seconds=time.perf_counter() - start)
+
+
+def _grouped(failures: list[str]) -> str:
+    """``"margin 0.1: X"``-style lines with the same reason said once, with their margins:
+    ``"margins 0.1, 1: Clarabel status PrimalInfeasible over 34 intervals; margin 0.3: ..."``."""
+    reasons: dict[str, list[str]] = {}
+    for line in failures:
+        label, _, reason = line.partition(": ")
+        reasons.setdefault(reason, []).append(label.removeprefix("margin "))
+    return "; ".join(
+        f"margin{'s' if len(margins) > 1 else ''} {', '.join(margins)}: {reason}"
+        for reason, margins in reasons.items()
+    )
