@@ -183,7 +183,9 @@ def test_a_car_from_the_template_with_auto_feedback_certifies_on_the_first_run(t
     assert "verdict (constant certificate): certified and validated" in printed
     assert "[feedback search]" in printed and "tuned over" in printed
     # the report is rebuilt from the run's files with the tuned region (pipeline.runtime.stored)
-    assert main(["report", str(folder), "--out", str(out)]) == 0
+    rebuilt = tmp_path / "rebuilt"
+    assert main(["report", str(folder), "--from", str(out), "--out", str(rebuilt)]) == 0
+    assert (rebuilt / "report.html").is_file()
 
 
 def test_the_constant_speed_car_is_refused_in_one_line(tmp_path, capsys):

@@ -326,11 +326,13 @@ def build_constraints(
     input_upper = scenario.input_upper - eps_i - margin
     widest = profile.input.max(axis=0)  # (m,) the profile's largest input extent
     for j in np.flatnonzero(input_lower + widest > input_upper - widest):
+        name = scenario.input_names[j]
         raise MarginError(
-            f"input bounds of '{scenario.input_names[j]}' are empty after shrinking by eps_i +"
+            f"input bounds of '{name}' are empty after shrinking by eps_i +"
             f" input_margin = {eps_i + np.broadcast_to(margin, (m,))[j]:g} plus the tube's"
             f" extent {widest[j]:g}: [{input_lower[j] + widest[j]:g},"
-            f" {input_upper[j] - widest[j]:g}]; use smaller margins"
+            f" {input_upper[j] - widest[j]:g}]; the feedback's gain on '{name}' is too large"
+            f" for the radius kept: widen input_bounds.{name}, or lower feedback.rate"
         )
 
     box = dict(scenario.operating_region if region is None else region)
@@ -358,7 +360,8 @@ def build_constraints(
                 f"{'operating region' if region is None else 'region'} of '{name}'"
                 f" [{lower:g}, {upper:g}] is empty after"
                 f" shrinking by region_margin = {shrink:g} plus the tube's extent"
-                f" {float(extent[name]):g}; use a smaller margin"
+                f" {float(extent[name]):g}; the tube at the radius kept is wider than it:"
+                f" widen operating_region.{name}, or lower feedback.rate"
             )
         shrunk[name] = (lower + shrink, upper - shrink)
     state_part = [(states.index(k), lo, hi) for k, (lo, hi) in shrunk.items() if k in states]

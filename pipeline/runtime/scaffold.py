@@ -69,8 +69,8 @@ YAML_GUIDE = """\
 #                             contraction certificate holds there (the search may narrow it
 #                             around what the demos use, never widen it)
 #   feedback                  auto: the feedback stage designs it, searching the rate, the LQR
-#                             weights and the region; a field you set is kept as given, e.g.
-#                             feedback: {{rate: 0.2}}; feedback: {{tune: false}} turns the search off
+#                             weights and the region; a field you set is kept as given (e.g.
+#                             feedback: {{rate: 0.2}}); feedback: {{tune: false}}: no search
 #   demos                     keep it last: `demos` rewrites it (or list your CSVs: file, x0)
 # ----- below: the '{like}' scenario, renamed -----
 """
