@@ -11,6 +11,7 @@ with it the feedback stage searches over the fields left out and narrows the ope
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 from pipeline.model.schema import DEFAULT_RATE, FEEDBACK_DESIGN, FeedbackSpec, ScenarioSpec
 
@@ -29,7 +30,7 @@ def resolve_feedback(
         return (lower + upper) / 2
 
     given = tuple(name for name in FEEDBACK_DESIGN if getattr(block, name) is not None)
-    defaults = {
+    defaults: dict[str, Any] = {
         "reference_state": [centre(s, *spec.init[s]) for s in states],
         "reference_input": [centre(u, *spec.input_bounds[u]) for u in inputs],
         "state_weights": [1.0] * len(states),

@@ -183,4 +183,4 @@ def balls_to_cover(
     axes = radius / np.sqrt(np.linalg.eigvalsh(np.asarray(P)[np.ix_(free, free)]))
     box = np.minimum(2 * axes / np.sqrt(D), (upper - lower)[free].max())  # (D,)
     volume = fraction * float(np.prod((upper - lower)[free]))
-    return max(1, int(np.ceil(volume / float(np.prod(box)))))
+    return max(1, int(np.ceil(volume / float(np.prod(box)) - 1e-9)))  # 2.0000000001 is 2

@@ -194,18 +194,23 @@ def tune_feedback(
         key = best()
         return key is not None and results[key][1] is not None and _ratio(results[key]) >= ENOUGH
 
-    plan: list[Callable[[], object]] = []
-    for region in range(len(regions)):  # 1. regions at the first rate
-        plan.append(lambda region=region: attempt(rates[0], region, 1.0))
-    for rate in rates[1:]:  # 2. lower rates at the best region (the first if none certified)
-        plan.append(lambda rate=rate: attempt(rate, (best() or (0, 0, 0))[1], 1.0))
-    for region in range(len(regions)):  # ... and the other regions at the best rate
-        plan.append(lambda region=region: attempt((best() or rates)[0], region, 1.0))
-    if weights_free:  # 3. the LQR weights
-        for scale in WEIGHT_SCALES:
-            plan.append(lambda scale=scale: attempt(*(best() or (rates[0], 0))[:2], scale))
-    for step in plan:
-        step()
+    plan: list[tuple[str, float]] = [("region", i) for i in range(len(regions))]  # 1.
+    plan += [("rate", rate) for rate in rates[1:]]  # 2. at the best region (the first if none)
+    plan += [("region at the best rate", i) for i in range(len(regions))]
+    plan += [("weights", scale) for scale in WEIGHT_SCALES] if weights_free else []  # 3.
+    for kind, value in plan:
+        found = best()
+        rate, region = (found[0], found[1]) if found is not None else (rates[0], 0)
+        if kind == "region":
+            attempt(rates[0], int(value), 1.0)
+        elif kind == "rate":
+            attempt(value, region, 1.0)
+        elif kind == "region at the best rate":
+            attempt(rate, int(value), 1.0)
+        elif kind == "weights":
+            attempt(rate, region, value)
+        else:
+            raise ValueError(f"unknown search step {kind!r}")
         if enough():
             break
     key = best()
