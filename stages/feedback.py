@@ -41,7 +41,7 @@ import numpy as np
 
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
-from pipeline.numerics.feedback_search import FeedbackTuning, tune_feedback
+from pipeline.numerics.feedback_search import RATES, FeedbackTuning, tune_feedback
 from pipeline.numerics.hull import DEFAULT_SEGMENTS, HullError, jacobian_hull
 from pipeline.numerics.tube import Tube
 
@@ -320,6 +320,24 @@ def _advice(scenario: Scenario, rate: float) -> str:
     return f"try a feedback.rate below {rate:g}{region}"
 
 
+def _searched(scenario: Scenario, message: str) -> str:
+    """A failed design's message after the search failed too: its advice (a lower rate, a
+    narrower region) was tried, except a rate the file gives; name what is left."""
+    narrow = [name for name in scenario.dynamics.depends_on() if name in scenario.operating_region]
+    smaller = f"fly the demos over a smaller range of ({', '.join(narrow)})"
+    first = message.rsplit("; try a feedback.rate", 1)[0]
+    if "rate" in scenario.feedback.given:
+        return (
+            f"{first}; nor with the operating region narrowed around the demos: lower "
+            f"feedback.rate (the search keeps a rate the file gives), or {smaller}"
+        )
+    return (
+        f"{first}; nor in any design the search tried (rates down to {min(RATES):g} 1/s, the "
+        f"operating region narrowed around the demos): the Jacobian varies too much for one "
+        f"metric over what the demos use; {smaller}"
+    )
+
+
 def design_feedback(
     scenario: Scenario,
     *,
@@ -343,9 +361,7 @@ def design_feedback(
         )
         assert isinstance(chosen, FeedbackResult)
         if tuning is None:
-            return dataclasses.replace(
-                chosen, message=f"{chosen.message} (and every tuned design failed too)"
-            )
+            return dataclasses.replace(chosen, message=_searched(scenario, chosen.message))
         return dataclasses.replace(
             chosen, tuning=tuning, message=f"{chosen.message}; {tuning.summary(scenario)}"
         )

@@ -5,6 +5,8 @@ validates on the first run, and its constant-speed variant is refused in one lin
 
 from __future__ import annotations
 
+import re
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +22,7 @@ from pipeline.runtime.scaffold import new_scenario
 from stages.feedback import design_feedback
 from tests.helpers.scenario_files import write_scenario, yaml_replace
 
+REPO = Path(__file__).resolve().parents[1]
 FEEDBACK_BLOCK = (
     "feedback:\n  reference_state: [0, 0, 0, 0]\n  reference_input: [0, 0]\n"
     "  state_weights: [1, 1, 1, 1]\n  input_weights: [1, 1]\n  rate: 0.5\n"
@@ -209,3 +212,26 @@ def test_the_constant_speed_car_is_refused_in_one_line(tmp_path, capsys):
     print(err)
     assert code == 2 and err.count("\n") == 1
     assert "not stabilisable at the reference: no input moves the direction x (" in err
+
+
+@pytest.mark.slow  # about 5 designs of the quadrotor's 11-vertex hull
+def test_a_search_that_certifies_nothing_says_what_is_left(tmp_path):
+    """The quadrotor at a given rate of 20 1/s: no region narrowing certifies it, and the
+    message does not repeat the advice the search has already followed."""
+    folder = tmp_path / "quadrotor"
+    shutil.copytree(REPO / "scenarios" / "quadrotor_hill", folder)
+    text = (folder / "scenario.yaml").read_text()
+    block = re.search(r"^feedback:\n(?:  .*\n)+", text, flags=re.MULTILINE)
+    assert block is not None
+    (folder / "scenario.yaml").write_text(
+        text[: block.start()] + "feedback: {rate: 20.0}\n" + text[block.end() :]
+    )
+    scenario = load_scenario(folder / "scenario.yaml")
+    result = design_feedback(scenario)
+    print(result.message)
+    assert not result.success and result.tuning is None
+    assert "try a feedback.rate" not in result.message
+    assert result.message.endswith(
+        "; nor with the operating region narrowed around the demos: lower feedback.rate (the "
+        "search keeps a rate the file gives), or fly the demos over a smaller range of (theta, u1)"
+    )
