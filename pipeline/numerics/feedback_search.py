@@ -150,7 +150,7 @@ def tune_feedback(
         simulate(scenario.dynamics, d.x0, d.us, scenario.Ts, substeps=VERIFY_SUBSTEPS)
         for d in scenario.demos
     ]
-    regions = _regions(scenario, trajectories)
+    pads, regions = zip(*_regions(scenario, trajectories), strict=True)
     rates = (spec.rate,) if "rate" in spec.given else _rates(spec.rate)
     weights_free = "input_weights" not in spec.given
     tried: list[str] = []
@@ -173,7 +173,7 @@ def tune_feedback(
         if result.success and result.tube is not None:
             score = _score(candidate, result.tube, trajectories)
         results[key] = (result, score)
-        what = f"rate {rate:g}, region {REGION_PADS[region]:g}" + (
+        what = f"rate {rate:g}, region {pads[region]:g}" + (
             f", input weights x{scale:g}" if scale != 1.0 else ""
         )
         outcome = (
@@ -246,13 +246,13 @@ def _rates(first: float) -> tuple[float, ...]:
 
 def _regions(
     scenario: Scenario, trajectories: Sequence[Trajectory]
-) -> list[dict[str, tuple[float, float]]]:
+) -> list[tuple[float, dict[str, tuple[float, float]]]]:
     """The operating region narrowed around the demos' use (module docstring, step 1), widest
-    first; only the variables the Jacobian depends on are narrowed (narrowing any other only
-    takes room from the tubes). Duplicates dropped."""
+    first, each with its pad; only the variables the Jacobian depends on are narrowed (narrowing
+    any other only takes room from the tubes). Duplicates dropped."""
     states, inputs = scenario.state_names, scenario.input_names
     depends = set(scenario.dynamics.depends_on())
-    regions: list[dict[str, tuple[float, float]]] = []
+    regions: list[tuple[float, dict[str, tuple[float, float]]]] = []
     for pad in REGION_PADS:
         region = {}
         for name, (L, U) in scenario.operating_region.items():
@@ -265,8 +265,8 @@ def _regions(
                 values = np.concatenate([t.us[:, inputs.index(name)] for t in trajectories])
             a, b = max(float(values.min()), L), min(float(values.max()), U)
             region[name] = (float(a - pad * (a - L)), float(b + pad * (U - b)))
-        if region not in regions:
-            regions.append(region)
+        if all(region != other for _, other in regions):
+            regions.append((pad, region))
     return regions
 
 
