@@ -373,7 +373,7 @@ def build_constraints(
         if lower + shrink > upper - shrink:
             raise MarginError(
                 f"Goal's bound on '{name}' [{lower:g}, {upper:g}] is empty after shrinking by the"
-                f" tube's extent {shrink:g}; widen the bound or use a smaller clearance"
+                f" tube's extent {shrink:g}; widen goal.bounds.{name} or use a smaller clearance"
             )
         goal_part.append((i, lower + shrink, upper - shrink))
 
@@ -382,8 +382,8 @@ def build_constraints(
     if goal_region.is_empty:
         raise MarginError(
             f"Goal shrunk by d + eps_g = {goal_shrink:g} (d = {d:g} plus the tube's position"
-            f" extent at T {profile.final_clearance:g}) is empty; use a smaller clearance or"
-            " eps_g, or a larger Goal"
+            f" extent at T {profile.final_clearance:g}) is empty; use a smaller clearance or a"
+            " larger goal.polygon"
         )
 
     def columns(part: list[tuple[int, float, float]]) -> tuple[IntArray, FloatArray, FloatArray]:
