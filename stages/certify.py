@@ -354,7 +354,8 @@ def _reference(
     if not check.interpolation <= INTERPOLATION_TOLERANCE * tr.radius:
         failures.append(
             f"trajectories[{i}]: the interpolated x_ref is {check.interpolation / tr.radius:.3g} "
-            f"radius from the dynamics (> {INTERPOLATION_TOLERANCE:g}); emit it on a finer grid"
+            f"radius from the dynamics (> {INTERPOLATION_TOLERANCE:g}): the controller stage's "
+            "grid is too coarse for these dynamics (a bug of the pipeline; please report it)"
         )
     errors = (max(errors[0], check.error), max(errors[1], check.interpolation))
     return errors, check

@@ -30,6 +30,7 @@ objective.
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -40,6 +41,7 @@ import numpy as np
 
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
+from pipeline.numerics.feedback_search import RATES, FeedbackTuning, tune_feedback
 from pipeline.numerics.hull import DEFAULT_SEGMENTS, HullError, jacobian_hull
 from pipeline.numerics.tube import Tube
 
@@ -66,6 +68,8 @@ class FeedbackResult:
         over the vertices (< 0 for a certificate).
       objective: the design objective's value.
       hull: how each block of the Jacobian hull was enclosed.
+      tuning: what the search chose (``pipeline.numerics.feedback_search``) when the scenario's
+        ``feedback.tune`` is set: the design is for ``applied_to(scenario)``; None otherwise.
     """
 
     K: FloatArray | None
@@ -83,6 +87,24 @@ class FeedbackResult:
     certified_margin: float = float("nan")
     objective: float = float("nan")
     hull: tuple[str, ...] = ()
+    tuning: FeedbackTuning | None = None
+
+    def applied_to(self, scenario: Scenario) -> Scenario:
+        """The scenario this design is for: ``scenario`` itself, or with the tuned operating
+        region, rate and weights (every later stage and the final check read them there)."""
+        if self.tuning is None:
+            return scenario
+        return dataclasses.replace(
+            scenario,
+            operating_region=dict(self.tuning.region),
+            feedback=scenario.feedback.model_copy(
+                update={
+                    "rate": self.tuning.rate,
+                    "state_weights": list(self.tuning.state_weights),
+                    "input_weights": list(self.tuning.input_weights),
+                }
+            ),
+        )
 
     @property
     def certified_tube(self) -> Tube:
@@ -298,6 +320,24 @@ def _advice(scenario: Scenario, rate: float) -> str:
     return f"try a feedback.rate below {rate:g}{region}"
 
 
+def _searched(scenario: Scenario, message: str) -> str:
+    """A failed design's message after the search failed too: its advice (a lower rate, a
+    narrower region) was tried, except a rate the file gives; name what is left."""
+    narrow = [name for name in scenario.dynamics.depends_on() if name in scenario.operating_region]
+    smaller = f"fly the demos over a smaller range of ({', '.join(narrow)})"
+    first = message.rsplit("; try a feedback.rate", 1)[0]
+    if "rate" in scenario.feedback.given:
+        return (
+            f"{first}; nor with the operating region narrowed around the demos: lower "
+            f"feedback.rate (the search keeps a rate the file gives), or {smaller}"
+        )
+    return (
+        f"{first}; nor in any design the search tried (rates down to {min(RATES):g} 1/s, the "
+        f"operating region narrowed around the demos): the Jacobian varies too much for one "
+        f"metric over what the demos use; {smaller}"
+    )
+
+
 def design_feedback(
     scenario: Scenario,
     *,
@@ -308,9 +348,30 @@ def design_feedback(
 ) -> FeedbackResult:
     """Design ``K`` and certify the contraction metric ``P`` at ``rate`` (default: the
     scenario's ``feedback.rate``) over ``scenario.operating_region``; see the module docstring.
+    With the scenario's ``feedback.tune`` (and no ``rate`` given) the design is searched for
+    (``pipeline.numerics.feedback_search``) and the result's ``tuning`` says what was chosen.
 
     A failed design returns ``success=False`` with a message naming the region and rate tried.
     """
+    if gain not in GAINS:
+        raise ValueError(f"gain must be one of {GAINS}, got {gain!r}")
+    if rate is None and scenario.feedback.tune:
+        chosen, tuning = tune_feedback(
+            scenario, lambda s: _design(s, gain, None, segments, margin_weight)
+        )
+        assert isinstance(chosen, FeedbackResult)
+        if tuning is None:
+            return dataclasses.replace(chosen, message=_searched(scenario, chosen.message))
+        return dataclasses.replace(
+            chosen, tuning=tuning, message=f"{chosen.message}; {tuning.summary(scenario)}"
+        )
+    return _design(scenario, gain, rate, segments, margin_weight)
+
+
+def _design(
+    scenario: Scenario, gain: str, rate: float | None, segments: int, margin_weight: float
+) -> FeedbackResult:
+    """One design at ``rate`` (default: the scenario's) over its operating region."""
     if gain not in GAINS:
         raise ValueError(f"gain must be one of {GAINS}, got {gain!r}")
     rate = float(scenario.feedback.rate if rate is None else rate)

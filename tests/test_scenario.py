@@ -151,10 +151,20 @@ BAD_INPUTS: list[tuple[str, Mutation, str | None, list[str]]] = [
         ["sampling_time: missing field", "expected this field"],
     ),
     (
-        "missing nested field",
-        yaml_replace("  rate: 0.5\n", ""),
+        "feedback neither auto nor a mapping",
+        yaml_replace(
+            "feedback:\n  reference_state: [0, 0, 0, 0]\n  reference_input: [0, 0]\n"
+            "  state_weights: [1, 1, 1, 1]\n  input_weights: [1, 1]\n  rate: 0.5\n",
+            "feedback: automatic\n",
+        ),
         YAML,
-        ["feedback.rate: missing field"],
+        ["feedback: invalid value; found 'automatic'; expected 'auto' or a mapping of (ref"],
+    ),
+    (
+        "feedback tune not a boolean",
+        yaml_replace("  rate: 0.5\n", "  rate: 0.5\n  tune: sometimes\n"),
+        YAML,
+        ["feedback.tune"],
     ),
     (
         "extra field",

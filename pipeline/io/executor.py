@@ -37,6 +37,7 @@ import os
 import signal
 import threading
 import time
+import warnings
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
@@ -127,6 +128,7 @@ def _worker_setup(run: int, environment: dict[str, str]) -> None:
     os.environ.clear()
     os.environ.update(environment)
     threadpool_limits(limits=1)
+    warnings.simplefilter("ignore")  # a worker prints nothing: its result says how it went
 
     def watch() -> None:
         while _running(run):

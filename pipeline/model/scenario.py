@@ -35,13 +35,14 @@ from pipeline.model.expressions import (
     ExpressionError,
     parse_expression,
 )
+from pipeline.model.feedback_defaults import resolve_feedback
 from pipeline.model.frozen import freeze_fields, reduce_fields
 from pipeline.model.scenario_file import LOCAL_SCENARIOS as LOCAL_SCENARIOS  # re-exported
 from pipeline.model.scenario_file import SCENARIOS_ROOT as SCENARIOS_ROOT
 from pipeline.model.scenario_file import available_scenarios as available_scenarios
 from pipeline.model.scenario_file import parse_spec
 from pipeline.model.scenario_file import resolve_scenario_path as resolve_scenario_path
-from pipeline.model.schema import FeedbackSpec, ScenarioSpec
+from pipeline.model.schema import DEFAULT_RATE, FeedbackSpec, ScenarioSpec
 from pipeline.model.simulate import simulate
 from pipeline.model.uncertainty import Uncertainty
 
@@ -268,7 +269,7 @@ def _build(path: Path, spec: ScenarioSpec) -> Scenario:
         ("feedback.state_weights", spec.feedback.state_weights, len(states)),
         ("feedback.input_weights", spec.feedback.input_weights, len(inputs)),
     ]:
-        if len(values) != size:
+        if values is not None and len(values) != size:
             raise ScenarioError(
                 f"wrong length {len(values)}", file=path, field=key, expected=f"{size} values"
             )
@@ -317,6 +318,7 @@ def _build(path: Path, spec: ScenarioSpec) -> Scenario:
                     expected=f"a set disjoint from unsafe.{name}",
                 )
     Ts = float(spec.sampling_time)
+    feedback = resolve_feedback(spec, states, inputs)
     demos = tuple(
         _load_demo(path, spec, index, dynamics, init_lower, init_upper, Ts)
         for index in range(len(spec.demos))
@@ -337,7 +339,7 @@ def _build(path: Path, spec: ScenarioSpec) -> Scenario:
         goal_bounds=dict(spec.goal.bounds),
         clearance=float(spec.clearance),
         operating_region=dict(spec.operating_region),
-        feedback=spec.feedback,
+        feedback=feedback,
         demos=demos,
         source_hash=file_hash(path),
         terminal=spec.terminal,
@@ -464,7 +466,7 @@ def _load_demo(
     demo_path = _demo_path(path, index, entry.file)
     bounds = np.array([spec.input_bounds[name] for name in dynamics.input_names])
     us = read_demo_csv(demo_path, dynamics.input_names, Ts, bounds=bounds)
-    T, rate = len(us) * Ts, spec.feedback.rate
+    T, rate = len(us) * Ts, spec.feedback.rate or DEFAULT_RATE
     if rate * T > MAX_DECAY_EXPONENT:  # the tube's e^{-lambda t} would underflow
         raise ScenarioError(
             f"demo lasts {T:g} s: its tube shrinks by e^-(rate T) = e^-{rate * T:.0f}, beyond"

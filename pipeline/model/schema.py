@@ -9,7 +9,7 @@ from __future__ import annotations
 import types
 import typing
 from collections.abc import Sequence
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import (
     AfterValidator,
@@ -43,6 +43,11 @@ def _number_as_text(value: object) -> object:
     return value
 
 
+def _auto_or_mapping(schema: dict[str, Any]) -> None:
+    """The JSON Schema of ``feedback``: ``"auto"`` or the block."""
+    schema["anyOf"] = [{"const": "auto"}, {"$ref": schema.pop("$ref")}]
+
+
 Interval = Annotated[tuple[float, float], AfterValidator(_ordered)]
 # A bound on a physical quantity: a proper interval, with room inside (lower < upper).
 ProperInterval = Annotated[tuple[float, float], AfterValidator(_proper)]
@@ -70,14 +75,68 @@ class GoalSpec(_Strict):
     )
 
 
+DEFAULT_RATE = 0.5  # 1/s: an unset feedback.rate is tuned from here down
+FEEDBACK_DESIGN = ("reference_state", "reference_input", "state_weights", "input_weights", "rate")
+
+
 class FeedbackSpec(_Strict):
-    """Design data for the robustness feedback ``u = u_ref + K (x - x_ref)``."""
+    """The robustness feedback ``u = u_ref + K (x - x_ref)``'s design data, resolved: every field
+    set (``pipeline.model.scenario`` fills in what the file's ``feedback`` leaves out).
+
+    ``tune``: the feedback stage searches (``pipeline.numerics.feedback_search``) over the
+    operating region (narrowed inside the file's, around what the demos use) and over the
+    fields not in ``given``; ``given``: the fields the file sets, used as given."""
 
     reference_state: list[float] = Field(description="operating point x* for the LQR design (n)")
-    reference_input: list[float] = Field(description="operating point u* with f(x*, u*) = 0 (m)")
+    reference_input: list[float] = Field(description="operating point u* for the LQR design (m)")
     state_weights: list[PositiveFloat] = Field(description="diagonal of the LQR Q (n)")
     input_weights: list[PositiveFloat] = Field(description="diagonal of the LQR R (m)")
     rate: PositiveFloat = Field(description="contraction rate lambda to certify (1/s)")
+    tune: bool = False
+    given: tuple[str, ...] = FEEDBACK_DESIGN
+
+
+class FeedbackFileSpec(_Strict):
+    """The file's ``feedback`` block: each field set is used as given; with ``tune`` (the
+    default unless all five design fields are set) the feedback stage searches over the ones
+    left out and narrows the operating region around the demos; ``feedback: auto`` (or no
+    ``feedback``) sets none."""
+
+    reference_state: list[float] | None = Field(
+        default=None,
+        description="operating point x* for the LQR design (n); default: the centre of Init, "
+        "the operating region's centre for the states it bounds",
+    )
+    reference_input: list[float] | None = Field(
+        default=None,
+        description="operating point u* for the LQR design (m); default: the centre of the "
+        "input bounds within the operating region",
+    )
+    state_weights: list[PositiveFloat] | None = Field(
+        default=None, description="diagonal of the LQR Q (n); default: all 1 (tuned)"
+    )
+    input_weights: list[PositiveFloat] | None = Field(
+        default=None, description="diagonal of the LQR R (m); default: all 1 (tuned)"
+    )
+    rate: PositiveFloat | None = Field(
+        default=None,
+        description="contraction rate lambda to certify (1/s); default: tuned (from "
+        f"{DEFAULT_RATE:g} 1/s down)",
+    )
+    tune: bool | None = Field(
+        default=None,
+        description="search over the operating region and the fields left out, keeping the "
+        "certified design whose tubes best cover Init (default: true unless all five design "
+        "fields are set); false: use the defaults of the fields left out, as given",
+    )
+
+
+def _feedback_auto(value: object) -> object:
+    if value is None or value == "auto":
+        return {}
+    if isinstance(value, str):
+        raise ValueError(f"'auto' or a mapping of ({', '.join(FeedbackFileSpec.model_fields)})")
+    return value
 
 
 class StressSpec(_Strict):
@@ -136,7 +195,12 @@ class ScenarioSpec(_Strict):
     operating_region: dict[str, Interval] = Field(
         description="box over the states and inputs the Jacobian depends on"
     )
-    feedback: FeedbackSpec
+    feedback: Annotated[FeedbackFileSpec, BeforeValidator(_feedback_auto)] = Field(
+        default_factory=FeedbackFileSpec,
+        description="the robustness feedback: 'auto' (the default) designs and tunes it; a "
+        "mapping sets some or all of its fields (each set field is used as given)",
+        json_schema_extra=_auto_or_mapping,
+    )
     terminal: Literal["reach", "hold"] = Field(
         default="reach",
         description="after T: 'reach' (the paper's Goal; a terminal controller is emitted when "

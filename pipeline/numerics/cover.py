@@ -161,3 +161,26 @@ def subdivide(
         free=free,
         depth=depth,
     )
+
+
+def balls_to_cover(
+    P: FloatArray, radius: float, lower: FloatArray, upper: FloatArray, fraction: float
+) -> int:
+    """About how many balls ``{x : ||x - c||_P <= radius}`` (``P (n, n)``) a part ``fraction``
+    of the box ``[lower, upper]`` (n,) needs: its volume over the free states divided by that of
+    the largest box inside one ball's slice along them, ``prod_i 2 a_i / sqrt(D)`` (``a_i`` the
+    slice's ``D`` semi-axes; the box along the ellipsoid's axes), at least 1. An estimate for
+    advice (how many more demos), not a bound; 0 for nothing to cover."""
+    lower, upper = np.asarray(lower, dtype=np.float64), np.asarray(upper, dtype=np.float64)
+    free = np.flatnonzero(upper > lower)
+    if fraction <= 0:
+        return 0
+    if free.size == 0:
+        return 1
+    if not radius > 0:
+        raise ValueError(f"radius must be > 0, got {radius!r}")
+    D = free.size
+    axes = radius / np.sqrt(np.linalg.eigvalsh(np.asarray(P)[np.ix_(free, free)]))
+    box = np.minimum(2 * axes / np.sqrt(D), (upper - lower)[free].max())  # (D,)
+    volume = fraction * float(np.prod((upper - lower)[free]))
+    return max(1, int(np.ceil(volume / float(np.prod(box)) - 1e-9)))  # 2.0000000001 is 2

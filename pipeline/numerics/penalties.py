@@ -326,11 +326,13 @@ def build_constraints(
     input_upper = scenario.input_upper - eps_i - margin
     widest = profile.input.max(axis=0)  # (m,) the profile's largest input extent
     for j in np.flatnonzero(input_lower + widest > input_upper - widest):
+        name = scenario.input_names[j]
         raise MarginError(
-            f"input bounds of '{scenario.input_names[j]}' are empty after shrinking by eps_i +"
+            f"input bounds of '{name}' are empty after shrinking by eps_i +"
             f" input_margin = {eps_i + np.broadcast_to(margin, (m,))[j]:g} plus the tube's"
             f" extent {widest[j]:g}: [{input_lower[j] + widest[j]:g},"
-            f" {input_upper[j] - widest[j]:g}]; use smaller margins"
+            f" {input_upper[j] - widest[j]:g}]; the feedback's gain on '{name}' is too large"
+            f" for the radius kept: widen input_bounds.{name}, or lower feedback.rate"
         )
 
     box = dict(scenario.operating_region if region is None else region)
@@ -358,7 +360,8 @@ def build_constraints(
                 f"{'operating region' if region is None else 'region'} of '{name}'"
                 f" [{lower:g}, {upper:g}] is empty after"
                 f" shrinking by region_margin = {shrink:g} plus the tube's extent"
-                f" {float(extent[name]):g}; use a smaller margin"
+                f" {float(extent[name]):g}; the tube at the radius kept is wider than it:"
+                f" widen operating_region.{name}, or lower feedback.rate"
             )
         shrunk[name] = (lower + shrink, upper - shrink)
     state_part = [(states.index(k), lo, hi) for k, (lo, hi) in shrunk.items() if k in states]
@@ -370,7 +373,7 @@ def build_constraints(
         if lower + shrink > upper - shrink:
             raise MarginError(
                 f"Goal's bound on '{name}' [{lower:g}, {upper:g}] is empty after shrinking by the"
-                f" tube's extent {shrink:g}; widen the bound or use a smaller clearance"
+                f" tube's extent {shrink:g}; widen goal.bounds.{name} or use a smaller clearance"
             )
         goal_part.append((i, lower + shrink, upper - shrink))
 
@@ -379,8 +382,8 @@ def build_constraints(
     if goal_region.is_empty:
         raise MarginError(
             f"Goal shrunk by d + eps_g = {goal_shrink:g} (d = {d:g} plus the tube's position"
-            f" extent at T {profile.final_clearance:g}) is empty; use a smaller clearance or"
-            " eps_g, or a larger Goal"
+            f" extent at T {profile.final_clearance:g}) is empty; use a smaller clearance or a"
+            " larger goal.polygon"
         )
 
     def columns(part: list[tuple[int, float, float]]) -> tuple[IntArray, FloatArray, FloatArray]:

@@ -66,10 +66,11 @@ YAML_GUIDE = """\
 #   init                      [lower, upper] per state: where flights start
 #   clearance                 d (m): the distance to Unsafe every certified tube keeps
 #   operating_region          bounds on what the Jacobian depends on: the feedback's
-#                             contraction certificate holds there (lower feedback.rate or
-#                             narrow it if the feedback stage finds no certificate)
-#   feedback                  the LQR design point (reference_state, reference_input), its
-#                             weights and the contraction rate
+#                             contraction certificate holds there (the search may narrow it
+#                             around what the demos use, never widen it)
+#   feedback                  auto: the feedback stage designs it, searching the rate, the LQR
+#                             weights and the region; a field you set is kept as given (e.g.
+#                             feedback: {{rate: 0.2}}); feedback: {{tune: false}}: no search
 #   demos                     keep it last: `demos` rewrites it (or list your CSVs: file, x0)
 # ----- below: the '{like}' scenario, renamed -----
 """
@@ -162,6 +163,13 @@ def _scenario_text(name: str, like: str, path: Path) -> str:
     text = re.sub(
         r"^description: .*$",
         f"description: {name}, from the '{like}' template (describe your system here)",
+        text,
+        count=1,
+        flags=re.MULTILINE,
+    )
+    text = re.sub(  # the template's explicit design: a new system starts from the search
+        r"^feedback:\n(?:[ #].*\n)*",
+        "feedback: auto            # designed and tuned by the feedback stage (see the guide)\n",
         text,
         count=1,
         flags=re.MULTILINE,

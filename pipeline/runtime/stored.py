@@ -213,6 +213,7 @@ def load_report_data(scenario: Scenario, out: Path, write_to: Path | None = None
         raise _rerun(controller, scenario, "controller.json is not the file the run wrote")
     names = (*EVIDENCE_STAGES, *(("stress",) if summary.stress is not None else ()))
     results, keys = _read_stages(scenario, out, names, manifest["stages"])
+    scenario = results["feedback"].applied_to(scenario)  # as the run: a tuned design's region
     mc = results["montecarlo"]
     if keys["montecarlo"] != run_inputs.montecarlo_key(scenario, sha256, mc.samples, mc.seed):
         what = (

@@ -15,6 +15,7 @@ import logging
 import math
 import re
 import sys
+import warnings
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from pathlib import Path
@@ -68,10 +69,20 @@ def show_progress(*, verbose: bool = False, quiet: bool = False) -> Iterator[Non
     logger.setLevel(logging.DEBUG if verbose else logging.WARNING if quiet else logging.INFO)
     logger.addHandler(handler)
     try:
-        yield
+        with warnings.catch_warnings():  # a library's warnings (SciPy's): --verbose shows them
+            warnings.showwarning = _log_warning
+            yield
     finally:
         logger.removeHandler(handler)
         logger.setLevel(level)
+
+
+def _log_warning(message, category, filename, lineno, file=None, line=None) -> None:  # type: ignore[no-untyped-def]
+    """A Python warning as a DEBUG line of the ``pipeline`` logger, not on stderr: the stages'
+    results say what went wrong in the scenario's terms."""
+    logging.getLogger(f"{LOGGER}.warnings").debug(
+        f"{category.__name__}: {message} ({filename}:{lineno})"
+    )
 
 
 class _StdoutHandler(logging.StreamHandler):  # type: ignore[type-arg]

@@ -16,6 +16,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from pipeline.model.scenario import Scenario
+from pipeline.numerics.cover import balls_to_cover
+from pipeline.numerics.feedback_search import fix_for
 from pipeline.reporting.numbers import margin, montecarlo_counts
 from pipeline.reporting.summary import (
     CertificationSummary,
@@ -37,6 +39,9 @@ if TYPE_CHECKING:  # stage result types: only the orchestrator imports stages
     from stages.montecarlo import MonteCarloResult
     from stages.optimize import OptimizeResult
     from stages.radius import RadiusResult
+
+
+FEW_DEMOS = 8  # "record more demonstrations" up to this many (or as many as the scenario has)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -86,13 +91,7 @@ class Evidence:
         """Why the run is not certified and validated (empty when it is)."""
         reasons = []
         if not self.coverage.covered:
-            gap = self.coverage.largest_gap()
-            where = (
-                ""
-                if gap is None
-                else f"; record a new demonstration from {np.round(gap, 3).tolist()}"
-            )
-            reasons.append(f"coverage gap: {self.coverage.message}{where}")
+            reasons.append(f"coverage gap: {self.coverage.message}{self.gap_advice()}")
         failed = [
             demo.name
             for demo, tried in zip(self.scenario.demos, self.optimized.trajectories, strict=True)
@@ -111,6 +110,32 @@ class Evidence:
             counts = montecarlo_counts(mc.samples, failed_runs(mc), mc.failures)
             reasons.append(f"Monte Carlo failure: {counts}")
         return tuple(reasons)
+
+    def gap_advice(self) -> str:
+        """What closes the coverage gap: a few more demos (how many, and where the first
+        starts), or, when the tubes are too small for a few to do it, the feedback's limit."""
+        gap = self.coverage.largest_gap()
+        radii = [r.radius for r in self.final_radii if r.radius > 0]
+        if gap is None or not radii or not self.feedback.success:
+            return ""
+        s, P = self.scenario, self.feedback.certified_tube.P
+        radius = float(np.median(radii))
+        more = balls_to_cover(
+            P, radius, s.init_lower, s.init_upper, 1 - self.coverage.covered_fraction
+        )
+        start = np.round(gap, 3).tolist()
+        if more <= max(FEW_DEMOS, len(s.demos)):
+            plural = "s" if more > 1 else ""
+            return f"; record about {more} more demonstration{plural}, the first from {start}"
+        bindings = [r.binding for r in self.final_radii if r.radius > 0]
+        binding = max(set(bindings), key=bindings.count)
+        fix = fix_for(s, binding) + (
+            "" if s.feedback.tune else ", or let the search tune the feedback (feedback: auto)"
+        )
+        return (
+            f"; the feedback, not the demos, is the limit: tubes of radius {radius:.3g} would "
+            f"need about {more} more demonstrations; their radius is limited by {binding}: {fix}"
+        )
 
     def headline(self) -> dict[str, Any]:
         """The headline's coverage and Monte Carlo fields (``Headline``'s keywords)."""

@@ -249,13 +249,14 @@ def _synthesize(
 
     feedback = runner.run(
         "feedback",
-        inputs_key(code_key("stages.feedback"), core),
+        inputs_key(code_key("stages.feedback", "pipeline.numerics.feedback_search"), core),
         lambda: design_feedback(scenario),
         describe=lambda result: result.message,
     )
     if not feedback.success:
         reason = f"the feedback could not be certified: {feedback.message}"
         return _failed(out, scenario, "feedback", reason)
+    scenario = feedback.applied_to(scenario)  # a tuned design's region, rate and weights
     if options.feedback_period > 0:
         feedback, held = run_inputs.held_feedback(scenario, feedback, options.feedback_period)
         if not held.success:
