@@ -145,6 +145,7 @@ MARGINS = (1e-3, 1e-2)
 # term and rounding).
 ROBUST_MARGINS = (0.1, 0.3, 1.0, 3.0)
 ROBUST_SHARE = 0.8
+ROBUST_SEED = 2.0  # the hull boxes hold this multiple of the seed's disturbance extent (F5)
 # Sample intervals per LMI piece: K is held and Q = P^-1 linear in t over each piece (see HOLD in
 # the module docstring).
 HOLD = 2
@@ -187,6 +188,30 @@ def _weights(scenario: Scenario, state_bounds: Mapping[str, tuple[float, float]]
         i = scenario.state_names.index(name)
         W[:, i, i] += 4 / (upper - lower) ** 2
     return W
+
+
+def disturbance_level(
+    scenario: Scenario, K: FloatArray, P_lqr: FloatArray, bound: FloatArray
+) -> float:
+    """The seed's level that holds the disturbance ``|w| <= bound (n,)`` (F5): with the LQR
+    seed (F4) ``V_k = e^T P_k e`` drops by ``e^T (Q_w + K_k^T R_w K_k) e >= mu_k V_k`` per
+    sample, a decay ``alpha_k = mu_k / Ts`` in continuous time; ``V' <= -alpha V + 2 sqrt(V)
+    omega_k``, ``omega_k = max ||w_c||_{P_k}`` over the corners, holds ``V <= (2 omega_k /
+    alpha_k)^2``. Returned: ``ROBUST_SEED^2`` times the largest over k. Only the hull boxes are
+    sized by it (a guess of the funnel's extent), so nothing here needs to be sound: the LMIs
+    and ``check_funnel`` decide. ``K (N, m, n)``, ``P_lqr (N+1, n, n)``."""
+    Ts = scenario.Ts
+    Qw = Ts * np.diag(scenario.feedback.state_weights)
+    Rw = Ts * np.diag(scenario.feedback.input_weights)
+    w = corners(np.asarray(bound, dtype=np.float64))
+    level = 0.0
+    for k in range(len(K)):
+        L_inv = np.linalg.inv(np.linalg.cholesky(P_lqr[k]))
+        drop = L_inv @ (Qw + K[k].T @ Rw @ K[k]) @ L_inv.T
+        alpha = float(np.linalg.eigvalsh((drop + drop.T) / 2)[0]) / Ts
+        omega = float(np.sqrt(np.einsum("ci,ij,cj->c", w, P_lqr[k], w).max()))
+        level = max(level, (2 * omega / max(alpha, 1e-12)) ** 2)
+    return ROBUST_SEED**2 * level
 
 
 def _program(
@@ -342,8 +367,11 @@ def synthesize_funnel(
             f"{scenario.n}) or (p, {scenario.n}, {scenario.n}) with p >= 1"
         )
     L_inv = np.linalg.inv(np.linalg.cholesky(Q_seed[0]))
-    # Q_seed[0] >= every Q_init[j]
-    Q_seed = Q_seed * np.linalg.eigvalsh(L_inv @ Q_init @ L_inv.T)[:, -1].max()
+    # Q_seed[0] >= every Q_init[j]; under a disturbance, the seed's level that holds it (F5)
+    seed_level = np.linalg.eigvalsh(L_inv @ Q_init @ L_inv.T)[:, -1].max()
+    if robust is not None:
+        seed_level = max(seed_level, disturbance_level(scenario, K, P_lqr, robust))
+    Q_seed = Q_seed * seed_level
 
     def result(success: bool, message: str, **values: Unpack[_Parts]) -> Funnel:
         defaults: _Parts = {
