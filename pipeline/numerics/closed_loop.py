@@ -154,7 +154,9 @@ class RunChecks:
         ]
 
     def _bounds(self) -> FloatArray:
-        return np.full(len(self.finite), np.inf) if self.bounds_margin is None else self.bounds_margin
+        return (
+            np.full(len(self.finite), np.inf) if self.bounds_margin is None else self.bounds_margin
+        )
 
     def failures(self) -> dict[str, np.ndarray]:
         """Failure masks ``(B,)`` by kind."""
