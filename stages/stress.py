@@ -8,8 +8,8 @@ beyond it: every run draws from the declaration widened ``BEYOND`` (2) times abo
 draws the declared one (``pipeline.numerics.gusts.sample``: parameters uniform or at corners,
 0.5 s piecewise-constant gusts, half the runs bang-bang at random corners), on the compiled
 kernel, continued to ``T + 10`` s when the file has a law past ``T``. A run fails if it enters
-Unsafe, misses Goal, clips, leaves the state bounds or (after ``T``) Goal or its terminal
-ellipsoid; the ``stress:`` block is not used then.
+Unsafe, misses Goal, clips, leaves the state bounds or (after ``T``) Goal, as in the Monte Carlo
+stage; the ``stress:`` block is not used then.
 
 Without a declaration, each run draws a constant additive term in the state derivative, uniform
 within the scenario's ``stress.disturbance`` bounds (e.g. wind), and Gaussian measurement noise
@@ -32,7 +32,7 @@ from pipeline.model.scenario import Scenario
 from pipeline.numerics.closed_loop import check_runs
 from pipeline.numerics.gusts import sample
 from pipeline.numerics.rollouts import check_runs_compiled, hold_runs_compiled
-from stages.montecarlo import HOLD_SECONDS
+from stages.montecarlo import ELLIPSOID_UNDER_UNCERTAINTY, HOLD_SECONDS
 from stages.worst_case import horizon
 
 BEYOND = 2.0  # the declared uncertainty's multiple that a declaring scenario is stressed with
@@ -80,7 +80,7 @@ def _beyond_campaign(
             stressed, controller, x0[covered], HOLD_SECONDS, draws=draws.rows(covered)
         )
         masks["after_T"] = np.zeros(samples, dtype=bool)
-        masks["after_T"][covered] = after.failures()
+        masks["after_T"][covered] = after.failures(ellipsoid=ELLIPSOID_UNDER_UNCERTAINTY)
     failed = np.any(list(masks.values()), axis=0)
     return StressRun(
         gain_scale=gain_scale,

@@ -288,13 +288,13 @@ class HoldChecks:
     path_goal_margin: FloatArray
     bounds_margin: FloatArray
 
-    def failures(self) -> np.ndarray:
-        """``(B,)`` True where a continued run left Goal (at any time) or its ellipsoid, clipped,
-        came near Unsafe or left the state bounds."""
+    def failures(self, ellipsoid: bool = True) -> np.ndarray:
+        """``(B,)`` True where a continued run left Goal (at any time), clipped, came near
+        Unsafe or left the state bounds, or (``ellipsoid``) left the terminal ellipsoid."""
         return (
             (self.final_goal_margin < 0)
             | (self.path_goal_margin < 0)
-            | (self.level_ratio > 1 + TUBE_TOLERANCE)
+            | (ellipsoid & (self.level_ratio > 1 + TUBE_TOLERANCE))
             | (self.input_slack < 0)
             | (self.clearance <= 0)
             | (self.bounds_margin < 0)
