@@ -348,7 +348,8 @@ def validate_closed_loop(
             done=None if progress is None else lambda i: progress(chunks[i]),
         )
         paths = drawn.result()
-        falsification = searched_first if searched is None else searched.result()
+        falsification = searched.result() if searched is not None else searched_first
+        assert falsification is not None  # searched first, or beside the chunks
     finally:  # a failed chunk (or Ctrl-C) does not wait for the side work
         side.shutdown(wait=False, cancel_futures=True)
     parts = [o[0] for o in outcomes]
