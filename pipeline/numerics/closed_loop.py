@@ -9,7 +9,10 @@ stage at an interval's right end uses the left limit of the input. A file with
 ``check_runs`` measures each run's margins in continuous time (dense grid plus the motion bound
 between grid points): clearance to Unsafe, Goal at ``T``, input slack before clipping, and the
 error against the predicted tube ``||e(t)||_P(t) <= e^{-lambda t} ||e(0)||_P(0) + 2 delta``
-(``P(t) = P`` for a ``/1`` file; a funnel's time-varying metric, its own ``lambda``, for ``/2``).
+(``P(t) = P`` for a ``/1`` file; a funnel's time-varying metric, its own ``lambda``, for ``/2``),
+and the margin to the scenario's ``state_bounds`` on the grid less half the longest step of a
+bounded state. ``draws`` (``pipeline.numerics.gusts``) fly each run with its own uncertain
+parameters and gusts.
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ from pipeline.controller import Controller
 from pipeline.model import geometry
 from pipeline.model.dynamics import Dynamics, FloatArray
 from pipeline.model.scenario import Scenario
+from pipeline.numerics.gusts import Draws, flown_dynamics
 
 LEFT_LIMIT = 1e-9
 TUBE_TOLERANCE = 1e-6
@@ -62,6 +66,7 @@ def simulate_closed_loop(
     disturbance: FloatArray | None = None,
     noise: FloatArray | None = None,
     hold: int = 0,
+    draws: Draws | None = None,
 ) -> ClosedLoopRun:
     """Run the batch ``x0 (B, n)`` around trajectory number ``trajectory`` until its end ``T``.
 
@@ -70,6 +75,10 @@ def simulate_closed_loop(
 
     Stress tests only: ``disturbance (B, n)`` is added to ``xdot``; ``noise (B, K, n)`` is added
     to the state the controller measures on RK4 step ``j`` (``K = N * substeps``).
+
+    ``draws``: each run's parameters (appended to the input: ``dynamics`` is then the
+    parametric ``f(x, (u, p))``) and the gust in force at each RK4 step's start, added to
+    ``xdot``.
     """
     x = np.array(x0, dtype=np.float64)
     B = x.shape[0]
@@ -92,10 +101,15 @@ def simulate_closed_loop(
             raw = controller.unclipped(t, state if noise is None else state + noise[:, j], index)
             held[:] = raw
         unclipped[:, j, stage] = raw
-        return dynamics.f(state, np.clip(raw, controller.lower, controller.upper)) + extra
+        u = np.clip(raw, controller.lower, controller.upper)
+        if draws is not None and draws.parameters.shape[1]:
+            u = np.concatenate([u, draws.parameters], axis=1)
+        return dynamics.f(state, u) + extra
 
     for j in range(K):
         t = j * h
+        if draws is not None:
+            extra = draws.gust(t) + (0.0 if disturbance is None else disturbance)
         t_end = (j + 1) * h - (LEFT_LIMIT if (j + 1) % substeps == 0 else 0.0)
         k1 = field(t, x, j, 0)
         k2 = field(t + h / 2, x + h / 2 * k1, j, 1)
@@ -121,6 +135,7 @@ class RunChecks:
     tube_final: FloatArray
     finite: np.ndarray
     covered: np.ndarray
+    bounds_margin: FloatArray | None = None  # to the state bounds (inf without them)
 
     def margin(self) -> FloatArray:
         """The smallest safety margin of each run (negative: unsafe, misses Goal or clips the
@@ -138,6 +153,11 @@ class RunChecks:
             for k, f, c in zip(np.argmin(parts, axis=0), self.finite, self.covered, strict=True)
         ]
 
+    def _bounds(self) -> FloatArray:
+        return (
+            np.full(len(self.finite), np.inf) if self.bounds_margin is None else self.bounds_margin
+        )
+
     def failures(self) -> dict[str, np.ndarray]:
         """Failure masks ``(B,)`` by kind."""
         ok = self.finite
@@ -148,6 +168,7 @@ class RunChecks:
             "tube": ok & (self.tube_tightness > 1 + TUBE_TOLERANCE),
             "non_finite": ~ok,
             "uncovered": ~self.covered,
+            "bounds": ok & (self._bounds() < 0),
         }
 
 
@@ -159,6 +180,7 @@ def check_runs(
     disturbance: FloatArray | None = None,
     noise_std: FloatArray | None = None,
     rng: np.random.Generator | None = None,
+    draws: Draws | None = None,
 ) -> tuple[RunChecks, list[FloatArray]]:
     """Simulate the closed loop from ``x0 (B, n)`` and measure every run's margins.
 
@@ -168,7 +190,7 @@ def check_runs(
     """
     B = len(x0)
     substeps, hold = held_steps(controller, substeps)
-    names = ("clearance", "goal_margin", "input_slack", "tube", "tube_final")
+    names = ("clearance", "goal_margin", "input_slack", "tube", "tube_final", "bounds")
     checks = {name: np.empty(B) for name in names}
     finite = np.ones(B, dtype=bool)
     index, ratio = controller.select(x0)
@@ -182,7 +204,7 @@ def check_runs(
             generator = rng if rng is not None else np.random.default_rng(0)
             noise = generator.normal(size=(len(rows), steps, len(x0[0]))) * noise_std
         run = simulate_closed_loop(
-            scenario.dynamics,
+            flown_dynamics(scenario, draws),
             controller,
             x0[rows],
             int(i),
@@ -190,8 +212,10 @@ def check_runs(
             disturbance=None if disturbance is None else disturbance[rows],
             noise=noise,
             hold=hold,
+            draws=None if draws is None else draws.rows(rows),
         )
         xs = run.xs
+        checks["bounds"][rows] = _bounds_margin(scenario, xs)
         finite[rows] = np.all(np.isfinite(xs), axis=(1, 2))
         positions = scenario.positions(np.nan_to_num(xs, nan=1e9, posinf=1e9, neginf=-1e9))
         step = np.linalg.norm(np.diff(positions, axis=1), axis=-1).max(axis=1)  # (b,)
@@ -225,8 +249,22 @@ def check_runs(
         tube_final=checks["tube_final"],
         finite=finite,
         covered=covered,
+        bounds_margin=checks["bounds"],
     )
     return result, paths
+
+
+def _bounds_margin(scenario: Scenario, xs: FloatArray) -> FloatArray:
+    """(B,) the smallest margin of ``xs (B, K+1, n)`` to the state bounds on the grid, less half
+    the longest step of a bounded state (inf without state bounds)."""
+    if not scenario.state_bounds:
+        return np.full(len(xs), np.inf)
+    index = [scenario.state_names.index(name) for name in scenario.state_bounds]
+    lower = np.array([lo for lo, _ in scenario.state_bounds.values()])
+    upper = np.array([hi for _, hi in scenario.state_bounds.values()])
+    bounded = xs[..., index]
+    margin = np.minimum(bounded - lower, upper - bounded).min(axis=(1, 2))
+    return margin - np.abs(np.diff(bounded, axis=1)).max(axis=(1, 2), initial=0.0) / 2
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -239,7 +277,7 @@ class HoldChecks:
         in the certified ellipsoid, which lies in Goal); input_slack: as in ``RunChecks``;
         clearance: to Unsafe over the continuation, less half the longest step; final_state:
         ``(B, n)``; path_goal_margin: the smallest signed Goal margin over the grid less half
-        the longest step (the oracle only; None from the kernel).
+        the longest step; bounds_margin: to the state bounds as in ``RunChecks``.
     """
 
     final_goal_margin: FloatArray
@@ -247,17 +285,20 @@ class HoldChecks:
     input_slack: FloatArray
     clearance: FloatArray
     final_state: FloatArray
-    path_goal_margin: FloatArray | None = None
+    path_goal_margin: FloatArray
+    bounds_margin: FloatArray
 
-    def failures(self) -> np.ndarray:
-        """``(B,)`` True where a continued run left Goal or its ellipsoid, or clipped."""
-        failed = (
+    def failures(self, ellipsoid: bool = True) -> np.ndarray:
+        """``(B,)`` True where a continued run left Goal (at any time), clipped, came near
+        Unsafe or left the state bounds, or (``ellipsoid``) left the terminal ellipsoid."""
+        return (
             (self.final_goal_margin < 0)
-            | (self.level_ratio > 1 + TUBE_TOLERANCE)
+            | (self.path_goal_margin < 0)
+            | (ellipsoid & (self.level_ratio > 1 + TUBE_TOLERANCE))
             | (self.input_slack < 0)
             | (self.clearance <= 0)
+            | (self.bounds_margin < 0)
         )
-        return failed if self.path_goal_margin is None else failed | (self.path_goal_margin < 0)
 
 
 def continue_runs(
@@ -267,11 +308,13 @@ def continue_runs(
     index: np.ndarray,
     duration: float = 10.0,
     substeps: int = 4,
+    draws: Draws | None = None,
 ) -> HoldChecks:
     """Continue runs that reached their ``T_i`` in ``x_end (B, n)`` (trajectories ``index
     (B,)``) for ``duration`` seconds under the law after ``T`` (``controller(t, x, index)``,
     the terminal controller), by RK4 with about ``substeps`` steps per ``Ts`` (held every
-    ``feedback_period`` when the file says so)."""
+    ``feedback_period`` when the file says so); with ``draws`` (their times from 0 at the
+    runs' start), each run's parameters and its gusts from ``T_i`` on."""
     terminal = controller.terminal
     if terminal is None:
         raise ValueError("continue_runs: the controller has no terminal law to continue with")
@@ -283,6 +326,9 @@ def continue_runs(
     level = np.asarray(terminal.value(x)) / terminal.level
     slack = np.full(len(x), np.inf)
     states = [x]
+    dynamics = flown_dynamics(scenario, draws)
+    later = None if draws is None else draws.started(T)
+    gust: FloatArray | float = 0.0
 
     u = np.empty((len(x), len(controller.input_names)))
 
@@ -294,10 +340,14 @@ def continue_runs(
                 slack, np.min(np.minimum(raw - controller.lower, controller.upper - raw), axis=-1)
             )
             u[:] = controller(float(T.max()) + t + h, state, index)
-        return scenario.dynamics.f(state, u)
+        if later is None or not later.parameters.shape[1]:
+            return dynamics.f(state, u) + gust
+        return dynamics.f(state, np.concatenate([u, later.parameters], axis=1)) + gust
 
     for j in range(steps):
         t = j * h
+        if later is not None:
+            gust = later.gust(t)
         k1 = field(t, x, not hold or j % hold == 0)
         k2 = field(t + h / 2, x + h / 2 * k1, not hold)
         k3 = field(t + h / 2, x + h / 2 * k2, not hold)
@@ -319,20 +369,32 @@ def continue_runs(
         clearance=distances.min(axis=1) - step / 2,
         final_state=xs[:, -1],
         path_goal_margin=signed.min(axis=1) - step / 2,
+        bounds_margin=_bounds_margin(scenario, xs),
     )
 
 
 def hold_runs(
-    scenario: Scenario, controller: Controller, x0: FloatArray, duration: float = 10.0
+    scenario: Scenario,
+    controller: Controller,
+    x0: FloatArray,
+    duration: float = 10.0,
+    draws: Draws | None = None,
 ) -> HoldChecks:
-    """Fly ``x0 (B, n)`` to their ``T`` with the oracle, then ``duration`` s more past it."""
+    """Fly ``x0 (B, n)`` to their ``T`` with the oracle, then ``duration`` s more past it (with
+    ``draws``: their parameters and gusts throughout)."""
     index, _ = controller.select(x0)
     x_end = np.empty_like(np.asarray(x0, dtype=np.float64))
     for i in np.unique(index):
         rows = np.flatnonzero(index == i)
         substeps, hold = held_steps(controller, 4)
         run = simulate_closed_loop(
-            scenario.dynamics, controller, x0[rows], int(i), substeps, hold=hold
+            flown_dynamics(scenario, draws),
+            controller,
+            x0[rows],
+            int(i),
+            substeps,
+            hold=hold,
+            draws=None if draws is None else draws.rows(rows),
         )
         x_end[rows] = run.xs[:, -1]
-    return continue_runs(scenario, controller, x_end, index, duration)
+    return continue_runs(scenario, controller, x_end, index, duration, draws=draws)

@@ -6,7 +6,8 @@ continuous-time checks; see ``pipeline.numerics.kernels.rollout``), without mate
 ``(runs, steps, n)`` paths: memory stays ``O(runs)`` and a rollout costs one pass of scalar code.
 ``hold_runs_compiled`` continues the runs past ``T`` under the terminal law, as ``hold_runs``;
 ``run_paths_compiled`` gives the position paths of a few runs (the report draws them), as the
-oracle's ``check_runs`` does.
+oracle's ``check_runs`` does. Each takes optional ``draws`` (``pipeline.numerics.gusts``): every
+run flown with its own uncertain parameters and gusts, as the oracle does.
 """
 
 from __future__ import annotations
@@ -17,9 +18,11 @@ from typing import Any
 import numpy as np
 
 from pipeline.controller import Controller
+from pipeline.model import geometry
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
 from pipeline.numerics.closed_loop import INTERPOLATION_SLACK, HoldChecks, RunChecks, held_steps
+from pipeline.numerics.gusts import Draws, flown_dynamics
 from pipeline.numerics.kernels.compiled import (
     load_kernels,
     ring_arrays,
@@ -39,6 +42,7 @@ class SceneArrays:
         unsafe_boxes: (sets, 4) bounding boxes (xmin, ymin, xmax, ymax).
       goal_vertices: (w, 2); goal_ring_start: (goal rings + 1,).
       goal_index, goal_lower, goal_upper: (g,) Goal's extra bounds on states at ``T``.
+      bound_index, bound_lower, bound_upper: (c,) the state bounds.
     """
 
     position: IntArray
@@ -51,6 +55,9 @@ class SceneArrays:
     goal_index: IntArray
     goal_lower: FloatArray
     goal_upper: FloatArray
+    bound_index: IntArray
+    bound_lower: FloatArray
+    bound_upper: FloatArray
 
     @classmethod
     def of(cls, scenario: Scenario) -> SceneArrays:
@@ -68,24 +75,37 @@ class SceneArrays:
             goal_index=np.array([scenario.state_names.index(k) for k in names], dtype=np.int64),
             goal_lower=np.array([scenario.goal_bounds[k][0] for k in names], dtype=np.float64),
             goal_upper=np.array([scenario.goal_bounds[k][1] for k in names], dtype=np.float64),
+            bound_index=np.array(
+                [scenario.state_names.index(k) for k in scenario.state_bounds], dtype=np.int64
+            ),
+            bound_lower=np.array([lo for lo, _ in scenario.state_bounds.values()], dtype=float),
+            bound_upper=np.array([hi for _, hi in scenario.state_bounds.values()], dtype=float),
         )
 
 
 def check_runs_compiled(
-    scenario: Scenario, controller: Controller, x0: FloatArray, substeps: int = 4
+    scenario: Scenario,
+    controller: Controller,
+    x0: FloatArray,
+    substeps: int = 4,
+    draws: Draws | None = None,
 ) -> RunChecks:
     """The margins of every closed-loop run from ``x0 (B, n)``, as ``check_runs`` computes them."""
-    kernels, out, _ = _rollouts(scenario, controller, x0, substeps)
+    kernels, out, _ = _rollouts(scenario, controller, x0, substeps, draws=draws)
     return _checks(kernels, out, controller.select(x0)[1] < 1.0)
 
 
 def run_paths_compiled(
-    scenario: Scenario, controller: Controller, x0: FloatArray, substeps: int = 4
+    scenario: Scenario,
+    controller: Controller,
+    x0: FloatArray,
+    substeps: int = 4,
+    draws: Draws | None = None,
 ) -> list[FloatArray]:
     """The position path ``(K + 1, 2)`` of each run from ``x0 (B, n)`` on the RK4 grid (``K``
     steps of its trajectory), in the order of ``x0``; as in ``check_runs``, a state that is not
     finite is drawn at +-1e9."""
-    _, _, paths = _rollouts(scenario, controller, x0, substeps, record=True)
+    _, _, paths = _rollouts(scenario, controller, x0, substeps, record=True, draws=draws)
     return [np.nan_to_num(path, nan=1e9, posinf=1e9, neginf=-1e9) for path in paths]
 
 
@@ -95,16 +115,21 @@ def hold_runs_compiled(
     x0: FloatArray,
     duration: float = 10.0,
     substeps: int = 4,
+    draws: Draws | None = None,
 ) -> HoldChecks:
     """``hold_runs`` on the kernel: fly ``x0 (B, n)`` to their ``T``, then ``duration`` s more
     under the terminal law ``u_eq + K_T (x - x_eq)``, which is the kernel's law around the
     constant reference ``x_eq`` with inputs ``u_eq`` (metric ``P_T / level``, rate 0: the tube
-    ratio times the start's norm is ``max_t sqrt(V / level)``)."""
+    ratio times the start's norm is ``max_t sqrt(V / level)``); the Goal margin is the smallest
+    over the continuation (``every_goal``); ``draws`` continue from each run's ``T_i``."""
     terminal = controller.terminal
     if terminal is None:
         raise ValueError("hold_runs_compiled: the controller has no terminal law")
-    kernels, out, _ = _rollouts(scenario, controller, x0, substeps)
+    kernels, out, _ = _rollouts(scenario, controller, x0, substeps, draws=draws)
     x_end = np.ascontiguousarray(out[:, kernels.CHECKS :])
+    T = controller.horizons(controller.select(x0)[0])
+    later = Draws.none(len(x0), x_end.shape[1]) if draws is None else draws
+
     N = int(round(duration / controller.Ts))
     law = (
         controller.Ts,
@@ -127,16 +152,22 @@ def hold_runs_compiled(
         0.0,
         0.0,
         *_scene(scenario),
+        _draws(later.started(T)),
+        True,
         after,
         np.empty((0, 1, 2)),
     )
     start = np.maximum(np.sqrt(terminal.value(x_end) / terminal.level), 1e-12)
+    final = after[:, kernels.CHECKS :]
+    to_edge = geometry.boundary_distance(scenario.positions(final), scenario.goal)
     return HoldChecks(
-        final_goal_margin=after[:, kernels.GOAL],
+        final_goal_margin=np.where(scenario.in_goal(final), to_edge, -to_edge),
         level_ratio=(after[:, kernels.TUBE] * start) ** 2,
         input_slack=after[:, kernels.SLACK],
         clearance=after[:, kernels.CLEARANCE],
-        final_state=after[:, kernels.CHECKS :],
+        final_state=final,
+        path_goal_margin=after[:, kernels.GOAL],
+        bounds_margin=after[:, kernels.BOUNDS],
     )
 
 
@@ -150,8 +181,18 @@ def _read_only(a: np.ndarray) -> FloatArray:
     return view
 
 
+def _draws(draws: Draws) -> tuple:
+    """The ``draws`` argument of the kernel."""
+    return (
+        _read_only(draws.parameters),
+        _read_only(draws.gusts),
+        _read_only(draws.start),
+        float(draws.period),
+    )
+
+
 def _scene(scenario: Scenario) -> tuple:
-    """``(position, unsafe, goal)`` arguments of the kernel."""
+    """``(position, unsafe, goal, bounds)`` arguments of the kernel."""
     scene = SceneArrays.of(scenario)
     return (
         scene.position,
@@ -168,17 +209,23 @@ def _scene(scenario: Scenario) -> tuple:
             scene.goal_lower,
             scene.goal_upper,
         ),
+        (scene.bound_index, scene.bound_lower, scene.bound_upper),
     )
 
 
 def _rollouts(
-    scenario: Scenario, controller: Controller, x0: FloatArray, substeps: int, record: bool = False
+    scenario: Scenario,
+    controller: Controller,
+    x0: FloatArray,
+    substeps: int,
+    record: bool = False,
+    draws: Draws | None = None,
 ) -> tuple[Any, FloatArray, list[FloatArray]]:
     """``(kernels, out (B, CHECKS + n), paths)``: each run's checks and final state, and with
     ``record`` each run's positions ``(K + 1, 2)`` on the RK4 grid (else no paths)."""
     x0 = np.ascontiguousarray(x0, dtype=np.float64)
     substeps, hold = held_steps(controller, substeps)
-    kernels = load_kernels(scenario.dynamics)
+    kernels = load_kernels(flown_dynamics(scenario, draws))
     out = np.empty((len(x0), kernels.CHECKS + x0.shape[1]))
     slack = INTERPOLATION_SLACK * controller.interpolation_error
     index, _ = controller.select(x0)
@@ -207,6 +254,8 @@ def _rollouts(
             reference.rate,
             slack + 1e-9,
             *_scene(scenario),
+            _draws(Draws.none(len(rows), x0.shape[1]) if draws is None else draws.rows(rows)),
+            False,
             checks,
             recorded,
         )
@@ -225,4 +274,5 @@ def _checks(kernels: Any, out: FloatArray, covered: np.ndarray) -> RunChecks:
         tube_final=out[:, kernels.TUBE_FINAL],
         finite=out[:, kernels.FINITE] > 0.5,
         covered=covered,
+        bounds_margin=out[:, kernels.BOUNDS],
     )

@@ -15,7 +15,13 @@ Unsafe minus half the longest grid step (the motion bound between grid points), 
 distance of the final position to Goal's boundary, the smallest input slack before clipping, the
 tube ratio ``max_t max(|e(t)|_P(t) - slack, 0) e^(rate t) / |e(0)|_P(0)`` and its value at ``T``
 (``P(t)`` given on the RK4 grid: one metric repeated for a ``/1`` file, a funnel's time-varying
-metric for ``/2``), whether every state stayed finite, and the final state.
+metric for ``/2``), whether every state stayed finite, the smallest margin to the state bounds
+less half the longest step of a bounded state, and the final state.
+
+Under a declared uncertainty (``pipeline.numerics.gusts``) each run flies ``f(x, (u, p_b))``
+(the parametric dynamics, its parameters ``p_b`` appended to the input) plus the gust
+``w_b`` in force at the step's start; with ``every_goal`` the Goal margin is the smallest over
+the grid less half the longest step (the continuation past ``T``: "in Goal at all times").
 
 Shapes: ``B`` runs, ``n`` states, ``m`` inputs, ``N`` sample intervals, ``r`` reference points.
 """
@@ -39,8 +45,9 @@ if TYPE_CHECKING:  # defined in the module this template is compiled into
 
 LEFT_LIMIT = 1e-9  # as pipeline.numerics.closed_loop
 SAMPLE_ROUNDING = 1e-9  # as pipeline.controller: floor(t / Ts + 1e-9)
-CLEARANCE, GOAL, SLACK, TUBE, TUBE_FINAL, FINITE = 0, 1, 2, 3, 4, 5
-CHECKS = 6
+CLEARANCE, GOAL, SLACK, TUBE, TUBE_FINAL, FINITE, BOUNDS = 0, 1, 2, 3, 4, 5, 6
+CHECKS = 7
+GUST_ROUNDING = 1e-9  # as pipeline.numerics.gusts
 
 # The law is inlined into the loop (``inline="always"``): called, with its array arguments, it
 # costs ~20% of the rollouts/s. numba types and lowers every inlined copy (~0.3 s of compilation
@@ -70,7 +77,23 @@ def closed_loop_slope(t, x, xr, law, raw, u, out):
 
 @njit(cache=True)
 def rollout_kernel(
-    x0, s, hold, law, t_ref, x_ref, M, rate, slack, position, scene, goal, out, path
+    x0,
+    s,
+    hold,
+    law,
+    t_ref,
+    x_ref,
+    M,
+    rate,
+    slack,
+    position,
+    scene,
+    goal,
+    bounds,
+    draws,
+    every_goal,
+    out,
+    path,
 ):
     """Roll out every ``x0[b] (n,)`` around one reference; write its checks into
     ``out (B, CHECKS + n)``: the checks, then the final state; and the positions of the first
@@ -83,7 +106,9 @@ def rollout_kernel(
     metric at the RK4 grid times ``j Ts / s`` and ``rate`` its decay, ``slack`` the allowed
     interpolation error, ``position (2,)`` the position state indices, ``scene`` Unsafe as in
     ``unsafe_distance``, ``goal = (V, ring_start, index, lower, upper)``: Goal's rings and its extra
-    bounds on states ``index`` at ``T``.
+    bounds on states ``index`` at ``T``; ``bounds = (index (c,), lower (c,), upper (c,))`` the
+    state bounds; ``draws = (parameters (B, q), gusts (B, G, n), start (B,), period)`` as
+    ``pipeline.numerics.gusts.Draws`` (``q = 0``, ``G = 0``: the exact model).
     """
     B, n = x0.shape
     m = law[1].shape[1]
@@ -107,9 +132,19 @@ def rollout_kernel(
     K = np.empty((4, n))
     y = np.empty(n)
     raw = np.empty(m)
-    u = np.empty(m)
+    parameters, gusts, start, period = draws
+    q = parameters.shape[1]
+    G = gusts.shape[1]
+    u = np.empty(m + q)  # the inputs, then the run's parameters
+    bound_index, bound_lower, bound_upper = bounds
+    rings = goal[1].size - 1
     for b in range(B):
         x = x0[b].copy()
+        for i in range(q):
+            u[m + i] = parameters[b, i]
+        bound_margin = np.inf
+        bound_step = 0.0
+        goal_margin = np.inf
         finite = True
         input_slack = np.inf
         nearest = np.inf
@@ -123,6 +158,11 @@ def rollout_kernel(
                 path[b, j, 0] = x[p0]
                 path[b, j, 1] = x[p1]
             nearest = unsafe_distance(x[p0], x[p1], nearest, scene)
+            for c in range(bound_index.size):
+                value = x[bound_index[c]]
+                bound_margin = min(bound_margin, value - bound_lower[c], bound_upper[c] - value)
+            if every_goal:
+                goal_margin = min(goal_margin, _goal_margin(x, p0, p1, goal, rings))
             norm = metric_norm(x, XR[j, 0], M, j)
             if j == 0:
                 denominator = max(norm, 1e-12)
@@ -130,6 +170,10 @@ def rollout_kernel(
             tube = ratio if j == 0 else max(tube, ratio)
             if j == N * s:
                 break
+            g = -1
+            if G > 0:
+                g = int(math.floor((start[b] + j * h) / period + GUST_ROUNDING))
+                g = min(max(g, 0), G - 1)
             for r in range(4):
                 if r == 0:
                     copy_vector(x, y)
@@ -143,24 +187,41 @@ def rollout_kernel(
                     input_slack = min(input_slack, stage_slack)
                 else:  # u held from the window's first state
                     f_eval(y, u, K[r])
+                if g >= 0:
+                    for i in range(n):
+                        K[r, i] += gusts[b, g, i]
             px = x[p0]
             py = x[p1]
+            for c in range(bound_index.size):
+                y[c] = x[bound_index[c]]
             for i in range(n):
                 x[i] = x[i] + (h / 6.0) * (K[0, i] + 2.0 * K[1, i] + 2.0 * K[2, i] + K[3, i])
                 if not math.isfinite(x[i]):
                     finite = False
             longest = max(longest, math.hypot(x[p0] - px, x[p1] - py))
-        goal_V, goal_start, goal_index, goal_lower, goal_upper = goal
-        rings = goal_start.size - 1
-        inside, to_edge, _, _ = polygon_query(x[p0], x[p1], goal_V, goal_start, 0, rings)
-        for g in range(goal_index.size):
-            value = x[goal_index[g]]
-            inside = inside and goal_lower[g] <= value <= goal_upper[g]
+            for c in range(bound_index.size):
+                bound_step = max(bound_step, abs(x[bound_index[c]] - y[c]))
         out[b, CLEARANCE] = nearest - longest / 2
-        out[b, GOAL] = to_edge if inside else -to_edge
+        if every_goal:
+            out[b, GOAL] = goal_margin - longest / 2
+        else:
+            out[b, GOAL] = _goal_margin(x, p0, p1, goal, rings)
+        out[b, BOUNDS] = bound_margin - bound_step / 2
         out[b, SLACK] = input_slack
         out[b, TUBE] = tube
         out[b, TUBE_FINAL] = ratio
         out[b, FINITE] = 1.0 if finite else 0.0
         for i in range(n):
             out[b, CHECKS + i] = x[i]
+
+
+@njit(cache=True)
+def _goal_margin(x, p0, p1, goal, rings):
+    """Signed distance of ``x``'s position to Goal's boundary (negative: outside Goal or its
+    extra bounds ``goal[2:]``)."""
+    goal_V, goal_start, goal_index, goal_lower, goal_upper = goal
+    inside, to_edge, _, _ = polygon_query(x[p0], x[p1], goal_V, goal_start, 0, rings)
+    for g in range(goal_index.size):
+        value = x[goal_index[g]]
+        inside = inside and goal_lower[g] <= value <= goal_upper[g]
+    return to_edge if inside else -to_edge
