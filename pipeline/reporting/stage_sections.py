@@ -10,7 +10,7 @@ from functools import partial
 import numpy as np
 
 from pipeline.io.artifacts import file_hash
-from pipeline.reporting import certificates, figures, loop_figures
+from pipeline.reporting import certificates, figures, loop_figures, shipped
 from pipeline.reporting.content import (
     Figure,
     Paragraph,
@@ -39,12 +39,14 @@ def optimization(data: ReportData) -> tuple:
         "after a failure)"
     )
     rows = []
-    for opt in data.optimize.trajectories:
+    for k, opt in enumerate(data.optimize.trajectories):
         tries = ", ".join(f"{t.N}{'✓' if t.feasible else '✗'}" for t in opt.tries)
+        i = data.shipped_index(k) if data.funnel else None
+        to_shipped = "" if i is None else f" → {len(data.shipped_paths[i].us)}"
         rows.append(
             (
                 opt.demo,
-                f"{opt.N_demo} → {opt.N}",
+                f"{opt.N_demo} → {opt.N}{to_shipped}",
                 tries,
                 str(sum(t.iterations for t in opt.tries)),
                 fixed(opt.seconds, 2),
@@ -101,7 +103,13 @@ def optimization(data: ReportData) -> tuple:
                 "result",
             ),
             tuple(rows),
-            "Search on the horizon per demo",
+            "Search on the horizon per demo"
+            + (
+                " (samples: the demonstration → the seed's optimum, constant certificate → "
+                "shipped, after the nominals were re-optimized against their funnels)"
+                if data.funnel
+                else ""
+            ),
             numeric=(False, True, False, True, True, False),
         ),
         Table(
@@ -126,7 +134,19 @@ def _quantile_text(quantiles: Quantiles | None) -> str:
     return ", ".join(fixed(q, 3) for q in (quantiles.median, quantiles.p95, quantiles.max))
 
 
-def feedback(data: ReportData) -> tuple:
+def _constant_paragraph(data: ReportData) -> Paragraph:
+    fb = data.feedback
+    return Paragraph(
+        "The controller is u = u_ref(t) + K (x - x_ref(t)). The certificate: P > 0 with "
+        "(A_i + B_i K)^T P + P (A_i + B_i K) + 2λP < 0 at every vertex of a polytope that "
+        "soundly contains the Jacobians [f_x f_u] over the operating region, so "
+        "||x(t) - x_ref(t)||_P <= e^(-λt) ||x(0) - x_ref(0)||_P while the tube stays in the "
+        f"region. Design: {fb.message}."
+    )
+
+
+def _constant_tables(data: ReportData) -> tuple:
+    """The constant certificate's gain, certificate, operating region and input margins."""
     s, fb, summary = data.scenario, data.feedback, data.summary.feedback
     K = np.asarray(fb.K)
     eig = np.asarray(summary.P_eigenvalues)
@@ -170,14 +190,6 @@ def feedback(data: ReportData) -> tuple:
         ("design objective", number(fb.objective, 4)),
     )
     return (
-        Paragraph(
-            "The controller is u = u_ref(t) + K (x - x_ref(t)). The certificate: P > 0 with "
-            "(A_i + B_i K)^T P + P (A_i + B_i K) + 2λP < 0 at every vertex of a polytope that "
-            "soundly contains the Jacobians [f_x f_u] over the operating region, so "
-            "||x(t) - x_ref(t)||_P <= e^(-λt) ||x(0) - x_ref(0)||_P while the tube stays in the "
-            f"region. Design: {fb.message}."
-        ),
-        *certificates.shipped_feedback(data),
         gain_table(
             s,
             K,
@@ -189,7 +201,6 @@ def feedback(data: ReportData) -> tuple:
             ),
         ),
         Table(("quantity", "value"), quantities, "Certificate"),
-        *law(data),
         Table(
             ("variable", "lower", "upper", "tube extent at r_d"),
             tuple(region_rows),
@@ -205,6 +216,20 @@ def feedback(data: ReportData) -> tuple:
             numeric=(False, True, True, True),
         ),
     )
+
+
+def constant_feedback(data: ReportData) -> tuple:
+    """The constant certificate's feedback, for a funnel run's "Seed and comparison"."""
+    return (_constant_paragraph(data), *_constant_tables(data))
+
+
+def feedback(data: ReportData) -> tuple:
+    """The shipped law: in a funnel run its per-trajectory gains (the constant certificate's
+    K and P are in "Seed and comparison"), in a constant run K, P and their certificate."""
+    if data.funnel:
+        return (*certificates.shipped_feedback(data), *law(data))
+    tables = _constant_tables(data)
+    return (_constant_paragraph(data), *tables[:2], *law(data), *tables[2:])
 
 
 def coverage(data: ReportData) -> tuple:
@@ -224,6 +249,11 @@ def coverage(data: ReportData) -> tuple:
                 c.message,
             )
         )
+    if data.funnel:  # what ships first: the funnels' E_i(0), certified on controller.json
+        rows = [
+            shipped.coverage_row(data.summary),
+            *((f"{r[0]}, constant balls (seed, not shipped)", *r[1:]) for r in rows),
+        ]
     s = data.scenario
     free = [s.state_names[i] for i in data.coverage_demos.free]
     shown = " and ".join(free[:2]) if free else "its single point"
@@ -246,9 +276,16 @@ def coverage(data: ReportData) -> tuple:
     )
     return (
         Paragraph(
-            "Init must lie in the union of the balls ||x - x0_i||_P <= r_i around the starts of "
-            "the nominal trajectories (r_i: robustness radius). Certified by subdividing Init into "
-            "boxes until each box's vertices lie in one ball; boxes left are reported uncovered."
+            "Init must lie in the union of the shipped funnels' initial sets E_i(0) = {x : "
+            "||x - x0_i||_P_i[0] <= ρ_i} (controller.json), certified by the certify stage by "
+            "subdividing Init into boxes until each box's vertices lie in one of them. The "
+            "constant certificate's balls ||x - x0_i||_P <= r_i (the seed, not shipped) are "
+            "shown beside them."
+            if data.funnel
+            else "Init must lie in the union of the balls ||x - x0_i||_P <= r_i around the "
+            "starts of the nominal trajectories (r_i: robustness radius). Certified by "
+            "subdividing Init into boxes until each box's vertices lie in one ball; boxes left "
+            "are reported uncovered."
         ),
         Figure(
             "coverage",
@@ -282,21 +319,25 @@ def coverage(data: ReportData) -> tuple:
             "Coverage certificate",
             numeric=(False, False, True, True, True, True, False),
         ),
-        Table(
-            (
-                "demo",
-                "radius before",
-                "extent before (m)",
-                "bound by",
-                "radius after",
-                "extent after (m)",
-                "bound by",
-            ),
-            radii,
-            "Robustness radii in the P-norm (no unit: ||e||_P weighs every state's error), "
-            "their tubes' largest position offset (m), and the constraint that sets each",
-            numeric=(False, True, True, False, True, True, False),
+        *(() if data.funnel else (_radius_table(radii),)),
+    )
+
+
+def _radius_table(radii: tuple) -> Table:
+    return Table(
+        (
+            "demo",
+            "radius before",
+            "extent before (m)",
+            "bound by",
+            "radius after",
+            "extent after (m)",
+            "bound by",
         ),
+        radii,
+        "Robustness radii in the P-norm (no unit: ||e||_P weighs every state's error), "
+        "their tubes' largest position offset (m), and the constraint that sets each",
+        numeric=(False, True, True, False, True, True, False),
     )
 
 
