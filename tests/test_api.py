@@ -179,7 +179,7 @@ def test_the_command_line_is_quiet_with_q_and_says_where_outputs_went(
     assert re.fullmatch(rf"done in \d+(\.\d)? s: {verdict}", done), done
     assert re.search(r"closed loop \d+\.\d\d m\n", printed)  # the summary in the units
     # compact by default (issue 30, item 6): stages and verdict; the tables under -v
-    assert "ends in Goal" not in printed and "radius limited by" not in printed
+    assert "(distances in m)" not in printed and "radius limited by" not in printed
     assert "(the tables per demonstration: -v, or report.html)" in printed
     assert main([*argv, "-v"]) in (0, 1)
     verbose = capsys.readouterr().out

@@ -28,7 +28,12 @@ from pipeline.runtime.options import RunOptions
 from pipeline.runtime.orchestrator import run_synthesis
 from pipeline.runtime.registry import RESULT_TYPES
 from pipeline.runtime.stored import load_report_data
-from tests.helpers.browser import assert_figures_fit, measure_in_browser, needs_browser
+from tests.helpers.browser import (
+    assert_figures_fit,
+    assert_layout,
+    measure_in_browser,
+    needs_browser,
+)
 
 SCENARIO = "quadrotor_hill"
 SAMPLES = 200  # the command line's runs on a copy (the session run has 1,000)
@@ -197,7 +202,7 @@ def test_the_report_of_a_funnel_run_shows_the_funnels_and_both_certificates(funn
     assert html.count("<svg") == 7 and 'id="figure-funnels"' in html
     text = _text(html)
     table = text[text.index("Constant vs funnel certificate in this run") :]
-    table = table[: table.index("Funnel per demonstration")]
+    table = table[: table.index("Constant certificate per demonstration")]
     # The shipped trajectories are controller.json's: T and clearance computed from the file.
     shipped = data.law.trajectories
     T = sorted(tr.T for tr in shipped)
@@ -304,17 +309,20 @@ def test_the_coverage_figure_of_a_funnel_run_draws_the_shipped_initial_ellipsoid
 
 @pytest.mark.chromium
 @needs_browser
-def test_the_funnel_report_fits_a_phone(funnel_report, tmp_path):
+@pytest.mark.parametrize("width", [1280, 390])
+def test_the_funnel_report_fits_a_desktop_and_a_phone(funnel_report, tmp_path, width):
     """The browser measurement of tests/stages/test_report.py on the funnel run's page at
-    390 px: the seven figures (the funnel figure too) inside the column, every legend and
-    colour bar inside its figure, text at least 8 px."""
+    1280 and 390 px: the seven figures (the funnel figure too) inside the column, every legend
+    and colour bar inside its figure, text at least 8 px; nothing wider than the column, the
+    claims and per-demo tables as cards on the phone, captions outside the scroll boxes."""
     _, html, _ = funnel_report
-    measured = measure_in_browser(html, 390, tmp_path)
-    assert measured["scroll"] <= 390, "the page scrolls sideways"
+    measured = measure_in_browser(html, width, tmp_path)
+    assert measured["scroll"] <= width, "the page scrolls sideways"
+    assert_layout(measured, width)
     assert [f["id"] for f in measured["figures"]][:3] == [
         "figure-overview",
         "figure-funnels",
         "figure-bisection",
     ]
     assert len(measured["figures"]) == 7
-    assert_figures_fit(measured, 390)
+    assert_figures_fit(measured, width)

@@ -125,8 +125,9 @@ def funnel_figure(data: ReportData) -> tuple:
             "The shipped funnels: for each trajectory of controller.json (orange, markers "
             f"{figures.MARKER_PERIOD:g} s apart) the position projection of its funnel E_i(t) = "
             "{x : (x - x_ref(t))^T P_i(t) (x - x_ref(t)) <= ρ_i²}, i.e. the ellipse with shape "
-            f"C P_i(t)^-1 C^T and radius ρ_i, every {figures.FUNNEL_PERIOD:g} s (shaded) and "
-            "outlined at t = 0 and t = T, over Unsafe, Goal and Init.",
+            f"C P_i(t)^-1 C^T and radius ρ_i, outlined in cyan every {figures.FUNNEL_PERIOD:g} s "
+            "and at t = T, over Unsafe, Goal and Init; the arrows: each nominal's velocity when it "
+            f"arrives ({figures.ARROW_SECONDS:g} s of travel).",
             partial(figures.draw_funnels, data=data),
             (FIGURE_WIDTH, figures.scene_height(data, data.shipped_paths, below=0.9)),
             data.fingerprint(file_hash(data.controller_path)),

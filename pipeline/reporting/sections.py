@@ -259,13 +259,17 @@ def _scenario(data: ReportData) -> tuple:
             "All demonstrations (blue) and their optimized trajectories (orange"
             + (", as shipped in controller.json" if data.funnel else "")
             + f"). Markers are {figures.MARKER_PERIOD:g} s apart, so their spacing shows the "
-            "speed. The orange ellipses are the position projection of each "
+            "speed. "
             + (
-                "shipped trajectory's funnel {x : ||x - x_ref(t)||_P_i(t) <= ρ_i}"
+                "The cyan outlines are the position projection of each shipped trajectory's "
+                "funnel {x : ||x - x_ref(t)||_P_i(t) <= ρ_i}, every "
+                f"{figures.TUBE_PERIOD:g} s and at T; the arrows: each nominal's velocity when "
+                f"it arrives ({figures.ARROW_SECONDS:g} s of travel)."
                 if data.funnel
-                else "optimized trajectory's robustness tube {x : ||x - x_ref(t)||_P <= r e^(-λt)}"
-            )
-            + f": outlined at the start, shaded every {figures.TUBE_PERIOD:g} s along the path.",
+                else "The orange ellipses are the position projection of each optimized "
+                "trajectory's robustness tube {x : ||x - x_ref(t)||_P <= r e^(-λt)}: outlined "
+                f"at the start, shaded every {figures.TUBE_PERIOD:g} s along the path."
+            ),
             partial(figures.draw_overview, data=data),
             (
                 FIGURE_WIDTH,
@@ -286,9 +290,10 @@ def _scenario(data: ReportData) -> tuple:
             f"{figures.TUBE_PERIOD:g} s."
             + (
                 " Funnel run: the orange path is the trajectory shipped in controller.json from "
-                "this demonstration and its tube is its funnel E_i(t) (dashed: the constant "
-                "certificate's optimum, where the shipped nominal was re-optimized); the "
-                "demonstration's tube is the constant certificate's."
+                "this demonstration, its funnel E_i(t) outlined in cyan every "
+                f"{figures.TUBE_PERIOD:g} s and at T instead of a shaded tube (dashed: the "
+                "constant certificate's optimum, the seed, where the shipped nominal was "
+                "re-optimized); the demonstration's tube is the constant certificate's."
                 if data.funnel
                 else ""
             ),

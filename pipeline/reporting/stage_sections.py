@@ -85,12 +85,18 @@ def optimization(data: ReportData) -> tuple:
         ),
         Figure(
             "optimization",
-            "Top: the tightened J over the descent at the final horizon (log scale; a triangle "
-            "on the bottom axis marks where the untightened J reached 0, i.e. feasible). Middle: "
-            "the step size λ (grows by α after an accepted step, shrinks by β after a rejected "
-            "one). Bottom: the horizons tried, in order (circle: feasible, cross: infeasible).",
+            "Top: the tightened J over the descent at the final horizon, one colour per "
+            "demonstration (log scale; a triangle on the bottom axis marks where the untightened "
+            "J reached 0, i.e. feasible). "
+            + (
+                "Middle: the step size λ (grows by α after an accepted step, shrinks by β after a "
+                "rejected one). "
+                if options.method == "gd"
+                else ""
+            )
+            + "Bottom: the horizons tried, in order (circle: feasible, cross: infeasible).",
             partial(figures.draw_optimization, data=data),
-            (FIGURE_WIDTH, 7.4),
+            (FIGURE_WIDTH, 7.4 if options.method == "gd" else 5.2),
             data.fingerprint("optimize"),
         ),
         Table(
@@ -294,7 +300,7 @@ def coverage(data: ReportData) -> tuple:
             f"covered; red: boxes not certified covered{projected}."
             + (
                 " The first two are the constant certificate's balls (verified, not shipped); "
-                "the third (brown) shows the slices of the shipped funnels' initial ellipsoids "
+                "the third (cyan) shows the slices of the shipped funnels' initial ellipsoids "
                 "E_i(0), each in its own metric P_i[0] from controller.json, which cover "
                 f"{percent(data.summary.headline.coverage_after)} of Init (certified by the same "
                 "box subdivision in the certify stage)."
@@ -404,7 +410,10 @@ def montecarlo(data: ReportData) -> tuple:
             f"Top: {len(mc.paths)} of the {mc.samples} closed-loop runs (teal); failed starts as "
             "red crosses, the falsification search's worst start as a red star. Bottom: the "
             "distributions of each run's minimum clearance to Unsafe and of its tube tightness "
-            "(1 = on the tube's boundary); failures in red beyond the dashed threshold.",
+            "(1 = on the tube's boundary); failures in red beyond the dashed threshold. The "
+            f"dotted line at d = {data.scenario.clearance:g} m is the clearance the optimizer "
+            "keeps for the nominals, not a closed-loop requirement: a closed-loop run fails "
+            "only below 0.",
             partial(loop_figures.draw_montecarlo, data=data),
             (FIGURE_WIDTH, 8.4),
             data.fingerprint("montecarlo"),
