@@ -124,7 +124,7 @@ def test_the_command_line_flag_selects_the_certificate(funnel_run, capsys, tmp_p
     printed = capsys.readouterr().out
     assert "[funnel] reused (inputs unchanged)" in printed
     assert "\nverdict (funnel certificate): certified and validated" in printed
-    assert "\nfunnels (level rho: E_i(0) holds rho times its start's cell of Init" in printed
+    assert "\nshipped: controller.json, 9 of 9 funnels E_i(t), T " in printed  # compact view
     assert load(folder / "controller.json").format == FUNNEL_FORMAT
     assert main([*argv, "--certificate", "constant"]) == 0
     printed = capsys.readouterr().out

@@ -179,7 +179,7 @@ def draw_overview(fig: FigureLike, data: ReportData) -> None:
             draw_tube(ax, shipped_tube(data, k, _along(path)), OPTIMIZED, alpha=0.06)
     arrows = data.funnel and draw_arrivals(ax, data)
     tube = (
-        Line2D([], [], color=FUNNEL, lw=0.8, label="funnel E_i(t) (shipped), every 0.5 s and at T")
+        Line2D([], [], color=FUNNEL, lw=0.8, label="shipped funnels E_i(t)")
         if data.funnel
         else Patch(facecolor=OPTIMIZED, alpha=0.25, edgecolor=OPTIMIZED, label="tube (optimized)")
     )
@@ -209,7 +209,7 @@ def _arrow_handle() -> Line2D:
         lw=1.2,
         marker=">",
         ms=5,
-        label=f"arrival velocity ({ARROW_SECONDS:g} s of travel)",
+        label="arrival velocity",
     )
 
 
@@ -232,7 +232,7 @@ def draw_funnels(fig: FigureLike, data: ReportData) -> None:
             [],
             color=FUNNEL,
             lw=0.8,
-            label=f"funnel E_i(t), position, every {FUNNEL_PERIOD:g} s and at T",
+            label="funnel E_i(t), position",
         ),
         *([_arrow_handle()] if arrows else []),
     ]
@@ -295,7 +295,7 @@ def draw_bisection(fig: FigureLike, data: ReportData, index: int) -> None:
     label = f"{'shipped' if shipped is not None else 'optimal'}, T' = {optimal.duration:.1f} s"
     draw_path(ax, s, optimal.dense_ts, optimal.dense_xs, OPTIMIZED, label, TUBE_PERIOD, lw=1.6)
     tube = (
-        Line2D([], [], color=FUNNEL, lw=0.8, label="funnel of the shipped, every 0.5 s and at T")
+        Line2D([], [], color=FUNNEL, lw=0.8, label="funnel of the shipped")
         if shipped is not None
         else Patch(facecolor=OPTIMIZED, alpha=0.3, edgecolor=OPTIMIZED, label="tube of the optimal")
     )

@@ -204,11 +204,13 @@ def _demos(run: StageResults) -> tuple[DemoSummary, ...]:
 
 
 def _funnels(run: StageResults) -> tuple[FunnelSummary, ...]:
-    """What controller.json guarantees per funnel (a funnel run whose file was written)."""
+    """What controller.json guarantees per funnel (a funnel run whose file was written): read
+    from the file certify checked (this run's; a reused controller stage's result may name the
+    folder of the run that first wrote it)."""
     if run.certificate != "funnel" or run.funnels is None or not run.controller.success:
         return ()
     try:
-        law = load(run.controller.path)
+        law = load(run.certification.path)
     except (OSError, ControllerFormatError):
         return ()
     return funnel_summaries(run.scenario, law, run.funnels) if law.funnel else ()
