@@ -70,9 +70,10 @@ out.wider = [...main.querySelectorAll("*")].filter((e) => !e.closest("svg") || e
                e.getBoundingClientRect()])
   .filter(([, r]) => r.width > 0 && (r.left < column[0] - 1 || r.right > column[1] + 1))
   .map(([name, r]) => [name, r.left, r.right]);
-out.tables = [...document.querySelectorAll(".table-block")].map((block) => {
-  const wrap = block.querySelector(".table-wrap"), table = block.querySelector("table");
-  const caption = block.querySelector(".caption");
+out.tables = [...document.querySelectorAll("main table")].map((table) => {
+  const wrap = table.closest(".table-wrap") || table.parentElement;
+  const block = wrap.parentElement;
+  const caption = table.querySelector("caption") || block.querySelector(".caption");
   return {caption: caption ? caption.textContent.slice(0, 40) : "",
           captionInWrap: caption ? wrap.contains(caption) : false,
           stack: table.classList.contains("stack"),
@@ -133,5 +134,6 @@ def assert_layout(measured: dict, width: int) -> None:
             assert table["display"] == "block" and table["overflow"] <= 1, table
         if width >= 1280:
             assert table["overflow"] <= 1, f"scrolls sideways at {width} px: {table}"
+    assert measured["tables"], "no table measured"
     if width < 700:
         assert sum(table["stack"] for table in measured["tables"]) >= 2  # claims, per demo
