@@ -294,7 +294,7 @@ def draw_bisection(fig: FigureLike, data: ReportData, index: int) -> None:
         ax.plot(*p.T, color=OPTIMIZED, lw=1.0, ls="--", label=label, zorder=5)
     label = f"{'shipped' if shipped is not None else 'optimal'}, T' = {optimal.duration:.1f} s"
     draw_path(ax, s, optimal.dense_ts, optimal.dense_xs, OPTIMIZED, label, TUBE_PERIOD, lw=1.6)
-    tube = (
+    tube_handle = (
         Line2D([], [], color=FUNNEL, lw=0.8, label="funnel of the shipped")
         if shipped is not None
         else Patch(facecolor=OPTIMIZED, alpha=0.3, edgecolor=OPTIMIZED, label="tube of the optimal")
@@ -302,7 +302,7 @@ def draw_bisection(fig: FigureLike, data: ReportData, index: int) -> None:
     handles = [
         *ax.get_legend_handles_labels()[0],
         Patch(facecolor=DEMO, alpha=0.3, edgecolor=DEMO, label="tube of the demonstration"),
-        tube,
+        tube_handle,
     ]
     legend_below(fig, handles, ncols=2 if len(handles) <= 4 else 1)  # one column fits a phone
 

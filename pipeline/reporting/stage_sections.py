@@ -239,7 +239,7 @@ def feedback(data: ReportData) -> tuple:
 
 
 def coverage(data: ReportData) -> tuple:
-    rows = []
+    rows: list[tuple[str, ...]] = []
     for name, c in (
         ("demonstrations", data.coverage_demos),
         ("optimized", data.coverage_optimized),
