@@ -80,6 +80,37 @@ def test_funnel_run_ships_a_certified_safety_controller_2(funnel_run):
     assert (result.outputs.artifacts / "funnel.json").is_file()
 
 
+def test_the_summary_says_what_each_shipped_funnel_guarantees(funnel_run):
+    """summary.json's ``funnels`` (issue 30, item 2) against controller.json, checked
+    independently: T and level as the file says; the arrival speed as the slope of x_ref's
+    positions over the file's last grid step; the extent at T as the largest position offset
+    of states on the boundary of E_i(T) (sampled, and the extreme one along each axis); the
+    funnel's clearance not above its nominal's and at most the closed-loop clearance plus a
+    grid step's travel."""
+    result, _ = funnel_run
+    summary = result.summary
+    law = load(result.outputs.controller)
+    s = pipeline.load_scenario(SCENARIO)
+    assert [f.demo for f in summary.funnels] == [tr.name for tr in law.trajectories]
+    rng = np.random.default_rng(5)
+    for f, tr in zip(summary.funnels, law.trajectories, strict=True):
+        assert f.shipped and f.T == pytest.approx(tr.T) and f.level == pytest.approx(tr.radius)
+        p = s.positions(tr.x_ref)
+        slope = np.linalg.norm(p[-1] - p[-2]) / (tr.t[-1] - tr.t[-2])
+        assert f.arrival_speed == pytest.approx(slope, rel=0.02)
+        np.testing.assert_allclose(f.arrival, tr.x_ref[-1])
+        P = tr.metric(tr.T, law.Ts)
+        z = rng.normal(size=(20000, s.n))
+        z /= np.linalg.norm(z, axis=1, keepdims=True)
+        e = tr.radius * np.exp(-tr.rate * tr.T) * np.linalg.solve(np.linalg.cholesky(P).T, z.T).T
+        offsets = np.linalg.norm(s.positions(e), axis=1)
+        assert offsets.max() <= f.extent_at_T * (1 + 1e-9)
+        assert offsets.max() >= 0.95 * f.extent_at_T
+        nominal = min(float(geometry.distance(p, region).min()) for region in s.unsafe.values())
+        assert 0 < f.clearance <= nominal
+    assert min(f.clearance for f in summary.funnels) <= summary.montecarlo.min_clearance + 0.1
+
+
 def test_the_nominals_are_optimized_again_against_the_funnels(funnel_run):
     """Issue 16 part 4: round 1 re-optimizes against the funnels' extents; a kept round shortens
     the total T, and the shipped nominals are the kept round's."""
