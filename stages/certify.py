@@ -464,13 +464,13 @@ def certify_controller(
     if controller.funnel:
         what = (
             f"{len(verified)} funnels (K[k], P[k], Q = P^-1 linear in t) rebuilt: P[k] > 0, "
-            f"(F2) on {vertices} local hull vertices (margin {margin:.2e}), levels within "
-            "their constraints"
+            f"the funnel inequality dV/dt <= -2 rate V (F2) on {vertices} local hull vertices "
+            f"(margin {margin:.1e}, < 0: holds), levels within their constraints"
         )
     else:
         what = (
             f"P > 0, contraction at rate {controller.rate:g}{held} on {vertices} hull vertices "
-            f"(margin {margin:.2e}), {len(verified)} radii within their tubes"
+            f"(margin {margin:.1e}, < 0: holds), {len(verified)} radii within their tubes"
         )
     message = (
         f"controller.json re-verified: {what}, Init covered" + after

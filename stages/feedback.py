@@ -464,7 +464,7 @@ def _design(
         success=True,
         message=(
             f"certified rate {rate:g} 1/s over {where} with the {name} gain "
-            f"({len(hull.vertices)} hull vertices, margin {margin:.2e}, "
+            f"({len(hull.vertices)} hull vertices, margin {margin:.1e} (< 0: holds), "
             f"objective {design.objective:.4g}{others})"
         ),
         gain=name,

@@ -11,12 +11,15 @@ by Typst, a pip dependency (``pipeline.reporting.pdf``). Files are written atomi
 
 from __future__ import annotations
 
+import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from importlib import metadata
 from pathlib import Path
 
 from pipeline.io.artifacts import atomic_write_text
+from pipeline.io.progress import progress_bar
 from pipeline.reporting.content import Figure
 from pipeline.reporting.data import ReportData
 from pipeline.reporting.figure_cache import FigureStore
@@ -53,7 +56,7 @@ def write_reports(data: ReportData) -> ReportResult:
     from ``out/artifacts/figures/`` (``pipeline.reporting.figure_cache``). ``pdf`` is None when
     Typst failed (the message says why)."""
     start = time.perf_counter()
-    scenario, out, target = data.scenario, data.out, data.reports_folder
+    scenario, out = data.scenario, data.out
     sections = build_sections(data)
     verdict = data.summary.text
     title = f"Safety controller synthesis report: {scenario.name}"
@@ -67,9 +70,31 @@ def write_reports(data: ReportData) -> ReportResult:
         "Trajectories for Safety Controller Synthesis."
     )
     version, run = _version(), str(data.run_folder)
+    # a bar over the figures, the page and the PDF where the run's lines are shown (a terminal)
+    quiet = not logging.getLogger("pipeline").isEnabledFor(logging.INFO)
+    with progress_bar(len(figures) + 2, "report parts", quiet) as advance:
+        return _write(
+            data, store, sections, figures, (title, subtitle, version, run), advance, start
+        )
+
+
+def _write(
+    data: ReportData,
+    store: FigureStore,
+    sections: list,
+    figures: list[Figure],
+    texts: tuple[str, str, str, str],
+    advance: Callable[[int], None],
+    start: float,
+) -> ReportResult:
+    """``write_reports``' work: figures, page, PDF (``advance(1)`` after each); ``start``: its
+    ``time.perf_counter()`` when the report began."""
+    scenario, target = data.scenario, data.reports_folder
+    title, subtitle, version, run = texts
     try:
         for figure in figures:
             store.svg(figure, png=figure.key == OVERVIEW)
+            advance(1)
         html = render_html(
             title,
             subtitle,
@@ -78,6 +103,7 @@ def write_reports(data: ReportData) -> ReportResult:
             store.svgs,
         )
         atomic_write_text(target / "report.html", html)
+        advance(1)
         for figure in figures:  # the scenario figure on its own, for slides and notes
             if figure.key == OVERVIEW:
                 store.copy_png(figure, target / "scenario.png")
@@ -91,6 +117,7 @@ def write_reports(data: ReportData) -> ReportResult:
             f"artifacts/); rebuild with python -m pipeline report {scenario.name} --from {run}. "
             "report.html beside it is the same report as a web page.",
         )
+        advance(1)
         store.prune()
     finally:
         store.close()

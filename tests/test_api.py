@@ -128,7 +128,7 @@ def test_the_library_logs_one_line_per_stage(synthesized):
 def test_the_terminal_explains_its_terms_in_the_scenarios_units(synthesized):
     result, _, _, _ = synthesized
     summary, scenario = result.summary, pipeline.load_scenario("double_integrator")
-    text = format_summary(summary, scenario)
+    text = format_summary(summary, scenario, verbose=True)  # the tables: -v
     assert "radius limited by (the constraint the tube touches first;" in text
     assert "tube ratio at the final time (closed-loop error / its certified bound;" in text
     # clearances in the position unit, radii in the P-norm
@@ -152,7 +152,7 @@ def test_the_terminal_explains_its_terms_in_the_scenarios_units(synthesized):
     if "input slack" in text:
         assert "(input slack: how far the feedback's input stays from its bounds" in text
         assert "(ux: m/s^2, uy: m/s^2)" in text
-    bare = format_summary(summary)  # no scenario: numbers without units, said so
+    bare = format_summary(summary, verbose=True)  # no scenario: numbers bare, said so
     assert "smallest distance to Unsafe, position units;" in bare
     assert f"closed loop {mc.min_clearance:.2f}\n" in bare
     outputs = format_outputs(result)
@@ -177,8 +177,14 @@ def test_the_command_line_is_quiet_with_q_and_says_where_outputs_went(
     assert files.strip().startswith("artifacts/") and blank == ""
     verdict = json.loads((out / "summary.json").read_text())["verdict"]["kind"]
     assert re.fullmatch(rf"done in \d+(\.\d)? s: {verdict}", done), done
-    assert "ends in Goal   (distances in m)" in printed  # the demo table's unit
     assert re.search(r"closed loop \d+\.\d\d m\n", printed)  # the summary in the units
+    # compact by default (issue 30, item 6): stages and verdict; the tables under -v
+    assert "(distances in m)" not in printed and "radius limited by" not in printed
+    assert "(the tables per demonstration: -v, or report.html)" in printed
+    assert main([*argv, "-v"]) in (0, 1)
+    verbose = capsys.readouterr().out
+    assert "ends in Goal   (distances in m)" in verbose  # the demo table, in the units
+    assert "radius limited by (the constraint the tube touches first;" in verbose
 
 
 def test_a_scenario_name_is_looked_up_in_the_current_directory_first(tmp_path, monkeypatch):

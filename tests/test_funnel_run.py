@@ -28,7 +28,12 @@ from pipeline.runtime.options import RunOptions
 from pipeline.runtime.orchestrator import run_synthesis
 from pipeline.runtime.registry import RESULT_TYPES
 from pipeline.runtime.stored import load_report_data
-from tests.helpers.browser import assert_figures_fit, measure_in_browser, needs_browser
+from tests.helpers.browser import (
+    assert_figures_fit,
+    assert_layout,
+    measure_in_browser,
+    needs_browser,
+)
 
 SCENARIO = "quadrotor_hill"
 SAMPLES = 200  # the command line's runs on a copy (the session run has 1,000)
@@ -75,6 +80,37 @@ def test_funnel_run_ships_a_certified_safety_controller_2(funnel_run):
     assert (result.outputs.artifacts / "funnel.json").is_file()
 
 
+def test_the_summary_says_what_each_shipped_funnel_guarantees(funnel_run):
+    """summary.json's ``funnels`` (issue 30, item 2) against controller.json, checked
+    independently: T and level as the file says; the arrival speed as the slope of x_ref's
+    positions over the file's last grid step; the extent at T as the largest position offset
+    of states on the boundary of E_i(T) (sampled, and the extreme one along each axis); the
+    funnel's clearance not above its nominal's and at most the closed-loop clearance plus a
+    grid step's travel."""
+    result, _ = funnel_run
+    summary = result.summary
+    law = load(result.outputs.controller)
+    s = pipeline.load_scenario(SCENARIO)
+    assert [f.demo for f in summary.funnels] == [tr.name for tr in law.trajectories]
+    rng = np.random.default_rng(5)
+    for f, tr in zip(summary.funnels, law.trajectories, strict=True):
+        assert f.shipped and f.T == pytest.approx(tr.T) and f.level == pytest.approx(tr.radius)
+        p = s.positions(tr.x_ref)
+        slope = np.linalg.norm(p[-1] - p[-2]) / (tr.t[-1] - tr.t[-2])
+        assert f.arrival_speed == pytest.approx(slope, rel=0.02)
+        np.testing.assert_allclose(f.arrival, tr.x_ref[-1])
+        P = tr.metric(tr.T, law.Ts)
+        z = rng.normal(size=(20000, s.n))
+        z /= np.linalg.norm(z, axis=1, keepdims=True)
+        e = tr.radius * np.exp(-tr.rate * tr.T) * np.linalg.solve(np.linalg.cholesky(P).T, z.T).T
+        offsets = np.linalg.norm(s.positions(e), axis=1)
+        assert offsets.max() <= f.extent_at_T * (1 + 1e-9)
+        assert offsets.max() >= 0.95 * f.extent_at_T
+        nominal = min(float(geometry.distance(p, region).min()) for region in s.unsafe.values())
+        assert 0 < f.clearance <= nominal
+    assert min(f.clearance for f in summary.funnels) <= summary.montecarlo.min_clearance + 0.1
+
+
 def test_the_nominals_are_optimized_again_against_the_funnels(funnel_run):
     """Issue 16 part 4: round 1 re-optimizes against the funnels' extents; a kept round shortens
     the total T, and the shipped nominals are the kept round's."""
@@ -119,7 +155,7 @@ def test_the_command_line_flag_selects_the_certificate(funnel_run, capsys, tmp_p
     printed = capsys.readouterr().out
     assert "[funnel] reused (inputs unchanged)" in printed
     assert "\nverdict (funnel certificate): certified and validated" in printed
-    assert "\nfunnels (level rho: E_i(0) holds rho times its start's cell of Init" in printed
+    assert "\nshipped: controller.json, 9 of 9 funnels E_i(t), T " in printed  # compact view
     assert load(folder / "controller.json").format == FUNNEL_FORMAT
     assert main([*argv, "--certificate", "constant"]) == 0
     printed = capsys.readouterr().out
@@ -197,7 +233,7 @@ def test_the_report_of_a_funnel_run_shows_the_funnels_and_both_certificates(funn
     assert html.count("<svg") == 7 and 'id="figure-funnels"' in html
     text = _text(html)
     table = text[text.index("Constant vs funnel certificate in this run") :]
-    table = table[: table.index("Funnel per demonstration")]
+    table = table[: table.index("Constant certificate per demonstration")]
     # The shipped trajectories are controller.json's: T and clearance computed from the file.
     shipped = data.law.trajectories
     T = sorted(tr.T for tr in shipped)
@@ -304,17 +340,20 @@ def test_the_coverage_figure_of_a_funnel_run_draws_the_shipped_initial_ellipsoid
 
 @pytest.mark.chromium
 @needs_browser
-def test_the_funnel_report_fits_a_phone(funnel_report, tmp_path):
+@pytest.mark.parametrize("width", [1280, 390])
+def test_the_funnel_report_fits_a_desktop_and_a_phone(funnel_report, tmp_path, width):
     """The browser measurement of tests/stages/test_report.py on the funnel run's page at
-    390 px: the seven figures (the funnel figure too) inside the column, every legend and
-    colour bar inside its figure, text at least 8 px."""
+    1280 and 390 px: the seven figures (the funnel figure too) inside the column, every legend
+    and colour bar inside its figure, text at least 8 px; nothing wider than the column, the
+    claims and per-demo tables as cards on the phone, captions outside the scroll boxes."""
     _, html, _ = funnel_report
-    measured = measure_in_browser(html, 390, tmp_path)
-    assert measured["scroll"] <= 390, "the page scrolls sideways"
+    measured = measure_in_browser(html, width, tmp_path)
+    assert measured["scroll"] <= width, "the page scrolls sideways"
+    assert_layout(measured, width)
     assert [f["id"] for f in measured["figures"]][:3] == [
         "figure-overview",
         "figure-funnels",
         "figure-bisection",
     ]
     assert len(measured["figures"]) == 7
-    assert_figures_fit(measured, 390)
+    assert_figures_fit(measured, width)

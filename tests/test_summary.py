@@ -125,3 +125,52 @@ def test_the_contraction_claim_uses_certifys_own_bound(margin, bound, kind):
     check = SimpleNamespace(contraction_margin=margin, contraction_bound=bound, success=False)
     evidence = SimpleNamespace(certification=check, certificate="constant")
     assert certificate_kinds(evidence, certified=False)[0] is kind  # type: ignore[arg-type]
+
+
+def test_a_funnels_clearance_is_a_lower_bound_within_the_polygons_slack():
+    """``funnel_clearance``: the distance from a box to ellipses, each replaced by a polygon
+    of 64 sides that circumscribes it: never above the exact distance, below it by at most
+    the polygon's overshoot (1/cos(pi/64) - 1 of the largest semi-axis)."""
+    import types
+
+    import numpy as np
+    import shapely
+
+    from pipeline.runtime.shipped import SIDES, funnel_clearance
+
+    scene = types.SimpleNamespace(unsafe={"wall": shapely.box(3.0, -5.0, 4.0, 5.0)})
+    slack = 1 / np.cos(np.pi / SIDES) - 1
+    # a unit circle at the origin: 2 from the wall; an ellipse with semi-axes 2 (x) and 1 (y)
+    for shape, exact, axis in ((np.eye(2), 2.0, 1.0), (np.diag([4.0, 1.0]), 1.0, 2.0)):
+        found = funnel_clearance(scene, np.zeros((1, 2)), shape[None], np.array([1.0]))
+        assert exact - axis * slack - 1e-12 <= found <= exact
+    # several times: the closest one counts; one touching the wall: 0
+    centres = np.array([[0.0, 0.0], [1.5, 0.0], [2.5, 0.0]])
+    found = funnel_clearance(scene, centres, np.broadcast_to(np.eye(2), (3, 2, 2)), np.ones(3))
+    assert found == 0.0
+    found = funnel_clearance(scene, centres[:2], np.broadcast_to(np.eye(2), (2, 2, 2)), np.ones(2))
+    assert 0.5 - slack <= found <= 0.5
+
+
+def test_the_shipped_funnels_level_text_names_what_sets_it_and_the_next_constraint():
+    from pipeline.reporting.shipped import binding_text, span
+    from pipeline.reporting.summary import FunnelSummary
+
+    funnel = FunnelSummary(
+        demo="demo_01",
+        T=2.8,
+        level=0.9999,
+        binding="design",
+        nearest="goal",
+        nearest_level=1.054,
+        extent_at_T=0.3,
+        clearance=0.7,
+        arrival=(17.3, 3.7),
+        arrival_velocity=(7.0, -3.8),
+        arrival_speed=8.0,
+    )
+    assert binding_text(funnel) == "design: cell held whole (next: goal at 1.05)"
+    dropped = dataclasses.replace(funnel, binding="dropped", level=0.0)
+    assert not dropped.shipped and binding_text(dropped) == "dropped (no funnel ships)"
+    assert span([2.64, 2.8, 2.7]) == "2.6-2.8" and span([2.71, 2.74]) == "2.7"
+    assert span([float("nan")]) == "n/a (none shipped)"

@@ -51,8 +51,7 @@ def _span(values: FloatArray) -> str:
 
 
 def comparison(data: ReportData) -> tuple:
-    """The table "constant vs funnel" (funnel run only; a constant run shows none) and the
-    per-demonstration funnel table."""
+    """The table "constant vs funnel" (funnel run only; a constant run shows none)."""
     if not data.funnel:
         return ()
     summary = data.summary
@@ -92,19 +91,6 @@ def comparison(data: ReportData) -> tuple:
             f"Monte Carlo: {counts}",
         ),
     )
-    demos = []
-    for k, demo in enumerate(summary.demos):
-        i = data.shipped_index(k)
-        demos.append(
-            (
-                demo.demo,
-                fixed(data.final_paths[k].duration, 1),
-                "dropped" if i is None else fixed(shipped[i].duration, 1),
-                number(demo.funnel_level, 3),
-                demo.funnel_binding or "",
-                "" if demo.funnel_seconds is None else fixed(demo.funnel_seconds, 2),
-            )
-        )
     return (
         Table(
             (
@@ -120,18 +106,11 @@ def comparison(data: ReportData) -> tuple:
             "Constant vs funnel certificate in this run. T: the nominal horizons; clearance: "
             "the smallest distance from Unsafe to the nominal paths as polylines through their "
             "fine grids (for the shipped ones exactly the x_ref the controller follows; the "
-            "per-demonstration clearances above are the smallest over those grids' points); "
+            "Summary's per-demonstration nominal clearances are the smallest over those grids' "
+            "points); "
             "coverage: certified by box subdivision (the constant balls, or the funnels' "
             "initial ellipsoids E_i(0))",
             numeric=(False, False, True, True, True, True, False),
-        ),
-        Table(
-            ("demo", "T constant (s)", "T shipped (s)", "funnel level ρ", "bound by", "time (s)"),
-            tuple(demos),
-            "Funnel per demonstration: the constant certificate's optimized T, the shipped "
-            "nominal's T (controller.json), the funnel level ρ_i and the constraint that sets "
-            "it, and the funnel's synthesis time",
-            numeric=(False, True, True, True, False, True),
         ),
     )
 
@@ -146,8 +125,9 @@ def funnel_figure(data: ReportData) -> tuple:
             "The shipped funnels: for each trajectory of controller.json (orange, markers "
             f"{figures.MARKER_PERIOD:g} s apart) the position projection of its funnel E_i(t) = "
             "{x : (x - x_ref(t))^T P_i(t) (x - x_ref(t)) <= ρ_i²}, i.e. the ellipse with shape "
-            f"C P_i(t)^-1 C^T and radius ρ_i, every {figures.FUNNEL_PERIOD:g} s (shaded) and "
-            "outlined at t = 0 and t = T, over Unsafe, Goal and Init.",
+            f"C P_i(t)^-1 C^T and radius ρ_i, outlined in cyan every {figures.FUNNEL_PERIOD:g} s "
+            "and at t = T, over Unsafe, Goal and Init; the arrows: each nominal's velocity when it "
+            f"arrives ({figures.ARROW_SECONDS:g} s of travel).",
             partial(figures.draw_funnels, data=data),
             (FIGURE_WIDTH, figures.scene_height(data, data.shipped_paths, below=0.9)),
             data.fingerprint(file_hash(data.controller_path)),
@@ -196,8 +176,8 @@ def shipped_feedback(data: ReportData) -> tuple:
             "trajectory carries its own gains K_i[k] and metrics P_i[k] (Q = P^-1 linear in t "
             "between samples) and a level ρ_i "
             f"({number(float(levels.min()), 3)} to {number(float(levels.max()), 3)}), and the "
-            "controller is u = u_ref_i(t) + K_i[k] (x - x_ref_i(t)). The constant gain K, "
-            f"metric P and rate below are the constant certificate's ({CONSTANT_STATUS})."
+            "controller is u = u_ref_i(t) + K_i[k] (x - x_ref_i(t)). The constant certificate's "
+            f"gain K, metric P and rate ({CONSTANT_STATUS}) are in section 'Seed and comparison'."
         ),
         gain_range_table(data),
     )

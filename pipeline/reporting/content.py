@@ -84,13 +84,15 @@ class Headlines:
 @dataclass(frozen=True)
 class Table:
     """A table of preformatted cells; ``numeric[c]`` right-aligns column ``c``; the cells of
-    column ``badges`` (if any) are claim kinds, drawn as coloured labels."""
+    column ``badges`` (if any) are claim kinds, drawn as coloured labels; ``stack``: on a
+    narrow screen each row is shown as a card of "header: cell" lines (HTML)."""
 
     header: tuple[str, ...]
     rows: tuple[tuple[str, ...], ...]
     caption: str = ""
     numeric: tuple[bool, ...] = ()
     badges: int | None = None
+    stack: bool = False
     kind: ClassVar[str] = "table"
 
     def __post_init__(self) -> None:

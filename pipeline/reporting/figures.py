@@ -41,7 +41,9 @@ from pipeline.reporting.plotting import (
 )
 
 TUBE_PERIOD = 0.5  # s between the tube ellipses drawn along a path
-FUNNEL_PERIOD = 0.1  # s between the funnel sections of the funnel figure
+ARROW_SECONDS = 0.15  # an arrival arrow's length: this many seconds of travel at its velocity
+ARRIVAL = "0.1"  # the arrival velocity arrows
+FUNNEL_PERIOD = 0.5  # s between the funnel outlines of the funnel figure
 MARKER_PERIOD = 1.0  # s between the time markers on a path
 
 
@@ -112,6 +114,38 @@ def draw_tube(ax: Axes, tube: TubeSections, color: str, alpha: float = 0.07) -> 
     ellipses(ax, tube.shapes[:1], tube.centres[:1], tube.radii[:1], color, lw=0.9, alpha=0.9)
 
 
+def draw_outlines(ax: Axes, tube: TubeSections, color: str = FUNNEL, lw: float = 0.8) -> None:
+    """A funnel as outlines at each of its times (no shading: the path under it stays visible)."""
+    if np.any(tube.radii > 0):
+        ellipses(ax, tube.shapes, tube.centres, tube.radii, color, lw=lw, alpha=0.9)
+
+
+def _ends(path: Trajectory) -> FloatArray:
+    """The times ``(k,)`` at which a funnel is outlined: every ``TUBE_PERIOD`` s and at T."""
+    t = np.arange(0.0, path.duration - 1e-9, TUBE_PERIOD)
+    return np.append(t, path.duration)
+
+
+def draw_arrivals(ax: Axes, data: ReportData, scale: float = ARROW_SECONDS) -> bool:
+    """At each shipped nominal's end, its velocity as an arrow ``scale`` s of travel long
+    (``Summary.funnels``: ``arrival_velocity``); False when the summary has none."""
+    s, drawn = data.scenario, False
+    for funnel, path in zip(data.summary.funnels, data.shipped_paths, strict=False):
+        v = np.asarray(funnel.arrival_velocity, dtype=float)
+        if v.shape != (2,) or not np.all(np.isfinite(v)):
+            continue
+        end = s.positions(path.dense_xs[-1])
+        ax.annotate(
+            "",
+            xy=(end[0] + scale * v[0], end[1] + scale * v[1]),
+            xytext=(end[0], end[1]),
+            arrowprops={"arrowstyle": "-|>", "color": ARRIVAL, "lw": 1.2, "mutation_scale": 9},
+            zorder=7,
+        )
+        drawn = True
+    return drawn
+
+
 def _along(path: Trajectory) -> FloatArray:
     """The times ``(k,)`` at which a tube is drawn along ``path``: every ``TUBE_PERIOD`` s."""
     return np.arange(0.0, path.duration + 1e-9, TUBE_PERIOD)
@@ -139,15 +173,44 @@ def draw_overview(fig: FigureLike, data: ReportData) -> None:
         draw_path(ax, s, demo.dense_ts, demo.dense_xs, DEMO, None, MARKER_PERIOD, lw=0.8)
     for k, path in enumerate(data.shipped_paths):
         draw_path(ax, s, path.dense_ts, path.dense_xs, OPTIMIZED, None, MARKER_PERIOD, lw=1.3)
-        draw_tube(ax, shipped_tube(data, k, _along(path)), OPTIMIZED, alpha=0.06)
-    tube = "funnel E_i(t) (shipped)" if data.funnel else "tube (optimized)"
+        if data.funnel:
+            draw_outlines(ax, funnel_tube(data, k, _ends(path)), lw=0.6)
+        else:
+            draw_tube(ax, shipped_tube(data, k, _along(path)), OPTIMIZED, alpha=0.06)
+    arrows = data.funnel and draw_arrivals(ax, data)
+    tube = (
+        Line2D([], [], color=FUNNEL, lw=0.8, label="shipped funnels E_i(t)")
+        if data.funnel
+        else Patch(facecolor=OPTIMIZED, alpha=0.25, edgecolor=OPTIMIZED, label="tube (optimized)")
+    )
     handles = [
         *ax.get_legend_handles_labels()[0],
         Line2D([], [], color=DEMO, lw=0.8, marker="o", ms=2.6, label="demonstrations"),
-        Line2D([], [], color=OPTIMIZED, lw=1.3, marker="o", ms=2.6, label="optimized"),
-        Patch(facecolor=OPTIMIZED, alpha=0.25, edgecolor=OPTIMIZED, label=tube),
+        Line2D(
+            [],
+            [],
+            color=OPTIMIZED,
+            lw=1.3,
+            marker="o",
+            ms=2.6,
+            label="shipped nominals" if data.funnel else "optimized",
+        ),
+        tube,
+        *([_arrow_handle()] if arrows else []),
     ]
     legend_below(fig, handles)
+
+
+def _arrow_handle() -> Line2D:
+    return Line2D(
+        [],
+        [],
+        color=ARRIVAL,
+        lw=1.2,
+        marker=">",
+        ms=5,
+        label="arrival velocity",
+    )
 
 
 def draw_funnels(fig: FigureLike, data: ReportData) -> None:
@@ -157,16 +220,21 @@ def draw_funnels(fig: FigureLike, data: ReportData) -> None:
     ax = fig.subplots()
     draw_scenario(ax, s, _all_positions(data.shipped_paths, data))
     for k, path in enumerate(data.shipped_paths):
-        t = np.append(np.arange(0.0, path.duration, FUNNEL_PERIOD), path.duration)
-        tube = funnel_tube(data, k, t)
-        ellipses(ax, tube.shapes, tube.centres, tube.radii, FUNNEL, filled=True, alpha=0.05, lw=0)
-        ends = [0, len(t) - 1]
-        ellipses(ax, tube.shapes[ends], tube.centres[ends], tube.radii[ends], FUNNEL, lw=0.9)
         draw_path(ax, s, path.dense_ts, path.dense_xs, OPTIMIZED, None, MARKER_PERIOD, lw=1.2)
+        t = np.append(np.arange(0.0, path.duration - 1e-9, FUNNEL_PERIOD), path.duration)
+        draw_outlines(ax, funnel_tube(data, k, t), lw=0.8)
+    arrows = draw_arrivals(ax, data)
     handles = [
         *ax.get_legend_handles_labels()[0],
         Line2D([], [], color=OPTIMIZED, lw=1.2, marker="o", ms=2.6, label="shipped nominal"),
-        Patch(facecolor=FUNNEL, alpha=0.3, edgecolor=FUNNEL, label="funnel E_i(t), position"),
+        Line2D(
+            [],
+            [],
+            color=FUNNEL,
+            lw=0.8,
+            label="funnel E_i(t), position",
+        ),
+        *([_arrow_handle()] if arrows else []),
     ]
     legend_below(fig, handles)
 
@@ -201,9 +269,9 @@ def draw_bisection(fig: FigureLike, data: ReportData, index: int) -> None:
     draw_tube(ax, constant_tube(data, demo, data.radius_demos[index].radius, _along(demo)), DEMO)
     if shipped is None:
         tube = constant_tube(data, final, data.radius_optimized[index].radius, _along(final))
+        draw_tube(ax, tube, OPTIMIZED)
     else:
-        tube = funnel_tube(data, shipped, _along(optimal))
-    draw_tube(ax, tube, OPTIMIZED)
+        draw_outlines(ax, funnel_tube(data, shipped, _ends(optimal)))
     if feasible:
         horizons = np.array([path.duration for path in feasible])
         top = max(float(horizons.max()), float(horizons.min()) + s.Ts)
@@ -226,24 +294,39 @@ def draw_bisection(fig: FigureLike, data: ReportData, index: int) -> None:
         ax.plot(*p.T, color=OPTIMIZED, lw=1.0, ls="--", label=label, zorder=5)
     label = f"{'shipped' if shipped is not None else 'optimal'}, T' = {optimal.duration:.1f} s"
     draw_path(ax, s, optimal.dense_ts, optimal.dense_xs, OPTIMIZED, label, TUBE_PERIOD, lw=1.6)
-    name = "funnel of the shipped" if shipped is not None else "tube of the optimal"
+    tube_handle = (
+        Line2D([], [], color=FUNNEL, lw=0.8, label="funnel of the shipped")
+        if shipped is not None
+        else Patch(facecolor=OPTIMIZED, alpha=0.3, edgecolor=OPTIMIZED, label="tube of the optimal")
+    )
     handles = [
         *ax.get_legend_handles_labels()[0],
         Patch(facecolor=DEMO, alpha=0.3, edgecolor=DEMO, label="tube of the demonstration"),
-        Patch(facecolor=OPTIMIZED, alpha=0.3, edgecolor=OPTIMIZED, label=name),
+        tube_handle,
     ]
     legend_below(fig, handles, ncols=2 if len(handles) <= 4 else 1)  # one column fits a phone
 
 
 def draw_optimization(fig: FigureLike, data: ReportData) -> None:
-    """Per demo: J and the step size over the final horizon's descent; the horizons tried."""
-    cost, step, tries = fig.subplots(3, 1)
+    """Per demo: J over the final horizon's descent (and, for gradient descent, its step size);
+    the horizons tried. The demos' legend sits beside the cost panel it colours first."""
+    gd = data.optimize.options.method == "gd"  # L-BFGS-B has no step size to show
+    axes = fig.subplots(3 if gd else 2, 1)
+    cost, tries = axes[0], axes[-1]
+    step = axes[1] if gd else None
     colours = colormaps["tab10"]
     for k, opt in enumerate(data.optimize.trajectories):
         colour = colours(k % 10)
         log = opt.log
         positive = log.cost > 0
-        cost.step(log.iteration[positive], log.cost[positive], where="post", color=colour, lw=1)
+        cost.step(
+            log.iteration[positive],
+            log.cost[positive],
+            where="post",
+            color=colour,
+            lw=1,
+            label=opt.demo,
+        )
         if len(log.cost) and opt.success:  # the real J reached 0: a triangle on the bottom axis
             cost.plot(
                 log.iteration[-1],
@@ -253,7 +336,8 @@ def draw_optimization(fig: FigureLike, data: ReportData) -> None:
                 ms=5,
                 transform=cost.get_xaxis_transform(),
             )
-        step.plot(log.iteration, log.step, color=colour, lw=0.9, label=opt.demo)
+        if step is not None:
+            step.plot(log.iteration, log.step, color=colour, lw=0.9)
         n = np.arange(1, len(opt.tries) + 1)
         T = np.array([t.N for t in opt.tries]) * opt.Ts
         ok = np.array([t.feasible for t in opt.tries], dtype=bool)
@@ -263,10 +347,12 @@ def draw_optimization(fig: FigureLike, data: ReportData) -> None:
     cost.set(
         yscale="log", xlabel="iteration", ylabel="penalty cost J", title="cost at the final T'"
     )
-    step.set(yscale="log", xlabel="iteration", ylabel="step size λ", title="step size λ")
-    tries.set(xlabel="try", ylabel="horizon T' (s)", title="horizons tried")
     log_axis(cost.yaxis)
-    log_axis(step.yaxis)
+    cost.legend(loc="upper right", ncols=3, frameon=True, framealpha=0.85)
+    if step is not None:
+        step.set(yscale="log", xlabel="iteration", ylabel="step size λ", title="step size λ")
+        log_axis(step.yaxis)
+    tries.set(xlabel="try", ylabel="horizon T' (s)", title="horizons tried")
     tries.legend(
         handles=[
             Line2D([], [], color="0.3", marker="o", ls="", label="feasible (J = 0)"),
@@ -274,9 +360,6 @@ def draw_optimization(fig: FigureLike, data: ReportData) -> None:
         ],
         loc="upper right",
         frameon=False,
-    )
-    fig.legend(
-        *step.get_legend_handles_labels(), loc="outside lower center", ncols=3, frameon=False
     )
 
 

@@ -36,18 +36,18 @@ INIT = "0.15"
 UNSAFE = "0.62"
 BOUND = "#8C1C13"
 INTERMEDIATE = "Purples"
-FUNNEL = "#8C564B"  # the shipped funnels E_i(t) (brown: apart from the tubes' orange and blue)
+FUNNEL = "#00838F"  # the shipped funnels E_i(t): dark cyan outlines, apart from the orange nominals
 
-# Figures are drawn about ``FIGURE_WIDTH`` in wide and shown at most 1.25x that (640 px) and at
-# least at a phone's column (~365 px, 0.73x): 10 pt text stays >= 9 px on a phone.
-FIGURE_WIDTH = 5.2  # in
+# Figures are drawn ``FIGURE_WIDTH`` in wide and shown the column's full width: up to ~1170 px
+# on a desktop (2.5x) and down to a phone's column (~365 px, 0.85x), where 10 pt text is 8.5 px.
+FIGURE_WIDTH = 6.0  # in
 STYLE: dict[RcKeyType, object] = {
     "font.size": 10,
     "axes.titlesize": 10.5,
     "axes.labelsize": 10,
-    "legend.fontsize": 9.5,
-    "xtick.labelsize": 9.5,
-    "ytick.labelsize": 9.5,
+    "legend.fontsize": 10,
+    "xtick.labelsize": 10,
+    "ytick.labelsize": 10,
     "axes.spines.top": False,
     "axes.spines.right": False,
     "axes.grid": True,
@@ -147,7 +147,7 @@ def draw_scenario(
                 name,
                 (where.x, where.y),
                 color="0.1",
-                fontsize=9,
+                fontsize=10,
                 ha="center",
                 va="center",
                 zorder=6,

@@ -1,7 +1,8 @@
 """The report's eight sections, built from ``ReportData`` (summary.json plus the stage results).
 
 1 Summary, 2 Scenario, 3 Optimization, 4 Feedback, 5 Coverage, 6 Monte Carlo, 7 Inputs,
-8 Reproducibility (3-7 in ``stage_sections``). The paper's reference numbers (Winn & Julius,
+(a funnel run: 8 Seed and comparison, the constant certificate) and Reproducibility (3-7 in
+``stage_sections``). The paper's reference numbers (Winn & Julius,
 §IV-B) are quoted beside ours.
 """
 
@@ -14,7 +15,7 @@ from functools import partial
 import numpy as np
 
 from pipeline.io.artifacts import file_hash
-from pipeline.reporting import certificates, figures, stage_sections
+from pipeline.reporting import certificates, figures, shipped, stage_sections
 from pipeline.reporting.content import (
     Figure,
     Headline,
@@ -48,43 +49,61 @@ TITLES = (
     ("inputs", "Inputs"),
     ("reproducibility", "Reproducibility"),
 )
+SEED = ("seed", shipped.SEED_TITLE)  # a funnel run's section before Reproducibility
 
 
-def headline_items(summary: Summary) -> tuple[Headline, ...]:
+def headline_items(summary: Summary, length: str = "m") -> tuple[Headline, ...]:
     """The headline numbers of ``summary.json``, formatted as the report shows them; the
-    paper's numbers beside them only for the paper's scenario (``PAPER_SCENARIO``)."""
+    paper's numbers beside them only for the paper's scenario (``PAPER_SCENARIO``). A funnel
+    run's cards start with what controller.json guarantees (``shipped.shipped_items``) and
+    show no number of the constant certificate (the seed, section "Seed and comparison")."""
     h, mc = summary.headline, summary.montecarlo
     stages = summary.timings
     reused = sum(1 for v in stages.values() if v == 0.0)
     paper = summary.scenario == PAPER_SCENARIO
     kinds = failure_kinds(mc.failures)
-    return (
-        Headline(
-            "Faster (mean over demos)",
-            percent(h.faster_percent_mean / 100, 0),
-            f"terminal time {seconds(h.T_demo_mean)} → {seconds(h.T_optimized_mean)}"
-            + (f"; the paper: {PAPER_FASTER_PERCENT}%" if paper else ""),
-        ),
-        Headline(
-            "Nominal clearance to Unsafe",
-            f"{fixed(h.min_clearance_before)} → {fixed(h.min_clearance_after)} m",
-            f"closest nominal trajectory, demos → optimized; required d = "
-            f"{h.required_clearance:g} m"
-            + (f"; the paper's demo: {PAPER_DEMO_CLEARANCE}" if paper else ""),
-        ),
-        Headline(
-            "Closed-loop clearance (Monte Carlo)",
-            f"{fixed(summary.montecarlo.min_clearance)} m",
-            f"closest of the {summary.montecarlo.samples} closed-loop runs from Init "
-            "(controller.json flown); > 0: never in Unsafe",
-        ),
-        Headline(
+    funnel = summary.certificate == "funnel"
+    unit = f" {length}" if length else ""
+    clearance = Headline(
+        "Nominal clearance to Unsafe",
+        f"{fixed(h.min_clearance_before)} → {fixed(h.min_clearance_after)}{unit}",
+        f"closest nominal trajectory, demos → {'shipped' if funnel else 'optimized'}; kept "
+        f"≥ d = {h.required_clearance:g}{unit} by the optimizer"
+        + (f"; the paper's demo: {PAPER_DEMO_CLEARANCE}" if paper else ""),
+    )
+    if funnel:
+        coverage = Headline(
+            "Init coverage",
+            percent(h.coverage_after),
+            "by the shipped funnels' initial sets E_i(0), certified on controller.json"
+            if h.covered_after
+            else "NOT fully covered by the shipped funnels' initial sets E_i(0)",
+        )
+    else:
+        coverage = Headline(
             "Init coverage",
             f"{percent(h.coverage_before)} → {percent(h.coverage_after)}",
             "certified covered after optimization"
             if h.covered_after
             else "NOT fully covered after optimization",
+        )
+    return (
+        *shipped.shipped_items(summary, length),
+        Headline(
+            "Faster (mean over demos)",
+            percent(h.faster_percent_mean / 100, 0),
+            f"terminal time {seconds(h.T_demo_mean)} → {seconds(h.T_optimized_mean)}"
+            + (" (shipped)" if funnel else "")
+            + (f"; the paper: {PAPER_FASTER_PERCENT}%" if paper else ""),
         ),
+        clearance,
+        Headline(
+            "Closed-loop clearance (Monte Carlo)",
+            f"{fixed(summary.montecarlo.min_clearance)}{unit}",
+            f"closest of the {summary.montecarlo.samples} closed-loop runs from Init "
+            "(controller.json flown); > 0: never in Unsafe",
+        ),
+        coverage,
         Headline(
             "Monte Carlo",
             runs_failed(h.montecarlo_samples, h.montecarlo_failures),
@@ -99,14 +118,26 @@ def headline_items(summary: Summary) -> tuple[Headline, ...]:
     )
 
 
-def _summary(data: ReportData) -> tuple:
+def _starts(data: ReportData) -> list[str]:
+    """Each demonstration's start position, as shown: ``(1.33, 2.17)``."""
+    s = data.scenario
+    return [
+        "(" + ", ".join(f"{v:.2f}" for v in np.asarray(d.start)[list(s.position_index)]) + ")"
+        for d in data.summary.demos
+    ]
+
+
+def _demo_table(data: ReportData) -> Table:
+    """The per-demonstration table: what ships in a funnel run (``shipped.funnel_table``),
+    the optimized trajectories and their robustness radii in a constant run."""
     s, summary = data.scenario, data.summary
-    n = len(s.demos)
+    if data.funnel:
+        return shipped.funnel_table(summary, _starts(data), s.position_unit())
     position = [s.state_names[i] for i in s.position_index]
     demos = tuple(
         (
             d.demo,
-            "(" + ", ".join(f"{v:.2f}" for v in np.asarray(d.start)[list(s.position_index)]) + ")",
+            start,
             fixed(d.T_demo, 1),
             fixed(d.T_optimized, 1),
             f"{d.faster_percent:.0f}%",
@@ -116,63 +147,82 @@ def _summary(data: ReportData) -> tuple:
             fixed(d.radius_after, 3),
             "yes" if d.optimized else "no (kept as flown)",
         )
-        for d in summary.demos
+        for d, start in zip(summary.demos, _starts(data), strict=True)
     )
+    return Table(
+        (
+            "demo",
+            f"start ({', '.join(position)}) [m]",
+            "T demo (s)",
+            "T opt (s)",
+            "faster",
+            "clearance before (m)",
+            "clearance after (m)",
+            "radius before (P-norm)",
+            "radius after (P-norm)",
+            "optimized",
+        ),
+        demos,
+        "Per demonstration",
+        numeric=(False, False, *([True] * 7), False),
+        stack=True,
+    )
+
+
+def _summary(data: ReportData) -> tuple:
+    s, summary = data.scenario, data.summary
+    n = len(s.demos)
     timings = [
         (stage, fixed(t, 2), "reused" if t == 0.0 else "") for stage, t in summary.timings.items()
     ]
     timings.append(("total (incl. loading and summary)", fixed(summary.total_seconds, 2), ""))
+    ships = (
+        "then a funnel E_i(t) is certified around each (the funnel certificate, "
+        "controller.json), with the nominals re-optimized against their funnels, and validated "
+        "by simulation. The constant certificate that seeds it is not shipped (section "
+        f"{len(TITLES)}, {shipped.SEED_TITLE})."
+        if data.funnel
+        else "then the feedback controller built from the optimized trajectories is certified "
+        "and validated by simulation."
+    )
     return (
         Paragraph(
             f"Scenario {s.name}: {s.spec.description or 'no description'} {n} demonstrations, "
             f"sampling time Ts = {s.Ts:g} s, required clearance d = {s.clearance:g} m. Each "
             "demonstration is made as fast as possible without losing its robustness radius "
-            "(Winn & Julius, Remark 4), then the feedback controller built from the optimized "
-            "trajectories is certified and validated by simulation."
+            f"(Winn & Julius, Remark 4), {ships}"
         ),
         Verdict(
             summary.verdict is VerdictKind.CERTIFIED_AND_VALIDATED,
             summary.text,
             summary.reasons,
         ),
-        Headlines(headline_items(summary) + law_items(data)),
+        Headlines(headline_items(summary, s.position_unit()) + law_items(data)),
         Table(
             ("claim", "kind", "how it was established"),
             tuple((c.claim, c.kind.value, c.how) for c in summary.claims),
             "Claims: certified (proof, re-checked), statistically validated (sampling with a "
             "bound), falsification-searched (search, no bound)",
             badges=1,
+            stack=True,
         ),
-        Table(
-            (
-                "demo",
-                f"start ({', '.join(position)}) [m]",
-                "T demo (s)",
-                "T opt (s)",
-                "faster",
-                "clearance before (m)",
-                "clearance after (m)",
-                "radius before (P-norm)",
-                "radius after (P-norm)",
-                "optimized",
-            ),
-            demos,
-            "Per demonstration"
-            + (
-                " (T opt and clearance after: the shipped nominals, re-optimized against their"
-                " funnels; radii: the constant certificate's, on its own optimized nominals)"
-                if data.funnel
-                else ""
-            ),
-            numeric=(False, False, *([True] * 7), False),
-        ),
-        *certificates.comparison(data),
+        _demo_table(data),
         Table(
             ("stage", "wall time (s)", ""),
             tuple(timings),
             "Wall time per stage (0: result reused from a previous run with the same inputs)",
             numeric=(False, True, False),
         ),
+    )
+
+
+def _seed(data: ReportData) -> tuple:
+    """Seed and comparison (funnel run): the constant certificate, once."""
+    return (
+        shipped.seed_paragraph(data.summary),
+        *certificates.comparison(data),
+        shipped.constant_demo_table(data.summary, data.feedback.position_extent(1.0)),
+        *stage_sections.constant_feedback(data),
     )
 
 
@@ -209,13 +259,17 @@ def _scenario(data: ReportData) -> tuple:
             "All demonstrations (blue) and their optimized trajectories (orange"
             + (", as shipped in controller.json" if data.funnel else "")
             + f"). Markers are {figures.MARKER_PERIOD:g} s apart, so their spacing shows the "
-            "speed. The orange ellipses are the position projection of each "
+            "speed. "
             + (
-                "shipped trajectory's funnel {x : ||x - x_ref(t)||_P_i(t) <= ρ_i}"
+                "The cyan outlines are the position projection of each shipped trajectory's "
+                "funnel {x : ||x - x_ref(t)||_P_i(t) <= ρ_i}, every "
+                f"{figures.TUBE_PERIOD:g} s and at T; the arrows: each nominal's velocity when "
+                f"it arrives ({figures.ARROW_SECONDS:g} s of travel)."
                 if data.funnel
-                else "optimized trajectory's robustness tube {x : ||x - x_ref(t)||_P <= r e^(-λt)}"
-            )
-            + f": outlined at the start, shaded every {figures.TUBE_PERIOD:g} s along the path.",
+                else "The orange ellipses are the position projection of each optimized "
+                "trajectory's robustness tube {x : ||x - x_ref(t)||_P <= r e^(-λt)}: outlined "
+                f"at the start, shaded every {figures.TUBE_PERIOD:g} s along the path."
+            ),
             partial(figures.draw_overview, data=data),
             (
                 FIGURE_WIDTH,
@@ -236,9 +290,10 @@ def _scenario(data: ReportData) -> tuple:
             f"{figures.TUBE_PERIOD:g} s."
             + (
                 " Funnel run: the orange path is the trajectory shipped in controller.json from "
-                "this demonstration and its tube is its funnel E_i(t) (dashed: the constant "
-                "certificate's optimum, where the shipped nominal was re-optimized); the "
-                "demonstration's tube is the constant certificate's."
+                "this demonstration, its funnel E_i(t) outlined in cyan every "
+                f"{figures.TUBE_PERIOD:g} s and at T instead of a shaded tube (dashed: the "
+                "constant certificate's optimum, the seed, where the shipped nominal was "
+                "re-optimized); the demonstration's tube is the constant certificate's."
                 if data.funnel
                 else ""
             ),
@@ -289,8 +344,9 @@ def _reproducibility(data: ReportData) -> tuple:
 
 
 def build_sections(data: ReportData) -> list[Section]:
-    """The report's sections, in order."""
-    builders = (
+    """The report's sections, in order; a funnel run's has "Seed and comparison" (the constant
+    certificate, not shipped) before Reproducibility."""
+    builders = [
         _summary,
         _scenario,
         stage_sections.optimization,
@@ -299,13 +355,19 @@ def build_sections(data: ReportData) -> list[Section]:
         stage_sections.montecarlo,
         stage_sections.inputs,
         _reproducibility,
-    )
+    ]
+    titles = list(TITLES)
+    if data.funnel:
+        builders.insert(-1, _seed)
+        titles.insert(-1, SEED)
     return [
         Section(key, number + 1, title, tuple(build(data)))
-        for number, ((key, title), build) in enumerate(zip(TITLES, builders, strict=True))
+        for number, ((key, title), build) in enumerate(zip(titles, builders, strict=True))
     ]
 
 
-def section_headings() -> Sequence[str]:
-    """``"N. Title"`` of every section, for tests and navigation."""
-    return [f"{n + 1}. {title}" for n, (_, title) in enumerate(TITLES)]
+def section_headings(funnel: bool = False) -> Sequence[str]:
+    """``"N. Title"`` of every section (a funnel run's or a constant run's), for tests and
+    navigation."""
+    titles = [*TITLES[:-1], SEED, TITLES[-1]] if funnel else list(TITLES)
+    return [f"{n + 1}. {title}" for n, (_, title) in enumerate(titles)]

@@ -10,7 +10,7 @@ from functools import partial
 import numpy as np
 
 from pipeline.io.artifacts import file_hash
-from pipeline.reporting import certificates, figures, loop_figures
+from pipeline.reporting import certificates, figures, loop_figures, shipped
 from pipeline.reporting.content import (
     Figure,
     Paragraph,
@@ -39,12 +39,14 @@ def optimization(data: ReportData) -> tuple:
         "after a failure)"
     )
     rows = []
-    for opt in data.optimize.trajectories:
+    for k, opt in enumerate(data.optimize.trajectories):
         tries = ", ".join(f"{t.N}{'✓' if t.feasible else '✗'}" for t in opt.tries)
+        i = data.shipped_index(k) if data.funnel else None
+        to_shipped = "" if i is None else f" → {len(data.shipped_paths[i].us)}"
         rows.append(
             (
                 opt.demo,
-                f"{opt.N_demo} → {opt.N}",
+                f"{opt.N_demo} → {opt.N}{to_shipped}",
                 tries,
                 str(sum(t.iterations for t in opt.tries)),
                 fixed(opt.seconds, 2),
@@ -83,12 +85,18 @@ def optimization(data: ReportData) -> tuple:
         ),
         Figure(
             "optimization",
-            "Top: the tightened J over the descent at the final horizon (log scale; a triangle "
-            "on the bottom axis marks where the untightened J reached 0, i.e. feasible). Middle: "
-            "the step size λ (grows by α after an accepted step, shrinks by β after a rejected "
-            "one). Bottom: the horizons tried, in order (circle: feasible, cross: infeasible).",
+            "Top: the tightened J over the descent at the final horizon, one colour per "
+            "demonstration (log scale; a triangle on the bottom axis marks where the untightened "
+            "J reached 0, i.e. feasible). "
+            + (
+                "Middle: the step size λ (grows by α after an accepted step, shrinks by β after a "
+                "rejected one). "
+                if options.method == "gd"
+                else ""
+            )
+            + "Bottom: the horizons tried, in order (circle: feasible, cross: infeasible).",
             partial(figures.draw_optimization, data=data),
-            (FIGURE_WIDTH, 7.4),
+            (FIGURE_WIDTH, 7.4 if options.method == "gd" else 5.2),
             data.fingerprint("optimize"),
         ),
         Table(
@@ -101,7 +109,13 @@ def optimization(data: ReportData) -> tuple:
                 "result",
             ),
             tuple(rows),
-            "Search on the horizon per demo",
+            "Search on the horizon per demo"
+            + (
+                " (samples: the demonstration → the seed's optimum, constant certificate → "
+                "shipped, after the nominals were re-optimized against their funnels)"
+                if data.funnel
+                else ""
+            ),
             numeric=(False, True, False, True, True, False),
         ),
         Table(
@@ -126,7 +140,19 @@ def _quantile_text(quantiles: Quantiles | None) -> str:
     return ", ".join(fixed(q, 3) for q in (quantiles.median, quantiles.p95, quantiles.max))
 
 
-def feedback(data: ReportData) -> tuple:
+def _constant_paragraph(data: ReportData) -> Paragraph:
+    fb = data.feedback
+    return Paragraph(
+        "The controller is u = u_ref(t) + K (x - x_ref(t)). The certificate: P > 0 with "
+        "(A_i + B_i K)^T P + P (A_i + B_i K) + 2λP < 0 at every vertex of a polytope that "
+        "soundly contains the Jacobians [f_x f_u] over the operating region, so "
+        "||x(t) - x_ref(t)||_P <= e^(-λt) ||x(0) - x_ref(0)||_P while the tube stays in the "
+        f"region. Design: {fb.message}."
+    )
+
+
+def _constant_tables(data: ReportData) -> tuple:
+    """The constant certificate's gain, certificate, operating region and input margins."""
     s, fb, summary = data.scenario, data.feedback, data.summary.feedback
     K = np.asarray(fb.K)
     eig = np.asarray(summary.P_eigenvalues)
@@ -170,14 +196,6 @@ def feedback(data: ReportData) -> tuple:
         ("design objective", number(fb.objective, 4)),
     )
     return (
-        Paragraph(
-            "The controller is u = u_ref(t) + K (x - x_ref(t)). The certificate: P > 0 with "
-            "(A_i + B_i K)^T P + P (A_i + B_i K) + 2λP < 0 at every vertex of a polytope that "
-            "soundly contains the Jacobians [f_x f_u] over the operating region, so "
-            "||x(t) - x_ref(t)||_P <= e^(-λt) ||x(0) - x_ref(0)||_P while the tube stays in the "
-            f"region. Design: {fb.message}."
-        ),
-        *certificates.shipped_feedback(data),
         gain_table(
             s,
             K,
@@ -189,7 +207,6 @@ def feedback(data: ReportData) -> tuple:
             ),
         ),
         Table(("quantity", "value"), quantities, "Certificate"),
-        *law(data),
         Table(
             ("variable", "lower", "upper", "tube extent at r_d"),
             tuple(region_rows),
@@ -207,8 +224,22 @@ def feedback(data: ReportData) -> tuple:
     )
 
 
+def constant_feedback(data: ReportData) -> tuple:
+    """The constant certificate's feedback, for a funnel run's "Seed and comparison"."""
+    return (_constant_paragraph(data), *_constant_tables(data))
+
+
+def feedback(data: ReportData) -> tuple:
+    """The shipped law: in a funnel run its per-trajectory gains (the constant certificate's
+    K and P are in "Seed and comparison"), in a constant run K, P and their certificate."""
+    if data.funnel:
+        return (*certificates.shipped_feedback(data), *law(data))
+    tables = _constant_tables(data)
+    return (_constant_paragraph(data), *tables[:2], *law(data), *tables[2:])
+
+
 def coverage(data: ReportData) -> tuple:
-    rows = []
+    rows: list[tuple[str, ...]] = []
     for name, c in (
         ("demonstrations", data.coverage_demos),
         ("optimized", data.coverage_optimized),
@@ -224,6 +255,11 @@ def coverage(data: ReportData) -> tuple:
                 c.message,
             )
         )
+    if data.funnel:  # what ships first: the funnels' E_i(0), certified on controller.json
+        rows = [
+            shipped.coverage_row(data.summary),
+            *((f"{r[0]}, constant balls (seed, not shipped)", *r[1:]) for r in rows),
+        ]
     s = data.scenario
     free = [s.state_names[i] for i in data.coverage_demos.free]
     shown = " and ".join(free[:2]) if free else "its single point"
@@ -246,9 +282,16 @@ def coverage(data: ReportData) -> tuple:
     )
     return (
         Paragraph(
-            "Init must lie in the union of the balls ||x - x0_i||_P <= r_i around the starts of "
-            "the nominal trajectories (r_i: robustness radius). Certified by subdividing Init into "
-            "boxes until each box's vertices lie in one ball; boxes left are reported uncovered."
+            "Init must lie in the union of the shipped funnels' initial sets E_i(0) = {x : "
+            "||x - x0_i||_P_i[0] <= ρ_i} (controller.json), certified by the certify stage by "
+            "subdividing Init into boxes until each box's vertices lie in one of them. The "
+            "constant certificate's balls ||x - x0_i||_P <= r_i (the seed, not shipped) are "
+            "shown beside them."
+            if data.funnel
+            else "Init must lie in the union of the balls ||x - x0_i||_P <= r_i around the "
+            "starts of the nominal trajectories (r_i: robustness radius). Certified by "
+            "subdividing Init into boxes until each box's vertices lie in one ball; boxes left "
+            "are reported uncovered."
         ),
         Figure(
             "coverage",
@@ -257,7 +300,7 @@ def coverage(data: ReportData) -> tuple:
             f"covered; red: boxes not certified covered{projected}."
             + (
                 " The first two are the constant certificate's balls (verified, not shipped); "
-                "the third (brown) shows the slices of the shipped funnels' initial ellipsoids "
+                "the third (cyan) shows the slices of the shipped funnels' initial ellipsoids "
                 "E_i(0), each in its own metric P_i[0] from controller.json, which cover "
                 f"{percent(data.summary.headline.coverage_after)} of Init (certified by the same "
                 "box subdivision in the certify stage)."
@@ -282,21 +325,25 @@ def coverage(data: ReportData) -> tuple:
             "Coverage certificate",
             numeric=(False, False, True, True, True, True, False),
         ),
-        Table(
-            (
-                "demo",
-                "radius before",
-                "extent before (m)",
-                "bound by",
-                "radius after",
-                "extent after (m)",
-                "bound by",
-            ),
-            radii,
-            "Robustness radii in the P-norm (no unit: ||e||_P weighs every state's error), "
-            "their tubes' largest position offset (m), and the constraint that sets each",
-            numeric=(False, True, True, False, True, True, False),
+        *(() if data.funnel else (_radius_table(radii),)),
+    )
+
+
+def _radius_table(radii: tuple) -> Table:
+    return Table(
+        (
+            "demo",
+            "radius before",
+            "extent before (m)",
+            "bound by",
+            "radius after",
+            "extent after (m)",
+            "bound by",
         ),
+        radii,
+        "Robustness radii in the P-norm (no unit: ||e||_P weighs every state's error), "
+        "their tubes' largest position offset (m), and the constraint that sets each",
+        numeric=(False, True, True, False, True, True, False),
     )
 
 
@@ -363,7 +410,10 @@ def montecarlo(data: ReportData) -> tuple:
             f"Top: {len(mc.paths)} of the {mc.samples} closed-loop runs (teal); failed starts as "
             "red crosses, the falsification search's worst start as a red star. Bottom: the "
             "distributions of each run's minimum clearance to Unsafe and of its tube tightness "
-            "(1 = on the tube's boundary); failures in red beyond the dashed threshold.",
+            "(1 = on the tube's boundary); failures in red beyond the dashed threshold. The "
+            f"dotted line at d = {data.scenario.clearance:g} m is the clearance the optimizer "
+            "keeps for the nominals, not a closed-loop requirement: a closed-loop run fails "
+            "only below 0.",
             partial(loop_figures.draw_montecarlo, data=data),
             (FIGURE_WIDTH, 8.4),
             data.fingerprint("montecarlo"),

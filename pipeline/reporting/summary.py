@@ -80,6 +80,36 @@ class DemoSummary:
 
 
 @dataclass(frozen=True, kw_only=True)
+class FunnelSummary:
+    """What controller.json guarantees along one shipped trajectory (a funnel run): every flight
+    that starts in ``E_i(0)`` stays in ``E_i(t) = {x : ||x - x_ref_i(t)||_P_i(t) <= level}``
+    until ``T`` (s). ``binding``: the constraint that sets the level ("design": the funnel's
+    own LMI caps, i.e. at level 1 its cell of Init held whole; "dropped": no funnel ships);
+    ``nearest``, ``nearest_level``: the tightest other constraint and the level it would allow.
+    ``extent_at_T``: the largest position offset in ``E_i(T)`` from ``p_ref(T)``; ``clearance``:
+    the smallest distance from Unsafe to the position projection of ``E_i(t)`` over the file's
+    fine grid (both in the position unit; NaN for a dropped funnel). ``arrival``: ``x_ref(T)
+    (n,)``; ``arrival_velocity``: ``d p_ref/dt`` at ``T`` (2,), ``arrival_speed`` its norm."""
+
+    demo: str
+    T: float
+    level: float
+    binding: str
+    nearest: str
+    nearest_level: float
+    extent_at_T: float
+    clearance: float
+    arrival: tuple[float, ...]
+    arrival_velocity: tuple[float, ...]
+    arrival_speed: float
+
+    @property
+    def shipped(self) -> bool:
+        """A certified funnel ships (not dropped)."""
+        return self.binding != "dropped" and self.level > 0
+
+
+@dataclass(frozen=True, kw_only=True)
 class Headline:
     T_demo_mean: float
     T_optimized_mean: float
@@ -193,7 +223,8 @@ class Summary:
     """Everything ``summary.json`` holds. ``reasons``: why the verdict is not "certified and
     validated" (empty otherwise); ``timings``: wall time per stage (0: reused); ``certificate``:
     what the verdict is for, ``"constant"`` (one metric and gain, ``safety-controller/1``) or
-    ``"funnel"`` (a funnel per trajectory, ``safety-controller/2``)."""
+    ``"funnel"`` (a funnel per trajectory, ``safety-controller/2``); ``funnels``: a funnel
+    run's shipped funnels, what controller.json guarantees per trajectory (empty otherwise)."""
 
     scenario: str
     verdict: Verdict
@@ -210,6 +241,7 @@ class Summary:
     reproducibility: Reproducibility
     stress: StressSummary | None = None
     certificate: str = "constant"
+    funnels: tuple[FunnelSummary, ...] = ()
 
     @property
     def certified(self) -> bool:

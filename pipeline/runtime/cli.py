@@ -178,7 +178,13 @@ def _run(args: argparse.Namespace) -> int:
         with show_progress(verbose=options.verbose, quiet=options.quiet):
             result = synthesize(args.scenario, out=args.out, **computed)
         scenario = None if options.quiet else units_of(args.scenario)
-        print(printable(format_result(result, scenario=scenario, quiet=options.quiet)))
+        print(
+            printable(
+                format_result(
+                    result, scenario=scenario, quiet=options.quiet, verbose=options.verbose
+                )
+            )
+        )
         if not options.quiet:
             print(f"\n{format_done(result, time.monotonic() - started)}")
         return result.exit_code

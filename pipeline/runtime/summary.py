@@ -19,12 +19,14 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from pipeline.controller import ControllerFormatError, load
 from pipeline.model import geometry
 from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import Trajectory
 from pipeline.reporting.summary import (
     Claim,
     DemoSummary,
+    FunnelSummary,
     Headline,
     Reproducibility,
     StressRunSummary,
@@ -32,6 +34,7 @@ from pipeline.reporting.summary import (
     Summary,
     Verdict,
 )
+from pipeline.runtime.shipped import funnel_summaries
 from pipeline.runtime.terminal import length_unit
 from pipeline.runtime.verdict import (
     Evidence,
@@ -200,6 +203,19 @@ def _demos(run: StageResults) -> tuple[DemoSummary, ...]:
     return tuple(demos)
 
 
+def _funnels(run: StageResults) -> tuple[FunnelSummary, ...]:
+    """What controller.json guarantees per funnel (a funnel run whose file was written): read
+    from the file certify checked (this run's; a reused controller stage's result may name the
+    folder of the run that first wrote it)."""
+    if run.certificate != "funnel" or run.funnels is None or not run.controller.success:
+        return ()
+    try:
+        law = load(run.certification.path)
+    except (OSError, ControllerFormatError):
+        return ()
+    return funnel_summaries(run.scenario, law, run.funnels) if law.funnel else ()
+
+
 def _claims(run: StageResults, evidence: Evidence, certified: bool) -> tuple[Claim, ...]:
     return (
         *certificate_claims(evidence, certified, run.funnels.rejected if run.funnels else ()),
@@ -253,6 +269,7 @@ def summarise(
         ),
         stress=None if stress is None else stress_summary(stress),
         certificate=run.certificate,
+        funnels=_funnels(run),
     )
 
 

@@ -98,15 +98,21 @@ class _StdoutHandler(logging.StreamHandler):  # type: ignore[type-arg]
 
 
 def format_result(
-    result: Synthesis, *, scenario: Scenario | None = None, quiet: bool = False
+    result: Synthesis,
+    *,
+    scenario: Scenario | None = None,
+    quiet: bool = False,
+    verbose: bool = False,
 ) -> str:
-    """The end of the run: the summary (or only the verdict with ``quiet``) and the files.
-    ``scenario`` (the one run) gives the units; without it numbers are printed bare."""
+    """The end of the run: the summary (or only the verdict with ``quiet``; its tables with
+    ``verbose``) and the files. ``scenario`` (the one run) gives the units; without it numbers
+    are printed bare."""
     if result.summary is None:  # failed before a summary: the stage and the error
         return result.message
     if quiet:
         return f"verdict ({result.summary.certificate} certificate): {result.message}"
-    return f"{format_summary(result.summary, scenario)}\n\n{format_outputs(result)}"
+    summary = format_summary(result.summary, scenario, verbose=verbose)
+    return f"{summary}\n\n{format_outputs(result)}"
 
 
 def format_done(result: Synthesis, seconds: float) -> str:
@@ -159,9 +165,77 @@ def _trajectories(controller: Controller) -> str:
     return f"trajectories {', '.join(controller.labels())}"
 
 
-def format_summary(summary: Summary, scenario: Scenario | None = None) -> str:
-    """The end-of-run table, headline, claims and verdict, in ``scenario``'s units."""
+def format_summary(
+    summary: Summary, scenario: Scenario | None = None, *, verbose: bool = False
+) -> str:
+    """The end of a run in ``scenario``'s units: what ships, Init's coverage, Monte Carlo, the
+    claims and the verdict; with ``verbose`` first the tables (a funnel run: each shipped
+    funnel, then the constant certificate that seeds them; a constant run: each demo and what
+    limits its radius)."""
     length = length_unit(scenario)
+    lines: list[str] = []
+    if verbose and summary.certificate == "funnel" and summary.funnels:
+        lines += _funnel_table(summary, length)
+        lines.append(
+            "\nseed and comparison: the constant certificate (one K, P; verified by the stages, "
+            "not shipped)"
+        )
+    if verbose:
+        lines += _demo_lines(summary, scenario, length)
+    h, mc, fb = summary.headline, summary.montecarlo, summary.feedback
+    if summary.certificate == "funnel" and summary.funnels:
+        lines += _shipped_lines(summary, length)
+    else:
+        lines.append(
+            f"\nmean duration {h.T_demo_mean:.1f} s -> {h.T_optimized_mean:.1f} s "
+            f"({h.faster_percent_mean:.0f}% faster); min nominal clearance "
+            f"{_quantity(h.min_clearance_before, length, '.2f')} -> "
+            f"{_quantity(h.min_clearance_after, length, '.2f')} "
+            f"(required d = {_quantity(h.required_clearance, length, 'g')}); closed loop "
+            f"{_quantity(mc.min_clearance, length, '.2f')}"
+        )
+        lines.append(f"Init coverage: {h.coverage_before:.1%} -> {h.coverage_after:.1%}")
+        if fb.kept_radius > fb.required_radius:
+            lines.append(
+                f"  tubes kept at the covering radius {fb.kept_radius:.4g} > r_d = "
+                f"{fb.required_radius:.4g} (P-norm; balls of radius r_d about the demo starts "
+                "miss parts of Init)"
+            )
+    counts = montecarlo_counts(mc.samples, h.montecarlo_failures, mc.failures)
+    lines.append(
+        f"Monte Carlo: {counts}; failure probability <= {scientific(mc.failure_bound_95)} (95%)"
+    )
+    if mc.tube_ratio_at_T is not None:
+        q = mc.tube_ratio_at_T
+        lines.append(
+            f"  tube ratio at the final time (closed-loop error / its certified bound; <= 1 "
+            f"inside the tube): median {fixed(q.median, 3)}, max {fixed(q.max, 3)}"
+        )
+    for claim in summary.claims:
+        lines.append(f"  [{claim.kind.value}] {claim.claim}")
+    if "input slack" in mc.falsification.binding:
+        lines.append(
+            "    (input slack: how far the feedback's input stays from its bounds, in that"
+            f" input's unit{_input_units(scenario)}; below 0 it would be clipped)"
+        )
+    if summary.stress is not None:
+        lines.append(f"  [stress test, not certified] {summary.stress.message}")
+    lines.append(f"\nverdict ({summary.certificate} certificate): {summary.text}")
+    if not verbose:
+        lines.append(
+            "(the tables per "
+            + (
+                "funnel and of the constant certificate that seeds them"
+                if summary.funnels
+                else "demonstration"
+            )
+            + ": -v, or report.html)"
+        )
+    return "\n".join(lines)
+
+
+def _demo_lines(summary: Summary, scenario: Scenario | None, length: str) -> list[str]:
+    """The per-demo table and what limits each radius (the constant certificate's)."""
     lines = [
         f"\n{'demo':<9} {'T demo':>7} {'T opt':>6} {'faster':>7} {'clear before':>13}"
         f" {'clear after':>12} {'r before':>9} {'r after':>8} {'iters':>6} {'time':>6}"
@@ -197,61 +271,68 @@ def format_summary(summary: Summary, scenario: Scenario | None = None) -> str:
     bindings = dict.fromkeys(b for d in summary.demos for b in (d.binding_before, d.binding_after))
     region = summary.feedback.region
     lines += [f"  ({explain_binding(b, scenario, region)})" for b in bindings if b]
-    if summary.certificate == "funnel":
-        lines += _funnel_lines(summary)
-    h, mc, fb = summary.headline, summary.montecarlo, summary.feedback
-    lines.append(
-        f"\nmean duration {h.T_demo_mean:.1f} s -> {h.T_optimized_mean:.1f} s "
-        f"({h.faster_percent_mean:.0f}% faster); min nominal clearance "
-        f"{_quantity(h.min_clearance_before, length, '.2f')} -> "
-        f"{_quantity(h.min_clearance_after, length, '.2f')} "
-        f"(required d = {_quantity(h.required_clearance, length, 'g')}); closed loop "
-        f"{_quantity(mc.min_clearance, length, '.2f')}"
-    )
-    lines.append(f"Init coverage: {h.coverage_before:.1%} -> {h.coverage_after:.1%}")
-    if fb.kept_radius > fb.required_radius:
-        lines.append(
-            f"  tubes kept at the covering radius {fb.kept_radius:.4g} > r_d = "
-            f"{fb.required_radius:.4g} (P-norm; balls of radius r_d about the demo starts miss"
-            " parts of Init)"
-        )
-    counts = montecarlo_counts(mc.samples, h.montecarlo_failures, mc.failures)
-    lines.append(
-        f"Monte Carlo: {counts}; failure probability <= {scientific(mc.failure_bound_95)} (95%)"
-    )
-    if mc.tube_ratio_at_T is not None:
-        q = mc.tube_ratio_at_T
-        lines.append(
-            f"  tube ratio at the final time (closed-loop error / its certified bound; <= 1 "
-            f"inside the tube): median {fixed(q.median, 3)}, max {fixed(q.max, 3)}"
-        )
-    for claim in summary.claims:
-        lines.append(f"  [{claim.kind.value}] {claim.claim}")
-    if "input slack" in mc.falsification.binding:
-        lines.append(
-            "    (input slack: how far the feedback's input stays from its bounds, in that"
-            f" input's unit{_input_units(scenario)}; below 0 it would be clipped)"
-        )
-    if summary.stress is not None:
-        lines.append(f"  [stress test, not certified] {summary.stress.message}")
-    lines.append(f"\nverdict ({summary.certificate} certificate): {summary.text}")
-    return "\n".join(lines)
+    return lines
 
 
-def _funnel_lines(summary: Summary) -> list[str]:
-    """Each optimized trajectory's funnel: its level, what bounds it, its synthesis time."""
-    lines = [
-        "\nfunnels (level rho: E_i(0) holds rho times its start's cell of Init, 1 at most; bound"
-        " by: the constraint that sets it, 'design' when the funnel's own LMI caps do, which at"
-        " level 1 means the cell is held whole; synthesis time):"
+def _span(values: Sequence[float], spec: str) -> str:
+    """``low-high`` by ``spec`` (one number when they agree); ``n/a (none)`` for no value."""
+    finite = [v for v in values if math.isfinite(v)]
+    if not finite:
+        return "n/a (none)"
+    low, high = format(min(finite), spec), format(max(finite), spec)
+    return low if low == high else f"{low}-{high}"
+
+
+def _shipped_lines(summary: Summary, length: str) -> list[str]:
+    """What controller.json guarantees (a funnel run): a few lines over all its funnels."""
+    h, mc = summary.headline, summary.montecarlo
+    shipped = [f for f in summary.funnels if f.shipped]
+    bindings = sorted({f.binding for f in shipped})
+    held = all(f.binding == "design" and f.level >= 0.999 for f in shipped) and shipped
+    set_by = (
+        "the funnel's design (each start's cell of Init held whole)"
+        if held
+        else ", ".join(bindings) or "none"
+    )
+    unit = f" {length}" if length else ""
+    speed = f" {length}/s" if length else " (position units)/s"
+    return [
+        f"\nshipped: controller.json, {len(shipped)} of {len(summary.funnels)} funnels "
+        f"E_i(t), T {_span([f.T for f in summary.funnels], '.1f')} s (demonstrations "
+        f"{h.T_demo_mean:.1f} s on average: {h.faster_percent_mean:.0f}% faster)",
+        f"  levels rho {_span([f.level for f in shipped], '.3f')}, set by {set_by}",
+        f"  clearance of the funnels to Unsafe >= "
+        f"{_span([min((f.clearance for f in shipped), default=math.nan)], '.2f')}{unit}"
+        f" (closed loop, Monte Carlo: {_quantity(mc.min_clearance, length, '.2f')}); at T "
+        f"each funnel lies in Goal, within "
+        f"{_span([max((f.extent_at_T for f in shipped), default=math.nan)], '.2f')}{unit} of "
+        f"its nominal, arriving at {_span([f.arrival_speed for f in shipped], '.1f')}{speed}",
+        f"Init coverage: {h.coverage_after:.1%} (by the funnels' initial sets E_i(0))",
     ]
-    for d in summary.demos:
-        if d.funnel_level is None:
+
+
+def _funnel_table(summary: Summary, length: str) -> list[str]:
+    """Each shipped funnel (``-v``): T, level, what sets it, extent at T, clearance, arrival."""
+    unit = length or "pos. units"
+    lines = [
+        f"\n{'funnel':<9} {'T':>5} {'level':>6}  {'set by (next: its level)':<40} "
+        f"{'extent@T':>8} {'clearance':>9} {'arrival':>8}"
+    ]
+    for f in summary.funnels:
+        if not f.shipped:
+            lines.append(f"{f.demo:<9} {f.T:>4.1f}s {'dropped':>6}")
             continue
-        level = "dropped" if d.funnel_binding == "dropped" else f"{d.funnel_level:.3f}"
-        binding = "" if d.funnel_binding == "dropped" else d.funnel_binding or ""
-        seconds = "" if d.funnel_seconds is None else f"{d.funnel_seconds:.1f} s"
-        lines.append(f"  {d.demo:<9} {level:>7}  {binding:<30} {seconds:>7}")
+        nearest = f" (next: {f.nearest} {f.nearest_level:.2f})" if f.nearest else ""
+        lines.append(
+            f"{f.demo:<9} {f.T:>4.1f}s {f.level:>6.3f}  {(f.binding + nearest)[:40]:<40} "
+            f"{f.extent_at_T:>8.3f} {f.clearance:>9.3f} {f.arrival_speed:>8.2f}"
+        )
+    lines.append(
+        f"(level rho: E_i(0) holds rho times its start's cell of Init, 1 at most; set by: the "
+        f"constraint that sets it, 'design' when the funnel's own LMI caps do; extent@T: the "
+        f"funnel's largest position offset at T, {unit}; clearance: the funnel's smallest "
+        f"distance to Unsafe over [0, T], {unit}; arrival: the nominal's speed at T, {unit}/s)"
+    )
     return lines
 
 
@@ -356,3 +437,23 @@ def optimization_logs(optimized: OptimizeResult) -> str:
         lines.append(f"{trajectory.demo}: descent log at N' = {trajectory.N}")
         lines.append(trajectory.log.table())
     return "\n".join(lines)
+
+
+def describe_reoptimized(result: OptimizeResult) -> str:
+    """A funnel round's line: the trajectories optimized again, and those already settled (at
+    their shortest allowed horizon) named on one line, not one sentence each."""
+    if result.success:
+        return result.message
+    settled = [
+        t.demo for t in result.trajectories if not t.success and "may not be shortened" in t.message
+    ]
+    failed = [
+        t.message
+        for t in result.trajectories
+        if not t.success and "may not be shortened" not in t.message
+    ]
+    again = sum(1 for t in result.trajectories if t.success)
+    parts = [f"searched again for {again} of {len(result.trajectories)} trajectories"]
+    if settled:
+        parts.append(f"{len(settled)} already at their shortest horizon ({', '.join(settled)})")
+    return "; ".join(parts + failed)

@@ -181,7 +181,8 @@ def certificate_claims(
                 "P_i(t) <= rho_i} before T_i (the law tracks x_ref interpolated; its error is in "
                 "the proof)",
                 kind=contraction,
-                how="LMIs (F3) at every vertex of a sound Jacobian hull of each interval's tube, "
+                how="the funnel's LMIs (F3: V = e^T P_i(t) e decreases at the rate, in Q = P^-1 "
+                "form) at every vertex of a sound Jacobian hull of each interval's tube, "
                 "at both ends of every interval, solved by Clarabel; re-verified on "
                 "controller.json as written with the interpolated reference's bounded term "
                 f"(largest eigenvalue plus term {check.contraction_margin:.2e} < "

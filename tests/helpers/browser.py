@@ -58,6 +58,28 @@ for (const svg of document.querySelectorAll("figure svg")) {
   out.figures.push({id: svg.closest("figure").id, left: box.left, right: box.right, parts,
                     smallest: Math.min(...sizes)});
 }
+// layout: every element inside the column (main's content box), every scroll box without
+// sideways overflow unless it is a table's, the stacked tables shown as cards, captions outside
+const main = document.querySelector("main"), style = getComputedStyle(main);
+const column = [main.getBoundingClientRect().left + parseFloat(style.paddingLeft),
+                main.getBoundingClientRect().right - parseFloat(style.paddingRight)];
+out.column = column;
+out.wider = [...main.querySelectorAll("*")].filter((e) => !e.closest("svg") || e.tagName === "svg")
+  .filter((e) => !e.closest(".table-wrap") || e.classList.contains("table-wrap"))
+  .map((e) => [e.tagName + (typeof e.className === "string" ? "." + e.className : ""),
+               e.getBoundingClientRect()])
+  .filter(([, r]) => r.width > 0 && (r.left < column[0] - 1 || r.right > column[1] + 1))
+  .map(([name, r]) => [name, r.left, r.right]);
+out.tables = [...document.querySelectorAll("main table")].map((table) => {
+  const wrap = table.closest(".table-wrap") || table.parentElement;
+  const block = wrap.parentElement;
+  const caption = table.querySelector("caption") || block.querySelector(".caption");
+  return {caption: caption ? caption.textContent.slice(0, 40) : "",
+          captionInWrap: caption ? wrap.contains(caption) : false,
+          stack: table.classList.contains("stack"),
+          display: getComputedStyle(table.querySelector("tbody tr")).display,
+          overflow: wrap.scrollWidth - wrap.clientWidth};
+});
 document.body.setAttribute("data-measured", JSON.stringify(out));
 </script>"""
 
@@ -99,3 +121,19 @@ def assert_figures_fit(measured: dict, width: int) -> None:
         for name, *margins in figure["parts"]:
             assert min(margins) >= -1.0, f"{name} sticks out of its figure by {-min(margins)} px"
         assert figure["smallest"] >= 8.0, f"{figure['id']}: text {figure['smallest']:.1f} px"
+
+
+def assert_layout(measured: dict, width: int) -> None:
+    """No element wider than the column; on a phone (< 700 px) the stacked tables (claims,
+    per demonstration) are cards with nothing to scroll sideways; at any width no table scrolls
+    sideways at 1280 px and wider; every caption outside its table's scroll box."""
+    assert not measured["wider"], f"wider than the column {measured['column']}: {measured['wider']}"
+    for table in measured["tables"]:
+        assert not table["captionInWrap"], table
+        if table["stack"] and width < 700:
+            assert table["display"] == "block" and table["overflow"] <= 1, table
+        if width >= 1280:
+            assert table["overflow"] <= 1, f"scrolls sideways at {width} px: {table}"
+    assert measured["tables"], "no table measured"
+    if width < 700:
+        assert sum(table["stack"] for table in measured["tables"]) >= 2  # claims, per demo

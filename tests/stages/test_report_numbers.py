@@ -77,6 +77,8 @@ class _Report(HTMLParser):
         self._card: dict[str, str] = {}
         self._cell: list[str] | None = None
         self._svg = 0
+        self._caption = False  # inside a table's caption (a div before its scroll box)
+        self._pending = ""  # the caption read, for the next table
 
     def handle_starttag(self, tag: str, attrs: list[tuple[str, str | None]]) -> None:
         classes = (dict(attrs).get("class") or "").split()
@@ -88,8 +90,11 @@ class _Report(HTMLParser):
             self._field = classes[0]
         elif tag == "div" and classes[:1] == ["note"]:
             self._field = "note"
+        elif tag == "div" and classes[:1] == ["caption"]:
+            self._caption, self._cell = True, []
         elif tag == "table":
-            self.tables.append(("", [], []))
+            self.tables.append((self._pending, [], []))
+            self._pending = ""
         elif tag == "tr" and self.tables:
             self.tables[-1][2].append([])
         if tag in ("caption", "td", "th", "p", "figcaption") or self._field:
@@ -100,6 +105,9 @@ class _Report(HTMLParser):
             self._svg -= 1
             return
         text = " ".join("".join(self._cell or []).split())
+        if tag == "div" and self._caption:
+            self._pending, self._caption, self._cell = text, False, None
+            return
         if tag == "div" and self._field:
             self._card[self._field] = text
             self._field, self._cell = None, None
@@ -180,27 +188,49 @@ def _cross_check(out: Path) -> tuple[_Report, Summary]:
     table = _value(report.row("Margins", "minimum clearance to Unsafe")[1])
     assert card == pytest.approx(round(table, 2), abs=0.0051)
     # Init coverage: the card against the coverage table (and, funnel run, what ships)
-    before, after = (float(p.strip(" %")) for p in report.cards["Init coverage"][0].split("→"))
-    assert report.row("Coverage certificate", "demonstrations")[2] == f"{before:.1f}%"
-    if summary.certificate == "funnel":
-        shipped = report.row("Constant vs funnel", "funnel")
-        assert shipped[5] == f"{after:.1f}%" and f"Monte Carlo: {counts}" in shipped[6]
-        assert f"cover {after:.1f}% of Init" in " ".join(report.figure_captions)
-    else:
-        assert report.row("Coverage certificate", "optimized")[2] == f"{after:.1f}%"
-    # the nominal clearance and terminal times: the card against the per-demo table
     header, demos = report.table("Per demonstration")
-    column = {name: [_value(d[header.index(name)]) for d in demos] for name in header[2:8]}
+    text_columns = ("level set by", "optimized")
+    column = {
+        name: [_value(d[header.index(name)]) for d in demos]
+        for name in header[2:]
+        if name not in text_columns
+    }
     low, high = (_value(p) for p in report.cards["Nominal clearance to Unsafe"][0].split("→"))
-    assert low == pytest.approx(min(column["clearance before (m)"]), abs=0.0051)
-    assert high == pytest.approx(min(column["clearance after (m)"]), abs=0.0051)
     faster_note = report.cards["Faster (mean over demos)"][1]
     times = re.search(r"terminal time ([\d.]+) s → ([\d.]+) s", faster_note)
     assert times, report.cards
-    assert float(times[1]) == pytest.approx(np.mean(column["T demo (s)"]), abs=0.1)
-    assert float(times[2]) == pytest.approx(np.mean(column["T opt (s)"]), abs=0.1)
     faster = _value(report.cards["Faster (mean over demos)"][0])
     assert faster == pytest.approx(np.mean(column["faster"]), abs=1.0)
+    assert float(times[1]) == pytest.approx(np.mean(column["T demo (s)"]), abs=0.1)
+    if summary.certificate == "funnel":
+        shown = report.cards["Init coverage"][0]
+        assert report.row("Coverage certificate", "shipped funnels")[2] == shown
+        shipped = report.row("Constant vs funnel", "funnel")
+        assert shipped[5] == shown and f"Monte Carlo: {counts}" in shipped[6]
+        assert f"cover {shown} of Init" in " ".join(report.figure_captions)
+        # what ships: the cards against the per-demo table of the shipped funnels
+        assert float(times[2]) == pytest.approx(np.mean(column["T shipped (s)"]), abs=0.1)
+        assert high == pytest.approx(min(column["nominal clearance (m)"]), abs=0.0051)
+        assert low == pytest.approx(min(d.clearance_before for d in summary.demos), abs=0.0051)
+        funnel = _value(report.cards["Funnel clearance to Unsafe"][0].lstrip("≥ "))
+        assert funnel == pytest.approx(min(column["funnel clearance (m)"]), abs=0.0051)
+        speeds = column["arrival speed (m/s)"]
+        arrival = report.cards["Arrival at T"][0]
+        assert arrival.startswith(f"{min(speeds):.1f}") and f"{max(speeds):.1f} m/s" in arrival
+        T = column["T shipped (s)"]
+        value = report.cards["Shipped: controller.json"][0]
+        assert f"T {min(T):.1f}" in value and value.endswith(f"{max(T):.1f} s")
+        extent = re.search(r"at most ([\d.]+) m", report.cards["Arrival at T"][1])
+        assert extent and float(extent[1]) == pytest.approx(
+            max(column["extent at T (m)"]), abs=0.0051
+        )
+    else:
+        before, after = (float(p.strip(" %")) for p in report.cards["Init coverage"][0].split("→"))
+        assert report.row("Coverage certificate", "demonstrations")[2] == f"{before:.1f}%"
+        assert report.row("Coverage certificate", "optimized")[2] == f"{after:.1f}%"
+        assert float(times[2]) == pytest.approx(np.mean(column["T opt (s)"]), abs=0.1)
+        assert low == pytest.approx(min(column["clearance before (m)"]), abs=0.0051)
+        assert high == pytest.approx(min(column["clearance after (m)"]), abs=0.0051)
     # the wall time: the card and the timings table's total
     total = _value(report.row("Wall time per stage", "total")[1])
     assert _value(report.cards["Wall time"][0]) == pytest.approx(total, abs=0.051)
@@ -300,3 +330,71 @@ def test_a_failing_monte_carlo_counts_runs_and_shows_no_infinity(
     assert "worst safety margin found n/a (not covered)" in text
     assert "falsification: worst margin found | n/a (not covered)" in text
     assert not INFINITY.search(text), INFINITY.search(text)
+
+
+def _blocks(out: Path, tmp_path: Path) -> list[tuple[str, str, str]]:
+    """``(section key, kind, caption or text)`` of every figure, table and paragraph of the
+    report of the run in ``out`` (rebuilt from its artifacts into ``tmp_path``)."""
+    data = load_report_data(load_scenario("quadrotor_hill"), out, write_to=tmp_path)
+    return [
+        (section.key, block.kind, getattr(block, "caption", "") or getattr(block, "text", ""))
+        for section in build_sections(data)
+        for block in section.blocks
+        if block.kind in ("figure", "table", "paragraph")
+    ]
+
+
+@pytest.mark.parametrize("certificate", ["constant", "funnel"])
+def test_every_caption_is_true_for_the_certificate_that_ran(
+    certificate: str, request: pytest.FixtureRequest, tmp_path: Path
+) -> None:
+    """Issue 30, items 2-4: each caption read for the run's certificate. A funnel run's
+    captions outside section "Seed and comparison" describe what ships, and any that names
+    the constant certificate says it is not shipped (or the seed); the constant certificate's
+    tables (radii, its gain K and certificate) are in that section only; the funnels are drawn
+    as outlines with the arrival arrows. A constant run names no funnel and has no seed
+    section. Both: the step-size panel is described only under gradient descent, the
+    Monte Carlo caption says the dotted d line is not a closed-loop requirement."""
+    fixture = "synthesized" if certificate == "funnel" else "synthesized_constant"
+    out = request.getfixturevalue(fixture)[1]
+    blocks = _blocks(out, tmp_path)
+    captions = {key: [text for k, kind, text in blocks if k == key] for key, _, _ in blocks}
+    method = json.loads((out / "artifacts" / "optimize.json").read_text())
+    lbfgs = '"method": "lbfgs"' in json.dumps(method)
+    (optimization,) = [t for k, kind, t in blocks if kind == "figure" and k == "optimization"]
+    assert ("step size" in optimization) is not lbfgs, optimization
+    (montecarlo,) = [t for k, kind, t in blocks if kind == "figure" and k == "montecarlo"]
+    assert "not a closed-loop requirement" in montecarlo
+    robustness = ("Robustness radii", "Constant certificate per demonstration", "Certificate")
+    if certificate == "constant":
+        assert "seed" not in captions
+        for key, _kind, text in blocks:
+            assert "funnel" not in text.lower(), (key, text)
+        assert any(t.startswith("Robustness radii") for t in captions["coverage"])
+        return
+    assert list(captions)[-2:] == ["seed", "reproducibility"]
+    for key, kind, text in blocks:
+        if key in ("seed", "reproducibility"):
+            continue
+        if "constant certificate" in text:  # named only as the seed, or not shipped
+            assert re.search(r"not shipped|seed|constant certificate's optimized", text), (
+                key,
+                text,
+            )
+        if kind == "table":
+            assert not text.startswith(robustness), (key, text)
+    seed = captions["seed"]
+    assert any(
+        t.startswith("Constant certificate per demonstration (the seed, not shipped)") for t in seed
+    )
+    assert any(
+        t.startswith("Feedback gain K (inputs × states) of the constant certificate") for t in seed
+    )
+    assert seed[0].startswith("Not shipped.")
+    (demos,) = [t for t in captions["summary"] if t.startswith("Per demonstration")]
+    assert demos.startswith("Per demonstration: the shipped funnel of controller.json")
+    figures = [t for _, kind, t in blocks if kind == "figure"]
+    shipped = [t for t in figures if t.startswith(("All demonstrations", "The shipped funnels"))]
+    assert len(shipped) == 2, figures
+    for caption in shipped:  # the overview and the funnel figure
+        assert "outline" in caption and "arrives" in caption and "shaded" not in caption

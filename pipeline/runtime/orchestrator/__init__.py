@@ -243,8 +243,9 @@ def _synthesize(
     demo_trajectories = run_inputs.trajectories(scenario, demo_starts, demo_inputs)
     log.info(
         f"scenario {scenario.name}: {len(scenario.demos)} demos, all valid "
-        f"(never in Unsafe, end in Goal)\n{demo_table(scenario, demo_trajectories)}\n"
+        "(never in Unsafe, end in Goal)"
     )
+    log.debug(f"{demo_table(scenario, demo_trajectories)}\n")  # the table under -v
     quiet = not log.isEnabledFor(logging.INFO)  # progress bars only where lines are shown
 
     feedback = runner.run(

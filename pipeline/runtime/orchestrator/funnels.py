@@ -23,7 +23,7 @@ from pipeline.numerics.funnel_check import Funnel
 from pipeline.runtime import run_inputs
 from pipeline.runtime.codekey import code_key
 from pipeline.runtime.runner import StageRunner
-from pipeline.runtime.terminal import describe_coverage
+from pipeline.runtime.terminal import describe_coverage, describe_reoptimized
 from stages.coverage import CoverageResult, cover_balls
 from stages.feedback import FeedbackResult
 from stages.funnel import FunnelStageResult, synthesize_funnels
@@ -189,7 +189,7 @@ def reoptimize_rounds(
                     advance,
                     shortest=shortest,
                 ),  # fmt: skip
-                describe=lambda result: result.message,
+                describe=describe_reoptimized,
             )
         moved = [
             i
