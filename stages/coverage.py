@@ -14,13 +14,14 @@ ball indices form the controller's lookup table.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import ClassVar, Protocol
 
 import numpy as np
 
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
 from pipeline.numerics.cover import DEFAULT_DEPTH, subdivide
+from pipeline.results.stage import Stage, StageInputs
 
 MAX_BISECTIONS = 200  # covering_radius: tries of a radius (about 10 suffice in practice)
 
@@ -243,3 +244,58 @@ def _point_covering_radius(
             )
         ),
     )
+
+
+@dataclass(frozen=True, kw_only=True)
+class CoverageInputs(StageInputs):
+    """What stage ``coverage`` reads: Init, and the balls ``(x - centers[i])^T metrics[i]
+    (x - centers[i]) <= radii[i]^2`` (``metrics (n, n)`` or ``(k, n, n)``, ``centers (k, n)``,
+    ``radii (k,)``); ``noun`` names a ball in its message."""
+
+    scenario_fields: ClassVar = (
+        "dynamics",
+        "init_lower",
+        "init_upper",
+    )
+    scenario: Scenario
+    metrics: FloatArray
+    centers: FloatArray
+    radii: FloatArray
+    noun: str = "ball"
+
+
+def _coverage_stage(inputs: CoverageInputs) -> CoverageResult:
+    return cover_balls(
+        inputs.scenario, inputs.metrics, inputs.centers, inputs.radii, noun=inputs.noun
+    )
+
+
+@dataclass(frozen=True, kw_only=True)
+class CoveringRadiusInputs(StageInputs):
+    """What stage ``covering_radius`` reads: Init, the metric ``P (n, n)``, the demo starts
+    ``centers (k, n)`` and the largest radius tried ``upper``."""
+
+    scenario_fields: ClassVar = (
+        "dynamics",
+        "init_lower",
+        "init_upper",
+    )
+    scenario: Scenario
+    P: FloatArray
+    centers: FloatArray
+    upper: float
+
+
+@dataclass(frozen=True, kw_only=True)
+class _Metric:
+    P: FloatArray
+
+
+def _covering_radius_stage(inputs: CoveringRadiusInputs) -> CoveringRadius:
+    return covering_radius(inputs.scenario, _Metric(P=inputs.P), inputs.centers, inputs.upper)
+
+
+COVERAGE = Stage("coverage", _coverage_stage, CoverageInputs, CoverageResult)
+COVERING_RADIUS = Stage(
+    "covering_radius", _covering_radius_stage, CoveringRadiusInputs, CoveringRadius
+)

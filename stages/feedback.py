@@ -33,6 +33,7 @@ from __future__ import annotations
 import warnings
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import control
 import cvxpy as cp
@@ -42,6 +43,7 @@ from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
 from pipeline.numerics.hull import DEFAULT_SEGMENTS, HullError, jacobian_hull
 from pipeline.numerics.tube import Tube
+from pipeline.results.stage import Stage, StageInputs
 
 GAINS = ("auto", "lqr", "joint")
 EPS = 1e-3
@@ -411,3 +413,28 @@ def design_feedback(
         objective=design.objective,
         hull=hull.blocks,
     )
+
+
+@dataclass(frozen=True, kw_only=True)
+class FeedbackInputs(StageInputs):
+    """What stage ``feedback`` reads: the scenario's dynamics, region, bounds and weights."""
+
+    scenario_fields: ClassVar = (
+        "clearance",
+        "dynamics",
+        "feedback",
+        "init_lower",
+        "init_upper",
+        "input_lower",
+        "input_upper",
+        "operating_region",
+        "position_index",
+    )
+    scenario: Scenario
+
+
+def _feedback_stage(inputs: FeedbackInputs) -> FeedbackResult:
+    return design_feedback(inputs.scenario)
+
+
+FEEDBACK = Stage("feedback", _feedback_stage, FeedbackInputs, FeedbackResult)

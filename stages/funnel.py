@@ -30,6 +30,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
+from typing import ClassVar
 
 import numpy as np
 
@@ -41,6 +42,7 @@ from pipeline.numerics.cells import init_cells
 from pipeline.numerics.funnel import synthesize_funnel
 from pipeline.numerics.funnel_check import Funnel, check_funnel
 from pipeline.numerics.recertify import ShippedFunnel, recheck_as_shipped
+from pipeline.results.stage import Stage, StageInputs
 
 preload_in_workers(__name__)  # its chunks run in worker processes
 
@@ -262,3 +264,52 @@ def _describe(funnels: Sequence[Funnel], usable: Sequence[int], rejected: Sequen
     else:
         found = f"no funnel certified for any of the {len(funnels)} trajectories; {timing}"
     return "; ".join([found, *rejected])
+
+
+@dataclass(frozen=True, kw_only=True)
+class FunnelInputs(StageInputs):
+    """What stage ``funnel`` reads: the trajectories' names and final nominals, the constant
+    certificate's metric ``P (n, n)`` and ball radius per trajectory ``radii (k,)``."""
+
+    scenario_fields: ClassVar = (
+        "Ts",
+        "clearance",
+        "dynamics",
+        "feedback",
+        "goal",
+        "goal_bounds",
+        "init_lower",
+        "init_upper",
+        "input_lower",
+        "input_upper",
+        "position_index",
+        "state_bounds",
+        "unsafe",
+    )
+    scenario: Scenario
+    names: tuple[str, ...]
+    trajectories: tuple[Trajectory, ...]
+    P: FloatArray
+    radii: FloatArray
+
+
+def _funnel_stage(
+    inputs: FunnelInputs,
+    *,
+    executor: Executor | None = None,
+    progress: Callable[[int], None] | None = None,
+    reuse: Sequence[tuple[Funnel, str | None] | None] | None = None,
+) -> FunnelStageResult:
+    return synthesize_funnels(
+        inputs.scenario,
+        inputs.names,
+        inputs.trajectories,
+        inputs.P,
+        inputs.radii,
+        executor=executor,
+        progress=progress,
+        reuse=reuse,
+    )
+
+
+FUNNEL = Stage("funnel", _funnel_stage, FunnelInputs, FunnelStageResult)

@@ -28,6 +28,7 @@ from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 from scipy.optimize import minimize
@@ -43,6 +44,7 @@ from pipeline.numerics.rollouts import (
     hold_runs_compiled,
     run_paths_compiled,
 )
+from pipeline.results.stage import FileInput, Stage, StageInputs
 
 preload_in_workers(__name__)  # its chunks run in worker processes
 
@@ -278,3 +280,42 @@ def validate_closed_loop(
         hold_runs=held,
         hold_max_level_ratio=hold_level,
     )
+
+
+@dataclass(frozen=True, kw_only=True)
+class MonteCarloInputs(StageInputs):
+    """What stage ``montecarlo`` reads: the ``controller.json`` it flies (keyed by its bytes),
+    the number of runs and the seed."""
+
+    scenario_fields: ClassVar = (
+        "dynamics",
+        "goal",
+        "goal_bounds",
+        "init_lower",
+        "init_upper",
+        "position_index",
+        "unsafe",
+    )
+    scenario: Scenario
+    controller: FileInput
+    samples: int
+    seed: int
+
+
+def _montecarlo_stage(
+    inputs: MonteCarloInputs,
+    *,
+    executor: Executor | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> MonteCarloResult:
+    return validate_closed_loop(
+        inputs.scenario,
+        inputs.controller.path,
+        samples=inputs.samples,
+        seed=inputs.seed,
+        executor=executor,
+        progress=progress,
+    )
+
+
+MONTECARLO = Stage("montecarlo", _montecarlo_stage, MonteCarloInputs, MonteCarloResult)

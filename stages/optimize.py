@@ -27,6 +27,7 @@ import dataclasses
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
 
@@ -49,6 +50,7 @@ from pipeline.numerics.penalties import MarginError
 from pipeline.numerics.problem import Problem, make_problem
 from pipeline.numerics.settings import DESCENT_METHODS, EPS_D, EPS_G, EPS_I, HORIZON_SEARCHES
 from pipeline.numerics.verify import Verification
+from pipeline.results.stage import Stage, StageInputs
 
 preload_in_workers(__name__)  # its chunks run in worker processes
 
@@ -433,3 +435,83 @@ def reoptimize_with_funnels(
     if progress is not None:
         progress(len(kept))
     return _result(results, options, "optimized again within their funnels and verified")
+
+
+@dataclass(frozen=True, kw_only=True)
+class OptimizeInputs(StageInputs):
+    """What stage ``optimize`` reads: the demos, the margins every tube keeps and the
+    optimizer."""
+
+    scenario_fields: ClassVar = (
+        "Ts",
+        "demos",
+        "dynamics",
+        "goal",
+        "goal_bounds",
+        "input_lower",
+        "input_upper",
+        "operating_region",
+        "position_index",
+        "state_bounds",
+        "unsafe",
+    )
+    scenario: Scenario
+    margins: ConstraintMargins
+    options: OptimizeOptions
+
+
+def _optimize_stage(
+    inputs: OptimizeInputs,
+    *,
+    executor: Executor | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> OptimizeResult:
+    return optimize(
+        inputs.scenario, inputs.margins, inputs.options, executor=executor, progress=progress
+    )
+
+
+@dataclass(frozen=True, kw_only=True)
+class ReoptimizeInputs(StageInputs):
+    """What stage ``reoptimize`` (round k of the funnel certificate) reads: each trajectory's
+    previous optimization (its nominal replaced by the kept one), its funnel, the optimizer,
+    and the fewest samples each may end with (``shortest``)."""
+
+    scenario_fields: ClassVar = (
+        "Ts",
+        "clearance",
+        "dynamics",
+        "goal",
+        "goal_bounds",
+        "input_lower",
+        "input_upper",
+        "position_index",
+        "state_bounds",
+        "unsafe",
+    )
+    scenario: Scenario
+    trajectories: tuple[TrajectoryOptimization, ...]
+    funnels: tuple[Funnel, ...]
+    options: OptimizeOptions
+    shortest: tuple[int, ...]
+
+
+def _reoptimize_stage(
+    inputs: ReoptimizeInputs,
+    *,
+    executor: Executor | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> OptimizeResult:
+    return reoptimize_with_funnels(
+        inputs.scenario,
+        inputs.trajectories,
+        inputs.funnels,
+        inputs.options,
+        executor,
+        progress,
+        shortest=inputs.shortest,
+    )
+
+
+OPTIMIZE = Stage("optimize", _optimize_stage, OptimizeInputs, OptimizeResult)
+REOPTIMIZE = Stage("reoptimize", _reoptimize_stage, ReoptimizeInputs, OptimizeResult)

@@ -12,11 +12,13 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import Trajectory
 from pipeline.numerics.tube import Tube
 from pipeline.numerics.tube_radius import radius_limits
+from pipeline.results.stage import Stage, StageInputs
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -69,3 +71,32 @@ def robustness_radius(scenario: Scenario, tube: Tube, trajectory: Trajectory) ->
         success=radius > 0,
         message=message,
     )
+
+
+@dataclass(frozen=True, kw_only=True)
+class RadiusInputs(StageInputs):
+    """What stage ``radius`` reads: the certified tube and the nominals (one radius each)."""
+
+    scenario_fields: ClassVar = (
+        "dynamics",
+        "goal",
+        "goal_bounds",
+        "input_lower",
+        "input_upper",
+        "position_index",
+        "state_bounds",
+        "unsafe",
+    )
+    scenario: Scenario
+    tube: Tube
+    trajectories: tuple[Trajectory, ...]
+
+
+def _radius_stage(inputs: RadiusInputs) -> tuple[RadiusResult, ...]:
+    return tuple(
+        robustness_radius(inputs.scenario, inputs.tube, trajectory)
+        for trajectory in inputs.trajectories
+    )
+
+
+RADIUS = Stage("radius", _radius_stage, RadiusInputs, RadiusResult)

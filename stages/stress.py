@@ -11,12 +11,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 
 from pipeline.controller import load
 from pipeline.model.scenario import Scenario
 from pipeline.numerics.closed_loop import check_runs
+from pipeline.results.stage import FileInput, Stage, StageInputs
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -103,3 +105,31 @@ def _empty() -> StressRun:
         min_clearance=nan,
         min_goal_margin=nan,
     )
+
+
+@dataclass(frozen=True, kw_only=True)
+class StressInputs(StageInputs):
+    """What stage ``stress`` reads: the scenario's ``stress`` section (in ``spec``), the
+    ``controller.json`` it flies (keyed by its bytes) and the seed."""
+
+    scenario_fields: ClassVar = (
+        "dynamics",
+        "goal",
+        "goal_bounds",
+        "init_lower",
+        "init_upper",
+        "name",
+        "position_index",
+        "spec",
+        "unsafe",
+    )
+    scenario: Scenario
+    controller: FileInput
+    seed: int
+
+
+def _stress_stage(inputs: StressInputs) -> StressResult:
+    return stress_test(inputs.scenario, inputs.controller.path, seed=inputs.seed)
+
+
+STRESS = Stage("stress", _stress_stage, StressInputs, StressResult)

@@ -8,14 +8,14 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Sequence
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from pipeline.io.artifacts import inputs_key
 from pipeline.io.errors import UserError
 from pipeline.model.scenario import Scenario
-from pipeline.model.scenario_data import scenario_data
+from pipeline.model.scenario_data import plain, scenario_data
 from pipeline.model.simulate import Trajectory, simulate
 from pipeline.numerics.sampled import HeldRate, held_rate
 from pipeline.numerics.verify import VERIFY_SUBSTEPS
@@ -93,6 +93,17 @@ def scenario_key(scenario: Scenario, *exclude: str) -> str:
     ``exclude`` (names of fields of the scenario or of its ``spec``). ``dataclasses.replace(
     scenario, clearance=0.25)`` has another key than ``scenario``."""
     return inputs_key(scenario_data(scenario, exclude))
+
+
+def scenario_slice(scenario: Scenario, names: Sequence[str]) -> dict[str, Any]:
+    """Field name -> plain data (``pipeline.model.scenario_data.plain``) for the fields
+    ``names`` of ``scenario`` that a stage declares it reads (``StageInputs.scenario_fields``);
+    a name that is no field of a ``Scenario`` raises ``ValueError``."""
+    known = {f.name for f in dataclasses.fields(scenario)}
+    unknown = [name for name in names if name not in known]
+    if unknown:
+        raise ValueError(f"scenario_fields names no field of a Scenario: {unknown}")
+    return {name: plain(getattr(scenario, name), name) for name in names}
 
 
 def montecarlo_key(scenario: Scenario, controller_sha256: str, samples: int, seed: int) -> str:

@@ -7,27 +7,24 @@ stages.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import logging
 import math
 from collections.abc import Sequence
 
 import numpy as np
 
-from pipeline.io.artifacts import inputs_key
 from pipeline.io.executor import Executor
 from pipeline.io.progress import progress_bar
 from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import Trajectory
 from pipeline.numerics.funnel_check import Funnel
 from pipeline.runtime import run_inputs
-from pipeline.runtime.codekey import code_key
 from pipeline.runtime.runner import StageRunner
 from pipeline.runtime.terminal import describe_coverage
-from stages.coverage import CoverageResult, cover_balls
+from stages.coverage import COVERAGE, CoverageInputs, CoverageResult
 from stages.feedback import FeedbackResult
-from stages.funnel import FunnelStageResult, synthesize_funnels
-from stages.optimize import OptimizeOptions, OptimizeResult, reoptimize_with_funnels
+from stages.funnel import FUNNEL, FunnelInputs, FunnelStageResult
+from stages.optimize import REOPTIMIZE, OptimizeOptions, OptimizeResult, ReoptimizeInputs
 
 log = logging.getLogger(__name__)
 FUNNEL_ROUNDS = 10  # re-optimize rounds against the funnels at most (issue 16 part 4)
@@ -42,7 +39,6 @@ class FunnelRun:
     """What every funnel stage of one run shares.
 
     Attributes:
-      tube: the key of the feedback the run certified (every funnel stage's inputs include it).
       feedback: the constant certificate (its metric assigns Init's cells to the starts).
       starts: (n,) per trajectory, the demonstrations' starts, which every nominal keeps.
       initial_radii: per trajectory, the constant ball's radius (I1), for a start owning no cell.
@@ -52,7 +48,6 @@ class FunnelRun:
     scenario: Scenario
     runner: StageRunner
     executor: Executor
-    tube: str
     feedback: FeedbackResult
     starts: Sequence[np.ndarray]
     initial_radii: Sequence[float]
@@ -62,7 +57,6 @@ class FunnelRun:
 
 def funnel_stages(
     run: FunnelRun,
-    inputs: Sequence[np.ndarray],
     trajectories: Sequence[Trajectory],
     stage: str = "funnel",
     reuse: Sequence[tuple[Funnel, str | None] | None] | None = None,
@@ -72,40 +66,39 @@ def funnel_stages(
     earlier round around the same nominal, with its verdict then) and ``coverage_<stage>``
     (Init by the usable funnels' initial ellipsoids ``E_i(0)``, each in its own metric
     ``P_i[0]``)."""
-    scenario, runner, starts = run.scenario, run.runner, run.starts
-    names = [d.name for d in scenario.demos]
+    scenario = run.scenario
     with progress_bar(len(trajectories), "funnels", run.quiet) as advance:
-        funnels: FunnelStageResult = runner.run(
-            stage,
-            inputs_key(
-                code_key("stages.funnel"), run.tube, names, *starts, *inputs, run.initial_radii
+        funnels: FunnelStageResult = run.runner.run(
+            FUNNEL,
+            FunnelInputs(
+                scenario=scenario,
+                names=tuple(d.name for d in scenario.demos),
+                trajectories=tuple(trajectories),
+                P=run.feedback.certified_tube.P,
+                radii=np.asarray(run.initial_radii),
             ),
-            lambda: synthesize_funnels(
-                scenario,
-                names,
-                trajectories,
-                run.feedback.certified_tube.P,
-                np.asarray(run.initial_radii),
-                executor=run.executor,
-                progress=advance,
-                reuse=reuse,
-            ),
+            name=stage,
             describe=lambda result: result.message,
+            executor=run.executor,
+            progress=advance,
+            reuse=reuse,
         )
-    return funnels, _funnel_coverage(run, f"coverage_{stage}", funnels, runner.digest(stage))
+    return funnels, _funnel_coverage(run, f"coverage_{stage}", funnels)
 
 
-def _funnel_coverage(
-    run: FunnelRun, stage: str, funnels: FunnelStageResult, *inputs: object
-) -> CoverageResult:
+def _funnel_coverage(run: FunnelRun, stage: str, funnels: FunnelStageResult) -> CoverageResult:
     """Stage ``stage``: Init covered by the usable funnels' initial ellipsoids ``E_i(0)``, each
-    in its own metric ``P_i[0]`` at its level; ``inputs`` name the funnels in its key."""
+    in its own metric ``P_i[0]`` at its level."""
     return run.runner.run(
-        stage,
-        inputs_key(code_key("stages.coverage"), run.tube, *inputs, *run.starts),
-        lambda: cover_balls(
-            run.scenario, funnels.starts, np.array(run.starts), funnels.levels, noun="funnel start"
+        COVERAGE,
+        CoverageInputs(
+            scenario=run.scenario,
+            metrics=funnels.starts,
+            centers=np.array(run.starts),
+            radii=funnels.levels,
+            noun="funnel start",
         ),
+        name=stage,
         describe=describe_coverage,
     )
 
@@ -171,25 +164,18 @@ def reoptimize_rounds(
         ]
         with progress_bar(len(previous), f"round {k}: optimized again", run.quiet) as advance:
             again: OptimizeResult = runner.run(
-                f"reoptimize_{k}",
-                inputs_key(
-                    code_key("stages.optimize"),
-                    runner.digest(_round_stage(k - 1)),
-                    *inputs,
-                    shortest,
-                    repr(run.options),
-                ),  # fmt: skip
-                functools.partial(
-                    reoptimize_with_funnels,
-                    scenario,
-                    previous,
-                    funnels.funnels,
-                    run.options,
-                    run.executor,
-                    advance,
-                    shortest=shortest,
-                ),  # fmt: skip
+                REOPTIMIZE,
+                ReoptimizeInputs(
+                    scenario=scenario,
+                    trajectories=tuple(previous),
+                    funnels=funnels.funnels,
+                    options=run.options,
+                    shortest=tuple(shortest),
+                ),
+                name=f"reoptimize_{k}",
                 describe=lambda result: result.message,
+                executor=run.executor,
+                progress=advance,
             )
         moved = [
             i
@@ -209,7 +195,7 @@ def reoptimize_rounds(
         for i, trajectory in zip(moved, simulated, strict=True):
             new_trajectories[i] = trajectory
         new_funnels, new_coverage = funnel_stages(
-            run, new_inputs, new_trajectories, stage=_round_stage(k),
+            run, new_trajectories, stage=_round_stage(k),
             reuse=[
                 None if i in moved else (funnels.funnels[i], funnels.failure(i))
                 for i in range(len(inputs))
@@ -222,14 +208,7 @@ def reoptimize_rounds(
                 new_trajectories[i] if i in kept else t for i, t in enumerate(trajectories)
             ]
             new_funnels = _mixed(funnels, new_funnels, kept)
-            new_coverage = _funnel_coverage(
-                run,
-                f"coverage_{_round_stage(k)}_kept",
-                new_funnels,
-                runner.digest(_round_stage(k - 1)),
-                runner.digest(_round_stage(k)),
-                kept,
-            )
+            new_coverage = _funnel_coverage(run, f"coverage_{_round_stage(k)}_kept", new_funnels)
         before = sum(trajectories[i].duration for i in funnels.usable)
         after = sum(new_trajectories[i].duration for i in new_funnels.usable)
         shorter = after < before and len(new_funnels.usable) >= len(funnels.usable)
