@@ -138,7 +138,7 @@ def _radii_and_coverage(
         name=f"radius_{which}",
         describe=describe_radii,
     )
-    P = np.asarray(feedback.P, dtype=np.float64)
+    P = np.asarray(tube.P, dtype=np.float64)
     coverage = runner.run(
         COVERAGE,
         CoverageInputs(
@@ -270,7 +270,7 @@ def _synthesize(
         COVERING_RADIUS,
         CoveringRadiusInputs(
             scenario=scenario,
-            P=feedback.P,
+            P=tube.P,
             centers=np.array(demo_starts),
             upper=max(r_d, *(r.radius for r in demo_radii)),
         ),
