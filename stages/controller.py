@@ -38,20 +38,10 @@ from pipeline.numerics.funnel_check import Funnel
 from pipeline.numerics.funnel_law import BASE_SUBSTEPS
 from pipeline.numerics.recertify import ShippedFunnel, reference_substeps
 from pipeline.numerics.terminal import TerminalError, design_terminal
+from pipeline.results.controller import ControllerResult as ControllerResult
 from pipeline.results.stage import Stage, StageInputs
 
 REFERENCE_SUBSTEPS = BASE_SUBSTEPS  # the reference grid, finer where the funnel law needs it
-
-
-@dataclass(frozen=True, kw_only=True)
-class ControllerResult:
-    path: Path
-    trajectories: int
-    interpolation_error: float
-    success: bool
-    message: str
-    terminal: bool = False  # a certified terminal controller was written
-    terminal_message: str = ""  # what it is, or why there is none
 
 
 def terminal_block(

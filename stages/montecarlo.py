@@ -26,7 +26,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import ClassVar
 
@@ -44,44 +44,14 @@ from pipeline.numerics.rollouts import (
     hold_runs_compiled,
     run_paths_compiled,
 )
+from pipeline.results.montecarlo import Falsification as Falsification
+from pipeline.results.montecarlo import MonteCarloResult as MonteCarloResult
 from pipeline.results.stage import FileInput, Stage, StageInputs
 
 preload_in_workers(__name__)  # its chunks run in worker processes
 
 FAILURE_KINDS = ("unsafe", "goal", "clipping", "tube", "non_finite", "uncovered", "after_T")
 HOLD_SECONDS = 10.0
-
-
-@dataclass(frozen=True, kw_only=True)
-class Falsification:
-    """The worst initial state found by search and its margin (evidence, not a bound)."""
-
-    worst_x0: FloatArray
-    worst_margin: float
-    evaluations: int
-    binding: str = ""  # which margin is the smallest there, with its unit
-
-
-@dataclass(frozen=True, kw_only=True)
-class MonteCarloResult:
-    samples: int
-    seed: int
-    failures: dict[str, int]
-    failed_x0: FloatArray = field(repr=False)
-    min_clearance: float
-    min_goal_margin: float
-    max_tube_tightness: float
-    failure_bound: float
-    clearance: FloatArray = field(repr=False)
-    tube_tightness: FloatArray = field(repr=False)
-    paths: tuple[FloatArray, ...] = field(repr=False)
-    falsification: Falsification
-    success: bool
-    message: str
-    # ||e(T)||_P e^(lambda T) / ||e(0)||_P per run: how much of the certified decay is used
-    tube_final: FloatArray = field(default_factory=lambda: np.zeros(0), repr=False)
-    hold_runs: int = 0  # runs continued to T + HOLD_SECONDS under the terminal law
-    hold_max_level_ratio: float = float("nan")  # their largest V(x) / level after T
 
 
 def _uniform_init(scenario: Scenario, rng: np.random.Generator, count: int) -> FloatArray:

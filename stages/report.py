@@ -16,7 +16,6 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from importlib import metadata
-from pathlib import Path
 from typing import ClassVar
 
 from pipeline.io.artifacts import atomic_write_text
@@ -27,20 +26,13 @@ from pipeline.reporting.figure_cache import FigureStore
 from pipeline.reporting.html import render_html
 from pipeline.reporting.pdf import write_pdf
 from pipeline.reporting.sections import build_sections
+from pipeline.results.report import ReportResult as ReportResult
 from pipeline.results.stage import FileInput, Stage, StageInputs
 
 FIGURES = "figures"  # out/artifacts/figures: rendered pages and figures, by digest
 OVERVIEW = "overview"  # the figure also written as scenario.png
 # besides this module, the code of what the report shows: the summary and the stored results
 REPORT_CODE = ("pipeline.runtime.summary", "pipeline.runtime.stored")
-
-
-@dataclass(frozen=True, kw_only=True)
-class ReportResult:
-    html: Path
-    pdf: Path | None
-    success: bool
-    message: str
 
 
 def _version() -> str:

@@ -19,26 +19,8 @@ from pipeline.controller import load
 from pipeline.model.scenario import Scenario
 from pipeline.numerics.closed_loop import check_runs
 from pipeline.results.stage import FileInput, Stage, StageInputs
-
-
-@dataclass(frozen=True, kw_only=True)
-class StressRun:
-    """One stress campaign: with the feedback (``gain_scale = 1``) or without (``0``)."""
-
-    gain_scale: float
-    samples: int
-    failures: dict[str, int]
-    failed_fraction: float
-    min_clearance: float
-    min_goal_margin: float
-
-
-@dataclass(frozen=True, kw_only=True)
-class StressResult:
-    with_feedback: StressRun
-    without_feedback: StressRun
-    success: bool
-    message: str
+from pipeline.results.stress import StressResult as StressResult
+from pipeline.results.stress import StressRun as StressRun
 
 
 def _campaign(

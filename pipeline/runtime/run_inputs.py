@@ -23,7 +23,7 @@ from pipeline.runtime.codekey import code_key
 from pipeline.runtime.options import RunOptions
 
 if TYPE_CHECKING:  # stage result types: only the orchestrator imports stages
-    from stages.feedback import FeedbackResult
+    from pipeline.results.feedback import FeedbackResult
 
 
 def trajectories(

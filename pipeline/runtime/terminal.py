@@ -30,9 +30,9 @@ from pipeline.runtime.synthesis import Synthesis
 
 if TYPE_CHECKING:  # stage result types: only the orchestrator imports stages
     from pipeline.model.scenario import Scenario
-    from stages.coverage import CoverageResult, CoveringRadius
-    from stages.optimize import OptimizeResult
-    from stages.radius import RadiusResult
+    from pipeline.results.coverage import CoverageResult, CoveringRadius
+    from pipeline.results.optimize import OptimizeResult
+    from pipeline.results.radius import RadiusResult
 
 LOGGER = "pipeline"
 STALE_CONTROLLER = stale_name(Path("controller.json")).name
