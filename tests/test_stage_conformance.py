@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import inspect
+import typing
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 from types import MappingProxyType
@@ -243,3 +244,44 @@ def test_an_array_of_the_same_bytes_in_another_shape_is_another_key(cases):
     reshaped = dataclasses.replace(inputs, centers=centers.reshape(centers.shape[::-1]))
     assert reshaped.centers.tobytes() == centers.tobytes()
     assert stage_key(case.stage, reshaped) != stage_key(case.stage, inputs)
+
+
+def test_every_certificate_name_has_its_strategy():
+    """The scenario's ``certificate`` names, ``--certificate``'s choices (standard library only:
+    ``pipeline.numerics.settings``) and the strategies are one list."""
+    from pipeline.model.scenario import CertificateName
+    from pipeline.numerics.settings import CERTIFICATES as CHOICES
+    from stages.certificates import CERTIFICATES
+
+    assert typing.get_args(CertificateName) == CHOICES == tuple(CERTIFICATES)
+    assert all(CERTIFICATES[name].name == name for name in CHOICES)
+
+
+def test_every_result_type_is_deeply_frozen_and_stored_ones_are_registered():
+    """Each type in the results layer is a ``Result`` (but the optimizer's options); all but
+    the certify check's (never stored: it re-verifies the file on every run) are in the
+    artifact store's registry."""
+    from pipeline.results import (
+        certify,
+        controller,
+        coverage,
+        feedback,
+        funnel,
+        montecarlo,
+        optimize,
+        radius,
+        report,
+        stress,
+    )
+
+    modules = (certify, controller, coverage, feedback, funnel, montecarlo, optimize, radius)
+    found = [
+        cls
+        for module in (*modules, report, stress)
+        for cls in vars(module).values()
+        if isinstance(cls, type) and cls.__module__ == module.__name__
+    ]
+    scalars_only = optimize.OptimizeOptions  # frozen, of strings and numbers: nothing to freeze
+    assert found and all(issubclass(cls, Result) or cls is scalars_only for cls in found)
+    stored = [cls for cls in found if cls is not certify.CertificationResult]
+    assert all(cls in RESULT_TYPES.values() for cls in stored)

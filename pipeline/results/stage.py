@@ -25,7 +25,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, ClassVar, Generic, TypeVar
+from typing import Any, ClassVar, Generic, Protocol, TypeVar
 
 I = TypeVar("I", bound="StageInputs")  # noqa: E741
 R = TypeVar("R")
@@ -86,3 +86,20 @@ class Stage(Generic[I, R]):
     def modules(self) -> tuple[str, ...]:
         """The modules whose source the key covers (the function's, then ``code``)."""
         return (self.function.__module__, *self.code)
+
+
+class Runner(Protocol):
+    """What runs a declared stage with its cache (``pipeline.runtime.runner.StageRunner``), as
+    a certificate's strategy (``stages.certificates``) sees it."""
+
+    def run(
+        self,
+        stage: Stage[Any, R],
+        inputs: StageInputs,
+        *,
+        name: str | None = None,
+        rerun: bool = False,
+        describe: Callable[[R], str] | None = None,
+        finish: Callable[[R], R] | None = None,
+        **context: Any,
+    ) -> R: ...

@@ -7,6 +7,7 @@ imports stages); stage results are read by their fields.
 from __future__ import annotations
 
 import dataclasses
+import typing
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
@@ -14,12 +15,11 @@ import numpy as np
 
 from pipeline.io.artifacts import inputs_key
 from pipeline.io.errors import UserError
-from pipeline.model.scenario import Scenario
+from pipeline.model.scenario import CertificateName, Scenario
 from pipeline.model.scenario_data import plain, scenario_data
 from pipeline.model.simulate import Trajectory, simulate
 from pipeline.numerics.sampled import HeldRate, held_rate
 from pipeline.numerics.verify import VERIFY_SUBSTEPS
-from pipeline.runtime.codekey import code_key
 from pipeline.runtime.options import RunOptions
 
 if TYPE_CHECKING:  # stage result types: only the orchestrator imports stages
@@ -51,7 +51,7 @@ def held_feedback(
     return dataclasses.replace(feedback, rate=held.held_rate, tube=held_tube), held
 
 
-def check_period(scenario: Scenario, period: float, certificate: str) -> None:
+def check_period(scenario: Scenario, period: float, certificate: CertificateName) -> None:
     """``--feedback-period`` must divide the sampling time (``u_ref`` switches at samples); the
     funnel certificate is for continuous feedback only."""
     if period == 0:
@@ -69,9 +69,15 @@ def check_period(scenario: Scenario, period: float, certificate: str) -> None:
         )
 
 
-def certificate_of(scenario: Scenario, options: RunOptions) -> str:
+def certificate_of(scenario: Scenario, options: RunOptions) -> CertificateName:
     """The certificate this run ships: ``--certificate``, else the scenario's."""
-    return options.certificate or scenario.certificate
+    name = options.certificate or scenario.certificate
+    if name not in typing.get_args(CertificateName):
+        raise UserError(
+            f"--certificate: found {name!r}; expected one of "
+            f"{', '.join(typing.get_args(CertificateName))}"
+        )
+    return typing.cast(CertificateName, name)
 
 
 def method_of(scenario: Scenario, options: RunOptions) -> str:
@@ -104,17 +110,3 @@ def scenario_slice(scenario: Scenario, names: Sequence[str]) -> dict[str, Any]:
     if unknown:
         raise ValueError(f"scenario_fields names no field of a Scenario: {unknown}")
     return {name: plain(getattr(scenario, name), name) for name in names}
-
-
-def montecarlo_key(scenario: Scenario, controller_sha256: str, samples: int, seed: int) -> str:
-    """The Monte Carlo stage's key: its code, the scenario's fields, the SHA-256 of the
-    ``controller.json`` it flew, the number of runs and the seed. ``report`` computes it again
-    to check that the stored result is of the ``controller.json`` beside it."""
-    core = scenario_key(scenario, *NOT_NUMERICAL)
-    return inputs_key(code_key("stages.montecarlo"), core, controller_sha256, samples, seed)
-
-
-def stress_key(scenario: Scenario, controller_sha256: str, seed: int) -> str:
-    """The stress test's key, as ``montecarlo_key`` (its runs are fixed by the scenario)."""
-    core = scenario_key(scenario, "description")
-    return inputs_key(code_key("stages.stress"), core, controller_sha256, seed)

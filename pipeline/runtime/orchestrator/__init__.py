@@ -58,7 +58,6 @@ from pipeline.reporting.summary import Verdict
 from pipeline.results.stage import FileInput
 from pipeline.runtime import run_inputs
 from pipeline.runtime.options import RunOptions
-from pipeline.runtime.orchestrator.funnels import FunnelRun, funnel_stages, reoptimize_rounds
 from pipeline.runtime.outdir import (
     INCOMPLETE,
     check_output_folder,
@@ -83,13 +82,8 @@ from pipeline.runtime.terminal import (
     describe_radii,
     optimization_logs,
 )
+from stages.certificates import CERTIFICATES, CertificateRun
 from stages.certify import certify_controller
-from stages.controller import (
-    CONSTANT_CONTROLLER,
-    FUNNEL_CONTROLLER,
-    ConstantControllerInputs,
-    FunnelControllerInputs,
-)
 from stages.coverage import (
     COVERAGE,
     COVERING_RADIUS,
@@ -98,7 +92,6 @@ from stages.coverage import (
     CoveringRadiusInputs,
 )
 from stages.feedback import FEEDBACK, FeedbackInputs, FeedbackResult
-from stages.funnel import FunnelStageResult
 from stages.montecarlo import MONTECARLO, MonteCarloInputs
 from stages.optimize import OPTIMIZE, ConstraintMargins, OptimizeInputs, OptimizeOptions
 from stages.radius import RADIUS, RadiusInputs, RadiusResult
@@ -118,7 +111,6 @@ REPORT_STAGES = (  # the controller's result is the file itself, keyed by its ha
     "coverage_optimized",
     "montecarlo",
 )
-FUNNEL_STAGES = ("funnel", "coverage_funnel")  # with the funnel certificate
 
 
 def _radii_and_coverage(
@@ -305,70 +297,30 @@ def _synthesize(
     )
 
     controller_path = staging / "controller.json"  # published as out / "controller.json"
-    certificate = run_inputs.certificate_of(scenario, options)
-    funnels: FunnelStageResult | None = None
-    funnel_coverage: CoverageResult | None = None
-    constant_trajectories: list[Trajectory] | None = None
-    if certificate == "funnel":
-        # Each funnel is asked to hold its start's cell of Init (stage funnel); a start that
-        # owns no cell asks for the constant ball's slice (I1), at the radius the optimizer kept
-        # when its trajectory has no robustness radius.
-        initial_radii = [r.radius if r.radius > 0 else r_required for r in final_radii]
-        funnel_run = FunnelRun(
+    certificate = CERTIFICATES[run_inputs.certificate_of(scenario, options)]
+    certified = certificate.ship(
+        CertificateRun(
             scenario=scenario,
             runner=runner,
             executor=executor,
             feedback=feedback,
             starts=demo_starts,
-            initial_radii=initial_radii,
+            optimized=optimized,
+            inputs=final_inputs,
+            trajectories=final_trajectories,
+            radii=final_radii,
+            r_required=r_required,
             options=optimize_options,
+            feedback_period=options.feedback_period,
+            controller_path=controller_path,
             quiet=quiet,
+            publish=functools.partial(_published, out),
+            describe_coverage=describe_coverage,
         )
-        funnels, funnel_coverage = funnel_stages(funnel_run, final_trajectories)
-        if not funnels.usable:
-            return _failed(out, scenario, "funnel", f"no funnel certified: {funnels.message}")
-        constant_trajectories = final_trajectories
-        final_inputs, final_trajectories, funnels, funnel_coverage = reoptimize_rounds(
-            funnel_run, optimized, final_inputs, final_trajectories, funnels, funnel_coverage
-        )
-        usable = list(funnels.usable)
-        controller = runner.run(
-            FUNNEL_CONTROLLER,
-            FunnelControllerInputs(
-                scenario=scenario,
-                names=tuple(scenario.demos[i].name for i in usable),
-                trajectories=tuple(final_trajectories[i] for i in usable),
-                funnels=tuple(funnels.funnels[i] for i in usable),
-                feedback_period=options.feedback_period,
-                path=controller_path,
-            ),
-            rerun=True,  # always written from this run's certified results
-            describe=_message,
-            finish=functools.partial(_published, out),
-        )
-    elif certificate == "constant":
-        usable = [i for i, r in enumerate(final_radii) if r.radius > 0]
-        controller = runner.run(
-            CONSTANT_CONTROLLER,
-            ConstantControllerInputs(
-                scenario=scenario,
-                K=tube.K,
-                P=tube.P,
-                rate=feedback.rate,
-                names=tuple(scenario.demos[i].name for i in usable),
-                starts=tuple(demo_starts[i] for i in usable),
-                inputs=tuple(final_inputs[i] for i in usable),
-                radii=tuple(final_radii[i].radius for i in usable),
-                radius_floor=r_required,
-                feedback_period=options.feedback_period,
-                path=controller_path,
-            ),
-            rerun=True,  # always written from this run's certified results
-            describe=_message,
-            finish=functools.partial(_published, out),
-        )
-    else:
-        raise ValueError(f"certificate {certificate!r}; expected 'constant' or 'funnel'")
+    )
+    if certified.controller is None:
+        return _failed(out, scenario, certified.failed_stage, certified.failure)
+    controller = certified.controller
     started_certify = time.perf_counter()
     certification = certify_controller(scenario, controller_path)
     certify_seconds = time.perf_counter() - started_certify
@@ -401,16 +353,16 @@ def _synthesize(
         demo_coverage=demo_coverage,
         covering=covering,
         optimized=optimized,
-        final_trajectories=final_trajectories,
+        final_trajectories=certified.trajectories,
         final_radii=final_radii,
         final_coverage=final_coverage,
         controller=controller,
         certification=certification,
         montecarlo=montecarlo,
-        certificate=certificate,
-        funnels=funnels,
-        funnel_coverage=funnel_coverage,
-        constant_trajectories=constant_trajectories,
+        certificate=certificate.name,
+        funnels=certified.funnels,
+        funnel_coverage=certified.funnel_coverage,
+        constant_trajectories=certified.constant_trajectories,
     )
     summary = summarise(
         results,
@@ -422,7 +374,7 @@ def _synthesize(
     atomic_write_json(staging / "summary.json", summary.to_json())
     shown = (  # what the report shows: never this run's timings
         *REPORT_STAGES,
-        *(FUNNEL_STAGES if funnels is not None else ()),
+        *certified.report_stages,
         *(("stress",) if stress is not None else ()),
     )
     report_inputs = ReportInputs(

@@ -1,7 +1,6 @@
-"""The funnel certificate's part of the run (issue 16): the funnel stages around the optimized
-nominals, then the re-optimize rounds against the funnels (part 4), as a continuation that keeps
-Init covered. Wired from ``pipeline.runtime.orchestrator``; only the orchestrator package wires
-stages.
+"""The funnel certificate (issue 16): the funnel stages around the optimized nominals, then the
+re-optimize rounds against the funnels (part 4), a trust-region continuation that keeps Init
+covered, and the funnel controller (``safety-controller/2``).
 """
 
 from __future__ import annotations
@@ -9,22 +8,25 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
 from pipeline.io.executor import Executor
 from pipeline.io.progress import progress_bar
-from pipeline.model.scenario import Scenario
+from pipeline.model.scenario import CertificateName, Scenario
 from pipeline.model.simulate import Trajectory
 from pipeline.numerics.funnel_check import Funnel
-from pipeline.runtime import run_inputs
-from pipeline.runtime.runner import StageRunner
-from pipeline.runtime.terminal import describe_coverage
-from stages.coverage import COVERAGE, CoverageInputs, CoverageResult
-from stages.feedback import FeedbackResult
-from stages.funnel import FUNNEL, FunnelInputs, FunnelStageResult
-from stages.optimize import REOPTIMIZE, OptimizeOptions, OptimizeResult, ReoptimizeInputs
+from pipeline.results.coverage import CoverageResult
+from pipeline.results.feedback import FeedbackResult
+from pipeline.results.funnel import FunnelStageResult
+from pipeline.results.optimize import OptimizeOptions, OptimizeResult
+from pipeline.results.stage import Runner
+from stages.certificates import CertificateRun, Shipped, nominals
+from stages.controller import FUNNEL_CONTROLLER, FunnelControllerInputs
+from stages.coverage import COVERAGE, CoverageInputs
+from stages.funnel import FUNNEL, FunnelInputs
+from stages.optimize import REOPTIMIZE, ReoptimizeInputs
 
 log = logging.getLogger(__name__)
 FUNNEL_ROUNDS = 10  # re-optimize rounds against the funnels at most (issue 16 part 4)
@@ -46,13 +48,71 @@ class FunnelRun:
     """
 
     scenario: Scenario
-    runner: StageRunner
+    runner: Runner
     executor: Executor
     feedback: FeedbackResult
     starts: Sequence[np.ndarray]
     initial_radii: Sequence[float]
     options: OptimizeOptions
     quiet: bool
+    describe_coverage: Callable[[CoverageResult], str]
+
+
+@dataclasses.dataclass(frozen=True)
+class FunnelCertificate:
+    """A time-varying gain ``K_i[k]`` and metric ``P_i[k]`` per trajectory: the funnel stages,
+    the re-optimize rounds, and the controller of the certified funnels."""
+
+    name: CertificateName = "funnel"
+
+    def ship(self, run: CertificateRun) -> Shipped:
+        # Each funnel is asked to hold its start's cell of Init (stage funnel); a start that
+        # owns no cell asks for the constant ball's slice (I1), at the radius the optimizer kept
+        # when its trajectory has no robustness radius.
+        funnel_run = FunnelRun(
+            scenario=run.scenario,
+            runner=run.runner,
+            executor=run.executor,
+            feedback=run.feedback,
+            starts=run.starts,
+            initial_radii=[r.radius if r.radius > 0 else run.r_required for r in run.radii],
+            options=run.options,
+            quiet=run.quiet,
+            describe_coverage=run.describe_coverage,
+        )
+        trajectories = list(run.trajectories)
+        funnels, coverage = funnel_stages(funnel_run, trajectories)
+        if not funnels.usable:
+            failure = f"no funnel certified: {funnels.message}"
+            return Shipped(
+                controller=None, trajectories=trajectories, failed_stage="funnel", failure=failure
+            )
+        _, final, funnels, coverage = reoptimize_rounds(
+            funnel_run, run.optimized, list(run.inputs), trajectories, funnels, coverage
+        )
+        usable = funnels.usable
+        controller = run.runner.run(
+            FUNNEL_CONTROLLER,
+            FunnelControllerInputs(
+                scenario=run.scenario,
+                names=tuple(run.names[i] for i in usable),
+                trajectories=tuple(final[i] for i in usable),
+                funnels=tuple(funnels.funnels[i] for i in usable),
+                feedback_period=run.feedback_period,
+                path=run.controller_path,
+            ),
+            rerun=True,  # always written from this run's certified results
+            describe=lambda result: result.message,
+            finish=run.publish,
+        )
+        return Shipped(
+            controller=controller,
+            trajectories=final,
+            constant_trajectories=trajectories,
+            funnels=funnels,
+            funnel_coverage=coverage,
+            report_stages=("funnel", "coverage_funnel"),
+        )
 
 
 def funnel_stages(
@@ -99,7 +159,7 @@ def _funnel_coverage(run: FunnelRun, stage: str, funnels: FunnelStageResult) -> 
             noun="funnel start",
         ),
         name=stage,
-        describe=describe_coverage,
+        describe=run.describe_coverage,
     )
 
 
@@ -188,7 +248,7 @@ def reoptimize_rounds(
             log.info(f"[round {k}] no trajectory optimized again: the previous funnels are kept")
             break
         new_inputs = [again.trajectories[i].u if i in moved else u for i, u in enumerate(inputs)]
-        simulated = run_inputs.trajectories(
+        simulated = nominals(
             scenario, [starts[i] for i in moved], [new_inputs[i] for i in moved]
         )  # the others keep their nominal
         new_trajectories = list(trajectories)
