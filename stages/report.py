@@ -109,12 +109,15 @@ def write_reports(data: ReportData) -> ReportResult:
 
 @dataclass(frozen=True, kw_only=True)
 class ReportInputs(StageInputs):
-    """What the reports show: the scenario (every field, and where it was read from), the
+    """What the reports show: the scenario (every field but the folder it was read from: a
+    copied scenario folder is the same scenario; its file's hash is keyed), the
     content hash of each stage result they read (name, sha256) and the ``controller.json`` the
     run certified (by its bytes); never this run's timings. The report itself is built from
     the ``ReportData`` read back from those results (the ``data`` the runner is given)."""
 
-    scenario_fields: ClassVar = tuple(f.name for f in dataclasses.fields(Scenario))
+    scenario_fields: ClassVar = tuple(
+        f.name for f in dataclasses.fields(Scenario) if f.name != "path"
+    )
     scenario: Scenario
     results: tuple[tuple[str, str], ...]
     controller: FileInput

@@ -107,7 +107,8 @@ def test_unknown_field_of_a_registered_type_is_refused(run, capsys):
     document["sha256"] = content_hash(document["key"], document["result"], {})
     path.write_text(json.dumps(document))
     assert synthesize(run, "-q") == 0
-    assert "fields of stages.coverage:CoveringRadius do not match" in capsys.readouterr().err
+    refused = "fields of pipeline.results.coverage:CoveringRadius do not match"
+    assert refused in capsys.readouterr().err
 
 
 # --- 2. an edited artifact is refused; a failed run certifies nothing -----------------------

@@ -28,7 +28,7 @@ from stages.coverage import COVERAGE, CoverageInputs
 from stages.funnel import FUNNEL, FunnelInputs
 from stages.optimize import REOPTIMIZE, ReoptimizeInputs
 
-log = logging.getLogger(__name__)
+log = logging.getLogger("pipeline.certificates")  # the run's logger: its lines are shown
 FUNNEL_ROUNDS = 10  # re-optimize rounds against the funnels at most (issue 16 part 4)
 FIRST_STEP = 0.1  # round 1 shortens a nominal by at most this fraction of its samples
 GROW, MAX_STEP = 1.5, 0.4  # a kept trajectory's next step grows by GROW, up to MAX_STEP
