@@ -66,7 +66,6 @@ any uncertainty, is not certified.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -91,6 +90,7 @@ from pipeline.numerics.tube import Tube
 from pipeline.numerics.tube_radius import radius_limits
 from pipeline.numerics.uncertainty import additive_bound
 from pipeline.numerics.verify import VERIFY_SUBSTEPS
+from pipeline.results.certify import CertificationResult as CertificationResult
 
 REFERENCE_TOLERANCE = 1e-9  # ||x_ref - simulated||_P / radius
 RADIUS_TOLERANCE = 1e-12  # relative: a radius may exceed the re-verified one by rounding only
@@ -100,48 +100,6 @@ STATED_ERROR_RANGE = (0.5, 4.0)  # the file's interpolation_error_P_norm / the o
 # Init's corners must lie within this fraction of a ball's squared radius: floating-point rounding
 # of the quadratic form (~1e-15 relative) cannot decide coverage
 COVER_MARGIN = 1e-6
-
-
-@dataclass(frozen=True, kw_only=True)
-class CertificationResult:
-    """What the final check found in the emitted ``controller.json``.
-
-    Attributes:
-      path: the file checked; sha256: its content hash at the time of the check.
-      metric_eigenvalue: ``lambda_min(P)`` (> 0 for a metric; a ``/2`` file: over every
-        ``P_i[k]``).
-      contraction_margin: the largest eigenvalue of (C)'s left side over the hull's vertices
-        (< 0 for a certificate); ``vertices`` how many there were. A ``/2`` file: the largest
-        eigenvalue of (F2) (``Q^-1/2 L Q^-1/2``) over every funnel's local hull vertices at
-        both ends of every interval, and the vertices of all those hulls.
-      radii: (k,) the radii (``/2``: funnel levels) the file claims; verified_radii: (k,) the
-        largest the re-check allows for each trajectory (a claim is certified when it is not
-        larger).
-      reference_error: the largest ``||x_ref - simulated||_P(t) / radius`` over the
-        trajectories.
-      covered_fraction: the part of Init certified covered by the file's balls (volume).
-      terminal: the file has a terminal block; terminal_decay: its certified ``alpha`` (1/s);
-        terminal_fit: the largest end tube's share of the ellipsoid's radius (<= 1 to fit).
-      contraction_bound: what ``contraction_margin`` must be below (``contraction_bound``).
-      failures: one line per failed check; empty when the file is certified.
-    """
-
-    path: Path
-    sha256: str
-    metric_eigenvalue: float
-    contraction_margin: float
-    vertices: int
-    radii: tuple[float, ...]
-    verified_radii: tuple[float, ...]
-    reference_error: float
-    covered_fraction: float
-    failures: tuple[str, ...] = field(default=())
-    success: bool
-    message: str
-    terminal: bool = False
-    terminal_decay: float = float("nan")
-    terminal_fit: float = float("nan")
-    contraction_bound: float = 0.0
 
 
 def _feedback(controller: Controller) -> tuple[np.ndarray, np.ndarray, float]:

@@ -30,6 +30,7 @@ import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 
@@ -44,19 +45,10 @@ from pipeline.numerics.recertify import ShippedFunnel, reference_substeps
 from pipeline.numerics.terminal import TerminalDesign, TerminalError, design_terminal
 from pipeline.numerics.terminal_fit import end_levels
 from pipeline.numerics.uncertainty import additive_bound
+from pipeline.results.controller import ControllerResult as ControllerResult
+from pipeline.results.stage import Stage, StageInputs
 
 REFERENCE_SUBSTEPS = BASE_SUBSTEPS  # the reference grid, finer where the funnel law needs it
-
-
-@dataclass(frozen=True, kw_only=True)
-class ControllerResult:
-    path: Path
-    trajectories: int
-    interpolation_error: float
-    success: bool
-    message: str
-    terminal: bool = False  # a certified terminal controller was written
-    terminal_message: str = ""  # what it is, or why there is none
 
 
 def terminal_block(
@@ -354,3 +346,98 @@ def emit_funnel_controller(
         np.stack(end_metrics), bound, terminal,
     )  # fmt: skip
     return _write(path, document, block, terminal_message)
+
+
+@dataclass(frozen=True, kw_only=True)
+class ConstantControllerInputs(StageInputs):
+    """What stage ``controller`` reads with the constant certificate: the feedback ``K (m, n)``,
+    ``P (n, n)``, ``rate``; per kept trajectory its name, start ``(n,)``, inputs ``(N_i, m)``
+    and radius; the radius floor, the feedback period and where to write (``path``)."""
+
+    scenario_fields: ClassVar = (
+        "Ts",
+        "dynamics",
+        "feedback",
+        "goal",
+        "goal_bounds",
+        "input_lower",
+        "input_upper",
+        "name",
+        "operating_region",
+        "position_index",
+        "state_bounds",
+    )
+    scenario: Scenario
+    K: FloatArray
+    P: FloatArray
+    rate: float
+    names: tuple[str, ...]
+    starts: tuple[FloatArray, ...]
+    inputs: tuple[FloatArray, ...]
+    radii: tuple[float, ...]
+    radius_floor: float
+    feedback_period: float
+    path: Path
+
+
+def _constant_controller_stage(inputs: ConstantControllerInputs) -> ControllerResult:
+    return emit_controller(
+        inputs.scenario,
+        inputs.K,
+        inputs.P,
+        inputs.rate,
+        inputs.starts,
+        inputs.inputs,
+        inputs.radii,
+        inputs.path,
+        radius_floor=inputs.radius_floor,
+        feedback_period=inputs.feedback_period,
+        names=inputs.names,
+    )
+
+
+@dataclass(frozen=True, kw_only=True)
+class FunnelControllerInputs(StageInputs):
+    """What stage ``controller`` reads with the funnel certificate: per certified trajectory
+    its name, final nominal and funnel; the feedback period and where to write (``path``)."""
+
+    scenario_fields: ClassVar = (
+        "Ts",
+        "dynamics",
+        "feedback",
+        "goal",
+        "goal_bounds",
+        "input_lower",
+        "input_upper",
+        "name",
+        "operating_region",
+        "position_index",
+        "state_bounds",
+        "uncertainty",
+        "unsafe",
+    )
+    scenario: Scenario
+    names: tuple[str, ...]
+    trajectories: tuple[Trajectory, ...]
+    funnels: tuple[Funnel, ...]
+    feedback_period: float
+    path: Path
+
+
+def _funnel_controller_stage(inputs: FunnelControllerInputs) -> ControllerResult:
+    return emit_funnel_controller(
+        inputs.scenario,
+        inputs.trajectories,
+        inputs.funnels,
+        inputs.path,
+        feedback_period=inputs.feedback_period,
+        names=inputs.names,
+    )
+
+
+CONSTANT_CONTROLLER = Stage(
+    "controller", _constant_controller_stage, ConstantControllerInputs, ControllerResult
+)
+FUNNEL_CONTROLLER = Stage(
+    "controller", _funnel_controller_stage, FunnelControllerInputs, ControllerResult
+)

@@ -31,7 +31,8 @@ without a robustness radius is in the constant certificate.
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
+from typing import ClassVar
 
 import numpy as np
 
@@ -45,51 +46,10 @@ from pipeline.numerics.funnel_check import Funnel, check_funnel
 from pipeline.numerics.funnel_law import LawOffset
 from pipeline.numerics.recertify import ShippedFunnel, recheck_as_shipped
 from pipeline.numerics.uncertainty import additive_bound
+from pipeline.results.funnel import FunnelStageResult as FunnelStageResult
+from pipeline.results.stage import Stage, StageInputs
 
 preload_in_workers(__name__)  # its chunks run in worker processes
-
-
-@dataclass(frozen=True, kw_only=True)
-class FunnelStageResult:
-    """The funnels of the final trajectories, one per trajectory in order.
-
-    Attributes:
-      names: the trajectories' names (their demos).
-      funnels: each trajectory's funnel (``Funnel``; a rejected one has ``success`` False).
-      initial_radii: (k,) the constant certificate's radius ``r_i`` whose ball slice (I1) a
-        funnel whose start owns no cell of Init was asked to hold.
-      usable: indices of the trajectories whose funnel is certified (``success``, ``rho > 0``
-        and the independent check passed); the others are dropped.
-      rejected: one line per dropped trajectory: its name and why.
-    """
-
-    names: tuple[str, ...]
-    funnels: tuple[Funnel, ...] = field(repr=False)
-    initial_radii: FloatArray = field(repr=False)
-    usable: tuple[int, ...]
-    rejected: tuple[str, ...]
-    success: bool
-    message: str
-
-    @property
-    def starts(self) -> FloatArray:
-        """(k, n, n) ``P_i[0]``, the metric of each funnel's initial ellipsoid ``E_i(0)``."""
-        return np.stack([funnel.P[0] for funnel in self.funnels])
-
-    @property
-    def levels(self) -> FloatArray:
-        """(k,) ``rho_i`` of the usable funnels, 0 for dropped ones (they cover nothing)."""
-        return np.array(
-            [f.rho if i in self.usable else 0.0 for i, f in enumerate(self.funnels)], dtype=float
-        )
-
-    def failure(self, i: int) -> str | None:
-        """Why trajectory ``i``'s funnel was dropped (its ``rejected`` line without the name);
-        None if it is usable."""
-        if i in self.usable:
-            return None
-        prefix = f"{self.names[i]} dropped: "
-        return next(line.removeprefix(prefix) for line in self.rejected if line.startswith(prefix))
 
 
 def initial_sets(scenario: Scenario, P: FloatArray, radii: FloatArray) -> FloatArray:
@@ -276,3 +236,54 @@ def _describe(funnels: Sequence[Funnel], usable: Sequence[int], rejected: Sequen
     else:
         found = f"no funnel certified for any of the {len(funnels)} trajectories; {timing}"
     return "; ".join([found, *rejected])
+
+
+@dataclass(frozen=True, kw_only=True)
+class FunnelInputs(StageInputs):
+    """What stage ``funnel`` reads: the trajectories' names and final nominals, the constant
+    certificate's metric ``P (n, n)`` and ball radius per trajectory ``radii (k,)``."""
+
+    scenario_fields: ClassVar = (
+        "Ts",
+        "clearance",
+        "dynamics",
+        "feedback",
+        "goal",
+        "goal_bounds",
+        "init_lower",
+        "init_upper",
+        "input_lower",
+        "input_upper",
+        "operating_region",
+        "position_index",
+        "state_bounds",
+        "uncertainty",
+        "unsafe",
+    )
+    scenario: Scenario
+    names: tuple[str, ...]
+    trajectories: tuple[Trajectory, ...]
+    P: FloatArray
+    radii: FloatArray
+
+
+def _funnel_stage(
+    inputs: FunnelInputs,
+    *,
+    executor: Executor | None = None,
+    progress: Callable[[int], None] | None = None,
+    reuse: Sequence[tuple[Funnel, str | None] | None] | None = None,
+) -> FunnelStageResult:
+    return synthesize_funnels(
+        inputs.scenario,
+        inputs.names,
+        inputs.trajectories,
+        inputs.P,
+        inputs.radii,
+        executor=executor,
+        progress=progress,
+        reuse=reuse,
+    )
+
+
+FUNNEL = Stage("funnel", _funnel_stage, FunnelInputs, FunnelStageResult)

@@ -27,9 +27,10 @@ uncertainty (``pipeline.numerics.gusts``): the uncertain parameters uniformly fr
 intervals (constant during the run, flown with the parametric dynamics ``f(x, (u, p))``) and a
 gust ``w(t)`` in the disturbance box, piecewise constant with a new value every 0.5 s
 (``GUST_PERIOD``); a quarter of the runs fly bang-bang at random corners of both boxes and a
-quarter the falsification's worst bang-bang case (``stages.worst_case``: the search then also
-covers the boxes' corners, and runs before the chunks, which need its result). Runs are flown to
-``T`` and, with a law past ``T``, to ``T + HOLD_SECONDS`` with the same parameters and gusts.
+quarter the falsification's worst bang-bang case (``pipeline.numerics.worst_case``: the search
+then also covers the boxes' corners, and runs before the chunks, which need its result). Runs
+are flown to ``T`` and, with a law past ``T``, to ``T + HOLD_SECONDS`` with the same parameters
+and gusts.
 A run fails if it ever enters Unsafe, clips, leaves the state bounds, or is outside Goal at any
 time after ``T`` (issue 29's criterion); the exact model's own claims are not counted under a
 disturbance: the tube's decay ratio and the terminal ellipsoid's level (``V / level`` is still
@@ -42,8 +43,9 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 from scipy.optimize import minimize
@@ -53,14 +55,19 @@ from pipeline.controller import Controller, load
 from pipeline.io.executor import Executor, SerialExecutor, preload_in_workers
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
+from pipeline.numerics import worst_case
 from pipeline.numerics.closed_loop import RunChecks, check_runs
 from pipeline.numerics.gusts import Draws, sample
 from pipeline.numerics.rollouts import (
+    ELLIPSOID_UNDER_UNCERTAINTY,
+    HOLD_SECONDS,
     check_runs_compiled,
     hold_runs_compiled,
     run_paths_compiled,
 )
-from stages import worst_case
+from pipeline.results.montecarlo import Falsification as Falsification
+from pipeline.results.montecarlo import MonteCarloResult as MonteCarloResult
+from pipeline.results.stage import FileInput, Stage, StageInputs
 
 preload_in_workers(__name__)  # its chunks run in worker processes
 
@@ -74,42 +81,6 @@ FAILURE_KINDS = (
     "bounds",
     "after_T",
 )
-HOLD_SECONDS = 10.0
-ELLIPSOID_UNDER_UNCERTAINTY = False  # count V > level after T as a failure under draws
-
-
-@dataclass(frozen=True, kw_only=True)
-class Falsification:
-    """The worst initial state found by search and its margin (evidence, not a bound)."""
-
-    worst_x0: FloatArray
-    worst_margin: float
-    evaluations: int
-    binding: str = ""  # which margin is the smallest there, with its unit
-    # under a declared uncertainty: the worst bang-bang realisation found (one run), else None
-    worst_draws: Draws | None = field(default=None, repr=False)
-
-
-@dataclass(frozen=True, kw_only=True)
-class MonteCarloResult:
-    samples: int
-    seed: int
-    failures: dict[str, int]
-    failed_x0: FloatArray = field(repr=False)
-    min_clearance: float
-    min_goal_margin: float
-    max_tube_tightness: float
-    failure_bound: float
-    clearance: FloatArray = field(repr=False)
-    tube_tightness: FloatArray = field(repr=False)
-    paths: tuple[FloatArray, ...] = field(repr=False)
-    falsification: Falsification
-    success: bool
-    message: str
-    # ||e(T)||_P e^(lambda T) / ||e(0)||_P per run: how much of the certified decay is used
-    tube_final: FloatArray = field(default_factory=lambda: np.zeros(0), repr=False)
-    hold_runs: int = 0  # runs continued to T + HOLD_SECONDS under the terminal law
-    hold_max_level_ratio: float = float("nan")  # their largest V(x) / level after T
 
 
 def _uniform_init(scenario: Scenario, rng: np.random.Generator, count: int) -> FloatArray:
@@ -128,7 +99,7 @@ def falsify(
 ) -> Falsification:
     """Corners of Init, a scrambled Sobol set, then Nelder-Mead from the worst starts (of the
     nominal closed loop); under a declared uncertainty, then the bang-bang search of
-    ``stages.worst_case`` from the worst starts found."""
+    ``pipeline.numerics.worst_case`` from the worst starts found."""
     nominal, starts = _falsify_starts(
         scenario, controller, sobol_points, local_searches, seed, evaluations_per_search
     )
@@ -408,3 +379,44 @@ def validate_closed_loop(
         hold_runs=held,
         hold_max_level_ratio=hold_level,
     )
+
+
+@dataclass(frozen=True, kw_only=True)
+class MonteCarloInputs(StageInputs):
+    """What stage ``montecarlo`` reads: the ``controller.json`` it flies (keyed by its bytes),
+    the number of runs and the seed."""
+
+    scenario_fields: ClassVar = (
+        "dynamics",
+        "goal",
+        "goal_bounds",
+        "init_lower",
+        "init_upper",
+        "position_index",
+        "unsafe",
+        "uncertainty",
+        "state_bounds",
+    )
+    scenario: Scenario
+    controller: FileInput
+    samples: int
+    seed: int
+
+
+def _montecarlo_stage(
+    inputs: MonteCarloInputs,
+    *,
+    executor: Executor | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> MonteCarloResult:
+    return validate_closed_loop(
+        inputs.scenario,
+        inputs.controller.path,
+        samples=inputs.samples,
+        seed=inputs.seed,
+        executor=executor,
+        progress=progress,
+    )
+
+
+MONTECARLO = Stage("montecarlo", _montecarlo_stage, MonteCarloInputs, MonteCarloResult)

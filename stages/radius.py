@@ -10,37 +10,15 @@ certificate check (stage ``certify``) uses as well.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from typing import ClassVar
 
 from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import Trajectory
 from pipeline.numerics.tube import Tube
 from pipeline.numerics.tube_radius import radius_limits
-
-
-@dataclass(frozen=True, kw_only=True)
-class RadiusResult:
-    """The robustness radius of one nominal trajectory.
-
-    Attributes:
-      radius: largest P-norm radius ``r`` of a safe tube (0 if the nominal itself fails).
-      position_clearance: radius of the smallest disk holding the position projection of the
-        radius-``r`` ball (the clearance ``d`` for which ``r = r_d``).
-      binding: the constraint that sets ``r``, e.g. "unsafe 'NAME'", "goal", "input 'NAME' upper".
-      binding_time: when it binds (s); the start of the grid interval.
-      limits: constraint -> the largest radius it allows on its own.
-      nominal_clearance: lower bound on the nominal position's distance to Unsafe over [0, T].
-    """
-
-    radius: float
-    position_clearance: float
-    binding: str
-    binding_time: float
-    limits: Mapping[str, float] = field(repr=False)
-    nominal_clearance: float
-    success: bool
-    message: str
+from pipeline.results.radius import RadiusResult as RadiusResult
+from pipeline.results.stage import Stage, StageInputs
 
 
 def robustness_radius(scenario: Scenario, tube: Tube, trajectory: Trajectory) -> RadiusResult:
@@ -69,3 +47,32 @@ def robustness_radius(scenario: Scenario, tube: Tube, trajectory: Trajectory) ->
         success=radius > 0,
         message=message,
     )
+
+
+@dataclass(frozen=True, kw_only=True)
+class RadiusInputs(StageInputs):
+    """What stage ``radius`` reads: the certified tube and the nominals (one radius each)."""
+
+    scenario_fields: ClassVar = (
+        "dynamics",
+        "goal",
+        "goal_bounds",
+        "input_lower",
+        "input_upper",
+        "position_index",
+        "state_bounds",
+        "unsafe",
+    )
+    scenario: Scenario
+    tube: Tube
+    trajectories: tuple[Trajectory, ...]
+
+
+def _radius_stage(inputs: RadiusInputs) -> tuple[RadiusResult, ...]:
+    return tuple(
+        robustness_radius(inputs.scenario, inputs.tube, trajectory)
+        for trajectory in inputs.trajectories
+    )
+
+
+RADIUS = Stage("radius", _radius_stage, RadiusInputs, RadiusResult)

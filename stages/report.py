@@ -11,32 +11,30 @@ by Typst, a pip dependency (``pipeline.reporting.pdf``). Files are written atomi
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from importlib import metadata
-from pathlib import Path
+from typing import ClassVar
 
 from pipeline.io.artifacts import atomic_write_text
 from pipeline.io.progress import progress_bar
+from pipeline.model.scenario import Scenario
 from pipeline.reporting.content import Figure
 from pipeline.reporting.data import ReportData
 from pipeline.reporting.figure_cache import FigureStore
 from pipeline.reporting.html import render_html
 from pipeline.reporting.pdf import write_pdf
 from pipeline.reporting.sections import build_sections
+from pipeline.results.report import ReportResult as ReportResult
+from pipeline.results.stage import FileInput, Stage, StageInputs
 
 FIGURES = "figures"  # out/artifacts/figures: rendered pages and figures, by digest
 OVERVIEW = "overview"  # the figure also written as scenario.png
-
-
-@dataclass(frozen=True, kw_only=True)
-class ReportResult:
-    html: Path
-    pdf: Path | None
-    success: bool
-    message: str
+# besides this module, the code of what the report shows: the summary and the stored results
+REPORT_CODE = ("pipeline.runtime.summary", "pipeline.runtime.stored")
 
 
 def _version() -> str:
@@ -133,3 +131,26 @@ def _write(
         else f"report.html ({len(html) // 1024} KiB) written in {seconds:.1f} s ({drawn}); "
         f"{printed.message}",
     )
+
+
+@dataclass(frozen=True, kw_only=True)
+class ReportInputs(StageInputs):
+    """What the reports show: the scenario (every field but the folder it was read from: a
+    copied scenario folder is the same scenario; its file's hash is keyed), the
+    content hash of each stage result they read (name, sha256) and the ``controller.json`` the
+    run certified (by its bytes); never this run's timings. The report itself is built from
+    the ``ReportData`` read back from those results (the ``data`` the runner is given)."""
+
+    scenario_fields: ClassVar = tuple(
+        f.name for f in dataclasses.fields(Scenario) if f.name != "path"
+    )
+    scenario: Scenario
+    results: tuple[tuple[str, str], ...]
+    controller: FileInput
+
+
+def _report_stage(inputs: ReportInputs, *, data: Callable[[], ReportData]) -> ReportResult:
+    return write_reports(data())
+
+
+REPORT = Stage("report", _report_stage, ReportInputs, ReportResult, code=REPORT_CODE)

@@ -24,6 +24,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 
@@ -31,33 +32,18 @@ from pipeline.controller import load
 from pipeline.model.scenario import Scenario
 from pipeline.numerics.closed_loop import check_runs
 from pipeline.numerics.gusts import sample
-from pipeline.numerics.rollouts import check_runs_compiled, hold_runs_compiled
-from stages.montecarlo import ELLIPSOID_UNDER_UNCERTAINTY, HOLD_SECONDS
-from stages.worst_case import horizon
+from pipeline.numerics.rollouts import (
+    ELLIPSOID_UNDER_UNCERTAINTY,
+    HOLD_SECONDS,
+    check_runs_compiled,
+    hold_runs_compiled,
+)
+from pipeline.numerics.worst_case import horizon
+from pipeline.results.stage import FileInput, Stage, StageInputs
+from pipeline.results.stress import StressResult as StressResult
+from pipeline.results.stress import StressRun as StressRun
 
 BEYOND = 2.0  # the declared uncertainty's multiple that a declaring scenario is stressed with
-
-
-@dataclass(frozen=True, kw_only=True)
-class StressRun:
-    """One stress campaign: with the feedback (``gain_scale = 1``) or without (``0``)."""
-
-    gain_scale: float
-    samples: int
-    failures: dict[str, int]
-    failed_fraction: float
-    min_clearance: float
-    min_goal_margin: float
-
-
-@dataclass(frozen=True, kw_only=True)
-class StressResult:
-    with_feedback: StressRun
-    without_feedback: StressRun
-    success: bool
-    message: str
-    # the declared uncertainty's multiple drawn (BEYOND); None: the scenario's 'stress' block
-    beyond_declared: float | None = None
 
 
 def _beyond_campaign(
@@ -174,3 +160,33 @@ def _empty() -> StressRun:
         min_clearance=nan,
         min_goal_margin=nan,
     )
+
+
+@dataclass(frozen=True, kw_only=True)
+class StressInputs(StageInputs):
+    """What stage ``stress`` reads: the scenario's ``stress`` section (in ``spec``), the
+    ``controller.json`` it flies (keyed by its bytes) and the seed."""
+
+    scenario_fields: ClassVar = (
+        "dynamics",
+        "goal",
+        "goal_bounds",
+        "init_lower",
+        "init_upper",
+        "name",
+        "position_index",
+        "spec",
+        "unsafe",
+        "uncertainty",
+        "state_bounds",
+    )
+    scenario: Scenario
+    controller: FileInput
+    seed: int
+
+
+def _stress_stage(inputs: StressInputs) -> StressResult:
+    return stress_test(inputs.scenario, inputs.controller.path, seed=inputs.seed)
+
+
+STRESS = Stage("stress", _stress_stage, StressInputs, StressResult)

@@ -12,7 +12,7 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-LAYERED = ("io", "model", "numerics", "reporting", "runtime", "demonstrations")
+LAYERED = ("io", "model", "numerics", "results", "reporting", "runtime", "demonstrations")
 
 
 def test_ci_runs_the_linters_that_check_the_contracts_and_types():

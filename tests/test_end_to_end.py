@@ -22,6 +22,7 @@ import numpy as np
 import pytest
 import shapely
 
+import stages.controller
 from pipeline import Verdict, available_scenarios, load_scenario
 from pipeline.controller import load
 from pipeline.model.simulate import simulate
@@ -197,7 +198,6 @@ def test_a_hand_edited_controller_is_rewritten_and_never_certified(synthesized, 
 def test_the_verdict_comes_from_the_file_as_written(synthesized, tmp_path, monkeypatch, capsys):
     """A controller stage that writes a file other than its certified results (here: every
     radius 10x) gives 'not certified', exit 1, although every stage result is unchanged."""
-    import pipeline.runtime.orchestrator as orchestrator
     from pipeline.runtime.api import synthesize
 
     _, good = synthesized
@@ -215,9 +215,13 @@ def test_the_verdict_comes_from_the_file_as_written(synthesized, tmp_path, monke
 
         return emit_inflated
 
-    monkeypatch.setattr(orchestrator, "emit_controller", inflated(orchestrator.emit_controller))
     monkeypatch.setattr(
-        orchestrator, "emit_funnel_controller", inflated(orchestrator.emit_funnel_controller)
+        stages.controller, "emit_controller", inflated(stages.controller.emit_controller)
+    )
+    monkeypatch.setattr(
+        stages.controller,
+        "emit_funnel_controller",
+        inflated(stages.controller.emit_funnel_controller),
     )
     result = synthesize("quadrotor_hill", out=out, samples=1000)
     summary = json.loads((out / "summary.json").read_text())

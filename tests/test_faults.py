@@ -23,6 +23,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import stages.feedback
+import stages.montecarlo
 from pipeline.io import lock
 from pipeline.io.artifacts import content_hash, read_stored
 from pipeline.runtime import orchestrator
@@ -105,7 +107,8 @@ def test_unknown_field_of_a_registered_type_is_refused(run, capsys):
     document["sha256"] = content_hash(document["key"], document["result"], {})
     path.write_text(json.dumps(document))
     assert synthesize(run, "-q") == 0
-    assert "fields of stages.coverage:CoveringRadius do not match" in capsys.readouterr().err
+    refused = "fields of pipeline.results.coverage:CoveringRadius do not match"
+    assert refused in capsys.readouterr().err
 
 
 # --- 2. an edited artifact is refused; a failed run certifies nothing -----------------------
@@ -145,8 +148,8 @@ def test_failed_stage_writes_a_failed_summary_and_stales_old_outputs(run, capsys
         raise RuntimeError("worker lost")
 
     nudge_demo(scenario, "demo_01", 1e-10)  # reruns the demo stages, not the feedback
-    monkeypatch.setattr(orchestrator, "design_feedback", pytest.fail)
-    monkeypatch.setattr(orchestrator, "validate_closed_loop", broken)
+    monkeypatch.setattr(stages.feedback, "design_feedback", pytest.fail)
+    monkeypatch.setattr(stages.montecarlo, "validate_closed_loop", broken)
     assert synthesize(run, "-q") == 1
     assert "failed: stage montecarlo: RuntimeError: worker lost" in capsys.readouterr().out
     summary = json.loads((out / "summary.json").read_text())
@@ -180,7 +183,7 @@ def test_a_crash_in_a_worker_is_run_once_and_its_traceback_saved(
     def montecarlo(*args, executor, **kwargs):
         return executor.map(_type_error_in_a_worker, [str(tmp_path)])
 
-    monkeypatch.setattr(orchestrator, "validate_closed_loop", montecarlo)
+    monkeypatch.setattr(stages.montecarlo, "validate_closed_loop", montecarlo)
     rerun = ["synthesize", str(scenario), "--out", str(out), "--samples", "200"]  # a new key
     assert main([*rerun, "--jobs", "2", "-q"]) == 1
     printed = capsys.readouterr()
@@ -207,7 +210,7 @@ def test_uncertifiable_feedback_is_exit_1_with_a_failed_summary(run, capsys, mon
     _, out = run
     stored = read_stored(out / "artifacts" / "feedback", RESULT_TYPES).result
     failed = dataclasses.replace(stored, success=False, message="LMI infeasible at rate 0.5")
-    monkeypatch.setattr(orchestrator, "design_feedback", lambda scenario: failed)
+    monkeypatch.setattr(stages.feedback, "design_feedback", lambda scenario: failed)
     assert synthesize(run, "--force", "-q") == 1
     assert "failed: stage feedback: the feedback could not be certified" in (
         capsys.readouterr().out
@@ -272,7 +275,7 @@ def test_unwritable_out_is_exit_2_before_computing(run, capsys, tmp_path, monkey
     else:
         tmp_path.chmod(0o555)
         target = tmp_path / "out"
-    monkeypatch.setattr(orchestrator, "design_feedback", pytest.fail)  # nothing computed
+    monkeypatch.setattr(stages.feedback, "design_feedback", pytest.fail)  # nothing computed
     try:
         assert main(["synthesize", str(run[0]), "--out", str(target)]) == 2
     finally:
@@ -450,7 +453,7 @@ def test_a_full_disk_is_one_line_and_exit_2(monkeypatch, capsys, tmp_path):
     """ENOSPC while writing (simulated where the output folder is prepared): no traceback."""
     import errno
 
-    from pipeline.runtime import cli, orchestrator
+    from pipeline.runtime import cli
 
     def full(*_args, **_kwargs):
         raise OSError(errno.ENOSPC, "No space left on device", str(tmp_path / "summary.json"))

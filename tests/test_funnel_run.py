@@ -16,13 +16,13 @@ import numpy as np
 import pytest
 
 import pipeline
+import stages.funnel
 from pipeline.controller import FUNNEL_FORMAT, load
 from pipeline.io.artifacts import read_stored
 from pipeline.model import geometry
 from pipeline.numerics.cover import subdivide
 from pipeline.reporting import figures
 from pipeline.reporting.summary import Summary
-from pipeline.runtime import orchestrator
 from pipeline.runtime.cli import main
 from pipeline.runtime.options import RunOptions
 from pipeline.runtime.orchestrator import run_synthesis
@@ -199,7 +199,7 @@ def test_a_run_without_any_certified_funnel_fails_and_says_why(funnel_run, tmp_p
             message="no funnel certified for any of the 9 trajectories; all dropped: test",
         )
 
-    monkeypatch.setattr(orchestrator.funnels, "synthesize_funnels", none_certified)
+    monkeypatch.setattr(stages.funnel, "synthesize_funnels", none_certified)
     failed = run_synthesis(SCENARIO, folder, RunOptions(certificate="funnel", samples=20))
     assert failed.verdict is pipeline.Verdict.FAILED and failed.controller is None
     assert failed.message.startswith("failed: stage funnel: no funnel certified: ")

@@ -27,10 +27,11 @@ from pathlib import Path
 
 import pytest
 
+import stages.controller
 from pipeline.io.errors import UserError
 from pipeline.model.scenario import load_scenario
 from pipeline.reporting.summary import Summary
-from pipeline.runtime import orchestrator, outdir
+from pipeline.runtime import outdir
 from pipeline.runtime.cli import main
 from pipeline.runtime.options import RunOptions
 from pipeline.runtime.orchestrator import run_synthesis
@@ -264,7 +265,7 @@ def test_an_uncertified_run_edited_to_say_certified_is_reported_not_certified(
     """The issue's case: a not-certified run, its summary's verdict edited and
     controller.stale.json renamed back; the report certifies the file again."""
     scenario, out = run
-    emit = orchestrator.emit_controller
+    emit = stages.controller.emit_controller
 
     def shrunk(*args, **kwargs):  # balls too small to cover Init: certify refuses the file
         result = emit(*args, **kwargs)
@@ -274,7 +275,7 @@ def test_an_uncertified_run_edited_to_say_certified_is_reported_not_certified(
         )
         return result
 
-    monkeypatch.setattr(orchestrator, "emit_controller", shrunk)
+    monkeypatch.setattr(stages.controller, "emit_controller", shrunk)
     assert main(["synthesize", str(scenario), "--out", str(out), "--samples", SAMPLES, "-q"]) == 1
     monkeypatch.undo()
     assert json.loads((out / "summary.json").read_text())["verdict"]["certified"] is False

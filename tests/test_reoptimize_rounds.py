@@ -12,7 +12,7 @@ import pytest
 
 from pipeline import load_scenario
 from pipeline.numerics.footprint import ConstraintMargins
-from pipeline.runtime.orchestrator import funnels as rounds
+from stages.certificates import funnel as rounds
 from stages.coverage import cover_balls
 from stages.feedback import design_feedback
 from stages.funnel import FunnelStageResult

@@ -142,7 +142,7 @@ def test_artifacts_swapped_for_a_link_mid_run_are_not_followed(out, tmp_path, ca
     elsewhere = tmp_path / "elsewhere"
     shutil.copytree(out / "artifacts", elsewhere)
     before = snapshot(elsewhere)
-    original = StageRunner.run
+    original = StageRunner.run_keyed
 
     def swap_then_run(self, name, *args, **kwargs):
         if name == "montecarlo" and not (out / "artifacts").is_symlink():
@@ -150,7 +150,7 @@ def test_artifacts_swapped_for_a_link_mid_run_are_not_followed(out, tmp_path, ca
             (out / "artifacts").symlink_to(elsewhere, target_is_directory=True)
         return original(self, name, *args, **kwargs)
 
-    monkeypatch.setattr(StageRunner, "run", swap_then_run)
+    monkeypatch.setattr(StageRunner, "run_keyed", swap_then_run)
     assert synthesize(out) == 2
     line = one_line(capsys.readouterr().err)
     assert f"{out / 'artifacts'}: is a symbolic link inside the output folder" in line
@@ -179,7 +179,7 @@ def test_a_write_keeps_the_folder_it_opened_when_that_is_swapped_mid_write(tmp_p
             atomic_write_text(out / "artifacts" / "next.json", "{}")
         runner = StageRunner(out)
         with pytest.raises(UserError, match="is a symbolic link inside the output folder"):
-            runner.run("feedback", "key", lambda: 1.0)
+            runner.run_keyed("feedback", "key", lambda: 1.0)
     assert list(elsewhere.iterdir()) == []
 
 

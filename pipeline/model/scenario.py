@@ -42,7 +42,9 @@ from pipeline.model.scenario_file import SCENARIOS_ROOT as SCENARIOS_ROOT
 from pipeline.model.scenario_file import available_scenarios as available_scenarios
 from pipeline.model.scenario_file import parse_spec
 from pipeline.model.scenario_file import resolve_scenario_path as resolve_scenario_path
-from pipeline.model.schema import DEFAULT_RATE, FeedbackSpec, ScenarioSpec
+from pipeline.model.schema import DEFAULT_RATE as DEFAULT_RATE
+from pipeline.model.schema import CertificateName as CertificateName
+from pipeline.model.schema import FeedbackSpec, ScenarioSpec
 from pipeline.model.simulate import simulate
 from pipeline.model.uncertainty import Uncertainty
 
@@ -96,7 +98,7 @@ class Scenario:
     demos: tuple[Demo, ...] = field(repr=False)
     source_hash: str = ""
     terminal: str = "reach"
-    certificate: str = "constant"
+    certificate: CertificateName = "constant"
     optimizer: str = "gd"
     state_bounds: Mapping[str, tuple[float, float]] = field(default_factory=dict)
     units: Mapping[str, str] = field(default_factory=dict)

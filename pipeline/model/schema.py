@@ -62,6 +62,10 @@ Expression = Annotated[
 ]
 
 
+# What certifies the controller: a strategy for each in ``stages.certificates``.
+CertificateName = Literal["constant", "funnel"]
+
+
 class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
@@ -208,7 +212,7 @@ class ScenarioSpec(_Strict):
         "terminal controller holding it in Goal for all time; bound the speeds at T in "
         "goal.bounds so that it can)",
     )
-    certificate: Literal["constant", "funnel"] = Field(
+    certificate: CertificateName = Field(
         default="constant",
         description="'constant' (one metric P and gain K over operating_region, the paper's "
         "certificate) or 'funnel' (per-trajectory time-varying K[k], P[k] over each tube)",

@@ -31,6 +31,9 @@ from pipeline.numerics.kernels.compiled import (
 )
 from pipeline.numerics.penalties import IntArray
 
+HOLD_SECONDS = 10.0  # a run with a law past T is flown to T + this
+ELLIPSOID_UNDER_UNCERTAINTY = False  # count V > level after T as a failure under draws
+
 
 @dataclass(frozen=True, kw_only=True)
 class SceneArrays:

@@ -23,12 +23,12 @@ from pipeline.model.simulate import Trajectory, simulate
 from pipeline.reporting.summary import Summary
 
 if TYPE_CHECKING:  # the stage results, read from artifacts (reporting sits below stages)
-    from stages.controller import ControllerResult
-    from stages.coverage import CoverageResult
-    from stages.feedback import FeedbackResult
-    from stages.montecarlo import MonteCarloResult
-    from stages.optimize import OptimizeResult
-    from stages.radius import RadiusResult
+    from pipeline.results.controller import ControllerResult
+    from pipeline.results.coverage import CoverageResult
+    from pipeline.results.feedback import FeedbackResult
+    from pipeline.results.montecarlo import MonteCarloResult
+    from pipeline.results.optimize import OptimizeResult
+    from pipeline.results.radius import RadiusResult
 
 STAGES = (
     "feedback",

@@ -1,41 +1,44 @@
-"""The result types a stage artifact may hold: the only classes decoding ever constructs.
+"""The declared stages, and the result types a stage artifact may hold: the only classes
+decoding ever constructs.
 
-``RESULT_TYPES`` maps each stored name (``module:qualname``) to its class. It is built from the
-stage result classes and, through their field annotations, every dataclass nested inside them
-(e.g. ``IterationLog`` and ``Verification`` of ``pipeline.numerics`` inside an optimization).
-An artifact naming anything else is refused by ``pipeline.io.artifacts.read_stored``.
+``STAGES`` is every ``Stage`` declared at module level in the ``stages`` package (found by
+importing its modules: a new stage module is registered by being there). ``RESULT_TYPES`` maps
+each stored name (``module:qualname``) to its class. It is built from the stages' result
+classes and, through their field annotations, every dataclass nested inside them (e.g.
+``IterationLog`` and ``Verification`` of ``pipeline.numerics`` inside an optimization). An
+artifact naming anything else is refused by ``pipeline.io.artifacts.read_stored``.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import importlib
+import pkgutil
 import typing
 from collections.abc import Iterable, Mapping
 from types import MappingProxyType
+from typing import Any
 
+import stages
 from pipeline.io.artifacts import type_name
-from stages.controller import ControllerResult
-from stages.coverage import CoverageResult, CoveringRadius
-from stages.feedback import FeedbackResult
-from stages.funnel import FunnelStageResult
-from stages.montecarlo import MonteCarloResult
-from stages.optimize import OptimizeResult
-from stages.radius import RadiusResult
-from stages.report import ReportResult
-from stages.stress import StressResult
+from pipeline.results.stage import Stage
 
-STAGE_RESULTS: tuple[type, ...] = (
-    FeedbackResult,
-    RadiusResult,
-    CoverageResult,
-    CoveringRadius,
-    OptimizeResult,
-    FunnelStageResult,
-    ControllerResult,
-    MonteCarloResult,
-    StressResult,
-    ReportResult,
-)
+
+def declared_stages() -> tuple[Stage[Any, Any], ...]:
+    """Every ``Stage`` value declared in a module of the ``stages`` package (beside its
+    function), in module order."""
+    found: list[Stage[Any, Any]] = []
+    for info in sorted(pkgutil.iter_modules(stages.__path__), key=lambda m: m.name):
+        module = importlib.import_module(f"stages.{info.name}")
+        found.extend(
+            value
+            for value in vars(module).values()
+            if isinstance(value, Stage) and value.function.__module__ == module.__name__
+        )
+    return tuple(found)
+
+
+STAGES = declared_stages()
 
 
 def _nested(hint: object) -> Iterable[type]:
@@ -60,4 +63,4 @@ def result_types(roots: Iterable[type]) -> Mapping[str, type]:
     return MappingProxyType(found)
 
 
-RESULT_TYPES = result_types(STAGE_RESULTS)
+RESULT_TYPES = result_types(stage.result for stage in STAGES)

@@ -7,23 +7,23 @@ imports stages); stage results are read by their fields.
 from __future__ import annotations
 
 import dataclasses
+import typing
 from collections.abc import Sequence
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from pipeline.io.artifacts import inputs_key
 from pipeline.io.errors import UserError
-from pipeline.model.scenario import Scenario
-from pipeline.model.scenario_data import scenario_data
+from pipeline.model.scenario import CertificateName, Scenario
+from pipeline.model.scenario_data import plain, scenario_data
 from pipeline.model.simulate import Trajectory, simulate
 from pipeline.numerics.sampled import HeldRate, held_rate
 from pipeline.numerics.verify import VERIFY_SUBSTEPS
-from pipeline.runtime.codekey import code_key
 from pipeline.runtime.options import RunOptions
 
 if TYPE_CHECKING:  # stage result types: only the orchestrator imports stages
-    from stages.feedback import FeedbackResult
+    from pipeline.results.feedback import FeedbackResult
 
 
 def trajectories(
@@ -51,7 +51,7 @@ def held_feedback(
     return dataclasses.replace(feedback, rate=held.held_rate, tube=held_tube), held
 
 
-def check_period(scenario: Scenario, period: float, certificate: str) -> None:
+def check_period(scenario: Scenario, period: float, certificate: CertificateName) -> None:
     """``--feedback-period`` must divide the sampling time (``u_ref`` switches at samples); the
     funnel certificate is for continuous feedback only."""
     if period == 0:
@@ -83,9 +83,15 @@ def check_uncertainty(scenario: Scenario, certificate: str) -> None:
         )
 
 
-def certificate_of(scenario: Scenario, options: RunOptions) -> str:
+def certificate_of(scenario: Scenario, options: RunOptions) -> CertificateName:
     """The certificate this run ships: ``--certificate``, else the scenario's."""
-    return options.certificate or scenario.certificate
+    name = options.certificate or scenario.certificate
+    if name not in typing.get_args(CertificateName):
+        raise UserError(
+            f"--certificate: found {name!r}; expected one of "
+            f"{', '.join(typing.get_args(CertificateName))}"
+        )
+    return typing.cast(CertificateName, name)
 
 
 def method_of(scenario: Scenario, options: RunOptions) -> str:
@@ -109,15 +115,12 @@ def scenario_key(scenario: Scenario, *exclude: str) -> str:
     return inputs_key(scenario_data(scenario, exclude))
 
 
-def montecarlo_key(scenario: Scenario, controller_sha256: str, samples: int, seed: int) -> str:
-    """The Monte Carlo stage's key: its code, the scenario's fields, the SHA-256 of the
-    ``controller.json`` it flew, the number of runs and the seed. ``report`` computes it again
-    to check that the stored result is of the ``controller.json`` beside it."""
-    core = scenario_key(scenario, *NOT_NUMERICAL)
-    return inputs_key(code_key("stages.montecarlo"), core, controller_sha256, samples, seed)
-
-
-def stress_key(scenario: Scenario, controller_sha256: str, seed: int) -> str:
-    """The stress test's key, as ``montecarlo_key`` (its runs are fixed by the scenario)."""
-    core = scenario_key(scenario, "description")
-    return inputs_key(code_key("stages.stress"), core, controller_sha256, seed)
+def scenario_slice(scenario: Scenario, names: Sequence[str]) -> dict[str, Any]:
+    """Field name -> plain data (``pipeline.model.scenario_data.plain``) for the fields
+    ``names`` of ``scenario`` that a stage declares it reads (``StageInputs.scenario_fields``);
+    a name that is no field of a ``Scenario`` raises ``ValueError``."""
+    known = {f.name for f in dataclasses.fields(scenario)}
+    unknown = [name for name in names if name not in known]
+    if unknown:
+        raise ValueError(f"scenario_fields names no field of a Scenario: {unknown}")
+    return {name: plain(getattr(scenario, name), name) for name in names}

@@ -36,9 +36,11 @@ from pipeline.io.files import TEXT_MAX_BYTES, FileRefused, is_regular, read_text
 from pipeline.model.scenario import Scenario
 from pipeline.reporting.data import STAGES, ReportData, report_data
 from pipeline.reporting.summary import StressSummary, Summary, Verdict
+from pipeline.results.stage import FileInput
 from pipeline.runtime import run_inputs
 from pipeline.runtime.outdir import INCOMPLETE, MANIFEST, check_complete
 from pipeline.runtime.registry import RESULT_TYPES
+from pipeline.runtime.runner import stage_key
 from pipeline.runtime.summary import stress_summary
 from pipeline.runtime.verdict import (
     Evidence,
@@ -52,6 +54,8 @@ from pipeline.runtime.verdict import (
 )
 from stages.certify import certify_controller
 from stages.coverage import CoverageResult, cover_balls
+from stages.montecarlo import MONTECARLO, MonteCarloInputs
+from stages.stress import STRESS, StressInputs
 
 # the stage results the report and the verdict read; the manifest names each by content hash
 # (and "stress" when the run had the stress test)
@@ -215,7 +219,11 @@ def load_report_data(scenario: Scenario, out: Path, write_to: Path | None = None
     results, keys = _read_stages(scenario, out, names, manifest["stages"])
     scenario = results["feedback"].applied_to(scenario)  # as the run: a tuned design's region
     mc = results["montecarlo"]
-    if keys["montecarlo"] != run_inputs.montecarlo_key(scenario, sha256, mc.samples, mc.seed):
+    shipped = FileInput(path=controller, sha256=sha256)
+    montecarlo = MonteCarloInputs(
+        scenario=scenario, controller=shipped, samples=mc.samples, seed=mc.seed
+    )
+    if keys["montecarlo"] != stage_key(MONTECARLO, montecarlo):
         what = (
             "the Monte Carlo result is not of this controller.json (its key names another "
             "file, or an earlier version of the code)"
@@ -223,7 +231,8 @@ def load_report_data(scenario: Scenario, out: Path, write_to: Path | None = None
         raise _rerun(out / "artifacts" / "montecarlo.json", scenario, what)
     stress = None
     if summary.stress is not None:
-        if keys["stress"] != run_inputs.stress_key(scenario, sha256, mc.seed):
+        stressed = StressInputs(scenario=scenario, controller=shipped, seed=mc.seed)
+        if keys["stress"] != stage_key(STRESS, stressed):
             what = "the stress test's result is not of this controller.json"
             raise _rerun(out / "artifacts" / "stress.json", scenario, what)
         stress = stress_summary(results["stress"])

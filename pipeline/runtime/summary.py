@@ -48,15 +48,15 @@ from pipeline.runtime.verdict import (
 )
 
 if TYPE_CHECKING:  # stage result types: only the orchestrator imports stages
-    from stages.certify import CertificationResult
-    from stages.controller import ControllerResult
-    from stages.coverage import CoverageResult, CoveringRadius
-    from stages.feedback import FeedbackResult
-    from stages.funnel import FunnelStageResult
-    from stages.montecarlo import MonteCarloResult
-    from stages.optimize import OptimizeResult
-    from stages.radius import RadiusResult
-    from stages.stress import StressResult, StressRun
+    from pipeline.results.certify import CertificationResult
+    from pipeline.results.controller import ControllerResult
+    from pipeline.results.coverage import CoverageResult, CoveringRadius
+    from pipeline.results.feedback import FeedbackResult
+    from pipeline.results.funnel import FunnelStageResult
+    from pipeline.results.montecarlo import MonteCarloResult
+    from pipeline.results.optimize import OptimizeResult
+    from pipeline.results.radius import RadiusResult
+    from pipeline.results.stress import StressResult, StressRun
 
 KEY_PACKAGES = (
     "numpy",

@@ -32,9 +32,9 @@ from pipeline.runtime.synthesis import Synthesis
 if TYPE_CHECKING:  # stage result types: only the orchestrator imports stages
     from pipeline.controller import Controller
     from pipeline.model.scenario import Scenario
-    from stages.coverage import CoverageResult, CoveringRadius
-    from stages.optimize import OptimizeResult
-    from stages.radius import RadiusResult
+    from pipeline.results.coverage import CoverageResult, CoveringRadius
+    from pipeline.results.optimize import OptimizeResult
+    from pipeline.results.radius import RadiusResult
 
 LOGGER = "pipeline"
 STALE_CONTROLLER = stale_name(Path("controller.json")).name
@@ -437,23 +437,3 @@ def optimization_logs(optimized: OptimizeResult) -> str:
         lines.append(f"{trajectory.demo}: descent log at N' = {trajectory.N}")
         lines.append(trajectory.log.table())
     return "\n".join(lines)
-
-
-def describe_reoptimized(result: OptimizeResult) -> str:
-    """A funnel round's line: the trajectories optimized again, and those already settled (at
-    their shortest allowed horizon) named on one line, not one sentence each."""
-    if result.success:
-        return result.message
-    settled = [
-        t.demo for t in result.trajectories if not t.success and "may not be shortened" in t.message
-    ]
-    failed = [
-        t.message
-        for t in result.trajectories
-        if not t.success and "may not be shortened" not in t.message
-    ]
-    again = sum(1 for t in result.trajectories if t.success)
-    parts = [f"searched again for {again} of {len(result.trajectories)} trajectories"]
-    if settled:
-        parts.append(f"{len(settled)} already at their shortest horizon ({', '.join(settled)})")
-    return "; ".join(parts + failed)

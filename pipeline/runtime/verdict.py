@@ -32,13 +32,13 @@ from pipeline.reporting.summary import (
 
 if TYPE_CHECKING:  # stage result types: only the orchestrator imports stages
     from pipeline.model.dynamics import FloatArray
-    from stages.certify import CertificationResult
-    from stages.controller import ControllerResult
-    from stages.coverage import CoverageResult, CoveringRadius
-    from stages.feedback import FeedbackResult
-    from stages.montecarlo import MonteCarloResult
-    from stages.optimize import OptimizeResult
-    from stages.radius import RadiusResult
+    from pipeline.results.certify import CertificationResult
+    from pipeline.results.controller import ControllerResult
+    from pipeline.results.coverage import CoverageResult, CoveringRadius
+    from pipeline.results.feedback import FeedbackResult
+    from pipeline.results.montecarlo import MonteCarloResult
+    from pipeline.results.optimize import OptimizeResult
+    from pipeline.results.radius import RadiusResult
 
 
 FEW_DEMOS = 8  # "record more demonstrations" up to this many (or as many as the scenario has)

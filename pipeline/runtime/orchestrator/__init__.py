@@ -32,19 +32,20 @@ outcome is the returned ``Synthesis``; the command line prints both.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 import sys
 import time
 import traceback
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TypeVar
+from typing import Any, TypeVar
 
 import numpy as np
 from threadpoolctl import threadpool_limits
 
 from pipeline.controller import load as load_controller
-from pipeline.io.artifacts import atomic_write_json, file_hash, inputs_key, remove_temporaries
+from pipeline.io.artifacts import atomic_write_json, file_hash, remove_temporaries
 from pipeline.io.errors import ScenarioError, UserError
 from pipeline.io.executor import Executor, make_executor
 from pipeline.io.folders import default_output_folder
@@ -54,10 +55,9 @@ from pipeline.model.scenario import Scenario, load_scenario
 from pipeline.model.simulate import Trajectory
 from pipeline.numerics.prechecks import check_scenario
 from pipeline.reporting.summary import Verdict
+from pipeline.results.stage import FileInput
 from pipeline.runtime import run_inputs
-from pipeline.runtime.codekey import code_key
 from pipeline.runtime.options import RunOptions
-from pipeline.runtime.orchestrator.funnels import FunnelRun, funnel_stages, reoptimize_rounds
 from pipeline.runtime.outdir import (
     INCOMPLETE,
     check_output_folder,
@@ -66,7 +66,7 @@ from pipeline.runtime.outdir import (
     publish,
     staging_folder,
 )
-from pipeline.runtime.runner import StageRunner
+from pipeline.runtime.runner import StageRunner, stage_key
 from pipeline.runtime.stored import (
     EVIDENCE_STAGES,
     load_report_data,
@@ -82,33 +82,25 @@ from pipeline.runtime.terminal import (
     describe_radii,
     optimization_logs,
 )
+from stages.certificates import CERTIFICATES, CertificateRun
 from stages.certify import certify_controller
-from stages.controller import emit_controller, emit_funnel_controller
 from stages.coverage import (
+    COVERAGE,
+    COVERING_RADIUS,
+    CoverageInputs,
     CoverageResult,
-    CoveringRadius,
-    cover_init,
-    covering_radius,
+    CoveringRadiusInputs,
 )
-from stages.feedback import FeedbackResult, design_feedback
-from stages.funnel import FunnelStageResult
-from stages.montecarlo import validate_closed_loop
-from stages.optimize import (
-    ConstraintMargins,
-    OptimizeOptions,
-    OptimizeResult,
-    optimize,
-)
-from stages.radius import RadiusResult, robustness_radius
-from stages.report import ReportResult, write_reports
-from stages.stress import stress_test
+from stages.feedback import FEEDBACK, FeedbackInputs, FeedbackResult
+from stages.montecarlo import MONTECARLO, MonteCarloInputs
+from stages.optimize import OPTIMIZE, ConstraintMargins, OptimizeInputs, OptimizeOptions
+from stages.radius import RADIUS, RadiusInputs, RadiusResult
+from stages.report import REPORT, ReportInputs, ReportResult, write_reports
+from stages.stress import STRESS, StressInputs
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
 REPORT_FILES = ("report.html", "report.pdf", "scenario.png")
-# the code each cached stage's key covers besides its own module (see pipeline.runtime.codekey)
-RADIUS_CODE = ("stages.radius", "pipeline.model.simulate", "pipeline.numerics.verify")
-REPORT_CODE = ("stages.report", "pipeline.runtime.summary", "pipeline.runtime.stored")
 REPORT_STAGES = (  # the controller's result is the file itself, keyed by its hash
     "feedback",
     "radius_demos",
@@ -119,35 +111,35 @@ REPORT_STAGES = (  # the controller's result is the file itself, keyed by its ha
     "coverage_optimized",
     "montecarlo",
 )
-FUNNEL_STAGES = ("funnel", "coverage_funnel")  # with the funnel certificate
 
 
 def _radii_and_coverage(
     scenario: Scenario,
     runner: StageRunner,
     feedback: FeedbackResult,
-    tube: str,
     which: str,
     trajectories: Sequence[Trajectory],
-    inputs: Sequence[np.ndarray],
 ) -> tuple[tuple[RadiusResult, ...], CoverageResult]:
-    """Stages ``radius_<which>`` (the robustness radius of each trajectory, whose start and
-    input ``(N_i, m)`` name it in the key) and ``coverage_<which>`` (Init by the balls of those
-    radii around the starts; a negative radius, no valid tube, counts as 0)."""
-    starts = [t.xs[0] for t in trajectories]
+    """Stages ``radius_<which>`` (the robustness radius of each trajectory) and
+    ``coverage_<which>`` (Init by the balls of those radii around the starts; a negative
+    radius, no valid tube, counts as 0)."""
+    tube = feedback.certified_tube
     radii: tuple[RadiusResult, ...] = runner.run(
-        f"radius_{which}",
-        inputs_key(code_key(*RADIUS_CODE), tube, *starts, *inputs),
-        lambda: tuple(
-            robustness_radius(scenario, feedback.certified_tube, tr) for tr in trajectories
-        ),
+        RADIUS,
+        RadiusInputs(scenario=scenario, tube=tube, trajectories=tuple(trajectories)),
+        name=f"radius_{which}",
         describe=describe_radii,
     )
-    kept = np.array([max(r.radius, 0.0) for r in radii])
-    coverage: CoverageResult = runner.run(
-        f"coverage_{which}",
-        inputs_key(code_key("stages.coverage"), tube, *starts, kept),
-        lambda: cover_init(scenario, feedback, np.array(starts), kept),
+    P = np.asarray(tube.P, dtype=np.float64)
+    coverage = runner.run(
+        COVERAGE,
+        CoverageInputs(
+            scenario=scenario,
+            metrics=P,
+            centers=np.array([t.xs[0] for t in trajectories]).reshape(-1, P.shape[0]),
+            radii=np.array([max(r.radius, 0.0) for r in radii]),
+        ),
+        name=f"coverage_{which}",
         describe=describe_coverage,
     )
     return radii, coverage
@@ -235,11 +227,8 @@ def _synthesize(
     runner: StageRunner,
     started: float,
 ) -> Synthesis:
-    # the scenario's fields the numerical stages read (all but run_inputs.NOT_NUMERICAL)
-    core = run_inputs.scenario_key(scenario, *run_inputs.NOT_NUMERICAL)
     demo_starts = [d.x0 for d in scenario.demos]
     demo_inputs = [d.us for d in scenario.demos]
-    demos = inputs_key([d.name for d in scenario.demos], *demo_starts, *demo_inputs)
     demo_trajectories = run_inputs.trajectories(scenario, demo_starts, demo_inputs)
     log.info(
         f"scenario {scenario.name}: {len(scenario.demos)} demos, all valid "
@@ -248,12 +237,7 @@ def _synthesize(
     log.debug(f"{demo_table(scenario, demo_trajectories)}\n")  # the table under -v
     quiet = not log.isEnabledFor(logging.INFO)  # progress bars only where lines are shown
 
-    feedback = runner.run(
-        "feedback",
-        inputs_key(code_key("stages.feedback", "pipeline.numerics.feedback_search"), core),
-        lambda: design_feedback(scenario),
-        describe=lambda result: result.message,
-    )
+    feedback = runner.run(FEEDBACK, FeedbackInputs(scenario=scenario), describe=_message)
     if not feedback.success:
         reason = f"the feedback could not be certified: {feedback.message}"
         return _failed(out, scenario, "feedback", reason)
@@ -271,34 +255,37 @@ def _synthesize(
             f"[held feedback] every {held.period:g} s: tube rate {held.held_rate:.4g}/s "
             f"(continuous {held.rate:.4g}/s; pipeline.numerics.sampled)"
         )
-    tube = inputs_key(core, runner.digest("feedback"), options.feedback_period)
+    tube = feedback.certified_tube
     demo_radii, demo_coverage = _radii_and_coverage(
-        scenario, runner, feedback, tube, "demos", demo_trajectories, demo_inputs
+        scenario, runner, feedback, "demos", demo_trajectories
     )
 
     r_d = feedback.required_radius(scenario.clearance)
-    upper = max(r_d, *(r.radius for r in demo_radii))
-    covering: CoveringRadius = runner.run(
-        "covering_radius",
-        inputs_key(code_key("stages.coverage"), tube, *demo_starts, upper),
-        lambda: covering_radius(scenario, feedback, np.array(demo_starts), upper=upper),
+    covering = runner.run(
+        COVERING_RADIUS,
+        CoveringRadiusInputs(
+            scenario=scenario,
+            P=tube.P,
+            centers=np.array(demo_starts),
+            upper=max(r_d, *(r.radius for r in demo_radii)),
+        ),
         describe=describe_covering,
     )
     r_required = covering.kept_radius(r_d)
-    margins = ConstraintMargins.of_tube(feedback.certified_tube, r_required)
     optimize_options = OptimizeOptions(
         method=run_inputs.method_of(scenario, options), search=options.search
     )
     with progress_bar(len(scenario.demos), "demos optimized", quiet) as advance:
-        optimized: OptimizeResult = runner.run(
-            "optimize",
-            inputs_key(
-                code_key("stages.optimize"), tube, demos, r_required, repr(optimize_options)
+        optimized = runner.run(
+            OPTIMIZE,
+            OptimizeInputs(
+                scenario=scenario,
+                margins=ConstraintMargins.of_tube(tube, r_required),
+                options=optimize_options,
             ),
-            lambda: optimize(
-                scenario, margins, optimize_options, executor=executor, progress=advance
-            ),
-            describe=lambda result: result.message,
+            describe=_message,
+            executor=executor,
+            progress=advance,
         )
     if log.isEnabledFor(logging.DEBUG):
         log.debug(optimization_logs(optimized))
@@ -309,115 +296,56 @@ def _synthesize(
     ]
     final_trajectories = run_inputs.trajectories(scenario, demo_starts, final_inputs)
     final_radii, final_coverage = _radii_and_coverage(
-        scenario, runner, feedback, tube, "optimized", final_trajectories, final_inputs
+        scenario, runner, feedback, "optimized", final_trajectories
     )
 
     controller_path = staging / "controller.json"  # published as out / "controller.json"
-    certificate = run_inputs.certificate_of(scenario, options)
-    funnels: FunnelStageResult | None = None
-    funnel_coverage: CoverageResult | None = None
-    constant_trajectories: list[Trajectory] | None = None
-    if certificate == "funnel":
-        # Each funnel is asked to hold its start's cell of Init (stage funnel); a start that
-        # owns no cell asks for the constant ball's slice (I1), at the radius the optimizer kept
-        # when its trajectory has no robustness radius.
-        initial_radii = [r.radius if r.radius > 0 else r_required for r in final_radii]
-        funnel_run = FunnelRun(
+    certificate = CERTIFICATES[run_inputs.certificate_of(scenario, options)]
+    certified = certificate.ship(
+        CertificateRun(
             scenario=scenario,
             runner=runner,
             executor=executor,
-            tube=tube,
             feedback=feedback,
             starts=demo_starts,
-            initial_radii=initial_radii,
+            optimized=optimized,
+            inputs=final_inputs,
+            trajectories=final_trajectories,
+            radii=final_radii,
+            r_required=r_required,
             options=optimize_options,
+            feedback_period=options.feedback_period,
+            controller_path=controller_path,
             quiet=quiet,
+            publish=functools.partial(_published, out),
+            describe_coverage=describe_coverage,
         )
-        funnels, funnel_coverage = funnel_stages(funnel_run, final_inputs, final_trajectories)
-        if not funnels.usable:
-            return _failed(out, scenario, "funnel", f"no funnel certified: {funnels.message}")
-        constant_trajectories = final_trajectories
-        final_inputs, final_trajectories, funnels, funnel_coverage = reoptimize_rounds(
-            funnel_run, optimized, final_inputs, final_trajectories, funnels, funnel_coverage
-        )
-        usable = list(funnels.usable)
-        controller = runner.run(
-            "controller",
-            inputs_key(code_key("stages.controller"), runner.digest("funnel"), usable),
-            lambda: _published(
-                out,
-                emit_funnel_controller(
-                    scenario,
-                    [final_trajectories[i] for i in usable],
-                    [funnels.funnels[i] for i in usable],
-                    controller_path,
-                    feedback_period=options.feedback_period,
-                    names=[scenario.demos[i].name for i in usable],
-                ),
-            ),
-            rerun=True,  # always written from this run's certified results
-            describe=lambda result: result.message,
-        )
-    elif certificate == "constant":
-        usable = [i for i, r in enumerate(final_radii) if r.radius > 0]
-        controller = runner.run(
-            "controller",
-            inputs_key(
-                code_key("stages.controller"),
-                tube,
-                usable,
-                *demo_starts,
-                *final_inputs,
-                [final_radii[i].radius for i in usable],
-                r_required,
-            ),
-            lambda: _published(
-                out,
-                emit_controller(
-                    scenario,
-                    feedback.certified_tube.K,
-                    feedback.certified_tube.P,
-                    feedback.rate,
-                    [demo_starts[i] for i in usable],
-                    [final_inputs[i] for i in usable],
-                    [final_radii[i].radius for i in usable],
-                    controller_path,
-                    radius_floor=r_required,
-                    feedback_period=options.feedback_period,
-                    names=[scenario.demos[i].name for i in usable],
-                ),
-            ),
-            rerun=True,  # always written from this run's certified results
-            describe=lambda result: result.message,
-        )
-    else:
-        raise ValueError(f"certificate {certificate!r}; expected 'constant' or 'funnel'")
+    )
+    if certified.controller is None:
+        return _failed(out, scenario, certified.failed_stage, certified.failure)
+    controller = certified.controller
     started_certify = time.perf_counter()
     certification = certify_controller(scenario, controller_path)
     certify_seconds = time.perf_counter() - started_certify
     log.info(f"[certify] {certify_seconds:.1f} s: {certification.message}")
-    controller_sha = file_hash(controller_path)  # unchanged from here until it is published
+    # unchanged from here until it is published
+    shipped = FileInput(path=controller_path, sha256=file_hash(controller_path))
     with progress_bar(options.samples, "closed-loop runs", quiet) as advance:
         montecarlo = runner.run(
-            "montecarlo",
-            run_inputs.montecarlo_key(scenario, controller_sha, options.samples, options.seed),
-            lambda: validate_closed_loop(
-                scenario,
-                controller_path,
-                samples=options.samples,
-                seed=options.seed,
-                executor=executor,
-                progress=advance,
+            MONTECARLO,
+            MonteCarloInputs(
+                scenario=scenario, controller=shipped, samples=options.samples, seed=options.seed
             ),
-            describe=lambda result: result.message,
+            describe=_message,
+            executor=executor,
+            progress=advance,
         )
     stress = None
     if options.stress:
         stress = runner.run(
-            "stress",
-            run_inputs.stress_key(scenario, controller_sha, options.seed),
-            lambda: stress_test(scenario, controller_path, seed=options.seed),
-            describe=lambda result: result.message,
+            STRESS,
+            StressInputs(scenario=scenario, controller=shipped, seed=options.seed),
+            describe=_message,
         )
 
     results = StageResults(
@@ -428,16 +356,16 @@ def _synthesize(
         demo_coverage=demo_coverage,
         covering=covering,
         optimized=optimized,
-        final_trajectories=final_trajectories,
+        final_trajectories=certified.trajectories,
         final_radii=final_radii,
         final_coverage=final_coverage,
         controller=controller,
         certification=certification,
         montecarlo=montecarlo,
-        certificate=certificate,
-        funnels=funnels,
-        funnel_coverage=funnel_coverage,
-        constant_trajectories=constant_trajectories,
+        certificate=certificate.name,
+        funnels=certified.funnels,
+        funnel_coverage=certified.funnel_coverage,
+        constant_trajectories=certified.constant_trajectories,
     )
     summary = summarise(
         results,
@@ -447,26 +375,29 @@ def _synthesize(
         stress=stress,
     )
     atomic_write_json(staging / "summary.json", summary.to_json())
-    report_key = inputs_key(  # what the report shows: never this run's timings
-        code_key(*REPORT_CODE),
-        scenario.source_hash,
-        run_inputs.scenario_key(scenario),
-        [runner.digest(name) for name in REPORT_STAGES],
-        [runner.digest(name) for name in FUNNEL_STAGES if funnels is not None],
-        None if stress is None else runner.digest("stress"),
-        controller_sha,
+    shown = (  # what the report shows: never this run's timings
+        *REPORT_STAGES,
+        *certified.report_stages,
+        *(("stress",) if stress is not None else ()),
     )
+    report_inputs = ReportInputs(
+        scenario=scenario,
+        results=tuple((name, runner.digest(name)) for name in shown),
+        controller=shipped,
+    )
+    report_key = stage_key(REPORT, report_inputs)
     named = (*EVIDENCE_STAGES, *(("stress",) if stress is not None else ()))
     digests = {name: runner.digest(name) for name in named}  # what report reads, by content
-    write_manifest(scenario, staging, controller_sha, digests, report_key)
+    write_manifest(scenario, staging, shipped.sha256, digests, report_key)
     # the published reports are this run's when their key is this one (else written anew)
     current = published_report_key(out) == report_key and _reports_present(out)
     runner.run(
-        "report",
-        report_key,
-        lambda: _published(out, write_reports(staged_report_data(scenario, out, staging, summary))),
+        REPORT,
+        report_inputs,
         rerun=not current,
-        describe=lambda result: result.message,
+        describe=_message,
+        finish=functools.partial(_published, out),
+        data=lambda: staged_report_data(scenario, out, staging, summary),
     )
     publish(out, staging, certified=summary.certified)
     return Synthesis(
@@ -480,6 +411,11 @@ def _synthesize(
         summary=summary,
         outputs=Outputs.of(out),
     )
+
+
+def _message(result: Any) -> str:
+    """What a stage's result says of itself (its ``message``)."""
+    return str(result.message)
 
 
 def _published(out: Path, result: T) -> T:

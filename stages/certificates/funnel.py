@@ -1,35 +1,34 @@
-"""The funnel certificate's part of the run (issue 16): the funnel stages around the optimized
-nominals, then the re-optimize rounds against the funnels (part 4), as a continuation that keeps
-Init covered. Wired from ``pipeline.runtime.orchestrator``; only the orchestrator package wires
-stages.
+"""The funnel certificate (issue 16): the funnel stages around the optimized nominals, then the
+re-optimize rounds against the funnels (part 4), a trust-region continuation that keeps Init
+covered, and the funnel controller (``safety-controller/2``).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import functools
 import logging
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from pipeline.io.artifacts import inputs_key
 from pipeline.io.executor import Executor
 from pipeline.io.progress import progress_bar
-from pipeline.model.scenario import Scenario
+from pipeline.model.scenario import CertificateName, Scenario
 from pipeline.model.simulate import Trajectory
 from pipeline.numerics.funnel_check import Funnel
-from pipeline.runtime import run_inputs
-from pipeline.runtime.codekey import code_key
-from pipeline.runtime.runner import StageRunner
-from pipeline.runtime.terminal import describe_coverage, describe_reoptimized
-from stages.coverage import CoverageResult, cover_balls
-from stages.feedback import FeedbackResult
-from stages.funnel import FunnelStageResult, synthesize_funnels
-from stages.optimize import OptimizeOptions, OptimizeResult, reoptimize_with_funnels
+from pipeline.results.coverage import CoverageResult
+from pipeline.results.feedback import FeedbackResult
+from pipeline.results.funnel import FunnelStageResult
+from pipeline.results.optimize import OptimizeOptions, OptimizeResult
+from pipeline.results.stage import Runner
+from stages.certificates import CertificateRun, Shipped, nominals
+from stages.controller import FUNNEL_CONTROLLER, FunnelControllerInputs
+from stages.coverage import COVERAGE, CoverageInputs
+from stages.funnel import FUNNEL, FunnelInputs
+from stages.optimize import REOPTIMIZE, ReoptimizeInputs
 
-log = logging.getLogger(__name__)
+log = logging.getLogger("pipeline.certificates")  # the run's logger: its lines are shown
 FUNNEL_ROUNDS = 10  # re-optimize rounds against the funnels at most (issue 16 part 4)
 FIRST_STEP = 0.1  # round 1 shortens a nominal by at most this fraction of its samples
 GROW, MAX_STEP = 1.5, 0.4  # a kept trajectory's next step grows by GROW, up to MAX_STEP
@@ -42,7 +41,6 @@ class FunnelRun:
     """What every funnel stage of one run shares.
 
     Attributes:
-      tube: the key of the feedback the run certified (every funnel stage's inputs include it).
       feedback: the constant certificate (its metric assigns Init's cells to the starts).
       starts: (n,) per trajectory, the demonstrations' starts, which every nominal keeps.
       initial_radii: per trajectory, the constant ball's radius (I1), for a start owning no cell.
@@ -50,19 +48,75 @@ class FunnelRun:
     """
 
     scenario: Scenario
-    runner: StageRunner
+    runner: Runner
     executor: Executor
-    tube: str
     feedback: FeedbackResult
     starts: Sequence[np.ndarray]
     initial_radii: Sequence[float]
     options: OptimizeOptions
     quiet: bool
+    describe_coverage: Callable[[CoverageResult], str]
+
+
+@dataclasses.dataclass(frozen=True)
+class FunnelCertificate:
+    """A time-varying gain ``K_i[k]`` and metric ``P_i[k]`` per trajectory: the funnel stages,
+    the re-optimize rounds, and the controller of the certified funnels."""
+
+    name: CertificateName = "funnel"
+
+    def ship(self, run: CertificateRun) -> Shipped:
+        # Each funnel is asked to hold its start's cell of Init (stage funnel); a start that
+        # owns no cell asks for the constant ball's slice (I1), at the radius the optimizer kept
+        # when its trajectory has no robustness radius.
+        funnel_run = FunnelRun(
+            scenario=run.scenario,
+            runner=run.runner,
+            executor=run.executor,
+            feedback=run.feedback,
+            starts=run.starts,
+            initial_radii=[r.radius if r.radius > 0 else run.r_required for r in run.radii],
+            options=run.options,
+            quiet=run.quiet,
+            describe_coverage=run.describe_coverage,
+        )
+        trajectories = list(run.trajectories)
+        funnels, coverage = funnel_stages(funnel_run, trajectories)
+        if not funnels.usable:
+            failure = f"no funnel certified: {funnels.message}"
+            return Shipped(
+                controller=None, trajectories=trajectories, failed_stage="funnel", failure=failure
+            )
+        _, final, funnels, coverage = reoptimize_rounds(
+            funnel_run, run.optimized, list(run.inputs), trajectories, funnels, coverage
+        )
+        usable = funnels.usable
+        controller = run.runner.run(
+            FUNNEL_CONTROLLER,
+            FunnelControllerInputs(
+                scenario=run.scenario,
+                names=tuple(run.names[i] for i in usable),
+                trajectories=tuple(final[i] for i in usable),
+                funnels=tuple(funnels.funnels[i] for i in usable),
+                feedback_period=run.feedback_period,
+                path=run.controller_path,
+            ),
+            rerun=True,  # always written from this run's certified results
+            describe=lambda result: result.message,
+            finish=run.publish,
+        )
+        return Shipped(
+            controller=controller,
+            trajectories=final,
+            constant_trajectories=trajectories,
+            funnels=funnels,
+            funnel_coverage=coverage,
+            report_stages=("funnel", "coverage_funnel"),
+        )
 
 
 def funnel_stages(
     run: FunnelRun,
-    inputs: Sequence[np.ndarray],
     trajectories: Sequence[Trajectory],
     stage: str = "funnel",
     reuse: Sequence[tuple[Funnel, str | None] | None] | None = None,
@@ -72,41 +126,40 @@ def funnel_stages(
     earlier round around the same nominal, with its verdict then) and ``coverage_<stage>``
     (Init by the usable funnels' initial ellipsoids ``E_i(0)``, each in its own metric
     ``P_i[0]``)."""
-    scenario, runner, starts = run.scenario, run.runner, run.starts
-    names = [d.name for d in scenario.demos]
+    scenario = run.scenario
     with progress_bar(len(trajectories), "funnels", run.quiet) as advance:
-        funnels: FunnelStageResult = runner.run(
-            stage,
-            inputs_key(
-                code_key("stages.funnel"), run.tube, names, *starts, *inputs, run.initial_radii
+        funnels: FunnelStageResult = run.runner.run(
+            FUNNEL,
+            FunnelInputs(
+                scenario=scenario,
+                names=tuple(d.name for d in scenario.demos),
+                trajectories=tuple(trajectories),
+                P=run.feedback.certified_tube.P,
+                radii=np.asarray(run.initial_radii),
             ),
-            lambda: synthesize_funnels(
-                scenario,
-                names,
-                trajectories,
-                run.feedback.certified_tube.P,
-                np.asarray(run.initial_radii),
-                executor=run.executor,
-                progress=advance,
-                reuse=reuse,
-            ),
+            name=stage,
             describe=lambda result: result.message,
+            executor=run.executor,
+            progress=advance,
+            reuse=reuse,
         )
-    return funnels, _funnel_coverage(run, f"coverage_{stage}", funnels, runner.digest(stage))
+    return funnels, _funnel_coverage(run, f"coverage_{stage}", funnels)
 
 
-def _funnel_coverage(
-    run: FunnelRun, stage: str, funnels: FunnelStageResult, *inputs: object
-) -> CoverageResult:
+def _funnel_coverage(run: FunnelRun, stage: str, funnels: FunnelStageResult) -> CoverageResult:
     """Stage ``stage``: Init covered by the usable funnels' initial ellipsoids ``E_i(0)``, each
-    in its own metric ``P_i[0]`` at its level; ``inputs`` name the funnels in its key."""
+    in its own metric ``P_i[0]`` at its level."""
     return run.runner.run(
-        stage,
-        inputs_key(code_key("stages.coverage"), run.tube, *inputs, *run.starts),
-        lambda: cover_balls(
-            run.scenario, funnels.starts, np.array(run.starts), funnels.levels, noun="funnel start"
+        COVERAGE,
+        CoverageInputs(
+            scenario=run.scenario,
+            metrics=funnels.starts,
+            centers=np.array(run.starts),
+            radii=funnels.levels,
+            noun="funnel start",
         ),
-        describe=describe_coverage,
+        name=stage,
+        describe=run.describe_coverage,
     )
 
 
@@ -171,25 +224,18 @@ def reoptimize_rounds(
         ]
         with progress_bar(len(previous), f"round {k}: optimized again", run.quiet) as advance:
             again: OptimizeResult = runner.run(
-                f"reoptimize_{k}",
-                inputs_key(
-                    code_key("stages.optimize"),
-                    runner.digest(_round_stage(k - 1)),
-                    *inputs,
-                    shortest,
-                    repr(run.options),
-                ),  # fmt: skip
-                functools.partial(
-                    reoptimize_with_funnels,
-                    scenario,
-                    previous,
-                    funnels.funnels,
-                    run.options,
-                    run.executor,
-                    advance,
-                    shortest=shortest,
-                ),  # fmt: skip
-                describe=describe_reoptimized,
+                REOPTIMIZE,
+                ReoptimizeInputs(
+                    scenario=scenario,
+                    trajectories=tuple(previous),
+                    funnels=funnels.funnels,
+                    options=run.options,
+                    shortest=tuple(shortest),
+                ),
+                name=f"reoptimize_{k}",
+                describe=_describe_round,
+                executor=run.executor,
+                progress=advance,
             )
         moved = [
             i
@@ -202,14 +248,14 @@ def reoptimize_rounds(
             log.info(f"[round {k}] no trajectory optimized again: the previous funnels are kept")
             break
         new_inputs = [again.trajectories[i].u if i in moved else u for i, u in enumerate(inputs)]
-        simulated = run_inputs.trajectories(
+        simulated = nominals(
             scenario, [starts[i] for i in moved], [new_inputs[i] for i in moved]
         )  # the others keep their nominal
         new_trajectories = list(trajectories)
         for i, trajectory in zip(moved, simulated, strict=True):
             new_trajectories[i] = trajectory
         new_funnels, new_coverage = funnel_stages(
-            run, new_inputs, new_trajectories, stage=_round_stage(k),
+            run, new_trajectories, stage=_round_stage(k),
             reuse=[
                 None if i in moved else (funnels.funnels[i], funnels.failure(i))
                 for i in range(len(inputs))
@@ -222,14 +268,7 @@ def reoptimize_rounds(
                 new_trajectories[i] if i in kept else t for i, t in enumerate(trajectories)
             ]
             new_funnels = _mixed(funnels, new_funnels, kept)
-            new_coverage = _funnel_coverage(
-                run,
-                f"coverage_{_round_stage(k)}_kept",
-                new_funnels,
-                runner.digest(_round_stage(k - 1)),
-                runner.digest(_round_stage(k)),
-                kept,
-            )
+            new_coverage = _funnel_coverage(run, f"coverage_{_round_stage(k)}_kept", new_funnels)
         before = sum(trajectories[i].duration for i in funnels.usable)
         after = sum(new_trajectories[i].duration for i in new_funnels.usable)
         shorter = after < before and len(new_funnels.usable) >= len(funnels.usable)
@@ -305,3 +344,23 @@ def _mixed(
 def _round_stage(k: int) -> str:
     """The funnel stage of re-optimize round ``k`` (0: the first funnels)."""
     return "funnel" if k == 0 else f"funnel_{k}"
+
+
+def _describe_round(result: OptimizeResult) -> str:
+    """A funnel round's line: the trajectories optimized again, and those already settled (at
+    their shortest allowed horizon) named on one line, not one sentence each."""
+    if result.success:
+        return result.message
+    settled = [
+        t.demo for t in result.trajectories if not t.success and "may not be shortened" in t.message
+    ]
+    failed = [
+        t.message
+        for t in result.trajectories
+        if not t.success and "may not be shortened" not in t.message
+    ]
+    again = sum(1 for t in result.trajectories if t.success)
+    parts = [f"searched again for {again} of {len(result.trajectories)} trajectories"]
+    if settled:
+        parts.append(f"{len(settled)} already at their shortest horizon ({', '.join(settled)})")
+    return "; ".join(parts + failed)
