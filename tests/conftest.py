@@ -52,6 +52,9 @@ def synthesis_group(scenario: str) -> str:
     return f"synthesis-{scenario}"
 
 
+# the tests that read ``quadrotor_funnel_artifact`` (about 4 s of CPU), so that one worker makes it
+FUNNEL_GROUP = "quadrotor-funnel"
+
 # The order in which the scheduler hands out work: these groups, then the tests marked slow,
 # then the rest. With two workers the first goes to one, the second to the other, and the third
 # (its worker has only the first group's two tests left) again to the first: the unicycle's
@@ -61,6 +64,7 @@ SCHEDULE = (
     synthesis_group("quadrotor_hill"),
     synthesis_group("double_integrator"),
     synthesis_group("double_integrator_hold"),
+    FUNNEL_GROUP,
 )
 
 
@@ -212,10 +216,16 @@ def pytest_terminal_summary(terminalreporter, config: pytest.Config) -> None:
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     """Mark each test that reads a session synthesis with its scenario's ``xdist_group``: the
     ``name`` parameter for ``synthesis(name)``, quadrotor_hill for ``synthesized`` (a test that
-    calls ``synthesis("other")`` says so with its own ``xdist_group(synthesis_group("other"))``)."""
+    calls ``synthesis("other")`` says so with its own ``xdist_group(synthesis_group("other"))``);
+    each other test that reads ``quadrotor_funnel_artifact`` with ``FUNNEL_GROUP``."""
     for item in items:
-        used = SYNTHESIS_FIXTURES & set(getattr(item, "fixturenames", ()))
-        if not used or item.get_closest_marker("xdist_group"):  # a test may name its group
+        if item.get_closest_marker("xdist_group"):  # a test may name its group
+            continue
+        fixtures = set(getattr(item, "fixturenames", ()))
+        used = SYNTHESIS_FIXTURES & fixtures
+        if not used:
+            if "quadrotor_funnel_artifact" in fixtures:
+                item.add_marker(pytest.mark.xdist_group(FUNNEL_GROUP))
             continue
         callspec = getattr(item, "callspec", None)
         params = callspec.params if callspec is not None else {}
