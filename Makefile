@@ -16,9 +16,10 @@ $(STAMP): pyproject.toml
 synthesize: $(STAMP)
 	$(PY) -m pipeline synthesize $(SCENARIO)
 
-# two workers; each scenario's session synthesis stays on one (tests/conftest.py)
+# two workers; each scenario's session synthesis stays on one (xdist_group marks, tests/conftest.py),
+# the groups handed out in collection order (conftest sorts the long syntheses first)
 test: $(STAMP)
-	$(PY) -m pytest -q -n 2 --dist loadgroup
+	$(PY) -m pytest -q -n 2 --dist loadgroup --no-loadscope-reorder
 
 # the results blocks of README.md and docs/results.md, from the runs in reports/ (run
 # `make synthesize SCENARIO=quadrotor_hill` and `SCENARIO=double_integrator` first)

@@ -1,10 +1,16 @@
 """Shared fixtures: one full synthesis per shipped scenario per test session.
 
-``make test`` runs the suite on two pytest-xdist workers with ``--dist loadgroup``: every test
-that uses ``synthesis_run``, ``synthesis`` or ``synthesized`` is put in the group of its scenario
+``make test`` runs the suite on two pytest-xdist workers with xdist's own group scheduling,
+``--dist loadgroup --no-loadscope-reorder``: every test that uses ``synthesis_run``,
+``synthesis`` or ``synthesized`` gets its scenario's ``xdist_group`` mark
 (``pytest_collection_modifyitems`` below), so each scenario is synthesized once, by one worker;
-the groups and the slow tests are handed out first (``SCHEDULE``), so that the two workers start
-with the long syntheses and end together.
+the collection is sorted so that the groups and the slow tests come first (``SCHEDULE``), and
+``--no-loadscope-reorder`` makes xdist hand the groups out in that order (by default it hands
+out the largest first), so that the two workers start with the long syntheses and end together.
+
+pytest-xdist 3.8's ``loadgroup`` does not group under pytest 9.2 (pytest-dev/pytest-xdist#1386:
+xdist marks a test's group in ``Node._nodeid``, which pytest 9.2 no longer reads), so the test
+extra asks for ``pytest<9.2`` and ``_warn_if_ungrouped`` warns with a later one.
 """
 
 from __future__ import annotations
@@ -18,6 +24,7 @@ import time
 from collections import defaultdict
 from contextlib import redirect_stderr, redirect_stdout
 from dataclasses import dataclass
+from importlib.metadata import version
 from io import StringIO
 from pathlib import Path
 
@@ -45,6 +52,9 @@ def synthesis_group(scenario: str) -> str:
     return f"synthesis-{scenario}"
 
 
+# the tests that read ``quadrotor_funnel_artifact`` (about 4 s of CPU), so that one worker makes it
+FUNNEL_GROUP = "quadrotor-funnel"
+
 # The order in which the scheduler hands out work: these groups, then the tests marked slow,
 # then the rest. With two workers the first goes to one, the second to the other, and the third
 # (its worker has only the first group's two tests left) again to the first: the unicycle's
@@ -54,6 +64,7 @@ SCHEDULE = (
     synthesis_group("quadrotor_hill"),
     synthesis_group("double_integrator"),
     synthesis_group("double_integrator_hold"),
+    FUNNEL_GROUP,
 )
 
 
@@ -202,13 +213,19 @@ def pytest_terminal_summary(terminalreporter, config: pytest.Config) -> None:
 
 
 @pytest.hookimpl(tryfirst=True)  # before xdist's own hook reads the groups in each worker
-def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     """Mark each test that reads a session synthesis with its scenario's ``xdist_group``: the
     ``name`` parameter for ``synthesis(name)``, quadrotor_hill for ``synthesized`` (a test that
-    calls ``synthesis("other")`` says so with its own ``xdist_group(synthesis_group("other"))``)."""
+    calls ``synthesis("other")`` says so with its own ``xdist_group(synthesis_group("other"))``);
+    each other test that reads ``quadrotor_funnel_artifact`` with ``FUNNEL_GROUP``."""
     for item in items:
-        used = SYNTHESIS_FIXTURES & set(getattr(item, "fixturenames", ()))
-        if not used or item.get_closest_marker("xdist_group"):  # a test may name its group
+        if item.get_closest_marker("xdist_group"):  # a test may name its group
+            continue
+        fixtures = set(getattr(item, "fixturenames", ()))
+        used = SYNTHESIS_FIXTURES & fixtures
+        if not used:
+            if "quadrotor_funnel_artifact" in fixtures:
+                item.add_marker(pytest.mark.xdist_group(FUNNEL_GROUP))
             continue
         callspec = getattr(item, "callspec", None)
         params = callspec.params if callspec is not None else {}
@@ -217,23 +234,19 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
         else:
             scenario = str(params["name"])
         item.add_marker(pytest.mark.xdist_group(synthesis_group(scenario)))
-    if getattr(config.option, "loadgroup", False):
-        _suffix_groups(items)
 
 
 def pytest_configure(config: pytest.Config) -> None:
     if config.getoption("cpu_durations") is not None:
         _COMPILE.install()
-    if getattr(config.option, "loadscopereorder", False):
-        # xdist would hand out the groups largest first; ``_Schedule`` orders them instead
-        config.option.loadscopereorder = False
+    _warn_if_ungrouped(config)
     config.pluginmanager.register(_Schedule(), "schedule")
 
 
 class _Schedule:
-    """Collection order = the order the scheduler hands work out (``--dist loadgroup`` without
-    xdist's reordering by size): the groups of ``SCHEDULE``, then tests marked ``slow``, then the
-    rest, each in collection order (a stable sort)."""
+    """Collection order = the order in which ``--dist loadgroup --no-loadscope-reorder`` hands
+    work out: the groups of ``SCHEDULE``, then tests marked ``slow``, then the rest, each in
+    collection order (a stable sort)."""
 
     @pytest.hookimpl(trylast=True)  # after pytest's own reordering by parametrized fixtures
     def pytest_collection_modifyitems(self, items: list[pytest.Item]) -> None:
@@ -248,17 +261,22 @@ class _Schedule:
         items.sort(key=rank)
 
 
-def _suffix_groups(items: list[pytest.Item]) -> None:
-    """In an xdist worker under ``--dist loadgroup``: append ``@GROUP`` to each grouped test's
-    node id, which is what the scheduler groups by. xdist's own hook does it by setting
-    ``Node._nodeid``, which pytest 9 no longer reads (the id is ``Node._id``), so without this
-    ``loadgroup`` schedules like ``load`` and each worker repeats the session syntheses."""
-    from _pytest.nodeid import coerce_node_id
-
-    for item in items:
-        groups = sorted({str(m.args[0]) for m in item.iter_markers("xdist_group") if m.args})
-        if groups and "@" not in item.nodeid and hasattr(item, "_id"):
-            item._id = coerce_node_id(f"{item.nodeid}@{'_'.join(groups)}")
+def _warn_if_ungrouped(config: pytest.Config) -> None:
+    """Under ``--dist loadgroup``, warn if this pytest-xdist cannot group with this pytest
+    (pytest-dev/pytest-xdist#1386, up to xdist 3.8 at least): each worker would then repeat the
+    session syntheses the other makes."""
+    if config.getoption("dist", None) != "loadgroup" or "PYTEST_XDIST_WORKER" in os.environ:
+        return
+    xdist = tuple(int(part) for part in version("pytest-xdist").split(".")[:2])
+    if pytest.version_tuple[:2] >= (9, 2) and xdist <= (3, 8):
+        config.issue_config_time_warning(
+            pytest.PytestConfigWarning(
+                f"pytest-xdist {version('pytest-xdist')}'s --dist loadgroup does not group under "
+                f"pytest {pytest.__version__} (pytest-dev/pytest-xdist#1386): each worker "
+                "synthesizes every scenario it needs; install the test extra (pytest<9.2)"
+            ),
+            stacklevel=2,
+        )
 
 
 @dataclass(frozen=True, kw_only=True)
