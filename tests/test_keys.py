@@ -142,6 +142,10 @@ def _other(value: Any, name: str) -> Any:
         return value.model_copy(update={"rate": value.rate * (1 + 1e-12)})
     if name == "spec":
         return value.model_copy(update={"description": "another description"})
+    if name == "uncertainty":  # a gust of 1e-12 on the first state
+        return dataclasses.replace(
+            value, disturbance=value.disturbance + np.eye(len(value.disturbance))[0] * 1e-12
+        )
     raise AssertionError(f"no other value for field {name}: add one (a new Scenario field)")
 
 

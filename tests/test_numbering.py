@@ -51,7 +51,7 @@ def test_report_terminal_repr_and_example_number_trajectories_as_controller_json
     line = next(line for line in outputs.splitlines() if "controller.json" in line)
     _agree(LABEL.findall(line), names)
     assert "0: demo_01" in line
-    table = format_summary(session.result.summary).splitlines()
+    table = format_summary(session.result.summary, verbose=True).splitlines()
     rows = {line.split()[0] for line in table if line.strip()}
     assert {name for name in names if name} <= rows
 

@@ -209,8 +209,8 @@ def disturbance_level(
         L_inv = np.linalg.inv(np.linalg.cholesky(P_lqr[k]))
         drop = L_inv @ (Qw + K[k].T @ Rw @ K[k]) @ L_inv.T
         alpha = float(np.linalg.eigvalsh((drop + drop.T) / 2)[0]) / Ts
-        omega = float(np.sqrt(np.einsum("ci,ij,cj->c", w, P_lqr[k], w).max()))
-        level = max(level, (2 * omega / max(alpha, 1e-12)) ** 2)
+        w_max = float(np.sqrt(np.einsum("ci,ij,cj->c", w, P_lqr[k], w).max()))
+        level = max(level, (2 * w_max / max(alpha, 1e-12)) ** 2)
     return ROBUST_SEED**2 * level
 
 

@@ -24,11 +24,11 @@ Robust (T1'). With the declared uncertainty as one additive term (``pipeline.num
 uncertainty``), ``x' = f(x, u) + w``, ``|w_i| <= b_i`` for every measurable ``w``, the error gains
 ``+ w``: ``e' = (A + B K_T) e + r + w`` and, by Cauchy-Schwarz in the ``P_T`` inner product,
 
-    V' <= -alpha V + 2 sqrt(V) (||r||_{P_T} + omega),   omega = max_{|w| <= b} ||w||_{P_T}.   (T1')
+    V' <= -alpha V + 2 sqrt(V) (||r||_{P_T} + w_max),   w_max = max_{|w| <= b} ||w||_{P_T}.   (T1')
 
 ``||w||_{P_T}`` is convex in ``w``, so its maximum over the box is at a corner
 (``funnel_law.corners``). ``E_c`` is invariant for every such ``w`` when ``alpha sqrt(c) > 2
-(||r||_{P_T} + omega)``: the level is bounded BELOW by ``floor = (2 (||r|| + omega) / alpha)^2``
+(||r||_{P_T} + w_max)``: the level is bounded BELOW by ``floor = (2 (||r|| + w_max) / alpha)^2``
 as well as above (inputs, Goal, the hull's decay). ``b`` holds only where ``(x, u)`` lies in
 ``uncertainty.certified_box``, so with ``b > 0`` ``Z_c`` must lie in the operating region too
 for the states without ``state_bounds``. With ``b = 0`` (T1') is (T1), and every check and level
@@ -76,7 +76,7 @@ class TerminalCheck:
       residual: ``||f(x_eq, u_eq)||_{P_T}``; input_slack: smallest room (input units) between
       ``u_eq + K_T e`` over ``E_c`` and the bounds; goal_margin: smallest room (P_T-norm radius)
       between ``E_c`` and Goal's boundary, its extra bounds and the scenario's ``state_bounds``;
-      failures: one line per failed check; disturbance: ``omega = max ||w||_{P_T}`` over the
+      failures: one line per failed check; disturbance: ``w_max = max ||w||_{P_T}`` over the
       additive bound's box (0: the exact model); below_floor: the only failures are (T1')'s
       lower bound on the level (a larger level may hold, a smaller one cannot).
     """
@@ -93,7 +93,7 @@ class TerminalCheck:
 
     @property
     def floor(self) -> float:
-        """``(2 (||r||_{P_T} + omega) / alpha)^2``: the smallest level (T1') certifies at this
+        """``(2 (||r||_{P_T} + w_max) / alpha)^2``: the smallest level (T1') certifies at this
         decay (``inf`` without a positive decay)."""
         if not self.decay > 0:
             return float("inf")
@@ -203,7 +203,7 @@ def check_level(
     tube, r = _tube(scenario, K, P), float(np.sqrt(level))
     b = np.zeros(len(x_eq)) if disturbance is None else np.asarray(disturbance, dtype=np.float64)
     w = corners(b)  # (C, n)
-    omega = float(np.sqrt(np.einsum("ci,ij,cj->c", w, P, w).max())) if len(w) else 0.0  # (T1')
+    w_max = float(np.sqrt(np.einsum("ci,ij,cj->c", w, P, w).max())) if len(w) else 0.0  # (T1')
     failures = []
     # no clipping: u_eq +- r ||K_j P^-1/2|| inside the bounds
     reach = tube.input_margin(r)
@@ -269,11 +269,11 @@ def check_level(
             f"{min_decay:.3g}/s; residual {residual_norm:.2g})"
         )
     others = len(failures)
-    floor = bool(vertices) and decay > 0 and not decay * r > 2 * (residual_norm + omega)  # (T1')
+    floor = bool(vertices) and decay > 0 and not decay * r > 2 * (residual_norm + w_max)  # (T1')
     if floor:
         failures.append(
             f"V does not decrease on the boundary of E_c (decay {decay:.3g}/s x radius {r:.3g} "
-            f"<= 2 (residual {residual_norm:.2g} + disturbance {omega:.3g}) in P_T-norm)"
+            f"<= 2 (residual {residual_norm:.2g} + disturbance {w_max:.3g}) in P_T-norm)"
         )
     return TerminalCheck(
         level=float(level),
@@ -283,7 +283,7 @@ def check_level(
         goal_margin=float(margin),
         vertices=vertices,
         failures=tuple(failures),
-        disturbance=omega,
+        disturbance=w_max,
         below_floor=floor and not others,
     )
 

@@ -16,7 +16,8 @@ arithmetic, ``pipeline.numerics.hull``),
 
 the interval product and sum in outward-rounded arithmetic too, and the sum ``D_i + ...``
 rounded up. The mean-value form avoids interval arithmetic's dependency problem on the
-difference itself (``u1/m - u1/m0`` bounded term by term is ~40x wider on quadrotor_hill).
+difference itself (a thrust over an uncertain mass, ``u/m - u/m0``, bounded term by term is
+~40x wider on quadrotor_hill).
 
 Which box ``Z``. Every certificate that holds uncertainty keeps its tube inside ``state_bounds``
 and its inputs inside ``input_bounds`` (a funnel's caps, ``pipeline.numerics.funnel``), so ``Z``
