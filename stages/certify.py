@@ -227,10 +227,11 @@ def _constant(
 
 def _funnels(
     scenario: Scenario, controller: Controller, failures: list[str]
-) -> tuple[float, int, list[float], tuple[float, float]]:
+) -> tuple[float, int, list[float], tuple[float, float], float]:
     """Steps 2-4 for a ``/2`` file, each funnel rebuilt from the file and re-checked
     (``pipeline.numerics.recertify``): ``(largest (F2) eigenvalue, vertices, verified levels,
-    (reference error, interpolation error))``; what fails is appended to ``failures``."""
+    (reference error, interpolation error), the largest multiple of the disturbance checked
+    that every funnel holds)``; what fails is appended to ``failures``."""
     if controller.feedback_period > 0:
         failures.append(
             f"feedback_period {controller.feedback_period:g} s: the funnel certificate is for "
@@ -238,6 +239,7 @@ def _funnels(
         )
     disturbance = held_disturbance(scenario, controller, failures)
     margin, vertices, verified, errors = -np.inf, 0, [], (0.0, 0.0)
+    multiple = float("inf")
     for i, tr in enumerate(controller.trajectories):
         errors, reference = _reference(scenario, controller, i, failures, errors)
         if reference.substeps is None or reference.nominal is None:
@@ -249,10 +251,11 @@ def _funnels(
             centre_error=reference.integration * tr.radius, disturbance=disturbance,
         )  # fmt: skip
         margin, vertices = max(margin, check.margin), vertices + check.vertices
+        multiple = min(multiple, check.disturbance_multiple)
         verified.append(check.radius)
         if check.failure is not None:
             failures.append(f"trajectories[{i}]: the funnel is not certified: {check.failure}")
-    return margin, vertices, verified, errors
+    return margin, vertices, verified, errors, multiple
 
 
 def held_disturbance(
@@ -355,10 +358,13 @@ def certify_controller(
     failures = _same_scenario(scenario, controller)
     if failures:
         return refused(sha256, failures)
+    multiple = float("nan")  # of the declared uncertainty the funnels hold (no declaration: nan)
     if controller.funnel:
-        margin, vertices, verified, (reference_error, interpolation) = _funnels(
+        margin, vertices, verified, (reference_error, interpolation), robust = _funnels(
             scenario, controller, failures
         )
+        if not scenario.uncertainty.empty:
+            multiple = robust
     else:
         if not scenario.uncertainty.empty:
             failures.append(
@@ -430,6 +436,8 @@ def certify_controller(
             f"P > 0, contraction at rate {controller.rate:g}{held} on {vertices} hull vertices "
             f"(margin {margin:.1e}, < 0: holds), {len(verified)} radii within their tubes"
         )
+    if np.isfinite(multiple):
+        what += f", robust to {multiple:.3g}x the declared uncertainty (its additive bound)"
     message = (
         f"controller.json re-verified: {what}, Init covered" + after
         if success
@@ -452,4 +460,5 @@ def certify_controller(
         terminal_decay=decay,
         terminal_fit=fit,
         contraction_bound=contraction_bound(controller),
+        disturbance_multiple=multiple,
     )

@@ -56,6 +56,7 @@ from pipeline.numerics.funnel_check import Funnel, certificate_margins, check_fu
 from pipeline.numerics.funnel_law import (
     BASE_SUBSTEPS,
     LEVEL_MARGIN,
+    LMI_MARGIN,
     LawOffset,
     grid_substeps,
     law_offset,
@@ -164,7 +165,10 @@ class FunnelRecheck:
       failure: what fails (None: certified); margin: the largest eigenvalue of (F2) over the
         vertices at both ends of every interval (< 0 for a certificate); vertices: hull vertices
         over all intervals; radius: the largest level the constraints allow (>= rho to pass);
-        binding: the constraint that sets it.
+        binding: the constraint that sets it; disturbance_multiple: the largest ``s`` for which
+        the (F2) condition still holds with ``s`` times the disturbance checked, (I4) being
+        linear in it and nothing else depending on it (``inf`` without a disturbance; below 1
+        when the funnel does not hold the one checked).
     """
 
     failure: str | None
@@ -172,6 +176,7 @@ class FunnelRecheck:
     vertices: int
     radius: float
     binding: str
+    disturbance_multiple: float = float("inf")
 
 
 def rebuild_funnel(
@@ -283,11 +288,25 @@ def recheck_funnel(
             vertices=sum(len(v) for v in funnel.vertices),
             radius=limits[binding][0],
             binding=binding,
+            disturbance_multiple=disturbance_multiple(margins.max(axis=1), law),
         )
         if failure is None:
             return last
         failures.append(f"{segments} segment(s): {failure}")
     return dataclasses.replace(last, failure="; ".join(failures))
+
+
+def disturbance_multiple(margins: FloatArray, law: LawOffset) -> float:
+    """The largest ``s`` with ``margins + lmi_term + s disturbance_term < -LMI_MARGIN`` on every
+    interval (``margins (N,)``: the (F2) eigenvalues; the terms of ``law``, (I2) and (I4)),
+    shrunk by ``1e-9`` relative so that the bound itself is not on the edge; ``inf`` when no
+    interval has a disturbance term."""
+    term = law.disturbance_term
+    room = -LMI_MARGIN - margins - law.lmi_term
+    active = term > 0
+    if not np.any(active):
+        return float("inf")
+    return float(max((room[active] / term[active]).min(), 0.0) * (1 - 1e-9))
 
 
 def reference_substeps(

@@ -29,6 +29,9 @@ class CertificationResult(Result):
       terminal: the file has a terminal block; terminal_decay: its certified ``alpha`` (1/s);
         terminal_fit: the largest end tube's share of the ellipsoid's radius (<= 1 to fit).
       contraction_bound: what ``contraction_margin`` must be below (``contraction_bound``).
+      disturbance_multiple: under a declared uncertainty, the largest multiple of its additive
+        bound that every funnel still holds (the (F2) condition, (I4) scaled; the terminal block
+        is checked at the bound itself); nan without a declaration.
       failures: one line per failed check; empty when the file is certified.
     """
 
@@ -48,3 +51,4 @@ class CertificationResult(Result):
     terminal_decay: float = float("nan")
     terminal_fit: float = float("nan")
     contraction_bound: float = 0.0
+    disturbance_multiple: float = float("nan")

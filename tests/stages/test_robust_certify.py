@@ -85,3 +85,17 @@ def test_an_exact_model_scenario_reads_the_exact_file_unchanged(robust):
     assert "uncertainty" not in document
     scenario = dataclasses.replace(gusty, uncertainty=Uncertainty.exact(gusty.n))
     assert _funnel_failures(certify_controller(scenario, exact).failures) == []
+
+
+def test_certify_reports_the_largest_multiple_of_the_declared_bound(robust):
+    """The multiple is what the re-check says: the funnel holds 0.999 of it and fails at 1.001
+    of it (certify run again with the scenario declaring those multiples)."""
+    gusty, path, _ = robust
+    multiple = certify_controller(gusty, path).disturbance_multiple
+    assert 1 <= multiple < 100
+    inside = _declaring(gusty, 0.999 * multiple * DISTURBANCE)
+    outside = _declaring(gusty, 1.001 * multiple * DISTURBANCE)
+    assert not any(
+        "funnel is not certified" in f for f in certify_controller(inside, path).failures
+    )
+    assert any("funnel is not certified" in f for f in certify_controller(outside, path).failures)
