@@ -4,7 +4,9 @@ For each scenario, one run per certificate (``pipeline.synthesize``, 1,000 Monte
 temporary folder) and, from each demo's start, IPOPT's minimum time with no tube
 (``bench.uncertified``: clearance d, Goal itself, the full input bounds, the scenario's
 ``state_bounds``). Printed per demo: T with each certificate, ``T_unc`` and the ratios
-``T / T_unc``; per certificate: verdict, Init coverage and the run's wall time; and the issue's
+``T / T_unc``, and ``T_rest``, the uncertified minimum time to arrive at rest in Goal (issue 29:
+hover, ``bench.uncertified`` ``at_rest``), which a certificate ending in a hover is measured
+against; per certificate: verdict, Init coverage and the run's wall time; and the issue's
 targets (funnel within 1.10 of ``T_unc`` on quadrotor_hill, 1.25 on quadrotor_hill_gusty).
 Run: ``python -m bench certificates`` (needs the ``bench`` extra: casadi).
 """
@@ -47,12 +49,18 @@ def compare(name: str) -> None:
             f" covered; run {seconds:.1f} s (1 worker, {SAMPLES} Monte Carlo runs)"
         )
     free = uncertified_constraints(scenario)
-    print(f"{'demo':<8} {'T_unc':>6} " + " ".join(f"{'T_' + c:>10} {'ratio':>6}" for c in runs))
+    rest = uncertified_constraints(scenario, at_rest=True)
+    print(
+        f"{'demo':<8} {'T_unc':>6} {'T_rest':>6} "
+        + " ".join(f"{'T_' + c:>10} {'ratio':>6}" for c in runs)
+    )
     ratios: dict[str, list[float]] = {c: [] for c in runs}
     for i, demo in enumerate(scenario.demos):
         unc = ipopt_minimum_time(scenario, i, free)
         T_unc = unc.N * scenario.Ts if unc.U is not None else np.nan
-        line = f"{demo.name:<8} {T_unc:>6.2f} "
+        at_rest = ipopt_minimum_time(scenario, i, rest)
+        T_rest = at_rest.N * scenario.Ts if at_rest.U is not None else np.nan
+        line = f"{demo.name:<8} {T_unc:>6.2f} {T_rest:>6.2f} "
         for certificate, (result, _) in runs.items():
             T = np.nan if result.summary is None else result.summary.demos[i].T_optimized
             ratios[certificate].append(T / T_unc)

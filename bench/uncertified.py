@@ -10,6 +10,11 @@ reserved for a certificate:
     x_i in state_bounds                       (the physical envelope; quadrotor_hill |theta| <= 0.8)
 
 ``T_certified / T_uncertified`` is then the time the certificate costs on that start.
+
+``at_rest``: the flight must also arrive at rest, every state but the position at its value in
+``feedback.reference_state`` (the design equilibrium, ``f(x*, u*) = 0``; quadrotor_hill: hover,
+speeds and pitch rate 0, pitch at trim 0). That is the uncertified time a certificate that ends
+in a hover (issue 29, ``terminal: hold``) is measured against.
 """
 
 from __future__ import annotations
@@ -21,13 +26,20 @@ from pipeline.numerics.margins import MarginProfile
 from pipeline.numerics.penalties import Constraints
 
 
-def uncertified_constraints(scenario: Scenario) -> Constraints:
-    """The constraints above in the ``Constraints`` form ``MinimumTimeNLP`` reads."""
+def uncertified_constraints(scenario: Scenario, *, at_rest: bool = False) -> Constraints:
+    """The constraints above in the ``Constraints`` form ``MinimumTimeNLP`` reads (``at_rest``:
+    arriving at the design equilibrium in every state but the position)."""
+    goal_bounds = dict(scenario.goal_bounds)
+    if at_rest:
+        rest = scenario.feedback.reference_state
+        for i, name in enumerate(scenario.state_names):
+            if i not in scenario.position_index:
+                goal_bounds[name] = (float(rest[i]), float(rest[i]))
     names = list(scenario.state_bounds)
     index = np.array([scenario.state_names.index(name) for name in names], dtype=np.int64)
     lower = np.array([scenario.state_bounds[name][0] for name in names], dtype=np.float64)
     upper = np.array([scenario.state_bounds[name][1] for name in names], dtype=np.float64)
-    goal = list(scenario.goal_bounds)
+    goal = list(goal_bounds)
     return Constraints(
         input_lower=np.asarray(scenario.input_lower, dtype=np.float64),
         input_upper=np.asarray(scenario.input_upper, dtype=np.float64),
@@ -40,8 +52,8 @@ def uncertified_constraints(scenario: Scenario) -> Constraints:
         region_input_upper=np.zeros(0),
         goal_region=scenario.goal,
         goal_index=np.array([scenario.state_names.index(n) for n in goal], dtype=np.int64),
-        goal_lower=np.array([scenario.goal_bounds[n][0] for n in goal], dtype=np.float64),
-        goal_upper=np.array([scenario.goal_bounds[n][1] for n in goal], dtype=np.float64),
+        goal_lower=np.array([goal_bounds[n][0] for n in goal], dtype=np.float64),
+        goal_upper=np.array([goal_bounds[n][1] for n in goal], dtype=np.float64),
         unsafe=dict(scenario.unsafe),
         unsafe_margin=float(scenario.clearance),
         position_index=tuple(scenario.position_index),

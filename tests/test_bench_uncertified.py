@@ -20,3 +20,13 @@ def test_uncertified_constraints_are_the_scenarios_own_limits() -> None:
     grid = constraints.grid(4, 2)  # no time-varying margin on top
     assert np.all(grid.input_lower == scenario.input_lower)
     assert np.all(grid.unsafe_margin == scenario.clearance)
+
+
+def test_at_rest_asks_the_design_equilibrium_in_every_state_but_the_position() -> None:
+    """quadrotor_hill arrives hovering: theta, vX, vY, omega at 0 (feedback.reference_state),
+    X and Y anywhere in Goal."""
+    scenario = load_scenario("quadrotor_hill", check_demos=False)
+    constraints = uncertified_constraints(scenario, at_rest=True)
+    named = [scenario.state_names[i] for i in constraints.goal_index]
+    assert sorted(named) == ["omega", "theta", "vX", "vY"]
+    assert np.all(constraints.goal_lower == 0) and np.all(constraints.goal_upper == 0)
