@@ -41,6 +41,7 @@ from pipeline.results.optimize import OptimizeOptions, OptimizeResult
 from pipeline.results.radius import RadiusResult
 from pipeline.results.stage import Runner
 from stages.controller import CONSTANT_CONTROLLER, ConstantControllerInputs
+from stages.optimize import end_unshrunk
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -62,10 +63,7 @@ class Targets:
 
     def margins(self, margins: ConstraintMargins) -> ConstraintMargins:
         """``margins`` without the tube's extent at ``T`` along the ``core`` states."""
-        if not self.core:
-            return margins
-        goal = {k: v for k, v in margins.goal_margin.items() if k not in self.core}
-        return dataclasses.replace(margins, goal_margin=goal)
+        return end_unshrunk(self.scenario, margins, self.core)
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -299,6 +299,7 @@ def reoptimize_rounds(
                     funnels=funnels.funnels,
                     options=run.options,
                     shortest=tuple(shortest),
+                    core=() if run.targets is None else run.targets.core,
                 ),
                 name=f"reoptimize_{k}",
                 describe=_describe_round,
