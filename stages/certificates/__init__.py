@@ -19,7 +19,6 @@ other); it does so through a ``pipeline.results.stage.Runner``, so that each is 
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
