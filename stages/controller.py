@@ -399,7 +399,8 @@ def _constant_controller_stage(inputs: ConstantControllerInputs) -> ControllerRe
 @dataclass(frozen=True, kw_only=True)
 class FunnelControllerInputs(StageInputs):
     """What stage ``controller`` reads with the funnel certificate: per certified trajectory
-    its name, final nominal and funnel; the feedback period and where to write (``path``)."""
+    its name, final nominal and funnel; the feedback period, where to write (``path``), and the
+    terminal controller the funnels were made to end in (None: one is designed for the ends)."""
 
     scenario_fields: ClassVar = (
         "Ts",
@@ -422,6 +423,7 @@ class FunnelControllerInputs(StageInputs):
     funnels: tuple[Funnel, ...]
     feedback_period: float
     path: Path
+    terminal: TerminalDesign | None = None
 
 
 def _funnel_controller_stage(inputs: FunnelControllerInputs) -> ControllerResult:
@@ -432,6 +434,7 @@ def _funnel_controller_stage(inputs: FunnelControllerInputs) -> ControllerResult
         inputs.path,
         feedback_period=inputs.feedback_period,
         names=inputs.names,
+        terminal=inputs.terminal,
     )
 
 

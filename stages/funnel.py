@@ -23,6 +23,10 @@ Why cells (quadrotor_hill_gusty, measured): the ball slice (I1) reached +-0.30 r
 (T 3.3-3.7 s) funnels asked for (I1) held 57-70% of it, funnels asked for their cells held all
 of it.
 
+With a terminal ellipsoid (``terminal``, a ``terminal: hold`` run: ``terminal.hold_design``),
+each funnel must also end inside it (``synthesize_funnel(terminal=...)``: (T2) in the program,
+the exact containment level after the check); a nominal that ends outside has no funnel.
+
 A funnel that ``pipeline.numerics.funnel_check`` rejects (re-checked here with numpy alone,
 independently of the solver) or whose level is not positive is dropped, as a trajectory
 without a robustness radius is in the constant certificate.
@@ -45,6 +49,7 @@ from pipeline.numerics.funnel import synthesize_funnel
 from pipeline.numerics.funnel_check import Funnel, check_funnel
 from pipeline.numerics.funnel_law import LawOffset
 from pipeline.numerics.recertify import ShippedFunnel, recheck_as_shipped
+from pipeline.numerics.terminal_fit import TerminalTarget
 from pipeline.numerics.uncertainty import additive_bound
 from pipeline.results.funnel import FunnelStageResult as FunnelStageResult
 from pipeline.results.stage import Stage, StageInputs
@@ -83,13 +88,15 @@ def required_sets(
 class _Task:
     """One funnel for a worker: the scenario (pickled to a worker process), the nominal,
     ``Q_init (p, n, n)`` (``v v^T`` per corner of its cell, or the ball slice (I1)) and the
-    additive bound ``(n,)`` of the declared uncertainty (None: the exact model)."""
+    additive bound ``(n,)`` of the declared uncertainty (None: the exact model); the terminal
+    ellipsoid it must end in (None: none)."""
 
     scenario: Scenario
     trajectory: Trajectory
     initial: FloatArray
     rate: float
     disturbance: FloatArray | None
+    terminal: TerminalTarget | None = None
 
 
 def _accepted(
@@ -118,12 +125,28 @@ def _accepted(
     return None if not again.failure else f"rejected when rebuilt as certify does: {again.failure}"
 
 
+def _ends_outside(scenario: Scenario, trajectory: Trajectory, why: str) -> Funnel:
+    """The funnel of a nominal that ends outside the terminal ellipsoid: none (level 0)."""
+    N, n, m = len(trajectory.us), scenario.n, scenario.m
+    return Funnel(
+        K=np.zeros((N, m, n)), P=np.tile(np.eye(n), (N + 1, 1, 1)), rho=0.0, rate=0.0,
+        margins=np.full((N, 2), np.nan), boxes=np.zeros((N, 2, 0)), variables=(), vertices=(),
+        enclosure=None, limits={}, binding="", seconds=0.0, success=False, message=why,
+    )  # fmt: skip
+
+
 def _funnel_in_worker(task: _Task) -> tuple[Funnel, str | None]:
-    scenario = task.scenario
+    scenario, terminal, end = task.scenario, task.terminal, task.trajectory.dense_xs[-1]
+    if terminal is not None and not terminal.share(end) < 1:
+        why = (
+            f"the nominal ends at {np.round(end, 3).tolist()}, outside the terminal ellipsoid "
+            f"({terminal.share(end):.3g} of its radius from its centre)"
+        )
+        return _ends_outside(scenario, task.trajectory, why), why
     bounds = dict(scenario.state_bounds)
     funnel = synthesize_funnel(
         scenario, task.trajectory, state_bounds=bounds, initial=task.initial, rate=task.rate,
-        disturbance=task.disturbance,
+        disturbance=task.disturbance, terminal=terminal,
     )  # fmt: skip
     return funnel, _accepted(scenario, task.trajectory, funnel, bounds, task.disturbance)
 
@@ -149,6 +172,7 @@ def synthesize_funnels(
     executor: Executor | None = None,
     progress: Callable[[int], None] | None = None,
     reuse: Sequence[tuple[Funnel, str | None] | None] | None = None,
+    terminal: TerminalTarget | None = None,
 ) -> FunnelStageResult:
     """The funnel of every trajectory on ``executor`` (default: here, in order; the result does
     not depend on it), each asked to hold its start's cell of Init (``required_sets``).
@@ -164,6 +188,8 @@ def synthesize_funnels(
         round's, for a nominal that did not move): kept as it is, without a new synthesis and
         its checks (the result would be the same), its synthesis time counted as 0; one dropped
         then, or not certified (``success``, ``rho > 0``), is dropped again.
+      terminal: the ellipsoid every funnel must end in (None: none); a nominal ending outside
+        it is dropped, saying so.
     """
     if not (len(names) == len(trajectories) == len(radii)):
         raise ValueError(
@@ -186,6 +212,7 @@ def synthesize_funnels(
             initial=Q_init,
             rate=rate,
             disturbance=disturbance,
+            terminal=terminal,
         )
         for i, (trajectory, Q_init) in enumerate(zip(trajectories, initial, strict=True))
         if reuse[i] is None
@@ -241,7 +268,8 @@ def _describe(funnels: Sequence[Funnel], usable: Sequence[int], rejected: Sequen
 @dataclass(frozen=True, kw_only=True)
 class FunnelInputs(StageInputs):
     """What stage ``funnel`` reads: the trajectories' names and final nominals, the constant
-    certificate's metric ``P (n, n)`` and ball radius per trajectory ``radii (k,)``."""
+    certificate's metric ``P (n, n)`` and ball radius per trajectory ``radii (k,)``, and the
+    terminal ellipsoid the funnels must end in (None: none)."""
 
     scenario_fields: ClassVar = (
         "Ts",
@@ -265,6 +293,7 @@ class FunnelInputs(StageInputs):
     trajectories: tuple[Trajectory, ...]
     P: FloatArray
     radii: FloatArray
+    terminal: TerminalTarget | None = None
 
 
 def _funnel_stage(
@@ -283,6 +312,7 @@ def _funnel_stage(
         executor=executor,
         progress=progress,
         reuse=reuse,
+        terminal=inputs.terminal,
     )
 
 

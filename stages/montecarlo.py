@@ -33,8 +33,8 @@ are flown to ``T`` and, with a law past ``T``, to ``T + HOLD_SECONDS`` with the 
 and gusts.
 A run fails if it ever enters Unsafe, clips, leaves the state bounds, or is outside Goal at any
 time after ``T`` (issue 29's criterion); the exact model's own claims are not counted under a
-disturbance: the tube's decay ratio and the terminal ellipsoid's level (``V / level`` is still
-reported; ``ELLIPSOID_UNDER_UNCERTAINTY`` counts it once terminal sets are robust). With an
+disturbance: the tube's decay ratio (the terminal ellipsoid's level is counted: its block is
+certified robustly invariant for the declared bound, ``ELLIPSOID_UNDER_UNCERTAINTY``). With an
 empty uncertainty nothing is drawn beyond the starts: the runs, their numbers and the random
 streams are those of the exact model.
 """

@@ -19,6 +19,13 @@ nominal again, with the margins of the funnel synthesized around it (per sample 
 ``pipeline.numerics.margins``; ``ConstraintMargins.of_funnel``) in place of the constant tube's,
 and the scenario's ``state_bounds`` in place of the operating region. One call is one round of
 the alternation nominal -> funnel -> nominal; the caller synthesizes and checks the new funnels.
+
+A hold run of the funnel certificate (``stages.certificates.Targets``) ends every nominal in a
+box of its terminal ellipsoid's core, read as Goal's extra bounds, on the nominal alone
+(``end_unshrunk``): the funnel, not the tube's extent, certifies where the flight ends (inside
+that ellipsoid). Measured on double_integrator_hold: the constant tube's extent at ``T`` (0.5 m)
+and, under a declared gust of 0.02 m/s^2, the funnels' (0.12-0.18) exceed the core box's half
+width (0.115), which the shrunk bound left empty.
 """
 
 from __future__ import annotations
@@ -206,6 +213,23 @@ def optimize_from(
     )
 
 
+def end_unshrunk(
+    scenario: Scenario, margins: ConstraintMargins, names: Sequence[str]
+) -> ConstraintMargins:
+    """``margins`` whose tube extent at ``T`` (``goal_margin``, the profile's ``final_state``)
+    no longer shrinks Goal's extra bounds on the states ``names``: they bound the nominal's end
+    itself."""
+    if not names:
+        return margins
+    goal = {k: v for k, v in margins.goal_margin.items() if k not in names}
+    profile = margins.profile
+    if profile is not None:
+        final = np.array(profile.final_state, dtype=np.float64)
+        final[[scenario.state_names.index(k) for k in names]] = 0.0
+        profile = dataclasses.replace(profile, final_state=final)
+    return dataclasses.replace(margins, goal_margin=goal, profile=profile)
+
+
 def _optimize_in_worker(
     task: tuple[Scenario, int, ConstraintMargins, OptimizeOptions],
 ) -> TrajectoryOptimization:
@@ -276,6 +300,7 @@ def reoptimize_with_funnels(
     level: float | None = None,
     at_least: float | None = None,
     shortest: Sequence[int] | None = None,
+    core: Sequence[str] = (),
 ) -> OptimizeResult:
     """Optimise each trajectory again, keeping its funnel's tube inside the constraints (issue 16
     part 4: one round of the alternation nominal -> funnel -> nominal).
@@ -295,8 +320,9 @@ def reoptimize_with_funnels(
     default 1): trajectory ``i`` is shortened to no fewer than ``shortest[i]`` samples, so that
     a round moves its nominal only as far as the next funnel can follow (the caller's
     continuation); one already at its floor, or whose funnel was not certified, is returned
-    unchanged, unsuccessful. Nothing here is certified: synthesize and check the funnel around
-    each new nominal before using it.
+    unchanged, unsuccessful. ``core``: states whose Goal bound holds the nominal's end alone
+    (``end_unshrunk``; a hold run's). Nothing here is certified: synthesize and check the funnel
+    around each new nominal before using it.
     """
     if len(trajectories) != len(funnels):
         raise ValueError(
@@ -338,7 +364,7 @@ def reoptimize_with_funnels(
             level=level,
             at_least=scenario.clearance if at_least is None else at_least,
         )
-        task = (scenario, previous, margins, options, floors[i])
+        task = (scenario, previous, end_unshrunk(scenario, margins, core), options, floors[i])
         tasks.append((i, task))
     executor = executor or SerialExecutor()
     done = [] if not tasks else executor.map(
@@ -391,7 +417,8 @@ def _optimize_stage(
 class ReoptimizeInputs(StageInputs):
     """What stage ``reoptimize`` (round k of the funnel certificate) reads: each trajectory's
     previous optimization (its nominal replaced by the kept one), its funnel, the optimizer,
-    and the fewest samples each may end with (``shortest``)."""
+    the fewest samples each may end with (``shortest``) and the states whose Goal bound holds
+    the nominal's end alone (``core``, ``end_unshrunk``)."""
 
     scenario_fields: ClassVar = (
         "Ts",
@@ -410,6 +437,7 @@ class ReoptimizeInputs(StageInputs):
     funnels: tuple[Funnel, ...]
     options: OptimizeOptions
     shortest: tuple[int, ...]
+    core: tuple[str, ...] = ()
 
 
 def _reoptimize_stage(
@@ -426,6 +454,7 @@ def _reoptimize_stage(
         executor,
         progress,
         shortest=inputs.shortest,
+        core=inputs.core,
     )
 
 

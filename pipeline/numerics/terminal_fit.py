@@ -38,6 +38,7 @@ interior when ``d = 0``. (T2) shapes the funnel; what certifies the end is the e
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -83,6 +84,18 @@ class TerminalTarget:
         bound[:n, n] = bound[n, :n] = np.asarray(end, dtype=np.float64) - self.x_eq
         bound[n, n] = 1.0 - lam
         return C, (bound + bound.T) / 2
+
+    def core_box(self, fraction: float) -> FloatArray:
+        """(n,) half-widths ``h`` of a box ``x_eq +- h`` inside the ellipsoid at ``fraction``
+        (in (0, 1]) of its level: ``h`` along the ellipsoid's extents ``sqrt(diag(P^-1) level)``,
+        scaled so that its worst corner lies on it. Sound: the quadratic form is convex, so its
+        maximum over the box is at one of the ``2^n`` corners, all checked."""
+        if not 0 < fraction <= 1:
+            raise ValueError(f"core_box: fraction {fraction!r}; expected a number in (0, 1]")
+        extent = np.sqrt(np.diag(np.linalg.inv(self.P)) * self.level)
+        corners = np.array(list(itertools.product((-1.0, 1.0), repeat=len(extent)))) * extent
+        worst = float(np.einsum("ki,ij,kj->k", corners, self.P, corners).max())
+        return extent * np.sqrt(fraction * self.level / worst)
 
     def end_radius(self, end: FloatArray, P: FloatArray) -> float:
         """The largest ``rho`` with ``{x : ||x - end||_P <= rho}`` inside (``containing_level``

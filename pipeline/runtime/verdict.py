@@ -18,6 +18,7 @@ import numpy as np
 from pipeline.model.scenario import Scenario
 from pipeline.numerics.cover import balls_to_cover
 from pipeline.numerics.feedback_search import fix_for
+from pipeline.numerics.uncertainty import additive_bound
 from pipeline.reporting.numbers import margin, montecarlo_counts
 from pipeline.reporting.summary import (
     CertificationSummary,
@@ -218,17 +219,36 @@ def certificate_claims(
     )
 
 
+def declared_bound(scenario: Scenario) -> str:
+    """The declared uncertainty as the additive bound certify holds the file to
+    (``pipeline.numerics.uncertainty.additive_bound``), e.g. ``|w_vx| <= 0.02, |w_vy| <= 0.02``
+    (state derivative units); "" when the scenario declares none."""
+    if scenario.uncertainty.empty:
+        return ""
+    bound = additive_bound(scenario)
+    return ", ".join(
+        f"|w_{name}| <= {b:.3g}"
+        for name, b in zip(scenario.state_names, bound, strict=True)
+        if b > 0
+    )
+
+
 def after_horizon(evidence: Evidence, certified: bool) -> Claim:
     """After ``T``: safe for all time when the file's terminal controller is certified; else
     not established (the law refuses ``t > T``), with the reason."""
     check = evidence.certification
     if check.terminal and certified:
+        bound = declared_bound(evidence.scenario)
+        under = f" under the declared uncertainty ({bound})" if bound else ""
         return Claim(
-            claim="after T every covered start stays in Goal for all time (terminal controller)",
+            claim=f"after T every covered start stays in Goal for all time{under} (terminal "
+            "controller)",
             kind=ClaimKind.CERTIFIED,
             how=f"invariant ellipsoid of the terminal law re-verified on controller.json "
             f"(decay {check.terminal_decay:.3g}/s at every hull vertex over its bounding box, "
-            f"inside Goal, no clipping) holding every end tube (at most {check.terminal_fit:.0%} "
+            f"inside Goal, no clipping"
+            + (", robustly for every x' = f(x, u) + w with w in that bound" if bound else "")
+            + f") holding every end tube (at most {check.terminal_fit:.0%} "
             "of its radius, exact S-procedure test)",
         )
     return Claim(

@@ -6,6 +6,9 @@ stages that certify the optimized nominals its way and the emission of ``control
 - ``funnel`` (``stages.certificates.funnel.FunnelCertificate``): a funnel per trajectory, the
   re-optimize rounds against them, ``safety-controller/2``.
 
+Before the shared optimize stage the orchestrator asks ``CERTIFICATES[name].targets(scenario)``
+where the nominals must end (``Targets``: the funnel certificate of a ``terminal: hold``
+scenario designs its terminal controller first and ends each nominal in its core).
 The orchestrator runs ``CERTIFICATES[name].ship(run)`` after the shared stages (feedback, radii,
 coverage, optimize) and gets a ``Shipped``: the controller stage's result (or why none could be
 certified) and what the summary and report read of the certificate. A new certificate (a robust
@@ -26,6 +29,8 @@ import numpy as np
 from pipeline.io.executor import Executor
 from pipeline.model.scenario import CertificateName, Scenario
 from pipeline.model.simulate import Trajectory, simulate
+from pipeline.numerics.footprint import ConstraintMargins
+from pipeline.numerics.terminal import TerminalDesign
 from pipeline.numerics.verify import VERIFY_SUBSTEPS
 from pipeline.results.controller import ControllerResult
 from pipeline.results.coverage import CoverageResult
@@ -35,6 +40,29 @@ from pipeline.results.optimize import OptimizeOptions, OptimizeResult
 from pipeline.results.radius import RadiusResult
 from pipeline.results.stage import Runner
 from stages.controller import CONSTANT_CONTROLLER, ConstantControllerInputs
+from stages.optimize import end_unshrunk
+
+
+@dataclass(frozen=True, kw_only=True)
+class Targets:
+    """Where the optimize stages end the nominals.
+
+    Attributes:
+      scenario: the scenario they read: the run's, or (a hold run of the funnel certificate) a
+        copy whose ``goal_bounds`` are the terminal ellipsoid's core box (``core`` states).
+      terminal: the terminal controller designed before the funnels (``hold_design``), which
+        they must end in; None: none yet (one is designed for the ends at emission).
+      core: the states whose end bound is the nominal's own: the constant tube's extent does
+        not shrink it (the funnels, which certify the end, must end inside ``terminal``).
+    """
+
+    scenario: Scenario
+    terminal: TerminalDesign | None = None
+    core: tuple[str, ...] = ()
+
+    def margins(self, margins: ConstraintMargins) -> ConstraintMargins:
+        """``margins`` without the tube's extent at ``T`` along the ``core`` states."""
+        return end_unshrunk(self.scenario, margins, self.core)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -48,6 +76,7 @@ class CertificateRun:
       controller_path: where ``controller.json`` is staged; publish: names a staged file by
         where it is published (applied to the controller stage's result before it is stored).
       describe_coverage: the one line a coverage stage logs.
+      targets: where the optimize stages were asked to end the nominals (``targets``).
     """
 
     scenario: Scenario
@@ -66,6 +95,7 @@ class CertificateRun:
     quiet: bool
     publish: Callable[[ControllerResult], ControllerResult]
     describe_coverage: Callable[[CoverageResult], str]
+    targets: Targets | None = None
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -103,6 +133,11 @@ class Certificate(Protocol):
         """What the scenario file and ``--certificate`` call it."""
         ...
 
+    def targets(self, scenario: Scenario, period: float = 0.0) -> Targets:
+        """Where the optimize stages must end the nominals (for the law held every ``period``
+        s, 0: continuous)."""
+        ...
+
     def ship(self, run: CertificateRun) -> Shipped:
         """Run this certificate's stages and emit ``controller.json``."""
         ...
@@ -125,6 +160,9 @@ class ConstantCertificate:
     positive robustness radius is shipped with it (``safety-controller/1``)."""
 
     name: CertificateName = "constant"
+
+    def targets(self, scenario: Scenario, period: float = 0.0) -> Targets:
+        return Targets(scenario=scenario)  # Goal as the scenario states it
 
     def ship(self, run: CertificateRun) -> Shipped:
         usable = [i for i, r in enumerate(run.radii) if r.radius > 0]

@@ -1,6 +1,15 @@
 """The funnel certificate (issue 16): the funnel stages around the optimized nominals, then the
 re-optimize rounds against the funnels (part 4), a trust-region continuation that keeps Init
 covered, and the funnel controller (``safety-controller/2``).
+
+Arrive and stay (issue 29 item 3): in a ``terminal: hold`` scenario the terminal controller is
+designed first (``terminal.hold_design``, robust to the declared uncertainty's additive bound),
+the optimize stages end every nominal in the core of its ellipsoid (``Targets``: Goal's extra
+bounds replaced by a box inside ``CORE`` of its level, checked at the box's corners), every
+funnel must end inside the ellipsoid (stage funnel's ``terminal``) and ``controller.json``
+carries that controller. Why the core (double_integrator_hold, measured): without it the
+nominals ended at Goal's corner, ~0.9 m from its centre at 0.14-0.47 m/s, outside every terminal
+ellipsoid centred in Goal, and no run with a terminal controller was certified.
 """
 
 from __future__ import annotations
@@ -17,12 +26,15 @@ from pipeline.io.progress import progress_bar
 from pipeline.model.scenario import CertificateName, Scenario
 from pipeline.model.simulate import Trajectory
 from pipeline.numerics.funnel_check import Funnel
+from pipeline.numerics.terminal import TerminalDesign, TerminalError, hold_design
+from pipeline.numerics.terminal_fit import TerminalTarget
+from pipeline.numerics.uncertainty import additive_bound
 from pipeline.results.coverage import CoverageResult
 from pipeline.results.feedback import FeedbackResult
 from pipeline.results.funnel import FunnelStageResult
 from pipeline.results.optimize import OptimizeOptions, OptimizeResult
 from pipeline.results.stage import Runner
-from stages.certificates import CertificateRun, Shipped, nominals
+from stages.certificates import CertificateRun, Shipped, Targets, nominals
 from stages.controller import FUNNEL_CONTROLLER, FunnelControllerInputs
 from stages.coverage import COVERAGE, CoverageInputs
 from stages.funnel import FUNNEL, FunnelInputs
@@ -34,6 +46,7 @@ FIRST_STEP = 0.1  # round 1 shortens a nominal by at most this fraction of its s
 GROW, MAX_STEP = 1.5, 0.4  # a kept trajectory's next step grows by GROW, up to MAX_STEP
 SETTLED = 0.025  # a trajectory whose step falls below this is not optimized again
 LEVEL_TOLERANCE = 1e-3  # a new funnel's level may fall this far below the kept one's
+CORE = 0.5  # a hold run's nominals end in a box inside this fraction of the terminal level
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -45,6 +58,8 @@ class FunnelRun:
       starts: (n,) per trajectory, the demonstrations' starts, which every nominal keeps.
       initial_radii: per trajectory, the constant ball's radius (I1), for a start owning no cell.
       options: the optimizer of the re-optimize rounds; quiet: no progress bars.
+      targets: where the re-optimize rounds end the nominals (their ``scenario``) and the
+        terminal controller the funnels must end in.
     """
 
     scenario: Scenario
@@ -56,6 +71,53 @@ class FunnelRun:
     options: OptimizeOptions
     quiet: bool
     describe_coverage: Callable[[CoverageResult], str]
+    targets: Targets | None = None
+
+    @property
+    def terminal(self) -> TerminalTarget | None:
+        """The ellipsoid every funnel must end in (None: none)."""
+        design = None if self.targets is None else self.targets.terminal
+        return None if design is None else target_of(design)
+
+    @property
+    def optimized_scenario(self) -> Scenario:
+        """The scenario the re-optimize rounds read (``Targets.scenario``)."""
+        return self.scenario if self.targets is None else self.targets.scenario
+
+
+def target_of(design: TerminalDesign) -> TerminalTarget:
+    """The terminal controller's ellipsoid as the funnels' target."""
+    return TerminalTarget(x_eq=design.x_eq, P=design.P, level=design.check.level)
+
+
+def hold_targets(scenario: Scenario, period: float = 0.0, core: float = CORE) -> Targets:
+    """Where a ``terminal: hold`` run ends its nominals: the terminal controller designed first
+    (``hold_design`` for the declared uncertainty's additive bound, zeros for the exact model),
+    and ``scenario`` with Goal's extra bounds, per state, the box inside ``core`` of its level
+    (``TerminalTarget.core_box``) intersected with the scenario's own. Another scenario, or one
+    whose terminal controller cannot be designed (logged), keeps its Goal (``Targets``)."""
+    if scenario.terminal != "hold":
+        return Targets(scenario=scenario)
+    try:
+        design = hold_design(scenario, additive_bound(scenario), period)
+    except TerminalError as error:
+        log.info(f"[terminal] no terminal controller designed before the funnels: {error}")
+        return Targets(scenario=scenario)
+    half = target_of(design).core_box(core)
+    bounds = dict(scenario.goal_bounds)
+    for name, centre, h in zip(scenario.state_names, design.x_eq, half, strict=True):
+        lower, upper = bounds.get(name, (-np.inf, np.inf))
+        bounds[name] = (max(lower, float(centre - h)), min(upper, float(centre + h)))
+    log.info(
+        f"[terminal] lqr gain at {np.round(design.x_eq, 3).tolist()}: invariant ellipsoid "
+        f"certified (level {design.check.level:.4g}, decay {design.check.decay:.3g}/s); the "
+        f"nominals end within +-{np.round(half, 3).tolist()} of it"
+    )
+    return Targets(
+        scenario=dataclasses.replace(scenario, goal_bounds=bounds),
+        terminal=design,
+        core=tuple(scenario.state_names),
+    )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -64,6 +126,9 @@ class FunnelCertificate:
     the re-optimize rounds, and the controller of the certified funnels."""
 
     name: CertificateName = "funnel"
+
+    def targets(self, scenario: Scenario, period: float = 0.0) -> Targets:
+        return hold_targets(scenario, period)
 
     def ship(self, run: CertificateRun) -> Shipped:
         # Each funnel is asked to hold its start's cell of Init (stage funnel); a start that
@@ -79,6 +144,7 @@ class FunnelCertificate:
             options=run.options,
             quiet=run.quiet,
             describe_coverage=run.describe_coverage,
+            targets=run.targets,
         )
         trajectories = list(run.trajectories)
         funnels, coverage = funnel_stages(funnel_run, trajectories)
@@ -100,6 +166,7 @@ class FunnelCertificate:
                 funnels=tuple(funnels.funnels[i] for i in usable),
                 feedback_period=run.feedback_period,
                 path=run.controller_path,
+                terminal=None if run.targets is None else run.targets.terminal,
             ),
             rerun=True,  # always written from this run's certified results
             describe=lambda result: result.message,
@@ -136,6 +203,7 @@ def funnel_stages(
                 trajectories=tuple(trajectories),
                 P=run.feedback.certified_tube.P,
                 radii=np.asarray(run.initial_radii),
+                terminal=run.terminal,
             ),
             name=stage,
             describe=lambda result: result.message,
@@ -226,11 +294,12 @@ def reoptimize_rounds(
             again: OptimizeResult = runner.run(
                 REOPTIMIZE,
                 ReoptimizeInputs(
-                    scenario=scenario,
+                    scenario=run.optimized_scenario,
                     trajectories=tuple(previous),
                     funnels=funnels.funnels,
                     options=run.options,
                     shortest=tuple(shortest),
+                    core=() if run.targets is None else run.targets.core,
                 ),
                 name=f"reoptimize_{k}",
                 describe=_describe_round,

@@ -14,6 +14,8 @@ import numpy as np
 from pipeline.io.artifacts import file_hash
 from pipeline.model.scenario import Scenario, load_scenario
 from pipeline.model.schema import StressSpec
+from pipeline.numerics.terminal import hold_design
+from pipeline.numerics.terminal_fit import TerminalTarget
 from pipeline.results.stage import FileInput, Stage, StageInputs
 from pipeline.runtime.run_inputs import trajectories
 from stages.controller import (
@@ -140,10 +142,17 @@ def stage_cases(folder: Path) -> Iterator[StageCase]:
     inputs = tuple(t.u for t in optimize.result.trajectories)
     final = tuple(trajectories(scenario, starts, inputs))
     names = tuple(d.name for d in scenario.demos)
+    design = hold_design(scenario)  # a hold run's terminal controller, designed first
+    everywhere = TerminalTarget(x_eq=design.x_eq, P=design.P, level=1e6)  # holds any end
     funnel = case(
         FUNNEL,
         FunnelInputs(
-            scenario=scenario, names=names, trajectories=final, P=tube.P, radii=np.full(2, r_d)
+            scenario=scenario,
+            names=names,
+            trajectories=final,
+            P=tube.P,
+            radii=np.full(2, r_d),
+            terminal=everywhere,
         ),
     )
     yield funnel
@@ -176,6 +185,7 @@ def stage_cases(folder: Path) -> Iterator[StageCase]:
             funnels=funnel.result.funnels,
             feedback_period=0.0,
             path=folder / "funnel" / "controller.json",
+            terminal=design,
         ),
     )
     path = folder / "controller.json"

@@ -275,12 +275,15 @@ def _synthesize(
     optimize_options = OptimizeOptions(
         method=run_inputs.method_of(scenario, options), search=options.search
     )
+    certificate = CERTIFICATES[run_inputs.certificate_of(scenario, options)]
+    # where the nominals end: Goal, or a hold run's terminal core (stages.certificates)
+    targets = certificate.targets(scenario, options.feedback_period)
     with progress_bar(len(scenario.demos), "demos optimized", quiet) as advance:
         optimized = runner.run(
             OPTIMIZE,
             OptimizeInputs(
-                scenario=scenario,
-                margins=ConstraintMargins.of_tube(tube, r_required),
+                scenario=targets.scenario,
+                margins=targets.margins(ConstraintMargins.of_tube(tube, r_required)),
                 options=optimize_options,
             ),
             describe=_message,
@@ -300,7 +303,6 @@ def _synthesize(
     )
 
     controller_path = staging / "controller.json"  # published as out / "controller.json"
-    certificate = CERTIFICATES[run_inputs.certificate_of(scenario, options)]
     certified = certificate.ship(
         CertificateRun(
             scenario=scenario,
@@ -319,6 +321,7 @@ def _synthesize(
             quiet=quiet,
             publish=functools.partial(_published, out),
             describe_coverage=describe_coverage,
+            targets=targets,
         )
     )
     if certified.controller is None:

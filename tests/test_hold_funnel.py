@@ -1,0 +1,73 @@
+"""Arrive and stay under a declared gust (issue 29 item 3): a funnel run of a ``terminal: hold``
+scenario designs its terminal controller first, ends every nominal in the core of its ellipsoid
+and every funnel inside it, and ships that controller, robust to the declared bound.
+
+double_integrator_hold with ``certificate: funnel`` and a gust of 0.02 m/s^2 on vx' and vy' is
+synthesized end to end (before this item its nominals ended at Goal's corner, outside every
+terminal ellipsoid, and the run was not certified); certify refuses the same file when the
+scenario declares four times the gust.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import pipeline
+from pipeline.controller import load
+from pipeline.model.scenario import load_scenario
+from stages.certificates.funnel import CORE
+from stages.certify import certify_controller
+
+HOLD = "double_integrator_hold"
+GUST = 0.02  # m/s^2 on vx' and vy'
+
+
+def _gusty(folder: Path, gust: float) -> Path:
+    """A copy of double_integrator_hold with the funnel certificate and ``gust`` declared."""
+    source = load_scenario(HOLD, check_demos=False).path.parent
+    shutil.copytree(source, folder)
+    path = folder / "scenario.yaml"
+    text = path.read_text().replace(
+        "\nterminal: hold",
+        f"\ncertificate: funnel\nuncertainty:\n  disturbance: {{vx: {gust}, vy: {gust}}}\n"
+        "terminal: hold",
+    )
+    path.write_text(text)
+    return path
+
+
+@pytest.mark.slow
+@pytest.mark.xdist_group("hold-funnel-gusty")
+def test_a_gusty_hold_run_arrives_and_stays_and_four_times_the_gust_is_refused(tmp_path):
+    path = _gusty(tmp_path / "gusty", GUST)
+    result = pipeline.synthesize(path, out=tmp_path / "out", samples=300)
+    assert result.success, result.message
+    claims = {c.claim: c.kind.value for c in result.claims}
+    after = [c for c in claims if c.startswith("after T")]
+    assert after == [
+        "after T every covered start stays in Goal for all time under the declared uncertainty "
+        f"(|w_vx| <= {GUST:g}, |w_vy| <= {GUST:g}) (terminal controller)"
+    ]
+    assert claims[after[0]] == "certified"
+    controller = load(tmp_path / "out" / "controller.json")
+    block = controller.terminal
+    assert block is not None
+    document = json.loads((tmp_path / "out" / "controller.json").read_text())
+    assert document["terminal"]["disturbance"] == [0.0, 0.0, GUST, GUST]
+    # every nominal ends in the core: inside CORE of the terminal level
+    P_T, x_eq = np.asarray(block.P), np.asarray(block.x_eq)
+    for tr in controller.trajectories:
+        d = tr.x_ref[-1] - x_eq
+        assert d @ P_T @ d <= CORE * block.level * (1 + 1e-3)
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary["montecarlo"]["failures"]["after_T"] == 0
+    # the same file against a scenario declaring 4x the gust: not certified
+    stronger = load_scenario(_gusty(tmp_path / "stronger", 4 * GUST))
+    refused = certify_controller(stronger, tmp_path / "out" / "controller.json")
+    assert not refused.success
+    assert any("uncertainty: the file holds |w_vx| <= 0.02" in f for f in refused.failures)
