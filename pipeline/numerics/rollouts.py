@@ -32,9 +32,6 @@ from pipeline.numerics.kernels.compiled import (
 from pipeline.numerics.penalties import IntArray
 
 HOLD_SECONDS = 10.0  # a run with a law past T is flown to T + this
-# count V > level after T as a failure under the declared draws: a terminal block is certified
-# robustly invariant for the declared additive bound (terminal (T1'), re-checked by certify)
-ELLIPSOID_UNDER_UNCERTAINTY = True
 
 
 @dataclass(frozen=True, kw_only=True)

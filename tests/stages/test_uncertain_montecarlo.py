@@ -154,6 +154,8 @@ def test_a_gust_larger_than_the_controller_holds_fails_counted_runs(synthesis, t
     failing = len(large.failed_x0)
     assert 0 < failing <= 400 and f"{failing} of 400" in large.message
     assert "tube" not in large.failures  # the exact model's decay is not claimed under gusts
+    assert small.tube_final.size == large.tube_final.size == 0  # nor reported (summary: none)
+    assert _exact_run_reports_the_decay(path)
     worst = large.falsification.worst_draws
     assert worst is not None and large.falsification.worst_margin < 0
     assert _is_corner(worst, large_scenario.uncertainty).all()
@@ -181,3 +183,11 @@ def test_stress_flies_twice_the_declared_uncertainty(synthesis, tmp_path):
     widened = dataclasses.replace(scenario, uncertainty=scenario.uncertainty.scaled(2.0))
     assert widened.uncertainty.disturbance[2] == pytest.approx(0.1)
     assert tuple(widened.uncertainty.parameter_lower) == pytest.approx((0.8,))
+
+
+def _exact_run_reports_the_decay(path) -> bool:
+    """The exact model's run still reports the decay used (its tube ratio)."""
+    from pipeline.model.scenario import load_scenario
+
+    exact = load_scenario("double_integrator_hold", check_demos=False)
+    return validate_closed_loop(exact, path, samples=60, chunk=60).tube_final.size == 60
