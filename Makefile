@@ -10,7 +10,9 @@ STAMP := $(VENV)/.installed
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[test]'
+	@# setuptools' notice on every editable install ("Editable installation ... be careful with
+	@# folders named like your package"): informational, about editable installs in general
+	PYTHONWARNINGS='ignore:Editable installation' $(PY) -m pip install --quiet -e '.[test]'
 	@touch $(STAMP)
 
 synthesize: $(STAMP)
@@ -28,7 +30,7 @@ readme: $(STAMP)
 	$(PY) -m pipeline.runtime.readme_results reports/double_integrator --write docs/results.md
 
 bench: $(STAMP)
-	$(PY) -m pip install --quiet -e '.[bench]'
+	PYTHONWARNINGS='ignore:Editable installation' $(PY) -m pip install --quiet -e '.[bench]'
 	$(PY) -m bench
 
 demos: $(STAMP)
