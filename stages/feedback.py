@@ -42,9 +42,9 @@ import numpy as np
 
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
-from pipeline.numerics.feedback_search import RATES, tune_feedback
 from pipeline.numerics.hull import DEFAULT_SEGMENTS, HullError, jacobian_hull
-from pipeline.numerics.tube import Tube
+from pipeline.numerics.tube.feedback_search import RATES, tune_feedback
+from pipeline.numerics.tube.geometry import Tube
 from pipeline.results.feedback import FeedbackResult as FeedbackResult
 from pipeline.results.stage import Stage, StageInputs
 
@@ -253,7 +253,7 @@ def design_feedback(
     """Design ``K`` and certify the contraction metric ``P`` at ``rate`` (default: the
     scenario's ``feedback.rate``) over ``scenario.operating_region``; see the module docstring.
     With the scenario's ``feedback.tune`` (and no ``rate`` given) the design is searched for
-    (``pipeline.numerics.feedback_search``) and the result's ``tuning`` says what was chosen.
+    (``pipeline.numerics.tube.feedback_search``) and the result's ``tuning`` says what was chosen.
 
     A failed design returns ``success=False`` with a message naming the region and rate tried.
     """

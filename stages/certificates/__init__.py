@@ -26,7 +26,7 @@ import numpy as np
 from pipeline.io.executor import Executor
 from pipeline.model.scenario import CertificateName, Scenario
 from pipeline.model.simulate import Trajectory, simulate
-from pipeline.numerics.verify import VERIFY_SUBSTEPS
+from pipeline.numerics.verify.nominal import VERIFY_SUBSTEPS
 from pipeline.results.controller import ControllerResult
 from pipeline.results.coverage import CoverageResult
 from pipeline.results.feedback import FeedbackResult

@@ -16,7 +16,7 @@ from pipeline.io.executor import Executor
 from pipeline.io.progress import progress_bar
 from pipeline.model.scenario import CertificateName, Scenario
 from pipeline.model.simulate import Trajectory
-from pipeline.numerics.funnel_check import Funnel
+from pipeline.numerics.funnel.check import Funnel
 from pipeline.results.coverage import CoverageResult
 from pipeline.results.feedback import FeedbackResult
 from pipeline.results.funnel import FunnelStageResult
