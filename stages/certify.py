@@ -12,11 +12,11 @@ nothing but the file and the scenario (no stage result). A ``safety-controller/1
 
        lambda_max((A_v + B_v K)^T P + P (A_v + B_v K) + 2 lambda P) < 0,                (C)
 
-   eigenvalues by numpy (``eigvalsh``), which gives ``||e(t)||_P <= e^{-lambda t} ||e(0)||_P``
-   while the state and input stay in the region. With ``feedback_period h > 0`` (the law held
-   for ``h`` seconds) the file's rate must instead be at most ``lambda_h``, the held law's rate
-   (``pipeline.numerics.tube.sampled``) from the largest rate (C) certifies at the vertices, and
-   ``h`` must divide ``Ts``;
+   eigenvalues by numpy (``pipeline.numerics.tube.contraction``, as the designer's check), which
+   gives ``||e(t)||_P <= e^{-lambda t} ||e(0)||_P`` while the state and input stay in the
+   region. With ``feedback_period h > 0`` (the law held for ``h`` seconds) the file's rate must
+   instead be at most ``lambda_h``, the held law's rate (``pipeline.numerics.tube.sampled``) from
+   the largest rate (C) certifies at the vertices, and ``h`` must divide ``Ts``;
 4. each trajectory's reference ``x_ref`` is the scenario's dynamics simulated from its ``x0``
    under its ``u_ref`` (to ``REFERENCE_TOLERANCE`` in P-norm per unit radius), its linear
    interpolation (what the law tracks) is within ``INTERPOLATION_TOLERANCE`` radius of the
@@ -77,10 +77,11 @@ from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import simulate
 from pipeline.numerics.funnel.law import LEVEL_MARGIN, LMI_MARGIN
-from pipeline.numerics.hull import DEFAULT_SEGMENTS, HullError, jacobian_hull
+from pipeline.numerics.hull import DEFAULT_SEGMENTS, HullError, JacobianHull, jacobian_hull
+from pipeline.numerics.tube.contraction import contraction_margin, contraction_rate
 from pipeline.numerics.tube.geometry import Tube
 from pipeline.numerics.tube.radius import radius_limits
-from pipeline.numerics.tube.sampled import contraction_rate, held_rate
+from pipeline.numerics.tube.sampled import held_rate
 from pipeline.numerics.uncertainty import additive_bound
 from pipeline.numerics.verify.cover import DEFAULT_DEPTH, subdivide
 from pipeline.numerics.verify.nominal import VERIFY_SUBSTEPS
@@ -162,13 +163,13 @@ def _same_scenario(scenario: Scenario, controller: Controller) -> list[str]:
     return [f"the file is not for this scenario: {p}" for p in problems]
 
 
-def _contraction_margin(controller: Controller, A: np.ndarray, B: np.ndarray) -> float:
-    """Largest eigenvalue of ``A_cl^T P + P A_cl + 2 lambda P`` over ``A (V, n, n)``,
-    ``B (V, n, m)`` with ``A_cl = A + B K`` (eq. (C) of the module docstring)."""
-    P, K, rate = _feedback(controller)
-    A_cl = A + B @ K  # (V, n, n)
-    M = np.swapaxes(A_cl, 1, 2) @ P + P @ A_cl + 2.0 * rate * P
-    return float(np.linalg.eigvalsh((M + np.swapaxes(M, 1, 2)) / 2).max())
+def contraction_check(
+    scenario: Scenario, P: np.ndarray, K: np.ndarray, rate: float, segments: int
+) -> tuple[float, JacobianHull]:
+    """Step 3: the largest eigenvalue of (C)'s left side over the vertices of a sound Jacobian
+    hull over the operating region, rebuilt here (``HullError`` if there is none), and the hull."""
+    hull = jacobian_hull(scenario.dynamics, scenario.operating_region, segments)
+    return contraction_margin(P, K, hull.A, hull.B, rate), hull
 
 
 def _constant(
@@ -184,8 +185,8 @@ def _constant(
 
     # 3. Contraction (C) at every vertex of a sound Jacobian hull over the operating region.
     try:
-        hull = jacobian_hull(scenario.dynamics, scenario.operating_region, segments)
-        margin, vertices = _contraction_margin(controller, hull.A, hull.B), len(hull.vertices)
+        margin, hull = contraction_check(scenario, P, K, rate, segments)
+        vertices = len(hull.vertices)
     except HullError as error:
         margin, vertices = float("nan"), 0
         failures.append(f"no Jacobian hull over the operating region: {error}")

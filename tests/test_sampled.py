@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 from scipy.linalg import expm
 
-from pipeline.numerics.tube.sampled import contraction_rate, held_rate
+from pipeline.numerics.tube.contraction import contraction_rate
+from pipeline.numerics.tube.sampled import held_rate
 from pipeline.runtime.options import RunOptions
 
 # double integrator in one axis, a gain and its metric from a Lyapunov equation

@@ -55,8 +55,9 @@ from pipeline.numerics.funnel.law import corners
 from pipeline.numerics.hull import DEFAULT_SEGMENTS, HullError, jacobian_hull
 from pipeline.numerics.terminal.fit import containing_level as containing_level
 from pipeline.numerics.terminal.fit import end_levels
+from pipeline.numerics.tube.contraction import contraction_rate
 from pipeline.numerics.tube.geometry import Tube
-from pipeline.numerics.tube.sampled import contraction_rate, held_rate
+from pipeline.numerics.tube.sampled import held_rate
 
 EQUILIBRIUM_TOLERANCE = 1e-9  # ||f(x_eq, u_eq)|| accepted as an equilibrium
 LEVEL_BISECTIONS = 24
@@ -291,7 +292,7 @@ def check_level(
 def decay_rate(P: FloatArray, K: FloatArray, A: FloatArray, B: FloatArray) -> float:
     """``alpha = min_v -lambda_max(P^-1/2 M_v P^-1/2)``, ``M_v = A_cl^T P + P A_cl``,
     ``A_cl = A_v + B_v K``, over ``A (V, n, n)``, ``B (V, n, m)``: ``V' <= -alpha V`` (twice the
-    contraction rate of ``pipeline.numerics.tube.sampled.contraction_rate``)."""
+    contraction rate of ``pipeline.numerics.tube.contraction.contraction_rate``)."""
     return 2.0 * contraction_rate(P, K, A, B)
 
 
