@@ -1,8 +1,8 @@
 """Time-varying funnel vs the constant certificate on quadrotor_hill's demos (issue 16, phase 1).
 
 For each demo the constant certificate (stages.feedback + stages.radius) gives the ball
-``||e||_P <= r`` at t = 0. The funnel (pipeline.numerics.funnel) is asked to hold the same part
-of Init, the ball's slice along Init's free directions ``S`` (position; what coverage uses):
+``||e||_P <= r`` at t = 0. The funnel (pipeline.numerics.funnel.synthesis) is asked to hold the same
+part of Init, the ball's slice along Init's free directions ``S`` (position; what coverage uses):
 ``Q_init = r^2 S (S^T P S)^-1 S^T``, within the scenario's real envelope (theta in [-0.8, 0.8]
 rad, the input bounds) instead of the operating region. Printed per demo: the funnel level rho
 (1: that slice is certified; the hull boxes cap it at 1), the room (the smallest level one
@@ -22,7 +22,7 @@ import numpy as np
 
 from pipeline.model.scenario import load_scenario
 from pipeline.model.simulate import simulate
-from pipeline.numerics.funnel import HOLD, synthesize_funnel
+from pipeline.numerics.funnel.synthesis import HOLD, synthesize_funnel
 from stages.feedback import design_feedback
 from stages.radius import robustness_radius
 

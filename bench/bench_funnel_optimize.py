@@ -26,8 +26,8 @@ import numpy as np
 from pipeline.model import geometry
 from pipeline.model.scenario import load_scenario
 from pipeline.model.simulate import simulate
-from pipeline.numerics.funnel import synthesize_funnel
-from pipeline.numerics.funnel_check import check_funnel
+from pipeline.numerics.funnel.check import check_funnel
+from pipeline.numerics.funnel.synthesis import synthesize_funnel
 from stages.coverage import covering_radius
 from stages.feedback import design_feedback
 from stages.optimize import (

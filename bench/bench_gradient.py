@@ -19,7 +19,7 @@ import numpy as np
 from bench.timing import best_time
 from pipeline import load_scenario
 from pipeline.model.simulate import rk4_step, simulate_reference
-from pipeline.numerics.problem import make_problem
+from pipeline.numerics.optimize.problem import make_problem
 
 SIZES = (50, 100, 200, 400)
 

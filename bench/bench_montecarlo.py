@@ -4,10 +4,12 @@ The controller is ``reports/quadrotor_hill/controller.json`` (copied to a tempor
 that a concurrent ``make synthesize`` cannot change it mid-run); if it is missing, the pipeline
 is run into a temporary folder first (``--samples 1000``).
 
-(a) Batched NumPy oracle: ``pipeline.numerics.closed_loop.check_runs`` on 10,000 initial states
+(a) Batched NumPy oracle: ``pipeline.numerics.closed_loop.simulate.check_runs`` on 10,000 initial
+states
     drawn uniformly from Init: RK4 (4 substeps per Ts) on the whole batch around each selected
     trajectory, with every continuous-time check (clearance, goal, clipping, tube).
-(a') Compiled: ``pipeline.numerics.rollouts.check_runs_compiled`` on the same states (numba, one
+(a') Compiled: ``pipeline.numerics.closed_loop.rollouts.check_runs_compiled`` on the same states
+(numba, one
     core), its largest difference to (a), and its rate against the issue's anchor of ~25,000
     rollouts/s per core (~75 kflop per quadrotor rollout at 2 Gflop/s).
 (b) One at a time: ``select(x0)`` then ``xdot = f(x, controller(t, x))`` by ``solve_ivp``
@@ -37,8 +39,8 @@ from pipeline.io.executor import make_executor
 from pipeline.io.folders import default_output_folder
 from pipeline.model import geometry
 from pipeline.model.scenario import Scenario, load_scenario
-from pipeline.numerics.closed_loop import check_runs
-from pipeline.numerics.rollouts import check_runs_compiled
+from pipeline.numerics.closed_loop.rollouts import check_runs_compiled
+from pipeline.numerics.closed_loop.simulate import check_runs
 from pipeline.runtime.api import synthesize
 from stages.montecarlo import falsify, validate_closed_loop
 
@@ -82,7 +84,7 @@ def rollout_solve_ivp(
         return scenario.dynamics.f(state, controller(t, state, index))
 
     for k in range(N):  # u_ref is piecewise constant: integrate each sample interval on its own
-        end = (k + 1) * Ts - 1e-9  # the left limit, as pipeline.numerics.closed_loop does
+        end = (k + 1) * Ts - 1e-9  # the left limit, as pipeline.numerics.closed_loop.simulate does
         solution = solve_ivp(field, (k * Ts, end), x, method="DOP853", rtol=rtol, atol=rtol)
         if not solution.success:
             raise RuntimeError(f"solve_ivp failed on interval {k}: {solution.message}")

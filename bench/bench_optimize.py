@@ -36,7 +36,8 @@ polygon; consecutive grid points are closer than ``2 d'`` (speed * Ts / 4 << 2.1
 that starts outside cannot cross a band of width ``2 d'`` around an edge, and stays outside.
 ModGoal (a convex polygon; a box here) is ``A p <= b`` from its edges. The NLP's constraints are
 tightened by ``NLP_MARGIN`` so that IPOPT's solution, to its tolerance, also has our cost
-``J == 0`` exactly; it is then checked with ``J`` and ``pipeline.numerics.verify.verify_nominal``.
+``J == 0`` exactly; it is then checked with ``J`` and
+``pipeline.numerics.verify.nominal.verify_nominal``.
 
 Certification's cost (issue 16): ``T_unc`` is IPOPT's minimum time from the same start with no
 tube at all (``bench.uncertified``: clearance d, Goal itself, the full input bounds and the
@@ -59,9 +60,9 @@ import numpy as np
 from bench.uncertified import uncertified_constraints
 from pipeline.model.scenario import Scenario, load_scenario
 from pipeline.model.simulate import simulate
-from pipeline.numerics.penalties import Constraints
-from pipeline.numerics.problem import Problem, make_problem
-from pipeline.numerics.verify import verify_nominal
+from pipeline.numerics.optimize.penalties import Constraints
+from pipeline.numerics.optimize.problem import Problem, make_problem
+from pipeline.numerics.verify.nominal import verify_nominal
 from stages.feedback import design_feedback
 from stages.optimize import ConstraintMargins, OptimizeOptions, optimize_demo, reseed
 

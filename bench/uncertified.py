@@ -22,8 +22,8 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.model.scenario import Scenario
-from pipeline.numerics.margins import MarginProfile
-from pipeline.numerics.penalties import Constraints
+from pipeline.numerics.optimize.margins import MarginProfile
+from pipeline.numerics.optimize.penalties import Constraints
 
 
 def uncertified_constraints(scenario: Scenario, *, at_rest: bool = False) -> Constraints:

@@ -36,7 +36,7 @@ if TYPE_CHECKING:
     from pipeline.controller import load as load_controller
     from pipeline.io.errors import ScenarioError, UserError
     from pipeline.model.scenario import Scenario, available_scenarios, load_scenario
-    from pipeline.numerics.flight import Flight, fly
+    from pipeline.numerics.closed_loop.flight import Flight, fly
     from pipeline.reporting.summary import Claim, ClaimKind, DemoSummary, Summary, Verdict
     from pipeline.runtime.api import synthesize
     from pipeline.runtime.synthesis import Outputs, Synthesis
@@ -78,8 +78,8 @@ _WHERE = {
     "Scenario": ("pipeline.model.scenario", "Scenario"),
     "available_scenarios": ("pipeline.model.scenario", "available_scenarios"),
     "load_scenario": ("pipeline.model.scenario", "load_scenario"),
-    "fly": ("pipeline.numerics.flight", "fly"),
-    "Flight": ("pipeline.numerics.flight", "Flight"),
+    "fly": ("pipeline.numerics.closed_loop.flight", "fly"),
+    "Flight": ("pipeline.numerics.closed_loop.flight", "Flight"),
     "ScenarioError": ("pipeline.io.errors", "ScenarioError"),
     "UserError": ("pipeline.io.errors", "UserError"),
 }

@@ -12,11 +12,11 @@ nothing but the file and the scenario (no stage result). A ``safety-controller/1
 
        lambda_max((A_v + B_v K)^T P + P (A_v + B_v K) + 2 lambda P) < 0,                (C)
 
-   eigenvalues by numpy (``eigvalsh``), which gives ``||e(t)||_P <= e^{-lambda t} ||e(0)||_P``
-   while the state and input stay in the region. With ``feedback_period h > 0`` (the law held
-   for ``h`` seconds) the file's rate must instead be at most ``lambda_h``, the held law's rate
-   (``pipeline.numerics.sampled``) from the largest rate (C) certifies at the vertices, and
-   ``h`` must divide ``Ts``;
+   eigenvalues by numpy (``pipeline.numerics.tube.contraction``, as the designer's check), which
+   gives ``||e(t)||_P <= e^{-lambda t} ||e(0)||_P`` while the state and input stay in the
+   region. With ``feedback_period h > 0`` (the law held for ``h`` seconds) the file's rate must
+   instead be at most ``lambda_h``, the held law's rate (``pipeline.numerics.tube.sampled``) from
+   the largest rate (C) certifies at the vertices, and ``h`` must divide ``Ts``;
 4. each trajectory's reference ``x_ref`` is the scenario's dynamics simulated from its ``x0``
    under its ``u_ref`` (to ``REFERENCE_TOLERANCE`` in P-norm per unit radius), its linear
    interpolation (what the law tracks) is within ``INTERPOLATION_TOLERANCE`` radius of the
@@ -25,11 +25,12 @@ nothing but the file and the scenario (no stage result). A ``safety-controller/1
    at most the largest radius whose tube ``||x - x_ref(t)||_P <= r e^{-lambda t}`` avoids
    Unsafe, keeps the inputs in their bounds and the tube in the operating region and the
    scenario's ``state_bounds``, and ends in Goal, on the dense grid with a bound between grid
-   points (``pipeline.numerics.tube_radius``);
+   points (``pipeline.numerics.tube.radius``);
 5. Init is covered by the initial balls ``||x - x0_i||_P <= radius_i`` (sound box subdivision,
-   ``pipeline.numerics.cover``), each box's corners within ``1 - COVER_MARGIN`` of a ball's
+   ``pipeline.numerics.verify.cover``), each box's corners within ``1 - COVER_MARGIN`` of a ball's
    squared radius;
-6. the optional ``terminal`` block (``pipeline.numerics.terminal``): ``V = e^T P_T e`` decreases
+6. the optional ``terminal`` block (``pipeline.numerics.terminal.design``): ``V = e^T P_T e``
+decreases
    on ``V <= level`` at every vertex of a sound hull over its bounding box (numpy eigenvalues,
    (T1') with the equilibrium's residual and the scenario's declared additive bound, or the
    file's ``disturbance`` where larger; a file stating less than the declaration fails), the
@@ -42,11 +43,11 @@ nothing but the file and the scenario (no stage result). A ``safety-controller/1
 A ``safety-controller/2`` file (a funnel per trajectory: ``K_i[k]``, ``P_i[k]``, ``rho_i =
 radius_i``) replaces steps 2-3 and the radius of step 4: each funnel is rebuilt from the file's
 ``x_ref``, ``u_ref``, ``K``, ``P``, ``radius`` and the scenario's state and input bounds
-(``pipeline.numerics.recertify``: local sound hulls per sample interval, then
-``funnel_check.check_funnel``: ``P[k] > 0``, the vertex inequalities (F3) at both ends of every
+(``pipeline.numerics.verify.recertify``: local sound hulls per sample interval, then
+``funnel.check.check_funnel``: ``P[k] > 0``, the vertex inequalities (F3) at both ends of every
 interval by numpy eigenvalues, the tube in Unsafe's clearance, the inputs and state bounds, and
 ``E(T)`` in Goal). The law tracks ``x_ref`` interpolated on the file's grid: its error bound
-enters the inequality and the inputs (``pipeline.numerics.funnel_law`` (I1)-(I3)), so the proof
+enters the inequality and the inputs (``pipeline.numerics.funnel.law`` (I1)-(I3)), so the proof
 covers the law as shipped; the grid may be finer on some sample intervals than on others. Margins:
 (F2) plus that term below ``-LMI_MARGIN``, each level within ``1 - LEVEL_MARGIN`` of its limits,
 and the RK4 error of ``x_ref`` (estimated against a grid twice as fine) below ``LEVEL_MARGIN``
@@ -59,7 +60,7 @@ continuous feedback: a ``/2`` file with ``feedback_period > 0`` is not certified
 Declared uncertainty (the scenario's ``uncertainty:``). The funnels are re-checked for ``x' =
 f(x, u) + w``, ``|w| <= b``, with ``b`` derived here from the scenario's declaration
 (``pipeline.numerics.uncertainty`` (U1)) and raised to the file's ``uncertainty.additive_bound``
-where that is larger: (F2) must keep its margin with the term (I4) added (``funnel_law``). A
+where that is larger: (F2) must keep its margin with the term (I4) added (``funnel.law``). A
 file that holds less than the scenario declares, or a ``/1`` file for a scenario that declares
 any uncertainty, is not certified.
 """
@@ -75,21 +76,22 @@ from pipeline.io.artifacts import file_hash
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import simulate
-from pipeline.numerics.cover import DEFAULT_DEPTH, subdivide
-from pipeline.numerics.funnel_law import LEVEL_MARGIN, LMI_MARGIN
-from pipeline.numerics.hull import DEFAULT_SEGMENTS, HullError, jacobian_hull
-from pipeline.numerics.recertify import (
+from pipeline.numerics.funnel.law import LEVEL_MARGIN, LMI_MARGIN
+from pipeline.numerics.hull import DEFAULT_SEGMENTS, HullError, JacobianHull, jacobian_hull
+from pipeline.numerics.tube.contraction import contraction_margin, contraction_rate
+from pipeline.numerics.tube.geometry import Tube
+from pipeline.numerics.tube.radius import radius_limits
+from pipeline.numerics.tube.sampled import held_rate
+from pipeline.numerics.uncertainty import additive_bound
+from pipeline.numerics.verify.cover import DEFAULT_DEPTH, subdivide
+from pipeline.numerics.verify.nominal import VERIFY_SUBSTEPS
+from pipeline.numerics.verify.recertify import (
     ReferenceCheck,
     ShippedFunnel,
     check_reference,
     recheck_funnel,
     recheck_terminal,
 )
-from pipeline.numerics.sampled import contraction_rate, held_rate
-from pipeline.numerics.tube import Tube
-from pipeline.numerics.tube_radius import radius_limits
-from pipeline.numerics.uncertainty import additive_bound
-from pipeline.numerics.verify import VERIFY_SUBSTEPS
 from pipeline.results.certify import CertificationResult as CertificationResult
 
 REFERENCE_TOLERANCE = 1e-9  # ||x_ref - simulated||_P / radius
@@ -138,7 +140,7 @@ def verify_terminal(scenario: Scenario, controller: Controller) -> tuple[float, 
 def contraction_bound(controller: Controller) -> float:
     """What the largest contraction eigenvalue must be below: ``-ROUNDING_MARGIN ||P||`` (at
     least ``ROUNDING_MARGIN``) for a ``/1`` file, ``-LMI_MARGIN`` (the (F2) eigenvalue plus the
-    law's terms, ``funnel_law``) for a ``/2`` file."""
+    law's terms, ``funnel.law``) for a ``/2`` file."""
     if controller.funnel or controller.P is None:
         return -LMI_MARGIN
     return -ROUNDING_MARGIN * max(1.0, float(np.linalg.norm(controller.P, 2)))
@@ -161,13 +163,13 @@ def _same_scenario(scenario: Scenario, controller: Controller) -> list[str]:
     return [f"the file is not for this scenario: {p}" for p in problems]
 
 
-def _contraction_margin(controller: Controller, A: np.ndarray, B: np.ndarray) -> float:
-    """Largest eigenvalue of ``A_cl^T P + P A_cl + 2 lambda P`` over ``A (V, n, n)``,
-    ``B (V, n, m)`` with ``A_cl = A + B K`` (eq. (C) of the module docstring)."""
-    P, K, rate = _feedback(controller)
-    A_cl = A + B @ K  # (V, n, n)
-    M = np.swapaxes(A_cl, 1, 2) @ P + P @ A_cl + 2.0 * rate * P
-    return float(np.linalg.eigvalsh((M + np.swapaxes(M, 1, 2)) / 2).max())
+def contraction_check(
+    scenario: Scenario, P: np.ndarray, K: np.ndarray, rate: float, segments: int
+) -> tuple[float, JacobianHull]:
+    """Step 3: the largest eigenvalue of (C)'s left side over the vertices of a sound Jacobian
+    hull over the operating region, rebuilt here (``HullError`` if there is none), and the hull."""
+    hull = jacobian_hull(scenario.dynamics, scenario.operating_region, segments)
+    return contraction_margin(P, K, hull.A, hull.B, rate), hull
 
 
 def _constant(
@@ -183,8 +185,8 @@ def _constant(
 
     # 3. Contraction (C) at every vertex of a sound Jacobian hull over the operating region.
     try:
-        hull = jacobian_hull(scenario.dynamics, scenario.operating_region, segments)
-        margin, vertices = _contraction_margin(controller, hull.A, hull.B), len(hull.vertices)
+        margin, hull = contraction_check(scenario, P, K, rate, segments)
+        vertices = len(hull.vertices)
     except HullError as error:
         margin, vertices = float("nan"), 0
         failures.append(f"no Jacobian hull over the operating region: {error}")
@@ -229,7 +231,7 @@ def _funnels(
     scenario: Scenario, controller: Controller, failures: list[str]
 ) -> tuple[float, int, list[float], tuple[float, float], float]:
     """Steps 2-4 for a ``/2`` file, each funnel rebuilt from the file and re-checked
-    (``pipeline.numerics.recertify``): ``(largest (F2) eigenvalue, vertices, verified levels,
+    (``pipeline.numerics.verify.recertify``): ``(largest (F2) eigenvalue, vertices, verified levels,
     (reference error, interpolation error), the largest multiple of the disturbance checked
     that every funnel holds)``; what fails is appended to ``failures``."""
     if controller.feedback_period > 0:

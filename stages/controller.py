@@ -6,16 +6,16 @@ trajectory its demo's ``name``, start ``x0``, robustness radius, duration ``T``,
 ``u_ref (N, m)`` and states ``x_ref`` on a fine grid ``t`` (RK4 substeps), so that linear
 interpolation error is negligible against the tube. Format ``safety-controller/2``
 (``emit_funnel_controller``): the same per trajectory plus its funnel
-(``pipeline.numerics.funnel``): gains ``K (N, m, n)``, metrics ``P (N+1, n, n)`` at the samples
-with ``Q = P^-1`` linear in t between them (``metric_interpolation: "inverse-linear"``),
+(``pipeline.numerics.funnel.synthesis``): gains ``K (N, m, n)``, metrics ``P (N+1, n, n)`` at the
+samples with ``Q = P^-1`` linear in t between them (``metric_interpolation: "inverse-linear"``),
 ``radius = rho`` and ``rate``; no ``feedback`` block. Its reference grid has
 ``REFERENCE_SUBSTEPS`` RK4 steps per sample, more on the sample intervals where the law's
 tracking of the interpolated ``x_ref`` needs them to stay inside the certificate
-(``pipeline.numerics.funnel_law``). The interpolation error is measured in the tube's
+(``pipeline.numerics.funnel.law``). The interpolation error is measured in the tube's
 metric at the time, ``P(t)``.
 
-The law after ``T`` (``pipeline.numerics.terminal``): an equilibrium at Goal's centre, its LQR
-gain and the largest certified invariant ellipsoid. The ``terminal`` block is written only when
+The law after ``T`` (``pipeline.numerics.terminal.design``): an equilibrium at Goal's centre, its
+LQR gain and the largest certified invariant ellipsoid. The ``terminal`` block is written only when
 that ellipsoid holds every trajectory's end tube ``||x - x_ref(T)||_P <= radius e^{-lambda T}``;
 otherwise the file has none, the law refuses ``t > T``, and the message says why. In a ``/2``
 file the block also states ``disturbance``, the additive bound ``b (n,)`` its ellipsoid was
@@ -39,12 +39,12 @@ from pipeline.io.artifacts import atomic_write_json
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import Trajectory, simulate, simulate_graded
-from pipeline.numerics.funnel_check import Funnel
-from pipeline.numerics.funnel_law import BASE_SUBSTEPS
-from pipeline.numerics.recertify import ShippedFunnel, reference_substeps
-from pipeline.numerics.terminal import TerminalDesign, TerminalError, design_terminal
-from pipeline.numerics.terminal_fit import end_levels
+from pipeline.numerics.funnel.check import Funnel
+from pipeline.numerics.funnel.law import BASE_SUBSTEPS
+from pipeline.numerics.terminal.design import TerminalDesign, TerminalError, design_terminal
+from pipeline.numerics.terminal.fit import end_levels
 from pipeline.numerics.uncertainty import additive_bound
+from pipeline.numerics.verify.recertify import ShippedFunnel, reference_substeps
 from pipeline.results.controller import ControllerResult as ControllerResult
 from pipeline.results.stage import Stage, StageInputs
 
@@ -214,7 +214,7 @@ def emit_controller(
         When the end tubes do not fit the terminal ellipsoid, the radii are lowered to it
         (smaller balls, still covering Init: the certify stage re-checks) if that makes them fit.
       feedback_period: the zero-order-hold period ``h`` (s) the tube's ``rate`` was certified
-        for (``pipeline.numerics.sampled``; 0: continuous feedback).
+        for (``pipeline.numerics.tube.sampled``; 0: continuous feedback).
       names: each trajectory's demo (``"demo_01"``), written as its ``name``; None: no names.
     """
     trajectories, worst, ends, end_radii = [], 0.0, [], []
@@ -303,7 +303,7 @@ def emit_funnel_controller(
                 f"of N = {N} intervals; expected K ({N}, {m}, {n}), P ({N + 1}, {n}, {n})"
             )
         # the law tracks x_ref interpolated on this grid: fine enough where the funnel needs it
-        # (pipeline.numerics.funnel_law), at least `substeps` per sample elsewhere
+        # (pipeline.numerics.funnel.law), at least `substeps` per sample elsewhere
         nominal = simulate(
             scenario.dynamics, trajectory.xs[0], trajectory.us, scenario.Ts, BASE_SUBSTEPS
         )

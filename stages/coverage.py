@@ -4,7 +4,7 @@ Each ball has its own metric ``P_i``: the funnel certificate's balls are its ini
 ``E_i(0)`` (``P_i = P_i[0]``, ``r_i = rho_i``; ``cover_balls``); the constant certificate's are the
 same code with the feedback's one ``P`` repeated (``cover_init``).
 
-Init is a box, covered by sound recursive subdivision (``pipeline.numerics.cover``, which the
+Init is a box, covered by sound recursive subdivision (``pipeline.numerics.verify.cover``, which the
 final certificate check, stage ``certify``, uses as well): a box is covered when all its
 vertices lie in one ball; boxes no ball can cover yet are halved up to ``max_depth`` times.
 What remains is reported as uncovered (sound, not complete). The covered boxes with their
@@ -20,7 +20,7 @@ import numpy as np
 
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
-from pipeline.numerics.cover import DEFAULT_DEPTH, subdivide
+from pipeline.numerics.verify.cover import DEFAULT_DEPTH, subdivide
 from pipeline.results.coverage import CoverageResult as CoverageResult
 from pipeline.results.coverage import CoveringRadius as CoveringRadius
 from pipeline.results.stage import Stage, StageInputs

@@ -11,7 +11,8 @@ For two closed-loop solutions with the same reference input, ``e = x - x_ref`` o
 stay in the (convex) region, ``Abar`` lies in the hull, so ``d/dt e^T P e <= -2 lambda e^T P e``
 and ``||e(t)||_P <= exp(-lambda t) ||e(0)||_P``. The certificate is accepted only after the
 largest generalised eigenvalue of (C)'s left side against ``P`` is checked negative at every
-vertex with numpy, independently of the solver.
+vertex with numpy, independently of the solver (``pipeline.numerics.tube.contraction``, as the
+certifier evaluates it).
 
 Design. ``C`` (2, n) selects the position, ``S`` the non-degenerate directions of Init. The scale of
 ``P`` is fixed by ``C P^-1 C^T <= I`` (position extent <= 1 per unit radius), and we minimise
@@ -42,9 +43,10 @@ import numpy as np
 
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
-from pipeline.numerics.feedback_search import RATES, tune_feedback
 from pipeline.numerics.hull import DEFAULT_SEGMENTS, HullError, jacobian_hull
-from pipeline.numerics.tube import Tube
+from pipeline.numerics.tube.contraction import contraction_margin
+from pipeline.numerics.tube.feedback_search import RATES, tune_feedback
+from pipeline.numerics.tube.geometry import Tube
 from pipeline.results.feedback import FeedbackResult as FeedbackResult
 from pipeline.results.stage import Stage, StageInputs
 
@@ -196,17 +198,6 @@ def _solve(
     )
 
 
-def certificate_margin(P: FloatArray, K: FloatArray, vertices: FloatArray, rate: float) -> float:
-    """Largest eigenvalue of ``L^-1 (A_cl^T P + P A_cl + 2 rate P) L^-T`` (``P = L L^T``) over
-    the vertices (V, n, n+m); negative means (C) holds with ``eps = 0``."""
-    n = P.shape[0]
-    L_inv = np.linalg.inv(np.linalg.cholesky(P))
-    Acl = vertices[:, :, :n] + vertices[:, :, n:] @ K
-    M = np.swapaxes(Acl, 1, 2) @ P + P @ Acl + 2 * rate * P
-    M = L_inv @ M @ L_inv.T
-    return float(np.linalg.eigvalsh((M + np.swapaxes(M, 1, 2)) / 2).max())
-
-
 def lqr_gain(scenario: Scenario) -> FloatArray:
     """(m, n) LQR gain at the scenario's reference point, in the sign of ``u = u_ref + K e``."""
     spec = scenario.feedback
@@ -253,7 +244,7 @@ def design_feedback(
     """Design ``K`` and certify the contraction metric ``P`` at ``rate`` (default: the
     scenario's ``feedback.rate``) over ``scenario.operating_region``; see the module docstring.
     With the scenario's ``feedback.tune`` (and no ``rate`` given) the design is searched for
-    (``pipeline.numerics.feedback_search``) and the result's ``tuning`` says what was chosen.
+    (``pipeline.numerics.tube.feedback_search``) and the result's ``tuning`` says what was chosen.
 
     A failed design returns ``success=False`` with a message naming the region and rate tried.
     """
@@ -323,7 +314,7 @@ def _design(
             notes.append(f"{name}: {design}")
             continue
         try:
-            margin = certificate_margin(design.P, design.K, hull.vertices, rate)
+            margin = contraction_margin(design.P, design.K, A, B, rate, normalised=True)
         except np.linalg.LinAlgError:
             notes.append(f"{name}: P is not positive definite")
             continue

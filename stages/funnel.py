@@ -1,6 +1,6 @@
 """Stage ``funnel``: a time-varying funnel around each final trajectory (the funnel certificate).
 
-For trajectory ``i`` (``pipeline.numerics.funnel``): gains ``K_i[k] (m, n)`` held on
+For trajectory ``i`` (``pipeline.numerics.funnel.synthesis``): gains ``K_i[k] (m, n)`` held on
 ``[t_k, t_k+1)``, metrics ``P_i[k] (n, n)`` at ``t_k`` and a level ``rho_i``, certifying that
 every state starting in
 
@@ -10,7 +10,7 @@ stays in the tube ``E_i(t)`` around the nominal, clear of Unsafe, inside the inp
 the scenario's ``state_bounds``, and ends in Goal; for every disturbance and parameter the
 scenario declares (``uncertainty:``, held as one additive bound, ``pipeline.numerics.uncertainty``
 (U1), by the funnel's (I4)). Each funnel is asked to hold its start's
-cell of Init (``pipeline.numerics.cells``: Init cut into equal boxes, each given to the start
+cell of Init (``pipeline.numerics.funnel.cells``: Init cut into equal boxes, each given to the start
 nearest its centre in the constant certificate's metric ``P``; funnel ``i`` must hold the corners
 of the hull of its boxes), so that the funnels together hold Init when every level reaches 1.
 A start that owns no box is asked for the part of Init that the constant certificate's ball of
@@ -27,7 +27,7 @@ With a terminal ellipsoid (``terminal``, a ``terminal: hold`` run: ``terminal.ho
 each funnel must also end inside it (``synthesize_funnel(terminal=...)``: (T2) in the program,
 the exact containment level after the check); a nominal that ends outside has no funnel.
 
-A funnel that ``pipeline.numerics.funnel_check`` rejects (re-checked here with numpy alone,
+A funnel that ``pipeline.numerics.funnel.check`` rejects (re-checked here with numpy alone,
 independently of the solver) or whose level is not positive is dropped, as a trajectory
 without a robustness radius is in the constant certificate.
 """
@@ -44,13 +44,13 @@ from pipeline.io.executor import Executor, SerialExecutor, preload_in_workers
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import Trajectory
-from pipeline.numerics.cells import init_cells
-from pipeline.numerics.funnel import synthesize_funnel
-from pipeline.numerics.funnel_check import Funnel, check_funnel
-from pipeline.numerics.funnel_law import LawOffset
-from pipeline.numerics.recertify import ShippedFunnel, recheck_as_shipped
-from pipeline.numerics.terminal_fit import TerminalTarget
+from pipeline.numerics.funnel.cells import init_cells
+from pipeline.numerics.funnel.check import Funnel, check_funnel
+from pipeline.numerics.funnel.law import LawOffset
+from pipeline.numerics.funnel.synthesis import synthesize_funnel
+from pipeline.numerics.terminal.fit import TerminalTarget
 from pipeline.numerics.uncertainty import additive_bound
+from pipeline.numerics.verify.recertify import ShippedFunnel, recheck_as_shipped
 from pipeline.results.funnel import FunnelStageResult as FunnelStageResult
 from pipeline.results.stage import Stage, StageInputs
 
@@ -72,8 +72,8 @@ def required_sets(
     scenario: Scenario, starts: Sequence[FloatArray], P: FloatArray, radii: FloatArray
 ) -> list[FloatArray]:
     """Per start ``(n,)``, the ``Q_init (p, n, n)`` its funnel must hold: ``v v^T`` for each
-    corner offset ``v`` of its cell of Init (``pipeline.numerics.cells``, assigned in the metric
-    ``P (n, n)``), or the ball slice (I1) of radius ``radii[i]`` if it owns no cell."""
+    corner offset ``v`` of its cell of Init (``pipeline.numerics.funnel.cells``, assigned in the
+    metric ``P (n, n)``), or the ball slice (I1) of radius ``radii[i]`` if it owns no cell."""
     corners = init_cells(
         scenario.init_lower, scenario.init_upper, np.asarray(starts, dtype=np.float64), P
     )

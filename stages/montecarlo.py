@@ -7,9 +7,9 @@ the controller read back from ``controller.json``, and each run is checked in co
 clipping, error inside the predicted tube ``||e(t)||_P <= e^{-lambda t} ||e(0)||_P + 2 delta``
 (``delta``: the stated interpolation error of the emitted reference). A
 non-finite state is a failure. The runs go through the compiled kernel
-(``pipeline.numerics.rollouts``), which agrees with the NumPy oracle
-(``pipeline.numerics.closed_loop.check_runs``, a test checks 1e-9), and so do the few paths the
-report shows (``run_paths_compiled``). The failure probability gets an exact one-sided 95%
+(``pipeline.numerics.closed_loop.rollouts``), which agrees with the NumPy oracle
+(``pipeline.numerics.closed_loop.simulate.check_runs``, a test checks 1e-9), and so do the few paths
+the report shows (``run_paths_compiled``). The failure probability gets an exact one-sided 95%
 Clopper-Pearson upper bound (``scipy.stats.binomtest``), valid because the samples are i.i.d.
 
 When the file has a terminal controller, every covered run is continued to ``T +
@@ -23,12 +23,12 @@ A falsification search (Init's corners, a Sobol set, then a local search) is rep
 separately: it is evidence, not a bound.
 
 Under a declared uncertainty (``scenario.uncertainty`` not empty) every run also draws the
-uncertainty (``pipeline.numerics.gusts``): the uncertain parameters uniformly from their
+uncertainty (``pipeline.numerics.closed_loop.gusts``): the uncertain parameters uniformly from their
 intervals (constant during the run, flown with the parametric dynamics ``f(x, (u, p))``) and a
 gust ``w(t)`` in the disturbance box, piecewise constant with a new value every 0.5 s
 (``GUST_PERIOD``); a quarter of the runs fly bang-bang at random corners of both boxes and a
-quarter the falsification's worst bang-bang case (``pipeline.numerics.worst_case``: the search
-then also covers the boxes' corners, and runs before the chunks, which need its result). Runs
+quarter the falsification's worst bang-bang case (``pipeline.numerics.closed_loop.worst_case``: the
+search then also covers the boxes' corners, and runs before the chunks, which need its result). Runs
 are flown to ``T`` and, with a law past ``T``, to ``T + HOLD_SECONDS`` with the same parameters
 and gusts.
 A run fails if it ever enters Unsafe, clips, leaves the state bounds, or is outside Goal at any
@@ -55,15 +55,15 @@ from pipeline.controller import Controller, load
 from pipeline.io.executor import Executor, SerialExecutor, preload_in_workers
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
-from pipeline.numerics import worst_case
-from pipeline.numerics.closed_loop import RunChecks, check_runs
-from pipeline.numerics.gusts import Draws, sample
-from pipeline.numerics.rollouts import (
+from pipeline.numerics.closed_loop import worst_case
+from pipeline.numerics.closed_loop.gusts import Draws, sample
+from pipeline.numerics.closed_loop.rollouts import (
     HOLD_SECONDS,
     check_runs_compiled,
     hold_runs_compiled,
     run_paths_compiled,
 )
+from pipeline.numerics.closed_loop.simulate import RunChecks, check_runs
 from pipeline.numerics.uncertainty import additive_bound
 from pipeline.results.montecarlo import Falsification as Falsification
 from pipeline.results.montecarlo import MonteCarloResult as MonteCarloResult
@@ -99,7 +99,7 @@ def falsify(
 ) -> Falsification:
     """Corners of Init, a scrambled Sobol set, then Nelder-Mead from the worst starts (of the
     nominal closed loop); under a declared uncertainty, then the bang-bang search of
-    ``pipeline.numerics.worst_case`` from the worst starts found."""
+    ``pipeline.numerics.closed_loop.worst_case`` from the worst starts found."""
     nominal, starts = _falsify_starts(
         scenario, controller, sobol_points, local_searches, seed, evaluations_per_search
     )

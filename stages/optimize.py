@@ -12,13 +12,14 @@ nearest feasible solution, time-compressed (default) or truncated (the paper) to
 Each descent runs on the cost with every margin tightened by ``overshoot`` and stops as soon as the
 problem's own cost is zero: a descent that approaches ``J = 0`` from outside only reaches it in the
 limit (measured: most failed tries ended at J ~ 1e-10 after the iteration cap). The result is
-re-verified in continuous time independently of the cost (``pipeline.numerics.verify``).
+re-verified in continuous time independently of the cost (``pipeline.numerics.verify.nominal``).
 
 Funnels (issue 16 part 4): ``reoptimize_with_funnels`` runs the same search from each optimized
 nominal again, with the margins of the funnel synthesized around it (per sample interval,
-``pipeline.numerics.margins``; ``ConstraintMargins.of_funnel``) in place of the constant tube's,
-and the scenario's ``state_bounds`` in place of the operating region. One call is one round of
-the alternation nominal -> funnel -> nominal; the caller synthesizes and checks the new funnels.
+``pipeline.numerics.optimize.margins``; ``ConstraintMargins.of_funnel``) in place of the
+constant tube's, and the scenario's ``state_bounds`` in place of the operating region. One call
+is one round of the alternation nominal -> funnel -> nominal; the caller synthesizes and checks
+the new funnels.
 
 A hold run of the funnel certificate (``stages.certificates.Targets``) ends every nominal in a
 box of its terminal ellipsoid's core, read as Goal's extra bounds, on the nominal alone
@@ -41,18 +42,18 @@ import numpy as np
 from pipeline.io.executor import Executor, SerialExecutor, preload_in_workers
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
-from pipeline.numerics.descent import DescentResult, IterationLog
-from pipeline.numerics.footprint import ConstraintMargins, verify_within
-from pipeline.numerics.funnel_check import Funnel
-from pipeline.numerics.horizon import (
+from pipeline.numerics.funnel.check import Funnel
+from pipeline.numerics.optimize.descent import DescentResult, IterationLog
+from pipeline.numerics.optimize.footprint import ConstraintMargins, verify_within
+from pipeline.numerics.optimize.horizon import (
     minimise,
     reseed,
     shortest_by_continuation,
     smallest_feasible,
     warm_up,
 )
-from pipeline.numerics.penalties import MarginError
-from pipeline.numerics.problem import Problem, make_problem
+from pipeline.numerics.optimize.penalties import MarginError
+from pipeline.numerics.optimize.problem import Problem, make_problem
 from pipeline.numerics.settings import DESCENT_METHODS, HORIZON_SEARCHES
 from pipeline.results.optimize import BisectionTry as BisectionTry
 from pipeline.results.optimize import OptimizeOptions as OptimizeOptions
@@ -310,7 +311,7 @@ def reoptimize_with_funnels(
     around that nominal) instead of the constant certificate's: Unsafe bloated by ``clearance +
     eps_d`` plus the funnel's position extent on each sample interval, the input bounds shrunk by
     its input extents, and no operating region: the scenario's ``state_bounds`` shrunk by its
-    state extents (``pipeline.numerics.margins.funnel_margins`` at ``level``, default each
+    state extents (``pipeline.numerics.optimize.margins.funnel_margins`` at ``level``, default each
     funnel's rho; on a shorter horizon the extents are read by normalised time, maximum over the
     window). ``clearance`` (m): how far beyond the tube the nominal must stay from Unsafe (0: the
     tube itself must clear Unsafe, which is what the funnel certifies); ``at_least`` (m, default

@@ -4,7 +4,7 @@ The tube of P-norm radius ``r`` around ``x_ref`` is
 ``E(t) = {x : ||x - x_ref(t)||_P <= r e^{-lambda t}}``; the radius is the largest ``r`` for which
 ``E(t)`` avoids Unsafe, stays in the operating region, the ``state_bounds`` and the input bounds,
 and ends in Goal, on the whole of ``[0, T]`` in continuous time. Each constraint's limit is
-computed by ``pipeline.numerics.tube_radius`` (the maths is in its docstring), which the final
+computed by ``pipeline.numerics.tube.radius`` (the maths is in its docstring), which the final
 certificate check (stage ``certify``) uses as well.
 """
 
@@ -15,8 +15,8 @@ from typing import ClassVar
 
 from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import Trajectory
-from pipeline.numerics.tube import Tube
-from pipeline.numerics.tube_radius import radius_limits
+from pipeline.numerics.tube.geometry import Tube
+from pipeline.numerics.tube.radius import radius_limits
 from pipeline.results.radius import RadiusResult as RadiusResult
 from pipeline.results.stage import Stage, StageInputs
 

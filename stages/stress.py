@@ -5,8 +5,8 @@ or the verdict.
 A scenario that declares its uncertainty (``uncertainty:``, held by the certificate) is stressed
 beyond it: every run draws from the declaration widened ``BEYOND`` (2) times about the nominal
 (``Uncertainty.scaled``: the parameter intervals and the gust box), as the Monte Carlo stage
-draws the declared one (``pipeline.numerics.gusts.sample``: parameters uniform or at corners,
-0.5 s piecewise-constant gusts, half the runs bang-bang at random corners), on the compiled
+draws the declared one (``pipeline.numerics.closed_loop.gusts.sample``: parameters uniform or at
+corners, 0.5 s piecewise-constant gusts, half the runs bang-bang at random corners), on the compiled
 kernel, continued to ``T + 10`` s when the file has a law past ``T``. A run fails if it enters
 Unsafe, misses Goal, clips, leaves the state bounds or (after ``T``) Goal, as in the Monte Carlo
 stage; the ``stress:`` block is not used then.
@@ -30,14 +30,14 @@ import numpy as np
 
 from pipeline.controller import load
 from pipeline.model.scenario import Scenario
-from pipeline.numerics.closed_loop import check_runs
-from pipeline.numerics.gusts import sample
-from pipeline.numerics.rollouts import (
+from pipeline.numerics.closed_loop.gusts import sample
+from pipeline.numerics.closed_loop.rollouts import (
     HOLD_SECONDS,
     check_runs_compiled,
     hold_runs_compiled,
 )
-from pipeline.numerics.worst_case import horizon
+from pipeline.numerics.closed_loop.simulate import check_runs
+from pipeline.numerics.closed_loop.worst_case import horizon
 from pipeline.results.stage import FileInput, Stage, StageInputs
 from pipeline.results.stress import StressResult as StressResult
 from pipeline.results.stress import StressRun as StressRun

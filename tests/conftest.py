@@ -390,7 +390,7 @@ def funnel_artifact(tmp_path_factory):
 
     from pipeline.model.scenario import load_scenario
     from pipeline.model.simulate import simulate
-    from pipeline.numerics.funnel import synthesize_funnel
+    from pipeline.numerics.funnel.synthesis import synthesize_funnel
     from stages.controller import emit_funnel_controller
 
     scenario = load_scenario("double_integrator", check_demos=False)
@@ -426,7 +426,7 @@ def quadrotor_funnel_artifact(tmp_path_factory):
     unchanged (its Init is not all covered by one funnel)."""
     from pipeline.model.scenario import load_scenario
     from pipeline.model.simulate import simulate
-    from pipeline.numerics.funnel import synthesize_funnel
+    from pipeline.numerics.funnel.synthesis import synthesize_funnel
     from stages.controller import emit_funnel_controller
 
     scenario = load_scenario("quadrotor_hill", check_demos=False)

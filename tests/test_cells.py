@@ -1,5 +1,6 @@
-"""``pipeline.numerics.cells``: Init cut into cells, each given to the nearest start (C1); the
-hulls of the cells' corners together hold Init, and each start is asked for its own cells only."""
+"""``pipeline.numerics.funnel.cells``: Init cut into cells, each given to the nearest start (C1);
+the hulls of the cells' corners together hold Init, and each start is asked for its own cells
+only."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial import Delaunay
 
-from pipeline.numerics.cells import PAD, init_cells
+from pipeline.numerics.funnel.cells import PAD, init_cells
 
 
 def test_two_starts_split_a_square_in_halves():
@@ -72,7 +73,7 @@ def test_a_start_at_a_single_point_init_asks_for_nothing():
 def test_many_hull_corners_fall_back_to_the_bounding_box():
     """A start owning a region whose hull has more than MAX_CORNERS vertices is asked for the
     2^D corners of its cells' bounding box, which hold the hull."""
-    from pipeline.numerics.cells import MAX_CORNERS, _hull_corners
+    from pipeline.numerics.funnel.cells import MAX_CORNERS, _hull_corners
 
     angles = np.linspace(0, 2 * np.pi, 4 * MAX_CORNERS, endpoint=False)
     circle = np.c_[np.cos(angles), np.sin(angles)]  # every point a hull vertex
@@ -84,6 +85,6 @@ def test_many_hull_corners_fall_back_to_the_bounding_box():
 def test_the_padding_covers_the_level_slack():
     """A funnel at level ``1 - LEVEL_SLACK`` holds a corner pushed ``PAD`` out when
     ``1 / (1 + PAD) <= 1 - LEVEL_SLACK``."""
-    from pipeline.numerics.funnel_check import LEVEL_SLACK
+    from pipeline.numerics.funnel.check import LEVEL_SLACK
 
     assert 1 / (1 + PAD) <= 1 - LEVEL_SLACK

@@ -13,8 +13,8 @@ from hypothesis import strategies as st
 from pipeline import available_scenarios, load_scenario
 from pipeline.model import geometry
 from pipeline.model.simulate import simulate
-from pipeline.numerics.penalties import barrier, box_penalty
-from pipeline.numerics.problem import make_problem
+from pipeline.numerics.optimize.penalties import barrier, box_penalty
+from pipeline.numerics.optimize.problem import make_problem
 
 
 @pytest.fixture(scope="module")

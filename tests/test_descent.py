@@ -8,7 +8,7 @@ from functools import partial
 import numpy as np
 import pytest
 
-from pipeline.numerics.descent import Stall, gradient_descent, lbfgs
+from pipeline.numerics.optimize.descent import Stall, gradient_descent, lbfgs
 
 
 @dataclass(frozen=True)

@@ -36,7 +36,7 @@ from pipeline.controller import load
 from pipeline.model.demos import write_demo_csv
 from pipeline.model.scenario import SCENARIOS_ROOT, Scenario, load_scenario
 from pipeline.model.simulate import simulate
-from pipeline.numerics.closed_loop import simulate_closed_loop
+from pipeline.numerics.closed_loop.simulate import simulate_closed_loop
 from pipeline.numerics.hull import jacobian_hull
 from stages.controller import emit_controller
 from stages.feedback import design_feedback

@@ -26,7 +26,7 @@ import stages.controller
 from pipeline import Verdict, available_scenarios, load_scenario
 from pipeline.controller import load
 from pipeline.model.simulate import simulate
-from pipeline.numerics.closed_loop import RunChecks, check_runs, simulate_closed_loop
+from pipeline.numerics.closed_loop.simulate import RunChecks, check_runs, simulate_closed_loop
 from pipeline.runtime.api import synthesize
 from pipeline.runtime.summary import demo_table
 from stages.montecarlo import falsify, validate_closed_loop

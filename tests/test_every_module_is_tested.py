@@ -21,14 +21,14 @@ COVERED_THROUGH_CALLER = {
     "pipeline.model.scenario_file": (
         "tests/test_api.py::test_a_scenario_name_is_looked_up_in_the_current_directory_first"
     ),
-    "pipeline.numerics.adjoint": (
+    "pipeline.numerics.optimize.adjoint": (
         "tests/test_gradient.py::test_gradient_matches_central_differences"
     ),
-    "pipeline.numerics.worst_case": (
+    "pipeline.numerics.closed_loop.worst_case": (
         "tests/stages/test_uncertain_montecarlo.py::"
         "test_a_gust_larger_than_the_controller_holds_fails_counted_runs"
     ),
-    "pipeline.numerics.flight": (
+    "pipeline.numerics.closed_loop.flight": (
         "tests/test_flight.py::test_a_covered_start_flies_into_goal_and_never_into_unsafe"
     ),
     # numba templates, compiled by pipeline.numerics.kernels.compiled

@@ -16,7 +16,7 @@ from pipeline.demonstrations.pilot import regenerate_demos
 from pipeline.model.demos import write_demo_csv
 from pipeline.model.feedback_defaults import resolve_feedback
 from pipeline.model.scenario import load_scenario
-from pipeline.numerics.feedback_search import fix_for
+from pipeline.numerics.tube.feedback_search import fix_for
 from pipeline.runtime.cli import main
 from pipeline.runtime.scaffold import new_scenario
 from stages.feedback import design_feedback

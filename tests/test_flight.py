@@ -7,7 +7,7 @@ import pytest
 
 import pipeline
 from pipeline.model import geometry
-from pipeline.numerics.closed_loop import simulate_closed_loop
+from pipeline.numerics.closed_loop.simulate import simulate_closed_loop
 
 NAME = "double_integrator"
 

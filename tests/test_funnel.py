@@ -1,4 +1,4 @@
-"""The time-varying funnel (pipeline.numerics.funnel): known answers and the certificate's argument.
+"""The time-varying funnel (``funnel/``): known answers and the certificate's argument.
 
 1. Double integrator (linear: one hull vertex, the exact ``[A B]``): the time-varying LQR
    converges to the stationary discrete LQR on a long horizon, and the funnel holds exactly:
@@ -8,7 +8,7 @@
    Jacobians sampled from its box (LP membership); the nominal stays in its enclosure (E2)
    between grid points (solve_ivp at tight tolerance).
 3. The independent check rejects a funnel whose ``P`` is perturbed.
-4. The hand-built Clarabel program (funnel_lmi) has the optimum of the same program in cvxpy,
+4. The hand-built Clarabel program (funnel.lmi) has the optimum of the same program in cvxpy,
    also with intervals of different durations (the LMI pieces of funnel.HOLD samples).
 """
 
@@ -25,9 +25,9 @@ from shapely.geometry import box as shapely_box
 
 from pipeline.model.scenario import load_scenario
 from pipeline.model.simulate import simulate
-from pipeline.numerics.funnel import check_funnel, lqr_seed, synthesize_funnel
-from pipeline.numerics.funnel_lmi import FunnelProgram, basis, solve_clarabel, solve_cvxpy, svec
-from pipeline.numerics.funnel_pieces import pieces
+from pipeline.numerics.funnel.lmi import FunnelProgram, basis, solve_clarabel, solve_cvxpy, svec
+from pipeline.numerics.funnel.pieces import pieces
+from pipeline.numerics.funnel.synthesis import check_funnel, lqr_seed, synthesize_funnel
 
 THETA_BOUNDS = {"theta": (-0.8, 0.8)}
 

@@ -1,4 +1,4 @@
-"""The funnel certificate covers the law as shipped (pipeline.numerics.funnel_law).
+"""The funnel certificate covers the law as shipped (pipeline.numerics.funnel.law).
 
 The shipped law tracks ``x_ref`` interpolated on the file's grid, not the exact nominal the funnel
 is built around. These tests re-check the funnel inequality with the interpolation's term by
@@ -17,14 +17,14 @@ import pytest
 from pipeline.controller import load
 from pipeline.model.scenario import load_scenario
 from pipeline.model.simulate import simulate, simulate_graded
-from pipeline.numerics.funnel_law import (
+from pipeline.numerics.funnel.law import (
     BASE_SUBSTEPS,
     LawOffset,
     grid_substeps,
     law_offset,
     law_substeps,
 )
-from pipeline.numerics.recertify import ShippedFunnel, rebuild_funnel
+from pipeline.numerics.verify.recertify import ShippedFunnel, rebuild_funnel
 from stages.certify import certify_controller
 
 FUNNEL_SCENARIOS = ("quadrotor_hill", "unicycle_slalom")

@@ -20,7 +20,7 @@ import stages.funnel
 from pipeline.controller import FUNNEL_FORMAT, load
 from pipeline.io.artifacts import read_stored
 from pipeline.model import geometry
-from pipeline.numerics.cover import subdivide
+from pipeline.numerics.verify.cover import subdivide
 from pipeline.reporting import figures
 from pipeline.reporting.summary import Summary
 from pipeline.runtime.cli import main

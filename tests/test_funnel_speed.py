@@ -1,4 +1,4 @@
-"""What makes the funnel fast keeps it sound (pipeline.numerics.funnel_pieces, funnel_lmi, hull).
+"""What makes the funnel fast keeps it sound (pipeline.numerics.funnel.pieces, funnel.lmi, hull).
 
 1. Pieces: ``Q`` interpolated linearly over each piece (P1), the gain held over it.
 2. The angle cap fills whole arc segments and never goes below a quarter segment.
@@ -19,9 +19,9 @@ import sympy
 from pipeline.model.dynamics import Dynamics
 from pipeline.model.scenario import load_scenario
 from pipeline.model.simulate import simulate
-from pipeline.numerics.funnel import HOLD, check_funnel, synthesize_funnel
-from pipeline.numerics.funnel_check import LEVEL_SLACK
-from pipeline.numerics.funnel_pieces import ARC, arc_cap, interpolate, pieces
+from pipeline.numerics.funnel.check import LEVEL_SLACK
+from pipeline.numerics.funnel.pieces import ARC, arc_cap, interpolate, pieces
+from pipeline.numerics.funnel.synthesis import HOLD, check_funnel, synthesize_funnel
 from pipeline.numerics.hull import MAX_SEGMENT_ANGLE, arc_polygon, arc_variables, jacobian_hull
 
 THETA_BOUNDS = {"theta": (-0.8, 0.8)}

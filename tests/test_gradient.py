@@ -11,9 +11,9 @@ import pytest
 
 from pipeline import available_scenarios, load_scenario
 from pipeline.model import geometry
-from pipeline.numerics.margins import MarginProfile
-from pipeline.numerics.problem import make_problem
-from pipeline.numerics.sensitivity import interval_sensitivities, sensitivity_pattern
+from pipeline.numerics.optimize.margins import MarginProfile
+from pipeline.numerics.optimize.problem import make_problem
+from pipeline.numerics.optimize.sensitivity import interval_sensitivities, sensitivity_pattern
 
 METHODS = ("adjoint", "sensitivity")
 

@@ -1,5 +1,5 @@
-"""The horizon searches of Remark 4 (``pipeline.numerics.horizon``) on feasibility oracles with a
-known answer: ``feasible(N)`` is ``N >= 37``, so the shortest feasible horizon is 37."""
+"""The horizon searches of Remark 4 (``pipeline.numerics.optimize.horizon``) on feasibility oracles
+with a known answer: ``feasible(N)`` is ``N >= 37``, so the shortest feasible horizon is 37."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
-from pipeline.numerics.horizon import reseed, shortest_by_continuation, smallest_feasible
+from pipeline.numerics.optimize.horizon import reseed, shortest_by_continuation, smallest_feasible
 
 SHORTEST = 37
 

@@ -1,5 +1,5 @@
 """Margins that vary along the trajectory: a funnel's extents, the regridding rule, the penalties
-that read them (pipeline.numerics.margins, .penalties)."""
+that read them (pipeline.numerics.optimize.margins, .penalties)."""
 
 from __future__ import annotations
 
@@ -9,10 +9,10 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from pipeline import load_scenario
-from pipeline.numerics.funnel_bounds import Enclosure
-from pipeline.numerics.margins import MarginProfile, funnel_margins, per_point
-from pipeline.numerics.problem import make_problem
-from pipeline.numerics.tube import Tube
+from pipeline.numerics.funnel.bounds import Enclosure
+from pipeline.numerics.optimize.margins import MarginProfile, funnel_margins, per_point
+from pipeline.numerics.optimize.problem import make_problem
+from pipeline.numerics.tube.geometry import Tube
 from tests.helpers.funnels import make_funnel
 
 

@@ -14,8 +14,8 @@ import pytest
 import pipeline
 from pipeline.model.schema import ScenarioSpec
 from pipeline.numerics import settings
-from pipeline.numerics.penalties import build_constraints
-from pipeline.numerics.problem import make_problem
+from pipeline.numerics.optimize.penalties import build_constraints
+from pipeline.numerics.optimize.problem import make_problem
 from pipeline.runtime.cli import _parser, main
 from pipeline.runtime.options import RunOptions, from_arguments
 from stages.optimize import OptimizeOptions

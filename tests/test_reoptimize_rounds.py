@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from pipeline import load_scenario
-from pipeline.numerics.footprint import ConstraintMargins
+from pipeline.numerics.optimize.footprint import ConstraintMargins
 from stages.certificates import funnel as rounds
 from stages.coverage import cover_balls
 from stages.feedback import design_feedback

@@ -1,4 +1,4 @@
-"""Funnels that hold under a bounded disturbance (pipeline.numerics.funnel_law (I4), funnel_lmi).
+"""Funnels that hold under a bounded disturbance (pipeline.numerics.funnel.law (I4), funnel.lmi).
 
 ``xdot = f(x, u) + w`` with any ``|w_i| <= d_i``: the check adds ``2 max ||w_c||_P / rho`` to the
 (F3) eigenvalue; the synthesis asks ``||w_c||_{Q^-1} <= gamma`` at every corner ``w_c``. A
@@ -13,10 +13,10 @@ import pytest
 
 from pipeline.controller import inverse_linear
 from pipeline.model.simulate import simulate
-from pipeline.numerics.funnel import synthesize_funnel
-from pipeline.numerics.funnel_check import check_funnel
-from pipeline.numerics.funnel_law import LawOffset, corners, disturbance_term
-from pipeline.numerics.funnel_lmi import FunnelProgram, solve_clarabel, solve_cvxpy
+from pipeline.numerics.funnel.check import check_funnel
+from pipeline.numerics.funnel.law import LawOffset, corners, disturbance_term
+from pipeline.numerics.funnel.lmi import FunnelProgram, solve_clarabel, solve_cvxpy
+from pipeline.numerics.funnel.synthesis import synthesize_funnel
 from tests.helpers.robust import DISTURBANCE, double_integrator_case
 
 

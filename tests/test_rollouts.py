@@ -10,8 +10,8 @@ import pytest
 
 from pipeline.controller import load
 from pipeline.model.scenario import load_scenario
-from pipeline.numerics.closed_loop import check_runs
-from pipeline.numerics.rollouts import check_runs_compiled
+from pipeline.numerics.closed_loop.rollouts import check_runs_compiled
+from pipeline.numerics.closed_loop.simulate import check_runs
 from tests.helpers.controller_files import scale_gains
 
 MARGINS = ("clearance", "goal_margin", "input_slack", "tube_tightness", "tube_final")
@@ -90,9 +90,9 @@ def test_held_feedback_matches_the_numpy_oracle(synthesized, tmp_path):
 def test_runs_continued_past_T_match_the_numpy_oracle(synthesized, tmp_path, period):
     """A terminal law at hover added to the quadrotor's file: the continuation 10 s past T on
     the kernel agrees with the oracle's (final state, V / level, slack, clearance, Goal)."""
-    from pipeline.numerics.closed_loop import hold_runs
-    from pipeline.numerics.rollouts import hold_runs_compiled
-    from pipeline.numerics.terminal import design_terminal, equilibrium
+    from pipeline.numerics.closed_loop.rollouts import hold_runs_compiled
+    from pipeline.numerics.closed_loop.simulate import hold_runs
+    from pipeline.numerics.terminal.design import design_terminal, equilibrium
 
     _, out = synthesized
     scenario = load_scenario("quadrotor_hill", check_demos=False)

@@ -1,4 +1,4 @@
-"""Zero-order-hold feedback (``pipeline.numerics.sampled``): the held tube's rate is sound.
+"""Zero-order-hold feedback (``pipeline.numerics.tube.sampled``): the held tube's rate is sound.
 
 On linear dynamics the held closed loop is exact: over one window ``e_{k+1} = Phi e_k`` with
 ``Phi = e^{A h} + int_0^h e^{A s} ds B K``, and inside it ``e(t_k + s) = Phi(s) e_k``. The bound
@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 from scipy.linalg import expm
 
-from pipeline.numerics.sampled import contraction_rate, held_rate
+from pipeline.numerics.tube.contraction import contraction_rate
+from pipeline.numerics.tube.sampled import held_rate
 from pipeline.runtime.options import RunOptions
 
 # double integrator in one axis, a gain and its metric from a Lyapunov equation

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from pipeline import load_scenario
-from pipeline.numerics.problem import make_problem
-from pipeline.numerics.shooting import StabilisedProblem
+from pipeline.numerics.optimize.problem import make_problem
+from pipeline.numerics.optimize.shooting import StabilisedProblem
 from stages.feedback import lqr_gain
 
 

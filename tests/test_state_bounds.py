@@ -19,10 +19,10 @@ import pytest
 
 from pipeline.model.scenario import Scenario, load_scenario
 from pipeline.model.simulate import simulate
-from pipeline.numerics.footprint import ConstraintMargins
-from pipeline.numerics.tube import Tube
-from pipeline.numerics.tube_radius import radius_limits
-from pipeline.numerics.verify import VERIFY_SUBSTEPS
+from pipeline.numerics.optimize.footprint import ConstraintMargins
+from pipeline.numerics.tube.geometry import Tube
+from pipeline.numerics.tube.radius import radius_limits
+from pipeline.numerics.verify.nominal import VERIFY_SUBSTEPS
 from pipeline.runtime.cli import main
 from stages.certify import certify_controller
 from stages.feedback import design_feedback

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from pipeline.model.scenario import load_scenario
-from pipeline.numerics.terminal import (
+from pipeline.numerics.terminal.design import (
     check_level,
     design_terminal,
     equilibrium,
@@ -26,7 +26,7 @@ from pipeline.numerics.terminal import (
     largest_level,
     lqr_terminal,
 )
-from pipeline.numerics.terminal_fit import TerminalTarget, containing_level
+from pipeline.numerics.terminal.fit import TerminalTarget, containing_level
 from pipeline.numerics.uncertainty import additive_bound
 
 BETA = 0.05
@@ -183,7 +183,7 @@ def test_a_robust_funnel_ends_inside_the_terminal_ellipsoid_only_when_asked(scen
     alone ends far outside the robust terminal ellipsoid (its floor keeps it wide); with
     ``terminal=`` (T2) shapes it to end inside, by the exact level."""
     from pipeline.model.simulate import simulate
-    from pipeline.numerics.funnel import synthesize_funnel
+    from pipeline.numerics.funnel.synthesis import synthesize_funnel
 
     b = additive_bound(scenario)
     design = hold_design(scenario, b)
@@ -216,7 +216,7 @@ def test_a_robust_funnel_ends_inside_the_terminal_ellipsoid_only_when_asked(scen
 def shipped(scenario, tmp_path_factory):
     """``(path, design)``: a ``/2`` file of one robust funnel ending in the robust terminal set."""
     from pipeline.model.simulate import simulate
-    from pipeline.numerics.funnel import synthesize_funnel
+    from pipeline.numerics.funnel.synthesis import synthesize_funnel
     from stages.controller import emit_funnel_controller
 
     b = additive_bound(scenario)

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from pipeline.model.scenario import load_scenario
-from pipeline.numerics.cover import balls_to_cover
-from pipeline.numerics.margins import MarginProfile
-from pipeline.numerics.penalties import MarginError, build_constraints
+from pipeline.numerics.optimize.margins import MarginProfile
+from pipeline.numerics.optimize.penalties import MarginError, build_constraints
+from pipeline.numerics.verify.cover import balls_to_cover
 from pipeline.runtime.verdict import Evidence
 from stages.coverage import cover_init
 from stages.feedback import design_feedback

@@ -5,7 +5,7 @@ centre of Init clipped into the operating region, ``reference_input`` the centre
 bounds clipped into it, the weights all 1, the rate ``DEFAULT_RATE``. ``tune`` is the file's, or
 true unless all five design fields are set (``feedback: auto`` and an absent block set none);
 with it the feedback stage searches over the fields left out and narrows the operating region
-(``pipeline.numerics.feedback_search``).
+(``pipeline.numerics.tube.feedback_search``).
 """
 
 from __future__ import annotations

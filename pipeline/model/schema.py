@@ -87,7 +87,7 @@ class FeedbackSpec(_Strict):
     """The robustness feedback ``u = u_ref + K (x - x_ref)``'s design data, resolved: every field
     set (``pipeline.model.scenario`` fills in what the file's ``feedback`` leaves out).
 
-    ``tune``: the feedback stage searches (``pipeline.numerics.feedback_search``) over the
+    ``tune``: the feedback stage searches (``pipeline.numerics.tube.feedback_search``) over the
     operating region (narrowed inside the file's, around what the demos use) and over the
     fields not in ``given``; ``given``: the fields the file sets, used as given."""
 

@@ -20,8 +20,8 @@ difference itself (a thrust over an uncertain mass, ``u/m - u/m0``, bounded term
 ~40x wider on quadrotor_hill).
 
 Which box ``Z``. Every certificate that holds uncertainty keeps its tube inside ``state_bounds``
-and its inputs inside ``input_bounds`` (a funnel's caps, ``pipeline.numerics.funnel``), so ``Z``
-is the state bounds (else the operating region) for each state ``df/dp`` depends on, and the
+and its inputs inside ``input_bounds`` (a funnel's caps, ``pipeline.numerics.funnel.synthesis``), so
+``Z`` is the state bounds (else the operating region) for each state ``df/dp`` depends on, and the
 input bounds for each input. A state that neither declares is a ``HullError`` naming it.
 """
 

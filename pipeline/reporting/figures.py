@@ -21,7 +21,7 @@ from matplotlib.patches import Patch, Rectangle
 
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.simulate import Trajectory
-from pipeline.numerics.tube import projection_shape, slice_shape
+from pipeline.numerics.tube.geometry import projection_shape, slice_shape
 from pipeline.reporting.content import FigureLike
 from pipeline.reporting.data import ReportData, simulate_all
 from pipeline.reporting.plotting import (

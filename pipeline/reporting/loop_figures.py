@@ -12,7 +12,7 @@ from matplotlib.axes import Axes
 from matplotlib.ticker import MaxNLocator
 
 from pipeline.model.dynamics import FloatArray
-from pipeline.numerics.closed_loop import simulate_closed_loop
+from pipeline.numerics.closed_loop.simulate import simulate_closed_loop
 from pipeline.reporting.content import FigureLike
 from pipeline.reporting.data import ReportData
 from pipeline.reporting.figures import legend_below

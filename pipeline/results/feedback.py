@@ -8,14 +8,14 @@ from dataclasses import dataclass, field
 
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
-from pipeline.numerics.feedback_search import FeedbackTuning
-from pipeline.numerics.tube import Tube
+from pipeline.numerics.tube.feedback_search import FeedbackTuning
+from pipeline.numerics.tube.geometry import Tube
 from pipeline.results.base import Result
 
 
 @dataclass(frozen=True, kw_only=True)
 class FeedbackResult(Result):
-    """The certified feedback and its tube (``pipeline.numerics.tube``).
+    """The certified feedback and its tube (``pipeline.numerics.tube.geometry``).
 
     Attributes:
       K: (m, n) gain of ``u = u_ref + K (x - x_ref)``; None if no gain could be designed.
@@ -31,7 +31,7 @@ class FeedbackResult(Result):
         over the vertices (< 0 for a certificate).
       objective: the design objective's value.
       hull: how each block of the Jacobian hull was enclosed.
-      tuning: what the search chose (``pipeline.numerics.feedback_search``) when the scenario's
+      tuning: what the search chose (``pipeline.numerics.tube.feedback_search``) when the scenario's
         ``feedback.tune`` is set: the design is for ``applied_to(scenario)``; None otherwise.
     """
 

@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from pipeline.model.dynamics import FloatArray
-from pipeline.numerics.funnel_check import Funnel
+from pipeline.numerics.funnel.check import Funnel
 from pipeline.results.base import Result
 
 

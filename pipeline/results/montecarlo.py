@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from pipeline.model.dynamics import FloatArray
-from pipeline.numerics.gusts import Draws
+from pipeline.numerics.closed_loop.gusts import Draws
 from pipeline.results.base import Result
 
 

@@ -5,10 +5,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from pipeline.model.dynamics import FloatArray
-from pipeline.numerics.descent import IterationLog, check_stall_settings
-from pipeline.numerics.horizon import PARAMETERIZATIONS, SEED_MODES
+from pipeline.numerics.optimize.descent import IterationLog, check_stall_settings
+from pipeline.numerics.optimize.horizon import PARAMETERIZATIONS, SEED_MODES
 from pipeline.numerics.settings import DESCENT_METHODS, EPS_D, EPS_G, EPS_I, HORIZON_SEARCHES
-from pipeline.numerics.verify import Verification
+from pipeline.numerics.verify.nominal import Verification
 from pipeline.results.base import Result
 
 METHODS = DESCENT_METHODS

@@ -163,7 +163,7 @@ MAX_JOBS = 1024  # worker processes: far beyond any machine's cores, below its p
 # per period, Ts / h steps per sample (1000 for Ts = 0.1 s at 0.1 ms, 250 times the 4 steps of
 # continuous feedback; double_integrator, 1000 runs: certified and validated, 17 s of CPU), while
 # the held rate falls short of the continuous one by about (lambda^2 + C1) h / 2
-# (pipeline.numerics.sampled): a shorter hold is continuous feedback in all but cost (use 0).
+# (pipeline.numerics.tube.sampled): a shorter hold is continuous feedback in all but cost (use 0).
 MIN_FEEDBACK_PERIOD = 1e-4
 
 

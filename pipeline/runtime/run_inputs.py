@@ -18,8 +18,8 @@ from pipeline.io.errors import UserError
 from pipeline.model.scenario import CertificateName, Scenario
 from pipeline.model.scenario_data import plain, scenario_data
 from pipeline.model.simulate import Trajectory, simulate
-from pipeline.numerics.sampled import HeldRate, held_rate
-from pipeline.numerics.verify import VERIFY_SUBSTEPS
+from pipeline.numerics.tube.sampled import HeldRate, held_rate
+from pipeline.numerics.verify.nominal import VERIFY_SUBSTEPS
 from pipeline.runtime.options import RunOptions
 
 if TYPE_CHECKING:  # stage result types: only the orchestrator imports stages

@@ -39,7 +39,7 @@ if TYPE_CHECKING:  # stage result types: only the orchestrator imports stages
 LOGGER = "pipeline"
 STALE_CONTROLLER = stale_name(Path("controller.json")).name
 SCENE_PICTURE = "scenario.png"
-# The radius stage's constraint names (pipeline.numerics.tube_radius, funnel_bounds), explained.
+# The radius stage's constraint names (pipeline.numerics.tube.radius, funnel.bounds), explained.
 BINDING = re.compile(
     r"(?P<kind>unsafe|goal bound|region|input|state) '(?P<name>[^']+)'(?: (?P<side>lower|upper))?$"
 )

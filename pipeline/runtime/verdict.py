@@ -16,9 +16,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from pipeline.model.scenario import Scenario
-from pipeline.numerics.cover import balls_to_cover
-from pipeline.numerics.feedback_search import fix_for
+from pipeline.numerics.tube.feedback_search import fix_for
 from pipeline.numerics.uncertainty import additive_bound
+from pipeline.numerics.verify.cover import balls_to_cover
 from pipeline.reporting.numbers import margin, montecarlo_counts
 from pipeline.reporting.summary import (
     CertificationSummary,

@@ -29,9 +29,9 @@ import numpy as np
 from pipeline.io.executor import Executor
 from pipeline.model.scenario import CertificateName, Scenario
 from pipeline.model.simulate import Trajectory, simulate
-from pipeline.numerics.footprint import ConstraintMargins
-from pipeline.numerics.terminal import TerminalDesign
-from pipeline.numerics.verify import VERIFY_SUBSTEPS
+from pipeline.numerics.optimize.footprint import ConstraintMargins
+from pipeline.numerics.terminal.design import TerminalDesign
+from pipeline.numerics.verify.nominal import VERIFY_SUBSTEPS
 from pipeline.results.controller import ControllerResult
 from pipeline.results.coverage import CoverageResult
 from pipeline.results.feedback import FeedbackResult

@@ -25,9 +25,9 @@ from pipeline.io.executor import Executor
 from pipeline.io.progress import progress_bar
 from pipeline.model.scenario import CertificateName, Scenario
 from pipeline.model.simulate import Trajectory
-from pipeline.numerics.funnel_check import Funnel
-from pipeline.numerics.terminal import TerminalDesign, TerminalError, hold_design
-from pipeline.numerics.terminal_fit import TerminalTarget
+from pipeline.numerics.funnel.check import Funnel
+from pipeline.numerics.terminal.design import TerminalDesign, TerminalError, hold_design
+from pipeline.numerics.terminal.fit import TerminalTarget
 from pipeline.numerics.uncertainty import additive_bound
 from pipeline.results.coverage import CoverageResult
 from pipeline.results.feedback import FeedbackResult

@@ -10,7 +10,7 @@ import numpy as np
 
 from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import simulate
-from pipeline.numerics.verify import VERIFY_SUBSTEPS
+from pipeline.numerics.verify.nominal import VERIFY_SUBSTEPS
 from stages.controller import ControllerResult, emit_controller
 from stages.feedback import design_feedback
 from stages.radius import robustness_radius

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.numerics.funnel_check import Funnel
+from pipeline.numerics.funnel.check import Funnel
 
 
 def make_funnel(

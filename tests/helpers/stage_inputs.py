@@ -14,8 +14,8 @@ import numpy as np
 from pipeline.io.artifacts import file_hash
 from pipeline.model.scenario import Scenario, load_scenario
 from pipeline.model.schema import StressSpec
-from pipeline.numerics.terminal import hold_design
-from pipeline.numerics.terminal_fit import TerminalTarget
+from pipeline.numerics.terminal.design import hold_design
+from pipeline.numerics.terminal.fit import TerminalTarget
 from pipeline.results.stage import FileInput, Stage, StageInputs
 from pipeline.runtime.run_inputs import trajectories
 from stages.controller import (

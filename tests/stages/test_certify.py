@@ -23,7 +23,7 @@ import pytest
 
 from pipeline.model.scenario import load_scenario
 from pipeline.model.simulate import simulate
-from pipeline.numerics.funnel import synthesize_funnel
+from pipeline.numerics.funnel.synthesis import synthesize_funnel
 from stages.certify import certify_controller
 from stages.controller import emit_funnel_controller
 from tests.helpers.double_integrator import emit_at_rest

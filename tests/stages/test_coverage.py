@@ -212,7 +212,7 @@ def test_one_metric_per_ball():
     its corner (1, 0.1) at norm sqrt 2) and one at (2, 0) in ``diag(1, 100)`` cover it; the
     same two balls in one metric ``diag(100, 1)`` (long in y) do not. ``P`` repeated is the
     constant case: the same answer as ``P (n, n)``."""
-    from pipeline.numerics.cover import subdivide
+    from pipeline.numerics.verify.cover import subdivide
 
     lower, upper = np.array([-1.0, -0.1]), np.array([3.0, 0.1])
     centres, radii = np.array([[0.0, 0.0], [2.0, 0.0]]), np.array([1.5, 1.5])

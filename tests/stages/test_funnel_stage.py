@@ -15,9 +15,9 @@ import stages.funnel as funnel_stage
 from pipeline.io.artifacts import read_stored, save_result
 from pipeline.model.scenario import load_scenario
 from pipeline.model.simulate import simulate
-from pipeline.numerics.cells import init_cells
-from pipeline.numerics.funnel_check import check_funnel
-from pipeline.numerics.verify import VERIFY_SUBSTEPS
+from pipeline.numerics.funnel.cells import init_cells
+from pipeline.numerics.funnel.check import check_funnel
+from pipeline.numerics.verify.nominal import VERIFY_SUBSTEPS
 from pipeline.runtime.registry import RESULT_TYPES
 from stages.feedback import design_feedback
 from stages.funnel import FunnelStageResult, initial_sets, required_sets, synthesize_funnels

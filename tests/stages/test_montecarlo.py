@@ -32,7 +32,7 @@ def test_the_reports_paths_are_the_first_runs_drawn_each_simulated_alone(synthes
 
     from pipeline.controller import load
     from pipeline.model.scenario import load_scenario
-    from pipeline.numerics.closed_loop import check_runs
+    from pipeline.numerics.closed_loop.simulate import check_runs
     from stages.montecarlo import _drawn_paths, _uniform_init
 
     _, out = synthesized

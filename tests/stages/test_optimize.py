@@ -14,9 +14,9 @@ from hypothesis import strategies as st
 from pipeline import load_scenario
 from pipeline.io.executor import ProcessExecutor
 from pipeline.model.simulate import simulate
-from pipeline.numerics.funnel import synthesize_funnel
-from pipeline.numerics.margins import MarginProfile
-from pipeline.numerics.problem import make_problem
+from pipeline.numerics.funnel.synthesis import synthesize_funnel
+from pipeline.numerics.optimize.margins import MarginProfile
+from pipeline.numerics.optimize.problem import make_problem
 from stages.feedback import design_feedback
 from stages.optimize import (
     ConstraintMargins,

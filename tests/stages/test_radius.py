@@ -15,8 +15,8 @@ import scipy.linalg
 from pipeline.model.geometry import distance
 from pipeline.model.scenario import load_scenario
 from pipeline.model.simulate import simulate
-from pipeline.numerics.tube import Tube
-from pipeline.numerics.verify import VERIFY_SUBSTEPS
+from pipeline.numerics.tube.geometry import Tube
+from pipeline.numerics.verify.nominal import VERIFY_SUBSTEPS
 from stages.feedback import design_feedback
 from stages.radius import robustness_radius
 

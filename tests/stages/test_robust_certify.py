@@ -16,7 +16,7 @@ import pytest
 
 from pipeline.model.scenario import Scenario
 from pipeline.model.uncertainty import Uncertainty
-from pipeline.numerics.funnel import synthesize_funnel
+from pipeline.numerics.funnel.synthesis import synthesize_funnel
 from stages.certify import certify_controller
 from stages.controller import emit_funnel_controller
 from tests.helpers.robust import DISTURBANCE, double_integrator_case

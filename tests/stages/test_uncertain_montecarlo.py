@@ -17,9 +17,9 @@ import pytest
 
 from pipeline.model.scenario import Scenario, load_scenario
 from pipeline.model.uncertainty import Uncertainty
-from pipeline.numerics import gusts
-from pipeline.numerics.closed_loop import check_runs, hold_runs
-from pipeline.numerics.rollouts import check_runs_compiled, hold_runs_compiled
+from pipeline.numerics.closed_loop import gusts
+from pipeline.numerics.closed_loop.rollouts import check_runs_compiled, hold_runs_compiled
+from pipeline.numerics.closed_loop.simulate import check_runs, hold_runs
 from stages.montecarlo import _uniform_init, validate_closed_loop
 from stages.stress import stress_test
 

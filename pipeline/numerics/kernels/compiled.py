@@ -38,8 +38,8 @@ from sympy.printing.pycode import PythonCodePrinter
 
 from pipeline.model.dynamics import Dynamics, FloatArray
 from pipeline.numerics.kernels import shared
-from pipeline.numerics.penalties import Constraints, IntArray
-from pipeline.numerics.sensitivity import SensitivityPattern
+from pipeline.numerics.optimize.penalties import Constraints, IntArray
+from pipeline.numerics.optimize.sensitivity import SensitivityPattern
 
 _TEMPLATES = tuple(Path(__file__).with_name(name) for name in ("loops.py", "rollout.py"))
 _LOADED: dict[str, ModuleType] = {}

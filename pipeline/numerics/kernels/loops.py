@@ -3,12 +3,13 @@
 Not imported directly: ``pipeline.numerics.kernels.compiled`` appends to this source the scenario's
 ``f_eval``, ``f_jac_eval`` and ``vjp_eval`` (generated from its sympy expressions, replacing the
 stubs below) and imports the result with ``numba.njit(cache=True)``. The maths is that of the NumPy
-references: ``pipeline.numerics.penalties`` (eqs. (40)-(42)), ``pipeline.numerics.adjoint``
-(discrete adjoint of RK4) and ``pipeline.numerics.sensitivity`` (eqs. (29), (33)-(37), pruned).
-Shapes: ``n`` states, ``m`` inputs, ``N`` samples, ``s`` substeps, ``h = Ts / s``;
-``X (N s + 1, n)`` the RK4 grid. ``P`` is a ``pipeline.numerics.kernels.compiled.PenaltyData``
-tuple. The penalties and other functions that do not depend on the dynamics live in
-``pipeline.numerics.kernels.shared`` (compiled once per machine, not once per scenario).
+references: ``pipeline.numerics.optimize.penalties`` (eqs. (40)-(42)),
+``pipeline.numerics.optimize.adjoint`` (discrete adjoint of RK4) and
+``pipeline.numerics.optimize.sensitivity`` (eqs. (29), (33)-(37), pruned). Shapes: ``n`` states,
+``m`` inputs, ``N`` samples, ``s`` substeps, ``h = Ts / s``; ``X (N s + 1, n)`` the RK4 grid. ``P``
+is a ``pipeline.numerics.kernels.compiled.PenaltyData`` tuple. The penalties and other functions
+that do not depend on the dynamics live in ``pipeline.numerics.kernels.shared`` (compiled once per
+machine, not once per scenario).
 """
 
 import numpy as np
@@ -102,7 +103,8 @@ def grid_penalty(U, s, P, X, J_x, J_u):
 
 @njit(cache=True)
 def adjoint_sweep(U, h, s, Y, J_x, q, G):
-    """Backward sweep of the discrete RK4 adjoint (see ``pipeline.numerics.adjoint``); adds into q.
+    """Backward sweep of the discrete RK4 adjoint (see ``pipeline.numerics.optimize.adjoint``); adds
+    into q.
 
     ``G (m, n)``: sampled feedback ``u[k] = v[k] + G (x(k Ts) - z[k])`` (zeros: open loop). Once
     ``q[k] = dJ/du[k]`` is complete, ``dJ/dx(k Ts)`` gains ``G^T q[k]``; ``q`` is then

@@ -2,7 +2,8 @@
 
 Not imported directly: ``pipeline.numerics.kernels.compiled`` appends it to ``loops.py`` and the
 scenario's generated ``f_eval``. The maths is that of the NumPy oracle
-``pipeline.numerics.closed_loop`` (``simulate_closed_loop`` and ``check_runs``), step for step:
+``pipeline.numerics.closed_loop.simulate`` (``simulate_closed_loop`` and ``check_runs``), step for
+step:
 
     xdot = f(x, clip(u_ref[k] + K[k] (x - x_ref(t)), lower, upper)),  k = floor(t / Ts)
 
@@ -18,8 +19,8 @@ tube ratio ``max_t max(|e(t)|_P(t) - slack, 0) e^(rate t) / |e(0)|_P(0)`` and it
 metric for ``/2``), whether every state stayed finite, the smallest margin to the state bounds
 less half the longest step of a bounded state, and the final state.
 
-Under a declared uncertainty (``pipeline.numerics.gusts``) each run flies ``f(x, (u, p_b))``
-(the parametric dynamics, its parameters ``p_b`` appended to the input) plus the gust
+Under a declared uncertainty (``pipeline.numerics.closed_loop.gusts``) each run flies ``f(x, (u,
+p_b))`` (the parametric dynamics, its parameters ``p_b`` appended to the input) plus the gust
 ``w_b`` in force at the step's start; with ``every_goal`` the Goal margin is the smallest over
 the grid less half the longest step (the continuation past ``T``: "in Goal at all times").
 
@@ -43,11 +44,11 @@ from pipeline.numerics.kernels.shared import (
 if TYPE_CHECKING:  # defined in the module this template is compiled into
     from pipeline.numerics.kernels.loops import f_eval
 
-LEFT_LIMIT = 1e-9  # as pipeline.numerics.closed_loop
+LEFT_LIMIT = 1e-9  # as pipeline.numerics.closed_loop.simulate
 SAMPLE_ROUNDING = 1e-9  # as pipeline.controller: floor(t / Ts + 1e-9)
 CLEARANCE, GOAL, SLACK, TUBE, TUBE_FINAL, FINITE, BOUNDS = 0, 1, 2, 3, 4, 5, 6
 CHECKS = 7
-GUST_ROUNDING = 1e-9  # as pipeline.numerics.gusts
+GUST_ROUNDING = 1e-9  # as pipeline.numerics.closed_loop.gusts
 
 # The law is inlined into the loop (``inline="always"``): called, with its array arguments, it
 # costs ~20% of the rollouts/s. numba types and lowers every inlined copy (~0.3 s of compilation
@@ -108,7 +109,7 @@ def rollout_kernel(
     ``unsafe_distance``, ``goal = (V, ring_start, index, lower, upper)``: Goal's rings and its extra
     bounds on states ``index`` at ``T``; ``bounds = (index (c,), lower (c,), upper (c,))`` the
     state bounds; ``draws = (parameters (B, q), gusts (B, G, n), start (B,), period)`` as
-    ``pipeline.numerics.gusts.Draws`` (``q = 0``, ``G = 0``: the exact model).
+    ``pipeline.numerics.closed_loop.gusts.Draws`` (``q = 0``, ``G = 0``: the exact model).
     """
     B, n = x0.shape
     m = law[1].shape[1]

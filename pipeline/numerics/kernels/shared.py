@@ -7,7 +7,7 @@ the compiled callee into each caller). Each generated module's name hashes this 
 the source this process imported (``SOURCE``), so an edit here gives new kernel modules; numba
 stamps this module's own cache with the SHA-256 of the file's contents.
 
-Penalties (eqs. (40)-(42), as ``pipeline.numerics.penalties``), polygon queries, the pruned
+Penalties (eqs. (40)-(42), as ``pipeline.numerics.optimize.penalties``), polygon queries, the pruned
 right-hand sides of (33)-(34), and the closed loop's reference, clearance and metric helpers.
 Shapes: ``n`` states, ``m`` inputs; ``P`` is a ``pipeline.numerics.kernels.compiled.PenaltyData``
 tuple (margins per RK4 grid point ``(N s + 1, ...)`` and per sample ``(N, ...)``); polygons are
@@ -22,7 +22,7 @@ import numpy as np
 from numba import njit
 
 SOURCE = Path(__file__).read_text()  # as imported: what the generated modules' key hashes
-_SERIES_BELOW = 1e-4  # as pipeline.numerics.penalties
+_SERIES_BELOW = 1e-4  # as pipeline.numerics.optimize.penalties
 
 # The functions below except ``copy_vector`` and the penalties are not inlined
 # (``inline="always"`` types and lowers a copy in every caller, once per scenario): a call costs

@@ -253,7 +253,7 @@ def _synthesize(
             return _failed(out, scenario, "feedback", reason)
         log.info(
             f"[held feedback] every {held.period:g} s: tube rate {held.held_rate:.4g}/s "
-            f"(continuous {held.rate:.4g}/s; pipeline.numerics.sampled)"
+            f"(continuous {held.rate:.4g}/s; pipeline.numerics.tube.sampled)"
         )
     tube = feedback.certified_tube
     demo_radii, demo_coverage = _radii_and_coverage(

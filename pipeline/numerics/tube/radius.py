@@ -37,7 +37,7 @@ from pipeline.model import geometry
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import Trajectory
-from pipeline.numerics.tube import Tube
+from pipeline.numerics.tube.geometry import Tube
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -9,10 +9,10 @@ to the start nearest its centre in the metric ``M (n, n)``:
 Start ``i`` must then hold ``H_i``, the convex hull of the corners of its cells. The cells tile
 Init, so ``Init = U_c c  is inside  U_i H_i``; an ellipsoid centred at ``x0_i`` holds ``H_i`` iff
 it holds every corner (it is convex), which the funnel program states as one linear matrix
-inequality per corner ``v`` (``pipeline.numerics.funnel``: ``Q[0] >= tau (v - x0_i)(v - x0_i)^T``
-with ``tau`` the fraction held, ``sqrt(tau)`` the level). Only the corners of ``H_i`` itself are
-kept (``scipy.spatial.ConvexHull``), and each is pushed ``PAD`` (relative) away from ``x0_i``,
-so that a funnel at its level ``1 - LEVEL_SLACK`` still holds the unpadded corner.
+inequality per corner ``v`` (``pipeline.numerics.funnel.synthesis``: ``Q[0] >= tau (v - x0_i)(v -
+x0_i)^T`` with ``tau`` the fraction held, ``sqrt(tau)`` the level). Only the corners of ``H_i``
+itself are kept (``scipy.spatial.ConvexHull``), and each is pushed ``PAD`` (relative) away from
+``x0_i``, so that a funnel at its level ``1 - LEVEL_SLACK`` still holds the unpadded corner.
 
 This is only a request: the coverage stage certifies Init against the funnels' initial
 ellipsoids at their levels by its own sound subdivision. With ``g`` a power of two the cells are

@@ -22,7 +22,7 @@ in ``pipeline.numerics.kernels.loops``.
 from __future__ import annotations
 
 from pipeline.model.dynamics import Dynamics, FloatArray
-from pipeline.numerics.sensitivity import stage_jacobians
+from pipeline.numerics.optimize.sensitivity import stage_jacobians
 
 
 def adjoint_gradient(

@@ -145,7 +145,7 @@ def funnel_limits(
     """Constraint -> (largest level ``rho`` it allows, time it binds), (a)-(d) of the docstring.
 
     ``Q (N+1, n, n)`` the inverse metrics at ``t_k``, ``K (N, m, n)`` the gains, ``input_offset
-    (N, m)`` the shipped law's input offset (``funnel_law`` (I3); none by default)."""
+    (N, m)`` the shipped law's input offset (``funnel.law`` (I3); none by default)."""
     ts, us = trajectory.ts, trajectory.us
     s, h = substeps(trajectory), float(trajectory.dense_ts[1] - trajectory.dense_ts[0])
     s_ext, g, sigma = tube_extents(Q, K, scenario.position_index)
@@ -165,7 +165,7 @@ def funnel_limits(
     for name, polygon in scenario.unsafe.items():
         distance = _interval_distance(geometry.distance(positions, polygon), speed, s, h)
         record(f"unsafe '{name}'", np.where(distance > 0, distance, 0.0) / sigma)
-    # (b) inputs (held reference: exact), less the law's offset (funnel_law (I3)).
+    # (b) inputs (held reference: exact), less the law's offset (funnel.law (I3)).
     offset = np.zeros(us.shape) if input_offset is None else input_offset
     for j, name in enumerate(scenario.input_names):
         lower, upper = scenario.input_lower[j], scenario.input_upper[j]

@@ -11,8 +11,8 @@ between grid points): clearance to Unsafe, Goal at ``T``, input slack before cli
 error against the predicted tube ``||e(t)||_P(t) <= e^{-lambda t} ||e(0)||_P(0) + 2 delta``
 (``P(t) = P`` for a ``/1`` file; a funnel's time-varying metric, its own ``lambda``, for ``/2``),
 and the margin to the scenario's ``state_bounds`` on the grid less half the longest step of a
-bounded state. ``draws`` (``pipeline.numerics.gusts``) fly each run with its own uncertain
-parameters and gusts.
+bounded state. ``draws`` (``pipeline.numerics.closed_loop.gusts``) fly each run with its own
+uncertain parameters and gusts.
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from pipeline.controller import Controller
 from pipeline.model import geometry
 from pipeline.model.dynamics import Dynamics, FloatArray
 from pipeline.model.scenario import Scenario
-from pipeline.numerics.gusts import Draws, flown_dynamics
+from pipeline.numerics.closed_loop.gusts import Draws, flown_dynamics
 
 LEFT_LIMIT = 1e-9
 TUBE_TOLERANCE = 1e-6

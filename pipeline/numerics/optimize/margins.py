@@ -4,13 +4,13 @@ On sample interval ``k`` of its grid (``M`` intervals, ``t`` in ``[t_k, t_k+1]``
 ``x_ref`` reaches at most ``clearance[k]`` in position, ``input[k, j]`` along input ``j``
 (``|K_j e|``) and ``state[k, i]`` along state ``i``; at ``T`` at most ``final_clearance`` in
 position and ``final_state[i]`` along state ``i``. The optimizer keeps the nominal that much
-further inside every constraint (``pipeline.numerics.penalties``): Unsafe bloated by
+further inside every constraint (``pipeline.numerics.optimize.penalties``): Unsafe bloated by
 ``d + eps_d + clearance[k]``, the inputs' bounds shrunk by ``eps_i + input[k]``, the state boxes
 by ``state[k]``, Goal by ``d + eps_g + final_clearance``.
 
-The constant certificate is the case ``M = 1``. A funnel (``pipeline.numerics.funnel``: level
-``rho``, ``Q[k] = P[k]^-1`` at ``t_k``, linear in t between samples (F1), ``K[k]`` held on the
-interval) reaches, by (E3) of ``funnel_bounds`` (the extents are square roots of functions
+The constant certificate is the case ``M = 1``. A funnel (``pipeline.numerics.funnel.synthesis``:
+level ``rho``, ``Q[k] = P[k]^-1`` at ``t_k``, linear in t between samples (F1), ``K[k]`` held on the
+interval) reaches, by (E3) of ``funnel.bounds`` (the extents are square roots of functions
 convex in t, so their maxima over an interval are at its ends, ``e = k, k+1``)::
 
     clearance[k] = rho max_e lambda_max(C Q[e] C^T)^1/2      (C selects the position)
@@ -44,7 +44,7 @@ from pipeline.model.dynamics import FloatArray
 
 if TYPE_CHECKING:
     from pipeline.model.scenario import Scenario
-    from pipeline.numerics.funnel_check import Funnel
+    from pipeline.numerics.funnel.check import Funnel
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -147,11 +147,11 @@ def funnel_margins(
 
     ``enclosure``: the state extents also hold the nominal's a priori enclosure, which the
     funnel's check requires inside the hull boxes, themselves clipped to the state bounds
-    (``funnel_bounds`` (E1)-(E2): on interval ``k`` the box ``grid +- pad`` and the range
+    (``funnel.bounds`` (E1)-(E2): on interval ``k`` the box ``grid +- pad`` and the range
     ``grid +- F h / 2`` widened by the tube): ``state[k, i] = max(pad, F h / 2 + rho s)``,
     measured from the nominal's grid points, so that a nominal kept that far inside the state
     bounds leaves the next funnel the room its enclosure needs; likewise the clearance gains the
-    position's motion between grid points, ``|F_XY| h / 2`` ((a) of ``funnel_bounds``)."""
+    position's motion between grid points, ``|F_XY| h / 2`` ((a) of ``funnel.bounds``)."""
     if not funnel.success:
         raise ValueError(f"funnel_margins: the funnel was not certified ({funnel.message})")
     rho = funnel.rho if level is None else float(level)
@@ -170,7 +170,7 @@ def funnel_margins(
         pad = np.maximum(grid[:, 0] - box[:, 0], box[:, 1] - grid[:, 1])  # (E1)
         drift = np.maximum(grid[:, 0] - reach[:, 0], reach[:, 1] - grid[:, 1])  # (E2): F h / 2
         state = np.maximum(np.maximum(pad, drift + state), 0.0)
-        # (a) of funnel_bounds: between grid points the position moves V h / 2, V = |F_XY|
+        # (a) of funnel.bounds: between grid points the position moves V h / 2, V = |F_XY|
         clearance = clearance + np.hypot(*drift[:, list(scenario.position_index)].T)
     return MarginProfile(
         clearance=clearance,

@@ -6,8 +6,9 @@ continuous law plus a disturbance:
 
     e' = f(x, u_ref + K e) - f(x_ref, u_ref) + w,   w = f(x, u_ref + K e_k) - f(x, u_ref + K e)
 
-The contraction certificate (C) of ``pipeline.numerics.hull``'s vertices at rate ``lambda`` gives
-``d/dt ||e||_P <= -lambda ||e||_P + ||w||_P`` while the tube stays in the operating region.
+The contraction certificate (C) (``pipeline.numerics.tube.contraction``) of the hull's vertices at
+rate ``lambda`` gives ``d/dt ||e||_P <= -lambda ||e||_P + ||w||_P`` while the tube stays in the
+operating region.
 
 Bound on ``w`` in one window, ``s = t - t_k in [0, h]``, ``rho_k = ||e_k||_P``. By the mean value
 theorem on segments inside the region, with ``[A B]``, ``[A' B']``, ``B''`` points of the hull
@@ -71,15 +72,6 @@ class HeldRate:
     @property
     def success(self) -> bool:
         return self.held_rate > 0
-
-
-def contraction_rate(P: FloatArray, K: FloatArray, A: FloatArray, B: FloatArray) -> float:
-    """The largest ``lambda`` of (C) at every vertex: ``min_v -lambda_max(P^-1/2 (A_cl^T P + P
-    A_cl) P^-1/2) / 2`` for ``A (V, n, n)``, ``B (V, n, m)``, ``A_cl = A + B K``."""
-    L_inv = np.linalg.inv(np.linalg.cholesky(P))
-    A_cl = A + B @ K
-    M = L_inv @ (np.swapaxes(A_cl, 1, 2) @ P + P @ A_cl) @ L_inv.T
-    return float(-np.linalg.eigvalsh((M + np.swapaxes(M, 1, 2)) / 2).max() / 2)
 
 
 def held_rate(

@@ -7,7 +7,7 @@ certificate assumes) or computed at ``t_k = k period`` and held on ``[t_k, t_k +
 flight computer; certified only when the file's ``feedback_period`` is that period). Each
 sample interval ``[k Ts, (k+1) Ts)`` (or each held window) is integrated on its own, the stage at
 its right end using the left limit of the piecewise-constant reference input, as the Monte Carlo
-validation does (``pipeline.numerics.closed_loop``).
+validation does (``pipeline.numerics.closed_loop.simulate``).
 """
 
 from __future__ import annotations

@@ -37,7 +37,7 @@ and ``K`` switches there, so ``V`` is continuous and the bound holds across samp
 Invariance: while ``V <= rho^2`` the state is in ``Z_k`` (the box holds the tube at level rho,
 checked below), so ``V`` cannot grow and no solution starting in ``E(0)`` leaves the funnel.
 That is for a law tracking the exact nominal. The shipped law tracks it interpolated on a grid;
-the offset adds a bounded term (``funnel_law`` (I1)-(I3)) under which only the level set is
+the offset adds a bounded term (``funnel.law`` (I1)-(I3)) under which only the level set is
 invariant (``V`` may grow deep inside the funnel, never across its boundary): the certify stage
 and the funnel stage's re-check prove that, and the controller stage picks the grid.
 
@@ -58,13 +58,13 @@ Design. 1. Seed: discrete Riccati recursion on the zero-order-hold discretisatio
 linearisation, weights ``Ts diag(state_weights)``, ``Ts diag(input_weights)`` -> ``K[k]``,
 ``P_lqr[k]`` (F4). 2. Boxes: ``Q_seed = c P_lqr^-1`` scaled to contain the required initial
 ellipsoid; the box of each variable the Jacobian depends on is the nominal's enclosure
-(``funnel_bounds``, E1-E2) widened by ``allowance`` times the seed's extent, clipped to the state
+(``funnel.bounds``, E1-E2) widened by ``allowance`` times the seed's extent, clipped to the state
 and input bounds (sound: the level keeps the tube inside them). The seed over-estimates the
 funnel (quadrotor_hill: pitch 4-5x, thrust 1.7x), so ``allowance = 1``: with 2 the pitch box was
 the whole envelope on every interval, the hull so wide that the program was nearly infeasible
 (Clarabel stopped at 200 iterations, "AlmostSolved", with (F3) violated: demo 3 rejected, demo 9
 held 0.916 of its set after a second solve, ~60 s each). An angle's box is also capped to whole
-arc segments of the hull (``funnel_pieces``: 6 hull vertices instead of 10 on quadrotor_hill,
+arc segments of the hull (``funnel.pieces``: 6 hull vertices instead of 10 on quadrotor_hill,
 and a tighter hull); if the capped boxes cannot hold the whole initial set, the uncapped ones
 are tried and the better funnel kept. 3. LMIs (F3) plus ``Q[0] >= tau Q_init[j]`` for every
 required matrix (one ellipsoid, or ``v v^T`` per corner ``v`` of a polytope: by the Schur
@@ -73,11 +73,11 @@ inside every box (``Q_ii <= s_i^2``, ``K_j Q K_j^T <= s_j^2`` at both ends), its
 clear of Unsafe (``C Q C^T <= d_k^2 I``, ``d_k`` the nominal's sound clearance on the interval)
 and inside Goal at T; all linear in Q. Maximise ``tau <= 1`` first, then minimise
 ``sum_k tr(W Q[k])``, ``W`` weighting position by ``1/d^2`` and inputs by their inverse squared
-half-ranges; Clarabel, the program assembled by ``funnel_lmi`` (cvxpy states the same program
+half-ranges; Clarabel, the program assembled by ``funnel.lmi`` (cvxpy states the same program
 for the tests). ``Q / tau`` holds the whole initial set at level 1 and meets every cap at level
-``sqrt(tau)``. 4. Level: ``rho = min(sqrt(tau), funnel_limits)`` (``funnel_bounds``; Goal there
+``sqrt(tau)``. 4. Level: ``rho = min(sqrt(tau), funnel_limits)`` (``funnel.bounds``; Goal there
 is the exact ellipse).
-5. ``funnel_check.check_funnel``: numpy only; a funnel that fails it is rejected.
+5. ``funnel.check.check_funnel``: numpy only; a funnel that fails it is rejected.
 """
 
 from __future__ import annotations
@@ -95,22 +95,22 @@ from scipy.linalg import expm
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import Trajectory
-from pipeline.numerics.funnel_bounds import (
+from pipeline.numerics.funnel.bounds import (
     Enclosure,
     funnel_limits,
     interval_clearance,
 )
-from pipeline.numerics.funnel_check import (
+from pipeline.numerics.funnel.check import (
     LEVEL_SLACK,
     Funnel,
     certificate_margins,
     check_funnel,
 )
-from pipeline.numerics.funnel_law import LawOffset, corners
-from pipeline.numerics.funnel_lmi import FunnelProgram, solve_clarabel
-from pipeline.numerics.funnel_pieces import interpolate, piece_hulls, pieces
+from pipeline.numerics.funnel.law import LawOffset, corners
+from pipeline.numerics.funnel.lmi import FunnelProgram, solve_clarabel
+from pipeline.numerics.funnel.pieces import interpolate, piece_hulls, pieces
 from pipeline.numerics.hull import HullError, arc_variables
-from pipeline.numerics.terminal_fit import TerminalTarget, containing_level
+from pipeline.numerics.terminal.fit import TerminalTarget, containing_level
 
 
 class _Parts(TypedDict, total=False):
@@ -140,7 +140,7 @@ class _Hulls(TypedDict):
 # meets (F3) only to its tolerance, relative to the largest entries of Q) is solved again with a
 # larger margin.
 MARGINS = (1e-3, 1e-2)
-# With a disturbance (funnel_law (I4)): the (F3) margins tried (1/s), and the share of each that
+# With a disturbance (funnel.law (I4)): the (F3) margins tried (1/s), and the share of each that
 # the disturbance's term may take at the design level (the rest: the interpolated reference's
 # term and rounding).
 ROBUST_MARGINS = (0.1, 0.3, 1.0, 3.0)
@@ -220,7 +220,7 @@ def _program(
 ):  # fmt: skip
     """(F3) on the LMI pieces ``bounds`` (unknowns: ``Q`` at the piece ends), with the initial set
     and the tube at level 1 inside every hull box, clear of Unsafe (a disk bound) and inside Goal
-    (``funnel_lmi``). On a piece ``Q`` is linear and ``K`` held, so the tube's extents are largest
+    (``funnel.lmi``). On a piece ``Q`` is linear and ``K`` held, so the tube's extents are largest
     at its ends (E3): the caps there hold on every sample interval of the piece."""
     n, us, final_state = scenario.n, trajectory.us, trajectory.dense_xs[-1]
     S = len(bounds) - 1
@@ -241,7 +241,7 @@ def _program(
                     (enclosure.range[a:b, 0, i] - lo).min(), (hi - enclosure.range[a:b, 1, i]).min()
                 )
             caps += [(e, C, np.full((1, 1), max(room, 0.0) ** 2)) for e in (j, j + 1)]
-        # The position disk of the tube at level 1 clear of Unsafe (funnel_bounds (a)).
+        # The position disk of the tube at level 1 clear of Unsafe (funnel.bounds (a)).
         d = clearance[a:b].min()
         if np.isfinite(d):
             caps += [(e, C_pos, max(d, 0.0) ** 2 * np.eye(2)) for e in (j, j + 1)]
@@ -253,7 +253,7 @@ def _program(
         i = scenario.state_names.index(name)
         room = max(min(final_state[i] - lower, upper - final_state[i]), 0.0)
         caps.append((S, np.eye(n)[i : i + 1], np.full((1, 1), room**2)))
-    if terminal is not None:  # E(T) inside the terminal ellipsoid (terminal_fit (T2))
+    if terminal is not None:  # E(T) inside the terminal ellipsoid (terminal.fit (T2))
         caps.append((S, *terminal.end_cap(final_state)))
     W = _weights(scenario, {}, K)
     W = np.concatenate([W, W[-1:]])[bounds]  # (S+1, n, n) at the piece ends
@@ -304,7 +304,7 @@ def synthesize_funnel(
       initial: (n, n) ``Q_init`` (positive semidefinite): ``E(0)`` at level 1 must hold
         ``{Q_init^1/2 v : |v| <= 1}`` (degenerate for a slice, e.g. Init's free directions);
         or (p, n, n), every one of them (``Q_init[j] = v_j v_j^T``: the points ``x0 +- v_j``,
-        the corners of the hull of the start's cells of Init, ``pipeline.numerics.cells``);
+        the corners of the hull of the start's cells of Init, ``pipeline.numerics.funnel.cells``);
         default the seed's shape with position extent ``scenario.clearance``.
       rate: lambda of (F2). Default 0: the tube's level is constant and ``Q(t)`` itself shrinks
         where the closed loop contracts (``Q e^{-2 lambda t}`` would satisfy (F2) with rate 0
@@ -312,11 +312,11 @@ def synthesize_funnel(
       allowance: the hull boxes are the nominal's enclosure widened by this times the seed tube.
       segments: pieces per angle-like block of the local hulls.
       disturbance: (n,) ``d``: the funnel must hold for ``xdot = f(x, u) + w`` with any
-        ``|w_i| <= d_i`` (``funnel_law`` (I4)). (F3) is then imposed with each margin ``eps`` of
+        ``|w_i| <= d_i`` (``funnel.law`` (I4)). (F3) is then imposed with each margin ``eps`` of
         ``ROBUST_MARGINS`` and ``||w_c||_{Q^-1} <= ROBUST_SHARE eps / 2`` at every corner ``w_c``
-        (``funnel_lmi``), so that the disturbance's term uses ``ROBUST_SHARE`` of ``eps`` at the
+        (``funnel.lmi``), so that the disturbance's term uses ``ROBUST_SHARE`` of ``eps`` at the
         design level; the funnel with the highest checked level is kept.
-      terminal: the terminal ellipsoid ``E(T)`` must lie in (``terminal_fit.TerminalTarget``,
+      terminal: the terminal ellipsoid ``E(T)`` must lie in (``terminal.fit.TerminalTarget``,
         e.g. from ``terminal.hold_design``): (T2) on ``Q`` at ``T`` in the program, and the exact
         containment level as a limit on rho (``terminal``; sound whatever the solver returned)
         and re-checked after ``check_funnel``. A nominal ending outside it has no funnel.

@@ -3,8 +3,8 @@
 ``ConstraintMargins`` says how far the tube around a nominal reaches (paper §IV-A: the
 constraints the optimizer meets are the real ones shrunk by it): a constant certificate's tube of
 radius ``r`` (``of_tube``: constant extents) or a funnel's (``of_funnel``: extents per sample
-interval, ``pipeline.numerics.margins``). ``verify_within`` checks an optimized nominal against
-them in continuous time (``pipeline.numerics.verify``), independently of the cost.
+interval, ``pipeline.numerics.optimize.margins``). ``verify_within`` checks an optimized nominal
+against them in continuous time (``pipeline.numerics.verify.nominal``), independently of the cost.
 """
 
 from __future__ import annotations
@@ -17,11 +17,11 @@ import numpy as np
 
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
-from pipeline.numerics.funnel_check import Funnel
-from pipeline.numerics.margins import MarginProfile, funnel_margins
-from pipeline.numerics.problem import Problem
-from pipeline.numerics.tube import Tube
-from pipeline.numerics.verify import Verification, verify_nominal
+from pipeline.numerics.funnel.check import Funnel
+from pipeline.numerics.optimize.margins import MarginProfile, funnel_margins
+from pipeline.numerics.optimize.problem import Problem
+from pipeline.numerics.tube.geometry import Tube
+from pipeline.numerics.verify.nominal import Verification, verify_nominal
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -32,12 +32,12 @@ class ConstraintMargins:
       input_margin: (m,) how much the tube's feedback may add to ``u_ref``, per input.
       region_margin: state/input name -> how far the tube extends along it.
       gain: (m, n) the feedback gain, which also stabilises the shooting
-        (``pipeline.numerics.shooting``).
+        (``pipeline.numerics.optimize.shooting``).
       clearance: the tube's position extent, kept from Unsafe and Goal's boundary (default: the
         scenario's ``d``; larger when coverage of Init needs a radius above ``r_d``).
       goal_margin: state name -> how far the tube extends along it (shrinks Goal's extra bounds).
       profile: margins that vary along the trajectory (a funnel's extents per sample interval,
-        ``pipeline.numerics.margins``), added to the constant ones above; None: none.
+        ``pipeline.numerics.optimize.margins``), added to the constant ones above; None: none.
       region: name -> (lower, upper), the box the nominal stays in (None: the scenario's
         operating region and ``state_bounds``, ``nominal_box``; a funnel's: the scenario's
         ``state_bounds``).
@@ -120,8 +120,8 @@ class ConstraintMargins:
 def verify_within(
     scenario: Scenario, problem: Problem, u: FloatArray, margins: ConstraintMargins
 ) -> Verification:
-    """``pipeline.numerics.verify`` of ``u (N, m)`` against ``problem``'s margins on its horizon
-    (without the descent's eps_r: the region shrunk by the tube's extents only)."""
+    """``pipeline.numerics.verify.nominal`` of ``u (N, m)`` against ``problem``'s margins on its
+    horizon (without the descent's eps_r: the region shrunk by the tube's extents only)."""
     region, region_margin = margins.nominal_box(scenario)
     box = scenario.operating_region if region is None else region
     on = margins.profile.on_grid(problem.N) if margins.profile is not None else None

@@ -1,13 +1,14 @@
 """Closed-loop checks on the compiled kernel: the same margins as ``check_runs``, nothing stored.
 
 ``check_runs_compiled`` gives, for a batch of initial states, exactly the ``RunChecks`` of the
-NumPy oracle ``pipeline.numerics.closed_loop.check_runs`` (same integration, same law, same
+NumPy oracle ``pipeline.numerics.closed_loop.simulate.check_runs`` (same integration, same law, same
 continuous-time checks; see ``pipeline.numerics.kernels.rollout``), without materialising the
 ``(runs, steps, n)`` paths: memory stays ``O(runs)`` and a rollout costs one pass of scalar code.
 ``hold_runs_compiled`` continues the runs past ``T`` under the terminal law, as ``hold_runs``;
 ``run_paths_compiled`` gives the position paths of a few runs (the report draws them), as the
-oracle's ``check_runs`` does. Each takes optional ``draws`` (``pipeline.numerics.gusts``): every
-run flown with its own uncertain parameters and gusts, as the oracle does.
+oracle's ``check_runs`` does. Each takes optional ``draws``
+(``pipeline.numerics.closed_loop.gusts``): every run flown with its own uncertain parameters and
+gusts, as the oracle does.
 """
 
 from __future__ import annotations
@@ -21,15 +22,20 @@ from pipeline.controller import Controller
 from pipeline.model import geometry
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
-from pipeline.numerics.closed_loop import INTERPOLATION_SLACK, HoldChecks, RunChecks, held_steps
-from pipeline.numerics.gusts import Draws, flown_dynamics
+from pipeline.numerics.closed_loop.gusts import Draws, flown_dynamics
+from pipeline.numerics.closed_loop.simulate import (
+    INTERPOLATION_SLACK,
+    HoldChecks,
+    RunChecks,
+    held_steps,
+)
 from pipeline.numerics.kernels.compiled import (
     load_kernels,
     ring_arrays,
     rings,
     unsafe_ring_arrays,
 )
-from pipeline.numerics.penalties import IntArray
+from pipeline.numerics.optimize.penalties import IntArray
 
 HOLD_SECONDS = 10.0  # a run with a law past T is flown to T + this
 

@@ -1,6 +1,6 @@
 """Tube ends inside the terminal ellipsoid: the exact level (a check) and an LMI (the synthesis).
 
-The terminal ellipsoid (``pipeline.numerics.terminal``) is ``E_T = {x : (x - x_eq)^T P_T (x -
+The terminal ellipsoid (``pipeline.numerics.terminal.design``) is ``E_T = {x : (x - x_eq)^T P_T (x -
 x_eq) <= c}``. A tube ends in ``{x : ||x - a||_P <= rho}``, ``a = x_ref(T)``, ``d = a - x_eq``.
 
 Exact level. The smallest ``c`` whose ``E_T`` holds the end is ``max_{||y||_P <= rho} (y +
@@ -27,7 +27,7 @@ and by the Schur complement on the ``lambda I`` block (``Q^1/2 Q^1/2 = Q``)
 
 LINEAR in ``Q`` for a fixed ``lambda``: ``bound - C Q C^T >= 0`` with ``C = [I; 0] / sqrt(lambda)``
 (n+1, n) and the constant ``bound = [[c P_T^-1, d], [d^T, 1 - lambda]]``, a cap of
-``pipeline.numerics.funnel_lmi``. The multiplier is fixed at ``lambda = 1 - delta``, ``delta =
+``pipeline.numerics.funnel.lmi``. The multiplier is fixed at ``lambda = 1 - delta``, ``delta =
 ||d||_P_T / sqrt(c)`` (the end's centre's share of the radius; ``delta < 1`` is necessary): then
 every ``Q <= (1 - delta)^2 c P_T^-1`` (the triangle inequality's end, ``||y + d||_P_T <= ||y||_P_T
 + ||d||_P_T``) satisfies (T2), since ``c P_T^-1 - Q / lambda >= delta c P_T^-1`` and ``d^T (delta c

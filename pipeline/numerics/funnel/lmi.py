@@ -1,4 +1,4 @@
-"""The funnel's semidefinite program (pipeline.numerics.funnel, (F3)), built for Clarabel directly.
+"""The funnel's semidefinite program (``synthesis``, (F3)), built for Clarabel directly.
 
 Unknowns ``Q[0..N]`` (n, n symmetric), ``x = (q_0, .., q_N)``, ``q_k`` the upper triangle of
 ``Q[k]`` (``Q = sum_l q_l E_l``, ``E_l = e_i e_j^T + e_j e_i^T`` for ``i < j``). Problem:
@@ -9,7 +9,7 @@ Unknowns ``Q[0..N]`` (n, n symmetric), ``x = (q_0, .., q_N)``, ``q_k`` the upper
                 Q[0] >= tau Q_init[j] (every j), tau <= 1;  Q[k] >= floor I;
                 C Q[k] C^T <= bound (caps);
                 [[Q[k], w_c], [w_c^T, gamma^2]] >= 0  (every k, every corner w_c of a
-                disturbance box, when there is one: funnel_law (I4)).
+                disturbance box, when there is one: funnel.law (I4)).
 
 ``tau`` is the fraction of the required initial set held (``w`` large: it is maximised first), so
 a program that cannot hold all of it still returns the funnel that holds the most.
@@ -20,8 +20,8 @@ solve took 10-20 s more. Here each LMI is one ``PSDTriangleConeT`` row block ``s
 (upper triangle in column-major order, off-diagonal entries times sqrt 2); all of them are
 assembled at once as COO triplets with numpy. Clarabel's time grows with the number of LMIs (about
 50 us per 6x6 LMI per interior-point iteration on this machine), which is why
-``pipeline.numerics.funnel`` imposes them per piece of ``HOLD`` samples on few-vertex hulls.
-``solve_cvxpy`` states the same problem in cvxpy as the reference the tests compare against.
+``pipeline.numerics.funnel.synthesis`` imposes them per piece of ``HOLD`` samples on few-vertex
+hulls. ``solve_cvxpy`` states the same problem in cvxpy as the reference the tests compare against.
 """
 
 from __future__ import annotations
@@ -37,8 +37,8 @@ import scipy.sparse as sp
 from pipeline.model.dynamics import FloatArray
 
 # Clarabel's stopping tolerances (defaults 1e-8). The solution is re-checked with numpy eigenvalues
-# against the LMI margin eps >= 1e-3 (pipeline.numerics.funnel), five orders above these, so a
-# looser stop saves interior-point iterations without weakening anything that is proven.
+# against the LMI margin eps >= 1e-3 (pipeline.numerics.funnel.synthesis), five orders above these,
+# so a looser stop saves interior-point iterations without weakening anything that is proven.
 TOLERANCES = {"tol_gap_abs": 1e-7, "tol_gap_rel": 1e-7, "tol_feas": 1e-7}
 
 

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from pipeline.model.dynamics import FloatArray
-from pipeline.numerics.problem import Problem
+from pipeline.numerics.optimize.problem import Problem
 
 
 @dataclass(frozen=True, eq=False)

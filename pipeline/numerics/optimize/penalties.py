@@ -16,12 +16,12 @@ an interval. The terms (``box(z) = sum_j dist(z_j, [lo_j, hi_j])^2``):
     g_reg(x, u)  = box on the operating region shrunk by region_margin
 
 with ``p`` the position of ``x``. Margins may vary along the trajectory
-(``pipeline.numerics.margins``): on sample interval ``k`` the tube's extents ``clearance[k]``,
-``input[k]``, ``state[k]`` are added to ``d'``, to the input shrink and to the region's shrink
-(``Constraints.grid``: the bounds on one grid, a point on a sample boundary taking the larger
-margin of its two intervals); with constant margins the arrays are constant. Every term is zero
-exactly when its constraint holds with its margin, so ``J == 0`` is the feasibility test. All
-terms are C^1 (away from the medial axis of the polygon distances); ``Constraints.evaluate``
+(``pipeline.numerics.optimize.margins``): on sample interval ``k`` the tube's extents
+``clearance[k]``, ``input[k]``, ``state[k]`` are added to ``d'``, to the input shrink and to the
+region's shrink (``Constraints.grid``: the bounds on one grid, a point on a sample boundary taking
+the larger margin of its two intervals); with constant margins the arrays are constant. Every term
+is zero exactly when its constraint holds with its margin, so ``J == 0`` is the feasibility test.
+All terms are C^1 (away from the medial axis of the polygon distances); ``Constraints.evaluate``
 returns ``J`` with its partial derivatives with respect to every grid state and input, which
 the gradient methods chain through RK4.
 """
@@ -38,7 +38,7 @@ from shapely.geometry.base import BaseGeometry
 
 from pipeline.model import geometry
 from pipeline.model.dynamics import FloatArray
-from pipeline.numerics.margins import MarginProfile, per_point
+from pipeline.numerics.optimize.margins import MarginProfile, per_point
 from pipeline.numerics.settings import EPS_D, EPS_G, EPS_I
 
 if TYPE_CHECKING:

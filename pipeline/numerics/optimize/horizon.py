@@ -15,10 +15,10 @@ from typing import Any, Protocol
 import numpy as np
 
 from pipeline.model.dynamics import FloatArray
-from pipeline.numerics.descent import DescentResult, Stall, gradient_descent, lbfgs
-from pipeline.numerics.problem import Problem
+from pipeline.numerics.optimize.descent import DescentResult, Stall, gradient_descent, lbfgs
+from pipeline.numerics.optimize.problem import Problem
+from pipeline.numerics.optimize.shooting import StabilisedProblem
 from pipeline.numerics.settings import DESCENT_METHODS
-from pipeline.numerics.shooting import StabilisedProblem
 
 SEED_MODES = ("compress", "truncate")
 PARAMETERIZATIONS = ("feedback", "open_loop")
@@ -100,8 +100,8 @@ def minimise(
     ``problem``'s, and its nominal input ``(N, m)``.
 
     With ``parameterization="feedback"`` the descent runs over ``v`` of
-    ``pipeline.numerics.shooting`` (the same cost, better conditioned); ``"open_loop"`` is the
-    paper's literal ``u``.
+    ``pipeline.numerics.optimize.shooting`` (the same cost, better conditioned); ``"open_loop"`` is
+    the paper's literal ``u``.
     """
     if options.parameterization == "feedback":
         target: Any = StabilisedProblem.around(tightened, gain, seed)

@@ -7,33 +7,33 @@ in the tube's metric at the time, ``P(t)``.
 
 ``recheck_funnel`` (``/2``). The file carries, per trajectory, ``x_ref`` (re-simulated by
 ``check_reference`` from ``x0`` and ``u_ref``), ``K (N, m, n)``, ``P (N+1, n, n)`` (``Q =
-P^-1`` linear in t between samples, eq. (F1) of ``pipeline.numerics.funnel``), the level ``rho``
-and the rate ``lambda``; not the hulls the synthesis used. Rebuilt here, independently of the
-synthesis's boxes and its solver:
+P^-1`` linear in t between samples, eq. (F1) of ``pipeline.numerics.funnel.synthesis``), the level
+``rho`` and the rate ``lambda``; not the hulls the synthesis used. Rebuilt here, independently of
+the synthesis's boxes and its solver:
 
 1. per sample interval ``k``, the nominal's a priori box ``B_k = grid_k +- pad`` (E1 of
-   ``funnel_bounds``: ``F h < pad`` with ``F`` from the hull below, ``pad`` grown until it holds);
+   ``funnel.bounds``: ``F h < pad`` with ``F`` from the hull below, ``pad`` grown until it holds);
 2. the box ``Z_k`` of the variables the Jacobian depends on: a state's ``B_k`` widened by the
    tube's extent ``rho s_i[k]``, an input's ``u_ref[k] +- rho g_j[k]`` (E3), clipped to the
    scenario's state and input bounds (sound: the limits re-checked below keep the tube inside
    them), and a sound hull of ``[f_x f_u]`` over ``Z_k`` (``pipeline.numerics.hull``, outward
    rounded);
-3. the shipped law's offset (``funnel_law``): it tracks ``x_ref`` interpolated on the file's grid,
+3. the shipped law's offset (``funnel.law``): it tracks ``x_ref`` interpolated on the file's grid,
    whose error (I1) enters the inequality (I2) and the inputs (I3); the input boxes of step 2 are
    widened by ``OFFSET_ALLOWANCE`` times the offset (I3) of hulls without it, and the offset of
    the hulls so built must fit that allowance;
-4. ``funnel_check.check_funnel`` on the funnel so rebuilt, under that law: ``P[k]`` positive
+4. ``funnel.check.check_funnel`` on the funnel so rebuilt, under that law: ``P[k]`` positive
    definite, (F3) plus (I2) at every vertex at both ends of every interval (numpy eigenvalues),
    the enclosure (E1) and the tube inside every hull box, ``rho`` within the limits of Unsafe,
-   the inputs, the state bounds and Goal at ``T`` (``funnel_bounds.funnel_limits``).
+   the inputs, the state bounds and Goal at ``T`` (``funnel.bounds.funnel_limits``).
 
 Steps 1-2 run on a uniform RK4 grid of ``BASE_SUBSTEPS`` per sample (the nominal is the same
 whatever grid the file carries its reference on).
 
 ``recheck_terminal`` (either format): the ``terminal`` block by (T1') of
-``pipeline.numerics.terminal`` under the scenario's declared additive bound (``uncertainty.
+``pipeline.numerics.terminal.design`` under the scenario's declared additive bound (``uncertainty.
 additive_bound``; the block's own ``disturbance`` only where it is larger), and every end tube
-inside its ellipsoid (``terminal_fit``).
+inside its ellipsoid (``terminal.fit``).
 
 A hull over a box is sound for any number of segments, so ``SEGMENTS`` are tried in turn and the
 funnel is accepted when one of them certifies it (a finer hull is tighter, not always a subset).
@@ -51,9 +51,9 @@ from pipeline.controller import Controller, ReferenceTrajectory
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import Trajectory, simulate, simulate_graded
-from pipeline.numerics.funnel_bounds import funnel_limits, tube_extents
-from pipeline.numerics.funnel_check import Funnel, certificate_margins, check_funnel
-from pipeline.numerics.funnel_law import (
+from pipeline.numerics.funnel.bounds import funnel_limits, tube_extents
+from pipeline.numerics.funnel.check import Funnel, certificate_margins, check_funnel
+from pipeline.numerics.funnel.law import (
     BASE_SUBSTEPS,
     LEVEL_MARGIN,
     LMI_MARGIN,
@@ -62,10 +62,10 @@ from pipeline.numerics.funnel_law import (
     law_offset,
     law_substeps,
 )
-from pipeline.numerics.funnel_pieces import piece_hulls
+from pipeline.numerics.funnel.pieces import piece_hulls
 from pipeline.numerics.hull import HullError
-from pipeline.numerics.terminal import check_level
-from pipeline.numerics.terminal_fit import end_levels
+from pipeline.numerics.terminal.design import check_level
+from pipeline.numerics.terminal.fit import end_levels
 from pipeline.numerics.uncertainty import additive_bound
 
 SEGMENTS = (1, 4)
@@ -188,7 +188,7 @@ def rebuild_funnel(
     input_offset: FloatArray | None = None,
 ) -> Funnel:
     """The ``shipped`` funnel around ``trajectory`` with hulls and enclosure rebuilt by steps
-    1-2 of the module docstring (``funnel_pieces.piece_hulls`` on pieces of one sample interval,
+    1-2 of the module docstring (``funnel.pieces.piece_hulls`` on pieces of one sample interval,
     with the file's ``Q`` at level ``rho (1 + WIDEN)`` as the extents, the inputs widened by
     ``input_offset (N, m)`` (step 3), and no arc caps).
 
@@ -317,7 +317,7 @@ def reference_substeps(
     disturbance: FloatArray | None = None,
 ) -> np.ndarray:
     """(N,) RK4 steps per sample on which to ship a funnel's reference so that the law's offset
-    fits what (F2) and the inputs leave (``funnel_law.law_substeps``), from the first hull of
+    fits what (F2) and the inputs leave (``funnel.law.law_substeps``), from the first hull of
     ``SEGMENTS`` on which the funnel holds for the exact nominal (and the additive bound
     ``disturbance (n,)``, whose term (I4) takes its share of (F2) first); ``BASE_SUBSTEPS``
     everywhere when none does (it will not be certified). ``trajectory``: the nominal on a
@@ -389,8 +389,8 @@ def terminal_bound(scenario: Scenario, controller: Controller) -> tuple[np.ndarr
 
 def recheck_terminal(scenario: Scenario, controller: Controller) -> tuple[float, float, list[str]]:
     """``(decay, fit, failures)`` of the file's terminal block (certify's step 6): (T1') of
-    ``pipeline.numerics.terminal`` under ``terminal_bound``, no clipping, inside Goal and the
-    state bounds, and every end tube inside (``terminal_fit.end_levels``). A funnel file's end
+    ``pipeline.numerics.terminal.design`` under ``terminal_bound``, no clipping, inside Goal and the
+    state bounds, and every end tube inside (``terminal.fit.end_levels``). A funnel file's end
     tubes are widened by ``LEVEL_MARGIN``: ``x_ref(T)`` is the RK4 value, within that share of
     the radius of the exact nominal's (certify's step 4)."""
     terminal = controller.terminal

@@ -16,7 +16,7 @@ so with ``M_v = (A_v + B_v K_T)^T P_T + P_T (A_v + B_v K_T) <= -alpha P_T`` at e
 which is negative on the boundary ``V = c`` when ``alpha sqrt(c) > 2 ||r||_{P_T}``: ``E_c`` is
 invariant. It is certified when, in addition, ``E_c`` keeps ``u_eq + K_T e`` inside the input
 bounds (no clipping, so the law is the linear one), its position projection lies in Goal (the
-disk test of ``pipeline.numerics.tube``) and its states in Goal's extra bounds and in the
+disk test of ``pipeline.numerics.tube.geometry``) and its states in Goal's extra bounds and in the
 scenario's ``state_bounds``. ``Z_c`` holds the states ``x_eq +- sqrt(c (P_T^-1)_ii)`` and inputs
 ``u_eq +- sqrt(c) ||K_j P_T^-1/2||``.
 
@@ -27,14 +27,14 @@ uncertainty``), ``x' = f(x, u) + w``, ``|w_i| <= b_i`` for every measurable ``w`
     V' <= -alpha V + 2 sqrt(V) (||r||_{P_T} + w_max),   w_max = max_{|w| <= b} ||w||_{P_T}.   (T1')
 
 ``||w||_{P_T}`` is convex in ``w``, so its maximum over the box is at a corner
-(``funnel_law.corners``). ``E_c`` is invariant for every such ``w`` when ``alpha sqrt(c) > 2
+(``funnel.law.corners``). ``E_c`` is invariant for every such ``w`` when ``alpha sqrt(c) > 2
 (||r||_{P_T} + w_max)``: the level is bounded BELOW by ``floor = (2 (||r|| + w_max) / alpha)^2``
 as well as above (inputs, Goal, the hull's decay). ``b`` holds only where ``(x, u)`` lies in
 ``uncertainty.certified_box``, so with ``b > 0`` ``Z_c`` must lie in the operating region too
 for the states without ``state_bounds``. With ``b = 0`` (T1') is (T1), and every check and level
 is exactly the exact model's.
 
-End tubes: ``pipeline.numerics.terminal_fit`` (the exact containment level, and the funnel's LMI).
+End tubes: ``pipeline.numerics.terminal.fit`` (the exact containment level, and the funnel's LMI).
 """
 
 from __future__ import annotations
@@ -51,12 +51,13 @@ from shapely.ops import polylabel
 
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
-from pipeline.numerics.funnel_law import corners
+from pipeline.numerics.funnel.law import corners
 from pipeline.numerics.hull import DEFAULT_SEGMENTS, HullError, jacobian_hull
-from pipeline.numerics.sampled import contraction_rate, held_rate
-from pipeline.numerics.terminal_fit import containing_level as containing_level
-from pipeline.numerics.terminal_fit import end_levels
-from pipeline.numerics.tube import Tube
+from pipeline.numerics.terminal.fit import containing_level as containing_level
+from pipeline.numerics.terminal.fit import end_levels
+from pipeline.numerics.tube.contraction import contraction_rate
+from pipeline.numerics.tube.geometry import Tube
+from pipeline.numerics.tube.sampled import held_rate
 
 EQUILIBRIUM_TOLERANCE = 1e-9  # ||f(x_eq, u_eq)|| accepted as an equilibrium
 LEVEL_BISECTIONS = 24
@@ -198,7 +199,7 @@ def check_level(
     """Check (T1') and the bounds for ``E_c``, ``c = level`` (module docstring), from scratch:
     hull over ``Z_c``, decay by ``numpy.linalg.eigvalsh``, no clipping, inside Goal. With a
     feedback ``period > 0`` (the law held) the decay is that of the held law: ``2 lambda_h`` of
-    ``pipeline.numerics.sampled`` at the continuous rate ``alpha / 2``. ``disturbance (n,)``:
+    ``pipeline.numerics.tube.sampled`` at the continuous rate ``alpha / 2``. ``disturbance (n,)``:
     the additive bound ``b`` of (T1') (None or zeros: the exact model, (T1))."""
     tube, r = _tube(scenario, K, P), float(np.sqrt(level))
     b = np.zeros(len(x_eq)) if disturbance is None else np.asarray(disturbance, dtype=np.float64)
@@ -291,7 +292,7 @@ def check_level(
 def decay_rate(P: FloatArray, K: FloatArray, A: FloatArray, B: FloatArray) -> float:
     """``alpha = min_v -lambda_max(P^-1/2 M_v P^-1/2)``, ``M_v = A_cl^T P + P A_cl``,
     ``A_cl = A_v + B_v K``, over ``A (V, n, n)``, ``B (V, n, m)``: ``V' <= -alpha V`` (twice the
-    contraction rate of ``pipeline.numerics.sampled.contraction_rate``)."""
+    contraction rate of ``pipeline.numerics.tube.contraction.contraction_rate``)."""
     return 2.0 * contraction_rate(P, K, A, B)
 
 

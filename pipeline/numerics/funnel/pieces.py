@@ -1,4 +1,4 @@
-"""The funnel's LMI pieces and the hull boxes over them (pipeline.numerics.funnel, HOLD).
+"""The funnel's LMI pieces and the hull boxes over them (pipeline.numerics.funnel.synthesis, HOLD).
 
 Pieces. The sample intervals ``[t_k, t_k+1)``, k = 0..N-1, are grouped into pieces
 ``[t_a, t_b)`` of ``hold`` intervals; on a piece ``K`` is held and ``Q`` linear in t (F1), so the
@@ -7,7 +7,7 @@ stored ``Q[k]`` at the sample times inside a piece are interpolated:
     Q[k] = (1 - s) Q[a] + s Q[b],  s = (k - a) / (b - a).                                    (P1)
 
 Boxes. Each piece gets one box ``Z`` over the variables the Jacobian depends on, holding every
-sample interval's a priori box ``B_k`` (E1 of ``funnel_bounds``) widened by ``w``, and one sound
+sample interval's a priori box ``B_k`` (E1 of ``funnel.bounds``) widened by ``w``, and one sound
 hull over it (``pipeline.numerics.hull``). ``w`` is ``allowance`` times the seed tube's extent
 on the piece (a state's ``sqrt(Q_ii)``, an input's ``sqrt(K_j Q K_j^T)``, at the piece's sample
 times), clipped to the state and input bounds. For an angle ``z`` that enters through
@@ -31,7 +31,7 @@ import numpy as np
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import Trajectory
-from pipeline.numerics.funnel_bounds import (
+from pipeline.numerics.funnel.bounds import (
     Enclosure,
     enclosure_range,
     grid_range,
@@ -89,9 +89,9 @@ def piece_hulls(
     """The boxes and hulls of the module docstring for seed ``Q_seed (N+1, n, n)``, held gains
     ``K (N, m, n)`` and pieces ``bounds (S+1,)``: ``(variables (d names), boxes (N, 2, d),
     vertices (N arrays (V, n, n+m)), enclosure)``, per sample interval (its piece's box and hull).
-    ``pipeline.numerics.recertify`` rebuilds a shipped funnel's hulls with it too: pieces of one
-    interval, the file's ``Q`` as the seed, ``allowance`` its level, and ``input_offset (N, m)``
-    the shipped law's input offset (``funnel_law`` (I3)) added to the inputs' widths.
+    ``pipeline.numerics.verify.recertify`` rebuilds a shipped funnel's hulls with it too: pieces of
+    one interval, the file's ``Q`` as the seed, ``allowance`` its level, and ``input_offset (N, m)``
+    the shipped law's input offset (``funnel.law`` (I3)) added to the inputs' widths.
 
     Raises:
       HullError: no hull over a box, or no a priori enclosure (E1) in ``pad_rounds`` rounds.
@@ -118,7 +118,7 @@ def piece_hulls(
                     j = scenario.input_names.index(name)
                     w = allowance * g_seed[a:b, j].max()
                     if input_offset is not None:
-                        w += input_offset[a:b, j].max()  # funnel_law (I3)
+                        w += input_offset[a:b, j].max()  # funnel.law (I3)
                     centre = trajectory.us[a:b, j].min(), trajectory.us[a:b, j].max()
                 else:
                     i = scenario.state_names.index(name)

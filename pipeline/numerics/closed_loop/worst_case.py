@@ -9,7 +9,7 @@ linearised error):
 1. the worst few starts found, each flown under every constant corner pattern (each disturbed
    state's gust at ``+-`` its bound for the whole run, with each parameter corner; at most
    ``PATTERNS`` of them, a seeded subset beyond) and ``SWITCHING`` random switching patterns (a
-   new corner every gust period, ``pipeline.numerics.gusts``);
+   new corner every gust period, ``pipeline.numerics.closed_loop.gusts``);
 2. from the worst pair, a greedy search over single sign flips (one gust period of one state,
    or one parameter), all flips of a round flown in one batch, for ``ROUNDS`` rounds or until no
    flip lowers the margin.
@@ -18,7 +18,7 @@ The margin is the smallest of the run's clearance to Unsafe, Goal margin, input 
 state-bounds margin, to ``T`` and, when the file has a law past ``T``, over the continuation to
 ``T + hold`` (clearance, Goal at every grid point, slack, state bounds). It is evidence, not a
 bound; the pattern found is flown again by a share of the Monte Carlo runs
-(``pipeline.numerics.gusts.sample``).
+(``pipeline.numerics.closed_loop.gusts.sample``).
 """
 
 from __future__ import annotations
@@ -32,8 +32,8 @@ from pipeline.controller import Controller
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
 from pipeline.model.uncertainty import Uncertainty
-from pipeline.numerics.gusts import Draws, corners, gust_count
-from pipeline.numerics.rollouts import check_runs_compiled, hold_runs_compiled
+from pipeline.numerics.closed_loop.gusts import Draws, corners, gust_count
+from pipeline.numerics.closed_loop.rollouts import check_runs_compiled, hold_runs_compiled
 
 PATTERNS = 64  # constant corner patterns at most
 SWITCHING = 16  # random switching corner patterns

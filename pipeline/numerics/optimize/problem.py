@@ -2,10 +2,10 @@
 
     minimise J(u) over u (N, m), x(0) = x0, xdot = f(x, u[k]) on [k Ts, (k+1) Ts)
 
-with ``J`` the penalty cost of ``pipeline.numerics.penalties`` (eqs. (26), (40)-(42)) evaluated on
-the RK4 grid: ``s = penalty_points + 1`` RK4 substeps per sample interval, so the penalties see the
-sample times and ``penalty_points`` intermediate points of every interval, and the grid is
-exactly the integrator's (``trajectory(u).dense_xs``). ``J == 0.0`` exactly when every
+with ``J`` the penalty cost of ``pipeline.numerics.optimize.penalties`` (eqs. (26), (40)-(42))
+evaluated on the RK4 grid: ``s = penalty_points + 1`` RK4 substeps per sample interval, so the
+penalties see the sample times and ``penalty_points`` intermediate points of every interval, and the
+grid is exactly the integrator's (``trajectory(u).dense_xs``). ``J == 0.0`` exactly when every
 constraint holds with its margin on that grid. The gradient is the exact derivative of ``J`` as
 implemented, by the paper's forward sensitivities (``method="sensitivity"``, eq. (29)) or by the
 discrete adjoint (``method="adjoint"``). ``backend="numba"`` runs compiled kernels
@@ -24,10 +24,10 @@ import numpy as np
 
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.simulate import Trajectory, simulate
-from pipeline.numerics.adjoint import adjoint_gradient
-from pipeline.numerics.margins import MarginProfile
-from pipeline.numerics.penalties import Constraints, build_constraints
-from pipeline.numerics.sensitivity import (
+from pipeline.numerics.optimize.adjoint import adjoint_gradient
+from pipeline.numerics.optimize.margins import MarginProfile
+from pipeline.numerics.optimize.penalties import Constraints, build_constraints
+from pipeline.numerics.optimize.sensitivity import (
     SensitivityPattern,
     sensitivity_gradient,
     sensitivity_pattern,
@@ -273,7 +273,8 @@ def make_problem(
         d + eps_g, inputs shrunk by eps_i); clearance: ``d`` (default: the scenario's);
         goal_margin: name -> shrink of Goal's extra bounds (the tube's extent).
       region: name -> (lower, upper) box the nominal stays in (default: the operating region).
-      profile: margins that vary along the trajectory (``pipeline.numerics.margins``), on top of
+      profile: margins that vary along the trajectory (``pipeline.numerics.optimize.margins``), on
+      top of
         the constant ones; read on each horizon's grid by normalised time (``on_grid``).
       penalty_points: intermediate penalty points per interval = RK4 substeps - 1.
       backend: "numba" or "numpy".

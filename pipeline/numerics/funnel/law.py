@@ -10,7 +10,7 @@ file's grid, with ``h_k`` the grid's spacing on sample interval ``k``:
 
 (I1) Interpolation error. On a grid step inside interval ``k`` the input is held, so ``x_ref`` is
 C^2 with ``xddot = f_x(x_ref, u_ref[k]) xdot``. While ``x_ref`` is in the a priori box ``B_k``,
-``|xdot| <= F`` (E1 of ``funnel_bounds``) and ``f_x`` is in the hull ``conv{A_v}`` over ``Z_k``
+``|xdot| <= F`` (E1 of ``funnel.bounds``) and ``f_x`` is in the hull ``conv{A_v}`` over ``Z_k``
 (which holds ``B_k x {u_ref[k]}``), so by convexity ``|xddot_i| <= max_v sum_l |A_v[i, l]| F_l``.
 Linear interpolation of a C^2 function between two points ``h`` apart errs by at most ``h^2 / 8
 max |xddot|``:
@@ -21,7 +21,7 @@ max |xddot|``:
 Acl e + Bbar K delta`` with ``[Abar Bbar]`` the Jacobian averaged on the segment, in the hull while
 ``x`` is in the funnel and the input in the widened box (I3). With ``m_k`` the largest (F2)
 eigenvalue of ``Q^-1/2 L Q^-1/2`` over the vertices at both ends of the interval
-(``funnel_check.certificate_margins``; ``L <= m_k Q`` at both ends gives it on the whole interval,
+(``funnel.check.certificate_margins``; ``L <= m_k Q`` at both ends gives it on the whole interval,
 as (F3) does), ``P L P <= m_k P`` and
 
     d/dt (V e^{2 lambda t}) e^{-2 lambda t} = e^T P L P e + 2 e^T P Bbar K delta
@@ -50,7 +50,7 @@ take the second term as an offset.
 ``w`` (a box, ``d (n,)``, zero for states it does not act on), the error gains ``+ w`` and the
 same argument gives ``+ 2 ||e||_P ||w||_P`` on the boundary: ``m_k + 2 (w_k + v_k) / rho_t < 0``
 with ``v_k = max_corners max_ends ||sigma o d||_P`` (convex in ``w`` and in ``t``, as above). Unlike
-(I2) it does not shrink with the grid: the funnel must be designed for it (``funnel_lmi``'s
+(I2) it does not shrink with the grid: the funnel must be designed for it (``funnel.lmi``'s
 disturbance constraint), and it bounds the level from below (``rho_t > 2 (w_k + v_k) / -m_k``).
 """
 

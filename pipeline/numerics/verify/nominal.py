@@ -4,9 +4,9 @@ The trajectory is re-simulated on a fine RK4 grid (spacing ``h``). Between grid 
 position moves at most ``v_max h / 2`` from the nearer grid point, and distance to a set is
 1-Lipschitz, so ``min_grid(dist) - v_max h / 2`` is a lower bound on the clearance over the
 whole of ``[0, T]``; the operating-region states are bounded the same way with their rates.
-Margins may vary along the trajectory (``pipeline.numerics.margins``): a clearance, input bound
-or region bound per sample interval ``(N,)`` is checked on that interval's fine grid points (each
-fine step lies inside one interval, so the bound between grid points is the same).
+Margins may vary along the trajectory (``pipeline.numerics.optimize.margins``): a clearance, input
+bound or region bound per sample interval ``(N,)`` is checked on that interval's fine grid points
+(each fine step lies inside one interval, so the bound between grid points is the same).
 """
 
 from __future__ import annotations

@@ -1,14 +1,14 @@
-"""The funnel result and its independent check (pipeline.numerics.funnel's (F1)-(F3), E1-E3).
+"""The funnel result and its independent check (``synthesis``'s (F1)-(F3), E1-E3).
 
 ``check_funnel`` re-verifies a funnel with numpy alone, independently of the solver that built it:
 positive definite metrics, the vertex inequalities (F3) at both ends of every interval, the
 nominal's enclosure (E1), the tube inside every hull box, and the level within every constraint
-(``funnel_bounds.funnel_limits``). A funnel that fails it is rejected. Given the shipped law's
-offset (``funnel_law``: the law tracks an interpolated reference) it checks the funnel under that
+(``funnel.bounds.funnel_limits``). A funnel that fails it is rejected. Given the shipped law's
+offset (``funnel.law``: the law tracks an interpolated reference) it checks the funnel under that
 law: (F3)'s eigenvalue plus the offset's term (I2), and the inputs with their offset (I3).
 
 Margins: the eigenvalue must be below ``-LMI_MARGIN``, the level at most ``1 - LEVEL_MARGIN``
-of every limit (``funnel_law``), so that rounding cannot decide a bound.
+of every limit (``funnel.law``), so that rounding cannot decide a bound.
 """
 
 from __future__ import annotations
@@ -21,8 +21,8 @@ import numpy as np
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import Trajectory
-from pipeline.numerics.funnel_bounds import Enclosure, funnel_limits, rate_bound, substeps
-from pipeline.numerics.funnel_law import LEVEL_MARGIN, LMI_MARGIN, LawOffset
+from pipeline.numerics.funnel.bounds import Enclosure, funnel_limits, rate_bound, substeps
+from pipeline.numerics.funnel.law import LEVEL_MARGIN, LMI_MARGIN, LawOffset
 
 LEVEL_SLACK = 1e-4  # rho is shrunk by this relative amount so that no bound holds with equality
 # (1e-9 was too little: certify rebuilds the enclosure from the file, and its limits may be lower
@@ -43,10 +43,10 @@ class Funnel:
         interval's start and end (< 0 for a certificate).
       boxes: (N, 2, d) the hull's box per interval over ``variables`` (d names).
       vertices: N arrays (V_k, n, n+m) of hull vertices ``[A_v B_v]``.
-      enclosure: the nominal's sound enclosure (``funnel_bounds.Enclosure``); None if the hulls
+      enclosure: the nominal's sound enclosure (``funnel.bounds.Enclosure``); None if the hulls
         failed before it was found.
       limits: constraint -> largest level it allows; ``design`` is the level at which the LMI
-        program's caps (hull boxes, Unsafe, Goal, bounds) hold, ``sqrt(tau)`` (funnel_lmi): 1
+        program's caps (hull boxes, Unsafe, Goal, bounds) hold, ``sqrt(tau)`` (funnel.lmi): 1
         unless the required initial set could not be held whole.
       binding: the constraint that sets rho; seconds: synthesis wall time.
     """
@@ -105,7 +105,7 @@ def check_funnel(
     priori enclosure (E1: ``F h < pad`` with ``F`` recomputed from the stored vertices) and its
     box inside the hull box; the tube at level rho (inputs widened by the law's offset (I3))
     inside every hull box; rho within ``1 - LEVEL_MARGIN`` of every constraint's limit
-    (funnel_bounds (a)-(d))."""
+    (funnel.bounds (a)-(d))."""
     P, K, rho, Ts = funnel.P, funnel.K, funnel.rho, scenario.Ts
     N, n = len(K), scenario.n
     law = LawOffset.none(N, n, scenario.m, Ts) if law is None else law
@@ -121,7 +121,7 @@ def check_funnel(
     Q = np.linalg.inv(P)
     Q = (Q + np.swapaxes(Q, 1, 2)) / 2
     margins = certificate_margins(Q, K, funnel.vertices, funnel.rate, Ts)
-    effective = margins.max(axis=1) + law.total  # funnel_law (I2), (I4)
+    effective = margins.max(axis=1) + law.total  # funnel.law (I2), (I4)
     if effective.max() >= -LMI_MARGIN:
         k = int(np.argmax(effective))
         disturbance = (
@@ -152,7 +152,7 @@ def check_funnel(
             if name in scenario.input_names:
                 j = scenario.input_names.index(name)
                 g = rho * np.sqrt(max(K[k, j] @ Q[e] @ K[k, j] for e in (k, k + 1)))
-                g += law.input_offset[k, j]  # funnel_law (I3)
+                g += law.input_offset[k, j]  # funnel.law (I3)
                 inner = (trajectory.us[k, j] - g, trajectory.us[k, j] + g)
             else:
                 i = scenario.state_names.index(name)

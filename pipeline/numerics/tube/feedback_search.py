@@ -5,7 +5,7 @@ A contraction certificate ``(P, K, lambda)`` over an operating region ``R`` give
 the radius ``r_need = max(r_d, r_cover)`` (``r_d``: the clearance ``d``'s radius, ``r_cover``:
 the smallest common radius whose balls around the demo starts cover Init). The constraints the
 optimizer cannot move a trajectory away from are the structural ones (``pipeline.numerics.
-tube_radius``): the tube's inputs within ``input_bounds`` and the region, its states within the
+tube.radius``): the tube's inputs within ``input_bounds`` and the region, its states within the
 region and ``state_bounds``. So a design is scored by
 
     ratio = min_i r_struct_i / r_need,   r_struct_i = min over those constraints on demo i,
@@ -39,9 +39,9 @@ import numpy as np
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import Trajectory, simulate
-from pipeline.numerics.tube import Tube
-from pipeline.numerics.tube_radius import radius_limits
-from pipeline.numerics.verify import VERIFY_SUBSTEPS
+from pipeline.numerics.tube.geometry import Tube
+from pipeline.numerics.tube.radius import radius_limits
+from pipeline.numerics.verify.nominal import VERIFY_SUBSTEPS
 
 log = logging.getLogger(__name__)
 
