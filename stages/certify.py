@@ -73,7 +73,6 @@ import numpy as np
 
 from pipeline.controller import Controller, ControllerFormatError, load
 from pipeline.io.artifacts import file_hash
-from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import simulate
 from pipeline.numerics.funnel.law import LEVEL_MARGIN, LMI_MARGIN
@@ -82,13 +81,13 @@ from pipeline.numerics.tube.contraction import contraction_margin, contraction_r
 from pipeline.numerics.tube.geometry import Tube
 from pipeline.numerics.tube.radius import radius_limits
 from pipeline.numerics.tube.sampled import held_rate
-from pipeline.numerics.uncertainty import additive_bound
 from pipeline.numerics.verify.cover import DEFAULT_DEPTH, subdivide
 from pipeline.numerics.verify.nominal import VERIFY_SUBSTEPS
 from pipeline.numerics.verify.recertify import (
     ReferenceCheck,
     ShippedFunnel,
     check_reference,
+    checked_bound,
     recheck_funnel,
     recheck_terminal,
 )
@@ -239,7 +238,8 @@ def _funnels(
             f"feedback_period {controller.feedback_period:g} s: the funnel certificate is for "
             "continuous feedback (0); a held law is not certified by a safety-controller/2 file"
         )
-    disturbance = held_disturbance(scenario, controller, failures)
+    disturbance, short = checked_bound(scenario, controller.disturbance_bound, "uncertainty")
+    failures += short
     margin, vertices, verified, errors = -np.inf, 0, [], (0.0, 0.0)
     multiple = float("inf")
     for i, tr in enumerate(controller.trajectories):
@@ -258,31 +258,6 @@ def _funnels(
         if check.failure is not None:
             failures.append(f"trajectories[{i}]: the funnel is not certified: {check.failure}")
     return margin, vertices, verified, errors, multiple
-
-
-def held_disturbance(
-    scenario: Scenario, controller: Controller, failures: list[str]
-) -> FloatArray | None:
-    """The additive bound ``(n,)`` the funnels are checked against: the scenario's declaration
-    (``pipeline.numerics.uncertainty``, derived here, never read from the file) and what the
-    file says it holds, whichever is larger in each state (both claims are then verified); None
-    when neither declares any. A file that holds less than the scenario declares is a failure
-    (it may still be re-checked, with the declaration)."""
-    declared = None if scenario.uncertainty.empty else additive_bound(scenario)
-    stated = controller.disturbance_bound
-    if declared is not None:
-        held = np.zeros(scenario.n) if stated is None else stated
-        short = np.flatnonzero(held < declared)
-        if len(short):
-            i = int(short[0])
-            failures.append(
-                f"uncertainty: the file holds |w_{scenario.state_names[i]}| <= {held[i]:.4g}, "
-                f"the scenario declares {declared[i]:.4g} (uncertainty: block); synthesize again"
-            )
-    if declared is None and stated is None:
-        return None
-    bounds = [b for b in (declared, stated) if b is not None]
-    return np.maximum.reduce(bounds) if len(bounds) > 1 else np.asarray(bounds[0])
 
 
 def _reference(

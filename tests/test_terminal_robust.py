@@ -258,13 +258,22 @@ def _velocity_gains_flipped(block):
     block["K"] = K.tolist()
 
 
+SHORT = "terminal: the file holds |w_vx| <= 0, the scenario declares"
+
+
 @pytest.mark.parametrize(
     ("change", "message"),
     [
         (lambda t: t.update(level=1.01 * t["level"]), "leaves Goal"),
         (_velocity_gains_flipped, "does not decrease"),
-        (lambda t: t.update(disturbance=[0.0] * 4), "less than the scenario's declared"),
-        (lambda t: t.pop("disturbance"), "less than the scenario's declared"),
+        (
+            lambda t: t.update(disturbance=[0.0] * 4),
+            "terminal: the file holds |w_vx| <= 0, the scenario declares",
+        ),
+        (
+            lambda t: t.pop("disturbance"),
+            "terminal: the file holds |w_vx| <= 0, the scenario declares",
+        ),
         (lambda t: t.update(disturbance=[0, 0, 40 * BETA, 40 * BETA]), "disturbance"),
     ],
     ids=["level +1%", "K_T velocity gains flipped", "bound 0", "no bound", "bound 40x claimed"],

@@ -365,38 +365,44 @@ def recheck_as_shipped(
     )
 
 
-def terminal_bound(scenario: Scenario, controller: Controller) -> tuple[np.ndarray, list[str]]:
-    """``(b (n,), failures)``: the additive bound step 6 checks the terminal block under, the
-    scenario's declared one (``uncertainty.additive_bound``) or the file's if that is larger
-    in a component (never the file's where it is smaller: a block stating less than the
-    scenario declares is a failure)."""
-    terminal = controller.terminal
-    if terminal is None:
-        raise TypeError(f"{controller.source}: no terminal block to verify")
+def checked_bound(
+    scenario: Scenario, stated: FloatArray | None, what: str
+) -> tuple[FloatArray | None, list[str]]:
+    """``(b (n,), failures)``: the additive bound a block of the file is re-checked under: the
+    scenario's declaration (``pipeline.numerics.uncertainty``, derived here, never read from
+    the file) raised to the bound the block ``stated`` where that is larger (both claims are
+    then verified); None when neither declares any. A block stating less than the scenario
+    declares is a failure named by ``what`` (it is still re-checked, with the declaration)."""
     try:
-        declared = additive_bound(scenario)
+        declared = None if scenario.uncertainty.empty else additive_bound(scenario)
     except HullError as error:
-        return np.full(scenario.n, np.inf), [f"terminal: the declared uncertainty: {error}"]
-    claimed = np.zeros(scenario.n) if terminal.disturbance is None else terminal.disturbance
+        return np.full(scenario.n, np.inf), [f"{what}: the declared uncertainty: {error}"]
     failures = []
-    if np.any(claimed < declared):
-        failures.append(
-            f"terminal: certified for the disturbance {np.asarray(claimed).tolist()}, less than "
-            f"the scenario's declared additive bound {declared.tolist()}"
-        )
-    return np.maximum(claimed, declared), failures
+    if declared is not None:
+        held = np.zeros(scenario.n) if stated is None else np.asarray(stated)
+        short = np.flatnonzero(held < declared)
+        if len(short):
+            i = int(short[0])
+            failures.append(
+                f"{what}: the file holds |w_{scenario.state_names[i]}| <= {held[i]:.4g}, the "
+                f"scenario declares {declared[i]:.4g} (uncertainty: block); synthesize again"
+            )
+    if declared is None:
+        return (None if stated is None else np.asarray(stated)), failures
+    return (declared if stated is None else np.maximum(stated, declared)), failures
 
 
 def recheck_terminal(scenario: Scenario, controller: Controller) -> tuple[float, float, list[str]]:
     """``(decay, fit, failures)`` of the file's terminal block (certify's step 6): (T1') of
-    ``pipeline.numerics.terminal.design`` under ``terminal_bound``, no clipping, inside Goal and the
+    ``pipeline.numerics.terminal.design`` under ``checked_bound``, no clipping, inside Goal and the
     state bounds, and every end tube inside (``terminal.fit.end_levels``). A funnel file's end
     tubes are widened by ``LEVEL_MARGIN``: ``x_ref(T)`` is the RK4 value, within that share of
     the radius of the exact nominal's (certify's step 4)."""
     terminal = controller.terminal
     if terminal is None:
         raise TypeError(f"{controller.source}: no terminal block to verify")
-    bound, failures = terminal_bound(scenario, controller)
+    bound, failures = checked_bound(scenario, terminal.disturbance, "terminal")
+    bound = np.zeros(scenario.n) if bound is None else bound
     if not np.all(np.isfinite(bound)):
         return float("nan"), float("nan"), failures
     check = check_level(
