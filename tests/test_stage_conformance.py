@@ -30,6 +30,9 @@ from pipeline.runtime.runner import stage_key
 from stages.report import REPORT, ReportInputs
 from tests.helpers.stage_inputs import StageCase, small_scenario, stage_cases
 
+# one worker runs every stage once (``cases``, about 12 s of CPU) rather than each worker
+pytestmark = pytest.mark.xdist_group("stage-conformance")
+
 RUN = [stage for stage in STAGES if stage is not REPORT]
 DONOR = "unicycle_slalom"  # another scenario: other values for every field
 

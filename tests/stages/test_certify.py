@@ -40,6 +40,18 @@ def emitted(double_integrator, tmp_path):
     return scenario, path
 
 
+@pytest.fixture(scope="session")
+def optimized_env(tmp_path_factory) -> dict[str, str]:
+    """The environment of a ``python -O`` child: this tree on its path, and the ``.opt-1.pyc``
+    bytecode it compiles (pip installs none: about 4 s of CPU per child for NumPy, SymPy, ...)
+    written under one folder of this worker's, not into the tree or the venv, so that the
+    second child reads what the first compiled."""
+    prefix = tmp_path_factory.getbasetemp() / "bytecode-O"
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "PYTHONPYCACHEPREFIX": str(prefix)}
+    env.pop("PYTHONDONTWRITEBYTECODE", None)
+    return env
+
+
 def _tamper(path, change):
     document = json.loads(path.read_text())
     change(document)
@@ -335,7 +347,7 @@ def test_a_quadrotor_funnel_is_rebuilt_from_the_file_and_perturbations_are_caugh
 
 @pytest.mark.slow
 def test_a_quadrotor_funnel_with_a_u_ref_sample_past_its_bound_is_not_certified_also_under_O(
-    quadrotor_funnel_artifact, tmp_path
+    quadrotor_funnel_artifact, tmp_path, optimized_env
 ):
     """``u_ref[5]``'s thrust moved 5 N up, past the 14.9 N bound: the input box of interval 5,
     clipped to the bounds, is empty. That stopped certify on mpmath's ``AssertionError:
@@ -363,7 +375,7 @@ def test_a_quadrotor_funnel_with_a_u_ref_sample_past_its_bound_is_not_certified_
     optimized = subprocess.run(
         [sys.executable, "-O", "-c", script, str(path)],
         cwd=ROOT,
-        env={**os.environ, "PYTHONPATH": str(ROOT), "PYTHONDONTWRITEBYTECODE": "1"},
+        env=optimized_env,
         capture_output=True,
         text=True,
         check=False,
@@ -373,7 +385,8 @@ def test_a_quadrotor_funnel_with_a_u_ref_sample_past_its_bound_is_not_certified_
 
 
 @pytest.mark.slow
-def test_the_certify_tests_pass_under_python_O():
+@pytest.mark.xdist_group("quadrotor-funnel")  # with the other -O test: one bytecode folder
+def test_the_certify_tests_pass_under_python_O(optimized_env):
     """This file's tests (but those that need a session's synthesis or the quadrotor's funnel,
     20-25 s, and this one) and the hull's, with ``assert`` statements removed: pytest still
     rewrites the tests' own asserts into checks, the code under test runs as under -O."""
@@ -382,7 +395,7 @@ def test_the_certify_tests_pass_under_python_O():
         [sys.executable, "-O", "-m", "pytest", "-q", "-p", "no:cacheprovider", "-k", selected]
         + ["tests/stages/test_certify.py", "tests/test_hull_rounding.py"],
         cwd=ROOT,
-        env={**os.environ, "PYTHONPATH": str(ROOT), "PYTHONDONTWRITEBYTECODE": "1"},
+        env=optimized_env,
         capture_output=True,
         text=True,
         check=False,

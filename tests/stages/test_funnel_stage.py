@@ -24,6 +24,8 @@ from stages.funnel import FunnelStageResult, initial_sets, required_sets, synthe
 from stages.radius import robustness_radius
 
 DEMOS = 2  # the first two demos: about 1-2 s per funnel
+# one worker synthesizes the module's funnels (``result``, about 2.5 s of CPU), not each
+pytestmark = pytest.mark.xdist_group("funnel-stage")
 
 
 @pytest.fixture(scope="module")

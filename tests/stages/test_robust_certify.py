@@ -21,6 +21,9 @@ from stages.certify import certify_controller
 from stages.controller import emit_funnel_controller
 from tests.helpers.robust import DISTURBANCE, double_integrator_case
 
+# one worker synthesizes the two funnels (``robust``, about 1 s of CPU), not each
+pytestmark = pytest.mark.xdist_group("robust-certify")
+
 
 def _declaring(scenario: Scenario, bound: np.ndarray) -> Scenario:
     return dataclasses.replace(scenario, uncertainty=Uncertainty(disturbance=bound))
