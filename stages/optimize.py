@@ -219,10 +219,13 @@ def end_unshrunk(
 ) -> ConstraintMargins:
     """``margins`` whose tube extent at ``T`` (``goal_margin``, the profile's ``final_state``)
     no longer shrinks Goal's extra bounds on the states ``names``: they bound the nominal's end
-    itself."""
+    itself. Their ``goal_margin`` is 0, not absent, so that the descent's tightened problem
+    still moves them by its ``overshoot`` (absent, the tightened and the real bound were the
+    same and the descent crept to the bound without reaching it: quadrotor_hill with
+    ``terminal: hold`` stopped at J = 3e-22 > 0 on demo_06)."""
     if not names:
         return margins
-    goal = {k: v for k, v in margins.goal_margin.items() if k not in names}
+    goal = {**margins.goal_margin, **dict.fromkeys(names, 0.0)}
     profile = margins.profile
     if profile is not None:
         final = np.array(profile.final_state, dtype=np.float64)

@@ -21,6 +21,7 @@ from stages.feedback import design_feedback
 from stages.optimize import (
     ConstraintMargins,
     OptimizeOptions,
+    end_unshrunk,
     optimize,
     optimize_demo,
     reoptimize_with_funnels,
@@ -253,3 +254,18 @@ def test_reoptimizing_needs_one_certified_funnel_per_trajectory():
     (kept,) = result.trajectories
     assert not result.success and "was not certified (LMIs infeasible)" in kept.message
     np.testing.assert_array_equal(kept.u, constant.u)
+
+
+def test_an_unshrunk_end_bound_keeps_a_margin_entry_for_the_overshoot():
+    """A hold run's core states bound the nominal's end itself (no tube extent), but their
+    ``goal_margin`` stays in the mapping at 0: the descent's tightened problem adds its
+    overshoot to every entry, so the tightened bound is strictly inside the real one (absent,
+    both were the same and the descent stopped at J = 3e-22 > 0, short of feasible)."""
+    scenario, margins = _quadrotor()
+    core = ("vX", "vY")
+    unshrunk = end_unshrunk(scenario, margins, core)
+    assert {k: unshrunk.goal_margin[k] for k in core} == {"vX": 0.0, "vY": 0.0}
+    others = set(margins.goal_margin) - set(core)
+    assert {k: unshrunk.goal_margin[k] for k in others} == {
+        k: margins.goal_margin[k] for k in others
+    }
