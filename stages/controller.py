@@ -43,7 +43,7 @@ from pipeline.numerics.funnel.check import Funnel
 from pipeline.numerics.funnel.law import BASE_SUBSTEPS
 from pipeline.numerics.terminal.design import TerminalDesign, TerminalError, design_terminal
 from pipeline.numerics.terminal.fit import end_levels
-from pipeline.numerics.uncertainty import additive_bound
+from pipeline.numerics.uncertainty import declared_bound
 from pipeline.numerics.verify.recertify import ShippedFunnel, reference_substeps
 from pipeline.results.controller import ControllerResult as ControllerResult
 from pipeline.results.stage import Stage, StageInputs
@@ -290,8 +290,8 @@ def emit_funnel_controller(
     """
     if names is not None and len(names) != len(trajectories):
         raise ValueError(f"{len(names)} names for {len(trajectories)} trajectories")
-    if disturbance is None and not scenario.uncertainty.empty:
-        disturbance = additive_bound(scenario)  # the scenario's declaration, as certify derives it
+    if disturbance is None:
+        disturbance = declared_bound(scenario)  # as certify derives it
     items, worst, ends, end_radii, end_metrics = [], 0.0, [], [], []
     for i, (trajectory, funnel) in enumerate(zip(trajectories, funnels, strict=True)):
         N, n, m = len(trajectory.us), scenario.n, scenario.m
@@ -348,25 +348,29 @@ def emit_funnel_controller(
     return _write(path, document, block, terminal_message)
 
 
+# the Scenario fields either emission reads: the file's header, the reference grid, the terminal
+EMITTED_FIELDS = (
+    "Ts",
+    "dynamics",
+    "feedback",
+    "goal",
+    "goal_bounds",
+    "input_lower",
+    "input_upper",
+    "name",
+    "operating_region",
+    "position_index",
+    "state_bounds",
+)
+
+
 @dataclass(frozen=True, kw_only=True)
 class ConstantControllerInputs(StageInputs):
     """What stage ``controller`` reads with the constant certificate: the feedback ``K (m, n)``,
     ``P (n, n)``, ``rate``; per kept trajectory its name, start ``(n,)``, inputs ``(N_i, m)``
     and radius; the radius floor, the feedback period and where to write (``path``)."""
 
-    scenario_fields: ClassVar = (
-        "Ts",
-        "dynamics",
-        "feedback",
-        "goal",
-        "goal_bounds",
-        "input_lower",
-        "input_upper",
-        "name",
-        "operating_region",
-        "position_index",
-        "state_bounds",
-    )
+    scenario_fields: ClassVar = EMITTED_FIELDS
     scenario: Scenario
     K: FloatArray
     P: FloatArray
@@ -402,21 +406,7 @@ class FunnelControllerInputs(StageInputs):
     its name, final nominal and funnel; the feedback period, where to write (``path``), and the
     terminal controller the funnels were made to end in (None: one is designed for the ends)."""
 
-    scenario_fields: ClassVar = (
-        "Ts",
-        "dynamics",
-        "feedback",
-        "goal",
-        "goal_bounds",
-        "input_lower",
-        "input_upper",
-        "name",
-        "operating_region",
-        "position_index",
-        "state_bounds",
-        "uncertainty",
-        "unsafe",
-    )
+    scenario_fields: ClassVar = (*EMITTED_FIELDS, "uncertainty", "unsafe")
     scenario: Scenario
     names: tuple[str, ...]
     trajectories: tuple[Trajectory, ...]

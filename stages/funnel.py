@@ -49,7 +49,7 @@ from pipeline.numerics.funnel.check import Funnel, check_funnel
 from pipeline.numerics.funnel.law import LawOffset
 from pipeline.numerics.funnel.synthesis import synthesize_funnel
 from pipeline.numerics.terminal.fit import TerminalTarget
-from pipeline.numerics.uncertainty import additive_bound
+from pipeline.numerics.uncertainty import declared_bound
 from pipeline.numerics.verify.recertify import ShippedFunnel, recheck_as_shipped
 from pipeline.results.funnel import FunnelStageResult as FunnelStageResult
 from pipeline.results.stage import Stage, StageInputs
@@ -204,7 +204,7 @@ def synthesize_funnels(
             f"funnel: {len(reuse)} funnels to reuse for {len(trajectories)} trajectories; "
             "expected one (or None) per trajectory"
         )
-    disturbance = None if scenario.uncertainty.empty else additive_bound(scenario)
+    disturbance = declared_bound(scenario)
     tasks = {
         i: _Task(
             scenario=scenario,

@@ -219,7 +219,7 @@ def certificate_claims(
     )
 
 
-def declared_bound(scenario: Scenario) -> str:
+def declared_bound_text(scenario: Scenario) -> str:
     """The declared uncertainty as the additive bound certify holds the file to
     (``pipeline.numerics.uncertainty.additive_bound``), e.g. ``|w_vx| <= 0.02, |w_vy| <= 0.02``
     (state derivative units); "" when the scenario declares none."""
@@ -238,7 +238,7 @@ def after_horizon(evidence: Evidence, certified: bool) -> Claim:
     not established (the law refuses ``t > T``), with the reason."""
     check = evidence.certification
     if check.terminal and certified:
-        bound = declared_bound(evidence.scenario)
+        bound = declared_bound_text(evidence.scenario)
         under = f" under the declared uncertainty ({bound})" if bound else ""
         return Claim(
             claim=f"after T every covered start stays in Goal for all time{under} (terminal "

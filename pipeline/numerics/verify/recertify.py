@@ -66,7 +66,7 @@ from pipeline.numerics.funnel.pieces import piece_hulls
 from pipeline.numerics.hull import HullError
 from pipeline.numerics.terminal.design import check_level
 from pipeline.numerics.terminal.fit import end_levels
-from pipeline.numerics.uncertainty import additive_bound
+from pipeline.numerics.uncertainty import declared_bound
 
 SEGMENTS = (1, 4)
 WIDEN = 1e-9  # relative widening of the tube's extent in the hull boxes (rounding of E3)
@@ -374,7 +374,7 @@ def checked_bound(
     then verified); None when neither declares any. A block stating less than the scenario
     declares is a failure named by ``what`` (it is still re-checked, with the declaration)."""
     try:
-        declared = None if scenario.uncertainty.empty else additive_bound(scenario)
+        declared = declared_bound(scenario)
     except HullError as error:
         return np.full(scenario.n, np.inf), [f"{what}: the declared uncertainty: {error}"]
     failures = []
