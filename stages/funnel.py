@@ -114,7 +114,7 @@ def _accepted(
         return f"funnel level {funnel.rho:.3g} is not positive"
     law = LawOffset.none(len(funnel.K), scenario.n, scenario.m, scenario.Ts)
     if disturbance is not None:
-        law = law.with_disturbance(funnel.P, funnel.rho, funnel.rate, scenario.Ts, disturbance)
+        law = law.with_disturbance(disturbance)
     failure = check_funnel(scenario, trajectory, funnel, state_bounds, law)
     if failure is not None:
         return f"rejected by the independent check: {failure}"

@@ -184,7 +184,7 @@ def test_law_substeps_refines_where_the_term_does_not_fit():
         deviation=np.zeros((3, 2)),
         input_offset=np.array([[0.0], [0.0], [1e-3]]),
         lmi_term=np.array([room / 2, 4 * room, 0.0]),
-        disturbance_term=np.zeros(3),
+        disturbance=np.zeros(2),
     )
     margins = np.full(3, -room - 1e-6)
     substeps = law_substeps(offset, margins, np.full((3, 1), 1e-2), Ts)

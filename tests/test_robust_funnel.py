@@ -1,9 +1,10 @@
-"""Funnels that hold under a bounded disturbance (pipeline.numerics.funnel.law (I4), funnel.lmi).
+"""Funnels that hold under a bounded disturbance (pipeline.numerics.funnel.robust (I5), funnel.lmi).
 
-``xdot = f(x, u) + w`` with any ``|w_i| <= d_i``: the check adds ``2 max ||w_c||_P / rho`` to the
-(F3) eigenvalue; the synthesis asks ``||w_c||_{Q^-1} <= gamma`` at every corner ``w_c``. A
-known answer for the check, the LMI against cvxpy, a double integrator's robust funnel flown
-from its boundary under the worst disturbance, and the reduction to today's funnels without one.
+``xdot = f(x, u) + w`` with any ``|w_i| <= d_i``: the check bounds (F2)'s term and the
+disturbance's together by the S-procedure; the synthesis imposes the same joint LMI at every
+vertex, end and corner ``w_c``. Known answers for the check (where the S-procedure is exact), the
+LMI against cvxpy, a double integrator's robust funnel flown from its boundary under the worst
+disturbance, and the reduction to today's funnels without one.
 """
 
 from __future__ import annotations
@@ -18,23 +19,54 @@ from pipeline.controller import inverse_linear
 from pipeline.model.scenario import load_scenario
 from pipeline.model.simulate import simulate
 from pipeline.numerics.funnel.check import check_funnel
-from pipeline.numerics.funnel.law import LawOffset, corners, disturbance_term
+from pipeline.numerics.funnel.law import LawOffset, corners
 from pipeline.numerics.funnel.lmi import FunnelProgram, solve_clarabel, solve_cvxpy
+from pipeline.numerics.funnel.robust import RobustCheck
 from pipeline.numerics.funnel.synthesis import synthesize_funnel
 from tests.helpers.robust import DISTURBANCE, double_integrator_case
 
 
-def test_the_disturbance_term_has_the_scalar_closed_form():
+def _scalar_check(a: float, p: float, level: float) -> RobustCheck:
+    """(I5) for ``edot = -a e + w`` over two intervals, metric ``P = p``, at ``level``."""
+    Q = np.full((3, 1, 1), 1 / p)
+    vertices = tuple(np.array([[[-a, 0.0]]]) for _ in range(2))
+    return RobustCheck(Q, np.zeros((2, 1, 1)), vertices, 0.0, 0.1, level)
+
+
+def test_the_s_procedure_is_exact_for_a_scalar_loop():
     """``edot = -a e + w``, ``|w| <= d``: the interval ``|e| <= d / a`` is the smallest invariant
-    one. In the metric ``P = p`` at level rho the half-width is ``rho / sqrt(p)``, the (F2)
-    eigenvalue is ``-2 a``, and the check ``-2 a + term < 0`` holds exactly when ``rho / sqrt(p)
-    > d / a``."""
+    one. In the metric ``P = p`` at level rho the half-width is ``rho / sqrt(p)``, and (I5)
+    holds exactly when ``rho / sqrt(p) > d / a`` (the S-procedure is lossless here); without a
+    disturbance ``r = m / 2 = -a``; the multiple at level 2 is ``(2 / sqrt p) a / d``."""
     a, d, p = 0.7, 0.3, 4.0
-    P = np.full((3, 1, 1), p)
     exact = d / a * np.sqrt(p)  # the level at which the interval is d / a wide
-    for level, holds in ((exact * (1 + 1e-9), True), (exact * (1 - 1e-9), False)):
-        term = disturbance_term(P, level, 0.0, 0.1, np.array([d]))
-        assert (-2 * a + term.max() < 0) == holds
+    for level, holds in ((exact * (1 + 1e-6), True), (exact * (1 - 1e-6), False)):
+        r, _ = _scalar_check(a, p, level).margins(np.array([d]))
+        assert bool(np.all(r < 0)) == holds
+    assert np.allclose(_scalar_check(a, p, 1.0).margins(np.array([0.0]))[0], -a, atol=1e-8)
+    multiple = _scalar_check(a, p, 2.0).multiple(np.array([d]), np.zeros(2))
+    assert multiple == pytest.approx(2 / np.sqrt(p) * a / d, rel=1e-4)
+    assert multiple <= 2 / np.sqrt(p) * a / d  # a lower bound: it holds at what is reported
+
+
+def test_the_joint_bound_beats_the_separate_one():
+    """A lightly damped oscillator pushed on its speed: (I4)'s bound (``m + 2 max ||w||_P / rho``,
+    the two terms at their own worst points) fails where (I5) holds, and (I5) is never looser."""
+    A, K = np.array([[0.0, 1.0], [-1.0, -0.4]]), np.zeros((2, 1, 2))
+    vertices = tuple(np.hstack([A, np.zeros((2, 1))])[None] for _ in range(2))
+    Q = np.repeat(np.linalg.inv(np.array([[1.2, 0.2], [0.2, 1.0]]))[None], 3, 0)
+    w = np.array([0.0, 0.05])
+    separate = None
+    for level in np.geomspace(0.05, 5, 40):
+        check = RobustCheck(Q, K, vertices, 0.0, 0.1, level)
+        joint = 2 * check.margins(w)[0].max()
+        m = 2 * check.margins(np.zeros(2))[0].max()
+        separate = m + 2 * np.sqrt(w @ np.linalg.solve(Q[0], w)) / level
+        assert joint <= separate + 1e-9
+        if joint < 0 < separate:
+            break
+    else:
+        pytest.fail(f"no level where (I5) holds and (I4) fails (last: {separate})")
 
 
 def test_corners_are_one_of_each_pair_over_the_disturbed_states():
@@ -45,27 +77,28 @@ def test_corners_are_one_of_each_pair_over_the_disturbed_states():
     assert not np.allclose(w[0], -w[1])  # not both of a +- pair
 
 
-def test_the_disturbance_constraint_is_the_same_program_in_cvxpy():
-    """The Clarabel assembly of ``[[Q, w], [w^T, gamma^2]] >= 0`` against cvxpy's statement, and
-    the bound it imposes: ``w^T Q^-1 w <= gamma^2`` at every knot (binding here)."""
+def test_the_joint_constraint_is_the_same_program_in_cvxpy():
+    """The Clarabel assembly of (I5)'s LMI ``[[M + alpha Q, w], [w^T, -(alpha - eps)]] <= 0``
+    against cvxpy's statement, and what it imposes: the numpy check of the solution at level 1
+    finds ``r <= -eps`` on every interval (to the solver's tolerance)."""
     A, B, K = np.array([[0, 1], [0, 0.0]]), np.array([[0], [1.0]]), np.array([[-1.0, -1.4]])
-    N, w, gamma = 5, np.array([0.0, 0.1]), 0.25
+    N, w, alpha, eps = 5, np.array([0.0, 0.1]), 0.5, 0.05
     vertices = tuple(np.hstack([A, B])[None] for _ in range(N))
     program = FunnelProgram(
-        Ts=0.1, K=np.repeat(K[None], N, 0), vertices=vertices, c=0.5, Q_init=np.eye(2) * 0.01,
+        Ts=0.1, K=np.repeat(K[None], N, 0), vertices=vertices, c=eps, Q_init=np.eye(2) * 0.01,
         floor=1e-6, caps=(), W=np.repeat(np.eye(2)[None], N + 1, 0), initial_weight=100.0,
-        disturbance=corners(w), gamma=gamma,
+        disturbance=corners(w), multiplier=alpha, margin=eps,
     )  # fmt: skip
     ours, reference = solve_clarabel(program), solve_cvxpy(program)
     assert not isinstance(ours, str) and not isinstance(reference, str)
     assert np.allclose(ours[0], reference[0], atol=1e-4) and ours[1] == pytest.approx(1.0)
-    bound = [w @ np.linalg.solve(Q, w) for Q in ours[0]]
-    assert np.allclose(bound, gamma**2, rtol=1e-5)
+    check = RobustCheck(ours[0], np.repeat(K[None], N, 0), vertices, 0.0, 0.1, 1.0)
+    assert np.all(check.margins(w)[0] <= -eps + 1e-5)
 
 
 def _robust(funnel, scenario, bound):
     law = LawOffset.none(len(funnel.K), scenario.n, scenario.m, scenario.Ts)
-    return law.with_disturbance(funnel.P, funnel.rho, funnel.rate, scenario.Ts, bound)
+    return law.with_disturbance(bound)
 
 
 def test_a_robust_funnel_holds_under_the_worst_disturbance_from_its_boundary():
@@ -84,7 +117,7 @@ def test_a_robust_funnel_holds_under_the_worst_disturbance_from_its_boundary():
     failure = check_funnel(
         scenario, trajectory, nominal, {}, _robust(nominal, scenario, DISTURBANCE)
     )
-    assert failure is not None and "the disturbance's term" in failure
+    assert failure is not None and "under the disturbance" in failure
 
     rng = np.random.default_rng(3)
     Ts, h, N = scenario.Ts, scenario.Ts / 40, len(funnel.K)

@@ -78,7 +78,7 @@ def test_the_files_bound_is_verified_not_trusted(robust, tmp_path: Path):
     tampered.write_text(json.dumps(document))
     failures = _funnel_failures(certify_controller(gusty, tampered).failures)
     assert failures and all("funnel is not certified" in f for f in failures)
-    assert "disturbance's term" in failures[0]
+    assert "under the disturbance" in failures[0]
 
 
 def test_an_exact_model_scenario_reads_the_exact_file_unchanged(robust):

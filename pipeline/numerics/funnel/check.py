@@ -23,6 +23,7 @@ from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import Trajectory
 from pipeline.numerics.funnel.bounds import Enclosure, funnel_limits, rate_bound, substeps
 from pipeline.numerics.funnel.law import LEVEL_MARGIN, LMI_MARGIN, LawOffset
+from pipeline.numerics.funnel.robust import RobustCheck
 
 LEVEL_SLACK = 1e-4  # rho is shrunk by this relative amount so that no bound holds with equality
 # (1e-9 was too little: certify rebuilds the enclosure from the file, and its limits may be lower
@@ -91,6 +92,18 @@ def certificate_margins(
     return margins
 
 
+def effective_margins(
+    Q: FloatArray, K: FloatArray, funnel: Funnel, Ts: float, law: LawOffset
+) -> FloatArray:
+    """(N,) what must stay below ``-LMI_MARGIN`` on each interval under the shipped law: (F2)'s
+    largest eigenvalue plus the interpolated reference's term (I2); under a disturbance, twice
+    (I5)'s S-procedure eigenvalue ``r_k`` plus (I2) (``funnel.robust``). ``Q (N+1, n, n)``."""
+    if law.disturbed:
+        check = RobustCheck(Q, K, funnel.vertices, funnel.rate, Ts, funnel.rho)
+        return 2 * check.margins(law.disturbance)[0] + law.lmi_term
+    return certificate_margins(Q, K, funnel.vertices, funnel.rate, Ts).max(axis=1) + law.lmi_term
+
+
 def check_funnel(
     scenario: Scenario,
     trajectory: Trajectory,
@@ -120,19 +133,20 @@ def check_funnel(
         return f"P[{int(np.argmin(lowest))}] is not positive definite ({lowest.min():.3g})"
     Q = np.linalg.inv(P)
     Q = (Q + np.swapaxes(Q, 1, 2)) / 2
-    margins = certificate_margins(Q, K, funnel.vertices, funnel.rate, Ts)
-    effective = margins.max(axis=1) + law.total  # funnel.law (I2), (I4)
+    effective = effective_margins(Q, K, funnel, Ts, law)  # funnel.law (I2), funnel.robust (I5)
     if effective.max() >= -LMI_MARGIN:
         k = int(np.argmax(effective))
-        disturbance = (
-            f" + the disturbance's term {law.disturbance_term[k]:.3g}"
-            if law.disturbance_term[k] > 0
-            else ""
+        eigenvalue = effective[k] - law.lmi_term[k]
+        what = (
+            f"under the disturbance |w| <= {np.round(law.disturbance, 4).tolist()}, twice "
+            "the S-procedure's eigenvalue (I5)"
+            if law.disturbed
+            else "eigenvalue"
         )
         return (
-            f"(F2) fails on interval {k} (t = {Ts * k:.2f}-{Ts * (k + 1):.2f} s): eigenvalue "
-            f"{margins[k].max():.3g} + the interpolated reference's term {law.lmi_term[k]:.3g}"
-            f"{disturbance} is not below -{LMI_MARGIN:g}"
+            f"(F2) fails on interval {k} (t = {Ts * k:.2f}-{Ts * (k + 1):.2f} s): {what} "
+            f"{eigenvalue:.3g} + the interpolated reference's term {law.lmi_term[k]:.3g} is not "
+            f"below -{LMI_MARGIN:g}"
         )
     h = Ts / substeps(trajectory)
     enclosure = funnel.enclosure

@@ -52,6 +52,8 @@ same argument gives ``+ 2 ||e||_P ||w||_P`` on the boundary: ``m_k + 2 (w_k + v_
 with ``v_k = max_corners max_ends ||sigma o d||_P`` (convex in ``w`` and in ``t``, as above). Unlike
 (I2) it does not shrink with the grid: the funnel must be designed for it (``funnel.lmi``'s
 disturbance constraint), and it bounds the level from below (``rho_t > 2 (w_k + v_k) / -m_k``).
+The check uses the sharper (I5) of ``funnel.robust``, which bounds the (F2) term and the
+disturbance's together (the S-procedure) instead of each at its own worst boundary point.
 """
 
 from __future__ import annotations
@@ -81,34 +83,32 @@ class LawOffset:
       deviation: (N, n) ``Delta``, (I1): ``|x_ref - xhat| <= Delta[k]`` on interval k.
       input_offset: (N, m) ``sum_i |K[k, j, i]| Delta_i[k]``, (I3).
       lmi_term: (N,) ``2 w_k / (rho e^{-lambda t_k+1})``, (I2): added to the (F2) eigenvalue.
-      disturbance_term: (N,) ``2 v_k / (rho e^{-lambda t_k+1})``, (I4): added too (0: none).
+      disturbance: (n,) the box ``|w| <= d`` on the state derivatives the funnel must hold under
+        (``funnel.robust`` (I5)); zeros: the exact model.
     """
 
     steps: FloatArray
     deviation: FloatArray
     input_offset: FloatArray
     lmi_term: FloatArray
-    disturbance_term: FloatArray
+    disturbance: FloatArray
 
     @staticmethod
     def none(N: int, n: int, m: int, Ts: float) -> LawOffset:
         """No offset: a law that tracks the exact nominal (the synthesis's own check)."""
         return LawOffset(
             steps=np.full(N, Ts), deviation=np.zeros((N, n)), input_offset=np.zeros((N, m)),
-            lmi_term=np.zeros(N), disturbance_term=np.zeros(N),
+            lmi_term=np.zeros(N), disturbance=np.zeros(n),
         )  # fmt: skip
 
-    def with_disturbance(
-        self, P: FloatArray, rho: float, rate: float, Ts: float, bound: FloatArray
-    ) -> LawOffset:
-        """This offset with (I4) for a disturbance box ``bound (n,)`` on the state derivatives."""
-        term = disturbance_term(P, rho, rate, Ts, bound)
-        return dataclasses.replace(self, disturbance_term=term)
+    def with_disturbance(self, bound: FloatArray) -> LawOffset:
+        """This offset under a disturbance box ``bound (n,)`` on the state derivatives."""
+        return dataclasses.replace(self, disturbance=np.asarray(bound, dtype=np.float64))
 
     @property
-    def total(self) -> FloatArray:
-        """(N,) everything added to the (F2) eigenvalue: (I2) and (I4)."""
-        return self.lmi_term + self.disturbance_term
+    def disturbed(self) -> bool:
+        """Whether the funnel must hold under a disturbance (``funnel.robust`` (I5))."""
+        return bool(np.any(self.disturbance > 0))
 
 
 def corners(bound: FloatArray) -> FloatArray:
@@ -122,20 +122,6 @@ def corners(bound: FloatArray) -> FloatArray:
     out = np.zeros((2 ** (len(active) - 1), n))
     out[:, active] = signs[: len(out)] * bound[active]
     return out
-
-
-def disturbance_term(
-    P: FloatArray, rho: float, rate: float, Ts: float, bound: FloatArray
-) -> FloatArray:
-    """(N,) (I4) for metrics ``P (N+1, n, n)`` at the samples, level ``rho``, ``rate`` and the
-    disturbance box ``|w| <= bound (n,)``."""
-    w = corners(np.asarray(bound, dtype=np.float64))  # (C, n)
-    N = len(P) - 1
-    if not len(w):
-        return np.zeros(N)
-    norms = np.sqrt(np.einsum("ci,kij,cj->kc", w, P, w).max(axis=1))  # (N+1,) eq. (I4)
-    ends = np.maximum(norms[:-1], norms[1:])
-    return 2 * ends / (rho * np.exp(-rate * Ts * np.arange(1, N + 1)))
 
 
 def grid_substeps(t: FloatArray, N: int, Ts: float) -> np.ndarray | None:
@@ -191,7 +177,7 @@ def law_offset(
         lmi_term[k] = 2 * w / (rho * math.exp(-rate * Ts * (k + 1)))
     return LawOffset(
         steps=steps, deviation=deviation, input_offset=input_offset, lmi_term=lmi_term,
-        disturbance_term=np.zeros(N),
+        disturbance=np.zeros(n),
     )  # fmt: skip
 
 

@@ -8,8 +8,11 @@ Unknowns ``Q[0..N]`` (n, n symmetric), ``x = (q_0, .., q_N)``, ``q_k`` the upper
                 Acl = A_v + B_v K[k], every vertex v of interval k, e in {0, 1};           (F3)
                 Q[0] >= tau Q_init[j] (every j), tau <= 1;  Q[k] >= floor I;
                 C Q[k] C^T <= bound (caps);
-                [[Q[k], w_c], [w_c^T, gamma^2]] >= 0  (every k, every corner w_c of a
-                disturbance box, when there is one: funnel.law (I4)).
+    and under a disturbance box, (F3) joined with it by the S-procedure (funnel.robust (I5)):
+                [[-(Q[k+1] - Q[k]) / Ts_k + G_kv(Q[k+e]) + alpha Q[k+e], w_c],
+                 [w_c^T, -(alpha - eps)]] <= 0   (every vertex, end and corner w_c),
+    ``alpha`` a fixed multiplier and ``eps`` the margin in ``c = 2 lambda + eps``, so that at
+    level 1 (I5)'s ``S(alpha) <= -eps I``.
 
 ``tau`` is the fraction of the required initial set held (``w`` large: it is maximised first), so
 a program that cannot hold all of it still returns the funnel that holds the most.
@@ -53,8 +56,8 @@ class FunnelProgram:
         floor: smallest eigenvalue of each Q[k].
       caps: ``(k, C (r, n), bound (r, r))``: ``C Q[k] C^T <= bound`` (a scalar if r = 1).
       W: (N+1, n, n) objective weights; initial_weight: ``w``.
-      disturbance: (C, n) corners ``w_c`` of a disturbance box (None: none); gamma: the bound on
-        their ``||w_c||_{Q[k]^-1}`` (by the Schur complement, the constraint above).
+      disturbance: (C, n) corners ``w_c`` of a disturbance box (None: none); multiplier: the
+        S-procedure's ``alpha``; margin: ``eps`` (both only with a disturbance).
     """
 
     Ts: float | FloatArray
@@ -67,7 +70,8 @@ class FunnelProgram:
     W: FloatArray = field(repr=False)
     initial_weight: float
     disturbance: FloatArray | None = field(default=None, repr=False)
-    gamma: float = 0.0
+    multiplier: float = 0.0
+    margin: float = 0.0
 
 
 def _triangle(n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -161,34 +165,33 @@ def solve_clarabel(program: FunnelProgram) -> tuple[FloatArray, float] | str:
     triplets.append(_block(rows(N + 1, p), of(everyone), np.broadcast_to(-sE.T, (N + 1, p, p))))
     b_parts.append(np.tile(-svec(program.floor * np.eye(n)), N + 1))
     cones.extend(clarabel.PSDTriangleConeT(n) for _ in range(N + 1))
-    # [[Q[k], w], [w^T, gamma^2]] >= 0: s = svec(that) = b - A x, b its constant part.
-    if program.disturbance is not None and len(program.disturbance):
-        big = np.zeros((len(E), n + 1, n + 1))
-        big[:, :n, :n] = E
-        sB = svec(big)  # (p, (n+1)(n+2)/2)
-        for w in program.disturbance:
-            constant = np.zeros((n + 1, n + 1))
-            constant[:n, n] = constant[n, :n] = w
-            constant[n, n] = program.gamma**2
-            cone_rows = rows(N + 1, sB.shape[1])
-            triplets.append(
-                _block(cone_rows, of(everyone), np.broadcast_to(-sB.T, (N + 1, *sB.T.shape)))
-            )
-            b_parts.append(np.tile(svec(constant), N + 1))
-            cones.extend(clarabel.PSDTriangleConeT(n + 1) for _ in range(N + 1))
-    # (F3): s = -M(x), M(Q[k], Q[k+1]) = -(Q[k+1] - Q[k]) / Ts[k] + G(Q[k+e]), every vertex.
+    # (F3): s = -M(x), M(Q[k], Q[k+1]) = -(Q[k+1] - Q[k]) / Ts[k] + G(Q[k+e]), every vertex;
+    # with a disturbance, (I5): s = -[[M(x) + alpha Q[k+e], w_c], [w_c^T, -(alpha - eps)]].
     J = np.concatenate(program.vertices)  # (T, n, n+m), T = sum_k V_k
     k_of = np.repeat(np.arange(N), [len(v) for v in program.vertices])  # (T,)
     Acl = J[:, :, :n] + J[:, :, n:] @ K[k_of]  # (T, n, n)
     G = Acl[:, None] @ E[None] + E[None] @ np.swapaxes(Acl, 1, 2)[:, None] + program.c * E
+    disturbance = program.disturbance if program.disturbance is not None else np.zeros((0, n))
+    if len(disturbance):
+        G = G + program.multiplier * E
     sG = np.swapaxes(svec(G), 1, 2)  # (T, p rows, p unknowns)
     D = sE.T / Ts[k_of][:, None, None]  # (T, p, p): the unknowns of Q[k] in -dQ/dt
-    for e in (0, 1):  # A = svec(M(E_l)) on the unknowns of Q[k] and Q[k+1], b = 0
-        lmi_rows = rows(len(J), p)
-        triplets.append(_block(lmi_rows, of(k_of), D + (sG if e == 0 else 0.0)))
-        triplets.append(_block(lmi_rows, of(k_of + 1), -D + (sG if e == 1 else 0.0)))
-        cones.extend(clarabel.PSDTriangleConeT(n) for _ in range(len(J)))
-    b_parts.append(np.zeros(2 * len(J) * p))
+    # the constant part: none for (F3); the corner's column and entry for (I5) (the svec of an
+    # (n+1)-matrix starts with its leading n-block's, in the same order)
+    constants = [np.zeros(p)]
+    if len(disturbance):
+        corner = np.zeros((len(disturbance), n + 1, n + 1))
+        corner[:, :n, n] = corner[:, n, :n] = -disturbance
+        corner[:, n, n] = program.multiplier - program.margin
+        constants = list(svec(corner))
+    size, dim = len(constants[0]), n + 1 if len(disturbance) else n
+    for e in (0, 1):  # A = svec(M(E_l)) on the unknowns of Q[k] and Q[k+1]
+        for constant in constants:
+            lmi_rows = rows(len(J), size)[:, :p]
+            triplets.append(_block(lmi_rows, of(k_of), D + (sG if e == 0 else 0.0)))
+            triplets.append(_block(lmi_rows, of(k_of + 1), -D + (sG if e == 1 else 0.0)))
+            cones.extend(clarabel.PSDTriangleConeT(dim) for _ in J)
+            b_parts.append(np.tile(constant, len(J)))
     rows_, cols_, vals_ = (np.concatenate(part) for part in zip(*triplets, strict=True))
     keep = vals_ != 0.0
     A = sp.csc_matrix((vals_[keep], (rows_[keep], cols_[keep])), shape=(row, unknowns))
@@ -219,18 +222,20 @@ def solve_cvxpy(program: FunnelProgram) -> tuple[FloatArray, float] | str:
     constraints = [Q[0] - tau * Q_j >> 0 for Q_j in Q_init] + [tau <= 1]
     constraints += [Qk >> program.floor * np.eye(n) for Qk in Q]
     constraints += [bound - C @ Q[k] @ C.T >> 0 for k, C, bound in program.caps]
-    for w in program.disturbance if program.disturbance is not None else ():
-        column = w[:, None]
-        constraints += [
-            cp.bmat([[Qk, column], [column.T, np.array([[program.gamma**2]])]]) >> 0 for Qk in Q
-        ]
+    disturbance = program.disturbance if program.disturbance is not None else np.zeros((0, n))
     for k in range(N):
         D = (Q[k + 1] - Q[k]) / Ts[k]  # eq. (F1)
         for J in program.vertices[k]:
             Acl = J[:, :n] + J[:, n:] @ K[k]
             for Qe in (Q[k], Q[k + 1]):
                 M = -D + Acl @ Qe + Qe @ Acl.T + program.c * Qe  # eq. (F2)
-                constraints.append((M + M.T) / 2 << 0)  # eq. (F3)
+                if not len(disturbance):
+                    constraints.append((M + M.T) / 2 << 0)  # eq. (F3)
+                for w in disturbance:  # funnel.robust (I5)
+                    corner = np.array([[program.multiplier - program.margin]])
+                    S = cp.bmat([[(M + M.T) / 2 + program.multiplier * Qe, -w[:, None]],
+                                 [-w[None, :], -corner]])  # fmt: skip
+                    constraints.append(S << 0)
     cost = sum(cp.trace(W @ Qk) for W, Qk in zip(program.W, Q, strict=True))
     objective = cp.Minimize(cost - program.initial_weight * tau)
     problem = cp.Problem(objective, constraints)

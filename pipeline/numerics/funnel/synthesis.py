@@ -90,7 +90,7 @@ from typing import TypedDict, Unpack
 
 import numpy as np
 import shapely
-from scipy.linalg import expm
+from scipy.linalg import expm, solve_continuous_lyapunov
 
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
@@ -140,11 +140,10 @@ class _Hulls(TypedDict):
 # meets (F3) only to its tolerance, relative to the largest entries of Q) is solved again with a
 # larger margin.
 MARGINS = (1e-3, 1e-2)
-# With a disturbance (funnel.law (I4)): the (F3) margins tried (1/s), and the share of each that
-# the disturbance's term may take at the design level (the rest: the interpolated reference's
-# term and rounding).
-ROBUST_MARGINS = (0.1, 0.3, 1.0, 3.0)
-ROBUST_SHARE = 0.8
+# With a disturbance (funnel.robust (I5)): the S-procedure multipliers alpha tried (1/s), and the
+# margin eps of each, as a share of alpha (room for the interpolated reference's term (I2)).
+ROBUST_MULTIPLIERS = (0.3, 1.0, 3.0, 10.0)
+ROBUST_MARGIN = 0.05
 ROBUST_SEED = 2.0  # the hull boxes hold this multiple of the seed's disturbance extent (F5)
 # Sample intervals per LMI piece: K is held and Q = P^-1 linear in t over each piece (see HOLD in
 # the module docstring).
@@ -190,33 +189,43 @@ def _weights(scenario: Scenario, state_bounds: Mapping[str, tuple[float, float]]
     return W
 
 
-def disturbance_level(
-    scenario: Scenario, K: FloatArray, P_lqr: FloatArray, bound: FloatArray
-) -> float:
-    """The seed's level that holds the disturbance ``|w| <= bound (n,)`` (F5): with the LQR
-    seed (F4) ``V_k = e^T P_k e`` drops by ``e^T (Q_w + K_k^T R_w K_k) e >= mu_k V_k`` per
-    sample, a decay ``alpha_k = mu_k / Ts`` in continuous time; ``V' <= -alpha V + 2 sqrt(V)
-    omega_k``, ``omega_k = max ||w_c||_{P_k}`` over the corners, holds ``V <= (2 omega_k /
-    alpha_k)^2``. Returned: ``ROBUST_SEED^2`` times the largest over k. Only the hull boxes are
-    sized by it (a guess of the funnel's extent), so nothing here needs to be sound: the LMIs
-    and ``check_funnel`` decide. ``K (N, m, n)``, ``P_lqr (N+1, n, n)``."""
-    Ts = scenario.Ts
-    Qw = Ts * np.diag(scenario.feedback.state_weights)
-    Rw = Ts * np.diag(scenario.feedback.input_weights)
-    w = corners(np.asarray(bound, dtype=np.float64))
-    level = 0.0
-    for k in range(len(K)):
-        L_inv = np.linalg.inv(np.linalg.cholesky(P_lqr[k]))
-        drop = L_inv @ (Qw + K[k].T @ Rw @ K[k]) @ L_inv.T
-        alpha = float(np.linalg.eigvalsh((drop + drop.T) / 2)[0]) / Ts
-        w_max = float(np.sqrt(np.einsum("ci,ij,cj->c", w, P_lqr[k], w).max()))
-        level = max(level, (2 * w_max / max(alpha, 1e-12)) ** 2)
-    return ROBUST_SEED**2 * level
+def disturbance_seed(
+    scenario: Scenario, trajectory: Trajectory, K: FloatArray, bound: FloatArray
+) -> FloatArray | None:
+    """A guess ``(N+1, n, n)`` of the funnel that holds the disturbance ``|w| <= bound (n,)``
+    (F5): per sample ``k`` the frozen closed loop ``Acl = f_x + f_u K[k]`` at the nominal, and
+    the invariant ellipsoid of ``e' = Acl e + w`` for ``w w^T <= E E^T``, ``E = sqrt(r)
+    diag(bound)`` over the ``r`` disturbed states (an ellipsoid holding the box): for a decay
+    ``a`` in ``(0, 2 sigma)``, ``sigma`` the loop's slowest decay, the solution of ``(Acl + a/2
+    I) Q + Q (Acl + a/2 I)^T + E E^T / a = 0`` (Boyd et al., LMIs in System and Control Theory,
+    section 6.1.3), the ``a`` with the least position trace kept, times ``ROBUST_SEED^2``. Only
+    the hull boxes are sized by it, so nothing here needs to be sound: the LMIs and
+    ``check_funnel`` decide. None where a frozen loop is not stable. ``K (N, m, n)``."""
+    n, N = scenario.n, len(K)
+    acting = np.flatnonzero(bound > 0)
+    E = np.zeros((n, len(acting)))
+    E[acting, np.arange(len(acting))] = np.sqrt(len(acting)) * bound[acting]
+    A = scenario.dynamics.f_x(trajectory.xs[:-1], trajectory.us)
+    B = scenario.dynamics.f_u(trajectory.xs[:-1], trajectory.us)
+    position = list(scenario.position_index)
+    Q = np.empty((N + 1, n, n))
+    for k in range(N):
+        Acl = A[k] + B[k] @ K[k]
+        sigma = -float(np.linalg.eigvals(Acl).real.max())
+        if not sigma > 0:
+            return None
+        candidates = [
+            solve_continuous_lyapunov(Acl + a / 2 * np.eye(n), -E @ E.T / a)
+            for a in np.geomspace(0.02, 1.98, 25) * sigma
+        ]
+        Q[k] = min(candidates, key=lambda S: np.trace(S[np.ix_(position, position)]))
+    Q[N] = Q[N - 1]
+    return ROBUST_SEED**2 * (Q + np.swapaxes(Q, 1, 2)) / 2
 
 
 def _program(
     scenario, trajectory, K, vertices, boxes, variables, enclosure, Q_init, Q_seed, c, bounds,
-    disturbance=None, gamma=0.0, terminal=None,
+    disturbance=None, multiplier=0.0, margin=0.0, terminal=None,
 ):  # fmt: skip
     """(F3) on the LMI pieces ``bounds`` (unknowns: ``Q`` at the piece ends), with the initial set
     and the tube at level 1 inside every hull box, clear of Unsafe (a disk bound) and inside Goal
@@ -268,7 +277,8 @@ def _program(
         W=W,
         initial_weight=100 * float(np.einsum("kij,kji->", W, Q_seed[bounds])),
         disturbance=None if disturbance is None else corners(disturbance),
-        gamma=gamma,
+        multiplier=multiplier,
+        margin=margin,
     )
 
 
@@ -312,10 +322,11 @@ def synthesize_funnel(
       allowance: the hull boxes are the nominal's enclosure widened by this times the seed tube.
       segments: pieces per angle-like block of the local hulls.
       disturbance: (n,) ``d``: the funnel must hold for ``xdot = f(x, u) + w`` with any
-        ``|w_i| <= d_i`` (``funnel.law`` (I4)). (F3) is then imposed with each margin ``eps`` of
-        ``ROBUST_MARGINS`` and ``||w_c||_{Q^-1} <= ROBUST_SHARE eps / 2`` at every corner ``w_c``
-        (``funnel.lmi``), so that the disturbance's term uses ``ROBUST_SHARE`` of ``eps`` at the
-        design level; the funnel with the highest checked level is kept.
+        ``|w_i| <= d_i`` (``funnel.robust`` (I5)). (F3) is then joined with each corner ``w_c``
+        by the S-procedure (``funnel.lmi``) for each multiplier ``alpha`` of
+        ``ROBUST_MULTIPLIERS`` with margin ``eps = ROBUST_MARGIN alpha``; the hull boxes hold the
+        seed's disturbance extent (F5, ``disturbance_seed``); the funnel with the highest
+        checked level is kept.
       terminal: the terminal ellipsoid ``E(T)`` must lie in (``terminal.fit.TerminalTarget``,
         e.g. from ``terminal.hold_design``): (T2) on ``Q`` at ``T`` in the program, and the exact
         containment level as a limit on rho (``terminal``; sound whatever the solver returned)
@@ -367,11 +378,12 @@ def synthesize_funnel(
             f"{scenario.n}) or (p, {scenario.n}, {scenario.n}) with p >= 1"
         )
     L_inv = np.linalg.inv(np.linalg.cholesky(Q_seed[0]))
-    # Q_seed[0] >= every Q_init[j]; under a disturbance, the seed's level that holds it (F5)
+    # Q_seed[0] >= every Q_init[j]; under a disturbance, plus the extent that holds it (F5)
     seed_level = np.linalg.eigvalsh(L_inv @ Q_init @ L_inv.T)[:, -1].max()
-    if robust is not None:
-        seed_level = max(seed_level, disturbance_level(scenario, K, P_lqr, robust))
     Q_seed = Q_seed * seed_level
+    guess = None if robust is None else disturbance_seed(scenario, trajectory, K, robust)
+    if guess is not None:
+        Q_seed = Q_seed + guess  # holds both the initial set and the disturbance's extent
 
     def result(success: bool, message: str, **values: Unpack[_Parts]) -> Funnel:
         defaults: _Parts = {
@@ -398,12 +410,16 @@ def synthesize_funnel(
         }  # fmt: skip
         failures: list[str] = []
         best: tuple[Funnel, float, str, float] | None = None
-        for margin in MARGINS if robust is None else ROBUST_MARGINS:
+        tries = (
+            [(margin, 0.0) for margin in MARGINS]
+            if robust is None
+            else [(ROBUST_MARGIN * alpha, alpha) for alpha in ROBUST_MULTIPLIERS]
+        )
+        for margin, multiplier in tries:
             # a solution within the solver's tolerance may fail the check: the next margin
-            gamma = 0.0 if robust is None else ROBUST_SHARE * margin / 2
             program = _program(
                 scenario, trajectory, K, vertices, boxes, variables, enclosure, Q_init, Q_seed,
-                2 * rate + margin, bounds, robust, gamma, terminal,
+                2 * rate + margin, bounds, robust, multiplier, margin, terminal,
             )  # fmt: skip
             solution = solve_clarabel(program)
             failure: str | None
@@ -437,7 +453,7 @@ def synthesize_funnel(
             )  # fmt: skip
             law = LawOffset.none(N, scenario.n, scenario.m, scenario.Ts)
             if robust is not None:
-                law = law.with_disturbance(funnel.P, rho, rate, scenario.Ts, robust)
+                law = law.with_disturbance(robust)
             failure = check_funnel(scenario, trajectory, funnel, state_bounds, law)
             if terminal is not None and not failure:
                 failure = _outside(terminal, xs[-1], funnel, trajectory.dense_ts[-1])

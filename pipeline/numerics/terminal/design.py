@@ -34,6 +34,12 @@ as well as above (inputs, Goal, the hull's decay). ``b`` holds only where ``(x, 
 for the states without ``state_bounds``. With ``b = 0`` (T1') is (T1), and every check and level
 is exactly the exact model's.
 
+(T1''). (T1') bounds the decay and the disturbance's push at their own worst boundary points.
+Where it fails, the S-procedure of ``pipeline.numerics.funnel.robust`` (I5) bounds them together:
+``E_c`` with constant ``Q = P_T^-1`` is a funnel of one interval (``Q' = 0``), the hull's vertices
+held, the residual added to the box (``|r + w| <= |r| + b`` entrywise); ``V' < 0`` on its boundary
+when (I5)'s eigenvalue is below ``-LMI_MARGIN`` (continuous feedback only: a held law keeps (T1')).
+
 End tubes: ``pipeline.numerics.terminal.fit`` (the exact containment level, and the funnel's LMI).
 """
 
@@ -51,7 +57,8 @@ from shapely.ops import polylabel
 
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
-from pipeline.numerics.funnel.law import corners
+from pipeline.numerics.funnel.law import LMI_MARGIN, corners
+from pipeline.numerics.funnel.robust import RobustCheck
 from pipeline.numerics.hull import DEFAULT_SEGMENTS, HullError, jacobian_hull
 from pipeline.numerics.terminal.fit import containing_level as containing_level
 from pipeline.numerics.terminal.fit import end_levels
@@ -271,10 +278,13 @@ def check_level(
         )
     others = len(failures)
     floor = bool(vertices) and decay > 0 and not decay * r > 2 * (residual_norm + w_max)  # (T1')
+    if floor and len(w) and period == 0:  # (T1''): the S-procedure may hold where (T1') does not
+        floor = not joint_margin(P, K, hull.A, hull.B, r, b + np.abs(residual)) < -LMI_MARGIN
     if floor:
         failures.append(
             f"V does not decrease on the boundary of E_c (decay {decay:.3g}/s x radius {r:.3g} "
-            f"<= 2 (residual {residual_norm:.2g} + disturbance {w_max:.3g}) in P_T-norm)"
+            f"<= 2 (residual {residual_norm:.2g} + disturbance {w_max:.3g}) in P_T-norm, and "
+            "the S-procedure (T1'') does not hold either)"
         )
     return TerminalCheck(
         level=float(level),
@@ -287,6 +297,18 @@ def check_level(
         disturbance=w_max,
         below_floor=floor and not others,
     )
+
+
+def joint_margin(
+    P: FloatArray, K: FloatArray, A: FloatArray, B: FloatArray, radius: float, bound: FloatArray
+) -> float:
+    """Twice (T1'')'s eigenvalue: ``funnel.robust`` (I5) for the constant metric ``P (n, n)``,
+    gain ``K (m, n)``, hull ``A (V, n, n)``, ``B (V, n, m)``, at ``radius`` and the box ``|w| <=
+    bound (n,)``. Negative: ``V' < 0`` on ``V = radius^2`` for every hull point and ``w``."""
+    Q = np.linalg.inv(P)
+    Q = np.stack([(Q + Q.T) / 2] * 2)  # one interval, Q constant (its derivative is 0)
+    check = RobustCheck(Q, K[None], (np.concatenate([A, B], axis=2),), 0.0, 1.0, radius)
+    return 2 * float(check.margins(bound)[0][0])
 
 
 def decay_rate(P: FloatArray, K: FloatArray, A: FloatArray, B: FloatArray) -> float:

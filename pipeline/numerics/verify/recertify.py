@@ -52,7 +52,8 @@ from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import Trajectory, simulate, simulate_graded
 from pipeline.numerics.funnel.bounds import funnel_limits, tube_extents
-from pipeline.numerics.funnel.check import Funnel, certificate_margins, check_funnel
+from pipeline.numerics.funnel.check import Funnel, check_funnel, effective_margins
+from pipeline.numerics.funnel.robust import RobustCheck
 from pipeline.numerics.funnel.law import (
     BASE_SUBSTEPS,
     LEVEL_MARGIN,
@@ -243,7 +244,7 @@ def _under_law(
     if np.any(law.input_offset > allowance):
         raise HullError("the interpolated reference's input offset (I3) outgrew its hull box")
     if disturbance is not None:
-        law = law.with_disturbance(shipped.P, shipped.rho, shipped.rate, scenario.Ts, disturbance)
+        law = law.with_disturbance(disturbance)
     return funnel, law
 
 
@@ -274,7 +275,6 @@ def recheck_funnel(
             failures.append(f"{segments} segment(s): {error}")
             continue
         failure = check_funnel(scenario, trajectory, funnel, state_bounds, law)
-        margins = certificate_margins(Q, K, funnel.vertices, shipped.rate, scenario.Ts)
         enclosure = funnel.enclosure
         if enclosure is None:  # _under_law raises first; narrows the type
             raise HullError("no a priori enclosure of the nominal")
@@ -284,11 +284,11 @@ def recheck_funnel(
         binding = min(limits, key=lambda key: limits[key][0])
         last = FunnelRecheck(
             failure=failure,
-            margin=float((margins.max(axis=1) + law.total).max()),
+            margin=float(effective_margins(Q, K, funnel, scenario.Ts, law).max()),
             vertices=sum(len(v) for v in funnel.vertices),
             radius=limits[binding][0],
             binding=binding,
-            disturbance_multiple=disturbance_multiple(margins.max(axis=1), law),
+            disturbance_multiple=disturbance_multiple(Q, K, funnel, scenario.Ts, law),
         )
         if failure is None:
             return last
@@ -296,17 +296,13 @@ def recheck_funnel(
     return dataclasses.replace(last, failure="; ".join(failures))
 
 
-def disturbance_multiple(margins: FloatArray, law: LawOffset) -> float:
-    """The largest ``s`` with ``margins + lmi_term + s disturbance_term < -LMI_MARGIN`` on every
-    interval (``margins (N,)``: the (F2) eigenvalues; the terms of ``law``, (I2) and (I4)),
-    shrunk by ``1e-9`` relative so that the bound itself is not on the edge; ``inf`` when no
-    interval has a disturbance term."""
-    term = law.disturbance_term
-    room = -LMI_MARGIN - margins - law.lmi_term
-    active = term > 0
-    if not np.any(active):
-        return float("inf")
-    return float(max((room[active] / term[active]).min(), 0.0) * (1 - 1e-9))
+def disturbance_multiple(
+    Q: FloatArray, K: FloatArray, funnel: Funnel, Ts: float, law: LawOffset
+) -> float:
+    """The largest ``s`` for which ``funnel`` (``Q (N+1, n, n)``) still holds under ``s`` times
+    the law's disturbance box with its (I2) term (``funnel.robust`` (I5)); ``inf`` without one."""
+    check = RobustCheck(Q, K, funnel.vertices, funnel.rate, Ts, funnel.rho)
+    return check.multiple(law.disturbance, law.lmi_term)
 
 
 def reference_substeps(
@@ -332,16 +328,16 @@ def reference_substeps(
         except (HullError, np.linalg.LinAlgError):
             continue
         exact = LawOffset.none(len(K), scenario.n, scenario.m, scenario.Ts)
-        robust = dataclasses.replace(exact, disturbance_term=law.disturbance_term)  # (I4) alone
+        robust = exact.with_disturbance(law.disturbance)  # (I5) without the law's term
         if check_funnel(scenario, trajectory, funnel, state_bounds, robust) is not None:
             continue
-        margins = certificate_margins(Q, K, funnel.vertices, shipped.rate, scenario.Ts)
+        margins = effective_margins(Q, K, funnel, scenario.Ts, robust)
         _, g, _ = tube_extents(Q, K, scenario.position_index)
         room = (
             np.minimum(trajectory.us - scenario.input_lower, scenario.input_upper - trajectory.us)
             - shipped.rho * g
         )
-        return law_substeps(law, margins.max(axis=1) + law.disturbance_term, room, scenario.Ts)
+        return law_substeps(law, margins, room, scenario.Ts)
     return base
 
 

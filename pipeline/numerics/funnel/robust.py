@@ -1,0 +1,158 @@
+"""A funnel's invariance under a bounded disturbance, by the S-procedure (I5).
+
+Problem. ``x' = f(x, u) + w`` with any measurable ``|w_i| <= d_i`` (a box, ``d (n,)``). On
+interval ``k`` the funnel's error obeys ``e' = Acl e + w`` with ``Acl = A + B K[k]``, ``[A B]`` in
+the hull ``conv{[A_v B_v]}`` (``funnel.law`` (I2)), and with ``Q(t) = P(t)^-1`` linear on the
+interval, ``V = e^T P e`` and the (F2) operator ``L = -Q' + Acl Q + Q Acl^T + 2 lambda Q``:
+
+    d/dt (V e^{2 lambda t}) e^{-2 lambda t} = e^T P L P e + 2 e^T P w.
+
+The funnel is invariant when this is negative on its boundary ``V = rho_t^2``. (I4) bounds the two
+terms apart (``L <= m Q`` and Cauchy-Schwarz): their maxima are at different boundary points, and
+on a slow quadrotor loop that costs a factor of 2-4 in the disturbance a funnel holds. Here they
+are bounded together. With ``Q = Lc Lc^T``, ``e = rho Lc z`` (``|z| = 1`` on the boundary),
+``Mhat = Lc^-1 L Lc^-T`` and ``a = Lc^-1 w / rho``, the rate is ``rho^2 (z^T Mhat z + 2 z^T a)``.
+For any multiplier ``alpha >= 0`` and ``|z| = 1`` (the S-procedure: Boyd et al., LMIs in System and
+Control Theory, section 2.6.3; lossless for one quadratic constraint),
+
+    z^T Mhat z + 2 z^T a = [z; 1]^T S(alpha) [z; 1],   S(alpha) = [[Mhat + alpha I, a], [a^T, -alpha]],
+
+so ``lambda_max(S(alpha)) <= -mu`` gives a rate at most ``-2 mu rho^2`` (``|[z; 1]|^2 = 2``). Over
+the interval: ``S`` scaled back, ``N(t) = [[L + alpha Q, w], [w^T, -alpha rho^2]]``, is affine in
+``t`` (``Q`` linear, ``K`` and the vertex held) and in ``[A B]`` and ``w`` for a fixed ``alpha``,
+and ``N + mu diag(Q, rho^2) <= 0`` is that eigenvalue bound; so with one ``alpha`` per interval it
+holds on the whole interval, for every hull point and every ``w`` in the box once it holds at both
+ends, every vertex and every corner (``w`` and ``-w`` give congruent ``S``: one of each pair).
+``rho`` is taken at the interval's end, where ``rho_t`` is smallest: with ``alpha >= mu`` the
+corner entry ``-(alpha - mu) rho^2`` is then no more negative than the true one, and on ``V =
+rho_t^2 >= rho^2`` the rate is still at most ``-2 mu rho_t^2``. The shipped law's offset (I2) adds
+``2 rho_t w_k``, so the funnel holds under it when
+
+    2 r_k + lmi_term_k < 0,   r_k = min_alpha max_{v, ends, corners} lambda_max(S(alpha)),       (I5)
+
+``lmi_term_k = 2 w_k / rho`` as in (I2) (and ``LMI_MARGIN`` below zero on top). ``r_k`` is convex
+in ``alpha`` (a maximum of largest eigenvalues of matrices affine in it); ``robust_margins``
+minimises it by golden-section search, but soundness does not depend on finding the minimum: the
+eigenvalues are evaluated, with numpy, at the ``alpha`` returned. Without a disturbance ``S`` is
+block diagonal and ``r_k = m_k / 2`` at ``alpha = -m_k / 2``: (I5) is (F2)'s own check.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline.model.dynamics import FloatArray
+from pipeline.numerics.funnel.law import LMI_MARGIN, corners
+
+GOLDEN_STEPS = 40  # golden-section steps on alpha: the bracket shrinks by 0.618^40 ~ 4e-9
+MULTIPLE_STEPS = 14  # bisection steps on the reported disturbance multiple (2^-14 of its bracket)
+
+
+def _blocks(
+    Q: FloatArray, K: FloatArray, vertices: tuple[FloatArray, ...], rate: float, Ts: float
+) -> tuple[FloatArray, FloatArray, np.ndarray]:
+    """``Mhat`` (R, n, n) for every (interval, vertex, end), the inverse factors ``Lc^-1`` (N, 2,
+    n, n) at each interval's ends, and the interval of each row (R,)."""
+    n, N = Q.shape[1], len(K)
+    L_inv = np.linalg.inv(np.linalg.cholesky(Q))  # (N+1, n, n)
+    rows, owner = [], []
+    for k in range(N):
+        D = (Q[k + 1] - Q[k]) / Ts  # eq. (F1)
+        Acl = vertices[k][:, :, :n] + vertices[k][:, :, n:] @ K[k]  # (V, n, n)
+        for e in (k, k + 1):
+            M = -D + Acl @ Q[e] + Q[e] @ np.swapaxes(Acl, 1, 2) + 2 * rate * Q[e]  # eq. (F2)
+            M = L_inv[e] @ M @ L_inv[e].T
+            rows.append((M + np.swapaxes(M, 1, 2)) / 2)
+            owner.append(np.full(len(M), k))
+    ends = np.stack([L_inv[:-1], L_inv[1:]], axis=1)
+    return np.concatenate(rows), ends, np.concatenate(owner)
+
+
+class RobustCheck:
+    """(I5) for one funnel: ``Q (N+1, n, n)``, held gains ``K (N, m, n)``, hull ``vertices`` (N
+    arrays (V, n, n+m)), ``rate``, sample time ``Ts`` and level ``rho``; ``margins(bound)`` per
+    interval for any disturbance box, ``multiple`` the largest scale of one that still holds."""
+
+    def __init__(
+        self,
+        Q: FloatArray,
+        K: FloatArray,
+        vertices: tuple[FloatArray, ...],
+        rate: float,
+        Ts: float,
+        rho: float,
+    ) -> None:
+        self.M, self.L_inv, self.owner = _blocks(Q, K, vertices, rate, Ts)
+        N, n = len(K), Q.shape[1]
+        self.N, self.n = N, n
+        # the end of each row (rows go interval by interval: all vertices at one end, then the
+        # other), for its factor Lc^-1 and rho at the interval's end
+        sizes = np.array([len(v) for v in vertices])
+        self.end = np.concatenate([np.repeat([0, 1], V) for V in sizes])
+        self.rho_end = rho * np.exp(-rate * Ts * np.arange(1, N + 1))  # (N,)
+
+    def _largest(self, alpha: FloatArray, a: FloatArray) -> FloatArray:
+        """(N,) the largest eigenvalue of ``S(alpha_k)`` over each interval's rows and corners;
+        ``alpha (N,)``, ``a (R, C, n)`` the scaled corners of each row."""
+        R, C, n = a.shape
+        S = np.zeros((R, C, n + 1, n + 1))
+        al = alpha[self.owner][:, None]  # (R, 1)
+        S[:, :, :n, :n] = self.M[:, None] + al[..., None, None] * np.eye(n)
+        S[:, :, :n, n] = S[:, :, n, :n] = a
+        S[:, :, n, n] = -al
+        top = np.linalg.eigvalsh(S)[..., -1].max(axis=1)  # (R,)
+        out = np.full(self.N, -np.inf)
+        np.maximum.at(out, self.owner, top)
+        return out
+
+    def _scaled(self, bound: FloatArray) -> FloatArray:
+        """(R, C, n) ``a = Lc^-1 w_c / rho_end`` for the corners ``w_c`` of ``|w| <= bound``."""
+        w = corners(np.asarray(bound, dtype=np.float64))
+        if not len(w):
+            w = np.zeros((1, self.n))
+        factor = self.L_inv[self.owner, self.end]  # (R, n, n)
+        return np.einsum("rij,cj->rci", factor, w) / self.rho_end[self.owner][:, None, None]
+
+    def margins(self, bound: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """``(r (N,), alpha (N,))``: (I5)'s ``r_k`` at the multiplier found for each interval."""
+        a = self._scaled(bound)
+        ratio = (np.sqrt(5.0) - 1) / 2
+        # past this the eigenvalue of S grows with alpha (Mhat + alpha I dominates)
+        top = 4 * (np.abs(self.M).max(initial=0.0) + np.abs(a).max(initial=0.0)) + 1.0
+        low, high = np.zeros(self.N), np.full(self.N, top)
+        c, d = high - ratio * (high - low), low + ratio * (high - low)
+        fc, fd = self._largest(c, a), self._largest(d, a)
+        for _ in range(GOLDEN_STEPS):  # golden section on each interval's convex r_k(alpha)
+            left = fc <= fd  # the minimum lies in [low, d]: drop (d, high]; else drop [low, c)
+            high, low = np.where(left, d, high), np.where(left, low, c)
+            probe = np.where(left, high - ratio * (high - low), low + ratio * (high - low))
+            value = self._largest(probe, a)
+            c, d, fc, fd = (
+                np.where(left, probe, d), np.where(left, c, probe),
+                np.where(left, value, fd), np.where(left, fc, value),
+            )  # fmt: skip
+        alpha = np.where(fc <= fd, c, d)
+        return self._largest(alpha, a), alpha
+
+    def multiple(self, bound: FloatArray, lmi_term: FloatArray) -> float:
+        """The largest ``s`` with ``2 r_k(s bound) + lmi_term_k < -LMI_MARGIN`` on every interval,
+        by bisection (``r_k`` is convex in ``s``: the set where it holds is an interval from 0),
+        shrunk so that the bound itself is not on the edge; ``inf`` without a disturbance."""
+        bound = np.asarray(bound, dtype=np.float64)
+        if not np.any(bound > 0):
+            return float("inf")
+
+        def holds(s: float) -> bool:
+            return bool(np.all(2 * self.margins(s * bound)[0] + lmi_term < -LMI_MARGIN))
+
+        if not holds(0.0):
+            return 0.0
+        low, high = 0.0, 1.0
+        while holds(high):
+            low, high = high, 2 * high
+            if high > 1e6:
+                return float("inf")
+        for _ in range(MULTIPLE_STEPS):
+            middle = (low + high) / 2
+            low, high = (middle, high) if holds(middle) else (low, middle)
+        return low * (1 - 1e-9)
