@@ -15,7 +15,8 @@ are bounded together. With ``Q = Lc Lc^T``, ``e = rho Lc z`` (``|z| = 1`` on the
 For any multiplier ``alpha >= 0`` and ``|z| = 1`` (the S-procedure: Boyd et al., LMIs in System and
 Control Theory, section 2.6.3; lossless for one quadratic constraint),
 
-    z^T Mhat z + 2 z^T a = [z; 1]^T S(alpha) [z; 1],   S(alpha) = [[Mhat + alpha I, a], [a^T, -alpha]],
+    z^T Mhat z + 2 z^T a = [z; 1]^T S(alpha) [z; 1],
+    S(alpha) = [[Mhat + alpha I, a], [a^T, -alpha]],
 
 so ``lambda_max(S(alpha)) <= -mu`` gives a rate at most ``-2 mu rho^2`` (``|[z; 1]|^2 = 2``). Over
 the interval: ``S`` scaled back, ``N(t) = [[L + alpha Q, w], [w^T, -alpha rho^2]]``, is affine in
@@ -28,7 +29,7 @@ corner entry ``-(alpha - mu) rho^2`` is then no more negative than the true one,
 rho_t^2 >= rho^2`` the rate is still at most ``-2 mu rho_t^2``. The shipped law's offset (I2) adds
 ``2 rho_t w_k``, so the funnel holds under it when
 
-    2 r_k + lmi_term_k < 0,   r_k = min_alpha max_{v, ends, corners} lambda_max(S(alpha)),       (I5)
+    2 r_k + lmi_term_k < 0,  r_k = min_alpha max_{v, ends, corners} lambda_max(S(alpha)),   (I5)
 
 ``lmi_term_k = 2 w_k / rho`` as in (I2) (and ``LMI_MARGIN`` below zero on top). ``r_k`` is convex
 in ``alpha`` (a maximum of largest eigenvalues of matrices affine in it); ``robust_margins``

@@ -53,17 +53,16 @@ from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import Trajectory, simulate, simulate_graded
 from pipeline.numerics.funnel.bounds import funnel_limits, tube_extents
 from pipeline.numerics.funnel.check import Funnel, check_funnel, effective_margins
-from pipeline.numerics.funnel.robust import RobustCheck
 from pipeline.numerics.funnel.law import (
     BASE_SUBSTEPS,
     LEVEL_MARGIN,
-    LMI_MARGIN,
     LawOffset,
     grid_substeps,
     law_offset,
     law_substeps,
 )
 from pipeline.numerics.funnel.pieces import piece_hulls
+from pipeline.numerics.funnel.robust import RobustCheck
 from pipeline.numerics.hull import HullError
 from pipeline.numerics.terminal.design import check_level
 from pipeline.numerics.terminal.fit import end_levels
