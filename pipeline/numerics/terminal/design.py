@@ -305,8 +305,8 @@ def joint_margin(
     """Twice (T1'')'s eigenvalue: ``funnel.robust`` (I5) for the constant metric ``P (n, n)``,
     gain ``K (m, n)``, hull ``A (V, n, n)``, ``B (V, n, m)``, at ``radius`` and the box ``|w| <=
     bound (n,)``. Negative: ``V' < 0`` on ``V = radius^2`` for every hull point and ``w``."""
-    Q = np.linalg.inv(P)
-    Q = np.stack([(Q + Q.T) / 2] * 2).astype(np.float64)  # one interval, Q constant (its derivative is 0)
+    inverse = np.linalg.inv(P)
+    Q: FloatArray = np.stack([(inverse + inverse.T) / 2] * 2)  # one interval, Q' = 0
     check = RobustCheck(Q, K[None], (np.concatenate([A, B], axis=2),), 0.0, 1.0, radius)
     return 2 * float(check.margins(bound)[0][0])
 
