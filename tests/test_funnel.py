@@ -90,6 +90,10 @@ def test_lqr_seed_converges_to_stationary_lqr() -> None:
     np.testing.assert_allclose(P[0], S, rtol=1e-6)
     np.testing.assert_allclose(K[0], K_stationary, rtol=1e-6)
     assert np.abs(K[-1] - K_stationary).max() > 1e-2  # the terminal end has not converged
+    # ending at rest with the stationary cost-to-go: the gains hold to the end
+    K_end, P_end = lqr_seed(scenario, trajectory, stationary_end=True)
+    np.testing.assert_allclose(P_end[-1], S, rtol=1e-6)
+    np.testing.assert_allclose(K_end[-1], K_stationary, rtol=1e-6)
 
 
 def test_double_integrator_funnel_is_exact(double_integrator) -> None:

@@ -71,3 +71,23 @@ def test_a_gusty_hold_run_arrives_and_stays_and_four_times_the_gust_is_refused(t
     refused = certify_controller(stronger, tmp_path / "out" / "controller.json")
     assert not refused.success
     assert any("uncertainty: the file holds |w_vx| <= 0.02" in f for f in refused.failures)
+
+
+def test_the_reserve_keeps_the_nominal_off_its_bounds():
+    """Under a declared disturbance a hold run's first optimization keeps at least the terminal
+    set's extents (``Targets.reserve``) from every input bound and every bound of the region:
+    the larger of the tube's margin and the reserve, per name; none without a reserve."""
+    from pipeline.numerics.optimize.footprint import ConstraintMargins
+    from stages.certificates import Targets
+
+    scenario = load_scenario("quadrotor_hill_hold", check_demos=False)
+    margins = ConstraintMargins(
+        input_margin=np.array([0.2, 0.2]), region_margin={"theta": 0.05, "u1": 0.3},
+        gain=np.zeros((2, 6)), state_extent={"theta": 0.02},
+    )  # fmt: skip
+    assert Targets(scenario=scenario).margins(margins) == margins
+    reserve = {"u1": 1.0, "theta": 0.1, "X": 0.7}
+    kept = Targets(scenario=scenario, reserve=reserve).margins(margins)
+    assert kept.input_margin.tolist() == [1.0, 0.2]
+    assert kept.region_margin == {"theta": 0.1, "u1": 1.0}  # X: not in the operating region
+    assert kept.state_extent == {"theta": 0.1}  # X: not in state_bounds

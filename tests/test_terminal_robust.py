@@ -27,6 +27,7 @@ from pipeline.numerics.terminal.design import (
     lqr_terminal,
 )
 from pipeline.numerics.terminal.fit import TerminalTarget, containing_level
+from pipeline.numerics.terminal.robust import robust_metric
 from pipeline.numerics.uncertainty import additive_bound
 
 BETA = 0.05
@@ -313,3 +314,29 @@ def test_a_tampered_robust_terminal_block_is_refused(scenario, shipped, tmp_path
     result = certify_controller(scenario, tampered)
     assert not result.success
     assert any(message in failure for failure in result.failures if "terminal" in failure)
+
+
+def test_the_shaped_metric_is_the_smaller_certified_set(scenario):
+    """(T3): for the same LQR gain, the metric shaped for the gust certifies (T1'') at level 1,
+    about the smallest set the gust leaves, and that set's position extent is below the smallest
+    the Riccati metric certifies (its floor's); hold_design keeps it and says so."""
+    x_eq, u_eq = equilibrium(scenario)
+    b = additive_bound(scenario)
+    K, P_riccati = lqr_terminal(scenario, x_eq, u_eq)
+    P = robust_metric(scenario, x_eq, u_eq, K, b)
+    assert P is not None
+    assert check_level(scenario, x_eq, u_eq, K, P, 1.001, disturbance=b).success
+    assert not check_level(scenario, x_eq, u_eq, K, P, 0.5, disturbance=b).success
+
+    def position_extent(metric, level):
+        return float(np.sqrt(level * np.linalg.inv(metric)[0, 0]))
+
+    lo, hi = 1e-6, largest_level(scenario, x_eq, u_eq, K, P_riccati, disturbance=b).level
+    for _ in range(40):  # the Riccati metric's smallest certified level
+        mid = (lo + hi) / 2
+        ok = check_level(scenario, x_eq, u_eq, K, P_riccati, mid, disturbance=b).success
+        lo, hi = (lo, mid) if ok else (mid, hi)
+    assert position_extent(P, 1.0) < position_extent(P_riccati, hi)
+    design = hold_design(scenario, b)
+    assert design.shaped and np.array_equal(design.P, P)
+    assert not hold_design(scenario).shaped  # the exact model keeps the Riccati metric

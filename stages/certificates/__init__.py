@@ -19,8 +19,9 @@ other); it does so through a ``pipeline.results.stage.Runner``, so that each is 
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+import dataclasses
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Protocol
 
@@ -54,15 +55,34 @@ class Targets:
         they must end in; None: none yet (one is designed for the ends at emission).
       core: the states whose end bound is the nominal's own: the constant tube's extent does
         not shrink it (the funnels, which certify the end, must end inside ``terminal``).
+      reserve: state or input name -> the room the nominal keeps from its bounds (at least),
+        under a declared disturbance: what the funnels' feedback needs to reject it.
     """
 
     scenario: Scenario
     terminal: TerminalDesign | None = None
     core: tuple[str, ...] = ()
+    reserve: Mapping[str, float] = field(default_factory=dict)
 
     def margins(self, margins: ConstraintMargins) -> ConstraintMargins:
-        """``margins`` without the tube's extent at ``T`` along the ``core`` states."""
-        return end_unshrunk(self.scenario, margins, self.core)
+        """``margins`` without the tube's extent at ``T`` along the ``core`` states, and at least
+        ``reserve`` from every input bound and every bound of the region the nominal stays in."""
+        margins = end_unshrunk(self.scenario, margins, self.core)
+        if not self.reserve:
+            return margins
+        names = self.scenario.input_names
+        inputs = np.array([self.reserve.get(name, 0.0) for name in names])
+
+        def widened(extents: Mapping[str, float], names: Iterable[str]) -> dict[str, float]:
+            keys = set(extents) | (set(self.reserve) & set(names))
+            return {k: max(extents.get(k, 0.0), self.reserve.get(k, 0.0)) for k in sorted(keys)}
+
+        return dataclasses.replace(
+            margins,
+            input_margin=np.maximum(margins.input_margin, inputs),
+            region_margin=widened(margins.region_margin, self.scenario.operating_region),
+            state_extent=widened(margins.state_extent, self.scenario.state_bounds),
+        )
 
 
 @dataclass(frozen=True, kw_only=True)

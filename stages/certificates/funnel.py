@@ -18,6 +18,7 @@ import dataclasses
 import logging
 import math
 from collections.abc import Callable, Sequence
+from types import MappingProxyType
 
 import numpy as np
 
@@ -117,7 +118,25 @@ def hold_targets(scenario: Scenario, period: float = 0.0, core: float = CORE) ->
         scenario=dataclasses.replace(scenario, goal_bounds=bounds),
         terminal=design,
         core=tuple(scenario.state_names),
+        reserve=MappingProxyType(reserve_of(scenario, design)),
     )
+
+
+RESERVE = 2.0  # the reserve is this multiple of the terminal set's extents
+
+
+def reserve_of(scenario: Scenario, design: TerminalDesign) -> dict[str, float]:
+    """Name -> the half-width of the terminal law's states and inputs over ``{e^T P_T e <= 1}``
+    when ``P_T`` is shaped for a declared disturbance (``TerminalDesign.shaped``): about the
+    smallest set the disturbance leaves, so the room the funnels' feedback needs about any
+    nominal (their gains are of the same LQR weights). Empty otherwise."""
+    if not design.shaped:
+        return {}
+    Q = RESERVE**2 * np.linalg.inv(design.P)
+    states = np.sqrt(np.diag(Q))
+    inputs = np.sqrt(np.einsum("ji,il,jl->j", design.K, Q, design.K))
+    names = (*scenario.state_names, *scenario.input_names)
+    return dict(zip(names, map(float, np.concatenate([states, inputs])), strict=True))
 
 
 @dataclasses.dataclass(frozen=True)

@@ -90,7 +90,7 @@ from typing import TypedDict, Unpack
 
 import numpy as np
 import shapely
-from scipy.linalg import expm, solve_continuous_lyapunov
+from scipy.linalg import expm, solve_continuous_lyapunov, solve_discrete_are
 
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
@@ -150,9 +150,15 @@ ROBUST_SEED = 2.0  # the hull boxes hold this multiple of the seed's disturbance
 HOLD = 2
 
 
-def lqr_seed(scenario: Scenario, trajectory: Trajectory) -> tuple[FloatArray, FloatArray]:
+def lqr_seed(
+    scenario: Scenario, trajectory: Trajectory, stationary_end: bool = False
+) -> tuple[FloatArray, FloatArray]:
     """Time-varying LQR along the nominal: ``K (N, m, n)`` (sign of ``u = u_ref + K e``) and the
-    cost-to-go ``P (N+1, n, n)``, terminal ``P[N] = Ts diag(state_weights)``."""
+    cost-to-go ``P (N+1, n, n)``, terminal ``P[N] = Ts diag(state_weights)``; with
+    ``stationary_end`` the stationary cost-to-go at the end (the discrete Riccati equation of the
+    last sample's linearisation: a nominal ending at rest hands over to the terminal LQR law, and
+    its gains do not fade towards T as they do with the small terminal cost, which under a
+    disturbance left the end too wide for the terminal ellipsoid)."""
     dynamics, Ts = scenario.dynamics, scenario.Ts
     xs, us = trajectory.xs, trajectory.us
     n, m, N = scenario.n, scenario.m, us.shape[0]
@@ -166,6 +172,11 @@ def lqr_seed(scenario: Scenario, trajectory: Trajectory) -> tuple[FloatArray, Fl
     P = np.empty((N + 1, n, n))
     K = np.empty((N, m, n))
     P[N] = Qw
+    if stationary_end:
+        try:
+            P[N] = solve_discrete_are(Ad[-1], Bd[-1], Qw, Rw)
+        except (ValueError, np.linalg.LinAlgError):
+            pass  # not stabilisable at the end: the plain terminal cost
     for k in range(N - 1, -1, -1):  # eq. (F4): discrete Riccati recursion
         A, B, S = Ad[k], Bd[k], P[k + 1]
         K[k] = -np.linalg.solve(Rw + B.T @ S @ B, B.T @ S @ A)
@@ -360,7 +371,9 @@ def synthesize_funnel(
             f"funnel: the nominal ends at {np.round(xs[-1], 3).tolist()}, outside the terminal "
             f"ellipsoid ({terminal.share(xs[-1]):.3g} of its radius from its centre)"
         )
-    K, P_lqr = lqr_seed(scenario, trajectory)
+    K, P_lqr = lqr_seed(
+        scenario, trajectory, stationary_end=robust is not None and terminal is not None
+    )
     N = len(K)
     bounds = pieces(N, HOLD)
     K = K[np.repeat(bounds[:-1], np.diff(bounds))]  # each piece holds its first gain

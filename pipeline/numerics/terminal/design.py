@@ -62,6 +62,7 @@ from pipeline.numerics.funnel.robust import RobustCheck
 from pipeline.numerics.hull import DEFAULT_SEGMENTS, HullError, jacobian_hull
 from pipeline.numerics.terminal.fit import containing_level as containing_level
 from pipeline.numerics.terminal.fit import end_levels
+from pipeline.numerics.terminal.robust import robust_metric
 from pipeline.numerics.tube.contraction import contraction_rate
 from pipeline.numerics.tube.geometry import Tube
 from pipeline.numerics.tube.sampled import held_rate
@@ -374,6 +375,8 @@ class TerminalDesign:
       x_eq: (n,); u_eq: (m,); K: (m, n); P: (n, n); check: its certified level and decay.
       gain: "lqr" (``control.lqr`` at the equilibrium) or "tube" (the tube's ``K`` and ``P``).
       fit: ``sqrt(max_i c_i / level)``: the largest end tube's share of the ellipsoid (<= 1).
+      shaped: ``P`` is (T3)'s metric for a declared disturbance (``terminal.robust``), designed
+        at level 1: ``{e^T P e <= 1}`` is about the smallest set the disturbance leaves.
     """
 
     x_eq: FloatArray
@@ -383,6 +386,7 @@ class TerminalDesign:
     check: TerminalCheck
     gain: str
     fit: float
+    shaped: bool = False
 
 
 def design_terminal(
@@ -451,7 +455,17 @@ def hold_design(
     x_eq, u_eq = equilibrium(scenario)
     K_T, P_T = lqr_terminal(scenario, x_eq, u_eq)
     check = largest_level(scenario, x_eq, u_eq, K_T, P_T, period, disturbance)
+    metric = None
+    if disturbance is not None and np.any(np.asarray(disturbance) > 0) and period == 0:
+        metric = robust_metric(scenario, x_eq, u_eq, K_T, np.asarray(disturbance))  # (T3)
+    shaped = False
+    if metric is not None:
+        robust = largest_level(scenario, x_eq, u_eq, K_T, metric, period, disturbance)
+        if robust.success:  # shaped for the disturbance: kept whenever it certifies
+            P_T, check, shaped = metric, robust, True
     if not check.success:
         where = np.round(x_eq, 3).tolist()
         raise TerminalError(f"lqr gain at {where}: " + "; ".join(check.failures))
-    return TerminalDesign(x_eq=x_eq, u_eq=u_eq, K=K_T, P=P_T, check=check, gain="lqr", fit=0.0)
+    return TerminalDesign(
+        x_eq=x_eq, u_eq=u_eq, K=K_T, P=P_T, check=check, gain="lqr", fit=0.0, shaped=shaped
+    )
