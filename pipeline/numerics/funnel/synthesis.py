@@ -236,12 +236,15 @@ def disturbance_seed(
 
 def _program(
     scenario, trajectory, K, vertices, boxes, variables, enclosure, Q_init, Q_seed, c, bounds,
-    disturbance=None, multiplier=0.0, margin=0.0, terminal=None,
+    disturbance=None, multiplier=0.0, margin=0.0, terminal=None, state_bounds=None,
 ):  # fmt: skip
     """(F3) on the LMI pieces ``bounds`` (unknowns: ``Q`` at the piece ends), with the initial set
     and the tube at level 1 inside every hull box, clear of Unsafe (a disk bound) and inside Goal
     (``funnel.lmi``). On a piece ``Q`` is linear and ``K`` held, so the tube's extents are largest
-    at its ends (E3): the caps there hold on every sample interval of the piece."""
+    at its ends (E3): the caps there hold on every sample interval of the piece. Under a
+    ``disturbance`` every input bound and ``state_bounds`` entry is capped too: the level of a
+    robust funnel cannot shrink below the design's to fit a bound the program did not see
+    ((I5)'s disturbance term grows as the level shrinks)."""
     n, us, final_state = scenario.n, trajectory.us, trajectory.dense_xs[-1]
     S = len(bounds) - 1
     clearance = interval_clearance(scenario, trajectory, enclosure)
@@ -261,6 +264,24 @@ def _program(
                     (enclosure.range[a:b, 0, i] - lo).min(), (hi - enclosure.range[a:b, 1, i]).min()
                 )
             caps += [(e, C, np.full((1, 1), max(room, 0.0) ** 2)) for e in (j, j + 1)]
+        if disturbance is not None:  # under a disturbance the level cannot shrink to fit
+            for i, name in enumerate(scenario.input_names):  # the input bounds, every input
+                if name in variables:
+                    continue  # capped by its hull box above
+                lower, upper = scenario.input_lower[i], scenario.input_upper[i]
+                room = min((us[a:b, i] - lower).min(), (upper - us[a:b, i]).min())
+                C = K[a, i : i + 1]
+                caps += [(e, C, np.full((1, 1), max(room, 0.0) ** 2)) for e in (j, j + 1)]
+            for name, (lower, upper) in (state_bounds or {}).items():  # and the state bounds
+                if name in variables:
+                    continue
+                i = scenario.state_names.index(name)
+                room = min(
+                    (enclosure.range[a:b, 0, i] - lower).min(),
+                    (upper - enclosure.range[a:b, 1, i]).min(),
+                )
+                C = np.eye(n)[i : i + 1]
+                caps += [(e, C, np.full((1, 1), max(room, 0.0) ** 2)) for e in (j, j + 1)]
         # The position disk of the tube at level 1 clear of Unsafe (funnel.bounds (a)).
         d = clearance[a:b].min()
         if np.isfinite(d):
@@ -432,7 +453,7 @@ def synthesize_funnel(
             # a solution within the solver's tolerance may fail the check: the next margin
             program = _program(
                 scenario, trajectory, K, vertices, boxes, variables, enclosure, Q_init, Q_seed,
-                2 * rate + margin, bounds, robust, multiplier, margin, terminal,
+                2 * rate + margin, bounds, robust, multiplier, margin, terminal, state_bounds,
             )  # fmt: skip
             solution = solve_clarabel(program)
             failure: str | None
