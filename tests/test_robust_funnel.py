@@ -221,3 +221,17 @@ def test_the_robust_funnel_holds_between_samples_at_random_hull_points_and_gusts
     rng = np.random.default_rng(7)
     assert _worst_boundary_rate(scenario, robust, bound, rng) < 0
     assert _worst_boundary_rate(scenario, exact, bound, rng) > 0
+
+
+def test_a_robust_funnel_is_capped_by_every_input_bound():
+    """The double integrator's inputs enter linearly (no hull variable, no hull box): with its
+    input bounds 0.07 beyond the nominal's peak inputs, the robust funnel is shaped to them in
+    the program (its level cannot shrink to fit them under the disturbance): the design binds,
+    every input limit leaves room. (Before the caps its level was bound by 'uy' at 0.95.)"""
+    scenario, trajectory, initial = double_integrator_case()
+    peak = np.abs(trajectory.us).max(axis=0)
+    tight = dataclasses.replace(scenario, input_lower=-(peak + 0.07), input_upper=peak + 0.07)
+    robust = synthesize_funnel(tight, trajectory, initial=initial, disturbance=DISTURBANCE)
+    assert robust.success, robust.message
+    inputs = [v for k, v in robust.limits.items() if k.startswith("input")]
+    assert robust.binding == "design" and min(inputs) > robust.rho
