@@ -175,15 +175,18 @@ def certificate_claims(
     coverage = evidence.coverage.message
     if evidence.certificate == "funnel":
         reasons = "".join(f"; {line}" for line in dropped)
+        declared = declared_bound_text(evidence.scenario)
+        under = f" under the declared uncertainty ({declared})" if declared else ""
+        joint = ", joined with the disturbance's push by the S-procedure (I5)" if declared else ""
         return (
             Claim(
                 claim=f"each of the {len(check.radii)} shipped funnels is invariant under the law "
                 "as shipped: no flight that starts in E_i(0) leaves E_i(t) = {||x - x_ref_i(t)||_"
-                "P_i(t) <= rho_i} before T_i (the law tracks x_ref interpolated; its error is in "
-                "the proof)",
+                f"P_i(t) <= rho_i}} before T_i{under} (the law tracks x_ref interpolated; its "
+                "error is in the proof)",
                 kind=contraction,
                 how="the funnel's LMIs (F3: V = e^T P_i(t) e decreases at the rate, in Q = P^-1 "
-                "form) at every vertex of a sound Jacobian hull of each interval's tube, "
+                f"form{joint}) at every vertex of a sound Jacobian hull of each interval's tube, "
                 "at both ends of every interval, solved by Clarabel; re-verified on "
                 "controller.json as written with the interpolated reference's bounded term "
                 f"(largest eigenvalue plus term {check.contraction_margin:.2e} < "
