@@ -125,6 +125,20 @@ def test_pilot_refuses_a_scenario_without_configuration(tmp_path: Path) -> None:
         regenerate_demos(yaml_path)
 
 
+def test_a_field_after_the_demos_block_is_not_dropped(tmp_path: Path) -> None:
+    """make demos rewrites ``demos:`` to the end of the file: a field after it would be lost,
+    so the run stops first (exit 2 through the CLI), naming the line, and changes nothing."""
+    copy = tmp_path / "quadrotor_hill"
+    shutil.copytree(SHIPPED, copy)
+    yaml_path = copy / "scenario.yaml"
+    text = yaml_path.read_text() + "uncertainty:\n  disturbance: {vX: 0.05}\n"
+    yaml_path.write_text(text)
+    line = text.count("\n") - 1
+    with pytest.raises(UserError, match=f"line {line} follows the 'demos:' block.*'uncertainty:'"):
+        regenerate_demos(yaml_path)
+    assert yaml_path.read_text() == text
+
+
 def test_cli_demos_unknown_scenario(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["demos", "nope"]) == 2
     error = capsys.readouterr().err

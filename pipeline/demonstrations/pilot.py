@@ -325,6 +325,16 @@ def regenerate_demos(scenario_name: str | Path) -> list[Demo]:
             file=path,
             expected="a line starting with 'demos:' (the last field of the file)",
         )
+    after = re.search(r"^[^\s#-]", text[block.end() :], flags=re.MULTILINE)
+    if after is not None:  # rewriting the block would drop it
+        line = text[: block.end() + after.start()].count("\n") + 1
+        found = text[block.end() + after.start() :].split("\n", 1)[0]
+        raise UserError(
+            f"line {line} follows the 'demos:' block, which make demos rewrites to the end",
+            file=path,
+            found=found,
+            expected="'demos:' as the last field of the file (move the field above it)",
+        )
     kept = _other_demo_entries(text[block.start() :])
     demos, entries = [], []
     for seed, x0 in enumerate(start_states(scenario, config), start=1):
