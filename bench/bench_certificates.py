@@ -24,7 +24,9 @@ from bench.bench_optimize import ipopt_minimum_time
 from bench.uncertified import uncertified_constraints
 
 TARGETS = {"quadrotor_hill": 1.10, "quadrotor_hill_gusty": 1.25}
-REST_TARGETS = {"quadrotor_hill_hold": 1.15}  # against T_rest: the flight ends in a hover
+# against T_rest: the flight ends in a hover (quadrotor_hill_robust: the issue's 1.15, asked of
+# quadrotor_hill under a larger declared uncertainty)
+REST_TARGETS = {"quadrotor_hill_hold": 1.15, "quadrotor_hill_robust": 1.15}
 CERTIFICATES = ("constant", "funnel")
 SAMPLES = 1000
 
@@ -40,8 +42,10 @@ def _synthesize(name: str, certificate: str, root: Path) -> tuple[pipeline.Synth
 def compare(name: str) -> None:
     """The table above for scenario ``name``."""
     scenario = pipeline.load_scenario(name)
+    # the constant certificate refuses a declared uncertainty (exit 2)
+    certificates = CERTIFICATES if scenario.uncertainty.empty else ("funnel",)
     with tempfile.TemporaryDirectory() as folder:
-        runs = {c: _synthesize(name, c, Path(folder)) for c in CERTIFICATES}
+        runs = {c: _synthesize(name, c, Path(folder)) for c in certificates}
     for certificate, (result, seconds) in runs.items():
         summary = result.summary
         coverage = np.nan if summary is None else 100 * summary.headline.coverage_after
