@@ -60,7 +60,8 @@ continuous feedback: a ``/2`` file with ``feedback_period > 0`` is not certified
 Declared uncertainty (the scenario's ``uncertainty:``). The funnels are re-checked for ``x' =
 f(x, u) + w``, ``|w| <= b``, with ``b`` derived here from the scenario's declaration
 (``pipeline.numerics.uncertainty`` (U1)) and raised to the file's ``uncertainty.additive_bound``
-where that is larger: (F2) must keep its margin with the term (I4) added (``funnel.law``). A
+where that is larger: (F2) joined with the disturbance by the S-procedure must keep its margin
+(``pipeline.numerics.funnel.robust`` (I5)). A
 file that holds less than the scenario declares, or a ``/1`` file for a scenario that declares
 any uncertainty, is not certified.
 """

@@ -9,7 +9,7 @@ every state starting in
 stays in the tube ``E_i(t)`` around the nominal, clear of Unsafe, inside the input bounds and
 the scenario's ``state_bounds``, and ends in Goal; for every disturbance and parameter the
 scenario declares (``uncertainty:``, held as one additive bound, ``pipeline.numerics.uncertainty``
-(U1), by the funnel's (I4)). Each funnel is asked to hold its start's
+(U1), by the funnel's (I5)). Each funnel is asked to hold its start's
 cell of Init (``pipeline.numerics.funnel.cells``: Init cut into equal boxes, each given to the start
 nearest its centre in the constant certificate's metric ``P``; funnel ``i`` must hold the corners
 of the hull of its boxes), so that the funnels together hold Init when every level reaches 1.

@@ -30,7 +30,7 @@ class CertificationResult(Result):
         terminal_fit: the largest end tube's share of the ellipsoid's radius (<= 1 to fit).
       contraction_bound: what ``contraction_margin`` must be below (``contraction_bound``).
       disturbance_multiple: under a declared uncertainty, the largest multiple of its additive
-        bound that every funnel still holds (the (F2) condition, (I4) scaled; the terminal block
+        bound that every funnel still holds ((I5) of ``funnel.robust``; the terminal block
         is checked at the bound itself); nan without a declaration.
       failures: one line per failed check; empty when the file is certified.
     """

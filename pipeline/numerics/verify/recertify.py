@@ -166,9 +166,9 @@ class FunnelRecheck:
         vertices at both ends of every interval (< 0 for a certificate); vertices: hull vertices
         over all intervals; radius: the largest level the constraints allow (>= rho to pass);
         binding: the constraint that sets it; disturbance_multiple: the largest ``s`` for which
-        the (F2) condition still holds with ``s`` times the disturbance checked, (I4) being
-        linear in it and nothing else depending on it (``inf`` without a disturbance; below 1
-        when the funnel does not hold the one checked).
+        (I5) still holds with ``s`` times the disturbance checked (``funnel.robust``: found by
+        bisection, nothing else depends on it; ``inf`` without a disturbance; below 1 when the
+        funnel does not hold the one checked).
     """
 
     failure: str | None
@@ -221,8 +221,8 @@ def _under_law(
 ) -> tuple[Funnel, LawOffset]:
     """Steps 1-3: the funnel rebuilt with its input boxes widened by ``OFFSET_ALLOWANCE`` times the
     law's input offset (I3) found on hulls without it, and the law's offset on the hulls so built
-    for a reference grid of ``substeps (N,)`` per sample, with (I4) for the additive bound
-    ``disturbance (n,)`` when given.
+    for a reference grid of ``substeps (N,)`` per sample, under the additive bound ``disturbance
+    (n,)`` when given ((I5)).
 
     Raises:
       HullError: no hull or enclosure, or the offset outgrew the widening.
@@ -259,8 +259,8 @@ def recheck_funnel(
     """Steps 1-4 of the module docstring for one ``shipped`` funnel around the nominal
     ``trajectory`` (a uniform RK4 grid), its law tracking the reference on a grid of ``substeps
     (N,)`` per sample, for ``x' = f(x, u) + w`` with ``|w| <= disturbance (n,)`` when given
-    (``pipeline.numerics.uncertainty``; (I4)). The margin reported is (F2)'s eigenvalue plus (I2)
-    and (I4)."""
+    (``pipeline.numerics.uncertainty``; (I5)). The margin reported is (F2)'s eigenvalue plus (I2),
+    or under a disturbance twice (I5)'s plus (I2) (``funnel.check.effective_margins``)."""
     K, Q = shipped.K, shipped.Q
     failures: list[str] = []
     last = FunnelRecheck(failure="", margin=float("nan"), vertices=0, radius=0.0, binding="")
@@ -314,7 +314,7 @@ def reference_substeps(
     """(N,) RK4 steps per sample on which to ship a funnel's reference so that the law's offset
     fits what (F2) and the inputs leave (``funnel.law.law_substeps``), from the first hull of
     ``SEGMENTS`` on which the funnel holds for the exact nominal (and the additive bound
-    ``disturbance (n,)``, whose term (I4) takes its share of (F2) first); ``BASE_SUBSTEPS``
+    ``disturbance (n,)``, which takes its share of (F2) first, (I5)); ``BASE_SUBSTEPS``
     everywhere when none does (it will not be certified). ``trajectory``: the nominal on a
     uniform grid."""
     K, Q = shipped.K, shipped.Q
