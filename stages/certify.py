@@ -82,6 +82,7 @@ from pipeline.numerics.tube.contraction import contraction_margin, contraction_r
 from pipeline.numerics.tube.geometry import Tube
 from pipeline.numerics.tube.radius import radius_limits
 from pipeline.numerics.tube.sampled import held_rate
+from pipeline.numerics.uncertainty import held_state_bounds
 from pipeline.numerics.verify.cover import DEFAULT_DEPTH, subdivide
 from pipeline.numerics.verify.nominal import VERIFY_SUBSTEPS
 from pipeline.numerics.verify.recertify import (
@@ -250,7 +251,7 @@ def _funnels(
             continue
         shipped = ShippedFunnel(K=tr.K, P=tr.P, rho=tr.radius, rate=tr.rate)
         check = recheck_funnel(
-            scenario, reference.nominal, shipped, scenario.state_bounds, reference.substeps,
+            scenario, reference.nominal, shipped, held_state_bounds(scenario), reference.substeps,
             centre_error=reference.integration * tr.radius, disturbance=disturbance,
         )  # fmt: skip
         margin, vertices = max(margin, check.margin), vertices + check.vertices

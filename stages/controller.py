@@ -43,7 +43,7 @@ from pipeline.numerics.funnel.check import Funnel
 from pipeline.numerics.funnel.law import BASE_SUBSTEPS
 from pipeline.numerics.terminal.design import TerminalDesign, TerminalError, design_terminal
 from pipeline.numerics.terminal.fit import end_levels
-from pipeline.numerics.uncertainty import declared_bound
+from pipeline.numerics.uncertainty import declared_bound, held_state_bounds
 from pipeline.numerics.verify.recertify import ShippedFunnel, reference_substeps
 from pipeline.results.controller import ControllerResult as ControllerResult
 from pipeline.results.stage import Stage, StageInputs
@@ -313,7 +313,7 @@ def emit_funnel_controller(
                 scenario,
                 nominal,
                 ShippedFunnel(K=funnel.K, P=funnel.P, rho=funnel.rho, rate=funnel.rate),
-                scenario.state_bounds,
+                held_state_bounds(scenario),
                 disturbance,
             ),
         )

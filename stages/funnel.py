@@ -49,7 +49,7 @@ from pipeline.numerics.funnel.check import Funnel, check_funnel
 from pipeline.numerics.funnel.law import LawOffset
 from pipeline.numerics.funnel.synthesis import synthesize_funnel
 from pipeline.numerics.terminal.fit import TerminalTarget
-from pipeline.numerics.uncertainty import declared_bound
+from pipeline.numerics.uncertainty import declared_bound, held_state_bounds
 from pipeline.numerics.verify.recertify import ShippedFunnel, recheck_as_shipped
 from pipeline.results.funnel import FunnelStageResult as FunnelStageResult
 from pipeline.results.stage import Stage, StageInputs
@@ -143,7 +143,7 @@ def _funnel_in_worker(task: _Task) -> tuple[Funnel, str | None]:
             f"({terminal.share(end):.3g} of its radius from its centre)"
         )
         return _ends_outside(scenario, task.trajectory, why), why
-    bounds = dict(scenario.state_bounds)
+    bounds = held_state_bounds(scenario)
     funnel = synthesize_funnel(
         scenario, task.trajectory, state_bounds=bounds, initial=task.initial, rate=task.rate,
         disturbance=task.disturbance, terminal=terminal,

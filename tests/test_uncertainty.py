@@ -111,3 +111,18 @@ def test_the_constant_certificate_refuses_a_declaration(tmp_path: Path) -> None:
     with pytest.raises(UserError, match="uncertainty: declared.*expected certificate: funnel"):
         pipeline.synthesize(scenario, out=out, certificate="constant")
     assert not out.exists()
+
+
+def test_a_robust_funnel_keeps_its_tube_where_the_bound_holds():
+    """The additive bound holds over ``certified_box`` only: under a declared uncertainty a
+    state the operating region bounds (and state_bounds does not) joins the funnel's state
+    bounds; without one, the scenario's state_bounds alone."""
+    from pipeline.model.uncertainty import Uncertainty
+    from pipeline.numerics.uncertainty import held_state_bounds
+
+    scenario = load_scenario("quadrotor_hill_robust", check_demos=False)
+    assert held_state_bounds(scenario) == {"theta": (-0.8, 0.8)}
+    unbounded = dataclasses.replace(scenario, state_bounds={})
+    assert held_state_bounds(unbounded) == {"theta": (-0.6, 0.6)}  # the operating region's
+    exact = dataclasses.replace(unbounded, uncertainty=Uncertainty.exact(scenario.n))
+    assert held_state_bounds(exact) == {}

@@ -53,6 +53,16 @@ def certified_box(scenario: Scenario) -> dict[str, tuple[float, float]]:
     return box
 
 
+def held_state_bounds(scenario: Scenario) -> dict[str, tuple[float, float]]:
+    """State name -> the interval a funnel keeps its tube in: the scenario's ``state_bounds``,
+    and under a declared uncertainty also the operating region of the states without bounds
+    (``certified_box``'s states: the additive bound (U1) holds only there)."""
+    if scenario.uncertainty.empty:
+        return dict(scenario.state_bounds)
+    box = certified_box(scenario)
+    return {name: box[name] for name in scenario.state_names if name in box}
+
+
 def parameter_bound(uncertainty: Uncertainty, box: Mapping[str, tuple[float, float]]) -> FloatArray:
     """(n,) the bound (U1) on ``|f(x, u, p) - f(x, u, p0)|`` over ``box`` (variable name ->
     interval) and the declared parameter intervals; zeros without uncertain parameters."""

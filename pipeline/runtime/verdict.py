@@ -178,6 +178,7 @@ def certificate_claims(
         declared = declared_bound_text(evidence.scenario)
         under = f" under the declared uncertainty ({declared})" if declared else ""
         joint = ", joined with the disturbance's push by the S-procedure (I5)" if declared else ""
+        eigenvalue = "twice the S-procedure's eigenvalue" if declared else "largest eigenvalue"
         return (
             Claim(
                 claim=f"each of the {len(check.radii)} shipped funnels is invariant under the law "
@@ -189,7 +190,7 @@ def certificate_claims(
                 f"form{joint}) at every vertex of a sound Jacobian hull of each interval's tube, "
                 "at both ends of every interval, solved by Clarabel; re-verified on "
                 "controller.json as written with the interpolated reference's bounded term "
-                f"(largest eigenvalue plus term {check.contraction_margin:.2e} < "
+                f"({eigenvalue} plus term {check.contraction_margin:.2e} < "
                 f"{check.contraction_bound:.0e}){reasons}",
             ),
             Claim(

@@ -163,7 +163,8 @@ class FunnelRecheck:
 
     Attributes:
       failure: what fails (None: certified); margin: the largest eigenvalue of (F2) over the
-        vertices at both ends of every interval (< 0 for a certificate); vertices: hull vertices
+        vertices at both ends of every interval, or under a disturbance twice (I5)'s, plus the
+        law's term (I2) (< 0 for a certificate); vertices: hull vertices
         over all intervals; radius: the largest level the constraints allow (>= rho to pass);
         binding: the constraint that sets it; disturbance_multiple: the largest ``s`` for which
         (I5) still holds with ``s`` times the disturbance checked (``funnel.robust``: found by
