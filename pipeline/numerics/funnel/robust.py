@@ -41,12 +41,38 @@ block diagonal and ``r_k = m_k / 2`` at ``alpha = -m_k / 2``: (I5) is (F2)'s own
 from __future__ import annotations
 
 import numpy as np
+from scipy.linalg import solve_continuous_lyapunov
 
 from pipeline.model.dynamics import FloatArray
 from pipeline.numerics.funnel.law import LMI_MARGIN, corners
 
 GOLDEN_STEPS = 40  # golden-section steps on alpha: the bracket shrinks by 0.618^40 ~ 4e-9
 MULTIPLE_STEPS = 14  # bisection steps on the reported disturbance multiple (2^-14 of its bracket)
+
+
+def invariant_ellipsoid(
+    Acl: FloatArray, bound: FloatArray, weight: FloatArray
+) -> FloatArray | None:
+    """A guess ``(n, n)`` of the smallest invariant ellipsoid of ``e' = Acl e + w``, ``|w| <=
+    bound (n,)`` (``Acl (n, n)``): for ``w w^T <= E E^T``, ``E = sqrt(r) diag(bound)`` over the
+    ``r`` disturbed states (an ellipsoid holding the box) and a decay ``a`` in ``(0, 2 sigma)``,
+    ``sigma`` the loop's slowest decay, the solution of ``(Acl + a/2 I) Q + Q (Acl + a/2 I)^T +
+    E E^T / a = 0`` (Boyd et al., LMIs in System and Control Theory, section 6.1.3), the ``a``
+    with the least ``tr(weight Q)`` kept. None when ``Acl`` is not stable. A guess, to size
+    boxes: nothing that uses it relies on it for soundness."""
+    n = len(Acl)
+    acting = np.flatnonzero(bound > 0)
+    E = np.zeros((n, len(acting)))
+    E[acting, np.arange(len(acting))] = np.sqrt(len(acting)) * bound[acting]
+    sigma = -float(np.linalg.eigvals(Acl).real.max())
+    if not sigma > 0:
+        return None
+    candidates = [
+        solve_continuous_lyapunov(Acl + a / 2 * np.eye(n), -E @ E.T / a)
+        for a in np.geomspace(0.02, 1.98, 25) * sigma
+    ]
+    best = min(candidates, key=lambda Q: float(np.trace(weight @ Q)))
+    return ((best + best.T) / 2).astype(np.float64)
 
 
 def _blocks(

@@ -90,7 +90,7 @@ from typing import TypedDict, Unpack
 
 import numpy as np
 import shapely
-from scipy.linalg import expm, solve_continuous_lyapunov, solve_discrete_are
+from scipy.linalg import expm, solve_discrete_are
 
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
@@ -109,6 +109,7 @@ from pipeline.numerics.funnel.check import (
 from pipeline.numerics.funnel.law import LawOffset, corners
 from pipeline.numerics.funnel.lmi import FunnelProgram, solve_clarabel
 from pipeline.numerics.funnel.pieces import interpolate, piece_hulls, pieces
+from pipeline.numerics.funnel.robust import invariant_ellipsoid
 from pipeline.numerics.hull import HullError, arc_variables
 from pipeline.numerics.terminal.fit import TerminalTarget, containing_level
 
@@ -204,34 +205,24 @@ def disturbance_seed(
     scenario: Scenario, trajectory: Trajectory, K: FloatArray, bound: FloatArray
 ) -> FloatArray | None:
     """A guess ``(N+1, n, n)`` of the funnel that holds the disturbance ``|w| <= bound (n,)``
-    (F5): per sample ``k`` the frozen closed loop ``Acl = f_x + f_u K[k]`` at the nominal, and
-    the invariant ellipsoid of ``e' = Acl e + w`` for ``w w^T <= E E^T``, ``E = sqrt(r)
-    diag(bound)`` over the ``r`` disturbed states (an ellipsoid holding the box): for a decay
-    ``a`` in ``(0, 2 sigma)``, ``sigma`` the loop's slowest decay, the solution of ``(Acl + a/2
-    I) Q + Q (Acl + a/2 I)^T + E E^T / a = 0`` (Boyd et al., LMIs in System and Control Theory,
-    section 6.1.3), the ``a`` with the least position trace kept, times ``ROBUST_SEED^2``. Only
-    the hull boxes are sized by it, so nothing here needs to be sound: the LMIs and
-    ``check_funnel`` decide. None where a frozen loop is not stable. ``K (N, m, n)``."""
+    (F5): per sample ``k`` the invariant ellipsoid of the frozen closed loop ``Acl = f_x + f_u
+    K[k]`` at the nominal (``funnel.robust.invariant_ellipsoid``, least position extent), times
+    ``ROBUST_SEED^2``. Only the hull boxes are sized by it, so nothing here needs to be sound:
+    the LMIs and ``check_funnel`` decide. None where a frozen loop is not stable. ``K (N, m,
+    n)``."""
     n, N = scenario.n, len(K)
-    acting = np.flatnonzero(bound > 0)
-    E = np.zeros((n, len(acting)))
-    E[acting, np.arange(len(acting))] = np.sqrt(len(acting)) * bound[acting]
     A = scenario.dynamics.f_x(trajectory.xs[:-1], trajectory.us)
     B = scenario.dynamics.f_u(trajectory.xs[:-1], trajectory.us)
-    position = list(scenario.position_index)
+    position = np.zeros((n, n))
+    position[scenario.position_index, scenario.position_index] = 1.0
     Q = np.empty((N + 1, n, n))
     for k in range(N):
-        Acl = A[k] + B[k] @ K[k]
-        sigma = -float(np.linalg.eigvals(Acl).real.max())
-        if not sigma > 0:
+        guess = invariant_ellipsoid(A[k] + B[k] @ K[k], bound, position)
+        if guess is None:
             return None
-        candidates = [
-            solve_continuous_lyapunov(Acl + a / 2 * np.eye(n), -E @ E.T / a)
-            for a in np.geomspace(0.02, 1.98, 25) * sigma
-        ]
-        Q[k] = min(candidates, key=lambda S: np.trace(S[np.ix_(position, position)]))
+        Q[k] = guess
     Q[N] = Q[N - 1]
-    return ROBUST_SEED**2 * (Q + np.swapaxes(Q, 1, 2)) / 2
+    return ROBUST_SEED**2 * Q
 
 
 def _program(

@@ -25,34 +25,16 @@ import warnings
 import cvxpy as cp
 import numpy as np
 import shapely
-from scipy.linalg import solve_continuous_lyapunov
 
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
 from pipeline.numerics.funnel.law import corners
+from pipeline.numerics.funnel.robust import invariant_ellipsoid
 from pipeline.numerics.hull import DEFAULT_SEGMENTS, HullError, jacobian_hull
 
 ALPHAS = (0.3, 0.6, 1.0, 1.5, 2.5, 4.0)  # the multipliers tried (1/s)
 MARGIN = 0.05  # eps, as a share of alpha
 SEED = 2.0  # the hull's box holds this multiple of the guessed ellipsoid's extents
-
-
-def _guess(A: FloatArray, B: FloatArray, K: FloatArray, bound: FloatArray) -> FloatArray | None:
-    """(n, n) the frozen loop's invariant ellipsoid for ``w w^T <= E E^T`` (``funnel.synthesis``
-    (F5)), the decay with the smallest trace; None when ``A + B K`` is not stable."""
-    n = len(A)
-    acting = np.flatnonzero(bound > 0)
-    E = np.zeros((n, len(acting)))
-    E[acting, np.arange(len(acting))] = np.sqrt(len(acting)) * bound[acting]
-    Acl = A + B @ K
-    sigma = -float(np.linalg.eigvals(Acl).real.max())
-    if not sigma > 0:
-        return None
-    candidates = [
-        solve_continuous_lyapunov(Acl + a / 2 * np.eye(n), -E @ E.T / a)
-        for a in np.geomspace(0.02, 1.98, 25) * sigma
-    ]
-    return min(candidates, key=np.trace)
 
 
 def robust_metric(
@@ -67,7 +49,9 @@ def robust_metric(
     (m,))`` and the additive bound ``bound (n,)``; None when no multiplier gives one."""
     dynamics = scenario.dynamics
     A0, B0 = dynamics.f_x(x_eq, u_eq), dynamics.f_u(x_eq, u_eq)
-    guess = _guess(A0, B0, K, np.asarray(bound, dtype=np.float64))
+    guess = invariant_ellipsoid(
+        A0 + B0 @ K, np.asarray(bound, dtype=np.float64), np.eye(scenario.n)
+    )
     if guess is None:
         return None
     n = scenario.n
