@@ -29,13 +29,18 @@ from io import StringIO
 from pathlib import Path
 
 import pytest
+import scipy.linalg  # noqa: F401  (loads SciPy's OpenBLAS before the limit below)
 from threadpoolctl import threadpool_limits
 
 import pipeline
 from pipeline.runtime.synthesis import Synthesis
 
 # single-threaded BLAS, as in the pipeline's runs: the stage functions tests call directly
-# multiply small matrices, where OpenBLAS's threads cost more than they save
+# multiply small matrices, where OpenBLAS's threads cost more than they save. threadpoolctl
+# limits the libraries loaded when it is called: SciPy's own OpenBLAS (L-BFGS-B's, scipy.libs)
+# is loaded first (imported after the limit, it kept 2 threads: its L-BFGS-B steps took ~2.5 ms
+# instead of ~5 us on a busy machine, 16 s of CPU instead of 5 s for the stage conformance
+# module's fixture)
 threadpool_limits(limits=1, user_api="blas")
 
 E2E_SAMPLES = 1000  # quadrotor_hill: the end-to-end tests reuse its run
