@@ -96,7 +96,7 @@ def _named(index: np.ndarray, count: int) -> np.ndarray:
     ``0 .. count - 1``."""
     if index.size and not np.issubdtype(index.dtype, np.integer):
         raise IndexError(f"trajectory indices must be integers, found dtype {index.dtype}")
-    named = np.unique(index)
+    named = index.reshape(1) if index.ndim == 0 else np.unique(index)  # one: a law call
     if len(named) and (named[0] < 0 or named[-1] >= count):
         bad = named[-1] if named[-1] >= count else named[0]
         raise IndexError(f"trajectory index {bad} out of range: the file has {count} (0..)")

@@ -29,13 +29,18 @@ from io import StringIO
 from pathlib import Path
 
 import pytest
+import scipy.linalg  # noqa: F401  (loads SciPy's OpenBLAS before the limit below)
 from threadpoolctl import threadpool_limits
 
 import pipeline
 from pipeline.runtime.synthesis import Synthesis
 
 # single-threaded BLAS, as in the pipeline's runs: the stage functions tests call directly
-# multiply small matrices, where OpenBLAS's threads cost more than they save
+# multiply small matrices, where OpenBLAS's threads cost more than they save. threadpoolctl
+# limits the libraries loaded when it is called: SciPy's own OpenBLAS (L-BFGS-B's, scipy.libs)
+# is loaded first (imported after the limit, it kept 2 threads: its L-BFGS-B steps took ~2.5 ms
+# instead of ~5 us on a busy machine, 16 s of CPU instead of 5 s for the stage conformance
+# module's fixture)
 threadpool_limits(limits=1, user_api="blas")
 
 E2E_SAMPLES = 1000  # quadrotor_hill: the end-to-end tests reuse its run
@@ -323,6 +328,35 @@ def _synthesize_from_empty_directory(
     )
 
 
+_RUNNING: list[pytest.Item] = []  # the test being run (setup, call, teardown)
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None):
+    _RUNNING.append(item)
+    try:
+        return (yield)
+    finally:
+        _RUNNING.pop()
+
+
+def _require_group(name: str) -> None:
+    """Fail the running test unless it is in ``name``'s xdist group: one that reads another
+    scenario's session run (the group marks it automatically only for the ``name`` parameter and
+    ``synthesized``) had that scenario synthesized a second time, by the other worker, whenever
+    the scheduler gave it to the worker not running that scenario's group."""
+    if not _RUNNING:
+        return
+    item = _RUNNING[-1]
+    groups = sorted({str(m.args[0]) for m in item.iter_markers("xdist_group") if m.args})
+    if synthesis_group(name) not in groups:
+        pytest.fail(
+            f"{item.nodeid} reads {name}'s session synthesis from xdist group(s) {groups}: mark "
+            f"it @pytest.mark.xdist_group({synthesis_group(name)!r})",
+            pytrace=False,
+        )
+
+
 @pytest.fixture(scope="session")
 def synthesis_run(tmp_path_factory: pytest.TempPathFactory):
     """Factory: ``synthesis_run(name, certificate=None)`` -> the ``SessionRun`` of ``name``
@@ -333,6 +367,7 @@ def synthesis_run(tmp_path_factory: pytest.TempPathFactory):
     runs: dict[tuple[str, str | None], SessionRun] = {}
 
     def run(name: str, certificate: str | None = None) -> SessionRun:
+        _require_group(name)
         if (name, certificate) not in runs:
             where = tmp_path_factory.mktemp(name)
             if certificate is not None:

@@ -22,7 +22,13 @@ from pipeline.model.simulate import simulate
 from pipeline.numerics.funnel.check import LEVEL_SLACK
 from pipeline.numerics.funnel.pieces import ARC, arc_cap, interpolate, pieces
 from pipeline.numerics.funnel.synthesis import HOLD, check_funnel, synthesize_funnel
-from pipeline.numerics.hull import MAX_SEGMENT_ANGLE, arc_polygon, arc_variables, jacobian_hull
+from pipeline.numerics.hull import (
+    MAX_SEGMENT_ANGLE,
+    arc_polygon,
+    arc_variables,
+    jacobian_hull,
+    unique_rows,
+)
 
 THETA_BOUNDS = {"theta": (-0.8, 0.8)}
 
@@ -49,6 +55,27 @@ def test_arc_cap_fills_whole_segments(spread: float) -> None:
     # The arc polygon of the capped box has exactly that many segments (none added by rounding).
     assert len(arc_polygon(0.0, width, 1, compact=True)) == segments + 2
     assert math.ceil(width / MAX_SEGMENT_ANGLE) == segments
+
+
+def test_the_hulls_unique_rows_are_numpys() -> None:
+    """``unique_rows`` (the hull's vertices deduplicated by a lexsort) gives ``np.unique(...,
+    axis=0)``'s array, byte for byte, on random rows with repeats, ties in leading columns and
+    shapes of 1-3 dimensions; a hull's vertices are numpy's unique rows of themselves."""
+    rng = np.random.default_rng(3)
+    for trial in range(2000):
+        k = int(rng.integers(1, 30))
+        shape = (k, *rng.integers(1, 4, size=int(rng.integers(0, 3))).tolist())
+        values = [0.0, 1.0, -1.0, 0.5, 2.0, 1e-300, -3.5]  # ties, in every column
+        rows = rng.choice(values, size=shape) if trial % 2 else rng.normal(size=shape)
+        rows = np.concatenate([rows, rows[rng.integers(0, k, size=int(rng.integers(0, k)))]])
+        rng.shuffle(rows)
+        expected = np.unique(rows, axis=0)
+        found = unique_rows(rows)
+        assert found.shape == expected.shape and found.tobytes() == expected.tobytes()
+    quadrotor = load_scenario("quadrotor_hill", check_demos=False)
+    region = dict(quadrotor.operating_region)
+    vertices = jacobian_hull(quadrotor.dynamics, region).vertices
+    assert vertices.tobytes() == np.unique(vertices, axis=0).tobytes()
 
 
 def test_hull_structure_is_cached_per_dynamics() -> None:

@@ -4,12 +4,18 @@ A terminal's Ctrl-C sends SIGINT to the whole foreground process group: the run,
 and the workers. Only the run may act on it: one "interrupted" line on stderr, exit code 130, no
 traceback from any process, the folder's lock released and no process left behind, also when a
 second Ctrl-C follows 0.3 s later, while the first is being handled.
+
+The run is a re-run in a copy of double_integrator's session run (300 Monte Carlo samples):
+every stage before the Monte Carlo is reused, and the Monte Carlo's default 100,000 runs start
+the fork server and the workers (a run from an empty folder computed the stages before, ~3-4 s
+of CPU each time, for the same interruption).
 """
 
 from __future__ import annotations
 
 import fcntl
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -44,16 +50,35 @@ def _fork_server_started(pgid: int) -> bool:
     )
 
 
+def _read(path: str) -> bytes:
+    """A /proc file's bytes; empty if the process is gone."""
+    try:
+        return Path(path).read_bytes()
+    except OSError:
+        return b""
+
+
+def _workers(pgid: int) -> int:
+    """How many processes the fork server of process group ``pgid`` has forked (the pool's)."""
+    group = _group(pgid)
+    servers = {
+        str(pid).encode()
+        for pid in group
+        if b"multiprocessing.forkserver" in _read(f"/proc/{pid}/cmdline")
+    }
+    parents = [_read(f"/proc/{pid}/stat").rsplit(b")", 1)[-1].split()[1:2] for pid in group]
+    return sum(1 for parent in parents if parent and parent[0] in servers)
+
+
 @pytest.mark.slow
+@pytest.mark.xdist_group("synthesis-double_integrator")  # with the session run it copies
 @pytest.mark.parametrize("signals", [1, 2], ids=["one Ctrl-C", "two Ctrl-C 0.3 s apart"])
-@pytest.mark.parametrize(
-    "when",
-    ["fork server importing", "workers computing"],  # optimize starts it; the Monte Carlo's
-)
+@pytest.mark.parametrize("when", ["fork server importing", "workers computing"])
 def test_ctrl_c_with_workers_prints_one_line_and_exits_130(
-    tmp_path: Path, when: str, signals: int
+    synthesis_run, tmp_path: Path, when: str, signals: int
 ) -> None:
     out = tmp_path / "out"
+    shutil.copytree(synthesis_run("double_integrator").out, out)
     process = subprocess.Popen(
         [sys.executable, "-m", "pipeline", "synthesize", "double_integrator"]
         + ["--jobs", "2", "--out", str(out)],  # the default 100,000 Monte Carlo runs: long
@@ -66,19 +91,21 @@ def test_ctrl_c_with_workers_prints_one_line_and_exits_130(
     )
     try:
         assert process.stdout is not None
-        after = "[covering_radius]" if when == "fork server importing" else "[certify]"
         printed = []
         for line in process.stdout:  # each stage's line is flushed as it is logged
             printed.append(line)
-            if line.startswith(after):
+            if line.startswith("[certify]"):  # the Monte Carlo next: it starts the fork server
                 break
-        assert printed and printed[-1].startswith(after), "".join(printed)
-        if when == "fork server importing":  # its imports take seconds (cvxpy, scipy)
-            deadline = time.monotonic() + 30
-            while not _fork_server_started(process.pid) and time.monotonic() < deadline:
+        assert printed and printed[-1].startswith("[certify]"), "".join(printed)
+        assert "[optimize] reused (inputs unchanged)" in "".join(printed)  # no pool before
+        deadline = time.monotonic() + 30
+        while not _fork_server_started(process.pid) and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert _fork_server_started(process.pid)  # its imports take seconds (cvxpy, scipy)
+        if when == "workers computing":  # the server forked both workers: give them work
+            while _workers(process.pid) < 2 and time.monotonic() < deadline:
                 time.sleep(0.02)
-            assert _fork_server_started(process.pid)
-        else:
+            assert _workers(process.pid) == 2
             time.sleep(0.5)
         for index in range(signals):
             if index:

@@ -12,6 +12,7 @@ from html import unescape
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from pipeline.controller import load
 from pipeline.model.scenario import load_scenario
@@ -28,6 +29,7 @@ def _agree(pairs: list[tuple[str, str]], names: list[str | None]) -> None:
         assert int(index) < len(names) and names[int(index)] == name, (index, name, names)
 
 
+@pytest.mark.xdist_group("synthesis-double_integrator")  # with its session run (conftest)
 def test_report_terminal_repr_and_example_number_trajectories_as_controller_json(
     synthesis_run, tmp_path
 ):

@@ -19,6 +19,7 @@ import csv
 import io
 import math
 import re
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -73,13 +74,45 @@ def read_demo_csv(
       bounds: optional (m, 2) input bounds ``[lower, upper]``; a value outside is an error.
     """
     try:
-        lines = read_bytes(path, TEXT_MAX_BYTES).decode("utf-8").splitlines()
+        data = read_bytes(path, TEXT_MAX_BYTES)
+        text = data.decode("utf-8")
     except UnicodeDecodeError:
         raise _unreadable(path, "not UTF-8 text") from None
     except FileRefused as error:  # not a regular file, or larger than the cap
         raise _unreadable(path, error.reason) from None
     except OSError as error:
         raise _unreadable(path, error.strerror) from None
+    limits = None if bounds is None else np.asarray(bounds, dtype=np.float64)
+    key = (data, tuple(input_names), float(Ts), None if limits is None else limits.tobytes())
+    with _PARSED_LOCK:
+        parsed = _PARSED.get(key)
+    if parsed is None:
+        parsed = _parse(path, text.splitlines(), input_names, Ts, bounds)
+        parsed.flags.writeable = False
+        with _PARSED_LOCK:
+            if len(_PARSED) >= PARSED_KEPT:
+                del _PARSED[next(iter(_PARSED))]
+            _PARSED[key] = parsed
+    return parsed.copy()
+
+
+# The inputs parsed from each demo file's bytes (with the names, Ts and bounds they were checked
+# against), once per process: a scenario's demos are read on every load_scenario, and a file
+# that parsed is the same inputs whatever its path (a failure is not kept: its message names
+# the path)
+_PARSED: dict[tuple[object, ...], FloatArray] = {}
+_PARSED_LOCK = threading.Lock()
+PARSED_KEPT = 256
+
+
+def _parse(
+    path: Path,
+    lines: list[str],
+    input_names: Sequence[str],
+    Ts: float,
+    bounds: FloatArray | None,
+) -> FloatArray:
+    """``read_demo_csv``'s checks and values for the file's ``lines``."""
     expected_header = ["t", *input_names]
     rows: list[list[float]] = []
     header_seen = False

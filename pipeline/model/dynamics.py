@@ -33,11 +33,12 @@ FLOAT_FUNCTIONS = ("sin", "cos", "tan", "exp", "log", "sqrt", "tanh", "arctan", 
 
 def _returning_float(function: Callable[..., object]) -> Callable[..., float]:
     def call(*args: float) -> float:
-        if any(isinstance(arg, complex) for arg in args):
-            # a negative base's fractional power left the reals (NumPy: nan); abs or float()
-            # of the function's result would make it real again: refuse, so the caller falls
-            # back to np.float64
-            raise TypeError("complex argument on the float path")
+        for arg in args:  # a loop, not any(generator): this runs millions of times a suite
+            if isinstance(arg, complex):
+                # a negative base's fractional power left the reals (NumPy: nan); abs or float()
+                # of the function's result would make it real again: refuse, so the caller
+                # falls back to np.float64
+                raise TypeError("complex argument on the float path")
         return float(function(*args))  # type: ignore[arg-type]
 
     return call
@@ -122,28 +123,24 @@ class Dynamics:
         """Build from sympy expressions (one per state) in the given state and input symbols."""
         xs, us = tuple(state_symbols), tuple(input_symbols)
         n, m = len(xs), len(us)
-        f = sympy.Matrix(list(expressions))
-        jac_x = f.jacobian(sympy.Matrix(xs))
-        jac_u = f.jacobian(sympy.Matrix(us))
-        args = (*xs, *us)
-        f_scalars = _compiled(list(f), args)
+        derived = _derived(xs, us, tuple(expressions))
         return cls(
             state_names=tuple(s.name for s in xs),
             input_names=tuple(s.name for s in us),
-            expressions=tuple(f),
+            expressions=derived.expressions,
             state_symbols=xs,
             input_symbols=us,
-            jacobian_x=jac_x,
-            jacobian_u=jac_u,
-            sparsity_x=np.array([[entry != 0 for entry in row] for row in jac_x.tolist()]),
-            sparsity_u=np.array([[entry != 0 for entry in row] for row in jac_u.tolist()]).reshape(
-                n, m
-            ),
-            _f=_vectorised(f_scalars, n),
-            _f_x=_vectorised(_compiled(list(jac_x), args), n * n),
-            _f_u=_vectorised(_compiled(list(jac_u), args), n * m),
-            _f_scalars=f_scalars,
-            _f_floats=_compiled_on_floats(list(f), args),
+            jacobian_x=derived.jacobian_x.copy(),  # a mutable sympy Matrix: one per object
+            jacobian_u=derived.jacobian_u.copy(),
+            sparsity_x=np.array([[e != 0 for e in row] for row in derived.jacobian_x.tolist()]),
+            sparsity_u=np.array(
+                [[e != 0 for e in row] for row in derived.jacobian_u.tolist()]
+            ).reshape(n, m),
+            _f=_vectorised(derived.f_scalars, n),
+            _f_x=_vectorised(derived.f_x, n * n),
+            _f_u=_vectorised(derived.f_u, n * m),
+            _f_scalars=derived.f_scalars,
+            _f_floats=derived.f_floats,
         )
 
     @property
@@ -197,6 +194,56 @@ class Dynamics:
         """Names of the states and inputs that the Jacobians depend on (the certified region)."""
         free = set().union(*(e.free_symbols for e in (*self.jacobian_x, *self.jacobian_u)))
         return tuple(s.name for s in (*self.state_symbols, *self.input_symbols) if s in free)
+
+
+@dataclass(frozen=True)
+class _Derived:
+    """What ``Dynamics.from_expressions`` derives from the expressions: ``f`` (n,), its
+    Jacobians (sympy (n, n) and (n, m)) and the functions lambdified from them."""
+
+    expressions: tuple[sympy.Expr, ...]
+    jacobian_x: sympy.Matrix
+    jacobian_u: sympy.Matrix
+    f_scalars: Callable[..., list]
+    f_x: Callable[..., list]
+    f_u: Callable[..., list]
+    f_floats: Callable[..., list]
+
+
+_DERIVED: dict[str, _Derived] = {}
+_DERIVED_LOCK = threading.Lock()
+DERIVED_KEPT = 32
+
+
+def _derived(
+    xs: tuple[sympy.Symbol, ...], us: tuple[sympy.Symbol, ...], expressions: tuple[sympy.Expr, ...]
+) -> _Derived:
+    """The Jacobians and lambdified functions of ``expressions``, derived once per process for
+    each set of expressions (keyed on their ``srepr``, exact to the last bit of every Float, as
+    ``_rebuilt``): each ``load_scenario`` of a scenario builds its own ``Dynamics`` from them
+    (sympy's Jacobians and ``lambdify`` were ~40% of loading quadrotor_hill without its demo
+    checks). The lambdified functions are pure; they are shared."""
+    key = sympy.srepr((xs, us, expressions))
+    with _DERIVED_LOCK:
+        if key in _DERIVED:
+            return _DERIVED[key]
+    f = sympy.Matrix(list(expressions))
+    jac_x = f.jacobian(sympy.Matrix(xs))
+    jac_u = f.jacobian(sympy.Matrix(us))
+    args = (*xs, *us)
+    derived = _Derived(
+        expressions=tuple(f),
+        jacobian_x=jac_x,
+        jacobian_u=jac_u,
+        f_scalars=_compiled(list(f), args),
+        f_x=_compiled(list(jac_x), args),
+        f_u=_compiled(list(jac_u), args),
+        f_floats=_compiled_on_floats(list(f), args),
+    )
+    with _DERIVED_LOCK:
+        if len(_DERIVED) >= DERIVED_KEPT:
+            del _DERIVED[next(iter(_DERIVED))]
+        return _DERIVED.setdefault(key, derived)
 
 
 _REBUILT: dict[str, Dynamics] = {}

@@ -218,6 +218,25 @@ def interval_of(
     return float(lower), float(upper)
 
 
+def unique_rows(array: FloatArray) -> FloatArray:
+    """``np.unique(array, axis=0)`` for a finite float array ``(k, ...)`` with no ``-0.0``
+    entry: its distinct rows in lexicographic order, by a lexsort of the flattened rows (~4x
+    faster for the hulls' 6-24 vertices; ``np.unique`` sorts a structured view). The same array:
+    rows equal as values are equal as bytes when no entry is ``-0.0`` (the hull's vertices are
+    sums onto ``+0.0``, which never give ``-0.0``), so which of them is kept does not matter."""
+    flat = array.reshape(len(array), -1)
+    ordered = flat[np.lexsort(flat.T[::-1])]
+    distinct = np.ones(len(ordered), dtype=bool)
+    distinct[1:] = np.any(ordered[1:] != ordered[:-1], axis=1)
+    return ordered[distinct].reshape(-1, *array.shape[1:])
+
+
+@functools.lru_cache(maxsize=256)
+def _text(expression: sympy.Expr) -> str:
+    """``str(expression)`` (sympy prints it anew on every call), for the blocks' descriptions."""
+    return str(expression)
+
+
 def _block_vertices(
     z: sympy.Symbol,
     functions: Sequence[sympy.Expr],
@@ -229,7 +248,7 @@ def _block_vertices(
     """Vertices (k, p) of a polytope containing ``{(g_1(z), .., g_p(z)) : z in [lower, upper]}``."""
     if len(functions) == 1:
         interval = _bounds(functions[0], {z: (lower, upper)})
-        return interval[:, None], f"{functions[0]} in [{interval[0]:.6g}, {interval[1]:.6g}]"
+        return interval[:, None], f"{_text(functions[0])} in [{interval[0]:.6g}, {interval[1]:.6g}]"
     if set(functions) == {sympy.cos(z), sympy.sin(z)}:
         polygon = arc_polygon(lower, upper, segments, compact)
         if functions[0] == sympy.sin(z):
@@ -377,7 +396,7 @@ def jacobian_hull(
         interval = _bounds(feature, {s: box[s] for s in feature.free_symbols})
         coordinate[(None, feature)] = (len(block_vertices), 0)
         block_vertices.append(interval[:, None])
-        descriptions.append(f"{feature} in [{interval[0]:.6g}, {interval[1]:.6g}] (whole)")
+        descriptions.append(f"{_text(feature)} in [{interval[0]:.6g}, {interval[1]:.6g}] (whole)")
 
     # 3. Vertices: every tuple of block vertices.
     count = math.prod(len(v) for v in block_vertices)
@@ -395,5 +414,5 @@ def jacobian_hull(
             b, p = coordinate[key]
             value = value * block_vertices[b][choice[b], p]
         vertices += value[:, None, None] * M
-    vertices = np.unique(vertices, axis=0)
+    vertices = unique_rows(vertices)
     return JacobianHull(vertices=vertices, region=dict(region), blocks=tuple(descriptions))

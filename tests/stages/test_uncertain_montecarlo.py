@@ -77,6 +77,7 @@ def test_draws_stay_in_the_declared_boxes_and_bang_bang_runs_reach_their_corners
     assert set(np.unique(draws.gusts[corner][..., 2:])) == {-0.05, 0.05}
 
 
+@pytest.mark.xdist_group("synthesis-double_integrator_hold")  # its session run
 def test_gusty_parametric_runs_agree_with_the_numpy_oracle(synthesis, tmp_path):
     """Kernel and oracle fly the same parameters and gusts: margins to T, and past T, to
     1e-9; the gusts change the runs (they are flown, not ignored)."""
@@ -104,6 +105,7 @@ def test_gusty_parametric_runs_agree_with_the_numpy_oracle(synthesis, tmp_path):
         )
 
 
+@pytest.mark.xdist_group("synthesis-double_integrator_hold")  # its session run
 def test_an_empty_or_zero_width_uncertainty_flies_the_exact_model(synthesis, tmp_path):
     """No declaration: the starts and runs of the exact model (the oracle on the same streams,
     no draws); a declaration of zero width (k in [1, 1], no gust) flies the same runs."""
@@ -138,6 +140,7 @@ def test_an_empty_or_zero_width_uncertainty_flies_the_exact_model(synthesis, tmp
     assert flown.success and result.success
 
 
+@pytest.mark.xdist_group("synthesis-double_integrator_hold")  # its session run
 def test_a_gust_larger_than_the_controller_holds_fails_counted_runs(synthesis, tmp_path):
     """The controller is certified for the exact model: under a small declared gust and +-10%
     on k every run (to T + 10 s) stays in Goal; under a gust of 0.3 m/s^2 runs fail and are
@@ -161,6 +164,7 @@ def test_a_gust_larger_than_the_controller_holds_fails_counted_runs(synthesis, t
     assert _is_corner(worst, large_scenario.uncertainty).all()
 
 
+@pytest.mark.xdist_group("synthesis-double_integrator_hold")  # its session run
 def test_stress_flies_twice_the_declared_uncertainty(synthesis, tmp_path):
     """--stress with a declaration: 2x its gust and intervals (0.05 -> 0.1 m/s^2, k in
     [0.8, 1.2]), out of the certificate: the declared bound passes the Monte Carlo stage while
