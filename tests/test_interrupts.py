@@ -50,6 +50,14 @@ def _fork_server_started(pgid: int) -> bool:
     )
 
 
+def _as_from_a_shell() -> None:
+    """In the child before it runs: SIGINT default and unblocked, as a shell starts a command.
+    A child inherits both from this test's worker, which earlier tests in the same worker may
+    leave ignored or blocked (measured: the whole suite's workers did, each file alone not)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
+
+
 def _read(path: str) -> bytes:
     """A /proc file's bytes; empty if the process is gone."""
     try:
@@ -88,6 +96,7 @@ def test_ctrl_c_with_workers_prints_one_line_and_exits_130(
         stderr=subprocess.PIPE,
         text=True,
         start_new_session=True,  # its own process group, as a terminal's foreground job
+        preexec_fn=_as_from_a_shell,
     )
     try:
         assert process.stdout is not None
@@ -149,7 +158,7 @@ def test_a_run_that_hangs_after_ctrl_c_still_ends_with_130() -> None:
     started = time.monotonic()
     done = subprocess.run(
         [sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=30,
-        env={**os.environ, "PYTHONPATH": str(ROOT)},
+        env={**os.environ, "PYTHONPATH": str(ROOT)}, preexec_fn=_as_from_a_shell,
     )  # fmt: skip
     assert done.returncode == 130 and done.stderr.splitlines() == [INTERRUPTED], done.stderr
     assert time.monotonic() - started < 20
