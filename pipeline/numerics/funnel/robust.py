@@ -78,7 +78,7 @@ def invariant_ellipsoid(
 def _blocks(
     Q: FloatArray, K: FloatArray, vertices: tuple[FloatArray, ...], rate: float, Ts: float
 ) -> tuple[FloatArray, FloatArray, np.ndarray]:
-    """``Mhat`` (R, n, n) for every (interval, vertex, end), the inverse factors ``Lc^-1`` (N, 2,
+    """``Mhat`` (R, n, n) for every (interval, end, vertex), the inverse factors ``Lc^-1`` (N, 2,
     n, n) at each interval's ends, and the interval of each row (R,)."""
     n, N = Q.shape[1], len(K)
     L_inv = np.linalg.inv(np.linalg.cholesky(Q))  # (N+1, n, n)
@@ -164,7 +164,8 @@ class RobustCheck:
     def multiple(self, bound: FloatArray, lmi_term: FloatArray) -> float:
         """The largest ``s`` with ``2 r_k(s bound) + lmi_term_k < -LMI_MARGIN`` on every interval,
         by bisection (``r_k`` is convex in ``s``: the set where it holds is an interval from 0),
-        shrunk so that the bound itself is not on the edge; ``inf`` without a disturbance."""
+        shrunk so that the bound itself is not on the edge; ``inf`` without a disturbance, or
+        once ``2^19`` times it holds (not checked further)."""
         bound = np.asarray(bound, dtype=np.float64)
         if not np.any(bound > 0):
             return float("inf")
