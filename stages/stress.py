@@ -36,7 +36,7 @@ from pipeline.numerics.closed_loop.rollouts import (
     check_runs_compiled,
     hold_runs_compiled,
 )
-from pipeline.numerics.closed_loop.simulate import check_runs
+from pipeline.numerics.closed_loop.simulate import RunChecks, check_runs
 from pipeline.numerics.closed_loop.worst_case import horizon
 from pipeline.results.stage import FileInput, Stage, StageInputs
 from pipeline.results.stress import StressResult as StressResult
@@ -67,6 +67,14 @@ def _beyond_campaign(
         masks["after_T"] = np.zeros(samples, dtype=bool)
         # beyond the declared bound the terminal ellipsoid is not certified: Goal is the test
         masks["after_T"][covered] = after.failures(ellipsoid=False)
+    return _stress_run(gain_scale, samples, masks, checks)
+
+
+def _stress_run(
+    gain_scale: float, samples: int, masks: dict[str, np.ndarray], checks: RunChecks
+) -> StressRun:
+    """The campaign's counts: failures per kind (``masks``: name -> (samples,) bool), the share
+    of runs with any, and the smallest clearance and Goal margin of ``checks``."""
     failed = np.any(list(masks.values()), axis=0)
     return StressRun(
         gain_scale=gain_scale,
@@ -98,15 +106,7 @@ def _campaign(
     masks.pop("tube")  # the tube is not claimed under perturbations
     masks.pop("uncovered")
     masks.pop("bounds")  # as before the state bounds were checked
-    failed = np.any(list(masks.values()), axis=0)
-    return StressRun(
-        gain_scale=gain_scale,
-        samples=samples,
-        failures={k: int(v.sum()) for k, v in masks.items()},
-        failed_fraction=float(failed.mean()),
-        min_clearance=float(checks.clearance.min()),
-        min_goal_margin=float(checks.goal_margin.min()),
-    )
+    return _stress_run(gain_scale, samples, masks, checks)
 
 
 def stress_test(

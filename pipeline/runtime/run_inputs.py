@@ -1,7 +1,7 @@
 """What a run settles before its stages: the certificate it ships, the feedback period checked
-against it, the scenario's fields as a cache key, the nominal trajectories simulated, and
-the feedback's tube at the held law's rate. No stage is imported here (only the orchestrator
-imports stages); stage results are read by their fields.
+against it, the scenario's fields as a cache key, and the feedback's tube at the held law's rate.
+No stage is imported here (only the orchestrator imports stages); stage results are read by
+their fields.
 """
 
 from __future__ import annotations
@@ -11,30 +11,15 @@ import typing
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
-import numpy as np
-
 from pipeline.io.artifacts import inputs_key
 from pipeline.io.errors import UserError
 from pipeline.model.scenario import CertificateName, Scenario
 from pipeline.model.scenario_data import plain, scenario_data
-from pipeline.model.simulate import Trajectory, simulate
 from pipeline.numerics.tube.sampled import HeldRate, held_rate
-from pipeline.numerics.verify.nominal import VERIFY_SUBSTEPS
 from pipeline.runtime.options import RunOptions
 
 if TYPE_CHECKING:  # stage result types: only the orchestrator imports stages
     from pipeline.results.feedback import FeedbackResult
-
-
-def trajectories(
-    scenario: Scenario, starts: Sequence[np.ndarray], inputs: Sequence[np.ndarray]
-) -> list[Trajectory]:
-    """The nominal of each start ``(n,)`` under its inputs ``(N_i, m)``, on the dense grid the
-    radius and funnel stages bound between samples (``VERIFY_SUBSTEPS``)."""
-    return [
-        simulate(scenario.dynamics, x0, us, scenario.Ts, substeps=VERIFY_SUBSTEPS)
-        for x0, us in zip(starts, inputs, strict=True)
-    ]
 
 
 def held_feedback(

@@ -17,7 +17,7 @@ from pipeline.model.schema import StressSpec
 from pipeline.numerics.terminal.design import hold_design
 from pipeline.numerics.terminal.fit import TerminalTarget
 from pipeline.results.stage import FileInput, Stage, StageInputs
-from pipeline.runtime.run_inputs import trajectories
+from stages.certificates import nominals
 from stages.controller import (
     CONSTANT_CONTROLLER,
     FUNNEL_CONTROLLER,
@@ -118,7 +118,7 @@ def stage_cases(folder: Path) -> Iterator[StageCase]:
     yield feedback
     tube = feedback.result.certified_tube
     starts = tuple(d.x0 for d in scenario.demos)
-    demo_trajectories = tuple(trajectories(scenario, starts, [d.us for d in scenario.demos]))
+    demo_trajectories = tuple(nominals(scenario, starts, [d.us for d in scenario.demos]))
     radius = case(
         RADIUS, RadiusInputs(scenario=scenario, tube=tube, trajectories=demo_trajectories)
     )
@@ -140,7 +140,7 @@ def stage_cases(folder: Path) -> Iterator[StageCase]:
     optimize = case(OPTIMIZE, OptimizeInputs(scenario=scenario, margins=margins, options=options))
     yield optimize
     inputs = tuple(t.u for t in optimize.result.trajectories)
-    final = tuple(trajectories(scenario, starts, inputs))
+    final = tuple(nominals(scenario, starts, inputs))
     names = tuple(d.name for d in scenario.demos)
     design = hold_design(scenario)  # a hold run's terminal controller, designed first
     everywhere = TerminalTarget(x_eq=design.x_eq, P=design.P, level=1e6)  # holds any end

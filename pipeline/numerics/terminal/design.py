@@ -449,23 +449,23 @@ def hold_design(
     scenario: Scenario, disturbance: FloatArray | None = None, period: float = 0.0
 ) -> TerminalDesign:
     """The terminal controller a funnel run designs BEFORE its funnels, for them to end in: the
-    equilibrium at Goal's centre, its LQR gain and Riccati matrix, the largest level certified
-    robustly to ``disturbance (n,)`` (T1'); ``fit`` 0 (no end tube yet). ``TerminalError`` when
+    equilibrium at Goal's centre, its LQR gain and, under ``disturbance (n,)``, the metric shaped
+    for it (T3) when that certifies, else the Riccati matrix; the largest level certified
+    robustly (T1', T1''); ``fit`` 0 (no end tube yet). ``TerminalError`` when
     there is no equilibrium, no stabilising gain or no certified level."""
     x_eq, u_eq = equilibrium(scenario)
     K_T, P_T = lqr_terminal(scenario, x_eq, u_eq)
-    check = largest_level(scenario, x_eq, u_eq, K_T, P_T, period, disturbance)
-    metric = None
     if disturbance is not None and np.any(np.asarray(disturbance) > 0) and period == 0:
         metric = robust_metric(scenario, x_eq, u_eq, K_T, np.asarray(disturbance))  # (T3)
-    shaped = False
-    if metric is not None:
-        robust = largest_level(scenario, x_eq, u_eq, K_T, metric, period, disturbance)
-        if robust.success:  # shaped for the disturbance: kept whenever it certifies
-            P_T, check, shaped = metric, robust, True
+        if metric is not None:  # shaped for the disturbance: kept whenever it certifies
+            robust = largest_level(scenario, x_eq, u_eq, K_T, metric, period, disturbance)
+            if robust.success:
+                return TerminalDesign(
+                    x_eq=x_eq, u_eq=u_eq, K=K_T, P=metric, check=robust, gain="lqr", fit=0.0,
+                    shaped=True,
+                )  # fmt: skip
+    check = largest_level(scenario, x_eq, u_eq, K_T, P_T, period, disturbance)
     if not check.success:
         where = np.round(x_eq, 3).tolist()
         raise TerminalError(f"lqr gain at {where}: " + "; ".join(check.failures))
-    return TerminalDesign(
-        x_eq=x_eq, u_eq=u_eq, K=K_T, P=P_T, check=check, gain="lqr", fit=0.0, shaped=shaped
-    )
+    return TerminalDesign(x_eq=x_eq, u_eq=u_eq, K=K_T, P=P_T, check=check, gain="lqr", fit=0.0)

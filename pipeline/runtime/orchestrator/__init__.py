@@ -82,7 +82,7 @@ from pipeline.runtime.terminal import (
     describe_radii,
     optimization_logs,
 )
-from stages.certificates import CERTIFICATES, CertificateRun
+from stages.certificates import CERTIFICATES, CertificateRun, nominals
 from stages.certify import certify_controller
 from stages.coverage import (
     COVERAGE,
@@ -229,7 +229,7 @@ def _synthesize(
 ) -> Synthesis:
     demo_starts = [d.x0 for d in scenario.demos]
     demo_inputs = [d.us for d in scenario.demos]
-    demo_trajectories = run_inputs.trajectories(scenario, demo_starts, demo_inputs)
+    demo_trajectories = nominals(scenario, demo_starts, demo_inputs)
     log.info(
         f"scenario {scenario.name}: {len(scenario.demos)} demos, all valid "
         "(never in Unsafe, end in Goal)"
@@ -297,7 +297,7 @@ def _synthesize(
         t.u if t.success else d.us
         for t, d in zip(optimized.trajectories, scenario.demos, strict=True)
     ]
-    final_trajectories = run_inputs.trajectories(scenario, demo_starts, final_inputs)
+    final_trajectories = nominals(scenario, demo_starts, final_inputs)
     final_radii, final_coverage = _radii_and_coverage(
         scenario, runner, feedback, "optimized", final_trajectories
     )
