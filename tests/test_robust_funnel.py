@@ -18,9 +18,10 @@ from shapely.geometry import box
 from pipeline.controller import inverse_linear
 from pipeline.model.scenario import load_scenario
 from pipeline.model.simulate import simulate
+from pipeline.numerics.funnel import synthesis
 from pipeline.numerics.funnel.check import check_funnel
 from pipeline.numerics.funnel.law import LawOffset, corners
-from pipeline.numerics.funnel.lmi import FunnelProgram, solve_clarabel, solve_cvxpy
+from pipeline.numerics.funnel.lmi import FunnelProgram, codesign_gains, solve_clarabel, solve_cvxpy
 from pipeline.numerics.funnel.robust import RobustCheck
 from pipeline.numerics.funnel.synthesis import synthesize_funnel
 from tests.helpers.robust import DISTURBANCE, double_integrator_case
@@ -94,6 +95,50 @@ def test_the_joint_constraint_is_the_same_program_in_cvxpy():
     assert np.allclose(ours[0], reference[0], atol=1e-4) and ours[1] == pytest.approx(1.0)
     check = RobustCheck(ours[0], np.repeat(K[None], N, 0), vertices, 0.0, 0.1, 1.0)
     assert np.all(check.margins(w)[0] <= -eps + 1e-5)
+
+
+def test_the_codesign_program_is_the_same_in_cvxpy():
+    """(F6): the gains as unknowns ``Y = K Q`` with the input caps and the spread ``Z >= Y
+    Q^-1 Y^T`` in Schur form, assembled for Clarabel against cvxpy's statement: the same optimal
+    metric; the gains read back from both agree."""
+    A, B = np.array([[0, 1], [0, 0.0]]), np.array([[0], [1.0]])
+    N, w, alpha, eps = 4, np.array([0.0, 0.1]), 0.5, 0.05
+    vertices = tuple(np.stack([np.hstack([A, B]), np.hstack([A, 1.2 * B])]) for _ in range(N))
+    program = FunnelProgram(
+        Ts=0.1, K=np.zeros((N, 1, 2)), vertices=vertices, c=eps, Q_init=np.eye(2) * 0.01,
+        floor=1e-6, caps=(), W=np.repeat(np.eye(2)[None], N + 1, 0), initial_weight=100.0,
+        disturbance=corners(w), multiplier=alpha, margin=eps, codesign=True,
+        gain_caps=tuple((k, j, 0, 4.0) for j in range(N) for k in (j, j + 1)),
+        gain_weight=np.eye(1) / 25,
+    )  # fmt: skip
+    ours, reference = codesign_gains(program), solve_cvxpy(program)
+    assert not isinstance(ours, str) and not isinstance(reference, str) and len(reference) == 3
+    K, Q, tau = ours
+    Q_ref, tau_ref, Y_ref = reference
+    assert tau == pytest.approx(1.0, abs=1e-6) and tau_ref == pytest.approx(1.0, abs=1e-6)
+    assert np.allclose(Q, Q_ref, atol=1e-4)
+    Qbar = (Q_ref[:-1] + Q_ref[1:]) / 2
+    K_ref = np.swapaxes(np.linalg.solve(Qbar, np.swapaxes(Y_ref, 1, 2)), 1, 2)
+    assert np.allclose(K, K_ref, rtol=0.02)  # Q ~ 0.01: the solvers' tolerances, magnified
+    assert np.all(K[:, 0, :] < 0)  # a stabilising gain for the double integrator (u = K e)
+
+
+def test_codesigned_gains_hold_a_disturbance_the_lqr_gains_cannot():
+    """On the double integrator, a disturbance eight times the tests' bound: the funnel with the
+    LQR gains held is rejected (the co-design switched off), the one with the co-designed gains
+    (F6) passes ``check_funnel``'s (I5) with the disturbance, whatever the program said."""
+    scenario, trajectory, initial = double_integrator_case()
+    bound = 8 * DISTURBANCE
+    original = synthesis.codesign_gains
+    try:
+        synthesis.codesign_gains = lambda program: "switched off"
+        lqr = synthesize_funnel(scenario, trajectory, initial=initial, disturbance=bound)
+    finally:
+        synthesis.codesign_gains = original
+    designed = synthesize_funnel(scenario, trajectory, initial=initial, disturbance=bound)
+    assert designed.success and "(F6)" in designed.message, designed.message
+    assert not lqr.success and "rejected" in lqr.message, lqr.message
+    assert not check_funnel(scenario, trajectory, designed, {}, _robust(designed, scenario, bound))
 
 
 def _robust(funnel, scenario, bound):

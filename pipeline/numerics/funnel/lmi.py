@@ -14,6 +14,11 @@ Unknowns ``Q[0..N]`` (n, n symmetric), ``x = (q_0, .., q_N)``, ``q_k`` the upper
     ``alpha`` a fixed multiplier and ``eps`` the margin in ``c = 2 lambda + eps``, so that at
     level 1 (I5)'s ``S(alpha) <= -eps I``.
 
+With ``codesign`` (``synthesis`` (F6)) the gains are unknowns too, ``Y[j] = K[j] Q`` (m, n) per
+piece: ``Acl Q[k+e]`` becomes ``A_v Q[k+e] + B_v Y[j]``, input ``i``'s cap ``[[Q[k], Y[j]_i^T],
+[Y[j]_i, bound]] >= 0`` and the spread ``[[Q[j], Y[j]^T], [Y[j], Z[j]]] >= 0`` with ``tr(R
+Z[j])`` in the objective; all still linear in the unknowns.
+
 ``tau`` is the fraction of the required initial set held (``w`` large: it is maximised first), so
 a program that cannot hold all of it still returns the funnel that holds the most.
 
@@ -29,6 +34,7 @@ hulls. ``solve_cvxpy`` states the same problem in cvxpy as the reference the tes
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 from dataclasses import dataclass, field
 
@@ -58,6 +64,12 @@ class FunnelProgram:
       W: (N+1, n, n) objective weights; initial_weight: ``w``.
       disturbance: (C, n) corners ``w_c`` of a disturbance box (None: none); multiplier: the
         S-procedure's ``alpha``; margin: ``eps`` (both only with a disturbance).
+      codesign: the gains are unknowns too (``codesign_gains``, (F6)): ``Y[j] = K[j] Q`` (m, n)
+        per piece, ``K`` only seeds the objective; gain_caps: ``(k, j, i, bound)``, input ``i``'s
+        cap ``Y[j]_i Q[k]^-1 Y[j]_i^T <= bound`` at piece end ``k`` of piece ``j`` (with
+        ``codesign`` only: otherwise input caps are ``caps`` with ``C = K[j]_i``);
+        gain_weight: (m, m) ``R``, with ``codesign`` the objective gains ``sum_j tr(R Z[j])``,
+        ``Z[j] >= Y[j] Q[j]^-1 Y[j]^T = K Q K^T`` (the inputs' spread at level 1; Schur).
     """
 
     Ts: float | FloatArray
@@ -72,6 +84,9 @@ class FunnelProgram:
     disturbance: FloatArray | None = field(default=None, repr=False)
     multiplier: float = 0.0
     margin: float = 0.0
+    codesign: bool = False
+    gain_caps: tuple[tuple[int, int, int, float], ...] = field(default=(), repr=False)
+    gain_weight: FloatArray | None = field(default=None, repr=False)
 
 
 def _triangle(n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -111,15 +126,45 @@ def _block(rows: np.ndarray, columns: np.ndarray, values: FloatArray) -> tuple[n
 
 
 def solve_clarabel(program: FunnelProgram) -> tuple[FloatArray, float] | str:
-    """``(Q (N+1, n, n), tau)`` solving (F3), or the solver's status.
+    """``(Q (N+1, n, n), tau)`` solving (F3), or the solver's status."""
+    x = _solve(program)
+    if isinstance(x, str):
+        return x
+    n = program.K.shape[2]
+    tau_index = (len(program.K) + 1) * (n * (n + 1) // 2)
+    return unpack(x[:tau_index], n), float(x[tau_index])
 
-    The constraint matrix is assembled as one set of COO triplets (every LMI of (F3) at once);
-    rows are ``s = b - A x`` in the cone order of ``cones``."""
+
+def codesign_gains(program: FunnelProgram) -> tuple[FloatArray, FloatArray, float] | str:
+    """``(K (N, m, n), Q (N+1, n, n), tau)`` of (F6), or the solver's status: ``program`` with
+    ``codesign``, each piece's gain read back as ``K[j] = Y[j] Qbar[j]^-1``, ``Qbar[j]`` the
+    mean of the piece's end metrics. Only a seed: (F6) holds for the law ``Y Q(t)^-1``, not
+    for a held ``K``; the funnel is solved again with these gains held ((F3)) and checked."""
+    x = _solve(dataclasses.replace(program, codesign=True))
+    if isinstance(x, str):
+        return x
+    N, m, n = program.K.shape
+    tau_index = (N + 1) * (n * (n + 1) // 2)
+    Q = unpack(x[:tau_index], n)
+    Y = x[tau_index + 1 : tau_index + 1 + N * m * n].reshape(N, m, n)
+    K = np.linalg.solve((Q[:-1] + Q[1:]) / 2, np.swapaxes(Y, 1, 2))  # Qbar^-1 Y^T (Q symmetric)
+    return np.swapaxes(K, 1, 2), Q, float(x[tau_index])
+
+
+def _solve(program: FunnelProgram) -> FloatArray | str:
+    """The solution vector ``(q_0 .. q_N, tau[, y_0 .. y_N-1])`` of (F3) (or (F6) with
+    ``codesign``), or the solver's status.
+
+    The constraint matrix is assembled as one set of COO triplets (every LMI at once); rows are
+    ``s = b - A x`` in the cone order of ``cones``."""
     K = program.K
-    N, n = len(K), K.shape[2]
+    N, m, n = K.shape
     Ts = np.broadcast_to(np.asarray(program.Ts, dtype=np.float64), (N,))
     p = n * (n + 1) // 2
-    unknowns = (N + 1) * p + 1  # q_0 .. q_N, tau
+    tau_index = (N + 1) * p  # q_0 .. q_N, tau, then y_0 .. y_N-1 and z_0 .. z_N-1 (codesign)
+    pm = m * (m + 1) // 2
+    spread = program.codesign and program.gain_weight is not None
+    unknowns = tau_index + 1 + (N * m * n if program.codesign else 0) + (N * pm if spread else 0)
     E = basis(n)
     sE = svec(E)  # (p, p): column l is svec(E_l)
     triplets: list[tuple[np.ndarray, ...]] = []
@@ -146,7 +191,7 @@ def solve_clarabel(program: FunnelProgram) -> tuple[FloatArray, float] | str:
         b_parts.append(svec(np.asarray(bound, dtype=np.float64)))
         cones.append(clarabel.NonnegativeConeT(1) if r == 1 else clarabel.PSDTriangleConeT(r))
     # tau <= 1: s = 1 - tau.
-    triplets.append((rows(1, 1).ravel(), np.array([unknowns - 1]), np.ones(1)))
+    triplets.append((rows(1, 1).ravel(), np.array([tau_index]), np.ones(1)))
     b_parts.append(np.ones(1))
     cones.append(clarabel.NonnegativeConeT(1))
     # Q[0] - tau Q_init[j] >= 0: s = svec(Q[0]) - tau svec(Q_init[j]) = b - A x.
@@ -157,7 +202,7 @@ def solve_clarabel(program: FunnelProgram) -> tuple[FloatArray, float] | str:
             r0, of(np.zeros(len(Q_init), dtype=int)), np.broadcast_to(-sE.T, (len(Q_init), p, p))
         )
     )
-    triplets.append((r0.ravel(), np.full(r0.size, unknowns - 1), svec(Q_init).ravel()))
+    triplets.append((r0.ravel(), np.full(r0.size, tau_index), svec(Q_init).ravel()))
     b_parts.append(np.zeros(r0.size))
     cones.extend(clarabel.PSDTriangleConeT(n) for _ in range(len(Q_init)))
     # Q[k] - floor I >= 0: s = svec(Q[k]) - svec(floor I) = b - A x.
@@ -165,16 +210,60 @@ def solve_clarabel(program: FunnelProgram) -> tuple[FloatArray, float] | str:
     triplets.append(_block(rows(N + 1, p), of(everyone), np.broadcast_to(-sE.T, (N + 1, p, p))))
     b_parts.append(np.tile(-svec(program.floor * np.eye(n)), N + 1))
     cones.extend(clarabel.PSDTriangleConeT(n) for _ in range(N + 1))
+
+    def gains(j: np.ndarray) -> np.ndarray:
+        """(len(j), m n) columns of the unknowns ``Y[j]`` (row-major)."""
+        return tau_index + 1 + np.asarray(j)[:, None] * (m * n) + np.arange(m * n)
+
+    F = np.zeros((m * n, m, n))  # the unit matrices of Y's entries, row-major
+    F[np.arange(m * n), np.arange(m * n) // n, np.arange(m * n) % n] = 1.0
+    if spread and program.gain_weight is not None:
+        # [[Q[j], Y[j]^T], [Y[j], Z[j]]] >= 0: s = svec of it = b - A x, b = 0
+        size = (n + m) * (n + m + 1) // 2
+        spread_rows = rows(N, size)
+        Yunit = np.zeros((m * n, n + m, n + m))
+        Yunit[:, n:, :n] = F
+        Yunit[:, :n, n:] = np.swapaxes(F, 1, 2)
+        Zunit = np.zeros((pm, n + m, n + m))
+        Zunit[:, n:, n:] = basis(m)
+        every = np.arange(N)
+        z_columns = tau_index + 1 + N * m * n + every[:, None] * pm + np.arange(pm)
+        for columns, values in (
+            (of(every), np.broadcast_to(-sE.T, (N, p, p))),
+            (gains(every), np.broadcast_to(-svec(Yunit).T, (N, size, m * n))),
+            (z_columns, np.broadcast_to(-svec(Zunit).T, (N, size, pm))),
+        ):
+            triplets.append(_block(spread_rows[:, : values.shape[1]], columns, values))
+        b_parts.append(np.zeros(spread_rows.size))
+        cones.extend(clarabel.PSDTriangleConeT(n + m) for _ in range(N))
+        spread_weight = np.einsum("ij,lij->l", program.gain_weight, basis(m))
+    # with codesign, (F6)'s input caps: [[Q[k], Y[j]_i^T], [Y[j]_i, bound]] >= 0 (Schur), i.e.
+    # s = svec of it = b - A x (the leading n-block's svec comes first, as for (I5))
+    for k, j, i, room_squared in program.gain_caps:
+        cap_rows = rows(1, (n + 1) * (n + 2) // 2)
+        unit = np.zeros((n, n + 1, n + 1))
+        unit[np.arange(n), np.arange(n), n] = unit[np.arange(n), n, np.arange(n)] = 1.0
+        triplets.append(_block(cap_rows[:, :p], of(np.array([k])), -sE.T[None]))
+        triplets.append(_block(cap_rows, gains(np.array([j]))[:, i * n : (i + 1) * n],
+                               -svec(unit).T[None]))  # fmt: skip
+        constant = np.zeros((n + 1, n + 1))
+        constant[n, n] = room_squared
+        b_parts.append(svec(constant))
+        cones.append(clarabel.PSDTriangleConeT(n + 1))
     # (F3): s = -M(x), M(Q[k], Q[k+1]) = -(Q[k+1] - Q[k]) / Ts[k] + G(Q[k+e]), every vertex;
     # with a disturbance, (I5): s = -[[M(x) + alpha Q[k+e], w_c], [w_c^T, -(alpha - eps)]].
     J = np.concatenate(program.vertices)  # (T, n, n+m), T = sum_k V_k
     k_of = np.repeat(np.arange(N), [len(v) for v in program.vertices])  # (T,)
-    Acl = J[:, :, :n] + J[:, :, n:] @ K[k_of]  # (T, n, n)
+    # (T, n, n); with codesign the gain's term is B_v Y[k] below
+    Acl = J[:, :, :n] if program.codesign else J[:, :, :n] + J[:, :, n:] @ K[k_of]
     G = Acl[:, None] @ E[None] + E[None] @ np.swapaxes(Acl, 1, 2)[:, None] + program.c * E
     disturbance = program.disturbance if program.disturbance is not None else np.zeros((0, n))
     if len(disturbance):
         G = G + program.multiplier * E
     sG = np.swapaxes(svec(G), 1, 2)  # (T, p rows, p unknowns)
+    if program.codesign:  # (F6): B_v Y + Y^T B_v^T in G, on the unknowns of Y[k]
+        BF = J[:, None, :, n:] @ F[None]  # (T, m n, n, n)
+        sBF = np.swapaxes(svec(BF + np.swapaxes(BF, 2, 3)), 1, 2)  # (T, p, m n)
     D = sE.T / Ts[k_of][:, None, None]  # (T, p, p): the unknowns of Q[k] in -dQ/dt
     # the constant part: none for (F3); the corner's column and entry for (I5) (the svec of an
     # (n+1)-matrix starts with its leading n-block's, in the same order)
@@ -190,13 +279,22 @@ def solve_clarabel(program: FunnelProgram) -> tuple[FloatArray, float] | str:
             lmi_rows = rows(len(J), size)[:, :p]
             triplets.append(_block(lmi_rows, of(k_of), D + (sG if e == 0 else 0.0)))
             triplets.append(_block(lmi_rows, of(k_of + 1), -D + (sG if e == 1 else 0.0)))
+            if program.codesign:
+                triplets.append(_block(lmi_rows, gains(k_of), sBF))
             cones.extend(clarabel.PSDTriangleConeT(dim) for _ in J)
             b_parts.append(np.tile(constant, len(J)))
     rows_, cols_, vals_ = (np.concatenate(part) for part in zip(*triplets, strict=True))
     keep = vals_ != 0.0
     A = sp.csc_matrix((vals_[keep], (rows_[keep], cols_[keep])), shape=(row, unknowns))
     b = np.concatenate(b_parts)
-    q = np.concatenate([np.einsum("kij,lij->kl", program.W, E).ravel(), [-program.initial_weight]])
+    q = np.concatenate(
+        [
+            np.einsum("kij,lij->kl", program.W, E).ravel(),
+            [-program.initial_weight],
+            np.zeros(N * m * n if program.codesign else 0),
+            np.tile(spread_weight, N) if spread else [],
+        ]
+    )
     settings = clarabel.DefaultSettings()
     settings.verbose = False
     for name, value in TOLERANCES.items():
@@ -207,28 +305,41 @@ def solve_clarabel(program: FunnelProgram) -> tuple[FloatArray, float] | str:
     status = str(solution.status)
     if status not in ("Solved", "AlmostSolved"):
         return f"Clarabel status {status}"
-    x = np.asarray(solution.x)
-    return unpack(x[:-1], n), float(x[-1])
+    return np.asarray(solution.x)
 
 
-def solve_cvxpy(program: FunnelProgram) -> tuple[FloatArray, float] | str:
-    """The same program through cvxpy + Clarabel (reference for tests; slow on long horizons)."""
+def solve_cvxpy(
+    program: FunnelProgram,
+) -> tuple[FloatArray, float] | tuple[FloatArray, float, FloatArray] | str:
+    """The same program through cvxpy + Clarabel (reference for tests; slow on long horizons):
+    ``(Q (N+1, n, n), tau)``; with ``codesign``, ``(Q, tau, Y (N, m, n))``."""
     K = program.K
-    N, n = len(K), K.shape[2]
+    N, m, n = K.shape
     Ts = np.broadcast_to(np.asarray(program.Ts, dtype=np.float64), (N,))
     Q = [cp.Variable((n, n), symmetric=True) for _ in range(N + 1)]
     tau = cp.Variable()
+    Y = [cp.Variable((m, n)) for _ in range(N)] if program.codesign else []
     Q_init = np.asarray(program.Q_init, dtype=np.float64).reshape(-1, n, n)
     constraints = [Q[0] - tau * Q_j >> 0 for Q_j in Q_init] + [tau <= 1]
     constraints += [Qk >> program.floor * np.eye(n) for Qk in Q]
     constraints += [bound - C @ Q[k] @ C.T >> 0 for k, C, bound in program.caps]
     disturbance = program.disturbance if program.disturbance is not None else np.zeros((0, n))
+    for k, j, i, room_squared in program.gain_caps:  # (F6)'s input caps (Schur)
+        Yi = Y[j][i : i + 1]
+        constraints.append(cp.bmat([[Q[k], Yi.T], [Yi, np.array([[room_squared]])]]) >> 0)
+    cost = sum(cp.trace(W @ Qk) for W, Qk in zip(program.W, Q, strict=True))
+    if program.codesign and program.gain_weight is not None:  # (F6)'s spread Z >= Y Q^-1 Y^T
+        Z = [cp.Variable((m, m), symmetric=True) for _ in range(N)]
+        constraints += [cp.bmat([[Q[k], Y[k].T], [Y[k], Z[k]]]) >> 0 for k in range(N)]
+        cost = cost + sum(cp.trace(program.gain_weight @ Zk) for Zk in Z)
     for k in range(N):
         D = (Q[k + 1] - Q[k]) / Ts[k]  # eq. (F1)
         for J in program.vertices[k]:
-            Acl = J[:, :n] + J[:, n:] @ K[k]
+            A, B = J[:, :n], J[:, n:]
             for Qe in (Q[k], Q[k + 1]):
-                M = -D + Acl @ Qe + Qe @ Acl.T + program.c * Qe  # eq. (F2)
+                # eq. (F2); (F6): B K Q = B Y
+                AQ = A @ Qe + B @ Y[k] if program.codesign else (A + B @ K[k]) @ Qe
+                M = -D + AQ + AQ.T + program.c * Qe
                 if not len(disturbance):
                     constraints.append((M + M.T) / 2 << 0)  # eq. (F3)
                 for w in disturbance:  # funnel.robust (I5)
@@ -236,7 +347,6 @@ def solve_cvxpy(program: FunnelProgram) -> tuple[FloatArray, float] | str:
                     S = cp.bmat([[(M + M.T) / 2 + program.multiplier * Qe, -w[:, None]],
                                  [-w[None, :], -corner]])  # fmt: skip
                     constraints.append(S << 0)
-    cost = sum(cp.trace(W @ Qk) for W, Qk in zip(program.W, Q, strict=True))
     objective = cp.Minimize(cost - program.initial_weight * tau)
     problem = cp.Problem(objective, constraints)
     try:
@@ -252,4 +362,7 @@ def solve_cvxpy(program: FunnelProgram) -> tuple[FloatArray, float] | str:
     ):
         return f"cvxpy status {problem.status}"
     values = np.array([Qk.value for Qk in Q])
-    return (values + np.swapaxes(values, 1, 2)) / 2, float(tau.value)
+    Q_values = (values + np.swapaxes(values, 1, 2)) / 2
+    if program.codesign:
+        return Q_values, float(tau.value), np.array([Yk.value for Yk in Y])
+    return Q_values, float(tau.value)

@@ -78,6 +78,20 @@ for the tests). ``Q / tau`` holds the whole initial set at level 1 and meets eve
 ``sqrt(tau)``. 4. Level: ``rho = min(sqrt(tau), funnel_limits)`` (``funnel.bounds``; Goal there
 is the exact ellipse).
 5. ``funnel.check.check_funnel``: numpy only; a funnel that fails it is rejected.
+
+Co-designed gains (F6), under a disturbance. The LQR gains are designed for the nominal's
+linearisation, not for the disturbance, and a funnel around them holds little of it. With
+``Y = K Q`` as unknowns too (Boyd et al., LMIs in System
+and Control Theory, section 7.2.1) (F2) is linear in ``(Q, Y)``: ``A_v Q + B_v Y + (.)^T``
+replaces ``Acl Q + (.)^T``, the input caps become ``[[Q, Y_i^T], [Y_i, room^2]] >= 0`` (Schur)
+and the inputs' spread at level 1, ``K Q K^T = Y Q^-1 Y^T <= Z``, is weighted in the objective
+as the fixed-gain program weights ``K Q K^T``. With ``Y[j]`` held on a piece the law would be
+``K(t) = Y[j] Q(t)^-1``, which is not what the controller ships, so (F6) only DESIGNS the gains:
+``K[j] = Y[j] Qbar[j]^-1`` (``Qbar`` the piece's mean metric) is then held and the funnel solved
+again by (F3) with it, exactly as with the LQR gains, and checked by ``check_funnel``. Nothing
+proven depends on (F6). It is tried after the LQR gains, when none of their funnels holds the
+whole design level (the LQR gains' funnels are the narrower ones where both hold: the
+re-optimization has more room in them).
 """
 
 from __future__ import annotations
@@ -107,7 +121,7 @@ from pipeline.numerics.funnel.check import (
     check_funnel,
 )
 from pipeline.numerics.funnel.law import LawOffset, corners
-from pipeline.numerics.funnel.lmi import FunnelProgram, solve_clarabel
+from pipeline.numerics.funnel.lmi import FunnelProgram, codesign_gains, solve_clarabel
 from pipeline.numerics.funnel.pieces import interpolate, piece_hulls, pieces
 from pipeline.numerics.funnel.robust import invariant_ellipsoid
 from pipeline.numerics.hull import HullError, arc_variables
@@ -117,6 +131,7 @@ from pipeline.numerics.terminal.fit import TerminalTarget, containing_level
 class _Parts(TypedDict, total=False):
     """The ``Funnel`` fields that ``funnel`` has found so far (``result`` defaults the rest)."""
 
+    K: FloatArray
     P: FloatArray
     rho: float
     margins: FloatArray
@@ -228,6 +243,7 @@ def disturbance_seed(
 def _program(
     scenario, trajectory, K, vertices, boxes, variables, enclosure, Q_init, Q_seed, c, bounds,
     disturbance=None, multiplier=0.0, margin=0.0, terminal=None, state_bounds=None,
+    codesign=False,
 ):  # fmt: skip
     """(F3) on the LMI pieces ``bounds`` (unknowns: ``Q`` at the piece ends), with the initial set
     and the tube at level 1 inside every hull box, clear of Unsafe (a disk bound) and inside Goal
@@ -240,14 +256,26 @@ def _program(
     S = len(bounds) - 1
     clearance = interval_clearance(scenario, trajectory, enclosure)
     C_pos = np.eye(n)[list(scenario.position_index)]
-    caps = []
+    caps: list[tuple[int, FloatArray, FloatArray]] = []
+    gain_caps: list[tuple[int, int, int, float]] = []
+
+    def cap_input(j: int, a: int, i: int, room: float) -> None:
+        """Input ``i``'s tube at level 1 within ``room`` of u_ref on piece ``j`` (from ``a``),
+        at both ends: ``K_i Q K_i^T <= room^2``, or with ``codesign`` its Schur form in ``Y``."""
+        for e in (j, j + 1):
+            if codesign:
+                gain_caps.append((e, j, i, max(room, 0.0) ** 2))
+            else:
+                caps.append((e, K[a, i : i + 1], np.full((1, 1), max(room, 0.0) ** 2)))
+
     for j, (a, b) in enumerate(itertools.pairwise(bounds)):
         for d, name in enumerate(variables):
             lo, hi = boxes[a, :, d]
             if name in scenario.input_names:  # K_j Q K_j^T <= room^2 at both ends
                 i = scenario.input_names.index(name)
-                C = K[a, i : i + 1]
                 room = min((us[a:b, i] - lo).min(), (hi - us[a:b, i]).min())
+                cap_input(j, a, i, room)
+                continue
             else:  # Q_ii <= room^2 at both ends
                 i = scenario.state_names.index(name)
                 C = np.eye(n)[i : i + 1]
@@ -261,8 +289,7 @@ def _program(
                     continue  # capped by its hull box above
                 lower, upper = scenario.input_lower[i], scenario.input_upper[i]
                 room = min((us[a:b, i] - lower).min(), (upper - us[a:b, i]).min())
-                C = K[a, i : i + 1]
-                caps += [(e, C, np.full((1, 1), max(room, 0.0) ** 2)) for e in (j, j + 1)]
+                cap_input(j, a, i, room)
             for name, (lower, upper) in (state_bounds or {}).items():  # and the state bounds
                 if name in variables:
                     continue
@@ -287,8 +314,10 @@ def _program(
         caps.append((S, np.eye(n)[i : i + 1], np.full((1, 1), room**2)))
     if terminal is not None:  # E(T) inside the terminal ellipsoid (terminal.fit (T2))
         caps.append((S, *terminal.end_cap(final_state)))
-    W = _weights(scenario, {}, K)
+    # with codesign the inputs' spread is weighted through Z >= K Q K^T (funnel.lmi's gain_weight)
+    W = _weights(scenario, {}, np.zeros_like(K) if codesign else K)
     W = np.concatenate([W, W[-1:]])[bounds]  # (S+1, n, n) at the piece ends
+    halves = (scenario.input_upper - scenario.input_lower) / 2
     return FunnelProgram(
         Ts=scenario.Ts * np.diff(bounds).astype(np.float64),
         K=K[bounds[:-1]],
@@ -302,6 +331,9 @@ def _program(
         disturbance=None if disturbance is None else corners(disturbance),
         multiplier=multiplier,
         margin=margin,
+        codesign=codesign,
+        gain_caps=tuple(gain_caps),
+        gain_weight=np.diag(1 / halves**2) if codesign else None,
     )
 
 
@@ -348,8 +380,9 @@ def synthesize_funnel(
         ``|w_i| <= d_i`` (``funnel.robust`` (I5)). (F3) is then joined with each corner ``w_c``
         by the S-procedure (``funnel.lmi``) for each multiplier ``alpha`` of
         ``ROBUST_MULTIPLIERS`` with margin ``eps = ROBUST_MARGIN alpha``; the hull boxes hold the
-        seed's disturbance extent (F5, ``disturbance_seed``); the funnel with the highest
-        checked level is kept.
+        seed's disturbance extent (F5, ``disturbance_seed``); the LQR gains first, then gains
+        co-designed with the metric (F6); the funnel with the highest checked level is kept
+        (the first that holds the whole design level).
       terminal: the terminal ellipsoid ``E(T)`` must lie in (``terminal.fit.TerminalTarget``,
         e.g. from ``terminal.hold_design``): (T2) on ``Q`` at ``T`` in the program, and the exact
         containment level as a limit on rho (``terminal``; sound whatever the solver returned)
@@ -388,6 +421,7 @@ def synthesize_funnel(
     )
     N = len(K)
     bounds = pieces(N, HOLD)
+    S = len(bounds) - 1
     K = K[np.repeat(bounds[:-1], np.diff(bounds))]  # each piece holds its first gain
     Q_seed = np.linalg.inv(P_lqr)
     c = list(scenario.position_index)
@@ -412,13 +446,13 @@ def synthesize_funnel(
 
     def result(success: bool, message: str, **values: Unpack[_Parts]) -> Funnel:
         defaults: _Parts = {
-            "P": P_lqr, "rho": 0.0, "margins": np.full((N, 2), np.nan),
+            "K": K, "P": P_lqr, "rho": 0.0, "margins": np.full((N, 2), np.nan),
             "boxes": np.zeros((N, 2, 0)), "variables": (), "vertices": (), "enclosure": None,
             "limits": {}, "binding": "",
         }  # fmt: skip
         defaults.update(values)
         return Funnel(
-            K=K, rate=rate, **defaults, seconds=time.perf_counter() - start, success=success,
+            rate=rate, **defaults, seconds=time.perf_counter() - start, success=success,
             message=message,
         )  # fmt: skip
 
@@ -434,17 +468,32 @@ def synthesize_funnel(
             "boxes": boxes, "variables": variables, "vertices": vertices, "enclosure": enclosure
         }  # fmt: skip
         failures: list[str] = []
-        best: tuple[Funnel, float, str, float] | None = None
+        best: tuple[Funnel, float, str, float, str] | None = None
+        # robust: every multiplier with the LQR gains, then with co-designed gains (F6)
         tries = (
-            [(margin, 0.0) for margin in MARGINS]
+            [(margin, 0.0, False) for margin in MARGINS]
             if robust is None
-            else [(ROBUST_MARGIN * alpha, alpha) for alpha in ROBUST_MULTIPLIERS]
+            else [
+                (ROBUST_MARGIN * alpha, alpha, codesign)
+                for codesign in (False, True)
+                for alpha in ROBUST_MULTIPLIERS
+            ]
         )
-        for margin, multiplier in tries:
+        for margin, multiplier, codesign in tries:
             # a solution within the solver's tolerance may fail the check: the next margin
+            gains, origin = K, ""
+            if codesign:  # (F6): gains designed with the metric, then held ((F3))
+                designed = codesign_gains(_program(
+                    scenario, trajectory, K, vertices, boxes, variables, enclosure, Q_init,
+                    Q_seed, 2 * rate + margin, bounds, robust, multiplier, margin, terminal,
+                    state_bounds, codesign=True,
+                ))  # fmt: skip
+                if not isinstance(designed, str):
+                    gains, origin = designed[0][np.repeat(np.arange(S), np.diff(bounds))], "(F6) "
             program = _program(
-                scenario, trajectory, K, vertices, boxes, variables, enclosure, Q_init, Q_seed,
-                2 * rate + margin, bounds, robust, multiplier, margin, terminal, state_bounds,
+                scenario, trajectory, gains, vertices, boxes, variables, enclosure, Q_init,
+                Q_seed, 2 * rate + margin, bounds, robust, multiplier, margin, terminal,
+                state_bounds,
             )  # fmt: skip
             solution = solve_clarabel(program)
             failure: str | None
@@ -462,7 +511,7 @@ def synthesize_funnel(
             # eq. (P1) at every sample time; E(0) at level 1 holds the initial set, the caps
             # hold at level sqrt(tau)
             Q = interpolate(Q_ends, bounds) / tau
-            limits = funnel_limits(scenario, trajectory, Q, K, enclosure, state_bounds)
+            limits = funnel_limits(scenario, trajectory, Q, gains, enclosure, state_bounds)
             limits["design"] = (float(np.sqrt(min(tau, 1.0))), 0.0)
             if terminal is not None:  # E(T) = {||x - x_ref(T)||_P[N] <= rho e^{-lambda T}}
                 T = trajectory.dense_ts[-1]
@@ -472,8 +521,9 @@ def synthesize_funnel(
             level, when = limits[binding]
             rho = level * (1 - LEVEL_SLACK)
             funnel = result(
-                True, "", P=np.linalg.inv(Q).astype(np.float64, copy=False), rho=rho,
-                binding=binding, margins=certificate_margins(Q, K, vertices, rate, scenario.Ts),
+                True, "", K=gains, P=np.linalg.inv(Q).astype(np.float64, copy=False), rho=rho,
+                binding=binding,
+                margins=certificate_margins(Q, gains, vertices, rate, scenario.Ts),
                 limits={key: value[0] for key, value in limits.items()}, **common,
             )  # fmt: skip
             law = LawOffset.none(N, scenario.n, scenario.m, scenario.Ts)
@@ -484,20 +534,21 @@ def synthesize_funnel(
                 failure = _outside(terminal, xs[-1], funnel, trajectory.dense_ts[-1])
             if rho <= 0:
                 failure = failure or f"the nominal itself violates {binding} at t = {when:.2f} s"
-            if not failure and robust is None:
+            # robust: the highest checked level is kept; none beats the design's whole level
+            if not failure and (robust is None or rho >= 1 - LEVEL_SLACK):
                 break
             if not failure and (best is None or rho > best[0].rho):
-                best = (funnel, margin, binding, when)
+                best = (funnel, margin, binding, when, origin)
             if failure:
                 failures.append(f"margin {margin:g}: {failure}")
         else:
             if best is None:
                 return result(False, f"funnel rejected: {_grouped(failures)}", **common)
-            funnel, margin, binding, when = best
+            funnel, margin, binding, when, origin = best
             rho = funnel.rho
         message = (
             f"funnel level {rho:.4g} (E(0) holds {min(rho, 1.0):.3g} x the required initial "
-            f"set) over {N} intervals ({len(bounds) - 1} pieces, K held over {HOLD}), bound by "
+            f"set) over {N} intervals ({S} pieces, {origin}K held over {HOLD}), bound by "
             f"{binding} at t = {when:.2f} s (largest eigenvalue {funnel.margins.max():.2e}, LMI "
             f"margin {margin:g}, {'capped' if tight else 'uncapped'} angle boxes)"
         )
