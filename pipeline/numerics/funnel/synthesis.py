@@ -488,8 +488,10 @@ def synthesize_funnel(
                     Q_seed, 2 * rate + margin, bounds, robust, multiplier, margin, terminal,
                     state_bounds, codesign=True,
                 ))  # fmt: skip
-                if not isinstance(designed, str):
-                    gains, origin = designed[0][np.repeat(np.arange(S), np.diff(bounds))], "(F6) "
+                if isinstance(designed, str):  # no gains to hold: nothing new to solve
+                    failures.append(f"margin {margin:g}: (F6) {designed} over {N} intervals")
+                    continue
+                gains, origin = designed[0][np.repeat(np.arange(S), np.diff(bounds))], "(F6) "
             program = _program(
                 scenario, trajectory, gains, vertices, boxes, variables, enclosure, Q_init,
                 Q_seed, 2 * rate + margin, bounds, robust, multiplier, margin, terminal,
