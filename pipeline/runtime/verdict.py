@@ -183,17 +183,14 @@ def certificate_claims(
         joint = ", joined with the disturbance's push by the S-procedure (I5)" if declared else ""
         eigenvalue = "twice the S-procedure's eigenvalue" if declared else "largest eigenvalue"
         h = evidence.feedback_period
-        held = (
-            f", evaluated every {h:g} s and held in between (the hold's term (I6) is in the proof)"
-            if h > 0
-            else ""
-        )
+        held = f", evaluated every {h:g} s and held in between" if h > 0 else ""
+        proof = "its error and the hold's are" if h > 0 else "its error is"
         return (
             Claim(
                 claim=f"each of the {len(check.radii)} shipped funnels is invariant under the law "
-                "as shipped: no flight that starts in E_i(0) leaves E_i(t) = {||x - x_ref_i(t)||_"
-                f"P_i(t) <= rho_i}} before T_i{under} (the law tracks x_ref interpolated; its "
-                f"error is in the proof{held})",
+                f"as shipped{held}: no flight that starts in E_i(0) leaves E_i(t) = {{||x - "
+                f"x_ref_i(t)||_P_i(t) <= rho_i}} before T_i{under} (the law tracks x_ref "
+                f"interpolated; {proof} in the proof)",
                 kind=contraction,
                 how="the funnel's LMIs (F3: V = e^T P_i(t) e decreases at the rate, in Q = P^-1 "
                 f"form{joint}) at every vertex of a sound Jacobian hull of each interval's tube, "
