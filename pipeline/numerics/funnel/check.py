@@ -97,7 +97,8 @@ def effective_margins(
 ) -> FloatArray:
     """(N,) what must stay below ``-LMI_MARGIN`` on each interval under the shipped law: (F2)'s
     largest eigenvalue plus the interpolated reference's term (I2); under a disturbance, twice
-    (I5)'s S-procedure eigenvalue ``r_k`` plus (I2) (``funnel.robust``). ``Q (N+1, n, n)``."""
+    (I5)'s S-procedure eigenvalue ``r_k`` plus (I2) (``funnel.robust``), a held law's box
+    (``funnel.law`` (I6)) joined to the disturbance's. ``Q (N+1, n, n)``."""
     if law.disturbed:  # the disturbance's box, and a held law's (funnel.law (I6))
         check = RobustCheck(Q, K, funnel.vertices, funnel.rate, Ts, funnel.rho)
         return 2 * check.margins(law.box)[0] + law.lmi_term

@@ -22,6 +22,9 @@ the synthesis's boxes and its solver:
    whose error (I1) enters the inequality (I2) and the inputs (I3); the input boxes of step 2 are
    widened by ``OFFSET_ALLOWANCE`` times the offset (I3) of hulls without it, and the offset of
    the hulls so built must fit that allowance;
+   With ``feedback_period h > 0`` the law is held every ``h`` s: its offset (I6) (``h Edot``,
+   the additive bound in ``Edot``) joins (I3)'s, and its push joins the disturbance's box in
+   (I5);
 4. ``funnel.check.check_funnel`` on the funnel so rebuilt, under that law: ``P[k]`` positive
    definite, (F3) plus (I2) at every vertex at both ends of every interval (numpy eigenvalues),
    the enclosure (E1) and the tube inside every hull box, ``rho`` within the limits of Unsafe,
@@ -32,8 +35,9 @@ whatever grid the file carries its reference on).
 
 ``recheck_terminal`` (either format): the ``terminal`` block by (T1') of
 ``pipeline.numerics.terminal.design`` under the scenario's declared additive bound (``uncertainty.
-additive_bound``; the block's own ``disturbance`` only where it is larger), and every end tube
-inside its ellipsoid (``terminal.fit``).
+additive_bound``; the block's own ``disturbance`` only where it is larger), for a held law ((T4)
+in a ``/2`` file, the held rate in a ``/1`` file), and every end tube inside its ellipsoid
+(``terminal.fit``).
 
 A hull over a box is sound for any number of segments, so ``SEGMENTS`` are tried in turn and the
 funnel is accepted when one of them certifies it (a finer hull is tighter, not always a subset).
