@@ -300,7 +300,10 @@ def law_substeps(
         lmi_fit = np.where(lmi_scaled > 0, lmi_room / lmi_scaled, np.inf)
         input_fit = np.where(input_scaled > 0, input_room / input_scaled, np.inf)
     shrink = np.minimum(lmi_fit, input_fit.min(axis=1))  # the largest factor on h_k^2 that fits
-    needed = np.where(
-        shrink > 0, np.ceil(Ts / (offset.steps * np.sqrt(np.minimum(shrink, 1.0)))), BASE_SUBSTEPS
-    )
+    with np.errstate(divide="ignore"):  # shrink 0: the room is gone, BASE_SUBSTEPS is taken
+        needed = np.where(
+            shrink > 0,
+            np.ceil(Ts / (offset.steps * np.sqrt(np.minimum(shrink, 1.0)))),
+            BASE_SUBSTEPS,
+        )
     return np.clip(needed, BASE_SUBSTEPS, MAX_SUBSTEPS).astype(np.int64)
