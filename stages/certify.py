@@ -54,8 +54,11 @@ and the RK4 error of ``x_ref`` (estimated against a grid twice as fine) below ``
 radius (both 1e-6: far above rounding, and the integration error is checked against it). The
 reference checks of step 4 measure in the tube's metric at the time, ``P_i(t)``; step 5
 covers Init by the balls ``||x - x0_i||_{P_i[0]} <= radius_i``; step 6's end tubes are
-``||x - x_ref_i(T)||_{P_i[N]} <= radius_i e^{-rate_i T}``. The funnel certificate is for
-continuous feedback: a ``/2`` file with ``feedback_period > 0`` is not certified.
+``||x - x_ref_i(T)||_{P_i[N]} <= radius_i e^{-rate_i T}``. With ``feedback_period h > 0`` (the
+law held for ``h`` seconds) ``h`` must divide ``Ts``, each funnel is re-checked for the held law
+(its offset (I6) of ``pipeline.numerics.funnel.law`` in the inequality and the inputs, with the
+checked additive bound in ``Edot``), and the terminal block for the held terminal law (its hold
+an additive term, (T4) of ``pipeline.numerics.terminal.design``).
 
 Declared uncertainty (the scenario's ``uncertainty:``). The funnels are re-checked for ``x' =
 f(x, u) + w``, ``|w| <= b``, with ``b`` derived here from the scenario's declaration
@@ -113,15 +116,24 @@ def _feedback(controller: Controller) -> tuple[np.ndarray, np.ndarray, float]:
     return controller.P, controller.K, controller.rate
 
 
+def _divides(controller: Controller) -> list[str]:
+    """The file's ``feedback_period`` divides ``Ts`` (a held law's windows start at every
+    sample), or why not."""
+    h = controller.feedback_period
+    steps = controller.Ts / h
+    if abs(steps - round(steps)) > 1e-9 * steps or steps < 1 - 1e-9:
+        return [f"feedback_period {h:g} s does not divide Ts {controller.Ts:g} s"]
+    return []
+
+
 def _held(controller: Controller, A: np.ndarray, B: np.ndarray) -> list[str]:
     """Step 3 for held feedback: ``h`` divides ``Ts`` and the file's rate is at most
     ``lambda_h`` (from the largest rate (C) certifies at the vertices ``A (V, n, n)``, ``B (V, n,
     m)``)."""
     P, K, file_rate = _feedback(controller)
     h = controller.feedback_period
-    steps = controller.Ts / h
-    if abs(steps - round(steps)) > 1e-9 * steps or steps < 1 - 1e-9:
-        return [f"feedback_period {h:g} s does not divide Ts {controller.Ts:g} s"]
+    if _divides(controller):
+        return _divides(controller)
     rate = contraction_rate(P, K, A, B)
     held = held_rate(P, K, A, B, rate, h)
     if not file_rate <= held.held_rate:
@@ -235,11 +247,9 @@ def _funnels(
     (``pipeline.numerics.verify.recertify``): ``(largest (F2) eigenvalue, vertices, verified levels,
     (reference error, interpolation error), the largest multiple of the disturbance checked
     that every funnel holds)``; what fails is appended to ``failures``."""
-    if controller.feedback_period > 0:
-        failures.append(
-            f"feedback_period {controller.feedback_period:g} s: the funnel certificate is for "
-            "continuous feedback (0); a held law is not certified by a safety-controller/2 file"
-        )
+    period = controller.feedback_period
+    if period > 0:
+        failures += _divides(controller)
     disturbance, short = checked_bound(scenario, controller.disturbance_bound, "uncertainty")
     failures += short
     margin, vertices, verified, errors = -np.inf, 0, [], (0.0, 0.0)
@@ -253,6 +263,7 @@ def _funnels(
         check = recheck_funnel(
             scenario, reference.nominal, shipped, held_state_bounds(scenario), reference.substeps,
             centre_error=reference.integration * tr.radius, disturbance=disturbance,
+            period=period,
         )  # fmt: skip
         margin, vertices = max(margin, check.margin), vertices + check.vertices
         multiple = min(multiple, check.disturbance_multiple)
@@ -407,8 +418,8 @@ def certify_controller(
     if controller.funnel:
         what = (
             f"{len(verified)} funnels (K[k], P[k], Q = P^-1 linear in t) rebuilt: P[k] > 0, "
-            f"the funnel inequality dV/dt <= -2 rate V (F2) on {vertices} local hull vertices "
-            f"(margin {margin:.1e}, < 0: holds), levels within their constraints"
+            f"the funnel inequality dV/dt <= -2 rate V (F2){held} on {vertices} local hull "
+            f"vertices (margin {margin:.1e}, < 0: holds), levels within their constraints"
         )
     else:
         what = (

@@ -61,6 +61,7 @@ def terminal_block(
     end_metrics: FloatArray | None = None,
     disturbance: FloatArray | None = None,
     design: TerminalDesign | None = None,
+    held_period: float = 0.0,
 ) -> tuple[dict | None, float, str]:
     """The ``terminal`` block (None when there is none), the end tubes' fit and a sentence.
 
@@ -71,11 +72,13 @@ def terminal_block(
       disturbance: (n,) the additive bound the ellipsoid must be robustly invariant for, written
         in the block (None: the exact model and no ``disturbance`` key, as in ``/1``).
       design: a terminal controller designed already (for that bound); only its fit is found.
+      period: the constant certificate's held law (its held rate); held_period: a funnel
+        file's, its hold an additive term ((T4) of ``pipeline.numerics.terminal.design``).
     """
     if design is None:
         try:
             design = design_terminal(
-                scenario, K, P, ends, end_radii, period, end_metrics, disturbance
+                scenario, K, P, ends, end_radii, period, end_metrics, disturbance, held_period
             )
         except TerminalError as error:
             return None, np.inf, f"no terminal controller ({error}); the law refuses t > T"
@@ -274,8 +277,9 @@ def emit_funnel_controller(
       trajectories: the nominals (``xs (N_i+1, n)``, ``us (N_i, m)`` each); funnels: their
         certified funnels (``synthesize_funnel``; ``K (N_i, m, n)``, ``P (N_i+1, n, n)``,
         ``rho``, ``rate``), in the same order.
-      feedback_period: recorded in the file; the funnel certificate is for continuous feedback
-        (0), and the certify stage refuses a funnel file with ``h > 0``.
+      feedback_period: the law is held every ``h`` s (0: continuous), recorded in the file: the
+        reference grid is chosen for its (I6) term (``pipeline.numerics.funnel.law``), the
+        terminal ellipsoid certified for it ((T4) of ``terminal.design``).
       names: each trajectory's demo (``"demo_01"``), written as its ``name``; None: no names.
       disturbance: (n,) the additive bound the funnels hold (default: the scenario's declared
         uncertainty's, ``pipeline.numerics.uncertainty.additive_bound``);
@@ -315,6 +319,7 @@ def emit_funnel_controller(
                 ShippedFunnel(K=funnel.K, P=funnel.P, rho=funnel.rho, rate=funnel.rate),
                 held_state_bounds(scenario),
                 disturbance,
+                feedback_period,
             ),
         )
         name = None if names is None else names[i]
@@ -342,8 +347,8 @@ def emit_funnel_controller(
     first = funnels[0]  # the terminal design's "tube" candidate: the first funnel's end
     bound = np.zeros(scenario.n) if disturbance is None else np.asarray(disturbance, float)
     block, _, terminal_message = terminal_block(
-        scenario, first.K[-1], first.P[-1], ends, end_radii, feedback_period,
-        np.stack(end_metrics), bound, terminal,
+        scenario, first.K[-1], first.P[-1], ends, end_radii, 0.0, np.stack(end_metrics), bound,
+        terminal, held_period=feedback_period,
     )  # fmt: skip
     return _write(path, document, block, terminal_message)
 

@@ -50,11 +50,15 @@ from pipeline.numerics.funnel.law import LawOffset
 from pipeline.numerics.funnel.synthesis import synthesize_funnel
 from pipeline.numerics.terminal.fit import TerminalTarget
 from pipeline.numerics.uncertainty import declared_bound, held_state_bounds
-from pipeline.numerics.verify.recertify import ShippedFunnel, recheck_as_shipped
+from pipeline.numerics.verify.recertify import ShippedFunnel, hold_box, recheck_as_shipped
 from pipeline.results.funnel import FunnelStageResult as FunnelStageResult
 from pipeline.results.stage import Stage, StageInputs
 
 preload_in_workers(__name__)  # its chunks run in worker processes
+# a funnel that does not hold the law held every h s is designed again for this multiple of the
+# hold's box (funnel.law (I6)) added to the declared disturbance: the box is found on the first
+# funnel, and the second funnel's own box is what certify checks (the multiple is its room)
+HOLD_DESIGN = 1.25
 
 
 def initial_sets(scenario: Scenario, P: FloatArray, radii: FloatArray) -> FloatArray:
@@ -89,7 +93,7 @@ class _Task:
     """One funnel for a worker: the scenario (pickled to a worker process), the nominal,
     ``Q_init (p, n, n)`` (``v v^T`` per corner of its cell, or the ball slice (I1)) and the
     additive bound ``(n,)`` of the declared uncertainty (None: the exact model); the terminal
-    ellipsoid it must end in (None: none)."""
+    ellipsoid it must end in (None: none); the period the law is held for (0: continuous)."""
 
     scenario: Scenario
     trajectory: Trajectory
@@ -97,6 +101,7 @@ class _Task:
     rate: float
     disturbance: FloatArray | None
     terminal: TerminalTarget | None = None
+    period: float = 0.0
 
 
 def _accepted(
@@ -105,9 +110,11 @@ def _accepted(
     funnel: Funnel,
     state_bounds: Mapping[str, tuple[float, float]],
     disturbance: FloatArray | None = None,
+    period: float = 0.0,
 ) -> str | None:
     """None if ``funnel`` certifies its trajectory (for ``x' = f(x, u) + w``, ``|w| <=
-    disturbance (n,)`` when given), else why it is dropped."""
+    disturbance (n,)`` when given, the law held every ``period`` s when it is > 0), else why it
+    is dropped."""
     if not funnel.success:
         return funnel.message
     if not funnel.rho > 0:
@@ -121,7 +128,7 @@ def _accepted(
     # as the certify stage will see it: rebuilt from K, P and rho alone (its own enclosure), the
     # law tracking the reference interpolated on the grid the controller stage ships
     shipped = ShippedFunnel(K=funnel.K, P=funnel.P, rho=funnel.rho, rate=funnel.rate)
-    again = recheck_as_shipped(scenario, trajectory, shipped, state_bounds, disturbance)
+    again = recheck_as_shipped(scenario, trajectory, shipped, state_bounds, disturbance, period)
     return None if not again.failure else f"rejected when rebuilt as certify does: {again.failure}"
 
 
@@ -148,7 +155,27 @@ def _funnel_in_worker(task: _Task) -> tuple[Funnel, str | None]:
         scenario, task.trajectory, state_bounds=bounds, initial=task.initial, rate=task.rate,
         disturbance=task.disturbance, terminal=terminal,
     )  # fmt: skip
-    return funnel, _accepted(scenario, task.trajectory, funnel, bounds, task.disturbance)
+    failure = _accepted(scenario, task.trajectory, funnel, bounds, task.disturbance, task.period)
+    if failure is None or not (task.period > 0 and funnel.success and funnel.rho > 0):
+        return funnel, failure
+    # (I6): the held law's term is a box joined to the disturbance; design for both (HOLD_DESIGN)
+    shipped = ShippedFunnel(K=funnel.K, P=funnel.P, rho=funnel.rho, rate=funnel.rate)
+    box = hold_box(scenario, task.trajectory, shipped, bounds, task.disturbance, task.period)
+    if box is None:
+        return funnel, failure
+    declared = np.zeros(scenario.n) if task.disturbance is None else task.disturbance
+    design = declared + HOLD_DESIGN * box
+    again = synthesize_funnel(
+        scenario, task.trajectory, state_bounds=bounds, initial=task.initial, rate=task.rate,
+        disturbance=design, terminal=terminal,
+    )  # fmt: skip
+    second = _accepted(scenario, task.trajectory, again, bounds, task.disturbance, task.period)
+    if second is None:
+        return again, None
+    return funnel, (
+        f"{failure}; designed again for the hold's box |w_h| <= "
+        f"{np.round(HOLD_DESIGN * box, 4).tolist()} on top of the disturbance: {second}"
+    )
 
 
 def _reused(earlier: tuple[Funnel, str | None]) -> tuple[Funnel, str | None]:
@@ -173,6 +200,7 @@ def synthesize_funnels(
     progress: Callable[[int], None] | None = None,
     reuse: Sequence[tuple[Funnel, str | None] | None] | None = None,
     terminal: TerminalTarget | None = None,
+    period: float = 0.0,
 ) -> FunnelStageResult:
     """The funnel of every trajectory on ``executor`` (default: here, in order; the result does
     not depend on it), each asked to hold its start's cell of Init (``required_sets``).
@@ -190,6 +218,8 @@ def synthesize_funnels(
         then, or not certified (``success``, ``rho > 0``), is dropped again.
       terminal: the ellipsoid every funnel must end in (None: none); a nominal ending outside
         it is dropped, saying so.
+      period: the law is held every ``period`` s (0: continuous): a funnel is kept only when
+        it holds that law (``funnel.law`` (I6)) as certify will rebuild it.
     """
     if not (len(names) == len(trajectories) == len(radii)):
         raise ValueError(
@@ -213,6 +243,7 @@ def synthesize_funnels(
             rate=rate,
             disturbance=disturbance,
             terminal=terminal,
+            period=period,
         )
         for i, (trajectory, Q_init) in enumerate(zip(trajectories, initial, strict=True))
         if reuse[i] is None
@@ -268,8 +299,9 @@ def _describe(funnels: Sequence[Funnel], usable: Sequence[int], rejected: Sequen
 @dataclass(frozen=True, kw_only=True)
 class FunnelInputs(StageInputs):
     """What stage ``funnel`` reads: the trajectories' names and final nominals, the constant
-    certificate's metric ``P (n, n)`` and ball radius per trajectory ``radii (k,)``, and the
-    terminal ellipsoid the funnels must end in (None: none)."""
+    certificate's metric ``P (n, n)`` and ball radius per trajectory ``radii (k,)``, the
+    terminal ellipsoid the funnels must end in (None: none) and the period the law is held for
+    (0: continuous feedback)."""
 
     scenario_fields: ClassVar = (
         "Ts",
@@ -294,6 +326,7 @@ class FunnelInputs(StageInputs):
     P: FloatArray
     radii: FloatArray
     terminal: TerminalTarget | None = None
+    feedback_period: float = 0.0
 
 
 def _funnel_stage(
@@ -313,6 +346,7 @@ def _funnel_stage(
         progress=progress,
         reuse=reuse,
         terminal=inputs.terminal,
+        period=inputs.feedback_period,
     )
 
 

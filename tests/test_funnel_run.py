@@ -166,16 +166,18 @@ def test_the_command_line_flag_selects_the_certificate(funnel_run, capsys, tmp_p
     assert document["certificate"] == "constant"
 
 
-def test_the_funnel_certificate_refuses_held_feedback(tmp_path, capsys):
+def test_the_funnel_certificate_refuses_a_period_that_does_not_divide_ts(tmp_path, capsys):
+    """A held law with the funnel certificate (``funnel.law`` (I6)) is allowed, as with the
+    constant one, when its period divides the sampling time; 0.03 s does not divide 0.1 s."""
     out = tmp_path / "out"
     argv = ["synthesize", "double_integrator", "--out", str(out), "--certificate", "funnel"]
-    assert main([*argv, "--feedback-period", "0.01"]) == 2
+    assert main([*argv, "--feedback-period", "0.03"]) == 2
     err = capsys.readouterr().err
-    assert "--feedback-period: found 0.01 s with the funnel certificate" in err
+    assert "--feedback-period: found 0.03 s; expected a period that divides" in err
     assert "Traceback" not in err and not out.exists()
-    with pytest.raises(pipeline.UserError, match="expected 0 \\(or --certificate constant\\)"):
+    with pytest.raises(pipeline.UserError, match="divides the scenario's sampling_time"):
         run_synthesis(
-            "double_integrator", out, RunOptions(certificate="funnel", feedback_period=0.01)
+            "double_integrator", out, RunOptions(certificate="funnel", feedback_period=0.03)
         )
 
 

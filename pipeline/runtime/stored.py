@@ -258,6 +258,7 @@ def load_report_data(scenario: Scenario, out: Path, write_to: Path | None = None
         controller=results["controller"],
         certification=certify_controller(scenario, controller),
         montecarlo=mc,
+        feedback_period=law.feedback_period,
     )
     try:
         summary = rederive(summary, evidence, stress)

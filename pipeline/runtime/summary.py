@@ -107,6 +107,7 @@ class StageResults:
     # a funnel run: the constant certificate's optimized nominals (final_trajectories are the
     # shipped ones, re-optimized against the funnels)
     constant_trajectories: Sequence[Trajectory] | None = None
+    feedback_period: float = 0.0  # the law is held every h s (0: continuous)
 
     def __post_init__(self) -> None:
         if self.certificate == "funnel":
@@ -141,6 +142,7 @@ class StageResults:
             controller=self.controller,
             certification=self.certification,
             montecarlo=self.montecarlo,
+            feedback_period=self.feedback_period,
         )
 
 

@@ -57,6 +57,8 @@ class Evidence:
       no_funnel: a funnel run that kept no funnel: the funnel stage's message (else None).
       certification: stage ``certify`` on ``controller.json`` as written; montecarlo: the
         closed-loop runs of that file.
+      feedback_period: the file's: the law is evaluated every ``h`` s and held in between (0:
+        continuous feedback); the funnel certificate's claims say so.
     """
 
     scenario: Scenario
@@ -71,6 +73,7 @@ class Evidence:
     controller: ControllerResult
     certification: CertificationResult
     montecarlo: MonteCarloResult
+    feedback_period: float = 0.0
 
     @property
     def certified(self) -> bool:
@@ -179,12 +182,15 @@ def certificate_claims(
         under = f" under the declared uncertainty ({declared})" if declared else ""
         joint = ", joined with the disturbance's push by the S-procedure (I5)" if declared else ""
         eigenvalue = "twice the S-procedure's eigenvalue" if declared else "largest eigenvalue"
+        h = evidence.feedback_period
+        held = f", evaluated every {h:g} s and held in between" if h > 0 else ""
+        proof = "its error and the hold's are" if h > 0 else "its error is"
         return (
             Claim(
                 claim=f"each of the {len(check.radii)} shipped funnels is invariant under the law "
-                "as shipped: no flight that starts in E_i(0) leaves E_i(t) = {||x - x_ref_i(t)||_"
-                f"P_i(t) <= rho_i}} before T_i{under} (the law tracks x_ref interpolated; its "
-                "error is in the proof)",
+                f"as shipped{held}: no flight that starts in E_i(0) leaves E_i(t) = {{||x - "
+                f"x_ref_i(t)||_P_i(t) <= rho_i}} before T_i{under} (the law tracks x_ref "
+                f"interpolated; {proof} in the proof)",
                 kind=contraction,
                 how="the funnel's LMIs (F3: V = e^T P_i(t) e decreases at the rate, in Q = P^-1 "
                 f"form{joint}) at every vertex of a sound Jacobian hull of each interval's tube, "
@@ -244,9 +250,11 @@ def after_horizon(evidence: Evidence, certified: bool) -> Claim:
     if check.terminal and certified:
         bound = declared_bound_text(evidence.scenario)
         under = f" under the declared uncertainty ({bound})" if bound else ""
+        h = evidence.feedback_period
+        held = f", evaluated every {h:g} s and held in between" if h > 0 else ""
         return Claim(
             claim=f"after T every covered start stays in Goal for all time{under} (terminal "
-            "controller)",
+            f"controller{held})",
             kind=ClaimKind.CERTIFIED,
             how=f"invariant ellipsoid of the terminal law re-verified on controller.json "
             f"(decay {check.terminal_decay:.3g}/s at every hull vertex over its bounding box, "

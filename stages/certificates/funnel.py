@@ -61,6 +61,7 @@ class FunnelRun:
       options: the optimizer of the re-optimize rounds; quiet: no progress bars.
       targets: where the re-optimize rounds end the nominals (their ``scenario``) and the
         terminal controller the funnels must end in.
+      feedback_period: the law is held every ``h`` s (0: continuous); the funnels must hold it.
     """
 
     scenario: Scenario
@@ -73,6 +74,7 @@ class FunnelRun:
     quiet: bool
     describe_coverage: Callable[[CoverageResult], str]
     targets: Targets | None = None
+    feedback_period: float = 0.0
 
     @property
     def terminal(self) -> TerminalTarget | None:
@@ -164,6 +166,7 @@ class FunnelCertificate:
             quiet=run.quiet,
             describe_coverage=run.describe_coverage,
             targets=run.targets,
+            feedback_period=run.feedback_period,
         )
         trajectories = list(run.trajectories)
         funnels, coverage = funnel_stages(funnel_run, trajectories)
@@ -223,6 +226,7 @@ def funnel_stages(
                 P=run.feedback.certified_tube.P,
                 radii=np.asarray(run.initial_radii),
                 terminal=run.terminal,
+                feedback_period=run.feedback_period,
             ),
             name=stage,
             describe=lambda result: result.message,

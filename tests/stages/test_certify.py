@@ -256,12 +256,13 @@ def _moved_funnel_reference(document):
         (_funnel_K(0, 0.2), "trajectories[0]: the funnel is not certified"),
         (_funnel_radius(0.5), "Init is not covered"),
         (_moved_funnel_reference, "trajectories[0]: x_ref is not the dynamics under u_ref"),
-        (lambda d: d.update(feedback_period=0.01), "the funnel certificate is for continuous"),
+        (lambda d: d.update(feedback_period=0.03), "feedback_period 0.03 s does not divide Ts"),
+        (lambda d: d.update(feedback_period=0.1), "not certifiable with the law held every 0.1 s"),
         (lambda d: d.update(metric_interpolation="linear"), "metric_interpolation: found"),
     ],
     ids=[
         "P[10] halved", "P[0] halved", "P[3] negated", "K 3x", "K 0.2x", "radius halved",
-        "moved x_ref", "held feedback", "P linear",
+        "moved x_ref", "held feedback off the samples", "held feedback too slow", "P linear",
     ],
 )  # fmt: skip
 def test_a_tampered_funnel_file_is_not_certified(funnel_artifact, tmp_path, change, message):

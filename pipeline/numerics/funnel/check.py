@@ -97,10 +97,11 @@ def effective_margins(
 ) -> FloatArray:
     """(N,) what must stay below ``-LMI_MARGIN`` on each interval under the shipped law: (F2)'s
     largest eigenvalue plus the interpolated reference's term (I2); under a disturbance, twice
-    (I5)'s S-procedure eigenvalue ``r_k`` plus (I2) (``funnel.robust``). ``Q (N+1, n, n)``."""
-    if law.disturbed:
+    (I5)'s S-procedure eigenvalue ``r_k`` plus (I2) (``funnel.robust``), a held law's box
+    (``funnel.law`` (I6)) joined to the disturbance's. ``Q (N+1, n, n)``."""
+    if law.disturbed:  # the disturbance's box, and a held law's (funnel.law (I6))
         check = RobustCheck(Q, K, funnel.vertices, funnel.rate, Ts, funnel.rho)
-        return 2 * check.margins(law.disturbance)[0] + law.lmi_term
+        return 2 * check.margins(law.box)[0] + law.lmi_term
     return certificate_margins(Q, K, funnel.vertices, funnel.rate, Ts).max(axis=1) + law.lmi_term
 
 
@@ -137,17 +138,33 @@ def check_funnel(
     if effective.max() >= -LMI_MARGIN:
         k = int(np.argmax(effective))
         eigenvalue = effective[k] - law.lmi_term[k]
+        box = np.asarray(law.box)
+        held = (
+            ""
+            if law.hold is None
+            else f" and the hold's term (I6) |w_h| <= {np.round(law.hold[k], 4).tolist()}"
+        )
         what = (
-            f"under the disturbance |w| <= {np.round(law.disturbance, 4).tolist()}, twice "
+            f"under the disturbance |w| <= {np.round(law.disturbance, 4).tolist()}{held}, twice "
             "the S-procedure's eigenvalue (I5)"
             if law.disturbed
             else "eigenvalue"
         )
-        return (
+        failure = (
             f"(F2) fails on interval {k} (t = {Ts * k:.2f}-{Ts * (k + 1):.2f} s): {what} "
             f"{eigenvalue:.3g} + the interpolated reference's term {law.lmi_term[k]:.3g} is not "
             f"below -{LMI_MARGIN:g}"
         )
+        if law.hold is not None and box.ndim == 2:
+            check = RobustCheck(Q, K, funnel.vertices, funnel.rate, Ts, funnel.rho)
+            alone = 2 * check.margins(law.disturbance)[0][k]
+            if alone < -LMI_MARGIN and not eigenvalue < -LMI_MARGIN:
+                failure += (
+                    f" (without the hold {alone:.3g}): the funnel is not certifiable with the "
+                    f"law held every {law.period:g} s, on any reference grid (a shorter "
+                    "--feedback-period, or continuous feedback)"
+                )
+        return failure
     h = Ts / substeps(trajectory)
     enclosure = funnel.enclosure
     if enclosure is None:

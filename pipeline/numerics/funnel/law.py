@@ -54,6 +54,48 @@ with ``v_k = max_corners max_ends ||sigma o d||_P`` (convex in ``w`` and in ``t`
 disturbance constraint), and it bounds the level from below (``rho_t > 2 (w_k + v_k) / -m_k``).
 The check uses the sharper (I5) of ``funnel.robust``, which bounds the (F2) term and the
 disturbance's together (the S-procedure) instead of each at its own worst boundary point.
+
+(I6) A held law. With ``--feedback-period h`` (``h`` divides ``Ts``) the law is evaluated at
+``t_j = j h`` and held: ``u(t) = u_ref[k] + K[k] (x(t_j) - xhat(t_j))`` on ``[t_j, t_j + h)``.
+The samples are aligned with 0, so ``t_j`` and ``t`` lie in the same sample interval ``k``
+(same ``K[k]``, ``u_ref[k]``). With ``x(t_j) - xhat(t_j) = e(t_j) + delta(t_j)``,
+
+    u = u_ref + K e(t) + K delta_h,   delta_h = delta(t_j) + (e(t_j) - e(t)),
+
+the law of (I2) with the offset ``delta_h`` in place of ``delta``. While the state is in the
+funnel on ``[t_j, t]`` (up to the first exit, which is what the invariance argument needs: the
+boundary condition is checked with these bounds), ``|e(t_j) - e(t)| <= h Edot`` with ``Edot
+(n,)`` a bound on ``|de/dt|`` there: ``de/dt = f(x, u) - f(x_ref, u_ref) + w = Abar e(t) + Bbar
+(u - u_ref) + w`` with ``[Abar Bbar]`` in the hull (the segment from ``(x_ref, u_ref)`` to ``(x,
+u)`` lies in the box ``Z_k``: ``x`` is in the funnel, and ``u - u_ref = K e(t_j) + K
+delta(t_j)`` is inside the input box widened by (I3)'s offset, which is checked with the larger
+``delta_h``). Bounding each term: ``|e_l(t)| <= ext_l = rho_k sqrt(max(Q_ll[k], Q_ll[k+1]))``
+(``Q`` linear in t, ``rho_t <= rho_k = rho e^{-lambda t_k}`` on the interval), ``|u_j - u_ref_j|
+<= g_j + (|K| Delta)_j`` with ``g_j = rho_k sqrt(max_ends K_j Q K_j^T)`` (E3: ``e(t_j)`` is in
+the funnel) and ``Delta`` of (I1), ``|w| <= d`` (the declared additive bound, (I4); zero for the
+exact model); ``Abar e + Bbar v`` is a convex combination of ``A_v e + B_v v`` over the
+vertices, so
+
+    Edot_i <= max_v [sum_l |A_v[i, l]| ext_l + sum_j |B_v[i, j]| (g_j + (|K| Delta)_j)] + d_i,
+    |delta_h| <= Delta_h = Delta + h Edot.                                                   (I6)
+
+(I3) then holds with ``Delta_h``: the input boxes are widened by ``|K| Delta_h``. In the
+inequality the hold's part is not taken through (I2)'s Cauchy-Schwarz bound (measured on
+double_integrator_hold's funnels at ``h`` = 5 ms: 12x the room, where the funnel is thin in the
+velocities Init does not spread, and (I2) pairs the largest push with the weakest decay): the
+error equation is
+
+    e' = Acl e + Bbar K delta + Bbar K (e(t_j) - e(t)) + w,
+
+and ``|(Bbar K v)_i| <= max_v sum_l |(B_v K)[i, l]| |v_l|`` (``Bbar`` a convex combination of the
+vertices), so ``Bbar K (e(t_j) - e(t)) + w`` lies in the box ``d + H[k]``, ``H[k] = max_v |B_v
+K[k]| h Edot`` (``LawOffset.hold``). (I5)'s S-procedure holds for every hull point and every
+signal in its box, so with the box ``d + H[k]`` on interval ``k`` it covers this term too
+(that ``Bbar`` is also the loop's is then not used: sound, if conservative); (I2) keeps
+``Delta`` of (I1) alone. ``h Edot`` does not shrink with the reference grid (and ``Edot`` is
+about ``rho``, so ``H`` does not shrink with the level either): a funnel whose (I5) fails with
+``d + H`` is not certifiable at that period, on any grid. With ``h = 0`` every number is
+(I1)-(I5)'s.
 """
 
 from __future__ import annotations
@@ -85,6 +127,11 @@ class LawOffset:
       lmi_term: (N,) ``2 w_k / (rho e^{-lambda t_k+1})``, (I2): added to the (F2) eigenvalue.
       disturbance: (n,) the box ``|w| <= d`` on the state derivatives the funnel must hold under
         (``funnel.robust`` (I5)); zeros: the exact model.
+      period: ``h`` (s) of a held law (I6); 0: continuous feedback.
+      hold: (N, n) ``H[k]``, (I6): the box of the hold's term ``Bbar K (e(t_j) - e(t))``, joined
+        to ``disturbance`` in (I5); None: continuous feedback.
+      held_input: (N, m) ``|K| h Edot``, the hold's part of ``input_offset`` (it does not shrink
+        with the grid); None: continuous feedback.
     """
 
     steps: FloatArray
@@ -92,6 +139,28 @@ class LawOffset:
     input_offset: FloatArray
     lmi_term: FloatArray
     disturbance: FloatArray
+    period: float = 0.0
+    hold: FloatArray | None = None
+    held_input: FloatArray | None = None
+
+    @property
+    def box(self) -> FloatArray:
+        """(I5)'s box: ``disturbance (n,)``, or ``disturbance + hold`` (N, n) for a held law."""
+        return self.disturbance if self.hold is None else self.disturbance + self.hold
+
+    def robust_part(self) -> LawOffset:
+        """This law without (I2)'s interpolation term and (I3)'s offset: the disturbance and
+        the hold's box in (I5) (what the reference grid is chosen against)."""
+        return dataclasses.replace(
+            self, deviation=np.zeros_like(self.deviation),
+            input_offset=np.zeros_like(self.input_offset), lmi_term=np.zeros_like(self.lmi_term),
+            held_input=None,
+        )  # fmt: skip
+
+    @property
+    def fixed_input(self) -> FloatArray:
+        """(N, m) ``held_input``, zeros for continuous feedback."""
+        return np.zeros_like(self.input_offset) if self.held_input is None else self.held_input
 
     @staticmethod
     def none(N: int, n: int, m: int, Ts: float) -> LawOffset:
@@ -107,8 +176,9 @@ class LawOffset:
 
     @property
     def disturbed(self) -> bool:
-        """Whether the funnel must hold under a disturbance (``funnel.robust`` (I5))."""
-        return bool(np.any(self.disturbance > 0))
+        """Whether the funnel must hold under a disturbance or a hold's box (``funnel.robust``
+        (I5))."""
+        return bool(np.any(self.box > 0))
 
 
 def corners(bound: FloatArray) -> FloatArray:
@@ -151,34 +221,63 @@ def law_offset(
     Ts: float,
     substeps: np.ndarray,
     centre_error: float = 0.0,
+    period: float = 0.0,
+    disturbance: FloatArray | None = None,
 ) -> LawOffset:
     """(I1)-(I3) for a funnel ``K (N, m, n)``, ``P (N+1, n, n)``, level ``rho``, ``rate``, with its
     hull ``vertices`` (N arrays (V, n, n+m) of ``[A_v B_v]``), the nominal's rate bound
     ``rate_bound (N, n)`` (E1) and the reference grid's ``substeps (N,)`` per sample.
     ``centre_error``: the P-norm error of the RK4 values standing in for the exact nominal
     (estimated by the caller); it moves the law's centre too, so it joins ``Delta`` (a P-norm
-    error ``eps`` is at most ``eps sqrt(Q_ii)`` in state ``i``)."""
+    error ``eps`` is at most ``eps sqrt(Q_ii)`` in state ``i``). ``period > 0``: the law held
+    every ``period`` s, (I6), with the additive bound ``disturbance (n,)`` in ``Edot`` (None:
+    zeros); the returned ``disturbance`` is still zeros (``with_disturbance`` sets (I5)'s)."""
     N, m, n = K.shape
     steps = Ts / np.asarray(substeps, dtype=np.float64)
-    Q_diagonal = np.diagonal(np.linalg.inv(P), axis1=1, axis2=2)  # (N+1, n)
+    Q = np.linalg.inv(P)
+    Q_diagonal = np.diagonal(Q, axis1=1, axis2=2)  # (N+1, n)
     centre = centre_error * np.sqrt(np.maximum(Q_diagonal[:-1], Q_diagonal[1:]))  # (N, n)
     deviation, input_offset, lmi_term = np.zeros((N, n)), np.zeros((N, m)), np.zeros(N)
+    held = period > 0
+    hold, held_input = np.zeros((N, n)), np.zeros((N, m))
+    d = np.zeros(n) if disturbance is None else np.asarray(disturbance, dtype=np.float64)
     signs = np.array(list(itertools.product((-1.0, 1.0), repeat=n)))[: 2 ** (n - 1)]  # +-pairs
     for k in range(N):
         A, B = vertices[k][:, :, :n], vertices[k][:, :, n:]
         acceleration = (np.abs(A) @ rate_bound[k]).max(axis=0)  # (n,) bound on |xddot|
         deviation[k] = steps[k] ** 2 / 8 * acceleration + centre[k]  # eq. (I1)
+        rho_t = rho * math.exp(-rate * Ts * (k + 1))
+        if held:  # eq. (I6)
+            level = rho * math.exp(-rate * Ts * k)  # rho_t is largest at the interval's start
+            extent = level * np.sqrt(np.maximum(Q_diagonal[k], Q_diagonal[k + 1]))  # (n,)
+            spread = np.maximum(
+                np.einsum("ji,il,jl->j", K[k], Q[k], K[k]),
+                np.einsum("ji,il,jl->j", K[k], Q[k + 1], K[k]),
+            )  # (m,) K_j Q K_j^T, linear in t: largest at an end
+            reach = level * np.sqrt(np.maximum(spread, 0.0)) + np.abs(K[k]) @ deviation[k]
+            speed = (np.abs(A) @ extent + np.abs(B) @ reach).max(axis=0) + d  # (n,) Edot
+            drift = period * speed  # |e(t_j) - e(t)| <= h Edot
+            hold[k] = (np.abs(B @ K[k]) @ drift).max(axis=0)  # the box H[k], joined to (I5)'s
+            held_input[k] = np.abs(K[k]) @ drift
+        w = _offset_norm(B, K[k], P, k, signs * deviation[k])  # eq. (I2), (I1)'s Delta alone
+        lmi_term[k] = 2 * w / rho_t
+        if held:
+            deviation[k] = deviation[k] + drift  # Delta_h
         input_offset[k] = np.abs(K[k]) @ deviation[k]  # eq. (I3)
-        offsets = (B @ K[k]) @ (signs * deviation[k]).T  # (V, n, corners)
-        w = max(
-            float(np.sqrt(np.einsum("vic,ij,vjc->vc", offsets, P[k + e], offsets).max()))
-            for e in (0, 1)
-        )  # eq. (I2)
-        lmi_term[k] = 2 * w / (rho * math.exp(-rate * Ts * (k + 1)))
     return LawOffset(
         steps=steps, deviation=deviation, input_offset=input_offset, lmi_term=lmi_term,
-        disturbance=np.zeros(n),
+        disturbance=np.zeros(n), period=float(period) if held else 0.0,
+        hold=hold if held else None, held_input=held_input if held else None,
     )  # fmt: skip
+
+
+def _offset_norm(B: FloatArray, K: FloatArray, P: FloatArray, k: int, offsets: FloatArray) -> float:
+    """(I2)'s ``w_k``: the largest ``||B_v K delta||_P`` over the vertices ``B (V, n, m)``, the
+    corners ``offsets (C, n)`` and the ends ``P[k]``, ``P[k + 1]`` of interval ``k``."""
+    pushed = (B @ K) @ offsets.T  # (V, n, corners)
+    return max(
+        float(np.sqrt(np.einsum("vic,ij,vjc->vc", pushed, P[k + e], pushed).max())) for e in (0, 1)
+    )
 
 
 def law_substeps(
@@ -188,15 +287,23 @@ def law_substeps(
     that (I2) uses at most ``1 / SAFETY`` of what the (F2) eigenvalues ``margins (N,)`` leave below
     ``-LMI_MARGIN``, and (I3) at most ``1 / SAFETY`` of ``input_room (N, m)`` (the distance from
     the tube's inputs to their bounds). ``offset`` is (I1)-(I3) on some grid; every term scales
-    with ``h_k^2``. Where the room is already gone the grid stays at ``BASE_SUBSTEPS`` (the
-    funnel is not certifiable on any grid)."""
+    with ``h_k^2`` but a held law's (I6): its box ``hold`` is in the margins already (the caller's
+    (I5) with it), its input part (``held_input``) takes its share of the input room first, and
+    the rest of each term is what the grid shrinks. Where the room is already gone the grid stays
+    at ``BASE_SUBSTEPS`` (the funnel is not certifiable on any grid, or at that period)."""
+    fixed_input = offset.fixed_input
     lmi_room = np.maximum(-margins - LMI_MARGIN, 0.0) / SAFETY
-    input_room = np.maximum(input_room, 0.0) / SAFETY
+    input_room = np.maximum(input_room - fixed_input, 0.0) / SAFETY
+    lmi_scaled = offset.lmi_term
+    input_scaled = np.maximum(offset.input_offset - fixed_input, 0.0)
     with np.errstate(divide="ignore", invalid="ignore"):
-        lmi_fit = np.where(offset.lmi_term > 0, lmi_room / offset.lmi_term, np.inf)
-        input_fit = np.where(offset.input_offset > 0, input_room / offset.input_offset, np.inf)
+        lmi_fit = np.where(lmi_scaled > 0, lmi_room / lmi_scaled, np.inf)
+        input_fit = np.where(input_scaled > 0, input_room / input_scaled, np.inf)
     shrink = np.minimum(lmi_fit, input_fit.min(axis=1))  # the largest factor on h_k^2 that fits
-    needed = np.where(
-        shrink > 0, np.ceil(Ts / (offset.steps * np.sqrt(np.minimum(shrink, 1.0)))), BASE_SUBSTEPS
-    )
+    with np.errstate(divide="ignore"):  # shrink 0: the room is gone, BASE_SUBSTEPS is taken
+        needed = np.where(
+            shrink > 0,
+            np.ceil(Ts / (offset.steps * np.sqrt(np.minimum(shrink, 1.0)))),
+            BASE_SUBSTEPS,
+        )
     return np.clip(needed, BASE_SUBSTEPS, MAX_SUBSTEPS).astype(np.int64)

@@ -40,6 +40,8 @@ block diagonal and ``r_k = m_k / 2`` at ``alpha = -m_k / 2``: (I5) is (F2)'s own
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 from scipy.linalg import solve_continuous_lyapunov
 
@@ -133,15 +135,26 @@ class RobustCheck:
         return out
 
     def _scaled(self, bound: FloatArray) -> FloatArray:
-        """(R, C, n) ``a = Lc^-1 w_c / rho_end`` for the corners ``w_c`` of ``|w| <= bound``."""
-        w = corners(np.asarray(bound, dtype=np.float64))
+        """(R, C, n) ``a = Lc^-1 w_c / rho_end`` for the corners ``w_c`` of ``|w| <= bound``:
+        one box ``(n,)`` for every interval, or one per interval ``(N, n)`` (a held law's,
+        ``funnel.law`` (I6))."""
+        bound = np.asarray(bound, dtype=np.float64)
+        factor = self.L_inv[self.owner, self.end]  # (R, n, n)
+        if bound.ndim == 2:  # the corners' signs over every state any interval's box acts on
+            acting = np.asarray((bound > 0).any(axis=0), dtype=np.float64)
+            signs = corners(acting)  # (C, n) of +-1 and 0
+            if not len(signs):
+                signs = np.zeros((1, self.n))
+            w = signs[None] * bound[self.owner][:, None, :]  # (R, C, n)
+            return np.einsum("rij,rcj->rci", factor, w) / self.rho_end[self.owner][:, None, None]
+        w = corners(bound)
         if not len(w):
             w = np.zeros((1, self.n))
-        factor = self.L_inv[self.owner, self.end]  # (R, n, n)
         return np.einsum("rij,cj->rci", factor, w) / self.rho_end[self.owner][:, None, None]
 
     def margins(self, bound: FloatArray) -> tuple[FloatArray, FloatArray]:
-        """``(r (N,), alpha (N,))``: (I5)'s ``r_k`` at the multiplier found for each interval."""
+        """``(r (N,), alpha (N,))``: (I5)'s ``r_k`` at the multiplier found for each interval,
+        for the box ``bound`` (``(n,)``, or ``(N, n)`` one per interval)."""
         a = self._scaled(bound)
         ratio = (np.sqrt(5.0) - 1) / 2
         # past this the eigenvalue of S grows with alpha (Mhat + alpha I dominates)
@@ -161,17 +174,25 @@ class RobustCheck:
         alpha = np.where(fc <= fd, c, d)
         return self._largest(alpha, a), alpha
 
-    def multiple(self, bound: FloatArray, lmi_term: FloatArray) -> float:
+    def multiple(
+        self,
+        bound: FloatArray,
+        lmi_term: FloatArray,
+        hold: Callable[[float], FloatArray] | None = None,
+    ) -> float:
         """The largest ``s`` with ``2 r_k(s bound) + lmi_term_k < -LMI_MARGIN`` on every interval,
         by bisection (``r_k`` is convex in ``s``: the set where it holds is an interval from 0),
         shrunk so that the bound itself is not on the edge; ``inf`` without a disturbance, or
-        once ``2^19`` times it holds (not checked further)."""
+        once ``2^19`` times it holds (not checked further). ``hold(s)``: a held law's box ``(N,
+        n)`` (``funnel.law`` (I6)) under ``s`` times the disturbance, added to it (it grows with
+        ``s``: the set is still an interval from 0)."""
         bound = np.asarray(bound, dtype=np.float64)
         if not np.any(bound > 0):
             return float("inf")
 
         def holds(s: float) -> bool:
-            return bool(np.all(2 * self.margins(s * bound)[0] + lmi_term < -LMI_MARGIN))
+            box = s * bound if hold is None else s * bound + hold(s)
+            return bool(np.all(2 * self.margins(box)[0] + lmi_term < -LMI_MARGIN))
 
         if not holds(0.0):
             return 0.0

@@ -38,7 +38,28 @@ is exactly the exact model's.
 Where it fails, the S-procedure of ``pipeline.numerics.funnel.robust`` (I5) bounds them together:
 ``E_c`` with constant ``Q = P_T^-1`` is a funnel of one interval (``Q' = 0``), the hull's vertices
 held, the residual added to the box (``|r + w| <= |r| + b`` entrywise); ``V' < 0`` on its boundary
-when (I5)'s eigenvalue is below ``-LMI_MARGIN`` (continuous feedback only: a held law keeps (T1')).
+when (I5)'s eigenvalue is below ``-LMI_MARGIN`` (not with the constant certificate's held rate,
+``period``; a funnel file's held law (T4) is an additive term, and keeps (T1'')).
+
+(T4) A held law in a funnel file. With ``--feedback-period h`` the law after ``T`` is ``u = u_eq +
+K_T e(t_j)`` on ``[t_j, t_j + h)``, ``t_j = j h`` (``T`` is a multiple of ``h``, so the first
+window starts at ``T``). As in ``funnel.law`` (I6), ``f(x, u) - f(x_eq, u_eq) = Abar e + Bbar K_T
+e(t_j)`` with ``[Abar Bbar]`` in the hull over ``Z_c`` (``u`` is ``u_eq + K_T e(t_j)``, ``e(t_j)``
+in ``E_c`` up to the first exit: inside ``Z_c``'s input box), so
+
+    e' = (Abar + Bbar K_T) e + r + w + Bbar K_T (e(t_j) - e(t)),
+
+the continuous law's error equation with one more additive term. While ``e`` stays in ``E_c``,
+``|e(t_j) - e(t)| <= h Edot`` with ``Edot_i = max_v [sum_l |A_v[i, l]| ext_l + sum_j |B_v[i, j]|
+reach_j] + |r_i| + b_i`` (``ext``, ``reach``: ``E_c``'s state and input extents about
+``(x_eq, u_eq)``; a convex combination of the vertices' terms, as in (I6)), and ``|(Bbar K_T
+v)_i| <= max_v sum_l |(B_v K_T)[i, l]| |v_l|``. So the hold is an additive term in the box
+``b_h = h max_v |B_v K_T| Edot``, and (T1'), (T1'') with ``b + b_h`` in place of ``b`` certify
+``E_c`` for the held law (both hold for every hull point and every ``w`` in the box, so the term
+sharing ``Bbar`` with the loop is covered). ``b_h`` grows with the level (``ext``, ``reach``), so
+(T1')'s floor does too, linearly in ``sqrt(c)``: a larger level is still the better chance for it
+(``largest_level``). ``check_level(held_period=h)``; ``period`` is the constant certificate's
+held rate (``pipeline.numerics.tube.sampled``), for files without a disturbance.
 
 End tubes: ``pipeline.numerics.terminal.fit`` (the exact containment level, and the funnel's LMI).
 """
@@ -203,16 +224,17 @@ def check_level(
     min_decay: float = 0.0,
     period: float = 0.0,
     disturbance: FloatArray | None = None,
+    held_period: float = 0.0,
 ) -> TerminalCheck:
     """Check (T1') and the bounds for ``E_c``, ``c = level`` (module docstring), from scratch:
     hull over ``Z_c``, decay by ``numpy.linalg.eigvalsh``, no clipping, inside Goal. With a
     feedback ``period > 0`` (the law held) the decay is that of the held law: ``2 lambda_h`` of
     ``pipeline.numerics.tube.sampled`` at the continuous rate ``alpha / 2``. ``disturbance (n,)``:
-    the additive bound ``b`` of (T1') (None or zeros: the exact model, (T1))."""
+    the additive bound ``b`` of (T1') (None or zeros: the exact model, (T1)). ``held_period >
+    0``: the law held every ``held_period`` s, its hold an additive term (T4) joined to ``b``
+    (a funnel file's terminal law)."""
     tube, r = _tube(scenario, K, P), float(np.sqrt(level))
     b = np.zeros(len(x_eq)) if disturbance is None else np.asarray(disturbance, dtype=np.float64)
-    w = corners(b)  # (C, n)
-    w_max = float(np.sqrt(np.einsum("ci,ij,cj->c", w, P, w).max())) if len(w) else 0.0  # (T1')
     failures = []
     # no clipping: u_eq +- r ||K_j P^-1/2|| inside the bounds
     reach = tube.input_margin(r)
@@ -244,7 +266,7 @@ def check_level(
                 f"{inside:.3g} in P_T-norm)"
             )
         envelope = min(envelope, inside)
-    if len(w):  # the additive bound holds over uncertainty.certified_box only
+    if np.any(b > 0):  # the additive bound holds over uncertainty.certified_box only
         for name, (lo, hi) in scenario.operating_region.items():
             if name not in scenario.state_names or name in scenario.state_bounds:
                 continue
@@ -269,9 +291,13 @@ def check_level(
         decay, vertices = decay_rate(P, K, hull.A, hull.B), len(hull.vertices)
         if period > 0:
             decay = 2 * held_rate(P, K, hull.A, hull.B, decay / 2, period).held_rate
+        if held_period > 0:  # (T4): the hold as an additive term
+            b = b + hold_bound(hull.A, hull.B, K, r * extent, reach, residual, b, held_period)
     except HullError as error:
         decay, vertices = -np.inf, 0
         failures.append(f"no Jacobian hull over E_c's bounding box: {error}")
+    w = corners(b)  # (C, n)
+    w_max = float(np.sqrt(np.einsum("ci,ij,cj->c", w, P, w).max())) if len(w) else 0.0  # (T1')
     if vertices and not (decay > 0 and decay >= min_decay):
         failures.append(
             f"V does not decrease on the boundary of E_c (decay {decay:.3g}/s, required "
@@ -298,6 +324,25 @@ def check_level(
         disturbance=w_max,
         below_floor=floor and not others,
     )
+
+
+def hold_bound(
+    A: FloatArray,
+    B: FloatArray,
+    K: FloatArray,
+    extent: FloatArray,
+    reach: FloatArray,
+    residual: FloatArray,
+    bound: FloatArray,
+    period: float,
+) -> FloatArray:
+    """(n,) (T4)'s ``b_h = h max_v |B_v K| Edot``: the box of ``Bbar K (e(t_j) - e(t))`` for the
+    law held every ``period`` s, with ``Edot = max_v (|A_v| extent + |B_v| reach) + |residual| +
+    bound``; hull ``A (V, n, n)``, ``B (V, n, m)``, gain ``K (m, n)``, the ellipsoid's state and
+    input extents ``extent (n,)``, ``reach (m,)``, the equilibrium's residual and the additive
+    bound ``(n,)``."""
+    speed = (np.abs(A) @ extent + np.abs(B) @ reach).max(axis=0) + np.abs(residual) + bound
+    return np.asarray(period * (np.abs(B @ K) @ speed).max(axis=0), dtype=np.float64)
 
 
 def joint_margin(
@@ -327,14 +372,17 @@ def largest_level(
     P: FloatArray,
     period: float = 0.0,
     disturbance: FloatArray | None = None,
+    held_period: float = 0.0,
 ) -> TerminalCheck:
     """The largest level ``c`` certified with at least ``DECAY_FRACTION`` of the linearisation's
     decay (bisection on ``sqrt(c)``; the input and Goal bounds give the top), robust to the
-    additive bound ``disturbance (n,)`` (T1'). Every check but (T1')'s floor only gets harder
-    as ``c`` grows, so the bisection finds the largest level passing those, and (T1') is checked
-    there (it is the best chance: the floor is a lower bound); the returned check fails when
-    that level is below the floor."""
+    additive bound ``disturbance (n,)`` (T1'), for the law held every ``held_period`` s when it
+    is > 0 (T4). Every check but (T1')'s floor only gets harder as ``c`` grows, so the
+    bisection finds the largest level passing those, and (T1') is checked there (it is the best
+    chance: the floor is a lower bound, (T4)'s term growing with ``sqrt(c)`` too); the returned
+    check fails when that level is below the floor."""
     robust = disturbance is not None and bool(np.any(np.asarray(disturbance) > 0))
+    robust = robust or held_period > 0
     A0, B0 = scenario.dynamics.f_x(x_eq, u_eq), scenario.dynamics.f_u(x_eq, u_eq)
     linear = decay_rate(P, K, A0[None], B0[None])
     if period > 0:
@@ -350,7 +398,7 @@ def largest_level(
     def at(radius: float) -> TerminalCheck:
         return check_level(
             scenario, x_eq, u_eq, K, P, radius**2, min_decay=need, period=period,
-            disturbance=disturbance,
+            disturbance=disturbance, held_period=held_period,
         )  # fmt: skip
 
     best = at(hi)
@@ -398,6 +446,7 @@ def design_terminal(
     period: float = 0.0,
     end_metrics: FloatArray | None = None,
     disturbance: FloatArray | None = None,
+    held_period: float = 0.0,
 ) -> TerminalDesign:
     """The best-fitting certified terminal controller for end tubes ``||x - ends[i]||_P <=
     end_radii[i]`` (tube gain ``K (m, n)``, metric ``P (n, n)``; ``end_metrics (k, n, n)``: each
@@ -406,7 +455,8 @@ def design_terminal(
     Candidates: equilibria at Goal's centre and at the mean end position (when in Goal), each
     with the LQR gain and Riccati matrix there and with the tube's own ``K`` and ``P``; the
     certified one with the smallest ``fit`` is kept (for the law held every ``period`` s when
-    it is > 0), robust to the additive bound ``disturbance (n,)`` (T1'). ``TerminalError`` when
+    it is > 0, the constant certificate's held rate; every ``held_period`` s, (T4), a funnel
+    file's), robust to the additive bound ``disturbance (n,)`` (T1'). ``TerminalError`` when
     none certifies.
     """
     positions = [goal_centre(scenario)]
@@ -427,7 +477,7 @@ def design_terminal(
         except TerminalError as error:
             reasons.append(str(error))
         for gain, K_T, P_T in gains:
-            check = largest_level(scenario, x_eq, u_eq, K_T, P_T, period, disturbance)
+            check = largest_level(scenario, x_eq, u_eq, K_T, P_T, period, disturbance, held_period)
             if not check.success:
                 reasons.append(
                     f"{gain} gain at {np.round(position, 3).tolist()}: " + "; ".join(check.failures)
@@ -451,20 +501,25 @@ def hold_design(
     """The terminal controller a funnel run designs BEFORE its funnels, for them to end in: the
     equilibrium at Goal's centre, its LQR gain and, under ``disturbance (n,)``, the metric shaped
     for it (T3) when that certifies, else the Riccati matrix; the largest level certified
-    robustly (T1', T1''); ``fit`` 0 (no end tube yet). ``TerminalError`` when
+    robustly (T1', T1''), for the law held every ``period`` s when it is > 0 (T4: the funnel
+    file's law); ``fit`` 0 (no end tube yet). ``TerminalError`` when
     there is no equilibrium, no stabilising gain or no certified level."""
     x_eq, u_eq = equilibrium(scenario)
     K_T, P_T = lqr_terminal(scenario, x_eq, u_eq)
-    if disturbance is not None and np.any(np.asarray(disturbance) > 0) and period == 0:
+    if disturbance is not None and np.any(np.asarray(disturbance) > 0):
         metric = robust_metric(scenario, x_eq, u_eq, K_T, np.asarray(disturbance))  # (T3)
         if metric is not None:  # shaped for the disturbance: kept whenever it certifies
-            robust = largest_level(scenario, x_eq, u_eq, K_T, metric, period, disturbance)
+            robust = largest_level(
+                scenario, x_eq, u_eq, K_T, metric, disturbance=disturbance, held_period=period
+            )
             if robust.success:
                 return TerminalDesign(
                     x_eq=x_eq, u_eq=u_eq, K=K_T, P=metric, check=robust, gain="lqr", fit=0.0,
                     shaped=True,
                 )  # fmt: skip
-    check = largest_level(scenario, x_eq, u_eq, K_T, P_T, period, disturbance)
+    check = largest_level(
+        scenario, x_eq, u_eq, K_T, P_T, disturbance=disturbance, held_period=period
+    )
     if not check.success:
         where = np.round(x_eq, 3).tolist()
         raise TerminalError(f"lqr gain at {where}: " + "; ".join(check.failures))

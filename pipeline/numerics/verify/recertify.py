@@ -22,6 +22,9 @@ the synthesis's boxes and its solver:
    whose error (I1) enters the inequality (I2) and the inputs (I3); the input boxes of step 2 are
    widened by ``OFFSET_ALLOWANCE`` times the offset (I3) of hulls without it, and the offset of
    the hulls so built must fit that allowance;
+   With ``feedback_period h > 0`` the law is held every ``h`` s: its offset (I6) (``h Edot``,
+   the additive bound in ``Edot``) joins (I3)'s, and its push joins the disturbance's box in
+   (I5);
 4. ``funnel.check.check_funnel`` on the funnel so rebuilt, under that law: ``P[k]`` positive
    definite, (F3) plus (I2) at every vertex at both ends of every interval (numpy eigenvalues),
    the enclosure (E1) and the tube inside every hull box, ``rho`` within the limits of Unsafe,
@@ -32,8 +35,9 @@ whatever grid the file carries its reference on).
 
 ``recheck_terminal`` (either format): the ``terminal`` block by (T1') of
 ``pipeline.numerics.terminal.design`` under the scenario's declared additive bound (``uncertainty.
-additive_bound``; the block's own ``disturbance`` only where it is larger), and every end tube
-inside its ellipsoid (``terminal.fit``).
+additive_bound``; the block's own ``disturbance`` only where it is larger), for a held law ((T4)
+in a ``/2`` file, the held rate in a ``/1`` file), and every end tube inside its ellipsoid
+(``terminal.fit``).
 
 A hull over a box is sound for any number of segments, so ``SEGMENTS`` are tried in turn and the
 funnel is accepted when one of them certifies it (a finer hull is tighter, not always a subset).
@@ -42,7 +46,8 @@ funnel is accepted when one of them certifies it (a finer hull is tighter, not a
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping
+import functools
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -219,11 +224,13 @@ def _under_law(
     substeps: np.ndarray,
     centre_error: float = 0.0,
     disturbance: FloatArray | None = None,
+    period: float = 0.0,
 ) -> tuple[Funnel, LawOffset]:
     """Steps 1-3: the funnel rebuilt with its input boxes widened by ``OFFSET_ALLOWANCE`` times the
     law's input offset (I3) found on hulls without it, and the law's offset on the hulls so built
     for a reference grid of ``substeps (N,)`` per sample, under the additive bound ``disturbance
-    (n,)`` when given ((I5)).
+    (n,)`` when given ((I5)), the law held every ``period`` s when it is > 0 ((I6), with the
+    same bound in ``Edot``).
 
     Raises:
       HullError: no hull or enclosure, or the offset outgrew the widening.
@@ -234,7 +241,7 @@ def _under_law(
             raise HullError("no a priori enclosure of the nominal")
         return law_offset(
             funnel.vertices, funnel.enclosure.rate_bound, shipped.K, shipped.P, shipped.rho,
-            shipped.rate, scenario.Ts, substeps, centre_error,
+            shipped.rate, scenario.Ts, substeps, centre_error, period, disturbance,
         )  # fmt: skip
 
     plain = rebuild_funnel(scenario, trajectory, shipped, state_bounds, segments)
@@ -242,7 +249,10 @@ def _under_law(
     funnel = rebuild_funnel(scenario, trajectory, shipped, state_bounds, segments, allowance)
     law = offset(funnel)
     if np.any(law.input_offset > allowance):
-        raise HullError("the interpolated reference's input offset (I3) outgrew its hull box")
+        raise HullError(
+            "the interpolated reference's input offset (I3) outgrew its hull box"
+            + (f" (the law held every {period:g} s, (I6))" if period > 0 else "")
+        )
     if disturbance is not None:
         law = law.with_disturbance(disturbance)
     return funnel, law
@@ -256,11 +266,13 @@ def recheck_funnel(
     substeps: np.ndarray,
     centre_error: float = 0.0,
     disturbance: FloatArray | None = None,
+    period: float = 0.0,
 ) -> FunnelRecheck:
     """Steps 1-4 of the module docstring for one ``shipped`` funnel around the nominal
     ``trajectory`` (a uniform RK4 grid), its law tracking the reference on a grid of ``substeps
     (N,)`` per sample, for ``x' = f(x, u) + w`` with ``|w| <= disturbance (n,)`` when given
-    (``pipeline.numerics.uncertainty``; (I5)). The margin reported is (F2)'s eigenvalue plus (I2),
+    (``pipeline.numerics.uncertainty``; (I5)), the law held every ``period`` s when it is > 0
+    (``funnel.law`` (I6)). The margin reported is (F2)'s eigenvalue plus (I2),
     or under a disturbance twice (I5)'s plus (I2) (``funnel.check.effective_margins``)."""
     K, Q = shipped.K, shipped.Q
     failures: list[str] = []
@@ -269,7 +281,7 @@ def recheck_funnel(
         try:
             funnel, law = _under_law(
                 scenario, trajectory, shipped, state_bounds, segments, substeps, centre_error,
-                disturbance,
+                disturbance, period,
             )  # fmt: skip
         except (HullError, np.linalg.LinAlgError) as error:
             failures.append(f"{segments} segment(s): {error}")
@@ -282,13 +294,17 @@ def recheck_funnel(
             scenario, trajectory, Q, K, enclosure, state_bounds, law.input_offset
         )
         binding = min(limits, key=lambda key: limits[key][0])
+        held = functools.partial(  # the law's offset under another additive bound in (I6)
+            law_offset, funnel.vertices, enclosure.rate_bound, K, shipped.P, shipped.rho,
+            shipped.rate, scenario.Ts, substeps, centre_error, period,
+        )  # fmt: skip
         last = FunnelRecheck(
             failure=failure,
             margin=float(effective_margins(Q, K, funnel, scenario.Ts, law).max()),
             vertices=sum(len(v) for v in funnel.vertices),
             radius=limits[binding][0],
             binding=binding,
-            disturbance_multiple=disturbance_multiple(Q, K, funnel, scenario.Ts, law),
+            disturbance_multiple=disturbance_multiple(Q, K, funnel, scenario.Ts, law, held),
         )
         if failure is None:
             return last
@@ -297,12 +313,28 @@ def recheck_funnel(
 
 
 def disturbance_multiple(
-    Q: FloatArray, K: FloatArray, funnel: Funnel, Ts: float, law: LawOffset
+    Q: FloatArray,
+    K: FloatArray,
+    funnel: Funnel,
+    Ts: float,
+    law: LawOffset,
+    held: Callable[[FloatArray], LawOffset] | None = None,
 ) -> float:
     """The largest ``s`` for which ``funnel`` (``Q (N+1, n, n)``) still holds under ``s`` times
-    the law's disturbance box with its (I2) term (``funnel.robust`` (I5)); ``inf`` without one."""
+    the law's disturbance box with its (I2) term (``funnel.robust`` (I5)); ``inf`` without one.
+    A held law's box (``funnel.law`` (I6)) grows with the disturbance (``Edot``): ``held(bound)``,
+    the law's offset under another additive bound, gives it again for each ``s`` (the input
+    boxes are not widened for it: like the rest of the multiple, (I5) and (I2) alone)."""
     check = RobustCheck(Q, K, funnel.vertices, funnel.rate, Ts, funnel.rho)
-    return check.multiple(law.disturbance, law.lmi_term)
+    if law.hold is None or held is None:
+        return check.multiple(law.disturbance, law.lmi_term)
+    offset = held
+
+    def hold(s: float) -> FloatArray:
+        box = offset(s * law.disturbance).hold
+        return np.zeros_like(law.hold) if box is None else box
+
+    return check.multiple(law.disturbance, law.lmi_term, hold)
 
 
 def reference_substeps(
@@ -311,24 +343,27 @@ def reference_substeps(
     shipped: ShippedFunnel,
     state_bounds: Mapping[str, tuple[float, float]],
     disturbance: FloatArray | None = None,
+    period: float = 0.0,
 ) -> np.ndarray:
     """(N,) RK4 steps per sample on which to ship a funnel's reference so that the law's offset
     fits what (F2) and the inputs leave (``funnel.law.law_substeps``), from the first hull of
     ``SEGMENTS`` on which the funnel holds for the exact nominal (and the additive bound
     ``disturbance (n,)``, which takes its share of (F2) first, (I5)); ``BASE_SUBSTEPS``
     everywhere when none does (it will not be certified). ``trajectory``: the nominal on a
-    uniform grid."""
+    uniform grid. ``period > 0``: the law held every ``period`` s, whose (I6) term takes its
+    share first and does not shrink with the grid."""
     K, Q = shipped.K, shipped.Q
     base = np.full(len(K), BASE_SUBSTEPS)
     for segments in SEGMENTS:
         try:
             funnel, law = _under_law(
-                scenario, trajectory, shipped, state_bounds, segments, base, 0.0, disturbance
-            )
+                scenario, trajectory, shipped, state_bounds, segments, base, 0.0, disturbance,
+                period,
+            )  # fmt: skip
         except (HullError, np.linalg.LinAlgError):
             continue
-        exact = LawOffset.none(len(K), scenario.n, scenario.m, scenario.Ts)
-        robust = exact.with_disturbance(law.disturbance)  # (I5) without the law's term
+        # (I5) with the disturbance and a held law's box, without the interpolation's term
+        robust = law.robust_part()
         if check_funnel(scenario, trajectory, funnel, state_bounds, robust) is not None:
             continue
         margins = effective_margins(Q, K, funnel, scenario.Ts, robust)
@@ -341,24 +376,52 @@ def reference_substeps(
     return base
 
 
+def hold_box(
+    scenario: Scenario,
+    trajectory: Trajectory,
+    shipped: ShippedFunnel,
+    state_bounds: Mapping[str, tuple[float, float]],
+    disturbance: FloatArray | None,
+    period: float,
+) -> FloatArray | None:
+    """(n,) the largest box ``H[k]`` over the intervals of the law held every ``period`` s
+    (``funnel.law`` (I6)) on the first hull of ``SEGMENTS`` that can be built: what a funnel
+    designed for the additive bound ``disturbance + H`` leaves room for; None without a hull.
+    A design aid (``stages.funnel``): nothing is certified by it."""
+    base = np.full(len(shipped.K), BASE_SUBSTEPS)
+    for segments in SEGMENTS:
+        try:
+            _, law = _under_law(
+                scenario, trajectory, shipped, state_bounds, segments, base, 0.0, disturbance,
+                period,
+            )  # fmt: skip
+        except (HullError, np.linalg.LinAlgError):
+            continue
+        if law.hold is not None:
+            return np.asarray(law.hold.max(axis=0), dtype=np.float64)
+    return None
+
+
 def recheck_as_shipped(
     scenario: Scenario,
     trajectory: Trajectory,
     shipped: ShippedFunnel,
     state_bounds: Mapping[str, tuple[float, float]],
     disturbance: FloatArray | None = None,
+    period: float = 0.0,
 ) -> FunnelRecheck:
     """``recheck_funnel`` as the certify stage will run it on the emitted file: the nominal from
     ``trajectory``'s start and inputs on a uniform grid of ``BASE_SUBSTEPS``, the law tracking the
     reference on the grid the controller stage ships (``reference_substeps``), under the additive
-    bound ``disturbance (n,)`` when given."""
+    bound ``disturbance (n,)`` when given, held every ``period`` s when it is > 0 (I6)."""
     nominal = simulate(
         scenario.dynamics, trajectory.xs[0], trajectory.us, scenario.Ts, BASE_SUBSTEPS
     )
-    substeps = reference_substeps(scenario, nominal, shipped, state_bounds, disturbance)
+    substeps = reference_substeps(scenario, nominal, shipped, state_bounds, disturbance, period)
     return recheck_funnel(
-        scenario, nominal, shipped, state_bounds, substeps, disturbance=disturbance
-    )
+        scenario, nominal, shipped, state_bounds, substeps, disturbance=disturbance,
+        period=period,
+    )  # fmt: skip
 
 
 def checked_bound(
@@ -408,8 +471,11 @@ def recheck_terminal(scenario: Scenario, controller: Controller) -> tuple[float,
         terminal.K,
         terminal.P,
         terminal.level,
-        period=controller.feedback_period,
+        # a funnel file's held law: its hold joins the disturbance (T4); a /1 file's: the
+        # constant certificate's held rate
+        period=0.0 if controller.funnel else controller.feedback_period,
         disturbance=bound,
+        held_period=controller.feedback_period if controller.funnel else 0.0,
     )
     widen = 1 + LEVEL_MARGIN if controller.funnel else 1.0
     ends = [tr.x_ref[-1] for tr in controller.trajectories]

@@ -242,7 +242,10 @@ def _synthesize(
         reason = f"the feedback could not be certified: {feedback.message}"
         return _failed(out, scenario, "feedback", reason)
     scenario = feedback.applied_to(scenario)  # a tuned design's region, rate and weights
-    if options.feedback_period > 0:
+    # the constant tube at the held law's rate; the funnel certificate holds the held law in
+    # its funnels (funnel.law (I6)), and uses the constant tube only to start from
+    constant = run_inputs.certificate_of(scenario, options) == "constant"
+    if options.feedback_period > 0 and constant:
         feedback, held = run_inputs.held_feedback(scenario, feedback, options.feedback_period)
         if not held.success:
             reason = (
@@ -369,6 +372,7 @@ def _synthesize(
         funnels=certified.funnels,
         funnel_coverage=certified.funnel_coverage,
         constant_trajectories=certified.constant_trajectories,
+        feedback_period=options.feedback_period,
     )
     summary = summarise(
         results,

@@ -1,0 +1,268 @@
+"""A funnel's law evaluated every h seconds and held in between (``funnel.law`` (I6), the
+terminal law's (T4) of ``terminal.design``).
+
+The bound ``|x(t_j) - xhat(t_j) - e(t)| <= Delta + h Edot`` is checked against brute force (the
+held law flown from the funnel's boundary under bang-bang and outward-pushing disturbances);
+a robust double-integrator funnel holds a short period and is refused at a long one, naming the
+hold; with ``h = 0`` every number is the continuous law's (the old ``law_offset`` kept here as
+the reference); the held terminal law's box is checked the same way. The slow test synthesizes
+double_integrator_hold with a gust and the funnel certificate at 5 ms: certified, the Monte
+Carlo flies the held law, and certify refuses the file with its period edited upward.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import math
+
+import numpy as np
+import pytest
+
+import pipeline
+from pipeline.controller import inverse_linear, load
+from pipeline.model.scenario import load_scenario
+from pipeline.model.simulate import simulate, simulate_graded
+from pipeline.numerics.closed_loop.simulate import held_steps
+from pipeline.numerics.funnel.law import BASE_SUBSTEPS, LawOffset, law_offset, law_substeps
+from pipeline.numerics.funnel.synthesis import synthesize_funnel
+from pipeline.numerics.terminal.design import (
+    check_level,
+    equilibrium,
+    hold_bound,
+    largest_level,
+    lqr_terminal,
+)
+from pipeline.numerics.verify.recertify import ShippedFunnel, rebuild_funnel, recheck_as_shipped
+from stages.certify import certify_controller
+from tests.helpers.robust import DISTURBANCE, double_integrator_case
+from tests.test_hold_funnel import GUST, _gusty
+
+
+@pytest.fixture(scope="module")
+def robust_case():
+    """The robust double-integrator funnel of ``tests.helpers.robust`` (gust 0.05 m/s^2)."""
+    scenario, trajectory, initial = double_integrator_case()
+    funnel = synthesize_funnel(scenario, trajectory, initial=initial, disturbance=DISTURBANCE)
+    assert funnel.success, funnel.message
+    shipped = ShippedFunnel(K=funnel.K, P=funnel.P, rho=funnel.rho, rate=funnel.rate)
+    return scenario, trajectory, shipped
+
+
+def _old_law_offset(vertices, rate_bound, K, P, rho, rate, Ts, substeps, centre_error=0.0):
+    """``law_offset`` as it was before (I6) (commit 6b82c35), the reference for ``h = 0``."""
+    N, m, n = K.shape
+    steps = Ts / np.asarray(substeps, dtype=np.float64)
+    Q_diagonal = np.diagonal(np.linalg.inv(P), axis1=1, axis2=2)
+    centre = centre_error * np.sqrt(np.maximum(Q_diagonal[:-1], Q_diagonal[1:]))
+    deviation, input_offset, lmi_term = np.zeros((N, n)), np.zeros((N, m)), np.zeros(N)
+    signs = np.array(list(itertools.product((-1.0, 1.0), repeat=n)))[: 2 ** (n - 1)]
+    for k in range(N):
+        A, B = vertices[k][:, :, :n], vertices[k][:, :, n:]
+        acceleration = (np.abs(A) @ rate_bound[k]).max(axis=0)
+        deviation[k] = steps[k] ** 2 / 8 * acceleration + centre[k]
+        input_offset[k] = np.abs(K[k]) @ deviation[k]
+        offsets = (B @ K[k]) @ (signs * deviation[k]).T
+        w = max(
+            float(np.sqrt(np.einsum("vic,ij,vjc->vc", offsets, P[k + e], offsets).max()))
+            for e in (0, 1)
+        )
+        lmi_term[k] = 2 * w / (rho * math.exp(-rate * Ts * (k + 1)))
+    return steps, deviation, input_offset, lmi_term
+
+
+def test_without_a_period_every_number_is_the_continuous_laws(robust_case):
+    """``period = 0``: ``law_offset`` is bit for bit the function before (I6) on random funnels
+    and on the robust case's hulls, ``law_substeps`` picks the same grid, and the re-check is
+    the same with and without the argument."""
+    rng = np.random.default_rng(11)
+    N, n, m = 4, 4, 2
+    root = rng.standard_normal((N + 1, n, n))
+    P = np.einsum("kij,klj->kil", root, root) + n * np.eye(n)
+    K = rng.standard_normal((N, m, n))
+    vertices = tuple(rng.standard_normal((3, n, n + m)) for _ in range(N))
+    rate_bound = np.abs(rng.standard_normal((N, n)))
+    args = (vertices, rate_bound, K, P, 0.7, 0.3, 0.1, np.array([20, 7, 33, 20]), 1e-4)
+    new, old = law_offset(*args), _old_law_offset(*args)
+    for a, b in zip((new.steps, new.deviation, new.input_offset, new.lmi_term), old, strict=True):
+        assert np.array_equal(a, b)
+    assert new.period == 0 and new.hold is None and new.held_input is None
+    margins, room = -np.abs(rng.standard_normal(N)) * 1e-3, np.abs(rng.standard_normal((N, m)))
+    old_offset = LawOffset(
+        steps=old[0], deviation=old[1], input_offset=old[2], lmi_term=old[3],
+        disturbance=np.zeros(n),
+    )  # fmt: skip
+    assert np.array_equal(
+        law_substeps(new, margins, room, 0.1), law_substeps(old_offset, margins, room, 0.1)
+    )
+    scenario, trajectory, shipped = robust_case
+    plain = recheck_as_shipped(scenario, trajectory, shipped, {}, DISTURBANCE)
+    zero = recheck_as_shipped(scenario, trajectory, shipped, {}, DISTURBANCE, 0.0)
+    assert plain == zero and plain.failure is None
+
+
+def test_a_short_period_is_certified_and_a_long_one_refused_naming_the_hold(robust_case):
+    scenario, trajectory, shipped = robust_case
+    short = recheck_as_shipped(scenario, trajectory, shipped, {}, DISTURBANCE, 0.002)
+    assert short.failure is None, short.failure
+    continuous = recheck_as_shipped(scenario, trajectory, shipped, {}, DISTURBANCE)
+    assert short.margin > continuous.margin  # the hold costs room
+    assert short.disturbance_multiple < continuous.disturbance_multiple
+    long = recheck_as_shipped(scenario, trajectory, shipped, {}, DISTURBANCE, 0.05)
+    assert long.failure is not None
+    assert "the hold's term (I6)" in long.failure
+    assert "not certifiable with the law held every 0.05 s" in long.failure
+
+
+@pytest.mark.parametrize("period", [0.01, 0.025])
+def test_the_held_offset_stays_within_its_bound_flown_from_the_boundary(robust_case, period):
+    """The held law ``u = u_ref + K (x(t_j) - xhat(t_j))`` (``xhat`` interpolated on a coarse
+    grid of 4 steps per sample) flown from 64 boundary points at 3 sample times under
+    disturbances at the corners of ``|w| <= d``, switching at random or pushing outward, on RK4
+    steps of ``h / 25``: while the state is in the funnel, ``|x(t_j) - xhat(t_j) - e(t)| <=
+    Delta_h[k]`` componentwise; and the flights reach at least half of it in the speeds
+    (measured: 82-97% in every state)."""
+    scenario, trajectory, shipped = robust_case
+    Ts, n, N = scenario.Ts, scenario.n, len(shipped.K)
+    nominal = simulate(scenario.dynamics, trajectory.xs[0], trajectory.us, Ts, BASE_SUBSTEPS)
+    funnel = rebuild_funnel(scenario, nominal, shipped, {}, 1)
+    grid = np.full(N, 4)
+    law = law_offset(
+        funnel.vertices, funnel.enclosure.rate_bound, shipped.K, shipped.P, shipped.rho,
+        shipped.rate, Ts, grid, 0.0, period, DISTURBANCE,
+    )  # fmt: skip
+    windows, per_window = round(Ts / period), 25
+    fine_steps = windows * per_window
+    dt = Ts / fine_steps
+    exact = simulate(scenario.dynamics, trajectory.xs[0], trajectory.us, Ts, fine_steps)
+    coarse = simulate_graded(scenario.dynamics, trajectory.xs[0], trajectory.us, Ts, grid)
+    xhat = np.stack(
+        [np.interp(exact.dense_ts, coarse.dense_ts, coarse.dense_xs[:, i]) for i in range(n)], -1
+    )
+    P_t = inverse_linear(shipped.P, Ts, exact.dense_ts)
+    rng = np.random.default_rng(5)
+    worst = np.zeros(n)
+    for start in (0, N // 2, N - 3):
+        B = 64
+        v = rng.standard_normal((B, n))
+        j0 = start * fine_steps
+        rho_t = shipped.rho * np.exp(-shipped.rate * exact.dense_ts[j0])
+        e = rho_t * v / np.sqrt(np.einsum("bi,ij,bj->b", v, P_t[j0], v))[:, None]
+        x = exact.dense_xs[j0] + 0.999 * e
+        outward = np.arange(B) % 2 == 0
+        signs = rng.choice([-1.0, 1.0], size=(B, n))
+        inside = np.ones(B, dtype=bool)
+        for j in range(j0, N * fine_steps):
+            k = j // fine_steps
+            if (j - j0) % per_window == 0:  # a sample t_j: the law is evaluated and held
+                measured = x - xhat[j]
+                u = trajectory.us[k] + measured @ shipped.K[k].T
+                window_inside = inside.copy()
+            if rng.random() < 0.2:
+                signs = rng.choice([-1.0, 1.0], size=(B, n))
+
+            def field(state, j=j, u=u, signs=signs, outward=outward):
+                push = np.sign((state - exact.dense_xs[j]) @ P_t[j])
+                w = DISTURBANCE * np.where(outward[:, None], push, signs)
+                return scenario.dynamics.f(state, u) + w
+
+            k1 = field(x)
+            k2 = field(x + dt / 2 * k1)
+            k3 = field(x + dt / 2 * k2)
+            k4 = field(x + dt * k3)
+            x = x + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+            e = x - exact.dense_xs[j + 1]
+            rho_t = shipped.rho * np.exp(-shipped.rate * exact.dense_ts[j + 1])
+            inside &= np.einsum("bi,ij,bj->b", e, P_t[j + 1], e) <= rho_t**2
+            if (j + 1) % fine_steps == 0:
+                continue  # t = t_k+1 belongs to the next interval (its own bound)
+            check = window_inside & inside
+            offset = np.abs(measured - e)[check]  # |x(t_j) - xhat(t_j) - e(t)|
+            if len(offset):
+                assert np.all(offset <= law.deviation[k] * (1 + 1e-9) + 1e-12), (k, j)
+                worst = np.maximum(worst, (offset / law.deviation[k]).max(axis=0))
+    assert np.all(worst[2:] > 0.5), worst  # the speeds' bound is at most 2x what is flown
+
+
+def test_the_held_terminal_law_stays_in_its_box_and_ellipsoid():
+    """(T4) on double_integrator_hold with its LQR terminal law held every 20 ms: the largest
+    certified level, flown from 64 boundary points under outward and bang-bang gusts of 0.02:
+    ``|Bbar K (e(t_j) - e(t))| <= b_h`` componentwise (reached to 51%, measured) and ``V <= c``
+    throughout; a period of 0.5 s is refused."""
+    scenario = load_scenario("double_integrator_hold", check_demos=False)
+    x_eq, u_eq = equilibrium(scenario)
+    K, P = lqr_terminal(scenario, x_eq, u_eq)
+    b, h = np.array([0.0, 0.0, GUST, GUST]), 0.02
+    check = largest_level(scenario, x_eq, u_eq, K, P, disturbance=b, held_period=h)
+    assert check.success, check.failures
+    r = np.sqrt(check.level)
+    extent = np.sqrt(np.diag(np.linalg.inv(P)))
+    reach = r * np.sqrt(np.einsum("ji,il,jl->j", K, np.linalg.inv(P), K))
+    A, B = scenario.dynamics.f_x(x_eq, u_eq)[None], scenario.dynamics.f_u(x_eq, u_eq)[None]
+    box = hold_bound(A, B, K, r * extent, reach, scenario.dynamics.f(x_eq, u_eq), b, h)
+    continuous = check_level(scenario, x_eq, u_eq, K, P, check.level, disturbance=b)
+    assert check.disturbance > continuous.disturbance  # the hold's box joins the gust's
+    rng = np.random.default_rng(2)
+    v = rng.standard_normal((64, 4))
+    x = x_eq + 0.999 * r * v / np.sqrt(np.einsum("bi,ij,bj->b", v, P, v))[:, None]
+    per_window, dt = 20, h / 20
+    outward = np.arange(64) % 2 == 0
+    signs = rng.choice([-1.0, 1.0], size=(64, 4))
+    worst, level = 0.0, 0.0
+    for j in range(int(6.0 / dt)):
+        if j % per_window == 0:
+            e_j = x - x_eq
+            u = u_eq + e_j @ K.T
+        if rng.random() < 0.2:
+            signs = rng.choice([-1.0, 1.0], size=(64, 4))
+
+        def field(state, u=u, signs=signs):
+            w = b * np.where(outward[:, None], np.sign((state - x_eq) @ P), signs)
+            return scenario.dynamics.f(state, u) + w
+
+        k1 = field(x)
+        k2 = field(x + dt / 2 * k1)
+        k3 = field(x + dt / 2 * k2)
+        k4 = field(x + dt * k3)
+        x = x + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+        pushed = np.abs((e_j - (x - x_eq)) @ (B[0] @ K).T)
+        assert np.all(pushed <= box * (1 + 1e-9) + 1e-12)
+        worst = max(worst, float((pushed[:, 2:] / box[2:]).max()))
+        level = max(level, float(np.einsum("bi,ij,bj->b", x - x_eq, P, x - x_eq).max()))
+    assert level <= check.level and worst > 0.25, (level, check.level, worst)
+    too_long = check_level(scenario, x_eq, u_eq, K, P, check.level, disturbance=b, held_period=0.5)
+    assert not too_long.success
+
+
+@pytest.mark.slow
+@pytest.mark.xdist_group("hold-funnel-gusty")
+def test_a_gusty_hold_run_held_every_5_ms_is_certified_and_flown_held(tmp_path):
+    """double_integrator_hold with a gust and the funnel certificate at ``--feedback-period
+    0.005``: certified and validated, the claims say the law is held, the Monte Carlo flies
+    the held law (``held_steps``: windows of the file's period) with 0 failures; the same
+    file with its period edited to 0.05 s (still dividing Ts) or 0.03 s is refused."""
+    path = _gusty(tmp_path / "gusty", GUST)
+    out = tmp_path / "out"
+    result = pipeline.synthesize(path, out=out, samples=300, feedback_period=0.005)
+    assert result.success, result.message
+    claims = [c.claim for c in result.claims]
+    assert any("evaluated every 0.005 s and held in between: no flight" in c for c in claims)
+    assert any(c.startswith("after T") and "held in between" in c for c in claims)
+    controller = load(out / "controller.json")
+    assert controller.funnel and controller.feedback_period == 0.005
+    assert held_steps(controller, 4) == (20, 1)  # the Monte Carlo's RK4 steps and windows
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["montecarlo"]["failures"]["after_T"] == 0
+    scenario = load_scenario(path)
+    assert certify_controller(scenario, out / "controller.json").success
+    for period, message in (
+        (0.05, "not certifiable with the law held every 0.05 s"),
+        (0.03, "feedback_period 0.03 s does not divide Ts 0.1 s"),
+    ):
+        document = json.loads((out / "controller.json").read_text())
+        document["feedback_period"] = period
+        edited = tmp_path / f"controller_{period}.json"
+        edited.write_text(json.dumps(document))
+        refused = certify_controller(scenario, edited)
+        assert not refused.success
+        assert message in refused.message, refused.message
