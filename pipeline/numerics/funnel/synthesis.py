@@ -81,8 +81,8 @@ is the exact ellipse).
 
 Co-designed gains (F6), under a disturbance. The LQR gains are designed for the nominal's
 linearisation, not for the disturbance, and a funnel around them holds little of it. With
-``Y = K Q`` as unknowns too (Boyd et al., LMIs in System
-and Control Theory, section 7.2.1) (F2) is linear in ``(Q, Y)``: ``A_v Q + B_v Y + (.)^T``
+``Y = K Q`` as unknowns too (Boyd et al., LMIs in System and Control Theory, section 7.2.1)
+(F2) is linear in ``(Q, Y)``: ``A_v Q + B_v Y + (.)^T``
 replaces ``Acl Q + (.)^T``, the input caps become ``[[Q, Y_i^T], [Y_i, room^2]] >= 0`` (Schur)
 and the inputs' spread at level 1, ``K Q K^T = Y Q^-1 Y^T <= Z``, is weighted in the objective
 as the fixed-gain program weights ``K Q K^T``. With ``Y[j]`` held on a piece the law would be
@@ -273,16 +273,15 @@ def _program(
             lo, hi = boxes[a, :, d]
             if name in scenario.input_names:  # K_j Q K_j^T <= room^2 at both ends
                 i = scenario.input_names.index(name)
-                room = min((us[a:b, i] - lo).min(), (hi - us[a:b, i]).min())
-                cap_input(j, a, i, room)
+                cap_input(j, a, i, min((us[a:b, i] - lo).min(), (hi - us[a:b, i]).min()))
                 continue
-            else:  # Q_ii <= room^2 at both ends
-                i = scenario.state_names.index(name)
-                C = np.eye(n)[i : i + 1]
-                room = min(
-                    (enclosure.range[a:b, 0, i] - lo).min(), (hi - enclosure.range[a:b, 1, i]).min()
-                )
-            caps += [(e, C, np.full((1, 1), max(room, 0.0) ** 2)) for e in (j, j + 1)]
+            i = scenario.state_names.index(name)  # Q_ii <= room^2 at both ends
+            room = min(
+                (enclosure.range[a:b, 0, i] - lo).min(), (hi - enclosure.range[a:b, 1, i]).min()
+            )
+            caps += [
+                (e, np.eye(n)[i : i + 1], np.full((1, 1), max(room, 0.0) ** 2)) for e in (j, j + 1)
+            ]
         if disturbance is not None:  # under a disturbance the level cannot shrink to fit
             for i, name in enumerate(scenario.input_names):  # the input bounds, every input
                 if name in variables:
