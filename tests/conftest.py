@@ -478,6 +478,12 @@ def pytest_collection_finish(session: pytest.Session) -> None:
     _freeze_the_heap()  # the pipeline, numba, sympy, cvxpy, matplotlib and the test modules
 
 
+# fewer young-generation collections: the default (700, 10, 10) ran ~2,750 collections for two
+# modules of the double_integrator group; (20000, 20, 20) ran 51 and took ~0.6 s less CPU (of
+# ~23 s; measured with gc.callbacks). Garbage cycles are freed later, not kept.
+gc.set_threshold(20_000, 20, 20)
+
+
 def _freeze_the_heap() -> None:
     """Take every object alive now out of the cyclic garbage collector's reach (``gc.freeze``,
     after a full collection so that no garbage is kept). Each full collection walks every object
