@@ -235,7 +235,7 @@ def test_the_held_terminal_law_stays_in_its_box_and_ellipsoid():
 
 
 @pytest.mark.slow
-@pytest.mark.xdist_group("hold-funnel-gusty")
+@pytest.mark.xdist_group("hold-funnel-held")
 def test_a_gusty_hold_run_held_every_5_ms_is_certified_and_flown_held(tmp_path):
     """double_integrator_hold with a gust and the funnel certificate at ``--feedback-period
     0.005``: certified and validated, the claims say the law is held, the Monte Carlo flies
