@@ -35,7 +35,7 @@ from pipeline.numerics.terminal.design import (
 )
 from pipeline.numerics.verify.recertify import ShippedFunnel, rebuild_funnel, recheck_as_shipped
 from stages.certify import certify_controller
-from tests.helpers.robust import DISTURBANCE, double_integrator_case
+from tests.helpers.robust import DISTURBANCE, double_integrator_case, rk4_step
 from tests.test_hold_funnel import GUST, _gusty
 
 
@@ -166,11 +166,7 @@ def test_the_held_offset_stays_within_its_bound_flown_from_the_boundary(robust_c
                 w = DISTURBANCE * np.where(outward[:, None], push, signs)
                 return scenario.dynamics.f(state, u) + w
 
-            k1 = field(x)
-            k2 = field(x + dt / 2 * k1)
-            k3 = field(x + dt / 2 * k2)
-            k4 = field(x + dt * k3)
-            x = x + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+            x = rk4_step(field, x, dt)
             e = x - exact.dense_xs[j + 1]
             rho_t = shipped.rho * np.exp(-shipped.rate * exact.dense_ts[j + 1])
             inside &= np.einsum("bi,ij,bj->b", e, P_t[j + 1], e) <= rho_t**2
@@ -220,11 +216,7 @@ def test_the_held_terminal_law_stays_in_its_box_and_ellipsoid():
             w = b * np.where(outward[:, None], np.sign((state - x_eq) @ P), signs)
             return scenario.dynamics.f(state, u) + w
 
-        k1 = field(x)
-        k2 = field(x + dt / 2 * k1)
-        k3 = field(x + dt / 2 * k2)
-        k4 = field(x + dt * k3)
-        x = x + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+        x = rk4_step(field, x, dt)
         pushed = np.abs((e_j - (x - x_eq)) @ (B[0] @ K).T)
         assert np.all(pushed <= box * (1 + 1e-9) + 1e-12)
         worst = max(worst, float((pushed[:, 2:] / box[2:]).max()))

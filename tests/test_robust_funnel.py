@@ -24,7 +24,7 @@ from pipeline.numerics.funnel.law import LawOffset, corners
 from pipeline.numerics.funnel.lmi import FunnelProgram, codesign_gains, solve_clarabel, solve_cvxpy
 from pipeline.numerics.funnel.robust import RobustCheck
 from pipeline.numerics.funnel.synthesis import synthesize_funnel
-from tests.helpers.robust import DISTURBANCE, double_integrator_case
+from tests.helpers.robust import DISTURBANCE, double_integrator_case, rk4_step
 
 
 def _scalar_check(a: float, p: float, level: float) -> RobustCheck:
@@ -179,11 +179,7 @@ def test_a_robust_funnel_holds_under_the_worst_disturbance_from_its_boundary():
             w = DISTURBANCE * np.sign((state - fine.dense_xs[j]) @ P_t[j])
             return scenario.dynamics.f(state, u) + w
 
-        k1 = f(x)
-        k2 = f(x + h / 2 * k1)
-        k3 = f(x + h / 2 * k2)
-        k4 = f(x + h * k3)
-        x = x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+        x = rk4_step(f, x, h)
         e = x - fine.dense_xs[j + 1]
         worst = max(worst, np.sqrt(np.einsum("bi,ij,bj->b", e, P_t[j + 1], e)).max() / funnel.rho)
     assert worst <= 1 + 1e-6, worst

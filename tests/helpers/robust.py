@@ -13,6 +13,15 @@ from pipeline.model.simulate import Trajectory, simulate
 DISTURBANCE = np.array([0.0, 0.0, 0.05, 0.05])  # m/s^2 on both speeds of the double integrator
 
 
+def rk4_step(field, x: np.ndarray, dt: float) -> np.ndarray:
+    """One classical RK4 step of ``x' = field(x)`` (states stacked in rows)."""
+    k1 = field(x)
+    k2 = field(x + dt / 2 * k1)
+    k3 = field(x + dt / 2 * k2)
+    k4 = field(x + dt * k3)
+    return x + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+
+
 def double_integrator_case() -> tuple[Scenario, Trajectory, np.ndarray]:
     """The double integrator's first demo over 3 s, Goal around where it ends, and a small
     initial set ``Q_init (4, 4)`` (as tests/conftest.py's ``funnel_artifact``)."""

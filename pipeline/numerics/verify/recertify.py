@@ -47,7 +47,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -353,15 +353,7 @@ def reference_substeps(
     uniform grid. ``period > 0``: the law held every ``period`` s, whose (I6) term takes its
     share first and does not shrink with the grid."""
     K, Q = shipped.K, shipped.Q
-    base = np.full(len(K), BASE_SUBSTEPS)
-    for segments in SEGMENTS:
-        try:
-            funnel, law = _under_law(
-                scenario, trajectory, shipped, state_bounds, segments, base, 0.0, disturbance,
-                period,
-            )  # fmt: skip
-        except (HullError, np.linalg.LinAlgError):
-            continue
+    for funnel, law in _base_laws(scenario, trajectory, shipped, state_bounds, disturbance, period):
         # (I5) with the disturbance and a held law's box, without the interpolation's term
         robust = law.robust_part()
         if check_funnel(scenario, trajectory, funnel, state_bounds, robust) is not None:
@@ -373,7 +365,28 @@ def reference_substeps(
             - shipped.rho * g
         )
         return law_substeps(law, margins, room, scenario.Ts)
-    return base
+    return np.full(len(K), BASE_SUBSTEPS)
+
+
+def _base_laws(
+    scenario: Scenario,
+    trajectory: Trajectory,
+    shipped: ShippedFunnel,
+    state_bounds: Mapping[str, tuple[float, float]],
+    disturbance: FloatArray | None,
+    period: float,
+) -> Iterator[tuple[Funnel, LawOffset]]:
+    """``_under_law`` on a reference grid of ``BASE_SUBSTEPS``, for each of ``SEGMENTS`` whose
+    hull can be built, in that order."""
+    base = np.full(len(shipped.K), BASE_SUBSTEPS)
+    for segments in SEGMENTS:
+        try:
+            yield _under_law(
+                scenario, trajectory, shipped, state_bounds, segments, base, 0.0, disturbance,
+                period,
+            )  # fmt: skip
+        except (HullError, np.linalg.LinAlgError):
+            continue
 
 
 def hold_box(
@@ -388,15 +401,7 @@ def hold_box(
     (``funnel.law`` (I6)) on the first hull of ``SEGMENTS`` that can be built: what a funnel
     designed for the additive bound ``disturbance + H`` leaves room for; None without a hull.
     A design aid (``stages.funnel``): nothing is certified by it."""
-    base = np.full(len(shipped.K), BASE_SUBSTEPS)
-    for segments in SEGMENTS:
-        try:
-            _, law = _under_law(
-                scenario, trajectory, shipped, state_bounds, segments, base, 0.0, disturbance,
-                period,
-            )  # fmt: skip
-        except (HullError, np.linalg.LinAlgError):
-            continue
+    for _, law in _base_laws(scenario, trajectory, shipped, state_bounds, disturbance, period):
         if law.hold is not None:
             return np.asarray(law.hold.max(axis=0), dtype=np.float64)
     return None
