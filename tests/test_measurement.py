@@ -223,3 +223,18 @@ def test_a_gusty_hold_run_holds_a_small_measurement_error_and_certify_checks_it(
     assert not wide.success
     assert "no funnel certified" in wide.message
     assert "the funnel does not hold the measurement error" in wide.message
+
+
+def test_the_monte_carlo_draws_the_error_in_its_box_and_nothing_else_changes():
+    from pipeline.numerics.closed_loop.gusts import sample
+
+    exact = Uncertainty(disturbance=np.array([0.0, 0.0, 0.05, 0.05]))
+    measured = dataclasses.replace(exact, measurement=SMALL)
+    a = sample(exact, np.random.default_rng(1), 200, 3.0)
+    b = sample(measured, np.random.default_rng(1), 200, 3.0)
+    assert a.errors is None
+    assert np.array_equal(a.gusts, b.gusts) and np.array_equal(a.parameters, b.parameters)
+    assert b.errors.shape == b.gusts.shape and np.all(np.abs(b.errors) <= SMALL)
+    corners = np.all(np.abs(b.errors) == SMALL, axis=(1, 2))
+    assert 0.1 < corners.mean() < 0.9  # some runs at corners, the others uniform
+    assert np.array_equal(b.rows(np.arange(3)).error(0.6), b.errors[:3, 1])
