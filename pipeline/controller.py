@@ -47,7 +47,8 @@ that do not increase, ``T`` that disagrees with ``t`` and ``u_ref``, bytes that 
 JSON) raises ``ControllerFormatError`` naming the field. The optional fields (``terminal``,
 ``feedback_period``, ``interpolation_error_P_norm``, each trajectory's ``name``, the demo it
 was made from; in ``/2`` also ``feedback``, each trajectory's ``rate`` and ``uncertainty``, the
-declared bounds the funnels hold) may be absent: files written before they existed still load.
+declared bounds the funnels hold, with its optional ``measurement_bound``) may be absent: files
+written before they existed still load.
 """
 
 from __future__ import annotations
@@ -247,6 +248,8 @@ class Controller:
       disturbance_bound: (n,) ``b``: the funnels hold for ``x' = f(x, u) + w``, ``|w_i| <= b_i``,
         the scenario's declared disturbance and parameter intervals as one additive term (the
         file's ``uncertainty.additive_bound``); None: the exact model.
+      measurement_bound: (n,) ``E``: the law may see the state with any error ``|eta_i| <=
+        E_i`` (the file's ``uncertainty.measurement_bound``); None: the state measured exactly.
     """
 
     scenario: str
@@ -263,6 +266,7 @@ class Controller:
     terminal: TerminalController | None = None
     feedback_period: float = 0.0
     disturbance_bound: np.ndarray | None = None
+    measurement_bound: np.ndarray | None = None
     source: str = "controller.json"
     format: str = FORMAT
 
@@ -317,6 +321,8 @@ class Controller:
         period = f"{h:g} s (held between samples)" if h > 0 else "0 (continuous)"
         if self.disturbance_bound is not None:
             kind += f", robust to |w| <= {_short(self.disturbance_bound)}"
+        if self.measurement_bound is not None:
+            kind += f", to measurement errors |eta| <= {_short(self.measurement_bound)}"
         return "\n".join([
             f"Controller({self.format}, scenario {self.scenario!r}, from {self.source})",
             f"  states: {', '.join(self.state_names)}; Ts {self.Ts:g} s",
@@ -692,7 +698,7 @@ def parse(data: object, source: str = "controller.json") -> Controller:
         read.fail("feedback_period", period, "a number >= 0 (0: continuous feedback)")
     terminal = top.get("terminal")
     terminal = None if terminal is None else _terminal(read, terminal, n, m)
-    bound = None
+    bound = measurement = None
     if top.get("uncertainty") is not None:
         block = read.mapping("uncertainty", top["uncertainty"], ("additive_bound",))
         bound = read.array("uncertainty.additive_bound", block["additive_bound"], (n,))
@@ -700,6 +706,16 @@ def parse(data: object, source: str = "controller.json") -> Controller:
             i = int(np.argmin(bound))
             read.fail(f"uncertainty.additive_bound[{i}]", float(bound[i]), "a number >= 0")
         bound = _frozen(bound)
+        if block.get("measurement_bound") is not None:
+            measurement = read.array(
+                "uncertainty.measurement_bound", block["measurement_bound"], (n,)
+            )
+            if np.any(measurement < 0):
+                i = int(np.argmin(measurement))
+                read.fail(
+                    f"uncertainty.measurement_bound[{i}]", float(measurement[i]), "a number >= 0"
+                )
+            measurement = _frozen(measurement)
     return Controller(
         scenario=top["scenario"],
         state_names=state_names,
@@ -715,6 +731,7 @@ def parse(data: object, source: str = "controller.json") -> Controller:
         terminal=terminal,
         feedback_period=period,
         disturbance_bound=bound,
+        measurement_bound=measurement,
         source=source,
         format=top["format"],
     )

@@ -64,9 +64,11 @@ Declared uncertainty (the scenario's ``uncertainty:``). The funnels are re-check
 f(x, u) + w``, ``|w| <= b``, with ``b`` derived here from the scenario's declaration
 (``pipeline.numerics.uncertainty`` (U1)) and raised to the file's ``uncertainty.additive_bound``
 where that is larger: (F2) joined with the disturbance by the S-procedure must keep its margin
-(``pipeline.numerics.funnel.robust`` (I5)). A
-file that holds less than the scenario declares, or a ``/1`` file for a scenario that declares
-any uncertainty, is not certified.
+(``pipeline.numerics.funnel.robust`` (I5)). A declared measurement error ``|eta| <= E``
+(``uncertainty.measurement``) is re-checked likewise: ``E`` from the scenario, raised to the
+file's ``uncertainty.measurement_bound`` where larger, in the law's offset and (I5)'s box
+(``funnel.law`` (I7)) and in the terminal check ((T5)). A file that holds less than the scenario
+declares, or a ``/1`` file for a scenario that declares any uncertainty, is not certified.
 """
 
 from __future__ import annotations
@@ -93,6 +95,7 @@ from pipeline.numerics.verify.recertify import (
     ShippedFunnel,
     check_reference,
     checked_bound,
+    checked_measurement,
     recheck_funnel,
     recheck_terminal,
 )
@@ -252,6 +255,8 @@ def _funnels(
         failures += _divides(controller)
     disturbance, short = checked_bound(scenario, controller.disturbance_bound, "uncertainty")
     failures += short
+    measurement, short = checked_measurement(scenario, controller.measurement_bound)
+    failures += short
     margin, vertices, verified, errors = -np.inf, 0, [], (0.0, 0.0)
     multiple = float("inf")
     for i, tr in enumerate(controller.trajectories):
@@ -263,7 +268,7 @@ def _funnels(
         check = recheck_funnel(
             scenario, reference.nominal, shipped, held_state_bounds(scenario), reference.substeps,
             centre_error=reference.integration * tr.radius, disturbance=disturbance,
-            period=period,
+            period=period, measurement=measurement,
         )  # fmt: skip
         margin, vertices = max(margin, check.margin), vertices + check.vertices
         multiple = min(multiple, check.disturbance_multiple)
@@ -358,7 +363,8 @@ def certify_controller(
     else:
         if not scenario.uncertainty.empty:
             failures.append(
-                "uncertainty: the scenario declares disturbance or parameter bounds, which a "
+                "uncertainty: the scenario declares disturbance, parameter or measurement bounds, "
+                "which a "
                 "constant certificate (/1) does not hold; synthesize with certificate: funnel"
             )
         margin, vertices, verified, (reference_error, interpolation) = _constant(

@@ -62,6 +62,7 @@ def terminal_block(
     disturbance: FloatArray | None = None,
     design: TerminalDesign | None = None,
     held_period: float = 0.0,
+    measurement: FloatArray | None = None,
 ) -> tuple[dict | None, float, str]:
     """The ``terminal`` block (None when there is none), the end tubes' fit and a sentence.
 
@@ -74,12 +75,14 @@ def terminal_block(
       design: a terminal controller designed already (for that bound); only its fit is found.
       period: the constant certificate's held law (its held rate); held_period: a funnel
         file's, its hold an additive term ((T4) of ``pipeline.numerics.terminal.design``).
+      measurement: (n,) the box of the error on the state the law sees ((T5); None: exact).
     """
     if design is None:
         try:
             design = design_terminal(
-                scenario, K, P, ends, end_radii, period, end_metrics, disturbance, held_period
-            )
+                scenario, K, P, ends, end_radii, period, end_metrics, disturbance, held_period,
+                measurement,
+            )  # fmt: skip
         except TerminalError as error:
             return None, np.inf, f"no terminal controller ({error}); the law refuses t > T"
     else:
@@ -167,11 +170,14 @@ def uncertainty_block(scenario: Scenario, bound: FloatArray) -> dict:
     """The ``/2`` file's ``uncertainty``: the additive bound ``(n,)`` its funnels hold (what
     certify checks against the scenario's declaration) and, for people, what it came from."""
     declared = scenario.uncertainty
-    return {
+    block = {
         "additive_bound": bound.tolist(),
         "disturbance": dict(zip(scenario.state_names, declared.disturbance.tolist(), strict=True)),
         "parameters": {name: list(interval) for name, interval in declared.parameters.items()},
     }
+    if declared.measured:  # the law sees x + eta, |eta| <= E (funnel.law (I7)); certify checks
+        block["measurement_bound"] = declared.measurement.tolist()
+    return block
 
 
 def _write(
@@ -296,6 +302,8 @@ def emit_funnel_controller(
         raise ValueError(f"{len(names)} names for {len(trajectories)} trajectories")
     if disturbance is None:
         disturbance = declared_bound(scenario)  # as certify derives it
+    declared = scenario.uncertainty
+    measurement = declared.measurement if declared.measured else None  # funnel.law (I7)
     items, worst, ends, end_radii, end_metrics = [], 0.0, [], [], []
     for i, (trajectory, funnel) in enumerate(zip(trajectories, funnels, strict=True)):
         N, n, m = len(trajectory.us), scenario.n, scenario.m
@@ -320,6 +328,7 @@ def emit_funnel_controller(
                 held_state_bounds(scenario),
                 disturbance,
                 feedback_period,
+                measurement,
             ),
         )
         name = None if names is None else names[i]
@@ -348,7 +357,7 @@ def emit_funnel_controller(
     bound = np.zeros(scenario.n) if disturbance is None else np.asarray(disturbance, float)
     block, _, terminal_message = terminal_block(
         scenario, first.K[-1], first.P[-1], ends, end_radii, 0.0, np.stack(end_metrics), bound,
-        terminal, held_period=feedback_period,
+        terminal, held_period=feedback_period, measurement=measurement,
     )  # fmt: skip
     return _write(path, document, block, terminal_message)
 

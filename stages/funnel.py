@@ -93,7 +93,8 @@ class _Task:
     """One funnel for a worker: the scenario (pickled to a worker process), the nominal,
     ``Q_init (p, n, n)`` (``v v^T`` per corner of its cell, or the ball slice (I1)) and the
     additive bound ``(n,)`` of the declared uncertainty (None: the exact model); the terminal
-    ellipsoid it must end in (None: none); the period the law is held for (0: continuous)."""
+    ellipsoid it must end in (None: none); the period the law is held for (0: continuous); the
+    box ``(n,)`` of the error on the state the law sees (``funnel.law`` (I7); None: exact)."""
 
     scenario: Scenario
     trajectory: Trajectory
@@ -102,6 +103,7 @@ class _Task:
     disturbance: FloatArray | None
     terminal: TerminalTarget | None = None
     period: float = 0.0
+    measurement: FloatArray | None = None
 
 
 def _accepted(
@@ -111,10 +113,11 @@ def _accepted(
     state_bounds: Mapping[str, tuple[float, float]],
     disturbance: FloatArray | None = None,
     period: float = 0.0,
+    measurement: FloatArray | None = None,
 ) -> str | None:
     """None if ``funnel`` certifies its trajectory (for ``x' = f(x, u) + w``, ``|w| <=
-    disturbance (n,)`` when given, the law held every ``period`` s when it is > 0), else why it
-    is dropped."""
+    disturbance (n,)`` when given, the law held every ``period`` s when it is > 0 and seeing the
+    state within ``measurement (n,)`` when given), else why it is dropped."""
     if not funnel.success:
         return funnel.message
     if not funnel.rho > 0:
@@ -128,7 +131,9 @@ def _accepted(
     # as the certify stage will see it: rebuilt from K, P and rho alone (its own enclosure), the
     # law tracking the reference interpolated on the grid the controller stage ships
     shipped = ShippedFunnel(K=funnel.K, P=funnel.P, rho=funnel.rho, rate=funnel.rate)
-    again = recheck_as_shipped(scenario, trajectory, shipped, state_bounds, disturbance, period)
+    again = recheck_as_shipped(
+        scenario, trajectory, shipped, state_bounds, disturbance, period, measurement
+    )
     return None if not again.failure else f"rejected when rebuilt as certify does: {again.failure}"
 
 
@@ -155,12 +160,19 @@ def _funnel_in_worker(task: _Task) -> tuple[Funnel, str | None]:
         scenario, task.trajectory, state_bounds=bounds, initial=task.initial, rate=task.rate,
         disturbance=task.disturbance, terminal=terminal,
     )  # fmt: skip
-    failure = _accepted(scenario, task.trajectory, funnel, bounds, task.disturbance, task.period)
-    if failure is None or not (task.period > 0 and funnel.success and funnel.rho > 0):
+    measurement = task.measurement
+    failure = _accepted(
+        scenario, task.trajectory, funnel, bounds, task.disturbance, task.period, measurement
+    )
+    boxed = task.period > 0 or measurement is not None
+    if failure is None or not (boxed and funnel.success and funnel.rho > 0):
         return funnel, failure
-    # (I6): the held law's term is a box joined to the disturbance; design for both (HOLD_DESIGN)
+    # (I6), (I7): the held law's and the measurement's terms are a box joined to the
+    # disturbance; design for both (HOLD_DESIGN)
     shipped = ShippedFunnel(K=funnel.K, P=funnel.P, rho=funnel.rho, rate=funnel.rate)
-    box = hold_box(scenario, task.trajectory, shipped, bounds, task.disturbance, task.period)
+    box = hold_box(
+        scenario, task.trajectory, shipped, bounds, task.disturbance, task.period, measurement
+    )
     if box is None:
         return funnel, failure
     declared = np.zeros(scenario.n) if task.disturbance is None else task.disturbance
@@ -169,11 +181,14 @@ def _funnel_in_worker(task: _Task) -> tuple[Funnel, str | None]:
         scenario, task.trajectory, state_bounds=bounds, initial=task.initial, rate=task.rate,
         disturbance=design, terminal=terminal,
     )  # fmt: skip
-    second = _accepted(scenario, task.trajectory, again, bounds, task.disturbance, task.period)
+    second = _accepted(
+        scenario, task.trajectory, again, bounds, task.disturbance, task.period, measurement
+    )
     if second is None:
         return again, None
+    whose = "the hold's" if measurement is None else "the law's (hold and measurement)"
     return funnel, (
-        f"{failure}; designed again for the hold's box |w_h| <= "
+        f"{failure}; designed again for {whose} box |w_h| <= "
         f"{np.round(HOLD_DESIGN * box, 4).tolist()} on top of the disturbance: {second}"
     )
 
@@ -235,6 +250,8 @@ def synthesize_funnels(
             "expected one (or None) per trajectory"
         )
     disturbance = declared_bound(scenario)
+    declared = scenario.uncertainty
+    measurement = declared.measurement if declared.measured else None  # funnel.law (I7)
     tasks = {
         i: _Task(
             scenario=scenario,
@@ -244,6 +261,7 @@ def synthesize_funnels(
             disturbance=disturbance,
             terminal=terminal,
             period=period,
+            measurement=measurement,
         )
         for i, (trajectory, Q_init) in enumerate(zip(trajectories, initial, strict=True))
         if reuse[i] is None

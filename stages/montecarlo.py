@@ -30,7 +30,9 @@ gust ``w(t)`` in the disturbance box, piecewise constant with a new value every 
 quarter the falsification's worst bang-bang case (``pipeline.numerics.closed_loop.worst_case``: the
 search then also covers the boxes' corners, and runs before the chunks, which need its result). Runs
 are flown to ``T`` and, with a law past ``T``, to ``T + HOLD_SECONDS`` with the same parameters
-and gusts.
+and gusts. A declared measurement error ``eta`` is drawn on the gusts' periods (uniform in its
+box, at random corners for the bang-bang and worst-case runs) and added to the state the law
+sees (the falsification search does not vary it).
 A run fails if it ever enters Unsafe, clips, leaves the state bounds, or is outside Goal at any
 time after ``T`` (issue 29's criterion); the exact model's own claims are not counted under a
 disturbance: the tube's decay ratio; the terminal ellipsoid's level is counted when its block
@@ -273,6 +275,9 @@ def _drawn_paths(
             parameters=np.concatenate([d.parameters for d in draws])[:count],
             gusts=np.concatenate([d.gusts for d in draws])[:count],
             start=np.zeros(min(count, len(starts))),
+            errors=None
+            if draws[0].errors is None
+            else np.concatenate([d.errors for d in draws if d.errors is not None])[:count],
         )
     paths = run_paths_compiled(scenario, controller, np.array(starts[:count]), draws=flown)
     return [path[:: max(1, len(path) // 200)] for path in paths]
@@ -358,7 +363,8 @@ def validate_closed_loop(
     sampled = (
         ""
         if scenario.uncertainty.empty
-        else " under the declared uncertainty (sampled parameters and gusts)"
+        else " under the declared uncertainty (sampled parameters and gusts"
+        + (", and measurement errors)" if scenario.uncertainty.measured else ")")
     )
     message = (
         (

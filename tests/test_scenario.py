@@ -123,6 +123,30 @@ BAD_INPUTS: list[tuple[str, Mutation, str | None, list[str]]] = [
         ["uncertainty.disturbance", "unknown name 'vZ'", "names from ['X', 'Y', 'vX', 'vY']"],
     ),
     (
+        "negative measurement bound",
+        yaml_replace(
+            "clearance: 0.25\n", "clearance: 0.25\nuncertainty: {measurement: {X: -0.02}}\n"
+        ),
+        YAML,
+        ["uncertainty.measurement.X", "greater than or equal to 0"],
+    ),
+    (
+        "measurement bound on an unknown state",
+        yaml_replace(
+            "clearance: 0.25\n", "clearance: 0.25\nuncertainty: {measurement: {Z: 0.02}}\n"
+        ),
+        YAML,
+        ["uncertainty.measurement", "unknown name 'Z'", "names from ['X', 'Y', 'vX', 'vY']"],
+    ),
+    (
+        "measurement bound not a number",
+        yaml_replace(
+            "clearance: 0.25\n", "clearance: 0.25\nuncertainty: {measurement: {X: small}}\n"
+        ),
+        YAML,
+        ["uncertainty.measurement.X", "small"],
+    ),
+    (
         "interval of an unknown parameter",
         yaml_replace(
             "clearance: 0.25\n", "clearance: 0.25\nuncertainty: {parameters: {mass: [0.9, 1.1]}}\n"

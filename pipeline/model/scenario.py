@@ -408,6 +408,7 @@ def _uncertainty(path: Path, spec: ScenarioSpec) -> Uncertainty:
     declared = spec.uncertainty
     states = list(spec.states)
     _require_names(path, "uncertainty.disturbance", list(declared.disturbance), states, exact=False)
+    _require_names(path, "uncertainty.measurement", list(declared.measurement), states, exact=False)
     _require_names(
         path,
         "uncertainty.parameters",
@@ -428,6 +429,7 @@ def _uncertainty(path: Path, spec: ScenarioSpec) -> Uncertainty:
             )
     return Uncertainty(
         disturbance=np.array([float(declared.disturbance.get(s, 0.0)) for s in states]),
+        measurement=np.array([float(declared.measurement.get(s, 0.0)) for s in states]),
         parameter_names=names,
         parameter_lower=np.array([declared.parameters[k][0] for k in names], dtype=float),
         parameter_upper=np.array([declared.parameters[k][1] for k in names], dtype=float),

@@ -169,6 +169,11 @@ class UncertaintySpec(_Strict):
         description="interval [lower, upper] of a parameter whose true value is unknown (held "
         "constant during a flight); it must contain the value under parameters:",
     )
+    measurement: dict[str, NonNegativeFloat] = Field(
+        default_factory=dict,
+        description="bound on the error of the named state as the feedback measures it, "
+        "|x_meas - x| <= bound, at every instant (any signal inside the box, in the state's unit)",
+    )
 
 
 class DemoSpec(_Strict):
@@ -238,8 +243,8 @@ class ScenarioSpec(_Strict):
     )
     uncertainty: UncertaintySpec = Field(
         default_factory=UncertaintySpec,
-        description="declared disturbance and parameter bounds: every certificate holds for all "
-        "of them (omitted: the exact model)",
+        description="declared disturbance, parameter and measurement bounds: every certificate "
+        "holds for all of them (omitted: the exact model)",
     )
     stress: StressSpec | None = Field(default=None, description="optional stress-test settings")
     demos: list[DemoSpec] = Field(default_factory=list)

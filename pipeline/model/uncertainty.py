@@ -11,8 +11,11 @@ The scenario file's ``uncertainty:`` block (``pipeline.model.schema.UncertaintyS
   ``f(x, u, p) - f(x, u, p0)`` as a second additive term, bounded over its tube and the
   parameter box by outward-rounded interval arithmetic (``pipeline.numerics.uncertainty``).
 
-Nothing else: a measurement error on the state the feedback sees is not declared here (no
-certificate of this pipeline holds one yet; ``stress.measurement_noise`` tests it, uncertified).
+- ``measurement``: a box ``|eta_i| <= measurement_i`` on the error of the state the feedback
+  sees, ``x_meas = x + eta``, at every instant: ``eta`` is any measurable signal inside the box
+  (states not named are measured exactly). The certificates are about the true state ``x``; the
+  law sees ``x + eta`` (``pipeline.numerics.funnel.law`` (I7), ``pipeline.numerics.terminal.
+  design`` (T5)). ``stress.measurement_noise`` (Gaussian, unbounded) stays uncertified.
 
 An empty block (or none) is the exact model: every certificate reduces to its exact-model form.
 """
@@ -35,6 +38,8 @@ class Uncertainty:
     Attributes:
       disturbance: (n,) ``>= 0``, the box half-width of the additive term in each state's
         derivative (0 for states not named).
+      measurement: (n,) ``>= 0``, the box half-width of the error on each state as the feedback
+        measures it (0 for states not named; omitted: zeros).
       parameter_names: (q,) the uncertain parameters, in the file's order.
       parameter_lower, parameter_upper: (q,) their intervals; parameter_nominal: (q,) the values
         the nominal model uses, inside the intervals.
@@ -49,8 +54,11 @@ class Uncertainty:
     parameter_upper: FloatArray = field(default_factory=lambda: np.zeros(0))
     parameter_nominal: FloatArray = field(default_factory=lambda: np.zeros(0))
     parametric: Dynamics | None = field(default=None, repr=False)
+    measurement: FloatArray = field(default_factory=lambda: np.zeros(0))
 
     def __post_init__(self) -> None:
+        if len(self.measurement) == 0:  # omitted: every state measured exactly
+            object.__setattr__(self, "measurement", np.zeros(len(self.disturbance)))
         freeze_fields(self)
 
     def __reduce__(self) -> tuple[object, ...]:
@@ -64,7 +72,16 @@ class Uncertainty:
     @property
     def empty(self) -> bool:
         """Nothing declared: the exact model."""
-        return not self.parameter_names and not np.any(self.disturbance > 0)
+        return (
+            not self.parameter_names
+            and not np.any(self.disturbance > 0)
+            and not np.any(self.measurement > 0)
+        )
+
+    @property
+    def measured(self) -> bool:
+        """A measurement error is declared (some ``measurement_i > 0``)."""
+        return bool(np.any(self.measurement > 0))
 
     @property
     def parameters(self) -> Mapping[str, tuple[float, float]]:
@@ -86,4 +103,5 @@ class Uncertainty:
             parameter_upper=nominal + factor * (self.parameter_upper - nominal),
             parameter_nominal=nominal,
             parametric=self.parametric,
+            measurement=factor * self.measurement,
         )

@@ -232,15 +232,22 @@ def certificate_claims(
 def declared_bound_text(scenario: Scenario) -> str:
     """The declared uncertainty as the additive bound certify holds the file to
     (``pipeline.numerics.uncertainty.additive_bound``), e.g. ``|w_vx| <= 0.02, |w_vy| <= 0.02``
-    (state derivative units); "" when the scenario declares none."""
+    (state derivative units), then the measurement box, e.g. ``|eta_X| <= 0.02`` (state units);
+    "" when the scenario declares none."""
     if scenario.uncertainty.empty:
         return ""
     bound = additive_bound(scenario)
-    return ", ".join(
+    parts = [
         f"|w_{name}| <= {b:.3g}"
         for name, b in zip(scenario.state_names, bound, strict=True)
         if b > 0
-    )
+    ]
+    parts += [  # the error on the state the law sees (funnel.law (I7), terminal.design (T5))
+        f"|eta_{name}| <= {e:.3g}"
+        for name, e in zip(scenario.state_names, scenario.uncertainty.measurement, strict=True)
+        if e > 0
+    ]
+    return ", ".join(parts)
 
 
 def after_horizon(evidence: Evidence, certified: bool) -> Claim:

@@ -102,7 +102,9 @@ def hold_targets(scenario: Scenario, period: float = 0.0, core: float = CORE) ->
     if scenario.terminal != "hold":
         return Targets(scenario=scenario)
     try:
-        design = hold_design(scenario, additive_bound(scenario), period)
+        declared = scenario.uncertainty
+        measurement = declared.measurement if declared.measured else None  # (T5)
+        design = hold_design(scenario, additive_bound(scenario), period, measurement)
     except TerminalError as error:
         log.info(f"[terminal] no terminal controller designed before the funnels: {error}")
         return Targets(scenario=scenario)

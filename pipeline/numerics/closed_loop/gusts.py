@@ -16,6 +16,11 @@ that holds the declaration. Three kinds of draw (``sample``), each run drawing i
 - the falsification's worst case (``stages.montecarlo.falsify``): its corner parameters and its
   gust sign sequence, from the run's own start.
 
+A declared measurement error (``uncertainty.measurement``) is drawn the same way, on the same
+periods: ``eta(t) = errors[floor(t / period)]`` added to the state the law sees (uniform in its
+box, or at random corners for the corner and worst-case runs). It is drawn only when declared,
+after everything else: without one the draws and the random stream are as before.
+
 The runs stay i.i.d. (a mixture of the three), so a Clopper-Pearson bound on their failure rate
 is valid for that mixture. The simulators apply ``w`` on whole RK4 steps: step ``j`` (times
 ``[t_j, t_j + h)``) uses the gust at ``t_j`` (a gust switching inside a step takes effect at the
@@ -49,12 +54,15 @@ class Draws:
       start: (B,) the run's time (s) at the simulation's start (``T_i`` when continuing past
         ``T``): step ``j`` uses gust ``floor((start + j h) / period)``, at most ``G - 1``.
       period: the gust period (s).
+      errors: (B, G, n) the measurement errors ``eta`` on the same periods as the gusts (added to
+        the state the law sees); None: the state is measured exactly.
     """
 
     parameters: FloatArray
     gusts: FloatArray
     start: FloatArray
     period: float = GUST_PERIOD
+    errors: FloatArray | None = None
 
     @classmethod
     def none(cls, runs: int, n: int) -> Draws:
@@ -70,6 +78,7 @@ class Draws:
             gusts=self.gusts[rows],
             start=self.start[rows],
             period=self.period,
+            errors=None if self.errors is None else self.errors[rows],
         )
 
     def started(self, start: FloatArray) -> Draws:
@@ -79,6 +88,7 @@ class Draws:
             gusts=self.gusts,
             start=np.asarray(start, dtype=np.float64),
             period=self.period,
+            errors=self.errors,
         )
 
     def gust_index(self, t: float) -> np.ndarray:
@@ -92,6 +102,14 @@ class Draws:
         if G == 0:
             return np.zeros((B, n))
         return self.gusts[np.arange(B), self.gust_index(t)]
+
+    def error(self, t: float) -> FloatArray | float:
+        """(B, n) ``eta`` at simulation time ``t`` (the gusts' periods); 0.0 without errors."""
+        if self.errors is None or self.errors.shape[1] == 0:
+            return 0.0
+        B, G, _ = self.errors.shape
+        index = np.floor((self.start + t) / self.period + GUST_ROUNDING).astype(np.int64)
+        return self.errors[np.arange(B), np.clip(index, 0, G - 1)]
 
 
 def flown_dynamics(scenario: Scenario, draws: Draws | None) -> Dynamics:
@@ -149,4 +167,13 @@ def sample(
         # the worst sequence, its last gust held if it is shorter than this horizon
         worst_gusts = worst.gusts[0][np.minimum(np.arange(G), worst.gusts.shape[1] - 1)]
         gusts[chosen] = worst_gusts
-    return Draws(parameters=parameters, gusts=gusts, start=np.zeros(runs), period=period)
+    errors = None
+    if uncertainty.measured:  # drawn last: without a measurement error the stream is as before
+        E = uncertainty.measurement
+        errors = E * rng.uniform(-1.0, 1.0, size=(runs, G, n))
+        bang_errors = E * rng.choice([-1.0, 1.0], size=(runs, G, n))
+        at_corners = corner if worst is None else corner | (kind >= 1.0 - WORST_SHARE)
+        errors[at_corners] = bang_errors[at_corners]
+    return Draws(
+        parameters=parameters, gusts=gusts, start=np.zeros(runs), period=period, errors=errors
+    )

@@ -196,6 +196,11 @@ def _draws(draws: Draws) -> tuple:
         _read_only(draws.gusts),
         _read_only(draws.start),
         float(draws.period),
+        _read_only(
+            np.zeros((len(draws.start), 0, draws.gusts.shape[2]))
+            if draws.errors is None
+            else draws.errors
+        ),
     )
 
 

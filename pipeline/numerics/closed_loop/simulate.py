@@ -98,7 +98,10 @@ def simulate_closed_loop(
         if hold and (stage > 0 or j % hold):
             raw = held
         else:
-            raw = controller.unclipped(t, state if noise is None else state + noise[:, j], index)
+            seen = state if noise is None else state + noise[:, j]
+            if draws is not None:  # the measurement error in force at the step's start
+                seen = seen + draws.error(j * h)
+            raw = controller.unclipped(t, seen, index)
             held[:] = raw
         unclipped[:, j, stage] = raw
         u = np.clip(raw, controller.lower, controller.upper)
@@ -329,17 +332,19 @@ def continue_runs(
     dynamics = flown_dynamics(scenario, draws)
     later = None if draws is None else draws.started(T)
     gust: FloatArray | float = 0.0
+    eta: FloatArray | float = 0.0
 
     u = np.empty((len(x), len(controller.input_names)))
 
     def field(t: float, state: FloatArray, fresh: bool) -> FloatArray:
         nonlocal slack
         if fresh:
-            raw = terminal.unclipped(state)
+            seen = state + eta  # the state the law sees
+            raw = terminal.unclipped(seen)
             slack = np.minimum(
                 slack, np.min(np.minimum(raw - controller.lower, controller.upper - raw), axis=-1)
             )
-            u[:] = controller(float(T.max()) + t + h, state, index)
+            u[:] = controller(float(T.max()) + t + h, seen, index)
         if later is None or not later.parameters.shape[1]:
             return dynamics.f(state, u) + gust
         return dynamics.f(state, np.concatenate([u, later.parameters], axis=1)) + gust
@@ -347,7 +352,7 @@ def continue_runs(
     for j in range(steps):
         t = j * h
         if later is not None:
-            gust = later.gust(t)
+            gust, eta = later.gust(t), later.error(t)
         k1 = field(t, x, not hold or j % hold == 0)
         k2 = field(t + h / 2, x + h / 2 * k1, not hold)
         k3 = field(t + h / 2, x + h / 2 * k2, not hold)

@@ -96,6 +96,28 @@ signal in its box, so with the box ``d + H[k]`` on interval ``k`` it covers this
 about ``rho``, so ``H`` does not shrink with the level either): a funnel whose (I5) fails with
 ``d + H`` is not certifiable at that period, on any grid. With ``h = 0`` every number is
 (I1)-(I5)'s.
+
+(I7) A measurement error. The feedback sees ``x_meas = x + eta``, ``|eta_i| <= E_i`` for every
+measurable ``eta`` (the scenario's ``uncertainty.measurement``, a box, zero for states measured
+exactly); the funnel stays about the true state ``x`` (``e = x - x_ref``, ``V``, the level, the
+limits: nothing changes there). The law is
+
+    u = u_ref[k] + K[k] (x + eta - xhat) = u_ref[k] + K[k] e + K[k] delta + K[k] eta,
+
+so ``eta`` is one more bounded offset of the kind of ``delta``, and the error equation gains
+``Bbar K eta``: ``e' = Acl e + Bbar K delta + Bbar K eta + w``. It is taken as (I6)'s hold is,
+not through (I2): ``|(Bbar K eta)_i| <= max_v sum_l |(B_v K)[i, l]| E_l`` (``Bbar`` a convex
+combination of the vertices; the segment from ``(x_ref, u_ref)`` to ``(x, u)`` lies in ``Z_k``
+because ``x`` is in the funnel and ``u`` in the input box widened by (I3) with ``E``, below), so
+``Bbar K eta + w`` lies in the box ``d + max_v |B_v K| E``, and (I5) holds for every hull point
+and every signal in its box: the measurement's box joins ``LawOffset.hold`` (with (I6)'s when
+the law is held) and (I5)'s box. (I2) keeps (I1)'s ``Delta`` alone. Inputs (I3): ``|K_j (delta +
+eta)| <= sum_i |K[k, j, i]| (Delta_i + E_i)``, so ``Delta`` gains ``E`` in the input offset (in
+``held_input`` too: it does not shrink with the grid). With a held law ``u - u_ref = K (e(t_j) +
+delta(t_j) + eta(t_j))``, so in (I6)'s ``Edot`` the input term is ``g_j + (|K| (Delta + E))_j``,
+and the law's offset is ``Delta + E + h Edot``, the box of its push ``max_v |B_v K| (h Edot +
+E)`` (one bound on ``|(Bbar K v)_i|`` for ``|v| <= h Edot + E``). With ``E = 0`` every number is
+(I1)-(I6)'s.
 """
 
 from __future__ import annotations
@@ -128,10 +150,12 @@ class LawOffset:
       disturbance: (n,) the box ``|w| <= d`` on the state derivatives the funnel must hold under
         (``funnel.robust`` (I5)); zeros: the exact model.
       period: ``h`` (s) of a held law (I6); 0: continuous feedback.
-      hold: (N, n) ``H[k]``, (I6): the box of the hold's term ``Bbar K (e(t_j) - e(t))``, joined
-        to ``disturbance`` in (I5); None: continuous feedback.
-      held_input: (N, m) ``|K| h Edot``, the hold's part of ``input_offset`` (it does not shrink
-        with the grid); None: continuous feedback.
+      hold: (N, n) ``H[k]``, (I6), (I7): the box of the hold's term ``Bbar K (e(t_j) - e(t))``
+        and the measurement's ``Bbar K eta``, joined to ``disturbance`` in (I5); None:
+        continuous feedback of the exact state.
+      held_input: (N, m) ``|K| (h Edot + E)``, the hold's and the measurement's part of
+        ``input_offset`` (it does not shrink with the grid); None: as ``hold``.
+      measurement: (n,) ``E`` of (I7); None: the state is measured exactly.
     """
 
     steps: FloatArray
@@ -142,6 +166,7 @@ class LawOffset:
     period: float = 0.0
     hold: FloatArray | None = None
     held_input: FloatArray | None = None
+    measurement: FloatArray | None = None
 
     @property
     def box(self) -> FloatArray:
@@ -223,6 +248,7 @@ def law_offset(
     centre_error: float = 0.0,
     period: float = 0.0,
     disturbance: FloatArray | None = None,
+    measurement: FloatArray | None = None,
 ) -> LawOffset:
     """(I1)-(I3) for a funnel ``K (N, m, n)``, ``P (N+1, n, n)``, level ``rho``, ``rate``, with its
     hull ``vertices`` (N arrays (V, n, n+m) of ``[A_v B_v]``), the nominal's rate bound
@@ -231,7 +257,9 @@ def law_offset(
     (estimated by the caller); it moves the law's centre too, so it joins ``Delta`` (a P-norm
     error ``eps`` is at most ``eps sqrt(Q_ii)`` in state ``i``). ``period > 0``: the law held
     every ``period`` s, (I6), with the additive bound ``disturbance (n,)`` in ``Edot`` (None:
-    zeros); the returned ``disturbance`` is still zeros (``with_disturbance`` sets (I5)'s)."""
+    zeros); the returned ``disturbance`` is still zeros (``with_disturbance`` sets (I5)'s).
+    ``measurement (n,)``: the box ``E`` of the error on the state the law sees, (I7) (None or
+    zeros: the exact state)."""
     N, m, n = K.shape
     steps = Ts / np.asarray(substeps, dtype=np.float64)
     Q = np.linalg.inv(P)
@@ -239,6 +267,8 @@ def law_offset(
     centre = centre_error * np.sqrt(np.maximum(Q_diagonal[:-1], Q_diagonal[1:]))  # (N, n)
     deviation, input_offset, lmi_term = np.zeros((N, n)), np.zeros((N, m)), np.zeros(N)
     held = period > 0
+    E = np.zeros(n) if measurement is None else np.asarray(measurement, dtype=np.float64)
+    measured = bool(np.any(E > 0))
     hold, held_input = np.zeros((N, n)), np.zeros((N, m))
     d = np.zeros(n) if disturbance is None else np.asarray(disturbance, dtype=np.float64)
     signs = np.array(list(itertools.product((-1.0, 1.0), repeat=n)))[: 2 ** (n - 1)]  # +-pairs
@@ -247,6 +277,10 @@ def law_offset(
         acceleration = (np.abs(A) @ rate_bound[k]).max(axis=0)  # (n,) bound on |xddot|
         deviation[k] = steps[k] ** 2 / 8 * acceleration + centre[k]  # eq. (I1)
         rho_t = rho * math.exp(-rate * Ts * (k + 1))
+        w = _offset_norm(B, K[k], P, k, signs * deviation[k])  # eq. (I2), (I1)'s Delta alone
+        lmi_term[k] = 2 * w / rho_t
+        if measured:  # eq. (I7): eta is one more offset of the law, delta + eta
+            deviation[k] = deviation[k] + E
         if held:  # eq. (I6)
             level = rho * math.exp(-rate * Ts * k)  # rho_t is largest at the interval's start
             extent = level * np.sqrt(np.maximum(Q_diagonal[k], Q_diagonal[k + 1]))  # (n,)
@@ -257,17 +291,20 @@ def law_offset(
             reach = level * np.sqrt(np.maximum(spread, 0.0)) + np.abs(K[k]) @ deviation[k]
             speed = (np.abs(A) @ extent + np.abs(B) @ reach).max(axis=0) + d  # (n,) Edot
             drift = period * speed  # |e(t_j) - e(t)| <= h Edot
-            hold[k] = (np.abs(B @ K[k]) @ drift).max(axis=0)  # the box H[k], joined to (I5)'s
-            held_input[k] = np.abs(K[k]) @ drift
-        w = _offset_norm(B, K[k], P, k, signs * deviation[k])  # eq. (I2), (I1)'s Delta alone
-        lmi_term[k] = 2 * w / rho_t
-        if held:
+            pushed = drift + E if measured else drift  # (I7): eta(t_j) with the hold's drift
+            hold[k] = (np.abs(B @ K[k]) @ pushed).max(axis=0)  # the box H[k], joined to (I5)'s
+            held_input[k] = np.abs(K[k]) @ pushed
             deviation[k] = deviation[k] + drift  # Delta_h
+        elif measured:  # eq. (I7): the measurement's box, joined to (I5)'s
+            hold[k] = (np.abs(B @ K[k]) @ E).max(axis=0)
+            held_input[k] = np.abs(K[k]) @ E
         input_offset[k] = np.abs(K[k]) @ deviation[k]  # eq. (I3)
+    boxed = held or measured
     return LawOffset(
         steps=steps, deviation=deviation, input_offset=input_offset, lmi_term=lmi_term,
         disturbance=np.zeros(n), period=float(period) if held else 0.0,
-        hold=hold if held else None, held_input=held_input if held else None,
+        hold=hold if boxed else None, held_input=held_input if boxed else None,
+        measurement=E if measured else None,
     )  # fmt: skip
 
 

@@ -21,7 +21,9 @@ less half the longest step of a bounded state, and the final state.
 
 Under a declared uncertainty (``pipeline.numerics.closed_loop.gusts``) each run flies ``f(x, (u,
 p_b))`` (the parametric dynamics, its parameters ``p_b`` appended to the input) plus the gust
-``w_b`` in force at the step's start; with ``every_goal`` the Goal margin is the smallest over
+``w_b`` in force at the step's start, and the law sees ``x + eta_b`` (the measurement error in
+force at the step's start; the law's reference shifted by ``-eta_b``, the same input); with
+``every_goal`` the Goal margin is the smallest over
 the grid less half the longest step (the continuation past ``T``: "in Goal at all times").
 
 Shapes: ``B`` runs, ``n`` states, ``m`` inputs, ``N`` sample intervals, ``r`` reference points.
@@ -108,8 +110,9 @@ def rollout_kernel(
     interpolation error, ``position (2,)`` the position state indices, ``scene`` Unsafe as in
     ``unsafe_distance``, ``goal = (V, ring_start, index, lower, upper)``: Goal's rings and its extra
     bounds on states ``index`` at ``T``; ``bounds = (index (c,), lower (c,), upper (c,))`` the
-    state bounds; ``draws = (parameters (B, q), gusts (B, G, n), start (B,), period)`` as
-    ``pipeline.numerics.closed_loop.gusts.Draws`` (``q = 0``, ``G = 0``: the exact model).
+    state bounds; ``draws = (parameters (B, q), gusts (B, G, n), start (B,), period, errors (B,
+    G', n))`` as ``pipeline.numerics.closed_loop.gusts.Draws`` (``q = 0``, ``G = 0``: the exact
+    model; ``G' = 0``: the state measured exactly, else ``G' = G``).
     """
     B, n = x0.shape
     m = law[1].shape[1]
@@ -133,9 +136,11 @@ def rollout_kernel(
     K = np.empty((4, n))
     y = np.empty(n)
     raw = np.empty(m)
-    parameters, gusts, start, period = draws
+    parameters, gusts, start, period, errors = draws
     q = parameters.shape[1]
     G = gusts.shape[1]
+    measured = errors.shape[1] > 0
+    seen = np.empty(n)  # the law's reference shifted by -eta: u_ref + K (x + eta - x_ref)
     u = np.empty(m + q)  # the inputs, then the run's parameters
     bound_index, bound_lower, bound_upper = bounds
     rings = goal[1].size - 1
@@ -184,7 +189,12 @@ def rollout_kernel(
                 if hold == 0 or (r == 0 and j % hold == 0):
                     # the law at every stage, or at the first stage of a zero-order-hold window
                     c = column[r]
-                    stage_slack = closed_loop_slope(times[j, c], y, XR[j, c], law, raw, u, K[r])
+                    if measured and g >= 0:
+                        for i in range(n):
+                            seen[i] = XR[j, c, i] - errors[b, g, i]
+                        stage_slack = closed_loop_slope(times[j, c], y, seen, law, raw, u, K[r])
+                    else:
+                        stage_slack = closed_loop_slope(times[j, c], y, XR[j, c], law, raw, u, K[r])
                     input_slack = min(input_slack, stage_slack)
                 else:  # u held from the window's first state
                     f_eval(y, u, K[r])

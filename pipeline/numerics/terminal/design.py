@@ -61,6 +61,18 @@ sharing ``Bbar`` with the loop is covered). ``b_h`` grows with the level (``ext`
 (``largest_level``). ``check_level(held_period=h)``; ``period`` is the constant certificate's
 held rate (``pipeline.numerics.tube.sampled``), for files without a disturbance.
 
+(T5) A measurement error. The law sees ``x + eta``, ``|eta_i| <= E_i`` for every measurable
+``eta`` (the scenario's ``uncertainty.measurement``): ``u = u_eq + K_T (e + eta)`` (held: ``u =
+u_eq + K_T (e(t_j) + eta(t_j))``). ``E_c`` stays a set of the true state. The applied input is
+``u_eq + K_T e + K_T eta`` with ``|(K_T eta)_j| <= (|K_T| E)_j``: the no-clipping check and
+``Z_c``'s input box take ``reach + |K_T| E`` (so the hull covers the segment to the applied
+``(x, u)``), and (T4)'s ``Edot`` its input term with it. As in (T4), ``f(x, u) - f(x_eq, u_eq)
+= Abar e + Bbar K_T e + Bbar K_T eta`` with ``[Abar Bbar]`` in that hull, and ``|(Bbar K_T
+eta)_i| <= max_v sum_l |(B_v K_T)[i, l]| E_l =: b_e,i``: one more additive term in a box, so
+(T1'), (T1'') with ``b + b_h + b_e`` in place of ``b`` certify ``E_c`` for every ``eta`` (both
+hold for every hull point and every signal in the box). ``b_e`` does not depend on the level:
+it raises (T1')'s floor, as the disturbance does. With ``E = 0`` every number is (T1)-(T4)'s.
+
 End tubes: ``pipeline.numerics.terminal.fit`` (the exact containment level, and the funnel's LMI).
 """
 
@@ -225,6 +237,7 @@ def check_level(
     period: float = 0.0,
     disturbance: FloatArray | None = None,
     held_period: float = 0.0,
+    measurement: FloatArray | None = None,
 ) -> TerminalCheck:
     """Check (T1') and the bounds for ``E_c``, ``c = level`` (module docstring), from scratch:
     hull over ``Z_c``, decay by ``numpy.linalg.eigvalsh``, no clipping, inside Goal. With a
@@ -232,12 +245,17 @@ def check_level(
     ``pipeline.numerics.tube.sampled`` at the continuous rate ``alpha / 2``. ``disturbance (n,)``:
     the additive bound ``b`` of (T1') (None or zeros: the exact model, (T1)). ``held_period >
     0``: the law held every ``held_period`` s, its hold an additive term (T4) joined to ``b``
-    (a funnel file's terminal law)."""
+    (a funnel file's terminal law). ``measurement (n,)``: the box ``E`` of the error on the
+    state the law sees (T5) (None or zeros: the exact state)."""
     tube, r = _tube(scenario, K, P), float(np.sqrt(level))
     b = np.zeros(len(x_eq)) if disturbance is None else np.asarray(disturbance, dtype=np.float64)
+    E = None if measurement is None else np.asarray(measurement, dtype=np.float64)
+    measured = E is not None and bool(np.any(E > 0))
     failures = []
-    # no clipping: u_eq +- r ||K_j P^-1/2|| inside the bounds
+    # no clipping: u_eq +- r ||K_j P^-1/2|| (+ |K| E, (T5)) inside the bounds
     reach = tube.input_margin(r)
+    if measured:
+        reach = reach + np.abs(K) @ E
     slack = float(
         np.min(np.minimum(u_eq - reach - scenario.input_lower, scenario.input_upper - u_eq - reach))
     )
@@ -293,6 +311,8 @@ def check_level(
             decay = 2 * held_rate(P, K, hull.A, hull.B, decay / 2, period).held_rate
         if held_period > 0:  # (T4): the hold as an additive term
             b = b + hold_bound(hull.A, hull.B, K, r * extent, reach, residual, b, held_period)
+        if measured:  # (T5): the measurement's push as an additive term
+            b = b + (np.abs(hull.B @ K) @ E).max(axis=0)
     except HullError as error:
         decay, vertices = -np.inf, 0
         failures.append(f"no Jacobian hull over E_c's bounding box: {error}")
@@ -373,6 +393,7 @@ def largest_level(
     period: float = 0.0,
     disturbance: FloatArray | None = None,
     held_period: float = 0.0,
+    measurement: FloatArray | None = None,
 ) -> TerminalCheck:
     """The largest level ``c`` certified with at least ``DECAY_FRACTION`` of the linearisation's
     decay (bisection on ``sqrt(c)``; the input and Goal bounds give the top), robust to the
@@ -382,7 +403,7 @@ def largest_level(
     chance: the floor is a lower bound, (T4)'s term growing with ``sqrt(c)`` too); the returned
     check fails when that level is below the floor."""
     robust = disturbance is not None and bool(np.any(np.asarray(disturbance) > 0))
-    robust = robust or held_period > 0
+    robust = robust or held_period > 0 or (measurement is not None and bool(np.any(measurement)))
     A0, B0 = scenario.dynamics.f_x(x_eq, u_eq), scenario.dynamics.f_u(x_eq, u_eq)
     linear = decay_rate(P, K, A0[None], B0[None])
     if period > 0:
@@ -398,7 +419,7 @@ def largest_level(
     def at(radius: float) -> TerminalCheck:
         return check_level(
             scenario, x_eq, u_eq, K, P, radius**2, min_decay=need, period=period,
-            disturbance=disturbance, held_period=held_period,
+            disturbance=disturbance, held_period=held_period, measurement=measurement,
         )  # fmt: skip
 
     best = at(hi)
@@ -447,6 +468,7 @@ def design_terminal(
     end_metrics: FloatArray | None = None,
     disturbance: FloatArray | None = None,
     held_period: float = 0.0,
+    measurement: FloatArray | None = None,
 ) -> TerminalDesign:
     """The best-fitting certified terminal controller for end tubes ``||x - ends[i]||_P <=
     end_radii[i]`` (tube gain ``K (m, n)``, metric ``P (n, n)``; ``end_metrics (k, n, n)``: each
@@ -456,8 +478,8 @@ def design_terminal(
     with the LQR gain and Riccati matrix there and with the tube's own ``K`` and ``P``; the
     certified one with the smallest ``fit`` is kept (for the law held every ``period`` s when
     it is > 0, the constant certificate's held rate; every ``held_period`` s, (T4), a funnel
-    file's), robust to the additive bound ``disturbance (n,)`` (T1'). ``TerminalError`` when
-    none certifies.
+    file's), robust to the additive bound ``disturbance (n,)`` (T1') and the measurement box
+    ``measurement (n,)`` (T5). ``TerminalError`` when none certifies.
     """
     positions = [goal_centre(scenario)]
     mean = np.mean([scenario.positions(a) for a in ends], axis=0)
@@ -477,7 +499,9 @@ def design_terminal(
         except TerminalError as error:
             reasons.append(str(error))
         for gain, K_T, P_T in gains:
-            check = largest_level(scenario, x_eq, u_eq, K_T, P_T, period, disturbance, held_period)
+            check = largest_level(
+                scenario, x_eq, u_eq, K_T, P_T, period, disturbance, held_period, measurement
+            )
             if not check.success:
                 reasons.append(
                     f"{gain} gain at {np.round(position, 3).tolist()}: " + "; ".join(check.failures)
@@ -496,13 +520,17 @@ def design_terminal(
 
 
 def hold_design(
-    scenario: Scenario, disturbance: FloatArray | None = None, period: float = 0.0
+    scenario: Scenario,
+    disturbance: FloatArray | None = None,
+    period: float = 0.0,
+    measurement: FloatArray | None = None,
 ) -> TerminalDesign:
     """The terminal controller a funnel run designs BEFORE its funnels, for them to end in: the
     equilibrium at Goal's centre, its LQR gain and, under ``disturbance (n,)``, the metric shaped
     for it (T3) when that certifies, else the Riccati matrix; the largest level certified
     robustly (T1', T1''), for the law held every ``period`` s when it is > 0 (T4: the funnel
-    file's law); ``fit`` 0 (no end tube yet). ``TerminalError`` when
+    file's law), seeing the state within ``measurement (n,)`` (T5); ``fit`` 0 (no end tube
+    yet). ``TerminalError`` when
     there is no equilibrium, no stabilising gain or no certified level."""
     x_eq, u_eq = equilibrium(scenario)
     K_T, P_T = lqr_terminal(scenario, x_eq, u_eq)
@@ -510,16 +538,18 @@ def hold_design(
         metric = robust_metric(scenario, x_eq, u_eq, K_T, np.asarray(disturbance))  # (T3)
         if metric is not None:  # shaped for the disturbance: kept whenever it certifies
             robust = largest_level(
-                scenario, x_eq, u_eq, K_T, metric, disturbance=disturbance, held_period=period
-            )
+                scenario, x_eq, u_eq, K_T, metric, disturbance=disturbance, held_period=period,
+                measurement=measurement,
+            )  # fmt: skip
             if robust.success:
                 return TerminalDesign(
                     x_eq=x_eq, u_eq=u_eq, K=K_T, P=metric, check=robust, gain="lqr", fit=0.0,
                     shaped=True,
                 )  # fmt: skip
     check = largest_level(
-        scenario, x_eq, u_eq, K_T, P_T, disturbance=disturbance, held_period=period
-    )
+        scenario, x_eq, u_eq, K_T, P_T, disturbance=disturbance, held_period=period,
+        measurement=measurement,
+    )  # fmt: skip
     if not check.success:
         where = np.round(x_eq, 3).tolist()
         raise TerminalError(f"lqr gain at {where}: " + "; ".join(check.failures))

@@ -24,7 +24,8 @@ the synthesis's boxes and its solver:
    the hulls so built must fit that allowance;
    With ``feedback_period h > 0`` the law is held every ``h`` s: its offset (I6) (``h Edot``,
    the additive bound in ``Edot``) joins (I3)'s, and its push joins the disturbance's box in
-   (I5);
+   (I5); a declared measurement error (I7) likewise (its box ``E`` in the offset, its push in
+   (I5)'s box);
 4. ``funnel.check.check_funnel`` on the funnel so rebuilt, under that law: ``P[k]`` positive
    definite, (F3) plus (I2) at every vertex at both ends of every interval (numpy eigenvalues),
    the enclosure (E1) and the tube inside every hull box, ``rho`` within the limits of Unsafe,
@@ -36,8 +37,9 @@ whatever grid the file carries its reference on).
 ``recheck_terminal`` (either format): the ``terminal`` block by (T1') of
 ``pipeline.numerics.terminal.design`` under the scenario's declared additive bound (``uncertainty.
 additive_bound``; the block's own ``disturbance`` only where it is larger), for a held law ((T4)
-in a ``/2`` file, the held rate in a ``/1`` file), and every end tube inside its ellipsoid
-(``terminal.fit``).
+in a ``/2`` file, the held rate in a ``/1`` file), the law seeing the state within the declared
+measurement box ((T5); the file's ``uncertainty.measurement_bound`` where larger; a file stating
+less fails in the funnels' check), and every end tube inside its ellipsoid (``terminal.fit``).
 
 A hull over a box is sound for any number of segments, so ``SEGMENTS`` are tried in turn and the
 funnel is accepted when one of them certifies it (a finer hull is tighter, not always a subset).
@@ -225,12 +227,14 @@ def _under_law(
     centre_error: float = 0.0,
     disturbance: FloatArray | None = None,
     period: float = 0.0,
+    measurement: FloatArray | None = None,
 ) -> tuple[Funnel, LawOffset]:
     """Steps 1-3: the funnel rebuilt with its input boxes widened by ``OFFSET_ALLOWANCE`` times the
     law's input offset (I3) found on hulls without it, and the law's offset on the hulls so built
     for a reference grid of ``substeps (N,)`` per sample, under the additive bound ``disturbance
     (n,)`` when given ((I5)), the law held every ``period`` s when it is > 0 ((I6), with the
-    same bound in ``Edot``).
+    same bound in ``Edot``), the law seeing the state with an error in the box ``measurement
+    (n,)`` when given ((I7)).
 
     Raises:
       HullError: no hull or enclosure, or the offset outgrew the widening.
@@ -241,7 +245,7 @@ def _under_law(
             raise HullError("no a priori enclosure of the nominal")
         return law_offset(
             funnel.vertices, funnel.enclosure.rate_bound, shipped.K, shipped.P, shipped.rho,
-            shipped.rate, scenario.Ts, substeps, centre_error, period, disturbance,
+            shipped.rate, scenario.Ts, substeps, centre_error, period, disturbance, measurement,
         )  # fmt: skip
 
     plain = rebuild_funnel(scenario, trajectory, shipped, state_bounds, segments)
@@ -267,12 +271,14 @@ def recheck_funnel(
     centre_error: float = 0.0,
     disturbance: FloatArray | None = None,
     period: float = 0.0,
+    measurement: FloatArray | None = None,
 ) -> FunnelRecheck:
     """Steps 1-4 of the module docstring for one ``shipped`` funnel around the nominal
     ``trajectory`` (a uniform RK4 grid), its law tracking the reference on a grid of ``substeps
     (N,)`` per sample, for ``x' = f(x, u) + w`` with ``|w| <= disturbance (n,)`` when given
     (``pipeline.numerics.uncertainty``; (I5)), the law held every ``period`` s when it is > 0
-    (``funnel.law`` (I6)). The margin reported is (F2)'s eigenvalue plus (I2),
+    (``funnel.law`` (I6)), the law seeing the state within ``measurement (n,)`` when given
+    ((I7)). The margin reported is (F2)'s eigenvalue plus (I2),
     or under a disturbance twice (I5)'s plus (I2) (``funnel.check.effective_margins``)."""
     K, Q = shipped.K, shipped.Q
     failures: list[str] = []
@@ -281,7 +287,7 @@ def recheck_funnel(
         try:
             funnel, law = _under_law(
                 scenario, trajectory, shipped, state_bounds, segments, substeps, centre_error,
-                disturbance, period,
+                disturbance, period, measurement,
             )  # fmt: skip
         except (HullError, np.linalg.LinAlgError) as error:
             failures.append(f"{segments} segment(s): {error}")
@@ -296,7 +302,7 @@ def recheck_funnel(
         binding = min(limits, key=lambda key: limits[key][0])
         held = functools.partial(  # the law's offset under another additive bound in (I6)
             law_offset, funnel.vertices, enclosure.rate_bound, K, shipped.P, shipped.rho,
-            shipped.rate, scenario.Ts, substeps, centre_error, period,
+            shipped.rate, scenario.Ts, substeps, centre_error, period, measurement=measurement,
         )  # fmt: skip
         last = FunnelRecheck(
             failure=failure,
@@ -324,7 +330,9 @@ def disturbance_multiple(
     the law's disturbance box with its (I2) term (``funnel.robust`` (I5)); ``inf`` without one.
     A held law's box (``funnel.law`` (I6)) grows with the disturbance (``Edot``): ``held(bound)``,
     the law's offset under another additive bound, gives it again for each ``s`` (the input
-    boxes are not widened for it: like the rest of the multiple, (I5) and (I2) alone)."""
+    boxes are not widened for it: like the rest of the multiple, (I5) and (I2) alone). A
+    measurement's box ((I7), in ``hold``) is held at its declared size: the multiple is of the
+    additive bound."""
     check = RobustCheck(Q, K, funnel.vertices, funnel.rate, Ts, funnel.rho)
     if law.hold is None or held is None:
         return check.multiple(law.disturbance, law.lmi_term)
@@ -344,6 +352,7 @@ def reference_substeps(
     state_bounds: Mapping[str, tuple[float, float]],
     disturbance: FloatArray | None = None,
     period: float = 0.0,
+    measurement: FloatArray | None = None,
 ) -> np.ndarray:
     """(N,) RK4 steps per sample on which to ship a funnel's reference so that the law's offset
     fits what (F2) and the inputs leave (``funnel.law.law_substeps``), from the first hull of
@@ -351,9 +360,12 @@ def reference_substeps(
     ``disturbance (n,)``, which takes its share of (F2) first, (I5)); ``BASE_SUBSTEPS``
     everywhere when none does (it will not be certified). ``trajectory``: the nominal on a
     uniform grid. ``period > 0``: the law held every ``period`` s, whose (I6) term takes its
-    share first and does not shrink with the grid."""
+    share first and does not shrink with the grid, as a measurement's (I7) (``measurement
+    (n,)``)."""
     K, Q = shipped.K, shipped.Q
-    for funnel, law in _base_laws(scenario, trajectory, shipped, state_bounds, disturbance, period):
+    for funnel, law in _base_laws(
+        scenario, trajectory, shipped, state_bounds, disturbance, period, measurement
+    ):
         # (I5) with the disturbance and a held law's box, without the interpolation's term
         robust = law.robust_part()
         if check_funnel(scenario, trajectory, funnel, state_bounds, robust) is not None:
@@ -375,6 +387,7 @@ def _base_laws(
     state_bounds: Mapping[str, tuple[float, float]],
     disturbance: FloatArray | None,
     period: float,
+    measurement: FloatArray | None,
 ) -> Iterator[tuple[Funnel, LawOffset]]:
     """``_under_law`` on a reference grid of ``BASE_SUBSTEPS``, for each of ``SEGMENTS`` whose
     hull can be built, in that order."""
@@ -383,7 +396,7 @@ def _base_laws(
         try:
             yield _under_law(
                 scenario, trajectory, shipped, state_bounds, segments, base, 0.0, disturbance,
-                period,
+                period, measurement,
             )  # fmt: skip
         except (HullError, np.linalg.LinAlgError):
             continue
@@ -396,12 +409,16 @@ def hold_box(
     state_bounds: Mapping[str, tuple[float, float]],
     disturbance: FloatArray | None,
     period: float,
+    measurement: FloatArray | None = None,
 ) -> FloatArray | None:
     """(n,) the largest box ``H[k]`` over the intervals of the law held every ``period`` s
-    (``funnel.law`` (I6)) on the first hull of ``SEGMENTS`` that can be built: what a funnel
+    (``funnel.law`` (I6)), with the measurement's box ``measurement (n,)`` when given (I7), on
+    the first hull of ``SEGMENTS`` that can be built: what a funnel
     designed for the additive bound ``disturbance + H`` leaves room for; None without a hull.
     A design aid (``stages.funnel``): nothing is certified by it."""
-    for _, law in _base_laws(scenario, trajectory, shipped, state_bounds, disturbance, period):
+    for _, law in _base_laws(
+        scenario, trajectory, shipped, state_bounds, disturbance, period, measurement
+    ):
         if law.hold is not None:
             return np.asarray(law.hold.max(axis=0), dtype=np.float64)
     return None
@@ -414,18 +431,22 @@ def recheck_as_shipped(
     state_bounds: Mapping[str, tuple[float, float]],
     disturbance: FloatArray | None = None,
     period: float = 0.0,
+    measurement: FloatArray | None = None,
 ) -> FunnelRecheck:
     """``recheck_funnel`` as the certify stage will run it on the emitted file: the nominal from
     ``trajectory``'s start and inputs on a uniform grid of ``BASE_SUBSTEPS``, the law tracking the
     reference on the grid the controller stage ships (``reference_substeps``), under the additive
-    bound ``disturbance (n,)`` when given, held every ``period`` s when it is > 0 (I6)."""
+    bound ``disturbance (n,)`` when given, held every ``period`` s when it is > 0 (I6), seeing
+    the state within ``measurement (n,)`` when given (I7)."""
     nominal = simulate(
         scenario.dynamics, trajectory.xs[0], trajectory.us, scenario.Ts, BASE_SUBSTEPS
     )
-    substeps = reference_substeps(scenario, nominal, shipped, state_bounds, disturbance, period)
+    substeps = reference_substeps(
+        scenario, nominal, shipped, state_bounds, disturbance, period, measurement
+    )
     return recheck_funnel(
         scenario, nominal, shipped, state_bounds, substeps, disturbance=disturbance,
-        period=period,
+        period=period, measurement=measurement,
     )  # fmt: skip
 
 
@@ -456,6 +477,30 @@ def checked_bound(
     return (declared if stated is None else np.maximum(stated, declared)), failures
 
 
+def checked_measurement(
+    scenario: Scenario, stated: FloatArray | None
+) -> tuple[FloatArray | None, list[str]]:
+    """``(E (n,), failures)``: the measurement box the file is re-checked under: the scenario's
+    ``uncertainty.measurement`` (never read from the file) raised to the file's stated
+    ``uncertainty.measurement_bound`` where that is larger; None when neither declares any. A
+    file stating less than the scenario declares is a failure (re-checked with the declaration)."""
+    declared = scenario.uncertainty.measurement if scenario.uncertainty.measured else None
+    failures = []
+    if declared is not None:
+        held = np.zeros(scenario.n) if stated is None else np.asarray(stated)
+        short = np.flatnonzero(held < declared)
+        if len(short):
+            i = int(short[0])
+            failures.append(
+                f"uncertainty: the file holds |eta_{scenario.state_names[i]}| <= {held[i]:.4g}, "
+                f"the scenario declares {declared[i]:.4g} (uncertainty.measurement); synthesize "
+                "again"
+            )
+    if declared is None:
+        return (None if stated is None or not np.any(stated) else np.asarray(stated)), failures
+    return (declared if stated is None else np.maximum(stated, declared)), failures
+
+
 def recheck_terminal(scenario: Scenario, controller: Controller) -> tuple[float, float, list[str]]:
     """``(decay, fit, failures)`` of the file's terminal block (certify's step 6): (T1') of
     ``pipeline.numerics.terminal.design`` under ``checked_bound``, no clipping, inside Goal and the
@@ -467,6 +512,7 @@ def recheck_terminal(scenario: Scenario, controller: Controller) -> tuple[float,
         raise TypeError(f"{controller.source}: no terminal block to verify")
     bound, failures = checked_bound(scenario, terminal.disturbance, "terminal")
     bound = np.zeros(scenario.n) if bound is None else bound
+    measurement, _ = checked_measurement(scenario, controller.measurement_bound)  # (T5)
     if not np.all(np.isfinite(bound)):
         return float("nan"), float("nan"), failures
     check = check_level(
@@ -481,6 +527,7 @@ def recheck_terminal(scenario: Scenario, controller: Controller) -> tuple[float,
         period=0.0 if controller.funnel else controller.feedback_period,
         disturbance=bound,
         held_period=controller.feedback_period if controller.funnel else 0.0,
+        measurement=measurement,
     )
     widen = 1 + LEVEL_MARGIN if controller.funnel else 1.0
     ends = [tr.x_ref[-1] for tr in controller.trajectories]
