@@ -132,8 +132,9 @@ def _accepted(
     # law tracking the reference interpolated on the grid the controller stage ships
     shipped = ShippedFunnel(K=funnel.K, P=funnel.P, rho=funnel.rho, rate=funnel.rate)
     again = recheck_as_shipped(
-        scenario, trajectory, shipped, state_bounds, disturbance, period, measurement
-    )
+        scenario, trajectory, shipped, state_bounds, disturbance, period, measurement,
+        multiple=False,
+    )  # fmt: skip
     return None if not again.failure else f"rejected when rebuilt as certify does: {again.failure}"
 
 

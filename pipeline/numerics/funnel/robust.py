@@ -190,9 +190,19 @@ class RobustCheck:
         if not np.any(bound > 0):
             return float("inf")
 
+        found: list[FloatArray] = []  # the multipliers of the last box that held
+
         def holds(s: float) -> bool:
             box = s * bound if hold is None else s * bound + hold(s)
-            return bool(np.all(2 * self.margins(box)[0] + lmi_term < -LMI_MARGIN))
+            if found:  # any alpha >= 0 is a certificate (I5): try the last one first
+                top = self._largest(found[-1], self._scaled(box))
+                if np.all(2 * top + lmi_term < -LMI_MARGIN):
+                    return True
+            margins, alpha = self.margins(box)
+            if np.all(2 * margins + lmi_term < -LMI_MARGIN):
+                found.append(alpha)
+                return True
+            return False
 
         if not holds(0.0):
             return 0.0

@@ -176,7 +176,7 @@ class FunnelRecheck:
         binding: the constraint that sets it; disturbance_multiple: the largest ``s`` for which
         (I5) still holds with ``s`` times the disturbance checked (``funnel.robust``: found by
         bisection, nothing else depends on it; ``inf`` without a disturbance; below 1 when the
-        funnel does not hold the one checked).
+        funnel does not hold the one checked; NaN when not asked for).
     """
 
     failure: str | None
@@ -272,6 +272,8 @@ def recheck_funnel(
     disturbance: FloatArray | None = None,
     period: float = 0.0,
     measurement: FloatArray | None = None,
+    *,
+    multiple: bool = True,
 ) -> FunnelRecheck:
     """Steps 1-4 of the module docstring for one ``shipped`` funnel around the nominal
     ``trajectory`` (a uniform RK4 grid), its law tracking the reference on a grid of ``substeps
@@ -279,7 +281,9 @@ def recheck_funnel(
     (``pipeline.numerics.uncertainty``; (I5)), the law held every ``period`` s when it is > 0
     (``funnel.law`` (I6)), the law seeing the state within ``measurement (n,)`` when given
     ((I7)). The margin reported is (F2)'s eigenvalue plus (I2),
-    or under a disturbance twice (I5)'s plus (I2) (``funnel.check.effective_margins``)."""
+    or under a disturbance twice (I5)'s plus (I2) (``funnel.check.effective_margins``).
+    ``multiple``: also find the disturbance multiple it holds (a bisection of (I5) searches;
+    the design's acceptance (``stages.funnel``) does not need it)."""
     K, Q = shipped.K, shipped.Q
     failures: list[str] = []
     last = FunnelRecheck(failure="", margin=float("nan"), vertices=0, radius=0.0, binding="")
@@ -310,7 +314,11 @@ def recheck_funnel(
             vertices=sum(len(v) for v in funnel.vertices),
             radius=limits[binding][0],
             binding=binding,
-            disturbance_multiple=disturbance_multiple(Q, K, funnel, scenario.Ts, law, held),
+            disturbance_multiple=(
+                disturbance_multiple(Q, K, funnel, scenario.Ts, law, held)
+                if multiple
+                else float("nan")
+            ),
         )
         if failure is None:
             return last
@@ -432,12 +440,14 @@ def recheck_as_shipped(
     disturbance: FloatArray | None = None,
     period: float = 0.0,
     measurement: FloatArray | None = None,
+    *,
+    multiple: bool = True,
 ) -> FunnelRecheck:
     """``recheck_funnel`` as the certify stage will run it on the emitted file: the nominal from
     ``trajectory``'s start and inputs on a uniform grid of ``BASE_SUBSTEPS``, the law tracking the
     reference on the grid the controller stage ships (``reference_substeps``), under the additive
     bound ``disturbance (n,)`` when given, held every ``period`` s when it is > 0 (I6), seeing
-    the state within ``measurement (n,)`` when given (I7)."""
+    the state within ``measurement (n,)`` when given (I7). ``multiple``: as ``recheck_funnel``'s."""
     nominal = simulate(
         scenario.dynamics, trajectory.xs[0], trajectory.us, scenario.Ts, BASE_SUBSTEPS
     )
@@ -446,7 +456,7 @@ def recheck_as_shipped(
     )
     return recheck_funnel(
         scenario, nominal, shipped, state_bounds, substeps, disturbance=disturbance,
-        period=period, measurement=measurement,
+        period=period, measurement=measurement, multiple=multiple,
     )  # fmt: skip
 
 
