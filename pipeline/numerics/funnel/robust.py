@@ -43,7 +43,6 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import numpy as np
-from scipy.linalg import solve_continuous_lyapunov
 
 from pipeline.model.dynamics import FloatArray
 from pipeline.numerics.funnel.law import LMI_MARGIN, corners
@@ -69,11 +68,14 @@ def invariant_ellipsoid(
     sigma = -float(np.linalg.eigvals(Acl).real.max())
     if not sigma > 0:
         return None
-    candidates = [
-        solve_continuous_lyapunov(Acl + a / 2 * np.eye(n), -E @ E.T / a)
-        for a in np.geomspace(0.02, 1.98, 25) * sigma
-    ]
-    best = min(candidates, key=lambda Q: float(np.trace(weight @ Q)))
+    # the 25 Lyapunov equations at once, in Kronecker form on the row-major vec(Q):
+    # (Acl (x) I + I (x) Acl + a I) vec(Q) = -vec(E E^T) / a
+    decays = np.geomspace(0.02, 1.98, 25) * sigma  # (25,)
+    eye = np.eye(n)
+    operator = np.kron(Acl, eye) + np.kron(eye, Acl) + decays[:, None, None] * np.eye(n * n)
+    right = -(E @ E.T).reshape(1, n * n, 1) / decays[:, None, None]
+    candidates = np.linalg.solve(operator, right).reshape(-1, n, n)  # (25, n, n)
+    best = candidates[np.argmin(np.einsum("ij,cji->c", weight, candidates))]
     return ((best + best.T) / 2).astype(np.float64)
 
 
@@ -120,18 +122,23 @@ class RobustCheck:
         self.end = np.concatenate([np.repeat([0, 1], V) for V in sizes])
         self.rho_end = rho * np.exp(-rate * Ts * np.arange(1, N + 1))  # (N,)
 
-    def _largest(self, alpha: FloatArray, a: FloatArray) -> FloatArray:
+    def _largest(
+        self, alpha: FloatArray, a: FloatArray, rows: np.ndarray | None = None
+    ) -> FloatArray:
         """(N,) the largest eigenvalue of ``S(alpha_k)`` over each interval's rows and corners;
-        ``alpha (N,)``, ``a (R, C, n)`` the scaled corners of each row."""
+        ``alpha (N,)``, ``a (R, C, n)`` the scaled corners of each row; ``rows``: only these
+        rows' (indices; -inf for an interval with none)."""
+        M, owner = (self.M, self.owner) if rows is None else (self.M[rows], self.owner[rows])
+        a = a if rows is None else a[rows]
         R, C, n = a.shape
         S = np.zeros((R, C, n + 1, n + 1))
-        al = alpha[self.owner][:, None]  # (R, 1)
-        S[:, :, :n, :n] = self.M[:, None] + al[..., None, None] * np.eye(n)
+        al = alpha[owner][:, None]  # (R, 1)
+        S[:, :, :n, :n] = M[:, None] + al[..., None, None] * np.eye(n)
         S[:, :, :n, n] = S[:, :, n, :n] = a
         S[:, :, n, n] = -al
         top = np.linalg.eigvalsh(S)[..., -1].max(axis=1)  # (R,)
         out = np.full(self.N, -np.inf)
-        np.maximum.at(out, self.owner, top)
+        np.maximum.at(out, owner, top)
         return out
 
     def _scaled(self, bound: FloatArray) -> FloatArray:
@@ -152,27 +159,32 @@ class RobustCheck:
             w = np.zeros((1, self.n))
         return np.einsum("rij,cj->rci", factor, w) / self.rho_end[self.owner][:, None, None]
 
-    def margins(self, bound: FloatArray) -> tuple[FloatArray, FloatArray]:
+    def margins(
+        self, bound: FloatArray, intervals: np.ndarray | None = None
+    ) -> tuple[FloatArray, FloatArray]:
         """``(r (N,), alpha (N,))``: (I5)'s ``r_k`` at the multiplier found for each interval,
-        for the box ``bound`` (``(n,)``, or ``(N, n)`` one per interval)."""
+        for the box ``bound`` (``(n,)``, or ``(N, n)`` one per interval); ``intervals (N,)``:
+        search only where True (-inf elsewhere; each interval's search is its own, so the ones
+        searched are as in a full search)."""
         a = self._scaled(bound)
+        rows = None if intervals is None else np.flatnonzero(intervals[self.owner])
         ratio = (np.sqrt(5.0) - 1) / 2
         # past this the eigenvalue of S grows with alpha (Mhat + alpha I dominates)
         top = 4 * (np.abs(self.M).max(initial=0.0) + np.abs(a).max(initial=0.0)) + 1.0
         low, high = np.zeros(self.N), np.full(self.N, top)
         c, d = high - ratio * (high - low), low + ratio * (high - low)
-        fc, fd = self._largest(c, a), self._largest(d, a)
+        fc, fd = self._largest(c, a, rows), self._largest(d, a, rows)
         for _ in range(GOLDEN_STEPS):  # golden section on each interval's convex r_k(alpha)
             left = fc <= fd  # the minimum lies in [low, d]: drop (d, high]; else drop [low, c)
             high, low = np.where(left, d, high), np.where(left, low, c)
             probe = np.where(left, high - ratio * (high - low), low + ratio * (high - low))
-            value = self._largest(probe, a)
+            value = self._largest(probe, a, rows)
             c, d, fc, fd = (
                 np.where(left, probe, d), np.where(left, c, probe),
                 np.where(left, value, fd), np.where(left, fc, value),
             )  # fmt: skip
         alpha = np.where(fc <= fd, c, d)
-        return self._largest(alpha, a), alpha
+        return self._largest(alpha, a, rows), alpha
 
     def multiple(
         self,
@@ -194,13 +206,16 @@ class RobustCheck:
 
         def holds(s: float) -> bool:
             box = s * bound if hold is None else s * bound + hold(s)
-            if found:  # any alpha >= 0 is a certificate (I5): try the last one first
+            searched = np.ones(self.N, dtype=bool)
+            if found:  # any alpha >= 0 is a certificate (I5): the last one first, searching
+                # again only on the intervals it does not certify
                 top = self._largest(found[-1], self._scaled(box))
-                if np.all(2 * top + lmi_term < -LMI_MARGIN):
+                searched = 2 * top + lmi_term >= -LMI_MARGIN
+                if not searched.any():
                     return True
-            margins, alpha = self.margins(box)
-            if np.all(2 * margins + lmi_term < -LMI_MARGIN):
-                found.append(alpha)
+            margins, alpha = self.margins(box, searched)
+            if np.all(2 * margins[searched] + lmi_term[searched] < -LMI_MARGIN):
+                found.append(np.where(searched, alpha, found[-1]) if found else alpha)
                 return True
             return False
 
