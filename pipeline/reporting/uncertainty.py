@@ -308,7 +308,9 @@ def section(data: ReportData) -> tuple:
         Paragraph(
             "What the certificates are held to besides the nominal model: the true system is "
             "x' = f(x, u, p) + d with the law measuring x + eta, for every gust d, parameter "
-            f"value p and measurement error eta declared below. {note}"
+            "value p and measurement error eta declared below"
+            + ("" if s.uncertainty.measured else " (no measurement error declared: eta = 0)")
+            + f". {note}"
         ),
         declared_table(s, bound),
         *((bound_table(s, bound),) if bound is not None else ()),
