@@ -42,7 +42,8 @@ def test_an_edit_changes_exactly_the_keys_of_the_stages_that_use_it(tmp_path):
     keys = [_keys(tmp_path)]
     _append(tmp_path / "stages" / "radius.py", "\n# edited\n")
     keys.append(_keys(tmp_path))
-    _append(tmp_path / "pipeline" / "numerics" / "hull.py", "\n# edited\n")  # feedback only
+    # feedback only (the hull is the report's too: its section Declared uncertainty derives (U1))
+    _append(tmp_path / "pipeline" / "numerics" / "tube" / "contraction.py", "\n# edited\n")
     keys.append(_keys(tmp_path))
     _append(tmp_path / "pipeline" / "reporting" / "templates" / "report.html.j2", "\n")
     keys.append(_keys(tmp_path))

@@ -42,9 +42,6 @@ COVERED_THROUGH_CALLER = {
     "pipeline.reporting.certificates": (
         "tests/stages/test_report.py::test_html_holds_the_headline_numbers_of_summary_json"
     ),
-    "pipeline.reporting.data": (
-        "tests/stages/test_report.py::test_html_holds_the_headline_numbers_of_summary_json"
-    ),
     "pipeline.reporting.html": (
         "tests/stages/test_report.py::test_html_holds_the_headline_numbers_of_summary_json"
     ),

@@ -23,12 +23,14 @@ from pipeline.model.simulate import Trajectory, simulate
 from pipeline.reporting.summary import Summary
 
 if TYPE_CHECKING:  # the stage results, read from artifacts (reporting sits below stages)
+    from pipeline.results.certify import CertificationResult
     from pipeline.results.controller import ControllerResult
     from pipeline.results.coverage import CoverageResult
     from pipeline.results.feedback import FeedbackResult
     from pipeline.results.montecarlo import MonteCarloResult
     from pipeline.results.optimize import OptimizeResult
     from pipeline.results.radius import RadiusResult
+    from pipeline.results.stress import StressResult
 
 STAGES = (
     "feedback",
@@ -49,6 +51,9 @@ class ReportData:
     Attributes:
       feedback ... montecarlo: the stage results (``FeedbackResult``, ``OptimizeResult``, ...).
       keys: stage name -> the input key its artifact was stored under.
+      certification: certify's check of the run's ``controller.json`` (the run's own; a report
+        rebuilt from the folder certifies the file again, ``pipeline.runtime.stored``).
+      stress: the stress test's result (None: the run had none).
       demo_paths, final_paths: the demonstrations and the final nominal trajectories (the
         optimized input where optimization succeeded, the demo's otherwise), simulated again.
     """
@@ -64,6 +69,8 @@ class ReportData:
     coverage_optimized: CoverageResult
     controller: ControllerResult
     montecarlo: MonteCarloResult
+    certification: CertificationResult
+    stress: StressResult | None = None
     keys: Mapping[str, str]
     demo_paths: tuple[Trajectory, ...]
     final_paths: tuple[Trajectory, ...]
@@ -170,11 +177,15 @@ def report_data(
     summary: Summary,
     results: Mapping[str, Any],
     keys: Mapping[str, str],
+    *,
+    certification: CertificationResult,
+    stress: StressResult | None = None,
     source: Path | None = None,
     staging: Path | None = None,
 ) -> ReportData:
     """``ReportData`` from a run's summary and stage ``results`` (stage name -> result, as read by
-    the stage cache, ``pipeline.runtime.stored``); re-simulates the nominal trajectories."""
+    the stage cache, ``pipeline.runtime.stored``), certify's check of its ``controller.json``
+    and its stress test (if any); re-simulates the nominal trajectories."""
     final_inputs = [
         opt.u if opt.success else demo.us
         for demo, opt in zip(scenario.demos, results["optimize"].trajectories, strict=True)
@@ -188,6 +199,8 @@ def report_data(
         out=Path(out),
         summary=summary,
         keys=keys,
+        certification=certification,
+        stress=stress,
         demo_paths=tuple(demo_paths),
         final_paths=tuple(final_paths),
         source=None if source is None else Path(source),

@@ -1,21 +1,22 @@
-"""The report's eight sections, built from ``ReportData`` (summary.json plus the stage results).
+"""The report's sections, built from ``ReportData`` (summary.json plus the stage results).
 
-1 Summary, 2 Scenario, 3 Optimization, 4 Feedback, 5 Coverage, 6 Monte Carlo, 7 Inputs,
-(a funnel run: 8 Seed and comparison, the constant certificate) and Reproducibility (3-7 in
-``stage_sections``). The paper's reference numbers (Winn & Julius,
+Summary, Scenario, (a scenario that declares an uncertainty: Declared uncertainty,
+``reporting.uncertainty``), Optimization, Feedback, Coverage, Monte Carlo, Inputs (these five in
+``stage_sections``), (a funnel run: Seed and comparison, the constant certificate) and
+Reproducibility, numbered in that order (``titles``). The paper's reference numbers (Winn & Julius,
 §IV-B) are quoted beside ours.
 """
 
 from __future__ import annotations
 
 import shlex
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from functools import partial
 
 import numpy as np
 
 from pipeline.io.artifacts import file_hash
-from pipeline.reporting import certificates, figures, shipped, stage_sections
+from pipeline.reporting import certificates, figures, shipped, stage_sections, uncertainty
 from pipeline.reporting.content import (
     Figure,
     Headline,
@@ -50,6 +51,20 @@ TITLES = (
     ("reproducibility", "Reproducibility"),
 )
 SEED = ("seed", shipped.SEED_TITLE)  # a funnel run's section before Reproducibility
+# a run whose scenario declares an uncertainty: its section after "Scenario and trajectories"
+DECLARED = ("uncertainty", uncertainty.TITLE)
+
+
+def titles(funnel: bool = False, declared: bool = False) -> list[tuple[str, str]]:
+    """The sections' (key, title) in order: ``TITLES``, with "Declared uncertainty" after the
+    scenario when ``declared`` and "Seed and comparison" before Reproducibility when
+    ``funnel``."""
+    shown = list(TITLES)
+    if declared:
+        shown.insert(2, DECLARED)
+    if funnel:
+        shown.insert(-1, SEED)
+    return shown
 
 
 def headline_items(summary: Summary, length: str = "m") -> tuple[Headline, ...]:
@@ -176,11 +191,12 @@ def _summary(data: ReportData) -> tuple:
         (stage, fixed(t, 2), "reused" if t == 0.0 else "") for stage, t in summary.timings.items()
     ]
     timings.append(("total (incl. loading and summary)", fixed(summary.total_seconds, 2), ""))
+    seed = 1 + titles(True, not s.uncertainty.empty).index(SEED)
     ships = (
         "then a funnel E_i(t) is certified around each (the funnel certificate, "
         "controller.json), with the nominals re-optimized against their funnels, and validated "
         "by simulation. The constant certificate that seeds it is not shipped (section "
-        f"{len(TITLES)}, {shipped.SEED_TITLE})."
+        f"{seed}, {shipped.SEED_TITLE})."
         if data.funnel
         else "then the feedback controller built from the optimized trajectories is certified "
         "and validated by simulation."
@@ -343,31 +359,32 @@ def _reproducibility(data: ReportData) -> tuple:
     )
 
 
+BUILDERS: dict[str, Callable[[ReportData], tuple]] = {
+    "summary": _summary,
+    "scenario": _scenario,
+    "uncertainty": uncertainty.section,
+    "optimization": stage_sections.optimization,
+    "feedback": stage_sections.feedback,
+    "coverage": stage_sections.coverage,
+    "montecarlo": stage_sections.montecarlo,
+    "inputs": stage_sections.inputs,
+    "seed": _seed,
+    "reproducibility": _reproducibility,
+}
+
+
 def build_sections(data: ReportData) -> list[Section]:
-    """The report's sections, in order; a funnel run's has "Seed and comparison" (the constant
-    certificate, not shipped) before Reproducibility."""
-    builders = [
-        _summary,
-        _scenario,
-        stage_sections.optimization,
-        stage_sections.feedback,
-        stage_sections.coverage,
-        stage_sections.montecarlo,
-        stage_sections.inputs,
-        _reproducibility,
-    ]
-    titles = list(TITLES)
-    if data.funnel:
-        builders.insert(-1, _seed)
-        titles.insert(-1, SEED)
+    """The report's sections, in order (``titles``): a funnel run's has "Seed and comparison"
+    (the constant certificate, not shipped) before Reproducibility, and a run whose scenario
+    declares an uncertainty "Declared uncertainty" after the scenario."""
+    shown = titles(data.funnel, not data.scenario.uncertainty.empty)
     return [
-        Section(key, number + 1, title, tuple(build(data)))
-        for number, ((key, title), build) in enumerate(zip(titles, builders, strict=True))
+        Section(key, number + 1, title, tuple(BUILDERS[key](data)))
+        for number, (key, title) in enumerate(shown)
     ]
 
 
-def section_headings(funnel: bool = False) -> Sequence[str]:
-    """``"N. Title"`` of every section (a funnel run's or a constant run's), for tests and
-    navigation."""
-    titles = [*TITLES[:-1], SEED, TITLES[-1]] if funnel else list(TITLES)
-    return [f"{n + 1}. {title}" for n, (_, title) in enumerate(titles)]
+def section_headings(funnel: bool = False, declared: bool = False) -> Sequence[str]:
+    """``"N. Title"`` of every section (a funnel run's or a constant run's, with or without a
+    declared uncertainty), for tests and navigation."""
+    return [f"{n + 1}. {title}" for n, (_, title) in enumerate(titles(funnel, declared))]

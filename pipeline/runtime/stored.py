@@ -36,7 +36,9 @@ from pipeline.io.files import TEXT_MAX_BYTES, FileRefused, is_regular, read_text
 from pipeline.model.scenario import Scenario
 from pipeline.reporting.data import STAGES, ReportData, report_data
 from pipeline.reporting.summary import StressSummary, Summary, Verdict
+from pipeline.results.certify import CertificationResult
 from pipeline.results.stage import FileInput
+from pipeline.results.stress import StressResult
 from pipeline.runtime import run_inputs
 from pipeline.runtime.outdir import INCOMPLETE, MANIFEST, check_complete
 from pipeline.runtime.registry import RESULT_TYPES
@@ -187,12 +189,27 @@ def _read_stages(
 
 
 def staged_report_data(
-    scenario: Scenario, out: Path, staging: Path, summary: Summary
+    scenario: Scenario,
+    out: Path,
+    staging: Path,
+    summary: Summary,
+    certification: CertificationResult,
+    stress: StressResult | None,
 ) -> ReportData:
     """``ReportData`` for a run's report: the summary it just derived, the stage results in
-    ``out/artifacts``, its ``controller.json`` in ``staging``, where the reports are written."""
+    ``out/artifacts``, its ``controller.json`` in ``staging``, where the reports are written,
+    certify's check of that file and the stress test's result (None: not run)."""
     results, keys = _read_stages(scenario, Path(out), STAGES, None)
-    return report_data(scenario, Path(out), summary, results, keys, staging=staging)
+    return report_data(
+        scenario,
+        Path(out),
+        summary,
+        results,
+        keys,
+        certification=certification,
+        stress=stress,
+        staging=staging,
+    )
 
 
 def load_report_data(scenario: Scenario, out: Path, write_to: Path | None = None) -> ReportData:
@@ -265,9 +282,21 @@ def load_report_data(scenario: Scenario, out: Path, write_to: Path | None = None
     except ValueError as error:
         raise _rerun(summary_path, scenario, f"not this run's summary ({error})") from None
     keys = {stage: keys[stage] for stage in STAGES}  # the ones the report lists
+    certification, stress_result = evidence.certification, results.get("stress")
     if write_to is None or Path(write_to) == out:
-        return report_data(scenario, out, summary, results, keys)
-    return report_data(scenario, Path(write_to), summary, results, keys, source=out)
+        return report_data(
+            scenario, out, summary, results, keys, certification=certification, stress=stress_result
+        )
+    return report_data(
+        scenario,
+        Path(write_to),
+        summary,
+        results,
+        keys,
+        certification=certification,
+        stress=stress_result,
+        source=out,
+    )
 
 
 def _shipped_coverage(

@@ -149,6 +149,7 @@ def test_html_holds_the_headline_numbers_of_summary_json(run: tuple[Scenario, Pa
     expected.append(summary["reproducibility"]["scenario_sha256"])
     missing = [e for e in expected if e not in text]
     assert not missing, f"not in report.html: {missing}"
+    assert "Declared uncertainty" not in text  # the exact model: no such section
 
 
 def _pdf_pages(path: Path) -> list[str]:

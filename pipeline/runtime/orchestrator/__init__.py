@@ -404,7 +404,7 @@ def _synthesize(
         rerun=not current,
         describe=_message,
         finish=functools.partial(_published, out),
-        data=lambda: staged_report_data(scenario, out, staging, summary),
+        data=lambda: staged_report_data(scenario, out, staging, summary, certification, stress),
     )
     publish(out, staging, certified=summary.certified)
     return Synthesis(
