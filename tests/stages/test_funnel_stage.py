@@ -6,6 +6,7 @@ the result stored and read back like every stage's."""
 from __future__ import annotations
 
 import dataclasses
+import time
 from types import SimpleNamespace
 
 import numpy as np
@@ -176,3 +177,23 @@ def test_result_is_stored_and_read_back(result, tmp_path):
         assert a.rho == b.rho and dict(a.limits) == dict(b.limits)
         assert len(a.vertices) == len(b.vertices)
         np.testing.assert_array_equal(a.enclosure.range, b.enclosure.range)
+
+
+def test_a_funnels_time_counts_its_whole_task(inputs, result, monkeypatch):
+    """``seconds`` (the stage's "s of work") is each task's wall time: the certify-style checks
+    after the synthesis count too (they were dropped when a redesign failed)."""
+    scenario, names, trajectories, P, radii = inputs
+    funnels = iter(result.funnels)
+
+    def slow_check(*_args, **_kwargs):
+        time.sleep(0.05)
+        return None
+
+    monkeypatch.setattr(
+        funnel_stage, "synthesize_funnel",
+        lambda *_a, **_k: dataclasses.replace(next(funnels), seconds=0.0),
+    )  # fmt: skip
+    monkeypatch.setattr(funnel_stage, "_accepted", slow_check)
+    found = synthesize_funnels(scenario, names, trajectories, P, radii)
+    assert found.usable == (0, 1)
+    assert all(funnel.seconds >= 0.05 for funnel in found.funnels)

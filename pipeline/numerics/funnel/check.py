@@ -49,7 +49,8 @@ class Funnel:
       limits: constraint -> largest level it allows; ``design`` is the level at which the LMI
         program's caps (hull boxes, Unsafe, Goal, bounds) hold, ``sqrt(tau)`` (funnel.lmi): 1
         unless the required initial set could not be held whole.
-      binding: the constraint that sets rho; seconds: synthesis wall time.
+      binding: the constraint that sets rho; seconds: synthesis wall time (from the funnel
+        stage: its whole task, the certify-style checks and any redesign included).
     """
 
     K: FloatArray
