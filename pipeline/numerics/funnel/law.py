@@ -287,7 +287,7 @@ def law_offset(
     zeros: the exact state)."""
     N, m, n = K.shape
     steps = Ts / np.asarray(substeps, dtype=np.float64)
-    Q = np.linalg.inv(P)
+    Q = np.asarray(np.linalg.inv(P), dtype=np.float64)  # (N+1, n, n)
     Q_diagonal = np.diagonal(Q, axis1=1, axis2=2)  # (N+1, n)
     centre = centre_error * np.sqrt(np.maximum(Q_diagonal[:-1], Q_diagonal[1:]))  # (N, n)
     deviation, input_offset, lmi_term = np.zeros((N, n)), np.zeros((N, m)), np.zeros(N)
