@@ -24,6 +24,7 @@ from pipeline.controller import inverse_linear, load
 from pipeline.model.scenario import load_scenario
 from pipeline.model.simulate import simulate, simulate_graded
 from pipeline.numerics.closed_loop.simulate import held_steps
+from pipeline.numerics.funnel.held import held_rates
 from pipeline.numerics.funnel.law import BASE_SUBSTEPS, LawOffset, law_offset, law_substeps
 from pipeline.numerics.funnel.synthesis import synthesize_funnel
 from pipeline.numerics.terminal.design import (
@@ -233,7 +234,8 @@ def test_the_push_of_random_hulls_stays_in_its_box():
     random convex weights, ``c`` at the corners of ``Delta``, ``w`` at those of ``d``, from
     points of the ellipsoid at ``t_j`` (half on its boundary), ``Q = P^-1`` linear in t: while
     ``e`` stays in the funnel, ``|B_v K (e(t_j) - e(t))| <= H[k]`` for every vertex ``v`` (the
-    loop's ``Bbar(t)``) and ``|K (e(t_j) - e(t))| <= held_input[k]``; the flights reach at
+    loop's ``Bbar(t)``; ``funnel.held``'s rate ``|B_v K e'(s)|`` per vertex on the way) and
+    ``|K (e(t_j) - e(t))| <= held_input[k]``; the flights reach at
     least a fifth of both (measured: 29-32% of ``H``, 24-32% of ``held_input``)."""
     rng = np.random.default_rng(3)
     N, n, m, V, Ts, h, rho, rate = 1, 4, 2, 5, 0.1, 0.02, 1.0, 0.5
@@ -244,6 +246,8 @@ def test_the_push_of_random_hulls_stays_in_its_box():
     Delta = law_offset(vertices, rate_bound, K, P, rho, rate, Ts, np.array([5]), 0.0).deviation[0]
     A, Bv = vertices[0][:, :, :n], vertices[0][:, :, n:]
     Q0, Q1 = np.linalg.inv(P[0]), np.linalg.inv(P[1])
+    push_rate, _ = held_rates(A, Bv, K[0], np.stack([Q0, Q1]), rho, Delta, d)  # (V, n)
+    assert np.allclose(h * push_rate.max(axis=0), law.hold[0], rtol=1e-14, atol=0)
     batch, steps = 4000, 40
     dt = h / steps
     worst_push, worst_input = np.zeros(n), np.zeros(m)
@@ -265,6 +269,8 @@ def test_the_push_of_random_hulls_stays_in_its_box():
             def field(x, Ab=Ab, drive=drive):
                 return np.einsum("bij,bj->bi", Ab, x) + drive
 
+            rates = np.abs(np.einsum("vij,jl,bl->bvi", Bv, K[0], field(e)[inside]))
+            assert np.all(rates <= push_rate * (1 + 1e-9) + 1e-12), step  # B_v K e'(s)
             e = rk4_step(field, e, dt)
             t = start + (step + 1) * dt
             P_t = np.linalg.inv(Q0 + t / Ts * (Q1 - Q0))
