@@ -77,25 +77,45 @@ exact model); ``Abar e + Bbar v`` is a convex combination of ``A_v e + B_v v`` o
 vertices, so
 
     Edot_i <= max_v [sum_l |A_v[i, l]| ext_l + sum_j |B_v[i, j]| (g_j + (|K| Delta)_j)] + d_i,
-    |delta_h| <= Delta_h = Delta + h Edot.                                                   (I6)
+    |delta_h| <= Delta_h = Delta + h Edot                     (``LawOffset.deviation``).
 
-(I3) then holds with ``Delta_h``: the input boxes are widened by ``|K| Delta_h``. In the
-inequality the hold's part is not taken through (I2)'s Cauchy-Schwarz bound (measured on
+Two bounds are tighter than this per-state box where the offset enters. In the inequality the
+hold's part is not taken through (I2)'s Cauchy-Schwarz bound (measured on
 double_integrator_hold's funnels at ``h`` = 5 ms: 12x the room, where the funnel is thin in the
 velocities Init does not spread, and (I2) pairs the largest push with the weakest decay): the
-error equation is
+error equation is ``e' = Acl e + Bbar K delta + Bbar K (e(t_j) - e(t)) + w``, and the push is
+bounded componentwise, as the box ``H[k]`` (``LawOffset.hold``). With ``Bbar(t) = sum_v a_v B_v``
+the loop's at ``t`` and ``[Abar(s) Bbar(s)] = sum_v' b_v' [A_v' B_v']`` at ``s`` in ``[t_j, t]``
+(convex weights, the hull of interval ``k`` as above),
 
-    e' = Acl e + Bbar K delta + Bbar K (e(t_j) - e(t)) + w,
+    Bbar(t) K (e(t_j) - e(t)) = -int_{t_j}^t Bbar(t) K e'(s) ds,
+    e'(s) = Abar(s) e(s) + Bbar(s) K (e(t_j) + delta(t_j)) + w(s),
 
-and ``|(Bbar K v)_i| <= max_v sum_l |(B_v K)[i, l]| |v_l|`` (``Bbar`` a convex combination of the
-vertices), so ``Bbar K (e(t_j) - e(t)) + w`` lies in the box ``d + H[k]``, ``H[k] = max_v |B_v
-K[k]| h Edot`` (``LawOffset.hold``). (I5)'s S-procedure holds for every hull point and every
-signal in its box, so with the box ``d + H[k]`` on interval ``k`` it covers this term too
-(that ``Bbar`` is also the loop's is then not used: sound, if conservative); (I2) keeps
-``Delta`` of (I1) alone. ``h Edot`` does not shrink with the reference grid (and ``Edot`` is
-about ``rho``, so ``H`` does not shrink with the level either): a funnel whose (I5) fails with
-``d + H`` is not certifiable at that period, on any grid. With ``h = 0`` every number is
-(I1)-(I5)'s.
+and ``Bbar(t) K e'(s) = sum_{v, v'} a_v b_v' [B_v K A_v' e(s) + B_v K B_v' K (e(t_j) +
+delta(t_j)) + B_v K w(s)]``: bilinear in the two hulls' weights, so each component is at most
+``sum_{v, v'} a_v b_v'`` times a bound on the pair's term, at most the largest over the vertex
+pairs (one maximum over both, not one per hull). ``e(s)`` is in ``{e^T P(s) e <= rho_s^2}``,
+``rho_s <= rho_k``, whose support function in a direction ``r`` is ``rho_s sqrt(r Q(s) r^T)``
+(exact for a linear functional), linear in ``s`` under the root: largest at an end. So with ``r
+= (B_v K A_v')[i, :]``, ``s = (B_v K B_v' K)[i, :]`` (``e(t_j)`` is in the funnel too):
+
+    H[k]_i = h max_{v, v'} [rho_k sqrt(max_ends r Q r^T) + rho_k sqrt(max_ends s Q s^T)
+                            + (|B_v K B_v' K| Delta)_i + (|B_v K| d)_i]                  (I6)
+
+(``funnel.held``). It is at most the per-state box's ``max_v |B_v K| h Edot``: ``sqrt(r Q r^T)
+<= sum_l |r_l| sqrt(Q_ll)`` (Cauchy-Schwarz), ``sqrt(s Q s^T) <= sum_j |(B_v K B_v')[i, j]|
+sqrt(K_j Q K_j^T)`` (the triangle inequality in the Q-norm), ``|B_v K B_v' K| <= |B_v K| |B_v'|
+|K|``, and a joint maximum is at most the product of separate ones. The inputs likewise: ``u -
+u_ref - K e(t) = K delta(t_j) + K (e(t_j) - e(t))`` with ``|K_j (e(t_j) - e(t))| <= h max_v'
+[rho_k sqrt(max_ends (K A_v')_j Q (K A_v')_j^T) + rho_k sqrt(max_ends (K B_v' K)_j Q (K B_v'
+K)_j^T) + (|K B_v' K| Delta)_j] + h (|K| d)_j`` (``LawOffset.held_input``), and (I3)'s offset is
+``|K| Delta`` plus it (the input box widened by it keeps the segment in ``Z_k``, as above).
+(I5)'s S-procedure holds for every hull point and every signal in its box, so with the box ``d +
+H[k]`` on interval ``k`` it covers the push too (that ``Bbar`` is also the loop's is then not
+used: sound, if conservative); (I2) keeps ``Delta`` of (I1) alone. ``H`` does not shrink with the
+reference grid (and it is about ``rho``, so it does not shrink with the level either): a funnel
+whose (I5) fails with ``d + H`` is not certifiable at that period, on any grid. With ``h = 0``
+every number is (I1)-(I5)'s.
 
 (I7) A measurement error. The feedback sees ``x_meas = x + eta``, ``|eta_i| <= E_i`` for every
 measurable ``eta`` (the scenario's ``uncertainty.measurement``, a box, zero for states measured
@@ -114,10 +134,11 @@ and every signal in its box: the measurement's box joins ``LawOffset.hold`` (wit
 the law is held) and (I5)'s box. (I2) keeps (I1)'s ``Delta`` alone. Inputs (I3): ``|K_j (delta +
 eta)| <= sum_i |K[k, j, i]| (Delta_i + E_i)``, so ``Delta`` gains ``E`` in the input offset (in
 ``held_input`` too: it does not shrink with the grid). With a held law ``u - u_ref = K (e(t_j) +
-delta(t_j) + eta(t_j))``, so in (I6)'s ``Edot`` the input term is ``g_j + (|K| (Delta + E))_j``,
-and the law's offset is ``Delta + E + h Edot``, the box of its push ``max_v |B_v K| (h Edot +
-E)`` (one bound on ``|(Bbar K v)_i|`` for ``|v| <= h Edot + E``). With ``E = 0`` every number is
-(I1)-(I6)'s.
+delta(t_j) + eta(t_j))``, so (I6) takes ``Delta + E`` for ``Delta`` (in ``Edot``, in ``H[k]``'s
+``|B_v K B_v' K| Delta`` and in ``held_input``), the per-state box is ``Delta + E + h Edot``, and
+the box of the push and of ``Bbar K eta(t_j)`` together is ``max_v [h max_v' (...) + |B_v K|
+E]`` (the same vertex ``v`` of ``Bbar(t)`` in both), the input's ``held_input + |K| E``. With
+``E = 0`` every number is (I1)-(I6)'s.
 """
 
 from __future__ import annotations
@@ -130,6 +151,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.model.dynamics import FloatArray
+from pipeline.numerics.funnel.held import held_rates
 
 LMI_MARGIN = 1e-6  # 1/s: how far below 0 the (F2) eigenvalue with the law's term (I2) must be
 LEVEL_MARGIN = 1e-6  # relative: a funnel's level must stay this far inside every limit
@@ -144,8 +166,10 @@ class LawOffset:
 
     Attributes:
       steps: (N,) the reference grid's spacing ``h_k`` (s) on each interval.
-      deviation: (N, n) ``Delta``, (I1): ``|x_ref - xhat| <= Delta[k]`` on interval k.
-      input_offset: (N, m) ``sum_i |K[k, j, i]| Delta_i[k]``, (I3).
+      deviation: (N, n) ``Delta``, (I1): ``|x_ref - xhat| <= Delta[k]`` on interval k (with
+        ``E`` of (I7) and a held law's ``h Edot``, (I6): the per-state box of the law's offset).
+      input_offset: (N, m) ``sum_i |K[k, j, i]| Delta_i[k]``, (I3) (a held law: ``Delta``
+        without ``h Edot``, plus ``held_input``'s hold part).
       lmi_term: (N,) ``2 w_k / (rho e^{-lambda t_k+1})``, (I2): added to the (F2) eigenvalue.
       disturbance: (n,) the box ``|w| <= d`` on the state derivatives the funnel must hold under
         (``funnel.robust`` (I5)); zeros: the exact model.
@@ -153,8 +177,9 @@ class LawOffset:
       hold: (N, n) ``H[k]``, (I6), (I7): the box of the hold's term ``Bbar K (e(t_j) - e(t))``
         and the measurement's ``Bbar K eta``, joined to ``disturbance`` in (I5); None:
         continuous feedback of the exact state.
-      held_input: (N, m) ``|K| (h Edot + E)``, the hold's and the measurement's part of
-        ``input_offset`` (it does not shrink with the grid); None: as ``hold``.
+      held_input: (N, m) the bound on ``|K (e(t_j) - e(t))|`` of (I6) plus ``|K| E``, the
+        hold's and the measurement's part of ``input_offset`` (it does not shrink with the
+        grid); None: as ``hold``.
       measurement: (n,) ``E`` of (I7); None: the state is measured exactly.
     """
 
@@ -262,7 +287,7 @@ def law_offset(
     zeros: the exact state)."""
     N, m, n = K.shape
     steps = Ts / np.asarray(substeps, dtype=np.float64)
-    Q = np.linalg.inv(P)
+    Q = np.asarray(np.linalg.inv(P), dtype=np.float64)  # (N+1, n, n)
     Q_diagonal = np.diagonal(Q, axis1=1, axis2=2)  # (N+1, n)
     centre = centre_error * np.sqrt(np.maximum(Q_diagonal[:-1], Q_diagonal[1:]))  # (N, n)
     deviation, input_offset, lmi_term = np.zeros((N, n)), np.zeros((N, m)), np.zeros(N)
@@ -290,12 +315,14 @@ def law_offset(
             )  # (m,) K_j Q K_j^T, linear in t: largest at an end
             reach = level * np.sqrt(np.maximum(spread, 0.0)) + np.abs(K[k]) @ deviation[k]
             speed = (np.abs(A) @ extent + np.abs(B) @ reach).max(axis=0) + d  # (n,) Edot
-            drift = period * speed  # |e(t_j) - e(t)| <= h Edot
-            pushed = drift + E if measured else drift  # (I7): eta(t_j) with the hold's drift
-            hold[k] = (np.abs(B @ K[k]) @ pushed).max(axis=0)  # the box H[k], joined to (I5)'s
-            held_input[k] = np.abs(K[k]) @ pushed
-            deviation[k] = deviation[k] + drift  # Delta_h
-        elif measured:  # eq. (I7): the measurement's box, joined to (I5)'s
+            push, swing = held_rates(A, B, K[k], Q[k : k + 2], level, deviation[k], d)
+            # the box H[k], joined to (I5)'s, with (I7)'s push of eta(t_j) at the same vertex
+            hold[k] = (period * push + np.abs(B @ K[k]) @ E).max(axis=0)
+            held_input[k] = period * swing + np.abs(K[k]) @ E
+            input_offset[k] = np.abs(K[k]) @ deviation[k] + period * swing  # eq. (I3)
+            deviation[k] = deviation[k] + period * speed  # Delta_h: |e(t_j) - e(t)| <= h Edot
+            continue
+        if measured:  # eq. (I7): the measurement's box, joined to (I5)'s
             hold[k] = (np.abs(B @ K[k]) @ E).max(axis=0)
             held_input[k] = np.abs(K[k]) @ E
         input_offset[k] = np.abs(K[k]) @ deviation[k]  # eq. (I3)

@@ -512,6 +512,13 @@ def synthesize_funnel(
             # eq. (P1) at every sample time; E(0) at level 1 holds the initial set, the caps
             # hold at level sqrt(tau)
             Q = interpolate(Q_ends, bounds) / tau
+            lowest = np.linalg.eigvalsh(Q)[:, 0]
+            if not lowest.min() > 1e-12 * np.abs(Q).max():  # the solver's rounding: no metric
+                failures.append(
+                    f"margin {margin:g}: Q[{int(np.argmin(lowest))}] is not positive definite "
+                    f"({lowest.min():.3g})"
+                )
+                continue
             limits = funnel_limits(scenario, trajectory, Q, gains, enclosure, state_bounds)
             limits["design"] = (float(np.sqrt(min(tau, 1.0))), 0.0)
             if terminal is not None:  # E(T) = {||x - x_ref(T)||_P[N] <= rho e^{-lambda T}}
