@@ -26,7 +26,6 @@ from pipeline.model.simulate import simulate, simulate_graded
 from pipeline.numerics.closed_loop.simulate import held_steps
 from pipeline.numerics.funnel.held import held_rates
 from pipeline.numerics.funnel.law import BASE_SUBSTEPS, LawOffset, law_offset, law_substeps
-from pipeline.numerics.funnel.synthesis import synthesize_funnel
 from pipeline.numerics.terminal.design import (
     check_level,
     equilibrium,
@@ -34,21 +33,22 @@ from pipeline.numerics.terminal.design import (
     largest_level,
     lqr_terminal,
 )
-from pipeline.numerics.verify.recertify import ShippedFunnel, rebuild_funnel, recheck_as_shipped
+from pipeline.numerics.verify.recertify import rebuild_funnel, recheck_as_shipped
 from stages.certify import certify_controller
 from tests.helpers.held import per_state_hold
-from tests.helpers.robust import DISTURBANCE, double_integrator_case, rk4_step
-from tests.test_hold_funnel import GUST, _gusty
+from tests.helpers.robust import (
+    DISTURBANCE,
+    GUST,
+    gusty_hold_scenario,
+    rk4_step,
+    robust_double_integrator,
+)
 
 
 @pytest.fixture(scope="module")
 def robust_case():
     """The robust double-integrator funnel of ``tests.helpers.robust`` (gust 0.05 m/s^2)."""
-    scenario, trajectory, initial = double_integrator_case()
-    funnel = synthesize_funnel(scenario, trajectory, initial=initial, disturbance=DISTURBANCE)
-    assert funnel.success, funnel.message
-    shipped = ShippedFunnel(K=funnel.K, P=funnel.P, rho=funnel.rho, rate=funnel.rate)
-    return scenario, trajectory, shipped
+    return robust_double_integrator()
 
 
 def _old_law_offset(vertices, rate_bound, K, P, rho, rate, Ts, substeps, centre_error=0.0):
@@ -340,7 +340,7 @@ def test_a_gusty_hold_run_held_every_5_ms_is_certified_and_flown_held(tmp_path):
     0.005``: certified and validated, the claims say the law is held, the Monte Carlo flies
     the held law (``held_steps``: windows of the file's period) with 0 failures; the same
     file with its period edited to 0.05 s (still dividing Ts) or 0.03 s is refused."""
-    path = _gusty(tmp_path / "gusty", GUST)
+    path = gusty_hold_scenario(tmp_path / "gusty", GUST)
     out = tmp_path / "out"
     result = pipeline.synthesize(path, out=out, samples=300, feedback_period=0.005)
     assert result.success, result.message

@@ -11,8 +11,6 @@ scenario declares four times the gust.
 from __future__ import annotations
 
 import json
-import shutil
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -22,29 +20,13 @@ from pipeline.controller import load
 from pipeline.model.scenario import load_scenario
 from stages.certificates.funnel import CORE
 from stages.certify import certify_controller
-
-HOLD = "double_integrator_hold"
-GUST = 0.02  # m/s^2 on vx' and vy'
-
-
-def _gusty(folder: Path, gust: float) -> Path:
-    """A copy of double_integrator_hold with the funnel certificate and ``gust`` declared."""
-    source = load_scenario(HOLD, check_demos=False).path.parent
-    shutil.copytree(source, folder)
-    path = folder / "scenario.yaml"
-    text = path.read_text().replace(
-        "\nterminal: hold",
-        f"\ncertificate: funnel\nuncertainty:\n  disturbance: {{vx: {gust}, vy: {gust}}}\n"
-        "terminal: hold",
-    )
-    path.write_text(text)
-    return path
+from tests.helpers.robust import GUST, gusty_hold_scenario
 
 
 @pytest.mark.slow
 @pytest.mark.xdist_group("hold-funnel-gusty")
 def test_a_gusty_hold_run_arrives_and_stays_and_four_times_the_gust_is_refused(tmp_path):
-    path = _gusty(tmp_path / "gusty", GUST)
+    path = gusty_hold_scenario(tmp_path / "gusty", GUST)
     result = pipeline.synthesize(path, out=tmp_path / "out", samples=300)
     assert result.success, result.message
     claims = {c.claim: c.kind.value for c in result.claims}
@@ -67,7 +49,7 @@ def test_a_gusty_hold_run_arrives_and_stays_and_four_times_the_gust_is_refused(t
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert summary["montecarlo"]["failures"]["after_T"] == 0
     # the same file against a scenario declaring 4x the gust: not certified
-    stronger = load_scenario(_gusty(tmp_path / "stronger", 4 * GUST))
+    stronger = load_scenario(gusty_hold_scenario(tmp_path / "stronger", 4 * GUST))
     refused = certify_controller(stronger, tmp_path / "out" / "controller.json")
     assert not refused.success
     assert any("uncertainty: the file holds |w_vx| <= 0.02" in f for f in refused.failures)

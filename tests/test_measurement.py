@@ -26,17 +26,14 @@ from pipeline.model.scenario import load_scenario
 from pipeline.model.simulate import simulate, simulate_graded
 from pipeline.model.uncertainty import Uncertainty
 from pipeline.numerics.funnel.law import BASE_SUBSTEPS, law_offset
-from pipeline.numerics.funnel.synthesis import synthesize_funnel
 from pipeline.numerics.terminal.design import check_level, equilibrium, lqr_terminal
 from pipeline.numerics.verify.recertify import (
-    ShippedFunnel,
     rebuild_funnel,
     recheck_as_shipped,
     reference_substeps,
 )
 from stages.certify import certify_controller
-from tests.helpers.robust import DISTURBANCE, double_integrator_case
-from tests.test_hold_funnel import _gusty
+from tests.helpers.robust import DISTURBANCE, gusty_hold_scenario, robust_double_integrator
 
 SMALL = np.full(4, 1e-3)  # certified on the robust double-integrator funnel
 LARGE = np.full(4, 3e-2)  # refused there
@@ -44,10 +41,7 @@ LARGE = np.full(4, 3e-2)  # refused there
 
 @pytest.fixture(scope="module")
 def robust_case():
-    scenario, trajectory, initial = double_integrator_case()
-    funnel = synthesize_funnel(scenario, trajectory, initial=initial, disturbance=DISTURBANCE)
-    assert funnel.success, funnel.message
-    shipped = ShippedFunnel(K=funnel.K, P=funnel.P, rho=funnel.rho, rate=funnel.rate)
+    scenario, trajectory, shipped = robust_double_integrator()
     nominal = simulate(scenario.dynamics, trajectory.xs[0], trajectory.us, scenario.Ts)
     rebuilt = rebuild_funnel(scenario, nominal, shipped, {}, 1)
     return scenario, trajectory, shipped, rebuilt
@@ -188,7 +182,7 @@ MEASURED = "  measurement: {x: 0.002, y: 0.002, vx: 0.002, vy: 0.002}\n"
 
 
 def _measured(folder: Path, block: str = MEASURED) -> Path:
-    path = _gusty(folder, 0.02)
+    path = gusty_hold_scenario(folder, 0.02)
     path.write_text(path.read_text().replace("\nterminal: hold", "\n" + block + "terminal: hold"))
     return path
 

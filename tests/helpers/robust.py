@@ -1,16 +1,23 @@
-"""A double integrator's first demo with a small initial set, for the robust-funnel tests."""
+"""A double integrator's first demo with a small initial set, its robust funnel, and a gusty copy
+of double_integrator_hold, for the robust-funnel tests."""
 
 from __future__ import annotations
 
 import dataclasses
+import shutil
+from pathlib import Path
 
 import numpy as np
 from shapely.geometry import box
 
 from pipeline.model.scenario import Scenario, load_scenario
 from pipeline.model.simulate import Trajectory, simulate
+from pipeline.numerics.funnel.synthesis import synthesize_funnel
+from pipeline.numerics.verify.recertify import ShippedFunnel
 
 DISTURBANCE = np.array([0.0, 0.0, 0.05, 0.05])  # m/s^2 on both speeds of the double integrator
+HOLD = "double_integrator_hold"
+GUST = 0.02  # m/s^2 on vx' and vy' of the gusty double_integrator_hold runs
 
 
 def rk4_step(field, x: np.ndarray, dt: float) -> np.ndarray:
@@ -31,3 +38,27 @@ def double_integrator_case() -> tuple[Scenario, Trajectory, np.ndarray]:
     end = trajectory.xs[-1, :2]
     scenario = dataclasses.replace(scenario, goal=box(*(end - 1.0), *(end + 1.0)))
     return scenario, trajectory, 2 * np.diag([0.05, 0.05, 0.0, 0.0]) ** 2
+
+
+def robust_double_integrator() -> tuple[Scenario, Trajectory, ShippedFunnel]:
+    """``double_integrator_case``'s robust funnel under ``DISTURBANCE``, as a file ships it."""
+    scenario, trajectory, initial = double_integrator_case()
+    funnel = synthesize_funnel(scenario, trajectory, initial=initial, disturbance=DISTURBANCE)
+    assert funnel.success, funnel.message
+    shipped = ShippedFunnel(K=funnel.K, P=funnel.P, rho=funnel.rho, rate=funnel.rate)
+    return scenario, trajectory, shipped
+
+
+def gusty_hold_scenario(folder: Path, gust: float) -> Path:
+    """A copy of double_integrator_hold in ``folder`` with the funnel certificate and ``gust``
+    declared on both speeds; its scenario.yaml."""
+    source = load_scenario(HOLD, check_demos=False).path.parent
+    shutil.copytree(source, folder)
+    path = folder / "scenario.yaml"
+    text = path.read_text().replace(
+        "\nterminal: hold",
+        f"\ncertificate: funnel\nuncertainty:\n  disturbance: {{vx: {gust}, vy: {gust}}}\n"
+        "terminal: hold",
+    )
+    path.write_text(text)
+    return path

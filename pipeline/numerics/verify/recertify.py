@@ -472,19 +472,33 @@ def checked_bound(
         declared = declared_bound(scenario)
     except HullError as error:
         return np.full(scenario.n, np.inf), [f"{what}: the declared uncertainty: {error}"]
-    failures = []
-    if declared is not None:
-        held = np.zeros(scenario.n) if stated is None else np.asarray(stated)
-        short = np.flatnonzero(held < declared)
-        if len(short):
-            i = int(short[0])
-            failures.append(
-                f"{what}: the file holds |w_{scenario.state_names[i]}| <= {held[i]:.4g}, the "
-                f"scenario declares {declared[i]:.4g} (uncertainty: block); synthesize again"
-            )
+    failures = _short_of(scenario, declared, stated, f"{what}: the file holds |w_", "uncertainty:")
     if declared is None:
         return (None if stated is None else np.asarray(stated)), failures
     return (declared if stated is None else np.maximum(stated, declared)), failures
+
+
+def _short_of(
+    scenario: Scenario,
+    declared: FloatArray | None,
+    stated: FloatArray | None,
+    holds: str,
+    where: str,
+) -> list[str]:
+    """The failure of a file whose ``stated (n,)`` box (None: zeros) is below the scenario's
+    ``declared`` one in some state (the first such), worded ``holds`` + ``name| <= ...``; none
+    when nothing is declared."""
+    if declared is None:
+        return []
+    held = np.zeros(scenario.n) if stated is None else np.asarray(stated)
+    short = np.flatnonzero(held < declared)
+    if not len(short):
+        return []
+    i = int(short[0])
+    return [
+        f"{holds}{scenario.state_names[i]}| <= {held[i]:.4g}, the scenario declares "
+        f"{declared[i]:.4g} ({where} block); synthesize again"
+    ]
 
 
 def checked_measurement(
@@ -495,17 +509,9 @@ def checked_measurement(
     ``uncertainty.measurement_bound`` where that is larger; None when neither declares any. A
     file stating less than the scenario declares is a failure (re-checked with the declaration)."""
     declared = scenario.uncertainty.measurement if scenario.uncertainty.measured else None
-    failures = []
-    if declared is not None:
-        held = np.zeros(scenario.n) if stated is None else np.asarray(stated)
-        short = np.flatnonzero(held < declared)
-        if len(short):
-            i = int(short[0])
-            failures.append(
-                f"uncertainty: the file holds |eta_{scenario.state_names[i]}| <= {held[i]:.4g}, "
-                f"the scenario declares {declared[i]:.4g} (uncertainty.measurement); synthesize "
-                "again"
-            )
+    failures = _short_of(
+        scenario, declared, stated, "uncertainty: the file holds |eta_", "uncertainty.measurement"
+    )
     if declared is None:
         return (None if stated is None or not np.any(stated) else np.asarray(stated)), failures
     return (declared if stated is None else np.maximum(stated, declared)), failures
