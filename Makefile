@@ -1,5 +1,8 @@
 # Two commands on a fresh clone: `make synthesize` and `make test`.
 SCENARIO ?= quadrotor_hill
+# `make synthesize`'s worker processes: both cores of the machine it ships for (results do not
+# depend on it; JOBS=1 runs everything in one process)
+JOBS ?= 2
 PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
@@ -16,7 +19,7 @@ $(STAMP): pyproject.toml
 	@touch $(STAMP)
 
 synthesize: $(STAMP)
-	$(PY) -m pipeline synthesize $(SCENARIO)
+	$(PY) -m pipeline synthesize $(SCENARIO) --jobs $(JOBS)
 
 # two workers; each scenario's session synthesis stays on one (xdist_group marks, tests/conftest.py),
 # the groups handed out in collection order (conftest sorts the long syntheses first)
