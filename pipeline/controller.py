@@ -614,16 +614,20 @@ def _terminal(read: _Reader, item: object, n: int, m: int) -> TerminalController
         K=_frozen(read.array("terminal.K", item["K"], (m, n))),
         P=_frozen((P + P.T) / 2),
         level=read.number("terminal.level", item["level"], positive=True),
-        disturbance=None if item.get("disturbance") is None else _bound(read, item, n),
+        disturbance=(
+            None
+            if item.get("disturbance") is None
+            else _bound(read, "terminal.disturbance", item["disturbance"], n)
+        ),
     )
 
 
-def _bound(read: _Reader, item: Mapping[str, Any], n: int) -> np.ndarray:
-    """The terminal block's ``disturbance (n,)``: finite and ``>= 0``."""
-    bound = read.array("terminal.disturbance", item["disturbance"], (n,))
+def _bound(read: _Reader, field: str, value: object, n: int) -> np.ndarray:
+    """A bound ``(n,)`` of the file (``field``): finite and ``>= 0``, read-only."""
+    bound = read.array(field, value, (n,))
     if np.any(bound < 0):
         j = int(np.argmax(bound < 0))
-        read.fail(f"terminal.disturbance[{j}]", float(bound[j]), "a number >= 0")
+        read.fail(f"{field}[{j}]", float(bound[j]), "a number >= 0")
     return _frozen(bound)
 
 
@@ -701,21 +705,11 @@ def parse(data: object, source: str = "controller.json") -> Controller:
     bound = measurement = None
     if top.get("uncertainty") is not None:
         block = read.mapping("uncertainty", top["uncertainty"], ("additive_bound",))
-        bound = read.array("uncertainty.additive_bound", block["additive_bound"], (n,))
-        if np.any(bound < 0):
-            i = int(np.argmin(bound))
-            read.fail(f"uncertainty.additive_bound[{i}]", float(bound[i]), "a number >= 0")
-        bound = _frozen(bound)
+        bound = _bound(read, "uncertainty.additive_bound", block["additive_bound"], n)
         if block.get("measurement_bound") is not None:
-            measurement = read.array(
-                "uncertainty.measurement_bound", block["measurement_bound"], (n,)
+            measurement = _bound(
+                read, "uncertainty.measurement_bound", block["measurement_bound"], n
             )
-            if np.any(measurement < 0):
-                i = int(np.argmin(measurement))
-                read.fail(
-                    f"uncertainty.measurement_bound[{i}]", float(measurement[i]), "a number >= 0"
-                )
-            measurement = _frozen(measurement)
     return Controller(
         scenario=top["scenario"],
         state_names=state_names,

@@ -364,8 +364,8 @@ def certify_controller(
         if not scenario.uncertainty.empty:
             failures.append(
                 "uncertainty: the scenario declares disturbance, parameter or measurement bounds, "
-                "which a "
-                "constant certificate (/1) does not hold; synthesize with certificate: funnel"
+                "which a constant certificate (/1) does not hold; synthesize with certificate: "
+                "funnel"
             )
         margin, vertices, verified, (reference_error, interpolation) = _constant(
             scenario, controller, failures, segments

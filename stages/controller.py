@@ -302,8 +302,7 @@ def emit_funnel_controller(
         raise ValueError(f"{len(names)} names for {len(trajectories)} trajectories")
     if disturbance is None:
         disturbance = declared_bound(scenario)  # as certify derives it
-    declared = scenario.uncertainty
-    measurement = declared.measurement if declared.measured else None  # funnel.law (I7)
+    measurement = scenario.uncertainty.measurement_box  # funnel.law (I7)
     items, worst, ends, end_radii, end_metrics = [], 0.0, [], [], []
     for i, (trajectory, funnel) in enumerate(zip(trajectories, funnels, strict=True)):
         N, n, m = len(trajectory.us), scenario.n, scenario.m

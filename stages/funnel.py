@@ -261,8 +261,7 @@ def synthesize_funnels(
             "expected one (or None) per trajectory"
         )
     disturbance = declared_bound(scenario)
-    declared = scenario.uncertainty
-    measurement = declared.measurement if declared.measured else None  # funnel.law (I7)
+    measurement = scenario.uncertainty.measurement_box  # funnel.law (I7)
     tasks = {
         i: _Task(
             scenario=scenario,

@@ -84,6 +84,12 @@ class Uncertainty:
         return bool(np.any(self.measurement > 0))
 
     @property
+    def measurement_box(self) -> FloatArray | None:
+        """(n,) ``measurement`` when an error is declared, else None (the state measured
+        exactly), as the law's offset (I7) and the terminal check (T5) take it."""
+        return self.measurement if self.measured else None
+
+    @property
     def parameters(self) -> Mapping[str, tuple[float, float]]:
         """Parameter name -> (lower, upper)."""
         return {

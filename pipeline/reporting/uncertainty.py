@@ -19,6 +19,7 @@ proved is called certified; the stress test and the Monte Carlo are labelled as 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -27,7 +28,6 @@ import numpy as np
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.frozen import freeze_fields
 from pipeline.model.scenario import Scenario
-from pipeline.model.uncertainty import Uncertainty
 from pipeline.numerics.closed_loop.gusts import CORNER_SHARE, GUST_PERIOD, WORST_SHARE
 from pipeline.numerics.hull import HullError
 from pipeline.numerics.uncertainty import additive_bound, certified_box, parameter_bound
@@ -67,17 +67,13 @@ def derived_bound(scenario: Scenario) -> DerivedBound:
     variable the parameters' term depends on has no bound (the run's prechecks refuse that)."""
     u = scenario.uncertainty
     box = certified_box(scenario)
-    each = []
+    each, nominal = [], u.parameter_nominal
     for j in range(len(u.parameter_names)):
-        alone = np.where(np.arange(len(u.parameter_names)) == j, 1.0, 0.0)
-        nominal = u.parameter_nominal
-        single = Uncertainty(
-            disturbance=np.zeros(scenario.n),
-            parameter_names=u.parameter_names,
-            parameter_lower=nominal + alone * (u.parameter_lower - nominal),
-            parameter_upper=nominal + alone * (u.parameter_upper - nominal),
-            parameter_nominal=nominal,
-            parametric=u.parametric,
+        alone = np.arange(len(u.parameter_names)) == j  # parameter j's interval, the others at p0
+        single = dataclasses.replace(
+            u,
+            parameter_lower=np.where(alone, u.parameter_lower, nominal),
+            parameter_upper=np.where(alone, u.parameter_upper, nominal),
         )
         each.append(parameter_bound(single, box))
     return DerivedBound(
@@ -288,10 +284,8 @@ def section(data: ReportData) -> tuple:
     except HullError as error:
         bound = None
         note = f"The additive bound could not be derived: {error}."
-    held = (
-        "certify re-checked controller.json under it: certified"
-        if check.success
-        else "certify re-checked controller.json under it: not certified"
+    held = "certify re-checked controller.json under it: " + (
+        "certified" if check.success else "not certified"
     )
     stated = data.law.disturbance_bound
     if bound is not None:

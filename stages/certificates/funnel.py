@@ -102,8 +102,7 @@ def hold_targets(scenario: Scenario, period: float = 0.0, core: float = CORE) ->
     if scenario.terminal != "hold":
         return Targets(scenario=scenario)
     try:
-        declared = scenario.uncertainty
-        measurement = declared.measurement if declared.measured else None  # (T5)
+        measurement = scenario.uncertainty.measurement_box  # (T5)
         design = hold_design(scenario, additive_bound(scenario), period, measurement)
     except TerminalError as error:
         log.info(f"[terminal] no terminal controller designed before the funnels: {error}")

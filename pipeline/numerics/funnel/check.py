@@ -140,9 +140,11 @@ def check_funnel(
         k = int(np.argmax(effective))
         eigenvalue = effective[k] - law.lmi_term[k]
         box = np.asarray(law.box)
-        term = "the hold's term (I6)" if law.period > 0 else "the measurement's term (I7)"
-        if law.period > 0 and law.measurement is not None:
-            term = "the hold's and the measurement's term (I6, I7)"
+        term = {
+            (True, False): "the hold's term (I6)",
+            (False, True): "the measurement's term (I7)",
+            (True, True): "the hold's and the measurement's term (I6, I7)",
+        }.get((law.period > 0, law.measurement is not None))
         held = (
             "" if law.hold is None else f" and {term} |w_h| <= {np.round(law.hold[k], 4).tolist()}"
         )
@@ -159,16 +161,15 @@ def check_funnel(
         )
         if law.hold is not None and box.ndim == 2:
             check = RobustCheck(Q, K, funnel.vertices, funnel.rate, Ts, funnel.rho)
-            alone = 2 * check.margins(law.disturbance)[0][k]
-            if alone < -LMI_MARGIN and not eigenvalue < -LMI_MARGIN and law.measurement is None:
+            alone = 2 * check.margins(law.disturbance, np.arange(len(K)) == k)[0][k]  # k alone
+            boxed_out = alone < -LMI_MARGIN and not eigenvalue < -LMI_MARGIN  # the box's doing
+            if boxed_out and law.measurement is None:
                 failure += (
                     f" (without the hold {alone:.3g}): the funnel is not certifiable with the "
                     f"law held every {law.period:g} s, on any reference grid (a shorter "
                     "--feedback-period, or continuous feedback)"
                 )
-            elif (
-                alone < -LMI_MARGIN and not eigenvalue < -LMI_MARGIN and law.measurement is not None
-            ):
+            elif boxed_out and law.measurement is not None:
                 failure += (
                     f" (without the law's box {alone:.3g}): the funnel does not hold the "
                     f"measurement error |eta| <= {np.round(law.measurement, 4).tolist()}, on "

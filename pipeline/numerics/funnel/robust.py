@@ -202,20 +202,20 @@ class RobustCheck:
         if not np.any(bound > 0):
             return float("inf")
 
-        found: list[FloatArray] = []  # the multipliers of the last box that held
+        last: FloatArray | None = None  # the multipliers of the last box that held
 
         def holds(s: float) -> bool:
+            nonlocal last
             box = s * bound if hold is None else s * bound + hold(s)
-            searched = np.ones(self.N, dtype=bool)
-            if found:  # any alpha >= 0 is a certificate (I5): the last one first, searching
-                # again only on the intervals it does not certify
-                top = self._largest(found[-1], self._scaled(box))
-                searched = 2 * top + lmi_term >= -LMI_MARGIN
-                if not searched.any():
+            failing = np.ones(self.N, dtype=bool)
+            if last is not None:  # any alpha >= 0 is a certificate (I5): the last ones first,
+                # searching again only on the intervals they do not certify
+                failing = 2 * self._largest(last, self._scaled(box)) + lmi_term >= -LMI_MARGIN
+                if not failing.any():
                     return True
-            margins, alpha = self.margins(box, searched)
-            if np.all(2 * margins[searched] + lmi_term[searched] < -LMI_MARGIN):
-                found.append(np.where(searched, alpha, found[-1]) if found else alpha)
+            margins, alpha = self.margins(box, failing)
+            if np.all(2 * margins[failing] + lmi_term[failing] < -LMI_MARGIN):
+                last = alpha if last is None else np.where(failing, alpha, last)
                 return True
             return False
 

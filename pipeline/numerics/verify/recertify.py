@@ -508,7 +508,7 @@ def checked_measurement(
     ``uncertainty.measurement`` (never read from the file) raised to the file's stated
     ``uncertainty.measurement_bound`` where that is larger; None when neither declares any. A
     file stating less than the scenario declares is a failure (re-checked with the declaration)."""
-    declared = scenario.uncertainty.measurement if scenario.uncertainty.measured else None
+    declared = scenario.uncertainty.measurement_box
     failures = _short_of(
         scenario, declared, stated, "uncertainty: the file holds |eta_", "uncertainty.measurement"
     )
