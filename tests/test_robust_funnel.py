@@ -216,6 +216,78 @@ def test_codesigned_gains_hold_a_disturbance_the_lqr_gains_cannot():
     assert not check_funnel(scenario, trajectory, designed, {}, _robust(designed, scenario, bound))
 
 
+def test_each_gains_family_stops_searching_past_its_best_multiplier():
+    """``MultiplierSearch``: a family searched upwards stops at the first multiplier infeasible
+    or holding less after a feasible one (measured on quadrotor_hill_robust: the LQR gains'
+    taus infeasible, 0.58, infeasible, infeasible; (F6)'s 0.906, 0.668, infeasible,
+    infeasible), never before a feasible one, and not while both hold the whole level."""
+    search = synthesis.MultiplierSearch()
+    for tau in (0.0, 0.58):
+        search.record(False, tau)
+        assert not search.past_best(False)
+    search.record(False, 0.0)
+    assert search.past_best(False)
+    search.record(True, 0.906)
+    assert not search.past_best(True)
+    search.record(True, 0.668)
+    assert search.past_best(True)
+    whole = synthesis.MultiplierSearch()
+    for tau in (1.4, 1.1, 0.99):  # capped at the design level 1: only the last holds less
+        assert not whole.past_best(False)
+        whole.record(False, tau)
+    assert whole.past_best(False)
+
+
+def test_a_family_past_its_best_multiplier_solves_no_more_programs():
+    """The double integrator at twice the tests' bound, its LQR gains' programs scripted to
+    hold half the design level at alpha = 0.3 and less at 1.0: the LQR family stops there
+    (3.0 and 10.0 not solved), the (F6) family is searched next and the funnel it certifies
+    (whole level) is kept; searching every multiplier solves both LQR programs skipped."""
+    scenario, trajectory, initial = double_integrator_case()
+    original, search = synthesis.solve_clarabel, synthesis.MultiplierSearch
+    shrink = {0.3: 0.5, 1.0: 0.3}  # tau of the LQR gains' programs, scaled to these (else 0.2)
+
+    class Exhaustive(synthesis.MultiplierSearch):
+        def past_best(self, codesign: bool) -> bool:
+            return False
+
+    def run(searching):
+        solved = []
+
+        def scripted(program):
+            solution = original(program)
+            gains = "F6" if "(F6)" in trace[-1] else "LQR"
+            solved.append((gains, program.multiplier))
+            if gains == "LQR" and not isinstance(solution, str):
+                return solution[0], min(solution[1], 1.0) * shrink.get(program.multiplier, 0.2)
+            return solution
+
+        trace = ["LQR"]
+
+        def designed(program):
+            trace.append("(F6)")
+            return codesign(program)
+
+        synthesis.solve_clarabel, synthesis.MultiplierSearch = scripted, searching
+        synthesis.codesign_gains = designed
+        funnel = synthesize_funnel(
+            scenario, trajectory, initial=initial, disturbance=2 * DISTURBANCE
+        )
+        return funnel, solved
+
+    codesign = synthesis.codesign_gains
+    try:
+        stopped, stopped_solves = run(search)
+        full, full_solves = run(Exhaustive)
+    finally:
+        synthesis.solve_clarabel, synthesis.MultiplierSearch = original, search
+        synthesis.codesign_gains = codesign
+    assert stopped_solves == [("LQR", 0.3), ("LQR", 1.0), ("F6", 0.3)], stopped_solves
+    assert full_solves[:5] == [*stopped_solves[:2], ("LQR", 3.0), ("LQR", 10.0), ("F6", 0.3)]
+    assert stopped.success and "(F6)" in stopped.message and stopped.rho > 0.99
+    assert stopped.rho == full.rho and np.array_equal(stopped.K, full.K)
+
+
 def _robust(funnel, scenario, bound):
     law = LawOffset.none(len(funnel.K), scenario.n, scenario.m, scenario.Ts)
     return law.with_disturbance(bound)

@@ -100,6 +100,7 @@ import dataclasses
 import itertools
 import time
 from collections.abc import Mapping
+from dataclasses import dataclass, field
 from typing import TypedDict, Unpack
 
 import numpy as np
@@ -164,6 +165,32 @@ ROBUST_SEED = 2.0  # the hull boxes hold this multiple of the seed's disturbance
 # Sample intervals per LMI piece: K is held and Q = P^-1 linear in t over each piece (see HOLD in
 # the module docstring).
 HOLD = 2
+
+
+@dataclass
+class MultiplierSearch:
+    """The robust program's multipliers ``alpha`` (``ROBUST_MULTIPLIERS``), searched upwards per
+    gains family (LQR, (F6)) as a unimodal line search, as the invariant ellipsoid's ``alpha``
+    is (Boyd et al., LMIs in System and Control Theory, section 6.1.3): a family is past its
+    best at the first ``alpha`` after a feasible one that is infeasible or holds less (``tau``,
+    capped at the whole design level 1). Only the search: every funnel kept is checked as any
+    other, so nothing proven depends on it."""
+
+    best: dict[bool, float] = field(default_factory=dict)  # family -> its last feasible tau
+    stopped: set[bool] = field(default_factory=set)
+
+    def record(self, codesign: bool, tau: float) -> None:
+        """A solve of ``codesign``'s family with ``tau`` (<= 0: infeasible, no gains or no
+        funnel)."""
+        held = min(tau, 1.0)
+        if codesign in self.best and held < self.best[codesign]:
+            self.stopped.add(codesign)
+        if held > 0:
+            self.best[codesign] = held
+
+    def past_best(self, codesign: bool) -> bool:
+        """Whether ``codesign``'s family has stopped."""
+        return codesign in self.stopped
 
 
 def lqr_seed(
@@ -377,8 +404,9 @@ def synthesize_funnel(
       segments: pieces per angle-like block of the local hulls.
       disturbance: (n,) ``d``: the funnel must hold for ``xdot = f(x, u) + w`` with any
         ``|w_i| <= d_i`` (``funnel.robust`` (I5)). (F3) is then joined with each corner ``w_c``
-        by the S-procedure (``funnel.lmi``) for each multiplier ``alpha`` of
-        ``ROBUST_MULTIPLIERS`` with margin ``eps = ROBUST_MARGIN alpha``; the hull boxes hold the
+        by the S-procedure (``funnel.lmi``) for the multipliers ``alpha`` of
+        ``ROBUST_MULTIPLIERS`` upwards (with margin ``eps = ROBUST_MARGIN alpha``), up to the
+        first past a feasible one that is infeasible or holds less; the hull boxes hold the
         seed's disturbance extent (F5, ``disturbance_seed``); the LQR gains first, then gains
         co-designed with the metric (F6); the funnel with the highest checked level is kept
         (the first that holds the whole design level).
@@ -478,7 +506,10 @@ def synthesize_funnel(
                 for alpha in ROBUST_MULTIPLIERS
             ]
         )
+        search = MultiplierSearch()
         for margin, multiplier, codesign in tries:
+            if robust is not None and search.past_best(codesign):
+                continue
             # a solution within the solver's tolerance may fail the check: the next margin
             gains, origin = K, ""
             if codesign:  # (F6): gains designed with the metric, then held ((F3))
@@ -489,6 +520,7 @@ def synthesize_funnel(
                 ))  # fmt: skip
                 if isinstance(designed, str):  # no gains to hold: nothing new to solve
                     failures.append(f"margin {margin:g}: (F6) {designed} over {N} intervals")
+                    search.record(codesign, 0.0)
                     continue
                 gains, origin = designed[0][np.repeat(np.arange(S), np.diff(bounds))], "(F6) "
             program = _program(
@@ -507,8 +539,10 @@ def synthesize_funnel(
                 if robust is None:
                     return result(False, f"funnel: {failure}", **common)
                 failures.append(f"margin {margin:g}: {failure}")
+                search.record(codesign, 0.0)
                 continue
             Q_ends, tau = solution
+            search.record(codesign, tau)
             # eq. (P1) at every sample time; E(0) at level 1 holds the initial set, the caps
             # hold at level sqrt(tau)
             Q = interpolate(Q_ends, bounds) / tau
