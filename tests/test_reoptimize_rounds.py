@@ -50,6 +50,28 @@ def test_a_new_funnel_is_kept_only_where_it_holds_what_the_kept_one_held():
     assert rounds._accepted(before, after, tolerance=1e-4) == (3,)
 
 
+def test_a_lower_level_is_kept_only_while_the_round_still_covers_init():
+    """``_kept``: with Init still covered by the mixed set of every certified new funnel, a
+    funnel that shrank is kept too (never one dropped now, nor one that did not move); without
+    that coverage only those holding what the kept one held (``_accepted``)."""
+    before = _stage([1.0, 1.0, 0.5, 0.3], usable=[0, 1, 2], scale=1.0)
+    after = _stage([1.0 - 5e-4, 0.95, 0.6, 0.9], usable=[0, 1, 3], scale=4.0)
+    seen = []
+
+    def coverage(covered):
+        def cover(mixed):
+            seen.append(mixed.levels.tolist())
+            return SimpleNamespace(covered=covered)
+
+        return cover
+
+    assert rounds._kept(before, after, [0, 1, 2, 3], coverage(True)) == [0, 1, 3]
+    assert seen == [[1.0 - 5e-4, 0.95, 0.5, 0.9]]  # 2 keeps its old funnel: dropped now
+    assert rounds._kept(before, after, [0, 1, 2, 3], coverage(False)) == [0, 3]
+    assert rounds._kept(before, after, [0, 2, 3], coverage(True)) == [0, 3]  # 1 did not move
+    assert len(seen) == 2  # nothing lower to try: coverage not computed again
+
+
 def test_the_mixed_set_takes_each_trajectorys_funnel_from_where_it_was_kept():
     before = _stage([1.0, 1.0, 0.5], usable=[0, 1], scale=1.0)
     after = _stage([1.0, 0.2, 0.8], usable=[0, 1, 2], scale=4.0)

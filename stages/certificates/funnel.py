@@ -15,6 +15,7 @@ ellipsoid centred in Goal, and no run with a terminal controller was certified.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 import math
 from collections.abc import Callable, Sequence
@@ -269,11 +270,13 @@ def reoptimize_rounds(
     (stage ``reoptimize_k``), but to no fewer than ``ceil((1 - step_i) N_i)`` samples, and
     synthesizes and checks new funnels around the new nominals (``funnel_k``,
     ``coverage_funnel_k``); a trajectory that did not move keeps its funnel.
-    Trajectory i's new nominal and funnel are kept only when that funnel is certified and its
+    Trajectory i's new nominal and funnel are kept when that funnel is certified and its
     level holds at least what the kept one held (``_accepted``: both levels are fractions of
-    the same required set, the start's cell of Init); the mixed set is covered again
-    (``coverage_funnel_k_kept``) and the round is kept only when it covers Init at least as
-    well (``_covers_as_well``) and shortens the total T.
+    the same required set, the start's cell of Init), or, at any certified level, when the
+    round's certified funnels together still cover Init (``_kept``, ``coverage_funnel_k_lower``:
+    a funnel holding 95% of its cell where its neighbours hold the rest); the mixed set is
+    covered again (``coverage_funnel_k_kept``) and the round is kept only when it covers Init at
+    least as well (``_covers_as_well``) and shortens the total T.
     A trust region on each step (``_next_step``): ``FIRST_STEP`` in round 1, ``GROW`` times
     longer after a kept move (at most ``MAX_STEP``), half as long after one not kept (or for
     every trajectory, when the round is not kept); a trajectory whose step falls below
@@ -354,7 +357,8 @@ def reoptimize_rounds(
                 for i in range(len(inputs))
             ],
         )  # fmt: skip
-        kept = [i for i in _accepted(funnels, new_funnels) if i in moved]
+        lower = functools.partial(_funnel_coverage, run, f"coverage_{_round_stage(k)}_lower")
+        kept = _kept(funnels, new_funnels, moved, lower)
         if kept != moved:  # unmoved trajectories already carry their kept funnels
             new_inputs = [new_inputs[i] if i in kept else u for i, u in enumerate(inputs)]
             new_trajectories = [
@@ -385,6 +389,24 @@ def reoptimize_rounds(
         )  # fmt: skip
         previous = [again.trajectories[i] if i in kept else t for i, t in enumerate(previous)]
     return inputs, trajectories, funnels, coverage
+
+
+def _kept(
+    before: FunnelStageResult,
+    after: FunnelStageResult,
+    moved: Sequence[int],
+    coverage: Callable[[FunnelStageResult], CoverageResult],
+) -> list[int]:
+    """The trajectories of ``moved`` whose new nominal and funnel a round keeps: every one
+    certified (usable) when the mixed set with all of them (``coverage`` of it) still covers
+    Init, else those whose level holds at least what the kept one held (``_accepted``). A
+    lower level is sound where Init stays covered: coverage is computed from the funnels
+    themselves, each certified at its own level."""
+    held = [i for i in _accepted(before, after) if i in moved]
+    certified = [i for i in after.usable if i in moved]
+    if held != certified and coverage(_mixed(before, after, certified)).covered:
+        return certified
+    return held
 
 
 def _covers_as_well(new: CoverageResult, old: CoverageResult) -> bool:
