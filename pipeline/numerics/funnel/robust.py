@@ -43,6 +43,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import numpy as np
+from scipy.linalg import solve_continuous_lyapunov
 
 from pipeline.model.dynamics import FloatArray
 from pipeline.numerics.funnel.law import LMI_MARGIN, corners
@@ -68,14 +69,13 @@ def invariant_ellipsoid(
     sigma = -float(np.linalg.eigvals(Acl).real.max())
     if not sigma > 0:
         return None
-    # the 25 Lyapunov equations at once, in Kronecker form on the row-major vec(Q):
-    # (Acl (x) I + I (x) Acl + a I) vec(Q) = -vec(E E^T) / a
-    decays = np.geomspace(0.02, 1.98, 25) * sigma  # (25,)
-    eye = np.eye(n)
-    operator = np.kron(Acl, eye) + np.kron(eye, Acl) + decays[:, None, None] * np.eye(n * n)
-    right = -(E @ E.T).reshape(1, n * n, 1) / decays[:, None, None]
-    candidates = np.linalg.solve(operator, right).reshape(-1, n, n)  # (25, n, n)
-    best = candidates[np.argmin(np.einsum("ij,cji->c", weight, candidates))]
+    # Bartels-Stewart (scipy), one equation per decay: the Kronecker system solved by LU gave
+    # seeds that left 1.9% of Init uncovered on quadrotor_hill_robust at twice its bound
+    candidates = [
+        solve_continuous_lyapunov(Acl + a / 2 * np.eye(n), -E @ E.T / a)
+        for a in np.geomspace(0.02, 1.98, 25) * sigma
+    ]
+    best = min(candidates, key=lambda Q: float(np.trace(weight @ Q)))
     return ((best + best.T) / 2).astype(np.float64)
 
 
