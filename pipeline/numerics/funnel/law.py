@@ -152,6 +152,7 @@ import numpy as np
 
 from pipeline.model.dynamics import FloatArray
 from pipeline.numerics.funnel.held import held_rates
+from pipeline.numerics.funnel.sampled import remainder_box
 
 LMI_MARGIN = 1e-6  # 1/s: how far below 0 the (F2) eigenvalue with the law's term (I2) must be
 LEVEL_MARGIN = 1e-6  # relative: a funnel's level must stay this far inside every limit
@@ -181,6 +182,8 @@ class LawOffset:
         hold's and the measurement's part of ``input_offset`` (it does not shrink with the
         grid); None: as ``hold``.
       measurement: (n,) ``E`` of (I7); None: the state is measured exactly.
+      remainder: (N, n) the box (R) of a held law's push taken to first order into (I5)'s
+        matrix (``funnel.sampled`` (I6')), with (I7)'s push; None: continuous feedback.
     """
 
     steps: FloatArray
@@ -192,6 +195,7 @@ class LawOffset:
     hold: FloatArray | None = None
     held_input: FloatArray | None = None
     measurement: FloatArray | None = None
+    remainder: FloatArray | None = None
 
     @property
     def box(self) -> FloatArray:
@@ -294,7 +298,7 @@ def law_offset(
     held = period > 0
     E = np.zeros(n) if measurement is None else np.asarray(measurement, dtype=np.float64)
     measured = bool(np.any(E > 0))
-    hold, held_input = np.zeros((N, n)), np.zeros((N, m))
+    hold, held_input, remainder = np.zeros((N, n)), np.zeros((N, m)), np.zeros((N, n))
     d = np.zeros(n) if disturbance is None else np.asarray(disturbance, dtype=np.float64)
     signs = np.array(list(itertools.product((-1.0, 1.0), repeat=n)))[: 2 ** (n - 1)]  # +-pairs
     for k in range(N):
@@ -319,6 +323,8 @@ def law_offset(
             # the box H[k], joined to (I5)'s, with (I7)'s push of eta(t_j) at the same vertex
             hold[k] = (period * push + np.abs(B @ K[k]) @ E).max(axis=0)
             held_input[k] = period * swing + np.abs(K[k]) @ E
+            # funnel.sampled (I6'): the remainder's box, Delta + E for the offset C
+            remainder[k] = remainder_box(A, B, K[k], speed, deviation[k], d, E, period)
             input_offset[k] = np.abs(K[k]) @ deviation[k] + period * swing  # eq. (I3)
             deviation[k] = deviation[k] + period * speed  # Delta_h: |e(t_j) - e(t)| <= h Edot
             continue
@@ -331,7 +337,7 @@ def law_offset(
         steps=steps, deviation=deviation, input_offset=input_offset, lmi_term=lmi_term,
         disturbance=np.zeros(n), period=float(period) if held else 0.0,
         hold=hold if boxed else None, held_input=held_input if boxed else None,
-        measurement=E if measured else None,
+        measurement=E if measured else None, remainder=remainder if held else None,
     )  # fmt: skip
 
 

@@ -46,6 +46,7 @@ import numpy as np
 
 from pipeline.model.dynamics import FloatArray
 from pipeline.numerics.funnel.law import LMI_MARGIN, corners
+from pipeline.numerics.funnel.sampled import pushed_rows
 
 GOLDEN_STEPS = 40  # golden-section steps on alpha: the bracket shrinks by 0.618^40 ~ 4e-9
 MULTIPLE_STEPS = 14  # bisection steps on the reported disturbance multiple (2^-14 of its bracket)
@@ -80,23 +81,35 @@ def invariant_ellipsoid(
 
 
 def _blocks(
-    Q: FloatArray, K: FloatArray, vertices: tuple[FloatArray, ...], rate: float, Ts: float
-) -> tuple[FloatArray, FloatArray, np.ndarray]:
+    Q: FloatArray,
+    K: FloatArray,
+    vertices: tuple[FloatArray, ...],
+    rate: float,
+    Ts: float,
+    period: float = 0.0,
+) -> tuple[FloatArray, FloatArray, np.ndarray, np.ndarray]:
     """``Mhat`` (R, n, n) for every (interval, end, vertex), the inverse factors ``Lc^-1`` (N, 2,
-    n, n) at each interval's ends, and the interval of each row (R,)."""
+    n, n) at each interval's ends, the interval of each row (R,) and its end (R,: 0 or 1).
+    ``period > 0``: a held law's pairs too (``funnel.sampled`` (I6')), ``V (V + 1)`` rows per
+    end: the plain ones (``tau = 0``) and one per vertex pair at ``tau = h``."""
     n, N = Q.shape[1], len(K)
     L_inv = np.linalg.inv(np.linalg.cholesky(Q))  # (N+1, n, n)
-    rows, owner = [], []
+    rows, owner, end = [], [], []
     for k in range(N):
         D = (Q[k + 1] - Q[k]) / Ts  # eq. (F1)
-        Acl = vertices[k][:, :, :n] + vertices[k][:, :, n:] @ K[k]  # (V, n, n)
-        for e in (k, k + 1):
+        A, B = vertices[k][:, :, :n], vertices[k][:, :, n:]
+        Acl = A + B @ K[k]  # (V, n, n)
+        for side, e in enumerate((k, k + 1)):
             M = -D + Acl @ Q[e] + Q[e] @ np.swapaxes(Acl, 1, 2) + 2 * rate * Q[e]  # eq. (F2)
+            if period > 0:  # funnel.sampled (I6'): every (v, v') at tau = h
+                pushed = M[:, None] + pushed_rows(A, B, K[k], Q[e], period)  # (V, V, n, n)
+                M = np.concatenate([M, pushed.reshape(-1, n, n)])
             M = L_inv[e] @ M @ L_inv[e].T
             rows.append((M + np.swapaxes(M, 1, 2)) / 2)
             owner.append(np.full(len(M), k))
+            end.append(np.full(len(M), side))
     ends = np.stack([L_inv[:-1], L_inv[1:]], axis=1)
-    return np.concatenate(rows), ends, np.concatenate(owner)
+    return np.concatenate(rows), ends, np.concatenate(owner), np.concatenate(end)
 
 
 class RobustCheck:
@@ -112,14 +125,12 @@ class RobustCheck:
         rate: float,
         Ts: float,
         rho: float,
+        period: float = 0.0,
     ) -> None:
-        self.M, self.L_inv, self.owner = _blocks(Q, K, vertices, rate, Ts)
+        # the end of each row (0, 1), for its factor Lc^-1; rho at the interval's end
+        self.M, self.L_inv, self.owner, self.end = _blocks(Q, K, vertices, rate, Ts, period)
         N, n = len(K), Q.shape[1]
         self.N, self.n = N, n
-        # the end of each row (rows go interval by interval: all vertices at one end, then the
-        # other), for its factor Lc^-1 and rho at the interval's end
-        sizes = np.array([len(v) for v in vertices])
-        self.end = np.concatenate([np.repeat([0, 1], V) for V in sizes])
         self.rho_end = rho * np.exp(-rate * Ts * np.arange(1, N + 1))  # (N,)
 
     def _largest(
