@@ -73,10 +73,14 @@ def margins(path: Path, periods: tuple[float, ...], only: set[int] | None = None
             end = time.perf_counter()
             rows.append(
                 {
-                    "trajectory": i, "h": h, "segments": segments,
-                    "box": float(before.max()), "box_fail": int((before >= -LMI_MARGIN).sum()),
+                    "trajectory": i,
+                    "h": h,
+                    "segments": segments,
+                    "box": float(before.max()),
+                    "box_fail": int((before >= -LMI_MARGIN).sum()),
                     "sampled": float(after.max()),
-                    "sampled_fail": int((after >= -LMI_MARGIN).sum()), "N": len(tr.K),
+                    "sampled_fail": int((after >= -LMI_MARGIN).sum()),
+                    "N": len(tr.K),
                     "lmi_term": float(law.lmi_term.max()),
                     "box_alone": float((before - law.lmi_term).max()),
                     "sampled_alone": float((after - law.lmi_term).max()),
@@ -89,9 +93,10 @@ def margins(path: Path, periods: tuple[float, ...], only: set[int] | None = None
             r = rows[-1]
             print(
                 f"traj {i} h {1000 * h:g} ms ({segments} seg, N {r['N']}): box {r['box']:+.4f} "
-                f"({r['box_fail']} fail) | sampled {r['sampled']:+.4f} ({r['sampled_fail']} "
-                f"fail) | without (I2) {r['box_alone']:+.4f} / {r['sampled_alone']:+.4f} | lmi_term {r['lmi_term']:.2g} | box {r['hold']} | R+d "
-                f"{r['remainder']} | {r['seconds'][0]:.1f} s / {r['seconds'][1]:.1f} s",
+                f"({r['box_fail']} fail) | sampled {r['sampled']:+.4f} "
+                f"({r['sampled_fail']} fail) | without (I2) {r['box_alone']:+.4f} / "
+                f"{r['sampled_alone']:+.4f} | lmi_term {r['lmi_term']:.2g} | box {r['hold']} | "
+                f"R+d {r['remainder']} | {r['seconds'][0]:.1f} s / {r['seconds'][1]:.1f} s",
                 flush=True,
             )
     return rows

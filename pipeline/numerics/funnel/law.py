@@ -202,6 +202,12 @@ class LawOffset:
         """(I5)'s box: ``disturbance (n,)``, or ``disturbance + hold`` (N, n) for a held law."""
         return self.disturbance if self.hold is None else self.disturbance + self.hold
 
+    @property
+    def sampled_box(self) -> FloatArray | None:
+        """(N, n) ``funnel.sampled`` (I6')'s box: ``disturbance + remainder``; None for
+        continuous feedback (``box`` is then the one box)."""
+        return None if self.remainder is None else self.disturbance + self.remainder
+
     def robust_part(self) -> LawOffset:
         """This law without (I2)'s interpolation term and (I3)'s offset: the disturbance and
         the hold's box in (I5) (what the reference grid is chosen against)."""
