@@ -111,7 +111,10 @@ def effective_margins(
     if law.sampled_box is None:
         return boxed
     sampled = RobustCheck(Q, K, funnel.vertices, funnel.rate, Ts, funnel.rho, law.period)
-    return np.minimum(boxed, 2 * sampled.margins(law.sampled_box)[0] + law.lmi_term)  # (I6')
+    # refine the multiplier only where neither passes yet (funnel.robust's margins)
+    needed = np.where(boxed < -LMI_MARGIN, np.inf, (-LMI_MARGIN - law.lmi_term) / 2)
+    r = sampled.margins(law.sampled_box, needed=needed)[0]
+    return np.minimum(boxed, 2 * r + law.lmi_term)  # (I6')
 
 
 def check_funnel(
