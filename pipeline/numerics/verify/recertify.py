@@ -444,6 +444,27 @@ def hold_box(
     return None
 
 
+def held_input_bound(
+    scenario: Scenario,
+    trajectory: Trajectory,
+    shipped: ShippedFunnel,
+    state_bounds: Mapping[str, tuple[float, float]],
+    disturbance: FloatArray | None,
+    period: float,
+    measurement: FloatArray | None = None,
+) -> FloatArray | None:
+    """(m,) the largest ``held_input`` over the intervals (``funnel.law`` (I6), (I7): the part of
+    the input offset that does not shrink with the reference grid), on the first hull of
+    ``SEGMENTS`` that can be built; None without a hull or a held or measured law. A design aid
+    (``stages.funnel``), as ``hold_box``: nothing is certified by it."""
+    for _, law in _base_laws(
+        scenario, trajectory, shipped, state_bounds, disturbance, period, measurement
+    ):
+        if law.held_input is not None:
+            return np.asarray(law.held_input.max(axis=0), dtype=np.float64)
+    return None
+
+
 def recheck_as_shipped(
     scenario: Scenario,
     trajectory: Trajectory,
