@@ -98,12 +98,23 @@ def effective_margins(
 ) -> FloatArray:
     """(N,) what must stay below ``-LMI_MARGIN`` on each interval under the shipped law: (F2)'s
     largest eigenvalue plus the interpolated reference's term (I2); under a disturbance, twice
-    (I5)'s S-procedure eigenvalue ``r_k`` plus (I2) (``funnel.robust``), a held law's box
-    (``funnel.law`` (I6)) joined to the disturbance's. ``Q (N+1, n, n)``."""
-    if law.disturbed:  # the disturbance's box, and a held law's (funnel.law (I6))
-        check = RobustCheck(Q, K, funnel.vertices, funnel.rate, Ts, funnel.rho)
-        return 2 * check.margins(law.box)[0] + law.lmi_term
-    return certificate_margins(Q, K, funnel.vertices, funnel.rate, Ts).max(axis=1) + law.lmi_term
+    (I5)'s S-procedure eigenvalue ``r_k`` plus (I2) (``funnel.robust``). A held law: the smaller
+    on each interval of (I6) (the hold's box joined to the disturbance's) and (I6') (its push to
+    first order in (I5)'s matrix, the remainder's box joined, ``funnel.sampled``): both bound the
+    same rate on interval ``k`` under the same hull and input box, so either one's bound below
+    zero there is the invariance argument's step on that interval. ``Q (N+1, n, n)``."""
+    if not law.disturbed:
+        margins = certificate_margins(Q, K, funnel.vertices, funnel.rate, Ts).max(axis=1)
+        return margins + law.lmi_term
+    check = RobustCheck(Q, K, funnel.vertices, funnel.rate, Ts, funnel.rho)
+    boxed = 2 * check.margins(law.box)[0] + law.lmi_term  # (I5), with (I6)'s box if held
+    if law.sampled_box is None:
+        return boxed
+    sampled = RobustCheck(Q, K, funnel.vertices, funnel.rate, Ts, funnel.rho, law.period)
+    # refine the multiplier only where neither passes yet (funnel.robust's margins)
+    needed = np.where(boxed < -LMI_MARGIN, np.inf, (-LMI_MARGIN - law.lmi_term) / 2)
+    r = sampled.margins(law.sampled_box, needed=needed)[0]
+    return np.minimum(boxed, 2 * r + law.lmi_term)  # (I6')
 
 
 def check_funnel(
@@ -148,6 +159,11 @@ def check_funnel(
         held = (
             "" if law.hold is None else f" and {term} |w_h| <= {np.round(law.hold[k], 4).tolist()}"
         )
+        if law.remainder is not None:  # funnel.sampled (I6'): the smaller of the two is shown
+            held += (
+                f" (or the push to first order (I6') with its remainder |w_r| <= "
+                f"{np.round(law.remainder[k], 4).tolist()}: the smaller)"
+            )
         what = (
             f"under the disturbance |w| <= {np.round(law.disturbance, 4).tolist()}{held}, twice "
             "the S-procedure's eigenvalue (I5)"

@@ -47,6 +47,7 @@ from scipy.linalg import solve_continuous_lyapunov
 
 from pipeline.model.dynamics import FloatArray
 from pipeline.numerics.funnel.law import LMI_MARGIN, corners
+from pipeline.numerics.funnel.sampled import pushed_rows
 
 GOLDEN_STEPS = 40  # golden-section steps on alpha: the bracket shrinks by 0.618^40 ~ 4e-9
 MULTIPLE_STEPS = 14  # bisection steps on the reported disturbance multiple (2^-14 of its bracket)
@@ -80,23 +81,42 @@ def invariant_ellipsoid(
 
 
 def _blocks(
-    Q: FloatArray, K: FloatArray, vertices: tuple[FloatArray, ...], rate: float, Ts: float
-) -> tuple[FloatArray, FloatArray, np.ndarray]:
+    Q: FloatArray,
+    K: FloatArray,
+    vertices: tuple[FloatArray, ...],
+    rate: float,
+    Ts: float,
+    period: float = 0.0,
+) -> tuple[FloatArray, FloatArray, np.ndarray, np.ndarray, np.ndarray]:
     """``Mhat`` (R, n, n) for every (interval, end, vertex), the inverse factors ``Lc^-1`` (N, 2,
-    n, n) at each interval's ends, and the interval of each row (R,)."""
+    n, n) at each interval's ends, the interval of each row (R,), its end (R,: 0 or 1) and
+    whether it is a probe row (R,: below). ``period > 0``: a held law's pairs too
+    (``funnel.sampled`` (I6')), ``V (V + 1)`` rows per end: the plain ones (``tau = 0``) and one
+    per vertex pair at ``tau = h``; the probes are the plain rows and the pairs ``v = v'``."""
     n, N = Q.shape[1], len(K)
     L_inv = np.linalg.inv(np.linalg.cholesky(Q))  # (N+1, n, n)
-    rows, owner = [], []
+    rows, owner, end, probe = [], [], [], []
     for k in range(N):
         D = (Q[k + 1] - Q[k]) / Ts  # eq. (F1)
-        Acl = vertices[k][:, :, :n] + vertices[k][:, :, n:] @ K[k]  # (V, n, n)
-        for e in (k, k + 1):
+        A, B = vertices[k][:, :, :n], vertices[k][:, :, n:]
+        Acl = A + B @ K[k]  # (V, n, n)
+        for side, e in enumerate((k, k + 1)):
             M = -D + Acl @ Q[e] + Q[e] @ np.swapaxes(Acl, 1, 2) + 2 * rate * Q[e]  # eq. (F2)
+            V = len(M)
+            probe.append(np.ones(V, dtype=bool))
+            if period > 0:  # funnel.sampled (I6'): every (v, v') at tau = h
+                pushed = M[:, None] + pushed_rows(A, B, K[k], Q[e], period)  # (V, V, n, n)
+                M = np.concatenate([M, pushed.reshape(-1, n, n)])
+                probe.append(np.eye(V, dtype=bool).reshape(-1))
             M = L_inv[e] @ M @ L_inv[e].T
             rows.append((M + np.swapaxes(M, 1, 2)) / 2)
             owner.append(np.full(len(M), k))
+            end.append(np.full(len(M), side))
     ends = np.stack([L_inv[:-1], L_inv[1:]], axis=1)
-    return np.concatenate(rows), ends, np.concatenate(owner)
+    return (
+        np.concatenate(rows), ends, np.concatenate(owner), np.concatenate(end),
+        np.concatenate(probe),
+    )  # fmt: skip
 
 
 class RobustCheck:
@@ -112,14 +132,15 @@ class RobustCheck:
         rate: float,
         Ts: float,
         rho: float,
+        period: float = 0.0,
     ) -> None:
-        self.M, self.L_inv, self.owner = _blocks(Q, K, vertices, rate, Ts)
+        # the end of each row (0, 1), for its factor Lc^-1; rho at the interval's end
+        self.M, self.L_inv, self.owner, self.end, self.probe = _blocks(
+            Q, K, vertices, rate, Ts, period
+        )
+        self.paired = period > 0
         N, n = len(K), Q.shape[1]
         self.N, self.n = N, n
-        # the end of each row (rows go interval by interval: all vertices at one end, then the
-        # other), for its factor Lc^-1 and rho at the interval's end
-        sizes = np.array([len(v) for v in vertices])
-        self.end = np.concatenate([np.repeat([0, 1], V) for V in sizes])
         self.rho_end = rho * np.exp(-rate * Ts * np.arange(1, N + 1))  # (N,)
 
     def _largest(
@@ -160,14 +181,43 @@ class RobustCheck:
         return np.einsum("rij,cj->rci", factor, w) / self.rho_end[self.owner][:, None, None]
 
     def margins(
-        self, bound: FloatArray, intervals: np.ndarray | None = None
+        self,
+        bound: FloatArray,
+        intervals: np.ndarray | None = None,
+        needed: FloatArray | None = None,
     ) -> tuple[FloatArray, FloatArray]:
         """``(r (N,), alpha (N,))``: (I5)'s ``r_k`` at the multiplier found for each interval,
         for the box ``bound`` (``(n,)``, or ``(N, n)`` one per interval); ``intervals (N,)``:
         search only where True (-inf elsewhere; each interval's search is its own, so the ones
-        searched are as in a full search)."""
+        searched are as in a full search). With a held law's pairs (I6') the search runs on the
+        probe rows (the plain ones and ``v = v'``) and every row is evaluated at the multiplier
+        found; where some row is above the probes' largest there, the multiplier may not be the
+        best for all rows and the search runs again on every row of that interval (the smaller
+        ``r_k`` kept); ``needed (N,)``: only where ``r_k`` is not below it (an interval that
+        holds keeps the first multiplier). Any multiplier is a certificate: the eigenvalues
+        returned are all rows'."""
         a = self._scaled(bound)
-        rows = None if intervals is None else np.flatnonzero(intervals[self.owner])
+        chosen = np.ones(len(self.M), dtype=bool) if intervals is None else intervals[self.owner]
+        if not self.paired:
+            rows = None if intervals is None else np.flatnonzero(chosen)
+            alpha, _ = self._search(a, rows)
+            return self._largest(alpha, a, rows), alpha
+        alpha, probed = self._search(a, np.flatnonzero(chosen & self.probe))
+        value = self._largest(alpha, a, np.flatnonzero(chosen))
+        again = value > probed + 1e-9  # a pair off the diagonal binds: search on every row
+        if needed is not None:
+            again &= value >= needed
+        if again.any():
+            rows = np.flatnonzero(again[self.owner])
+            other, _ = self._search(a, rows)
+            other_value = self._largest(other, a, rows)
+            better = again & (other_value < value)
+            value, alpha = np.where(better, other_value, value), np.where(better, other, alpha)
+        return value, alpha
+
+    def _search(self, a: FloatArray, rows: np.ndarray | None) -> tuple[FloatArray, FloatArray]:
+        """``(alpha (N,), r (N,))``: golden section on each interval's convex ``r_k(alpha)`` over
+        ``rows`` (indices; None: all), and ``r_k`` over them at the ``alpha`` returned."""
         ratio = (np.sqrt(5.0) - 1) / 2
         # past this the eigenvalue of S grows with alpha (Mhat + alpha I dominates)
         top = 4 * (np.abs(self.M).max(initial=0.0) + np.abs(a).max(initial=0.0)) + 1.0
@@ -183,8 +233,7 @@ class RobustCheck:
                 np.where(left, probe, d), np.where(left, c, probe),
                 np.where(left, value, fd), np.where(left, fc, value),
             )  # fmt: skip
-        alpha = np.where(fc <= fd, c, d)
-        return self._largest(alpha, a, rows), alpha
+        return np.where(fc <= fd, c, d), np.minimum(fc, fd)
 
     def multiple(
         self,

@@ -340,7 +340,10 @@ def disturbance_multiple(
     the law's offset under another additive bound, gives it again for each ``s`` (the input
     boxes are not widened for it: like the rest of the multiple, (I5) and (I2) alone). A
     measurement's box ((I7), in ``hold``) is held at its declared size: the multiple is of the
-    additive bound."""
+    additive bound. A held law: the larger of (I6)'s multiple and (I6')'s (``funnel.sampled``,
+    its remainder's box grown likewise): each holds on every interval at its own ``s``, so the
+    per-interval smaller margin of ``effective_margins`` does too (a lower bound on its
+    multiple)."""
     check = RobustCheck(Q, K, funnel.vertices, funnel.rate, Ts, funnel.rho)
     if law.hold is None or held is None:
         return check.multiple(law.disturbance, law.lmi_term)
@@ -350,7 +353,16 @@ def disturbance_multiple(
         box = offset(s * law.disturbance).hold
         return np.zeros_like(law.hold) if box is None else box
 
-    return check.multiple(law.disturbance, law.lmi_term, hold)
+    boxed = check.multiple(law.disturbance, law.lmi_term, hold)
+    if law.remainder is None:
+        return boxed
+
+    def remainder(s: float) -> FloatArray:
+        box = offset(s * law.disturbance).remainder
+        return np.zeros_like(law.hold) if box is None else box
+
+    sampled = RobustCheck(Q, K, funnel.vertices, funnel.rate, Ts, funnel.rho, law.period)
+    return max(boxed, sampled.multiple(law.disturbance, law.lmi_term, remainder))
 
 
 def reference_substeps(
@@ -429,6 +441,27 @@ def hold_box(
     ):
         if law.hold is not None:
             return np.asarray(law.hold.max(axis=0), dtype=np.float64)
+    return None
+
+
+def held_input_bound(
+    scenario: Scenario,
+    trajectory: Trajectory,
+    shipped: ShippedFunnel,
+    state_bounds: Mapping[str, tuple[float, float]],
+    disturbance: FloatArray | None,
+    period: float,
+    measurement: FloatArray | None = None,
+) -> FloatArray | None:
+    """(m,) the largest ``held_input`` over the intervals (``funnel.law`` (I6), (I7): the part of
+    the input offset that does not shrink with the reference grid), on the first hull of
+    ``SEGMENTS`` that can be built; None without a hull or a held or measured law. A design aid
+    (``stages.funnel``), as ``hold_box``: nothing is certified by it."""
+    for _, law in _base_laws(
+        scenario, trajectory, shipped, state_bounds, disturbance, period, measurement
+    ):
+        if law.held_input is not None:
+            return np.asarray(law.held_input.max(axis=0), dtype=np.float64)
     return None
 
 
