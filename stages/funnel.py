@@ -51,12 +51,7 @@ from pipeline.numerics.funnel.law import LawOffset
 from pipeline.numerics.funnel.synthesis import synthesize_funnel
 from pipeline.numerics.terminal.fit import TerminalTarget
 from pipeline.numerics.uncertainty import declared_bound, held_state_bounds
-from pipeline.numerics.verify.recertify import (
-    ShippedFunnel,
-    held_input_bound,
-    hold_box,
-    recheck_as_shipped,
-)
+from pipeline.numerics.verify.recertify import ShippedFunnel, held_law_bounds, recheck_as_shipped
 from pipeline.results.funnel import FunnelStageResult as FunnelStageResult
 from pipeline.results.stage import Stage, StageInputs
 
@@ -186,24 +181,21 @@ def _designed(task: _Task) -> tuple[Funnel, str | None]:
     # (I6), (I7): the held law's and the measurement's terms are a box joined to the
     # disturbance; design for both (HOLD_DESIGN)
     shipped = ShippedFunnel(K=funnel.K, P=funnel.P, rho=funnel.rho, rate=funnel.rate)
-    box = hold_box(
+    held = held_law_bounds(
         scenario, task.trajectory, shipped, bounds, task.disturbance, task.period, measurement
     )
-    if box is None:
+    if held is None:
         return funnel, failure
+    box, swing = held
     declared = np.zeros(scenario.n) if task.disturbance is None else task.disturbance
     design = declared + HOLD_DESIGN * box
     # the hold's input offset does not shrink with the grid: the design keeps room for it (its
     # input bounds narrowed by HOLD_DESIGN times the first funnel's; certify uses the true ones)
-    swing = held_input_bound(
-        scenario, task.trajectory, shipped, bounds, task.disturbance, task.period, measurement
-    )
     designed_for = scenario
-    if swing is not None:
-        lower = scenario.input_lower + HOLD_DESIGN * swing
-        upper = scenario.input_upper - HOLD_DESIGN * swing
-        if np.all(lower < upper):
-            designed_for = replace(scenario, input_lower=lower, input_upper=upper)
+    lower = scenario.input_lower + HOLD_DESIGN * swing
+    upper = scenario.input_upper - HOLD_DESIGN * swing
+    if np.all(lower < upper):
+        designed_for = replace(scenario, input_lower=lower, input_upper=upper)
     again = synthesize_funnel(
         designed_for, task.trajectory, state_bounds=bounds, initial=task.initial,
         rate=task.rate, disturbance=design, terminal=terminal,

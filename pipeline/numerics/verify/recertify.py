@@ -422,7 +422,7 @@ def _base_laws(
             continue
 
 
-def hold_box(
+def held_law_bounds(
     scenario: Scenario,
     trajectory: Trajectory,
     shipped: ShippedFunnel,
@@ -430,38 +430,21 @@ def hold_box(
     disturbance: FloatArray | None,
     period: float,
     measurement: FloatArray | None = None,
-) -> FloatArray | None:
-    """(n,) the largest box ``H[k]`` over the intervals of the law held every ``period`` s
-    (``funnel.law`` (I6)), with the measurement's box ``measurement (n,)`` when given (I7), on
-    the first hull of ``SEGMENTS`` that can be built: what a funnel
-    designed for the additive bound ``disturbance + H`` leaves room for; None without a hull.
-    A design aid (``stages.funnel``): nothing is certified by it."""
+) -> tuple[FloatArray, FloatArray] | None:
+    """``(box (n,), swing (m,))``: the largest ``H[k]`` and ``held_input`` over the intervals of
+    the law held every ``period`` s (``funnel.law`` (I6)), with the measurement's box
+    ``measurement (n,)`` when given (I7), on the first hull of ``SEGMENTS`` that can be built:
+    what a funnel designed for the additive bound ``disturbance + H`` leaves room for, and the
+    part of the input offset that does not shrink with the reference grid; None without a hull
+    or a held or measured law. A design aid (``stages.funnel``): nothing is certified by it."""
     for _, law in _base_laws(
         scenario, trajectory, shipped, state_bounds, disturbance, period, measurement
     ):
-        if law.hold is not None:
-            return np.asarray(law.hold.max(axis=0), dtype=np.float64)
-    return None
-
-
-def held_input_bound(
-    scenario: Scenario,
-    trajectory: Trajectory,
-    shipped: ShippedFunnel,
-    state_bounds: Mapping[str, tuple[float, float]],
-    disturbance: FloatArray | None,
-    period: float,
-    measurement: FloatArray | None = None,
-) -> FloatArray | None:
-    """(m,) the largest ``held_input`` over the intervals (``funnel.law`` (I6), (I7): the part of
-    the input offset that does not shrink with the reference grid), on the first hull of
-    ``SEGMENTS`` that can be built; None without a hull or a held or measured law. A design aid
-    (``stages.funnel``), as ``hold_box``: nothing is certified by it."""
-    for _, law in _base_laws(
-        scenario, trajectory, shipped, state_bounds, disturbance, period, measurement
-    ):
-        if law.held_input is not None:
-            return np.asarray(law.held_input.max(axis=0), dtype=np.float64)
+        if law.hold is not None and law.held_input is not None:
+            return (
+                np.asarray(law.hold.max(axis=0), dtype=np.float64),
+                np.asarray(law.held_input.max(axis=0), dtype=np.float64),
+            )
     return None
 
 
