@@ -65,10 +65,12 @@ def test_a_lower_level_is_kept_only_while_the_round_still_covers_init():
 
         return cover
 
-    assert rounds._kept(before, after, [0, 1, 2, 3], coverage(True)) == [0, 1, 3]
+    kept, lowered = rounds._kept(before, after, [0, 1, 2, 3], coverage(True))
+    assert kept == [0, 1, 3]
     assert seen == [[1.0 - 5e-4, 0.95, 0.5, 0.9]]  # 2 keeps its old funnel: dropped now
-    assert rounds._kept(before, after, [0, 1, 2, 3], coverage(False)) == [0, 3]
-    assert rounds._kept(before, after, [0, 2, 3], coverage(True)) == [0, 3]  # 1 did not move
+    assert lowered is not None and lowered[0].levels.tolist() == seen[0]  # the set covered
+    assert rounds._kept(before, after, [0, 1, 2, 3], coverage(False)) == ([0, 3], None)
+    assert rounds._kept(before, after, [0, 2, 3], coverage(True)) == ([0, 3], None)  # 1 unmoved
     assert len(seen) == 2  # nothing lower to try: coverage not computed again
 
 

@@ -282,21 +282,11 @@ def load_report_data(scenario: Scenario, out: Path, write_to: Path | None = None
     except ValueError as error:
         raise _rerun(summary_path, scenario, f"not this run's summary ({error})") from None
     keys = {stage: keys[stage] for stage in STAGES}  # the ones the report lists
-    certification, stress_result = evidence.certification, results.get("stress")
-    if write_to is None or Path(write_to) == out:
-        return report_data(
-            scenario, out, summary, results, keys, certification=certification, stress=stress_result
-        )
+    target = out if write_to is None else Path(write_to)
     return report_data(
-        scenario,
-        Path(write_to),
-        summary,
-        results,
-        keys,
-        certification=certification,
-        stress=stress_result,
-        source=out,
-    )
+        scenario, target, summary, results, keys, certification=evidence.certification,
+        stress=results.get("stress"), source=None if target == out else out,
+    )  # fmt: skip
 
 
 def _shipped_coverage(

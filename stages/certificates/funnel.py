@@ -358,14 +358,18 @@ def reoptimize_rounds(
             ],
         )  # fmt: skip
         lower = functools.partial(_funnel_coverage, run, f"coverage_{_round_stage(k)}_lower")
-        kept = _kept(funnels, new_funnels, moved, lower)
+        kept, lowered = _kept(funnels, new_funnels, moved, lower)
         if kept != moved:  # unmoved trajectories already carry their kept funnels
             new_inputs = [new_inputs[i] if i in kept else u for i, u in enumerate(inputs)]
             new_trajectories = [
                 new_trajectories[i] if i in kept else t for i, t in enumerate(trajectories)
             ]
-            new_funnels = _mixed(funnels, new_funnels, kept)
-            new_coverage = _funnel_coverage(run, f"coverage_{_round_stage(k)}_kept", new_funnels)
+            if lowered is not None:  # that mixed set is covered already
+                new_funnels, new_coverage = lowered
+            else:
+                new_funnels = _mixed(funnels, new_funnels, kept)
+                stage = f"coverage_{_round_stage(k)}_kept"
+                new_coverage = _funnel_coverage(run, stage, new_funnels)
         before = sum(trajectories[i].duration for i in funnels.usable)
         after = sum(new_trajectories[i].duration for i in new_funnels.usable)
         shorter = after < before and len(new_funnels.usable) >= len(funnels.usable)
@@ -396,17 +400,20 @@ def _kept(
     after: FunnelStageResult,
     moved: Sequence[int],
     coverage: Callable[[FunnelStageResult], CoverageResult],
-) -> list[int]:
+) -> tuple[list[int], tuple[FunnelStageResult, CoverageResult] | None]:
     """The trajectories of ``moved`` whose new nominal and funnel a round keeps: every one
     certified (usable) when the mixed set with all of them (``coverage`` of it) still covers
-    Init, else those whose level holds at least what the kept one held (``_accepted``). A
-    lower level is sound where Init stays covered: coverage is computed from the funnels
-    themselves, each certified at its own level."""
+    Init, with that set and its coverage; else those whose level holds at least what the kept
+    one held (``_accepted``), and None. A lower level is sound where Init stays covered:
+    coverage is computed from the funnels themselves, each certified at its own level."""
     held = [i for i in _accepted(before, after) if i in moved]
     certified = [i for i in after.usable if i in moved]
-    if held != certified and coverage(_mixed(before, after, certified)).covered:
-        return certified
-    return held
+    if held != certified:
+        mixed = _mixed(before, after, certified)
+        covered = coverage(mixed)
+        if covered.covered:
+            return certified, (mixed, covered)
+    return held, None
 
 
 def _covers_as_well(new: CoverageResult, old: CoverageResult) -> bool:

@@ -347,21 +347,22 @@ def disturbance_multiple(
     check = RobustCheck(Q, K, funnel.vertices, funnel.rate, Ts, funnel.rho)
     if law.hold is None or held is None:
         return check.multiple(law.disturbance, law.lmi_term)
-    offset = held
+    offset, zeros = held, np.zeros_like(law.hold)
 
-    def hold(s: float) -> FloatArray:
-        box = offset(s * law.disturbance).hold
-        return np.zeros_like(law.hold) if box is None else box
+    def grown(box: Callable[[LawOffset], FloatArray | None]) -> Callable[[float], FloatArray]:
+        """``s`` -> the law's ``box`` (``hold`` or ``remainder``) under ``s`` times the bound."""
 
-    boxed = check.multiple(law.disturbance, law.lmi_term, hold)
+        def at(s: float) -> FloatArray:
+            value = box(offset(s * law.disturbance))
+            return zeros if value is None else value
+
+        return at
+
+    boxed = check.multiple(law.disturbance, law.lmi_term, grown(lambda grow: grow.hold))
     if law.remainder is None:
         return boxed
-
-    def remainder(s: float) -> FloatArray:
-        box = offset(s * law.disturbance).remainder
-        return np.zeros_like(law.hold) if box is None else box
-
     sampled = RobustCheck(Q, K, funnel.vertices, funnel.rate, Ts, funnel.rho, law.period)
+    remainder = grown(lambda grow: grow.remainder)
     return max(boxed, sampled.multiple(law.disturbance, law.lmi_term, remainder))
 
 
