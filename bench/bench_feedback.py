@@ -1,4 +1,5 @@
-"""Feedback, radius and coverage stages on quadrotor_hill, timed against one trajectory simulation.
+"""Feedback, radius and coverage stages on quadrotor_hill_flythrough, timed against one trajectory
+simulation.
 
 Prints the wall time of each and its ratio to simulating one demo (RK4, default substeps) in the
 same run, so the numbers compare across machines.
@@ -17,7 +18,7 @@ from stages.feedback import design_feedback
 from stages.radius import robustness_radius
 
 
-def run(scenario_name: str = "quadrotor_hill") -> None:
+def run(scenario_name: str = "quadrotor_hill_flythrough") -> None:
     scenario = load_scenario(scenario_name, check_demos=False)
     demos = scenario.demos
     if not demos:

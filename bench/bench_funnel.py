@@ -1,4 +1,5 @@
-"""Time-varying funnel vs the constant certificate on quadrotor_hill's demos (issue 16, phase 1).
+"""Time-varying funnel vs the constant certificate on quadrotor_hill_flythrough's demos (issue 16,
+phase 1).
 
 For each demo the constant certificate (stages.feedback + stages.radius) gives the ball
 ``||e||_P <= r`` at t = 0. The funnel (pipeline.numerics.funnel.synthesis) is asked to hold the same
@@ -26,11 +27,11 @@ from pipeline.numerics.funnel.synthesis import HOLD, synthesize_funnel
 from stages.feedback import design_feedback
 from stages.radius import robustness_radius
 
-STATE_BOUNDS = {"theta": (-0.8, 0.8)}  # the issue's physical envelope for quadrotor_hill
+STATE_BOUNDS = {"theta": (-0.8, 0.8)}  # the issue's physical envelope for quadrotor_hill_flythrough
 TARGET = 4.0  # s of funnel synthesis per trajectory
 
 
-def run(scenario_name: str = "quadrotor_hill") -> None:
+def run(scenario_name: str = "quadrotor_hill_flythrough") -> None:
     scenario = load_scenario(scenario_name, check_demos=False)
     start = time.perf_counter()
     feedback = design_feedback(scenario)

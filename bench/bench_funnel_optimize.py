@@ -1,4 +1,5 @@
-"""Optimizing nominal flights against their funnels' extents (issue 16 part 4), on quadrotor_hill.
+"""Optimizing nominal flights against their funnels' extents (issue 16 part 4), on
+quadrotor_hill_flythrough.
 
 Per demo: the constant certificate's optimized flight (``stages.optimize.optimize`` at the radius
 the orchestrator keeps, ``covering_radius``) -> ``synthesize_funnel`` around it (initial set as
@@ -44,7 +45,7 @@ ROUNDS = 2
 LEVELS = (None, 1.0)
 
 
-def run(scenario_name: str = "quadrotor_hill", demos: list[int] | None = None) -> None:
+def run(scenario_name: str = "quadrotor_hill_flythrough", demos: list[int] | None = None) -> None:
     only = os.environ.get("BENCH_DEMOS")  # e.g. BENCH_DEMOS=0,4 for a quick look
     demos = demos if demos is not None else (list(map(int, only.split(","))) if only else None)
     for level in LEVELS:

@@ -1,4 +1,5 @@
-"""Cost and gradient timings on quadrotor_hill, as ratios measured side by side in one run.
+"""Cost and gradient timings on quadrotor_hill_flythrough, as ratios measured side by side in one
+run.
 
 For N = 50, 100, 200, 400: one ``cost`` call, each gradient method (``cost_and_gradient``) and a
 central finite-difference gradient (``2 N m`` cost calls), as multiples of one ``cost`` call.
@@ -44,9 +45,12 @@ def tracking_input(scenario, x0: np.ndarray, N: int) -> np.ndarray:
 
 
 def run() -> None:
-    scenario = load_scenario("quadrotor_hill", check_demos=False)
+    scenario = load_scenario("quadrotor_hill_flythrough", check_demos=False)
     x0 = np.array([2.0, 2.5, 0.0, 0.0, 0.0, 0.0])
-    print(f"quadrotor_hill, Ts = {scenario.Ts} s, 4 RK4 substeps (3 penalty points) per sample")
+    print(
+        f"quadrotor_hill_flythrough, Ts = {scenario.Ts} s, 4 RK4 substeps (3 penalty points)"
+        " per sample"
+    )
     print(f"{'N':>5} {'cost (ms)':>10} {'adjoint':>8} {'sensitivity':>12} {'finite diff':>12}")
     per_size = {}
     for N in SIZES:

@@ -1,8 +1,8 @@
 """Monte Carlo throughput: closed-loop rollouts per second, measured side by side in one run.
 
-The controller is ``reports/quadrotor_hill/controller.json`` (copied to a temporary folder so
-that a concurrent ``make synthesize`` cannot change it mid-run); if it is missing, the pipeline
-is run into a temporary folder first (``--samples 1000``).
+The controller is ``reports/quadrotor_hill_flythrough/controller.json`` (copied to a temporary
+folder so that a concurrent ``make synthesize`` cannot change it mid-run); if it is missing, the
+pipeline is run into a temporary folder first (``--samples 1000``).
 
 (a) Batched NumPy oracle: ``pipeline.numerics.closed_loop.simulate.check_runs`` on 10,000 initial
 states
@@ -44,7 +44,7 @@ from pipeline.numerics.closed_loop.simulate import check_runs
 from pipeline.runtime.api import synthesize
 from stages.montecarlo import falsify, validate_closed_loop
 
-SCENARIO = "quadrotor_hill"
+SCENARIO = "quadrotor_hill_flythrough"
 BATCH = 10_000
 SCALE_OUT = 100_000
 SCALE_OUT_CHUNK = 10_000

@@ -1,6 +1,6 @@
 """Minimum-time optimisation: our search (gd, L-BFGS) against CasADi + IPOPT, side by side.
 
-For every quadrotor_hill demo start ``x0`` both solve the problem of ``stages.optimize``:
+For every quadrotor_hill_flythrough demo start ``x0`` both solve the problem of ``stages.optimize``:
 
     minimise T = N Ts  over piecewise-constant u (N, m) held for Ts = 0.1 s
     s.t.  x(0) = x0, RK4 with s = 4 substeps per sample (the penalty grid x_i, i = 0..N s)
@@ -315,7 +315,7 @@ def _ipopt_check(
 
 
 def run() -> None:
-    scenario = load_scenario("quadrotor_hill")
+    scenario = load_scenario("quadrotor_hill_flythrough")
     Ts = scenario.Ts
     feedback = design_feedback(scenario)
     r_d = feedback.required_radius(scenario.clearance)
@@ -337,7 +337,8 @@ def run() -> None:
     for option in options.values():  # load the numba kernels outside the timings
         optimize_demo(scenario, 0, margins, option)
     print(
-        f"quadrotor_hill, {len(scenario.demos)} demos, Ts = {Ts:g} s, RK4 {SUBSTEPS} substeps;"
+        f"quadrotor_hill_flythrough, {len(scenario.demos)} demos, Ts = {Ts:g} s,"
+        f" RK4 {SUBSTEPS} substeps;"
         f" d' = {scenario.clearance + eps.eps_d:g}, ModGoal = Goal shrunk by"
         f" {scenario.clearance + eps.eps_g:g}, input margin"
         f" {np.round(margins.input_margin, 3).tolist()}"

@@ -1,4 +1,4 @@
-"""The optimizer's design choices on quadrotor_hill, side by side (docs/architecture.md).
+"""The optimizer's design choices on quadrotor_hill_flythrough, side by side (docs/architecture.md).
 
 Every variant optimizes all demos with ``stages.optimize.optimize_demo`` and the feedback
 stage's margins; printed: demos feasible at their own length, demos optimized and verified, mean
@@ -28,7 +28,7 @@ VARIANTS = {
 }
 
 
-def run(scenario_name: str = "quadrotor_hill") -> None:
+def run(scenario_name: str = "quadrotor_hill_flythrough") -> None:
     scenario = load_scenario(scenario_name)
     feedback = design_feedback(scenario)
     r_d = feedback.required_radius(scenario.clearance)

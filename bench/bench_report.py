@@ -1,10 +1,10 @@
 """Report stage, side by side: this tree against the code before the report was reworked.
 
 Issue 15's report row (``bench_speed`` (a)) measures this tree alone; this one runs the report
-stage of quadrotor_hill with an empty figure cache alternately with ``BASELINE`` (exported by
-``git archive`` into a temporary folder; ``REPORT_BASELINE=REV`` picks another revision), each
-in a fresh interpreter on its own copy of one finished run, so that both see the same machine
-load. Prints every round and the medians; skipped outside a git checkout.
+stage of quadrotor_hill_flythrough with an empty figure cache alternately with ``BASELINE``
+(exported by ``git archive`` into a temporary folder; ``REPORT_BASELINE=REV`` picks another
+revision), each in a fresh interpreter on its own copy of one finished run, so that both see the
+same machine load. Prints every round and the medians; skipped outside a git checkout.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ from pipeline.model.scenario import load_scenario
 from pipeline.runtime.stored import load_report_data
 from stages.report import write_reports
 out = Path(sys.argv[1])
-scenario = load_scenario("quadrotor_hill")
+scenario = load_scenario("quadrotor_hill_flythrough")
 shutil.rmtree(out / "artifacts" / "figures", ignore_errors=True)
 start = time.perf_counter()
 result = write_reports(load_report_data(scenario, out))
@@ -67,7 +67,7 @@ def run() -> None:
             return
         subprocess.run(["tar", "-x", "-C", str(old)], input=archive.stdout, check=True)
         run_folder, source = finished_run(folder)
-        print(f"report stage of quadrotor_hill, empty figure cache, run {source}")
+        print(f"report stage of quadrotor_hill_flythrough, empty figure cache, run {source}")
         trees = {f"baseline {baseline}": old, "this tree": ROOT}
         times: dict[str, list[float]] = {name: [] for name in trees}
         for k in range(ROUNDS):

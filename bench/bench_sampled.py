@@ -9,7 +9,7 @@ scenario's declared additive bound and measurement box) and, per sample interval
 worst interval's margin of each and how many intervals fail. Run: ``python -m bench.bench_sampled
 CONTROLLER_JSON [h ...]`` (no file: skipped in ``make bench``, which has none to read).
 
-Measured on quadrotor_hill_robust's continuous-law file (9 funnels, 35-38 intervals, 1 segment,
+Measured on quadrotor_hill's continuous-law file (9 funnels, 35-38 intervals, 1 segment,
 the file's reference grid), funnels passing on every interval, (I6) box / (I6'): h = 1 ms 2/9 /
 8/9; 2 ms 0/9 / 6/9; 5 ms 0/9 / 2/9 (failing intervals per funnel 12-32 / 0-12); 10 ms 0/9 /
 0/9. (I6') was below (I6) on all 329 intervals at 1 ms and at 5 ms (by at least 0.002 and

@@ -35,7 +35,7 @@ def _flight(scenario) -> tuple[str, np.ndarray, np.ndarray]:
 
 
 def run() -> None:
-    scenario = load_scenario("quadrotor_hill", check_demos=False)
+    scenario = load_scenario("quadrotor_hill_flythrough", check_demos=False)
     D, Ts = scenario.dynamics, scenario.Ts
     label, x0, us = _flight(scenario)
     N = us.shape[0]
@@ -72,7 +72,7 @@ def run() -> None:
     f_batch = best_time(lambda: D.f(point[None], inputs[None]), repeat=5, number=2000)
 
     print(
-        f"quadrotor_hill, {label}: N = {N} samples of Ts = {Ts:g} s, RK4 substeps = "
+        f"quadrotor_hill_flythrough, {label}: N = {N} samples of Ts = {Ts:g} s, RK4 substeps = "
         f"{DEFAULT_SUBSTEPS}; best of repeated runs"
     )
     rows = [

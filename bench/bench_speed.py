@@ -1,8 +1,8 @@
 """Issue 15's remaining rows, each measured here and printed as a ratio against its limit.
 
-A finished run of quadrotor_hill is needed: ``reports/quadrotor_hill`` is copied to a temporary
-folder (so that a concurrent ``make synthesize`` cannot change it mid-run); if it is missing,
-the pipeline is run into the temporary folder first (``--samples 1000``).
+A finished run of quadrotor_hill_flythrough is needed: ``reports/quadrotor_hill_flythrough`` is
+copied to a temporary folder (so that a concurrent ``make synthesize`` cannot change it mid-run); if
+it is missing, the pipeline is run into the temporary folder first (``--samples 1000``).
 
 (a) Report stage, as ``synthesize`` runs it (``write_reports(staged_report_data(...))``: read
     the artifacts, write report.html, scenario.png and report.pdf (typeset by Typst) into the
@@ -41,7 +41,7 @@ from pipeline.runtime.stored import staged_report_data
 from stages.montecarlo import validate_closed_loop
 from stages.report import write_reports
 
-SCENARIO = "quadrotor_hill"
+SCENARIO = "quadrotor_hill_flythrough"
 REPORT_LIMIT = 3.0  # s
 MONTE_CARLO_LIMIT = 10.0  # s, at the default size on 2 cores
 STARTUP_LIMIT = 0.5  # s

@@ -7,14 +7,15 @@ reserved for a certificate:
     dist(p(x_i), Unsafe_j) >= d              at every grid point (the clearance d, no tube)
     p(x_{N s}) in Goal                        (Goal itself, not shrunk)
     u[k] in the full input bounds
-    x_i in state_bounds                       (the physical envelope; quadrotor_hill |theta| <= 0.8)
+    x_i in state_bounds                       (the physical envelope; quadrotor_hill_flythrough
+    |theta| <= 0.8)
 
 ``T_certified / T_uncertified`` is then the time the certificate costs on that start.
 
 ``at_rest``: the flight must also arrive at rest, every state but the position at its value in
-``feedback.reference_state`` (the design equilibrium, ``f(x*, u*) = 0``; quadrotor_hill: hover,
-speeds and pitch rate 0, pitch at trim 0). That is the uncertified time a certificate that ends
-in a hover (issue 29, ``terminal: hold``) is measured against.
+``feedback.reference_state`` (the design equilibrium, ``f(x*, u*) = 0``; quadrotor_hill_flythrough:
+hover, speeds and pitch rate 0, pitch at trim 0). That is the uncertified time a certificate that
+ends in a hover (issue 29, ``terminal: hold``) is measured against.
 """
 
 from __future__ import annotations

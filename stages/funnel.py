@@ -18,10 +18,10 @@ radius ``r_i`` holds: its slice along Init's free directions ``S (n, D)``,
 
     Q_init_i = r_i^2 S (S^T P S)^-1 S^T.                                                    (I1)
 
-Why cells (quadrotor_hill_gusty, measured): the ball slice (I1) reached +-0.30 rad in pitch and
-+-0.95 m/s in horizontal speed from every start, 4-6x what Init spans; on the same nominals
-(T 3.3-3.7 s) funnels asked for (I1) held 57-70% of it, funnels asked for their cells held all
-of it.
+Why cells (quadrotor_hill_gusty_flythrough, measured): the ball slice (I1) reached +-0.30 rad in
+pitch and +-0.95 m/s in horizontal speed from every start, 4-6x what Init spans; on the same
+nominals (T 3.3-3.7 s) funnels asked for (I1) held 57-70% of it, funnels asked for their cells held
+all of it.
 
 With a terminal ellipsoid (``terminal``, a ``terminal: hold`` run: ``terminal.hold_design``),
 each funnel must also end inside it (``synthesize_funnel(terminal=...)``: (T2) in the program,

@@ -221,7 +221,7 @@ def end_unshrunk(
     no longer shrinks Goal's extra bounds on the states ``names``: they bound the nominal's end
     itself. Their ``goal_margin`` is 0, not absent, so that the descent's tightened problem
     still moves them by its ``overshoot`` (absent, the tightened and the real bound were the
-    same and the descent crept to the bound without reaching it: quadrotor_hill with
+    same and the descent crept to the bound without reaching it: quadrotor_hill_flythrough with
     ``terminal: hold`` stopped at J = 3e-22 > 0 on demo_06)."""
     if not names:
         return margins

@@ -43,13 +43,13 @@ from pipeline.runtime.synthesis import Synthesis
 # module's fixture)
 threadpool_limits(limits=1, user_api="blas")
 
-E2E_SAMPLES = 1000  # quadrotor_hill: the end-to-end tests reuse its run
+E2E_SAMPLES = 1000  # quadrotor_hill_flythrough: the end-to-end tests reuse its run
 CI_SYNTHESIS_SAMPLES = 300  # every other shipped scenario: the CI safety check only
-SAMPLES = {"quadrotor_hill": E2E_SAMPLES}
+SAMPLES = {"quadrotor_hill_flythrough": E2E_SAMPLES}
 SYNTHESIS_FIXTURES = {"synthesis_run", "synthesis", "synthesized", "synthesized_constant"}
-# quadrotor_hill ships the funnel certificate; the tests of the constant certificate's file
-# (/1) and report read a run of it with --certificate constant (``synthesized_constant``), made
-# from the funnel run's folder: both runs are in quadrotor_hill's group
+# quadrotor_hill_flythrough ships the funnel certificate; the tests of the constant certificate's
+# file (/1) and report read a run of it with --certificate constant (``synthesized_constant``), made
+# from the funnel run's folder: both runs are in quadrotor_hill_flythrough's group
 
 
 def synthesis_group(scenario: str) -> str:
@@ -62,11 +62,12 @@ FUNNEL_GROUP = "quadrotor-funnel"
 
 # The order in which the scheduler hands out work: these groups, then the tests marked slow,
 # then the rest. With two workers the first goes to one, the second to the other, and the third
-# (its worker has only the first group's two tests left) again to the first: the unicycle's
-# synthesis (the longest) runs beside the quadrotor's group from the start.
+# to whichever is free first: quadrotor_hill's synthesis (robust funnels, the longest) runs
+# beside the unicycle's from the start.
 SCHEDULE = (
-    synthesis_group("unicycle_slalom"),
     synthesis_group("quadrotor_hill"),
+    synthesis_group("unicycle_slalom"),
+    synthesis_group("quadrotor_hill_flythrough"),
     synthesis_group("double_integrator"),
     synthesis_group("double_integrator_hold"),
     FUNNEL_GROUP,
@@ -220,8 +221,9 @@ def pytest_terminal_summary(terminalreporter, config: pytest.Config) -> None:
 @pytest.hookimpl(tryfirst=True)  # before xdist's own hook reads the groups in each worker
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     """Mark each test that reads a session synthesis with its scenario's ``xdist_group``: the
-    ``name`` parameter for ``synthesis(name)``, quadrotor_hill for ``synthesized`` (a test that
-    calls ``synthesis("other")`` says so with its own ``xdist_group(synthesis_group("other"))``);
+    ``name`` parameter for ``synthesis(name)``, quadrotor_hill_flythrough for ``synthesized`` (a
+    test that calls ``synthesis("other")`` says so with its own
+    ``xdist_group(synthesis_group("other"))``);
     each other test that reads ``quadrotor_funnel_artifact`` with ``FUNNEL_GROUP``."""
     for item in items:
         if item.get_closest_marker("xdist_group"):  # a test may name its group
@@ -235,7 +237,7 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
         callspec = getattr(item, "callspec", None)
         params = callspec.params if callspec is not None else {}
         if used & {"synthesized", "synthesized_constant"} or "name" not in params:
-            scenario = "quadrotor_hill"
+            scenario = "quadrotor_hill_flythrough"
         else:
             scenario = str(params["name"])
         item.add_marker(pytest.mark.xdist_group(synthesis_group(scenario)))
@@ -396,16 +398,17 @@ def synthesis(synthesis_run):
 
 @pytest.fixture(scope="session")
 def synthesized(synthesis):
-    """``(exit_code, out)`` of ``synthesize quadrotor_hill`` with 1,000 Monte Carlo samples."""
-    return synthesis("quadrotor_hill")
+    """``(exit_code, out)`` of ``synthesize quadrotor_hill_flythrough`` with 1,000 Monte Carlo
+    samples."""
+    return synthesis("quadrotor_hill_flythrough")
 
 
 @pytest.fixture(scope="session")
 def synthesized_constant(synthesis_run):
-    """``(exit_code, out)`` of ``synthesize quadrotor_hill --certificate constant`` (1,000
-    Monte Carlo samples) in a copy of ``synthesized``'s folder: the constant certificate's
+    """``(exit_code, out)`` of ``synthesize quadrotor_hill_flythrough --certificate constant``
+    (1,000 Monte Carlo samples) in a copy of ``synthesized``'s folder: the constant certificate's
     ``safety-controller/1`` and report."""
-    session = synthesis_run("quadrotor_hill", certificate="constant")
+    session = synthesis_run("quadrotor_hill_flythrough", certificate="constant")
     return session.result.exit_code, session.out
 
 
@@ -456,15 +459,15 @@ def funnel_artifact(tmp_path_factory):
 
 @pytest.fixture(scope="session")
 def quadrotor_funnel_artifact(tmp_path_factory):
-    """``(scenario, path)``: a ``safety-controller/2`` file for quadrotor_hill from one real
-    funnel (demo 0 in full, the scenario's state bounds; about 20-25 s), the shipped scenario
+    """``(scenario, path)``: a ``safety-controller/2`` file for quadrotor_hill_flythrough from one
+    real funnel (demo 0 in full, the scenario's state bounds; about 20-25 s), the shipped scenario
     unchanged (its Init is not all covered by one funnel)."""
     from pipeline.model.scenario import load_scenario
     from pipeline.model.simulate import simulate
     from pipeline.numerics.funnel.synthesis import synthesize_funnel
     from stages.controller import emit_funnel_controller
 
-    scenario = load_scenario("quadrotor_hill", check_demos=False)
+    scenario = load_scenario("quadrotor_hill_flythrough", check_demos=False)
     demo = scenario.demos[0]
     trajectory = simulate(scenario.dynamics, demo.x0, demo.us, scenario.Ts)
     funnel = synthesize_funnel(scenario, trajectory, state_bounds=scenario.state_bounds)

@@ -10,7 +10,7 @@ from pipeline.model.scenario import load_scenario
 
 
 def test_uncertified_constraints_are_the_scenarios_own_limits() -> None:
-    scenario = load_scenario("quadrotor_hill", check_demos=False)
+    scenario = load_scenario("quadrotor_hill_flythrough", check_demos=False)
     constraints = uncertified_constraints(scenario)
     np.testing.assert_array_equal(constraints.input_lower, scenario.input_lower)
     np.testing.assert_array_equal(constraints.input_upper, scenario.input_upper)
@@ -23,9 +23,10 @@ def test_uncertified_constraints_are_the_scenarios_own_limits() -> None:
 
 
 def test_at_rest_asks_the_design_equilibrium_in_every_state_but_the_position() -> None:
-    """quadrotor_hill arrives hovering: theta, vX, vY, omega at 0 (feedback.reference_state),
+    """quadrotor_hill_flythrough arrives hovering: theta, vX, vY, omega at 0
+    (feedback.reference_state),
     X and Y anywhere in Goal."""
-    scenario = load_scenario("quadrotor_hill", check_demos=False)
+    scenario = load_scenario("quadrotor_hill_flythrough", check_demos=False)
     constraints = uncertified_constraints(scenario, at_rest=True)
     named = [scenario.state_names[i] for i in constraints.goal_index]
     assert sorted(named) == ["omega", "theta", "vX", "vY"]

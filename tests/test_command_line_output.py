@@ -25,7 +25,7 @@ from pipeline.runtime.terminal import (
 
 @pytest.fixture(scope="module")
 def quadrotor():
-    return load_scenario("quadrotor_hill", check_demos=False)
+    return load_scenario("quadrotor_hill_flythrough", check_demos=False)
 
 
 @pytest.mark.parametrize(
@@ -76,7 +76,7 @@ def test_the_length_unit_is_the_position_states_common_unit(quadrotor):
 
 def _synthesis(folder: Path) -> Synthesis:
     return Synthesis(
-        scenario="quadrotor_hill",
+        scenario="quadrotor_hill_flythrough",
         verdict=Verdict.NOT_CERTIFIED,
         success=False,
         message="not certified",

@@ -18,8 +18,8 @@ from stages.feedback import design_feedback
 SHIPPED = (
     "double_integrator",
     "double_integrator_hold",
-    "quadrotor_hill",
-    "quadrotor_hill_gusty",
+    "quadrotor_hill_flythrough",
+    "quadrotor_hill_gusty_flythrough",
     "unicycle_slalom",
 )
 

@@ -19,7 +19,7 @@ from pipeline.numerics.optimize.problem import make_problem
 
 @pytest.fixture(scope="module")
 def quadrotor():
-    return load_scenario("quadrotor_hill", check_demos=False)
+    return load_scenario("quadrotor_hill_flythrough", check_demos=False)
 
 
 def _hover(scenario, position, N=10):
@@ -183,7 +183,7 @@ def test_compiled_cost_and_trajectory_match_the_numpy_reference(name, penalty_po
 
 
 def test_demo_problem_and_horizons():
-    scenario = load_scenario("quadrotor_hill", check_demos=False)
+    scenario = load_scenario("quadrotor_hill_flythrough", check_demos=False)
     if not scenario.demos:
         pytest.skip("no demos yet")
     demo = scenario.demos[0]

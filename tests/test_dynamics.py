@@ -30,7 +30,7 @@ def scenario(request: pytest.FixtureRequest):
 
 @cache
 def _quadrotor():
-    return load_scenario("quadrotor_hill", check_demos=False)
+    return load_scenario("quadrotor_hill_flythrough", check_demos=False)
 
 
 @pytest.fixture(scope="module")
@@ -63,7 +63,7 @@ def central_differences(
 
 
 def test_some_scenario_is_shipped() -> None:
-    assert "quadrotor_hill" in SCENARIOS
+    assert "quadrotor_hill_flythrough" in SCENARIOS
 
 
 def test_jacobians_match_central_differences(scenario) -> None:

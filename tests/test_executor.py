@@ -159,7 +159,7 @@ def test_monte_carlo_and_optimization_are_identical_on_every_executor(synthesize
     from stages.optimize import ConstraintMargins, OptimizeOptions, optimize
 
     _, out = synthesized
-    scenario = load_scenario("quadrotor_hill", check_demos=False)
+    scenario = load_scenario("quadrotor_hill_flythrough", check_demos=False)
     feedback = read_stored(out / "artifacts" / "feedback", RESULT_TYPES).result
     r_d = feedback.required_radius(scenario.clearance)
     margins = ConstraintMargins.of_tube(feedback.certified_tube, r_d)

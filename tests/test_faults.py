@@ -286,10 +286,10 @@ def test_unwritable_out_is_exit_2_before_computing(run, capsys, tmp_path, monkey
 def test_another_scenarios_controller_is_refused(run, capsys, tmp_path):
     other = tmp_path / "other"
     other.mkdir()
-    (other / "controller.json").write_text(json.dumps({"scenario": "quadrotor_hill"}))
+    (other / "controller.json").write_text(json.dumps({"scenario": "quadrotor_hill_flythrough"}))
     assert main(["synthesize", str(run[0]), "--out", str(other)]) == 2
     error = capsys.readouterr().err
-    assert "holds another scenario's controller.json; found 'quadrotor_hill'" in error
+    assert "holds another scenario's controller.json; found 'quadrotor_hill_flythrough'" in error
 
 
 # --- 7. leaks and races ------------------------------------------------------------------------

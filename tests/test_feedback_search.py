@@ -219,7 +219,7 @@ def test_a_search_that_certifies_nothing_says_what_is_left(tmp_path):
     """The quadrotor at a given rate of 20 1/s: no region narrowing certifies it, and the
     message does not repeat the advice the search has already followed."""
     folder = tmp_path / "quadrotor"
-    shutil.copytree(REPO / "scenarios" / "quadrotor_hill", folder)
+    shutil.copytree(REPO / "scenarios" / "quadrotor_hill_flythrough", folder)
     text = (folder / "scenario.yaml").read_text()
     block = re.search(r"^feedback:\n(?:  .*\n)+", text, flags=re.MULTILINE)
     assert block is not None

@@ -74,7 +74,7 @@ def test_bad_arguments_are_value_errors_naming_them(certified):
     if controller.terminal is None:
         with pytest.raises(ValueError, match=f"past the trajectory's T = {T:g} s"):
             pipeline.fly(controller, scenario, scenario.init_lower, until=T + 1)
-    with pytest.raises(ValueError, match="scenario 'quadrotor_hill' has states"):
-        pipeline.fly(controller, "quadrotor_hill", scenario.init_lower)
+    with pytest.raises(ValueError, match="scenario 'quadrotor_hill_flythrough' has states"):
+        pipeline.fly(controller, "quadrotor_hill_flythrough", scenario.init_lower)
     short = pipeline.fly(controller, scenario, scenario.init_lower, until=0.5)
     assert short.ts[-1] == pytest.approx(0.5)

@@ -66,7 +66,7 @@ def double_integrator():
 @pytest.fixture(scope="module")
 def quadrotor():
     """The first 2 s of demo 1 with Goal moved around where it ends."""
-    scenario = load_scenario("quadrotor_hill", check_demos=False)
+    scenario = load_scenario("quadrotor_hill_flythrough", check_demos=False)
     demo = scenario.demos[0]
     trajectory = simulate(scenario.dynamics, demo.x0, demo.us[:20], scenario.Ts)
     final = trajectory.xs[-1, :2]
@@ -219,9 +219,10 @@ def test_svec_is_an_isometry_and_basis_matches_it() -> None:
 
 
 def _demo_start(samples: int):
-    """quadrotor_hill, the LQR seed ``K (N, m, n)``, ``Q_seed (N+1, n, n)`` and the nominal's
+    """quadrotor_hill_flythrough, the LQR seed ``K (N, m, n)``, ``Q_seed (N+1, n, n)`` and the
+    nominal's
     Jacobians ``J (N, n, n+m)`` over the first ``samples`` of demo 1."""
-    scenario = load_scenario("quadrotor_hill", check_demos=False)
+    scenario = load_scenario("quadrotor_hill_flythrough", check_demos=False)
     demo = scenario.demos[0]
     trajectory = simulate(scenario.dynamics, demo.x0, demo.us[:samples], scenario.Ts)
     K, P = lqr_seed(scenario, trajectory)

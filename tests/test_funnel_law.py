@@ -27,7 +27,7 @@ from pipeline.numerics.funnel.law import (
 from pipeline.numerics.verify.recertify import ShippedFunnel, rebuild_funnel
 from stages.certify import certify_controller
 
-FUNNEL_SCENARIOS = ("quadrotor_hill", "unicycle_slalom")
+FUNNEL_SCENARIOS = ("quadrotor_hill_flythrough", "unicycle_slalom")
 FINER = 10  # the re-check's time grid against the file's
 
 
@@ -73,7 +73,8 @@ def _worst_inequality(scenario, controller, i):
 
 @pytest.mark.parametrize("name", FUNNEL_SCENARIOS)
 def test_the_funnel_inequality_holds_with_the_interpolated_reference(synthesis, name):
-    """Fails on files that ship the reference on 20 RK4 steps everywhere: quadrotor_hill's
+    """Fails on files that ship the reference on 20 RK4 steps everywhere:
+    quadrotor_hill_flythrough's
     intervals 0-1 (eigenvalue about -0.01, the term up to 0.06)."""
     _, out = synthesis(name)
     scenario, controller = load_scenario(name), load(out / "controller.json")
@@ -112,10 +113,11 @@ def test_the_shipped_law_never_pushes_a_state_out_across_the_funnel_boundary(syn
 
 
 def test_a_file_on_the_old_uniform_grid_is_not_certified(synthesized, tmp_path):
-    """quadrotor_hill's funnels with their reference on 20 RK4 steps per sample everywhere (as
+    """quadrotor_hill_flythrough's funnels with their reference on 20 RK4 steps per sample
+    everywhere (as
     files were written before the law's term was in the proof): not certified, naming it."""
     _, out = synthesized
-    scenario = load_scenario("quadrotor_hill")
+    scenario = load_scenario("quadrotor_hill_flythrough")
     document = json.loads((out / "controller.json").read_text())
     for item in document["trajectories"]:
         fine = simulate(scenario.dynamics, item["x0"], item["u_ref"], scenario.Ts, 20)

@@ -1,5 +1,5 @@
 """The funnel certificate as a run (``certificate="funnel"``, ``--certificate funnel``): on
-quadrotor_hill end to end (the shipped scenario's certificate is the funnel: its session
+quadrotor_hill_flythrough end to end (the shipped scenario's certificate is the funnel: its session
 synthesis, tests/conftest.py, is the run), the command line's flag on a copy of its folder
 (every stage reused), bad combinations refused before any work, and the report of a funnel run
 (the funnel figure, the table constant vs funnel, the per-trajectory gains)."""
@@ -35,13 +35,13 @@ from tests.helpers.browser import (
     needs_browser,
 )
 
-SCENARIO = "quadrotor_hill"
+SCENARIO = "quadrotor_hill_flythrough"
 SAMPLES = 200  # the command line's runs on a copy (the session run has 1,000)
 
 
 @pytest.fixture(scope="module")
 def funnel_run(synthesis_run):
-    """quadrotor_hill's session synthesis (its scenario ships the funnel certificate) ->
+    """quadrotor_hill_flythrough's session synthesis (its scenario ships the funnel certificate) ->
     ``(result, the pipeline logger's lines)``. Read only: a test that changes files copies it."""
     session = synthesis_run(SCENARIO)
     assert session.result.summary is not None and session.result.summary.certificate == "funnel"

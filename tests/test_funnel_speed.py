@@ -4,7 +4,8 @@
 2. The angle cap fills whole arc segments and never goes below a quarter segment.
 3. The hull's symbolic structure is cached per ``Dynamics`` object: two dynamics that differ
    only in a coefficient get their own hulls, each containing its own Jacobians.
-4. quadrotor_hill demo 3 (rejected before: the hull boxes spanned the whole pitch envelope and
+4. quadrotor_hill_flythrough demo 3 (rejected before: the hull boxes spanned the whole pitch
+envelope and
    the program was nearly infeasible) is certified, with the gain held over each piece.
 """
 
@@ -72,7 +73,7 @@ def test_the_hulls_unique_rows_are_numpys() -> None:
         expected = np.unique(rows, axis=0)
         found = unique_rows(rows)
         assert found.shape == expected.shape and found.tobytes() == expected.tobytes()
-    quadrotor = load_scenario("quadrotor_hill", check_demos=False)
+    quadrotor = load_scenario("quadrotor_hill_flythrough", check_demos=False)
     region = dict(quadrotor.operating_region)
     vertices = jacobian_hull(quadrotor.dynamics, region).vertices
     assert vertices.tobytes() == np.unique(vertices, axis=0).tobytes()
@@ -99,12 +100,12 @@ def test_hull_structure_is_cached_per_dynamics() -> None:
                 high = hull.vertices.max(axis=0)
                 assert np.all(J >= low - 1e-12) and np.all(J <= high + 1e-12)
     assert np.sign(hulls[0].vertices[:, 0, 1].max()) != np.sign(hulls[1].vertices[:, 0, 1].max())
-    quadrotor = load_scenario("quadrotor_hill", check_demos=False)
+    quadrotor = load_scenario("quadrotor_hill_flythrough", check_demos=False)
     assert arc_variables(quadrotor.dynamics) == ("theta",)
 
 
 def test_demo_3_is_certified_with_held_gains() -> None:
-    scenario = load_scenario("quadrotor_hill", check_demos=False)
+    scenario = load_scenario("quadrotor_hill_flythrough", check_demos=False)
     demo = scenario.demos[2]
     trajectory = simulate(scenario.dynamics, demo.x0, demo.us, scenario.Ts)
     funnel = synthesize_funnel(scenario, trajectory, state_bounds=THETA_BOUNDS)

@@ -60,7 +60,9 @@ def violations(text: str, names: dict[str, list[str]]) -> list[str]:
 
 def test_every_shipped_scenario_is_checked():
     names = _names()
-    assert {"quadrotor_hill", "double_integrator", "unicycle_slalom"} <= set(available_scenarios())
+    assert {"quadrotor_hill_flythrough", "double_integrator", "unicycle_slalom"} <= set(
+        available_scenarios()
+    )
     assert {"theta", "vX", "u1", "psi", "turn_rate", "ux"} <= set(names)
 
 

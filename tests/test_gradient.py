@@ -166,7 +166,7 @@ def test_gradient_with_margins_along_the_trajectory_matches_central_differences(
 
 def test_gradient_of_a_quadrotor_flight_near_the_hill():
     """Default margins: the barrier near the hill, the goal and the input bound all active."""
-    scenario = load_scenario("quadrotor_hill", check_demos=False)
+    scenario = load_scenario("quadrotor_hill_flythrough", check_demos=False)
     x0 = np.array([2.0, 2.5, 0.0, 0.0, 0.0, 0.0])
     u = np.zeros((40, 2))
     u[:, 0] = 9.5
@@ -183,7 +183,7 @@ def test_gradient_of_a_quadrotor_flight_near_the_hill():
 
 
 def test_quadrotor_pruned_sensitivity_system_has_33_equations():
-    scenario = load_scenario("quadrotor_hill", check_demos=False)
+    scenario = load_scenario("quadrotor_hill_flythrough", check_demos=False)
     pattern = sensitivity_pattern(scenario.dynamics)
     assert (pattern.phi.sum(), pattern.gamma.sum()) == (17, 10)
     assert pattern.equations == 33 == 6 + 17 + 10  # Remark 3

@@ -84,6 +84,6 @@ def test_a_box_that_is_not_an_interval_is_refused_by_name(region, message) -> No
     from pipeline.model.scenario import load_scenario
     from pipeline.numerics.hull import jacobian_hull
 
-    dynamics = load_scenario("quadrotor_hill", check_demos=False).dynamics
+    dynamics = load_scenario("quadrotor_hill_flythrough", check_demos=False).dynamics
     with pytest.raises(HullError, match=re.escape(message)):
         jacobian_hull(dynamics, region)

@@ -73,8 +73,8 @@ def test_the_build_warns_about_nothing_of_this_package_and_ships_its_data(tmp_pa
         "pipeline/reporting/templates/report.html.j2",
         "pipeline/reporting/templates/report.typ",
         "pipeline/scenarios/scenario.schema.json",
-        "pipeline/scenarios/quadrotor_hill/scenario.yaml",
-        "pipeline/scenarios/quadrotor_hill/demos/demo_01.csv",
+        "pipeline/scenarios/quadrotor_hill_flythrough/scenario.yaml",
+        "pipeline/scenarios/quadrotor_hill_flythrough/demos/demo_01.csv",
         "stages/report.py",
     ):
         assert name in names, name

@@ -18,7 +18,7 @@ from tests.helpers.funnels import make_funnel
 
 @pytest.fixture(scope="module")
 def quadrotor():
-    return load_scenario("quadrotor_hill", check_demos=False)
+    return load_scenario("quadrotor_hill_flythrough", check_demos=False)
 
 
 def test_a_constant_funnel_has_the_constant_tubes_margins(quadrotor):

@@ -110,11 +110,11 @@ def test_demos_of_one_flight_says_so(
         (
             ["new", "car", "--like", "dubins"],
             "error: unknown template --like 'dubins'; expected "
-            "one of: double_integrator, unicycle_slalom, quadrotor_hill",
+            "one of: double_integrator, unicycle_slalom, quadrotor_hill_flythrough",
         ),
         (
-            ["new", "quadrotor_hill"],
-            "error: 'quadrotor_hill' is a shipped scenario's name; "
+            ["new", "quadrotor_hill_flythrough"],
+            "error: 'quadrotor_hill_flythrough' is a shipped scenario's name; "
             "expected another name (yours would hide it)",
         ),
     ],

@@ -105,7 +105,7 @@ def test_the_scenario_chooses_the_optimizer_unless_the_command_line_does() -> No
     from pipeline.model.scenario import load_scenario
     from pipeline.runtime.run_inputs import method_of
 
-    quadrotor = load_scenario("quadrotor_hill", check_demos=False)
+    quadrotor = load_scenario("quadrotor_hill_flythrough", check_demos=False)
     plain = load_scenario("double_integrator", check_demos=False)
     assert method_of(quadrotor, RunOptions()) == "lbfgs"
     assert method_of(plain, RunOptions()) == "gd"

@@ -1,4 +1,5 @@
-"""The synthetic pilot and the demonstrations it ships (quadrotor_hill, and every scenario
+"""The synthetic pilot and the demonstrations it ships (quadrotor_hill_flythrough, and every
+scenario
 with a ``pilot.py``)."""
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from pipeline.model.scenario import SCENARIOS_ROOT, Scenario, available_scenario
 from pipeline.model.simulate import simulate
 from pipeline.runtime.cli import main
 
-SHIPPED = SCENARIOS_ROOT / "quadrotor_hill"
+SHIPPED = SCENARIOS_ROOT / "quadrotor_hill_flythrough"
 FLOWN = [name for name in available_scenarios() if (SCENARIOS_ROOT / name / "pilot.py").is_file()]
 
 
@@ -30,7 +31,7 @@ def _flown_by_pilot(scenario: Scenario) -> list:
 @pytest.fixture(scope="module")
 def scenario() -> Scenario:
     """The shipped scenario; loading it simulates every demo (avoids Unsafe, ends in Goal)."""
-    return load_scenario("quadrotor_hill", check_demos=True)
+    return load_scenario("quadrotor_hill_flythrough", check_demos=True)
 
 
 def test_shipped_demos_start_spread_over_init(scenario: Scenario) -> None:
@@ -119,7 +120,7 @@ def test_pilot_refuses_a_scenario_without_configuration(tmp_path: Path) -> None:
     (copy / "pilot.py").unlink()
     yaml_path = copy / "scenario.yaml"
     yaml_path.write_text(
-        yaml_path.read_text().replace("name: quadrotor_hill", "name: other_hill", 1)
+        yaml_path.read_text().replace("name: quadrotor_hill_flythrough", "name: other_hill", 1)
     )
     with pytest.raises(UserError, match="no configuration for scenario 'other_hill'"):
         regenerate_demos(yaml_path)
@@ -128,7 +129,7 @@ def test_pilot_refuses_a_scenario_without_configuration(tmp_path: Path) -> None:
 def test_a_field_after_the_demos_block_is_not_dropped(tmp_path: Path) -> None:
     """make demos rewrites ``demos:`` to the end of the file: a field after it would be lost,
     so the run stops first (exit 2 through the CLI), naming the line, and changes nothing."""
-    copy = tmp_path / "quadrotor_hill"
+    copy = tmp_path / "quadrotor_hill_flythrough"
     shutil.copytree(SHIPPED, copy)
     yaml_path = copy / "scenario.yaml"
     text = yaml_path.read_text() + "uncertainty:\n  disturbance: {vX: 0.05}\n"
@@ -157,7 +158,7 @@ def test_cli_demos_unknown_scenario(capsys: pytest.CaptureFixture[str]) -> None:
     ],
 )
 def test_a_pilot_file_without_config_is_refused(tmp_path: Path, pilot_text, message) -> None:
-    copy = tmp_path / "quadrotor_hill"
+    copy = tmp_path / "quadrotor_hill_flythrough"
     shutil.copytree(SHIPPED, copy)
     (copy / "pilot.py").write_text(pilot_text)
     with pytest.raises(UserError, match=message):
@@ -173,7 +174,7 @@ def test_a_pilot_file_without_config_is_refused(tmp_path: Path, pilot_text, mess
     ],
 )
 def test_a_pilot_config_that_does_not_fit_is_refused(tmp_path: Path, change, message) -> None:
-    copy = tmp_path / "quadrotor_hill"
+    copy = tmp_path / "quadrotor_hill_flythrough"
     shutil.copytree(SHIPPED, copy)
     broken = {
         "stick_step=(0.5, 0.5)": "stick_step=(0.5,)",

@@ -216,7 +216,7 @@ def test_a_yaml_error_comes_before_the_numerics_are_imported(tmp_path):
 
 
 def test_the_feedback_failure_names_only_what_the_scenario_file_has():
-    quadrotor = load_scenario("quadrotor_hill")
+    quadrotor = load_scenario("quadrotor_hill_flythrough")
     result = design_feedback(quadrotor, rate=20.0)
     assert not result.success
     print(result.message)

@@ -8,8 +8,8 @@ Carlo samples and its own timings), made from the current scenario file.
 
 Which constraint limits a radius, and which margin the falsification search found smallest, are
 results of the run like its numbers: an optimized nominal's binding constraint can change with
-the last bits of the arithmetic (seen: quadrotor_hill's demo_08 on an AVX-512 machine), so the
-shape names them ``<constraint>`` and ``<margin>`` and keeps one legend line per run of them;
+the last bits of the arithmetic (seen: quadrotor_hill_flythrough's demo_08 on an AVX-512 machine),
+so the shape names them ``<constraint>`` and ``<margin>`` and keeps one legend line per run of them;
 that each named constraint has its legend line is checked on the written block itself.
 
 The rest is checked without running anything long: the examples run on a fresh run, every Python

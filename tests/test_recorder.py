@@ -31,7 +31,7 @@ from pipeline.model.simulate import simulate  # noqa: E402
 from pipeline.runtime.cli import main  # noqa: E402
 from pipeline.runtime.registry import RESULT_TYPES  # noqa: E402
 
-QUADROTOR = SCENARIOS_ROOT / "quadrotor_hill"
+QUADROTOR = SCENARIOS_ROOT / "quadrotor_hill_flythrough"
 
 # A point flown by its velocity: right/D = +2 m/s in X, up/W = +2 m/s in Y (default mapping).
 SLIDER_YAML = """\
@@ -78,9 +78,9 @@ def slider(tmp_path: Path) -> Path:
 
 @pytest.fixture
 def quadrotor(tmp_path: Path) -> Path:
-    """A copy of the shipped quadrotor_hill folder (saving writes into it)."""
-    shutil.copytree(QUADROTOR, tmp_path / "quadrotor_hill")
-    return tmp_path / "quadrotor_hill" / "scenario.yaml"
+    """A copy of the shipped quadrotor_hill_flythrough folder (saving writes into it)."""
+    shutil.copytree(QUADROTOR, tmp_path / "quadrotor_hill_flythrough")
+    return tmp_path / "quadrotor_hill_flythrough" / "scenario.yaml"
 
 
 @pytest.fixture(scope="module")

@@ -28,7 +28,7 @@ from pipeline.model.scenario import load_scenario  # noqa: E402
 
 @pytest.fixture(scope="module")
 def quadrotor():
-    return load_scenario("quadrotor_hill", check_demos=False)
+    return load_scenario("quadrotor_hill_flythrough", check_demos=False)
 
 
 def corners(shape) -> np.ndarray:  # type: ignore[no-untyped-def]

@@ -223,7 +223,7 @@ def test_codesigned_gains_hold_a_disturbance_the_lqr_gains_cannot():
 
 def test_each_gains_family_stops_searching_past_its_best_multiplier():
     """``MultiplierSearch``: a family searched upwards stops at the first multiplier infeasible
-    or holding less after a feasible one (measured on quadrotor_hill_robust: the LQR gains'
+    or holding less after a feasible one (measured on quadrotor_hill: the LQR gains'
     taus infeasible, 0.58, infeasible, infeasible; (F6)'s 0.906, 0.668, infeasible,
     infeasible), never before a feasible one, and not while both hold the whole level."""
     search = synthesis.MultiplierSearch()
@@ -358,10 +358,10 @@ def test_a_rejected_robust_funnel_says_each_reason_once():
 
 
 def _hover_case():
-    """quadrotor_hill hovering 3 s at (2, 2.5) with Goal a box around it, a 3% share of the
-    declared bound of issue 29 (|w_vX| <= 0.033, |w_vY| <= 0.032 m/s^2): local hulls with
+    """quadrotor_hill_flythrough hovering 3 s at (2, 2.5) with Goal a box around it, a 3% share of
+    the declared bound of issue 29 (|w_vX| <= 0.033, |w_vY| <= 0.032 m/s^2): local hulls with
     several vertices (pitch, thrust)."""
-    scenario = load_scenario("quadrotor_hill", check_demos=False)
+    scenario = load_scenario("quadrotor_hill_flythrough", check_demos=False)
     x0, N = np.array([2.0, 2.5, 0, 0, 0, 0]), 30
     trajectory = simulate(scenario.dynamics, x0, np.tile([9.81, 0.0], (N, 1)), scenario.Ts)
     scenario = dataclasses.replace(scenario, goal=box(0.0, 1.0, 4.0, 4.0))

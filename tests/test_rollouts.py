@@ -42,7 +42,7 @@ def test_compiled_rollouts_match_the_numpy_oracle(synthesized, widen):
     """Seeded starts in Init, and in Init widened by half its width (uncovered starts, larger
     errors): every margin agrees to 1e-9."""
     _, out = synthesized
-    scenario = load_scenario("quadrotor_hill", check_demos=False)
+    scenario = load_scenario("quadrotor_hill_flythrough", check_demos=False)
     controller = load(out / "controller.json")
     x0 = _starts(scenario, 120, seed=7, widen=widen)
     _assert_same(
@@ -53,7 +53,7 @@ def test_compiled_rollouts_match_the_numpy_oracle(synthesized, widen):
 def test_compiled_rollouts_report_the_same_failures_of_a_broken_gain(synthesized, tmp_path):
     """A destabilising gain: the kernel finds the same failing runs as the oracle, and some."""
     _, out = synthesized
-    scenario = load_scenario("quadrotor_hill", check_demos=False)
+    scenario = load_scenario("quadrotor_hill_flythrough", check_demos=False)
     document = json.loads((out / "controller.json").read_text())
     scale_gains(document, -3.0)
     path = tmp_path / "controller.json"
@@ -77,7 +77,7 @@ def test_held_feedback_matches_the_numpy_oracle(synthesized, tmp_path):
     """The law held every 0.01 s (zero-order hold): kernel and oracle agree to 1e-9, and the
     held runs differ from the continuous ones (the hold is simulated, not ignored)."""
     _, out = synthesized
-    scenario = load_scenario("quadrotor_hill", check_demos=False)
+    scenario = load_scenario("quadrotor_hill_flythrough", check_demos=False)
     controller = _variant(out, tmp_path, lambda d: d.update(feedback_period=0.01))
     x0 = _starts(scenario, 60, seed=11, widen=0.2)
     held = check_runs(scenario, controller, x0)[0]
@@ -95,7 +95,7 @@ def test_runs_continued_past_T_match_the_numpy_oracle(synthesized, tmp_path, per
     from pipeline.numerics.terminal.design import design_terminal, equilibrium
 
     _, out = synthesized
-    scenario = load_scenario("quadrotor_hill", check_demos=False)
+    scenario = load_scenario("quadrotor_hill_flythrough", check_demos=False)
     x_eq, _ = equilibrium(scenario)
     design = design_terminal(scenario, np.zeros((2, 6)), np.eye(6), [x_eq], [0.0])
     block = {
@@ -144,7 +144,8 @@ def test_funnel_rollouts_match_the_numpy_oracle(funnel_artifact, tmp_path, gain)
 
 
 def test_quadrotor_funnel_rollouts_match_the_numpy_oracle(quadrotor_funnel_artifact):
-    """A nonlinear funnel (quadrotor_hill, one demo): kernel and oracle agree to 1e-9 on starts
+    """A nonlinear funnel (quadrotor_hill_flythrough, one demo): kernel and oracle agree to 1e-9 on
+    starts
     around the funnel's start, and the covered runs stay in their funnel and clear of the hill."""
     scenario, path = quadrotor_funnel_artifact
     controller = load(path)

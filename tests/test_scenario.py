@@ -684,7 +684,7 @@ def test_shipped_scenarios_load_without_demos(name: str) -> None:
 
 
 def test_labels_and_units_name_quantities_for_people() -> None:
-    scenario = load_scenario("quadrotor_hill", check_demos=False)
+    scenario = load_scenario("quadrotor_hill_flythrough", check_demos=False)
     assert scenario.label("u1") == "u1 (thrust) [N]"
     assert scenario.label("theta", unit=False) == "theta (pitch)"
     assert scenario.unit("u2") == "rad/s^2"

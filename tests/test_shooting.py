@@ -13,7 +13,7 @@ from stages.feedback import lqr_gain
 
 @pytest.fixture(scope="module")
 def stabilised():
-    scenario = load_scenario("quadrotor_hill", check_demos=False)
+    scenario = load_scenario("quadrotor_hill_flythrough", check_demos=False)
     problem = make_problem(scenario, demo=3, N=60)
     return problem, StabilisedProblem.around(problem, lqr_gain(scenario), problem.u_seed)
 

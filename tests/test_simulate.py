@@ -29,7 +29,7 @@ from tests.helpers.dynamics import batch_code, every_function_dynamics
 
 @cache
 def quadrotor():
-    return load_scenario("quadrotor_hill", check_demos=False)
+    return load_scenario("quadrotor_hill_flythrough", check_demos=False)
 
 
 def hover_inputs(N: int, Ts: float, amplitude: float = 1.0) -> np.ndarray:
@@ -67,7 +67,7 @@ def _shipped_demos() -> list:
 )
 def test_rk4_agrees_with_solve_ivp_on_the_demos(index: int | None) -> None:
     if index is None:
-        pytest.skip("no demos shipped in scenarios/quadrotor_hill/demos")
+        pytest.skip("no demos shipped in scenarios/quadrotor_hill_flythrough/demos")
     scenario = quadrotor()
     demo = scenario.demos[index]
     trajectory = simulate(scenario.dynamics, demo.x0, demo.us, scenario.Ts)
@@ -258,7 +258,7 @@ def test_a_graded_grid_is_simulate_on_each_interval() -> None:
     """``simulate_graded``: equal steps everywhere is ``simulate`` bitwise (times too); another
     count on one interval changes only that interval's grid, and its states agree with a uniform
     fine simulation at the sample times to RK4's accuracy."""
-    scenario = load_scenario("quadrotor_hill", check_demos=False)
+    scenario = load_scenario("quadrotor_hill_flythrough", check_demos=False)
     demo = scenario.demos[0]
     us = demo.us[:6]
     uniform = simulate(scenario.dynamics, demo.x0, us, scenario.Ts, 20)

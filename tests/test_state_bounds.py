@@ -87,7 +87,7 @@ def test_bad_state_bounds_are_exit_2_at_load(bounds, parts, tmp_path, capsys):
         assert part in err, err
 
 
-@pytest.mark.parametrize("name", ["quadrotor_hill", "quadrotor_hill_gusty"])
+@pytest.mark.parametrize("name", ["quadrotor_hill_flythrough", "quadrotor_hill_gusty_flythrough"])
 def test_shipped_scenarios_with_state_bounds_load_with_their_demos(name):
     scenario = load_scenario(name)  # Init and every demo inside theta in [-0.8, 0.8]
     assert scenario.state_bounds == {"theta": (-0.8, 0.8)}

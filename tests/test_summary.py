@@ -47,7 +47,7 @@ def test_summary_json_round_trips_through_the_typed_summary(synthesized_constant
 
 
 def test_the_shipped_quadrotor_run_is_a_funnel_run(synthesized):
-    """quadrotor_hill ships the funnel certificate: its summary round-trips and names a
+    """quadrotor_hill_flythrough ships the funnel certificate: its summary round-trips and names a
     certified funnel level in (0, 1] for every demo."""
     _, out = synthesized
     document = json.loads((out / "summary.json").read_text())

@@ -28,7 +28,7 @@ uncertainty:
 
 def quadrotor(tmp_path: Path, block: str = DECLARED) -> Scenario:
     folder = tmp_path / "quad"
-    shutil.copytree(REPO / "scenarios" / "quadrotor_hill", folder)
+    shutil.copytree(REPO / "scenarios" / "quadrotor_hill_flythrough", folder)
     path = folder / "scenario.yaml"
     path.write_text(path.read_text() + block)
     return load_scenario(path)
@@ -45,7 +45,7 @@ def test_declared_block_is_parsed(tmp_path: Path) -> None:
 
 
 def test_no_block_is_the_exact_model() -> None:
-    scenario = load_scenario("quadrotor_hill")
+    scenario = load_scenario("quadrotor_hill_flythrough")
     assert scenario.uncertainty.empty
     assert scenario.uncertainty.parametric is None
     assert additive_bound(scenario).tolist() == [0.0] * 6
@@ -120,7 +120,7 @@ def test_a_robust_funnel_keeps_its_tube_where_the_bound_holds():
     from pipeline.model.uncertainty import Uncertainty
     from pipeline.numerics.uncertainty import held_state_bounds
 
-    scenario = load_scenario("quadrotor_hill_robust", check_demos=False)
+    scenario = load_scenario("quadrotor_hill", check_demos=False)
     assert held_state_bounds(scenario) == {"theta": (-0.8, 0.8)}
     unbounded = dataclasses.replace(scenario, state_bounds={})
     assert held_state_bounds(unbounded) == {"theta": (-0.6, 0.6)}  # the operating region's

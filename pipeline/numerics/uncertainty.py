@@ -16,8 +16,8 @@ arithmetic, ``pipeline.numerics.hull``),
 
 evaluated as one expression in that arithmetic (``hull.interval_of``: every sum and product
 rounded outward, the float end rounded up). The mean-value form avoids interval arithmetic's
-dependency problem on the difference itself (on quadrotor_hill, a thrust times the sine of the
-pitch over an uncertain mass, bounded term by term: 21.9 m/s^2 against 0.59 in the mean-value
+dependency problem on the difference itself (on quadrotor_hill_flythrough, a thrust times the sine
+of the pitch over an uncertain mass, bounded term by term: 21.9 m/s^2 against 0.59 in the mean-value
 form).
 
 Which box ``Z``. Every certificate that holds uncertainty keeps its tube inside ``state_bounds``

@@ -154,8 +154,9 @@ class ExecutorSpec:
         return self.value(text)
 
 
-# The most Monte Carlo runs: 10^9 is some 10 hours of CPU on quadrotor_hill (100,000 take 3.6 s),
-# and its chunks' 400,000 seed streams take 150 MB; far beyond, they alone exhaust the memory.
+# The most Monte Carlo runs: 10^9 is some 10 hours of CPU on quadrotor_hill_flythrough (100,000 take
+# 3.6 s), and its chunks' 400,000 seed streams take 150 MB; far beyond, they alone exhaust the
+# memory.
 MAX_SAMPLES = 10**9
 MAX_JOBS = 1024  # worker processes: far beyond any machine's cores, below its process limits
 

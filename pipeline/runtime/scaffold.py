@@ -24,7 +24,7 @@ from pipeline.model.scenario_file import (
     _shipped_scenarios,  # the templates: not SCENARIOS_ROOT, which SAFETY_SCENARIOS may move
 )
 
-TEMPLATES = ("double_integrator", "unicycle_slalom", "quadrotor_hill")
+TEMPLATES = ("double_integrator", "unicycle_slalom", "quadrotor_hill_flythrough")
 NAME = re.compile(r"[A-Za-z][A-Za-z0-9_]{0,63}")
 
 # What each PilotConfig field means, for the comments of the written pilot.py.

@@ -1,4 +1,4 @@
-"""How the synthetic pilot (``pipeline/pilot.py``) flies quadrotor_hill_hold: quadrotor_hill's
+"""How the synthetic pilot (``pipeline/pilot.py``) flies quadrotor_hill_hold: quadrotor_hill_flythrough's
 pilot, the same demos.
 
 Route: climb, cross high above the hill, fly past Goal, come back down into it; flights 4 and 8

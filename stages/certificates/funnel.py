@@ -286,8 +286,8 @@ def reoptimize_rounds(
     inputs, trajectories, funnels and coverage (a round is never kept unverified: its funnels passed
     ``check_funnel`` and the certify-style rebuild in their stage).
 
-    Why (measured on quadrotor_hill_gusty, ``--samples 2000``): one unbounded round shortened
-    T from 11.8 s to ~3 s, but the new funnels, bound by their own LMI caps ('design': the
+    Why (measured on quadrotor_hill_gusty_flythrough, ``--samples 2000``): one unbounded round
+    shortened T from 11.8 s to ~3 s, but the new funnels, bound by their own LMI caps ('design': the
     local hull at the new nominal's high thrust and pitch) or by Goal, held only 11-21% of
     their required sets and Init went uncovered, so the round was discarded. Shorter steps
     keep each new nominal within reach of the funnel that was certified around the previous.
@@ -296,7 +296,7 @@ def reoptimize_rounds(
     of their cells (Init 36% covered, round discarded); 10% steps are held whole. The old
     schedule (40% first, then only halved) ran out of rounds while every round still
     shortened (6 rounds, T 3.7-5.1 s, 1.37-1.89x the uncertified minimum time); this trust
-    region kept all 10 rounds: T 2.7-3.3 s, 1.08-1.23x, certified. On quadrotor_hill
+    region kept all 10 rounds: T 2.7-3.3 s, 1.08-1.23x, certified. On quadrotor_hill_flythrough
     (``--certificate funnel --method lbfgs --samples 10000``) T 2.6-2.8 s, certified, 23 s wall
     at load ~1 (the previous schedule: 53 s); settling a trajectory whose optimizer stopped
     above its floor took that run from 232 s to 131 s wall at load ~6: three rounds in which

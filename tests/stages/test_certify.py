@@ -154,7 +154,7 @@ def test_the_quadrotor_controller_certifies_and_tampering_is_caught(
     from pipeline import load_scenario
 
     _, out = synthesized_constant
-    scenario = load_scenario("quadrotor_hill", check_demos=False)
+    scenario = load_scenario("quadrotor_hill_flythrough", check_demos=False)
     assert certify_controller(scenario, out / "controller.json").success
     path = tmp_path / "controller.json"
     path.write_bytes((out / "controller.json").read_bytes())
@@ -167,7 +167,7 @@ def _coarse_reference(document):
     dynamics on its own grid, but its linear interpolation is far from the flight."""
     from pipeline.model.scenario import load_scenario as load
 
-    scenario = load("quadrotor_hill", check_demos=False)
+    scenario = load("quadrotor_hill_flythrough", check_demos=False)
     for item in document["trajectories"]:
         us = np.asarray(item["u_ref"])  # (N, m)
         coarse = simulate(scenario.dynamics, np.asarray(item["x0"]), us, scenario.Ts, substeps=1)
@@ -193,7 +193,7 @@ def test_the_tracked_reference_is_measured_not_trusted(synthesized, tmp_path, ch
     from pipeline import load_scenario
 
     _, out = synthesized
-    scenario = load_scenario("quadrotor_hill", check_demos=False)
+    scenario = load_scenario("quadrotor_hill_flythrough", check_demos=False)
     path = tmp_path / "controller.json"
     path.write_bytes((out / "controller.json").read_bytes())
     _tamper(path, change)
@@ -370,7 +370,7 @@ def test_a_quadrotor_funnel_with_a_u_ref_sample_past_its_bound_is_not_certified_
     script = (
         "import json, sys; from pipeline.model.scenario import load_scenario; "
         "from stages.certify import certify_controller; "
-        "scenario = load_scenario('quadrotor_hill', check_demos=False); "
+        "scenario = load_scenario('quadrotor_hill_flythrough', check_demos=False); "
         "print(json.dumps(certify_controller(scenario, sys.argv[1]).failures))"
     )
     optimized = subprocess.run(

@@ -27,7 +27,7 @@ from stages.feedback import FeedbackResult, design_feedback
 
 @pytest.fixture(scope="module")
 def quadrotor():
-    return load_scenario("quadrotor_hill", check_demos=False)
+    return load_scenario("quadrotor_hill_flythrough", check_demos=False)
 
 
 @pytest.fixture(scope="module")

@@ -26,7 +26,8 @@ def test_monte_carlo_and_stress_fly_a_funnel_file(quadrotor_funnel_artifact):
 def test_the_reports_paths_are_the_first_runs_drawn_each_simulated_alone(synthesized):
     """The drawn paths come from one batch of the compiled kernel: the same paths, in the same
     order, as the oracle simulating each chunk's first two runs around each trajectory on its
-    own (quadrotor_hill's nine funnels: the batch regroups the runs by trajectory), cut at
+    own (quadrotor_hill_flythrough's nine funnels: the batch regroups the runs by trajectory), cut
+    at
     ``count``."""
     import numpy as np
 
@@ -36,7 +37,7 @@ def test_the_reports_paths_are_the_first_runs_drawn_each_simulated_alone(synthes
     from stages.montecarlo import _drawn_paths, _uniform_init
 
     _, out = synthesized
-    scenario = load_scenario("quadrotor_hill", check_demos=False)
+    scenario = load_scenario("quadrotor_hill_flythrough", check_demos=False)
     controller = load(out / "controller.json")
     chunks, streams = [60, 60], np.random.SeedSequence(4).spawn(2)
     count = 25

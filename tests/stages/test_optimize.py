@@ -33,7 +33,7 @@ from stages.optimize import (
 
 @functools.cache
 def _quadrotor():
-    scenario = load_scenario("quadrotor_hill", check_demos=False)
+    scenario = load_scenario("quadrotor_hill_flythrough", check_demos=False)
     feedback = design_feedback(scenario)
     r_d = feedback.required_radius(scenario.clearance)
     margins = ConstraintMargins.of_tube(feedback.certified_tube, r_d)

@@ -159,7 +159,7 @@ def test_the_between_grid_bound_holds_on_a_much_finer_grid():
     """The two quadrotor demos that pass closest to the hill, checked on the pipeline's grid
     (16 RK4 substeps per sample): the clearance it certifies is below the clearance seen on an
     8x finer grid, by little."""
-    scenario = load_scenario("quadrotor_hill", check_demos=False)
+    scenario = load_scenario("quadrotor_hill_flythrough", check_demos=False)
     feedback = design_feedback(scenario)
     for demo in (scenario.demos[3], scenario.demos[7]):
         coarse = simulate(scenario.dynamics, demo.x0, demo.us, scenario.Ts, VERIFY_SUBSTEPS)

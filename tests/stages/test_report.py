@@ -1,4 +1,4 @@
-"""The report stage: built from the artifacts of the session's run of quadrotor_hill.
+"""The report stage: built from the artifacts of the session's run of quadrotor_hill_flythrough.
 
 The HTML parses, is self-contained and holds the headline numbers of summary.json; the PDF
 (typeset by Typst, a pip dependency) is written without any browser, has the title on page 1
@@ -46,12 +46,12 @@ def run(
     synthesized_constant: tuple[int, Path], tmp_path_factory: pytest.TempPathFactory
 ) -> tuple[Scenario, Path]:
     """A finished run, its report written by the orchestrator: a copy of the session's
-    synthesis of quadrotor_hill with the constant certificate (tests/conftest.py; the funnel
-    run's report is tested in tests/test_funnel_run.py), so that rebuilding it here changes
+    synthesis of quadrotor_hill_flythrough with the constant certificate (tests/conftest.py; the
+    funnel run's report is tested in tests/test_funnel_run.py), so that rebuilding it here changes
     nothing that other tests read."""
-    out = tmp_path_factory.mktemp("report") / "quadrotor_hill"
+    out = tmp_path_factory.mktemp("report") / "quadrotor_hill_flythrough"
     shutil.copytree(synthesized_constant[1], out)
-    return load_scenario("quadrotor_hill"), out
+    return load_scenario("quadrotor_hill_flythrough"), out
 
 
 class _Page(HTMLParser):
@@ -164,7 +164,7 @@ def test_pdf_has_the_title_first_and_every_section_in_order(run: tuple[Scenario,
     assert (run[1] / "report.pdf").read_bytes().startswith(b"%PDF-")
     reader = PdfReader(run[1] / "report.pdf")
     texts = _pdf_pages(run[1] / "report.pdf")
-    assert texts[0].startswith("Safety controller synthesis report: quadrotor_hill")
+    assert texts[0].startswith("Safety controller synthesis report: quadrotor_hill_flythrough")
     summary = json.loads((run[1] / "summary.json").read_text())
     assert f"{summary['headline']['faster_percent_mean']:.0f}%" in texts[0]
     lines = [{line.strip() for line in text.splitlines()} for text in texts]
@@ -203,7 +203,7 @@ def test_the_pdf_is_written_without_any_browser(
     pages = len(PdfReader(out / "report.pdf").pages)
     assert f"report.pdf ({pages} pages)" in result.message and pages >= 5
     assert _pdf_pages(out / "report.pdf")[0].startswith(
-        "Safety controller synthesis report: quadrotor_hill"
+        "Safety controller synthesis report: quadrotor_hill_flythrough"
     )
 
 
@@ -262,7 +262,8 @@ def test_html_and_pdf_agree_on_the_verdict_and_the_numbers(
 
 
 def test_units_and_labels_in_tables_and_figures(run: tuple[Scenario, Path]) -> None:
-    """quadrotor_hill declares units and labels: the K table, margins, the inputs figure's axes
+    """quadrotor_hill_flythrough declares units and labels: the K table, margins, the inputs
+    figure's axes
     and the scenario figure's axes carry them; radii say they are P-norms and give metres."""
     html = (run[1] / "report.html").read_text()
     text = " ".join(" ".join(_parse(html).text).split())
@@ -302,7 +303,7 @@ def test_cli_rebuilds_the_report_from_saved_artifacts(
     before = {p.name: p.stat().st_mtime_ns for p in stages}
     written = [out / "report.html", out / "report.pdf"]
     reports = {p: p.stat().st_mtime_ns for p in written}
-    assert main(["report", "quadrotor_hill", "--from", str(out)]) == 0
+    assert main(["report", "quadrotor_hill_flythrough", "--from", str(out)]) == 0
     printed = capsys.readouterr().out
     assert str(out / "report.html") in printed
     assert str(out / "report.pdf") in printed
@@ -348,7 +349,10 @@ def test_cli_report_writes_into_out_and_reads_from_from(
         return {p: p.stat().st_mtime_ns for p in source.rglob("*") if p.name != ".lock"}
 
     before = files()
-    assert main(["report", "quadrotor_hill", "--from", str(source), "--out", str(target)]) == 0
+    assert (
+        main(["report", "quadrotor_hill_flythrough", "--from", str(source), "--out", str(target)])
+        == 0
+    )
     assert str(target / "report.html") in capsys.readouterr().out
     assert {p.name for p in target.iterdir()} == {"report.html", "scenario.png", "report.pdf"}
     assert files() == before
@@ -360,17 +364,22 @@ def test_cli_report_reads_reports_name_under_the_current_directory(
     capsys: pytest.CaptureFixture[str],
 ) -> None:  # fmt: skip
     monkeypatch.chdir(tmp_path)
-    assert main(["report", "quadrotor_hill"]) == 2  # no ./reports/quadrotor_hill here
-    assert str(tmp_path / "reports" / "quadrotor_hill" / "summary.json") in capsys.readouterr().err
+    assert (
+        main(["report", "quadrotor_hill_flythrough"]) == 2
+    )  # no ./reports/quadrotor_hill_flythrough here
+    assert (
+        str(tmp_path / "reports" / "quadrotor_hill_flythrough" / "summary.json")
+        in capsys.readouterr().err
+    )
 
 
 def test_cli_report_of_a_missing_run_is_one_clear_line(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    assert main(["report", "quadrotor_hill", "--from", str(tmp_path / "empty")]) == 2
+    assert main(["report", "quadrotor_hill_flythrough", "--from", str(tmp_path / "empty")]) == 2
     error = capsys.readouterr().err
     assert error.startswith("error: ") and "summary.json not found" in error
-    assert "python -m pipeline synthesize quadrotor_hill" in error
+    assert "python -m pipeline synthesize quadrotor_hill_flythrough" in error
     assert error.count("\n") == 1  # one line, no traceback
 
 

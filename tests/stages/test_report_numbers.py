@@ -1,7 +1,8 @@
 """Numbers that agree (issue 30, item 3): every number report.html shows twice is the same number
 (the headline cards against the tables and the Monte Carlo section), for the session's funnel run
-of quadrotor_hill and its constant-certificate run; runs failed and failure kinds are told apart,
-by one text, in the terminal and the report; no infinity is shown; the captions are true for
+of quadrotor_hill_flythrough and its constant-certificate run; runs failed and failure kinds are
+told apart, by one text, in the terminal and the report; no infinity is shown; the captions are true
+for
 the certificate that ran; the paper's numbers are quoted for the paper's scenario only."""
 
 from __future__ import annotations
@@ -301,7 +302,7 @@ def test_a_failing_monte_carlo_counts_runs_and_shows_no_infinity(
         return results, keys
 
     monkeypatch.setattr(stored, "_read_stages", failing)
-    data = load_report_data(load_scenario("quadrotor_hill"), out, write_to=tmp_path)
+    data = load_report_data(load_scenario("quadrotor_hill_flythrough"), out, write_to=tmp_path)
     summary = data.summary
     samples = summary.montecarlo.samples
     counts = f"{335} of {samples} runs failed; kinds: clipping 34, uncovered 335"
@@ -335,7 +336,7 @@ def test_a_failing_monte_carlo_counts_runs_and_shows_no_infinity(
 def _blocks(out: Path, tmp_path: Path) -> list[tuple[str, str, str]]:
     """``(section key, kind, caption or text)`` of every figure, table and paragraph of the
     report of the run in ``out`` (rebuilt from its artifacts into ``tmp_path``)."""
-    data = load_report_data(load_scenario("quadrotor_hill"), out, write_to=tmp_path)
+    data = load_report_data(load_scenario("quadrotor_hill_flythrough"), out, write_to=tmp_path)
     return [
         (section.key, block.kind, getattr(block, "caption", "") or getattr(block, "text", ""))
         for section in build_sections(data)
@@ -344,10 +345,10 @@ def _blocks(out: Path, tmp_path: Path) -> list[tuple[str, str, str]]:
     ]
 
 
-# both runs are quadrotor_hill's session runs, read through request.getfixturevalue: the
+# both runs are quadrotor_hill_flythrough's session runs, read through request.getfixturevalue: the
 # conftest does not see them, so the test names their group (else another worker runs the
 # synthesis again: 28 s of CPU)
-@pytest.mark.xdist_group("synthesis-quadrotor_hill")
+@pytest.mark.xdist_group("synthesis-quadrotor_hill_flythrough")
 @pytest.mark.parametrize("certificate", ["constant", "funnel"])
 def test_every_caption_is_true_for_the_certificate_that_ran(
     certificate: str, request: pytest.FixtureRequest, tmp_path: Path

@@ -6,7 +6,7 @@ report.pdf with the declared numbers, the derived additive bound, certify's dist
 and the stress test's failure rate from the run's own results; the same report without the
 declaration has no such section; a declaration four times as large changes the numbers and
 the certify check under it is not called certified. The derived bound by source is checked
-against hand-computed values on quadrotor_hill_robust's declaration (no run).
+against hand-computed values on quadrotor_hill's declaration (no run).
 """
 
 from __future__ import annotations
@@ -146,11 +146,11 @@ def test_a_larger_declaration_changes_the_numbers_and_is_not_called_certified(gu
     assert "not certified (controller.json is not certified)" in larger
 
 
-def test_the_derived_bound_by_source_on_quadrotor_hill_robust() -> None:
+def test_the_derived_bound_by_source_on_quadrotor_hill() -> None:
     """wX in [-0.6, -0.4] enters vX' as mu (wX - vX), mu = 0.5: alone 0.5 * 0.1 = 0.05 on vX;
     m in [0.995, 1.005] enters as u1/m (-sin theta, cos theta): alone u1/m^2 * 0.005 with u1 <=
     14.9, m >= 0.995 (the mean value's xi) and |sin theta| <= sin 0.8 (theta's state bound)."""
-    scenario = load_scenario("quadrotor_hill_robust", check_demos=False)
+    scenario = load_scenario("quadrotor_hill", check_demos=False)
     bound = uncertainty.derived_bound(scenario)
     names = list(scenario.uncertainty.parameter_names)
     wX, m = bound.each[names.index("wX")], bound.each[names.index("m")]
@@ -168,7 +168,7 @@ def test_the_derived_bound_by_source_on_quadrotor_hill_robust() -> None:
 
 
 def test_the_declared_table_has_a_row_per_item_with_units_and_nominals() -> None:
-    scenario = load_scenario("quadrotor_hill_robust", check_demos=False)
+    scenario = load_scenario("quadrotor_hill", check_demos=False)
     measured = _declaring(scenario, measurement=np.array([0.02, 0.0, 0.0, 0.0, 0.0, 0.0]))
     table = uncertainty.declared_table(measured, uncertainty.derived_bound(measured))
     rows = {row[0]: row[1:] for row in table.rows}

@@ -136,7 +136,7 @@ def test_containment_level_is_exact():
 
 
 def test_quadrotor_hover_is_the_equilibrium_and_has_a_certified_ellipsoid():
-    scenario = load_scenario("quadrotor_hill", check_demos=False)
+    scenario = load_scenario("quadrotor_hill_flythrough", check_demos=False)
     x_eq, u_eq = equilibrium(scenario)
     np.testing.assert_allclose(scenario.dynamics.f(x_eq, u_eq), 0, atol=1e-9)
     # hover against the wind mu wX = -0.25 N: thrust sqrt(9.81^2 + 0.25^2), tilted into it

@@ -1,7 +1,7 @@
 """What the recorder's window shows, without pygame: the part of the plane to draw and the HUD.
 
 **The view** fits the part of the scene that matters to a flight, not the polygons' whole
-extents (quadrotor_hill's hill and ceiling are 40 m wide; its flights use 20 m of it):
+extents (quadrotor_hill_flythrough's hill and ceiling are 40 m wide; its flights use 20 m of it):
 
 1. the *core*: Init's position box, Goal and the flights already recorded (the demos' sampled
    positions), the places a flight starts, ends and goes;

@@ -18,7 +18,7 @@ This is only a request: the coverage stage certifies Init against the funnels' i
 ellipsoids at their levels by its own sound subdivision. With ``g`` a power of two the cells are
 boxes of that subdivision, each inside one funnel when every level reaches 1.
 
-Why (measured on quadrotor_hill_gusty, Init with velocity and pitch spread): the constant
+Why (measured on quadrotor_hill_gusty_flythrough, Init with velocity and pitch spread): the constant
 certificate's ball slice that the funnels were asked to hold before reached +-0.30 rad in pitch
 and +-0.95 m/s in horizontal speed from every start, 4-6x what Init spans; a cell stays inside
 Init.

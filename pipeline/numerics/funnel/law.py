@@ -119,7 +119,7 @@ every number is (I1)-(I5)'s. ``funnel.sampled`` (I6') bounds the same push diffe
 linear in ``e(t)`` (``-tau Bbar K Mbar e(t)``, ``Mbar`` in the hull's closed loops) goes into
 (I5)'s matrix and only a remainder ``R[k]`` (``LawOffset.remainder``, second order in ``h`` in
 the state) into its box; the check takes, per interval, the smaller of the two margins (measured
-on quadrotor_hill_robust at 5 ms: (I6') fails 0-12 intervals per funnel where (I6) fails 12-32).
+on quadrotor_hill at 5 ms: (I6') fails 0-12 intervals per funnel where (I6) fails 12-32).
 
 (I7) A measurement error. The feedback sees ``x_meas = x + eta``, ``|eta_i| <= E_i`` for every
 measurable ``eta`` (the scenario's ``uncertainty.measurement``, a box, zero for states measured

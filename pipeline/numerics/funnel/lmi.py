@@ -22,8 +22,8 @@ Z[j])`` in the objective; all still linear in the unknowns.
 ``tau`` is the fraction of the required initial set held (``w`` large: it is maximised first), so
 a program that cannot hold all of it still returns the funnel that holds the most.
 
-Why not cvxpy: on quadrotor_hill (150 intervals x 12 vertices x 2 ends = 3,600 6x6 LMIs) cvxpy's
-canonicalisation took 20-40 s per trajectory and added a slack matrix per LMI, so Clarabel's
+Why not cvxpy: on quadrotor_hill_flythrough (150 intervals x 12 vertices x 2 ends = 3,600 6x6 LMIs)
+cvxpy's canonicalisation took 20-40 s per trajectory and added a slack matrix per LMI, so Clarabel's
 solve took 10-20 s more. Here each LMI is one ``PSDTriangleConeT`` row block ``s = b - A x``
 (upper triangle in column-major order, off-diagonal entries times sqrt 2); all of them are
 assembled at once as COO triplets with numpy. Clarabel's time grows with the number of LMIs (about

@@ -71,7 +71,7 @@ def invariant_ellipsoid(
     if not sigma > 0:
         return None
     # Bartels-Stewart (scipy), one equation per decay: the Kronecker system solved by LU gave
-    # seeds that left 1.9% of Init uncovered on quadrotor_hill_robust at twice its bound
+    # seeds that left 1.9% of Init uncovered on quadrotor_hill at twice its bound
     candidates = [
         solve_continuous_lyapunov(Acl + a / 2 * np.eye(n), -E @ E.T / a)
         for a in np.geomspace(0.02, 1.98, 25) * sigma

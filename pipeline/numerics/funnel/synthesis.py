@@ -52,7 +52,7 @@ piece ``L`` is the convex combination of the piece's end LMIs, so nothing it pro
 Every feasible point of the piecewise program is feasible for the per-sample program with the
 same held gain (a tighter program); it has ``HOLD`` times fewer LMIs (the solver's time is
 proportional to their number), at the price of a slightly wider funnel (``python -m bench
-funnel``: position extent +5%, thrust extent +8% on quadrotor_hill with ``HOLD = 2``).
+funnel``: position extent +5%, thrust extent +8% on quadrotor_hill_flythrough with ``HOLD = 2``).
 
 Design. 1. Seed: discrete Riccati recursion on the zero-order-hold discretisation of the nominal's
 linearisation, weights ``Ts diag(state_weights)``, ``Ts diag(input_weights)`` -> ``K[k]``,
@@ -60,17 +60,17 @@ linearisation, weights ``Ts diag(state_weights)``, ``Ts diag(input_weights)`` ->
 ellipsoid; the box of each variable the Jacobian depends on is the nominal's enclosure
 (``funnel.bounds``, E1-E2) widened by ``allowance`` times the seed's extent, clipped to the state
 and input bounds (sound: the level keeps the tube inside them). The seed over-estimates the
-funnel (quadrotor_hill: pitch 4-5x, thrust 1.7x), so ``allowance = 1``: with 2 the pitch box was
-the whole envelope on every interval, the hull so wide that the program was nearly infeasible
-(Clarabel stopped at 200 iterations, "AlmostSolved", with (F3) violated: demo 3 rejected, demo 9
-held 0.916 of its set after a second solve, ~60 s each). An angle's box is also capped to whole
-arc segments of the hull (``funnel.pieces``: 6 hull vertices instead of 10 on quadrotor_hill,
-and a tighter hull); if the capped boxes cannot hold the whole initial set, the uncapped ones
-are tried and the better funnel kept. 3. LMIs (F3) plus ``Q[0] >= tau Q_init[j]`` for every
-required matrix (one ellipsoid, or ``v v^T`` per corner ``v`` of a polytope: by the Schur
-complement, ``Q[0] >= tau v v^T`` iff ``v^T (Q[0] / tau)^-1 v <= 1``) and, at level 1, the tube
-inside every box (``Q_ii <= s_i^2``, ``K_j Q K_j^T <= s_j^2`` at both ends), its position disk
-clear of Unsafe (``C Q C^T <= d_k^2 I``, ``d_k`` the nominal's sound clearance on the interval)
+funnel (quadrotor_hill_flythrough: pitch 4-5x, thrust 1.7x), so ``allowance = 1``: with 2 the pitch
+box was the whole envelope on every interval, the hull so wide that the program was nearly
+infeasible (Clarabel stopped at 200 iterations, "AlmostSolved", with (F3) violated: demo 3 rejected,
+demo 9 held 0.916 of its set after a second solve, ~60 s each). An angle's box is also capped to
+whole arc segments of the hull (``funnel.pieces``: 6 hull vertices instead of 10 on
+quadrotor_hill_flythrough, and a tighter hull); if the capped boxes cannot hold the whole initial
+set, the uncapped ones are tried and the better funnel kept. 3. LMIs (F3) plus ``Q[0] >= tau
+Q_init[j]`` for every required matrix (one ellipsoid, or ``v v^T`` per corner ``v`` of a polytope:
+by the Schur complement, ``Q[0] >= tau v v^T`` iff ``v^T (Q[0] / tau)^-1 v <= 1``) and, at level 1,
+the tube inside every box (``Q_ii <= s_i^2``, ``K_j Q K_j^T <= s_j^2`` at both ends), its position
+disk clear of Unsafe (``C Q C^T <= d_k^2 I``, ``d_k`` the nominal's sound clearance on the interval)
 and inside Goal at T; all linear in Q. Maximise ``tau <= 1`` first, then minimise
 ``sum_k tr(W Q[k])``, ``W`` weighting position by ``1/d^2`` and inputs by their inverse squared
 half-ranges; Clarabel, the program assembled by ``funnel.lmi`` (cvxpy states the same program

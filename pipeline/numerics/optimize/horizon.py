@@ -76,7 +76,8 @@ def shortest_by_continuation(feasible: Callable[[int], bool], N: int, fraction: 
     of ``N``), keep it when feasible, halve the step when not, stop below one sample.
 
     Each try is warm-started from the last feasible solution, which stays close to it; measured
-    on quadrotor_hill this finds 13% shorter flights than the bisection's long jumps, whose
+    on quadrotor_hill_flythrough this finds 13% shorter flights than the bisection's long jumps,
+    whose
     seeds are far from any solution (docs/architecture.md)."""
     step = max(1, int(fraction * N))
     while step >= 1:

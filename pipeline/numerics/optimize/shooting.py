@@ -2,8 +2,9 @@
 
 The quadrotor is a chain of integrators from pitch acceleration to position, so open loop a
 change of ``u[k]`` early in a 15-s flight moves the end by metres: ``J(u)`` is badly conditioned
-and the plain descent of §III-B crawls (measured on quadrotor_hill: 4 of 9 demos stall). As in
-Hauser's projection-operator method, the descent here runs over ``v (N, m)`` with the held input
+and the plain descent of §III-B crawls (measured on quadrotor_hill_flythrough: 4 of 9 demos stall).
+As in Hauser's projection-operator method, the descent here runs over ``v (N, m)`` with the held
+input
 
     u[k] = v[k] + G (x(k Ts) - z[k])
 

@@ -1,8 +1,8 @@
 """A terminal metric shaped for a declared disturbance (T3): the invariant ellipsoid by an LMI.
 
 The Riccati matrix of the LQR gain (``terminal.design.lqr_terminal``) is a Lyapunov function for
-the exact model, but its ellipsoids are not shaped for a disturbance: on quadrotor_hill the
-slow horizontal mode makes the disturbance's push dominate the decay on part of every level set.
+the exact model, but its ellipsoids are not shaped for a disturbance: on quadrotor_hill_flythrough
+the slow horizontal mode makes the disturbance's push dominate the decay on part of every level set.
 Here the gain ``K_T`` is kept and the metric is chosen for it (Boyd et al., LMIs in System and
 Control Theory, section 6.1.3, with the S-procedure of ``funnel.robust`` (I5)): for a multiplier
 ``alpha > 0``,
