@@ -78,9 +78,16 @@ def test_synthesis_certifies_and_validates(synthesis, name):
     assert headline["covered_after"]
     assert headline["montecarlo_failures"] == 0
     ratio = summary["montecarlo"]["tube_ratio_at_T"]  # the certified decay holds at T
-    assert 0 < ratio["median"] <= ratio["p95"] <= ratio["max"] <= 1.0 + 1e-6
+    if load_scenario(name, check_demos=False).uncertainty.empty:
+        assert 0 < ratio["median"] <= ratio["p95"] <= ratio["max"] <= 1.0 + 1e-6
+    else:  # gusts push e(t) from e(0) = 0: no decay to measure; the runs held to T + 10 s
+        assert ratio is None and summary["montecarlo"]["failures"]["after_T"] == 0
+        assert "stays in Goal for all time under the declared uncertainty" in " ".join(
+            claim["claim"] for claim in summary["claims"] if claim["kind"] == "certified"
+        )
     worst = summary["montecarlo"]["falsification"]
-    assert worst["worst_margin"] > 0 and worst["binding"].endswith((", m", "input units"))
+    assert worst["worst_margin"] > 0
+    assert worst["binding"].endswith((", m", "input units", "state-bounds margin"))
     feedback = summary["feedback"]  # tubes kept wide enough to cover Init (>= r_d)
     assert feedback["kept_radius"] == max(feedback["required_radius"], feedback["covering_radius"])
     for demo in summary["demos"]:
