@@ -1,8 +1,7 @@
 """Screenshots of a run's report.html for the README, at desktop and phone width::
 
-    python -m bench.screenshots reports/quadrotor_hill_flythrough            # ->
-    docs/report-1280.png,
-                                                                    #    docs/report-390.png
+    python -m bench.screenshots reports/quadrotor_hill    # -> docs/report-1280.png,
+                                                          #    docs/report-390.png
 
 Headless Chromium (``chromium-headless-shell`` or ``chromium`` on PATH) draws the page's first
 ``HEIGHT`` pixels at each width. A headless window is never narrower than 500 px, so the phone
