@@ -222,8 +222,7 @@ def _derived(
     each set of expressions (keyed on their ``srepr``, exact to the last bit of every Float, as
     ``_rebuilt``): each ``load_scenario`` of a scenario builds its own ``Dynamics`` from them
     (sympy's Jacobians and ``lambdify`` were ~40% of loading quadrotor_hill_flythrough without its
-    demo
-    checks). The lambdified functions are pure; they are shared."""
+    demo checks). The lambdified functions are pure; they are shared."""
     key = sympy.srepr((xs, us, expressions))
     with _DERIVED_LOCK:
         if key in _DERIVED:

@@ -373,8 +373,7 @@ def _projected_boxes(ax: Axes, boxes: FloatArray, pair: Sequence[int], **style: 
     """The boxes ``(B, 2, n)`` (lower, upper corners) projected on the states ``pair``, each
     distinct rectangle once, as one collection: a subdivision of a 5-dimensional Init has
     hundreds of thousands of boxes but far fewer distinct shadows (quadrotor_hill_gusty_flythrough:
-    the
-    coverage figure was 51 MB of SVG)."""
+    the coverage figure was 51 MB of SVG)."""
     if len(boxes) == 0:
         return
     shadows = np.unique(np.asarray(boxes)[:, :, list(pair)].reshape(len(boxes), 4), axis=0)

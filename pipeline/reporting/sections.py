@@ -37,9 +37,7 @@ from pipeline.reporting.plotting import FIGURE_WIDTH
 from pipeline.reporting.summary import Summary
 from pipeline.reporting.summary import Verdict as VerdictKind
 
-PAPER_SCENARIO = (
-    "quadrotor_hill_flythrough"  # the paper's example (§IV-B); its numbers are quoted for it only
-)
+PAPER_SCENARIO = "quadrotor_hill_flythrough"  # the paper's example (§IV-B), its numbers quoted
 PAPER_FASTER_PERCENT = 42  # §IV-B: "The optimal trajectory is 42% faster"
 PAPER_DEMO_CLEARANCE = 0.22  # §IV-B: the human demo's buffer to Unsafe, against d = 1.0
 TITLES = (

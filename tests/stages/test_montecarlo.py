@@ -27,8 +27,7 @@ def test_the_reports_paths_are_the_first_runs_drawn_each_simulated_alone(synthes
     """The drawn paths come from one batch of the compiled kernel: the same paths, in the same
     order, as the oracle simulating each chunk's first two runs around each trajectory on its
     own (quadrotor_hill_flythrough's nine funnels: the batch regroups the runs by trajectory), cut
-    at
-    ``count``."""
+    at ``count``."""
     import numpy as np
 
     from pipeline.controller import load

@@ -263,8 +263,8 @@ def test_html_and_pdf_agree_on_the_verdict_and_the_numbers(
 
 def test_units_and_labels_in_tables_and_figures(run: tuple[Scenario, Path]) -> None:
     """quadrotor_hill_flythrough declares units and labels: the K table, margins, the inputs
-    figure's axes
-    and the scenario figure's axes carry them; radii say they are P-norms and give metres."""
+    figure's axes and the scenario figure's axes carry them; radii say they are P-norms and give
+    metres."""
     html = (run[1] / "report.html").read_text()
     text = " ".join(" ".join(_parse(html).text).split())
     scenario = run[0]

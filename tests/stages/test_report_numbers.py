@@ -2,8 +2,7 @@
 (the headline cards against the tables and the Monte Carlo section), for the session's funnel run
 of quadrotor_hill_flythrough and its constant-certificate run; runs failed and failure kinds are
 told apart, by one text, in the terminal and the report; no infinity is shown; the captions are true
-for
-the certificate that ran; the paper's numbers are quoted for the paper's scenario only."""
+for the certificate that ran; the paper's numbers are quoted for the paper's scenario only."""
 
 from __future__ import annotations
 

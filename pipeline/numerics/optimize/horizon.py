@@ -77,8 +77,7 @@ def shortest_by_continuation(feasible: Callable[[int], bool], N: int, fraction: 
 
     Each try is warm-started from the last feasible solution, which stays close to it; measured
     on quadrotor_hill_flythrough this finds 13% shorter flights than the bisection's long jumps,
-    whose
-    seeds are far from any solution (docs/architecture.md)."""
+    whose seeds are far from any solution (docs/architecture.md)."""
     step = max(1, int(fraction * N))
     while step >= 1:
         if N - step >= 1 and feasible(N - step):
