@@ -179,37 +179,44 @@ def _designed(task: _Task) -> tuple[Funnel, str | None]:
     if failure is None or not (boxed and funnel.success and funnel.rho > 0):
         return funnel, failure
     # (I6), (I7): the held law's and the measurement's terms are a box joined to the
-    # disturbance; design for both (HOLD_DESIGN)
+    # disturbance; design for both (HOLD_DESIGN); a held law first with its push to first order
+    # in the program and only (I6')'s remainder in the box (funnel.sampled)
     shipped = ShippedFunnel(K=funnel.K, P=funnel.P, rho=funnel.rho, rate=funnel.rate)
     held = held_law_bounds(
         scenario, task.trajectory, shipped, bounds, task.disturbance, task.period, measurement
     )
     if held is None:
         return funnel, failure
-    box, swing = held
     declared = np.zeros(scenario.n) if task.disturbance is None else task.disturbance
-    design = declared + HOLD_DESIGN * box
     # the hold's input offset does not shrink with the grid: the design keeps room for it (its
     # input bounds narrowed by HOLD_DESIGN times the first funnel's; certify uses the true ones)
     designed_for = scenario
-    lower = scenario.input_lower + HOLD_DESIGN * swing
-    upper = scenario.input_upper - HOLD_DESIGN * swing
+    lower = scenario.input_lower + HOLD_DESIGN * held.held_input
+    upper = scenario.input_upper - HOLD_DESIGN * held.held_input
     if np.all(lower < upper):
         designed_for = replace(scenario, input_lower=lower, input_upper=upper)
-    again = synthesize_funnel(
-        designed_for, task.trajectory, state_bounds=bounds, initial=task.initial,
-        rate=task.rate, disturbance=design, terminal=terminal,
-    )  # fmt: skip
-    second = _accepted(
-        scenario, task.trajectory, again, bounds, task.disturbance, task.period, measurement
-    )
-    if second is None:
-        return again, None
     whose = "the hold's" if measurement is None else "the law's (hold and measurement)"
-    return funnel, (
-        f"{failure}; designed again for {whose} box |w_h| <= "
-        f"{np.round(HOLD_DESIGN * box, 4).tolist()} on top of the disturbance: {second}"
-    )
+    designs = [(f"{whose} box |w_h| <= ", held.hold, 0.0)]
+    if held.remainder is not None:
+        designs.insert(0, (f"{whose} push to first order, remainder |w_r| <= ",
+                           held.remainder, task.period))  # fmt: skip
+    reasons = []
+    for what, box, period in designs:
+        again = synthesize_funnel(
+            designed_for, task.trajectory, state_bounds=bounds, initial=task.initial,
+            rate=task.rate, disturbance=declared + HOLD_DESIGN * box, terminal=terminal,
+            period=period,
+        )  # fmt: skip
+        second = _accepted(
+            scenario, task.trajectory, again, bounds, task.disturbance, task.period, measurement
+        )
+        if second is None:
+            return again, None
+        reasons.append(
+            f"designed again for {what}{np.round(HOLD_DESIGN * box, 4).tolist()} on top of the "
+            f"disturbance: {second}"
+        )
+    return funnel, "; ".join([failure, *reasons])
 
 
 def _reused(earlier: tuple[Funnel, str | None]) -> tuple[Funnel, str | None]:

@@ -125,6 +125,7 @@ from pipeline.numerics.funnel.law import LawOffset, corners
 from pipeline.numerics.funnel.lmi import FunnelProgram, codesign_gains, solve_clarabel
 from pipeline.numerics.funnel.pieces import interpolate, piece_hulls, pieces
 from pipeline.numerics.funnel.robust import invariant_ellipsoid
+from pipeline.numerics.funnel.sampled import paired_vertices
 from pipeline.numerics.hull import HullError, arc_variables
 from pipeline.numerics.terminal.fit import TerminalTarget, containing_level
 
@@ -270,7 +271,7 @@ def disturbance_seed(
 def _program(
     scenario, trajectory, K, vertices, boxes, variables, enclosure, Q_init, Q_seed, c, bounds,
     disturbance=None, multiplier=0.0, margin=0.0, terminal=None, state_bounds=None,
-    codesign=False,
+    codesign=False, period=0.0,
 ):  # fmt: skip
     """(F3) on the LMI pieces ``bounds`` (unknowns: ``Q`` at the piece ends), with the initial set
     and the tube at level 1 inside every hull box, clear of Unsafe (a disk bound) and inside Goal
@@ -278,7 +279,9 @@ def _program(
     at its ends (E3): the caps there hold on every sample interval of the piece. Under a
     ``disturbance`` every input bound and ``state_bounds`` entry is capped too: the level of a
     robust funnel cannot shrink below the design's to fit a bound the program did not see
-    ((I5)'s disturbance term grows as the level shrinks)."""
+    ((I5)'s disturbance term grows as the level shrinks). ``period > 0``: (F3) on the pairs of
+    ``funnel.sampled.paired_vertices`` too (a held law's push to first order, (I6'), at the
+    piece's first gain ``K``; with ``codesign`` the seed's)."""
     n, us, final_state = scenario.n, trajectory.us, trajectory.dense_xs[-1]
     S = len(bounds) - 1
     clearance = interval_clearance(scenario, trajectory, enclosure)
@@ -347,7 +350,10 @@ def _program(
     return FunnelProgram(
         Ts=scenario.Ts * np.diff(bounds).astype(np.float64),
         K=K[bounds[:-1]],
-        vertices=tuple(vertices[a] for a in bounds[:-1]),
+        vertices=tuple(
+            vertices[a] if period <= 0 else paired_vertices(vertices[a], K[a], period)
+            for a in bounds[:-1]
+        ),
         c=c,
         Q_init=Q_init,
         floor=1e-4 * float(np.linalg.eigvalsh(Q_init)[:, -1].max()),
@@ -386,6 +392,7 @@ def synthesize_funnel(
     segments: int = 1,
     disturbance: FloatArray | None = None,
     terminal: TerminalTarget | None = None,
+    period: float = 0.0,
 ) -> Funnel:
     """Synthesize and check the funnel around ``trajectory`` (one: ``xs (N+1, n)``, ``us (N, m)``,
     its dense grid); see the module docstring.
@@ -414,6 +421,12 @@ def synthesize_funnel(
         e.g. from ``terminal.hold_design``): (T2) on ``Q`` at ``T`` in the program, and the exact
         containment level as a limit on rho (``terminal``; sound whatever the solver returned)
         and re-checked after ``check_funnel``. A nominal ending outside it has no funnel.
+      period: ``h`` (s) of a held law to design for (0: continuous): with ``disturbance``, the
+        program imposes (F3) also on every vertex pair's first-order push (``funnel.sampled``
+        (I6') at ``tau = h``, ``paired_vertices``), so the disturbance need only hold (I6')'s
+        remainder box (R) on top of the declared one. A design heuristic: the funnel returned
+        is checked for the continuous law under ``disturbance`` here, and the held law's check
+        is the caller's (``stages.funnel``).
     """
     start = time.perf_counter()
     state_bounds = dict(state_bounds or {})
@@ -516,7 +529,7 @@ def synthesize_funnel(
                 designed = codesign_gains(_program(
                     scenario, trajectory, K, vertices, boxes, variables, enclosure, Q_init,
                     Q_seed, 2 * rate + margin, bounds, robust, multiplier, margin, terminal,
-                    state_bounds, codesign=True,
+                    state_bounds, codesign=True, period=period,
                 ))  # fmt: skip
                 if isinstance(designed, str):  # no gains to hold: nothing new to solve
                     failures.append(f"margin {margin:g}: (F6) {designed} over {N} intervals")
@@ -526,7 +539,7 @@ def synthesize_funnel(
             program = _program(
                 scenario, trajectory, gains, vertices, boxes, variables, enclosure, Q_init,
                 Q_seed, 2 * rate + margin, bounds, robust, multiplier, margin, terminal,
-                state_bounds,
+                state_bounds, period=period,
             )  # fmt: skip
             solution = solve_clarabel(program)
             failure: str | None

@@ -61,6 +61,30 @@ sharing ``Bbar`` with the loop is covered). ``b_h`` grows with the level (``ext`
 (``largest_level``). ``check_level(held_period=h)``; ``period`` is the constant certificate's
 held rate (``pipeline.numerics.tube.sampled``), for files without a disturbance.
 
+(T4') The hold's push to first order. ``b_h`` is ``h |B K_T| Edot`` over the whole ellipsoid,
+about ``e`` itself; on a stiff hover loop (quadrotor_hill_robust at 5 ms) it is far above what
+the decay leaves. ``funnel.sampled`` (I6') splits it for a funnel's interval; ``E_c`` is that
+argument's case with ``Q = P_T^-1`` constant (``Q' = 0``, rate 0, no interval end: every ``t``
+gives the same rows), the offset at ``t_j`` the measurement's ``c = eta(t_j)`` (``|c| <= E``,
+(T5); zero without it) and the additive term ``r + w`` with ``|r + w| <= |r| + b``. On ``[t_j,
+t]``, ``tau = t - t_j`` in ``[0, h]``, while ``e`` is in ``E_c`` (up to the first exit, which is
+all the invariance argument needs), ``|e'| <= Edot`` of (T4) (``held_speed``), ``Acl(s) = Abar(s)
++ Bbar(s) K_T`` and ``Mbar = (1/tau) int_{t_j}^t Acl(s) ds`` in ``conv{A_v' + B_v' K_T}``:
+
+    e' = (Acl(t) - tau Bbar(t) K_T Mbar) e + R + r + w,
+    R = Bbar(t) K_T (e(t_j) - e(t) + tau Mbar e(t)) + Bbar(t) K_T eta(t_j),
+
+and (I6')'s (R) with ``C = E``, ``d = |r| + b`` and ``E`` bounds ``|R_i|`` componentwise
+(``funnel.sampled.remainder_box``). (T1'')'s S-procedure with (I6')'s rows (the plain ones,
+``tau = 0``, and one per vertex pair ``(v, v')`` at ``tau = h``: ``funnel.robust.RobustCheck``
+with ``period``) and the box ``b + |r| + R``: for fixed ``z`` and ``alpha`` the quadratic form is
+affine in ``tau``, in the weights of ``[Abar(t) Bbar(t)]``, in those of ``Mbar`` and in the
+signal, so its largest value over their product of polytopes is at a vertex; the eigenvalue
+below ``-LMI_MARGIN`` there gives ``V' < 0`` on ``V = c`` for the held law. ``E_c`` is certified
+for it when (T1') or (T1'') holds with (T4)'s box, or (T4') holds (each is a proof of the same
+boundary inequality; ``check_level`` tries them in that order). With ``h = 0`` none of this is
+used.
+
 (T5) A measurement error. The law sees ``x + eta``, ``|eta_i| <= E_i`` for every measurable
 ``eta`` (the scenario's ``uncertainty.measurement``): ``u = u_eq + K_T (e + eta)`` (held: ``u =
 u_eq + K_T (e(t_j) + eta(t_j))``). ``E_c`` stays a set of the true state. The applied input is
@@ -92,6 +116,7 @@ from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
 from pipeline.numerics.funnel.law import LMI_MARGIN, corners
 from pipeline.numerics.funnel.robust import RobustCheck
+from pipeline.numerics.funnel.sampled import remainder_box
 from pipeline.numerics.hull import DEFAULT_SEGMENTS, HullError, jacobian_hull
 from pipeline.numerics.terminal.fit import containing_level as containing_level
 from pipeline.numerics.terminal.fit import end_levels
@@ -244,9 +269,9 @@ def check_level(
     feedback ``period > 0`` (the law held) the decay is that of the held law: ``2 lambda_h`` of
     ``pipeline.numerics.tube.sampled`` at the continuous rate ``alpha / 2``. ``disturbance (n,)``:
     the additive bound ``b`` of (T1') (None or zeros: the exact model, (T1)). ``held_period >
-    0``: the law held every ``held_period`` s, its hold an additive term (T4) joined to ``b``
-    (a funnel file's terminal law). ``measurement (n,)``: the box ``E`` of the error on the
-    state the law sees (T5) (None or zeros: the exact state)."""
+    0``: the law held every ``held_period`` s, its hold an additive term (T4) joined to ``b``,
+    or its push to first order (T4') (a funnel file's terminal law). ``measurement (n,)``: the
+    box ``E`` of the error on the state the law sees (T5) (None or zeros: the exact state)."""
     tube, r = _tube(scenario, K, P), float(np.sqrt(level))
     b = np.zeros(len(x_eq)) if disturbance is None else np.asarray(disturbance, dtype=np.float64)
     E = None if measurement is None else np.asarray(measurement, dtype=np.float64)
@@ -304,11 +329,18 @@ def check_level(
     box = {k: (float(c - w), float(c + w)) for k, c, w in zip(names, centre_z, half, strict=True)}
     residual = scenario.dynamics.f(x_eq, u_eq)
     residual_norm = float(np.sqrt(residual @ P @ residual))
+    pushed = b  # (T4')'s box, set with the hull
     try:
         hull = jacobian_hull(scenario.dynamics, box, segments)
         decay, vertices = decay_rate(P, K, hull.A, hull.B), len(hull.vertices)
         if period > 0:
             decay = 2 * held_rate(P, K, hull.A, hull.B, decay / 2, period).held_rate
+        if held_period > 0:  # (T4'): the push to first order, its remainder (R) as a box
+            E_0 = np.zeros(len(x_eq)) if E is None else E
+            speed = held_speed(hull.A, hull.B, extent * r, reach, residual, b)
+            pushed = b + np.abs(residual) + remainder_box(
+                hull.A, hull.B, K, speed, E_0, np.abs(residual) + b, E_0, held_period
+            )  # fmt: skip
         if held_period > 0:  # (T4): the hold as an additive term
             b = b + hold_bound(hull.A, hull.B, K, r * extent, reach, residual, b, held_period)
         if measured:  # (T5): the measurement's push as an additive term
@@ -327,11 +359,14 @@ def check_level(
     floor = bool(vertices) and decay > 0 and not decay * r > 2 * (residual_norm + w_max)  # (T1')
     if floor and len(w) and period == 0:  # (T1''): the S-procedure may hold where (T1') does not
         floor = not joint_margin(P, K, hull.A, hull.B, r, b + np.abs(residual)) < -LMI_MARGIN
+    if floor and held_period > 0:  # (T4'): or the held law's push to first order
+        floor = not joint_margin(P, K, hull.A, hull.B, r, pushed, held_period) < -LMI_MARGIN
     if floor:
         failures.append(
             f"V does not decrease on the boundary of E_c (decay {decay:.3g}/s x radius {r:.3g} "
             f"<= 2 (residual {residual_norm:.2g} + disturbance {w_max:.3g}) in P_T-norm, and "
-            "the S-procedure (T1'') does not hold either)"
+            "the S-procedure (T1'') does not hold either"
+            + (", nor the held law's push to first order (T4'))" if held_period > 0 else ")")
         )
     return TerminalCheck(
         level=float(level),
@@ -357,23 +392,45 @@ def hold_bound(
     period: float,
 ) -> FloatArray:
     """(n,) (T4)'s ``b_h = h max_v |B_v K| Edot``: the box of ``Bbar K (e(t_j) - e(t))`` for the
-    law held every ``period`` s, with ``Edot = max_v (|A_v| extent + |B_v| reach) + |residual| +
-    bound``; hull ``A (V, n, n)``, ``B (V, n, m)``, gain ``K (m, n)``, the ellipsoid's state and
-    input extents ``extent (n,)``, ``reach (m,)``, the equilibrium's residual and the additive
-    bound ``(n,)``."""
-    speed = (np.abs(A) @ extent + np.abs(B) @ reach).max(axis=0) + np.abs(residual) + bound
+    law held every ``period`` s, with ``Edot`` of ``held_speed``; hull ``A (V, n, n)``, ``B (V,
+    n, m)``, gain ``K (m, n)``, the ellipsoid's state and input extents ``extent (n,)``, ``reach
+    (m,)``, the equilibrium's residual and the additive bound ``(n,)``."""
+    speed = held_speed(A, B, extent, reach, residual, bound)
     return np.asarray(period * (np.abs(B @ K) @ speed).max(axis=0), dtype=np.float64)
 
 
+def held_speed(
+    A: FloatArray,
+    B: FloatArray,
+    extent: FloatArray,
+    reach: FloatArray,
+    residual: FloatArray,
+    bound: FloatArray,
+) -> FloatArray:
+    """(n,) (T4)'s ``Edot = max_v (|A_v| extent + |B_v| reach) + |residual| + bound``, a bound
+    on ``|e'|`` while ``e`` and ``e(t_j)`` are in ``E_c`` (arguments as ``hold_bound``'s)."""
+    speed = (np.abs(A) @ extent + np.abs(B) @ reach).max(axis=0) + np.abs(residual) + bound
+    return np.asarray(speed, dtype=np.float64)
+
+
 def joint_margin(
-    P: FloatArray, K: FloatArray, A: FloatArray, B: FloatArray, radius: float, bound: FloatArray
+    P: FloatArray,
+    K: FloatArray,
+    A: FloatArray,
+    B: FloatArray,
+    radius: float,
+    bound: FloatArray,
+    period: float = 0.0,
 ) -> float:
     """Twice (T1'')'s eigenvalue: ``funnel.robust`` (I5) for the constant metric ``P (n, n)``,
     gain ``K (m, n)``, hull ``A (V, n, n)``, ``B (V, n, m)``, at ``radius`` and the box ``|w| <=
-    bound (n,)``. Negative: ``V' < 0`` on ``V = radius^2`` for every hull point and ``w``."""
+    bound (n,)``. Negative: ``V' < 0`` on ``V = radius^2`` for every hull point and ``w``.
+    ``period > 0``: (T4')'s, with the held law's pushed rows (``funnel.sampled`` (I6')) and
+    ``bound`` the box with its remainder."""
     inverse = np.linalg.inv(P)
     Q: FloatArray = np.stack([(inverse + inverse.T) / 2] * 2)  # one interval, Q' = 0
-    check = RobustCheck(Q, K[None], (np.concatenate([A, B], axis=2),), 0.0, 1.0, radius)
+    hull = (np.concatenate([A, B], axis=2),)
+    check = RobustCheck(Q, K[None], hull, 0.0, 1.0, radius, period)
     return 2 * float(check.margins(bound)[0][0])
 
 

@@ -423,6 +423,18 @@ def _base_laws(
             continue
 
 
+@dataclass(frozen=True, kw_only=True)
+class HeldLawBounds:
+    """The boxes of a held or measured law over a funnel's intervals (their largest), a design
+    aid: ``hold (n,)`` ``H[k]`` of ``funnel.law`` (I6) (with (I7)'s push), ``held_input (m,)``
+    its input part, ``remainder (n,)`` the box (R) of ``funnel.sampled`` (I6') (None: not held,
+    only measured)."""
+
+    hold: FloatArray
+    held_input: FloatArray
+    remainder: FloatArray | None
+
+
 def held_law_bounds(
     scenario: Scenario,
     trajectory: Trajectory,
@@ -431,20 +443,26 @@ def held_law_bounds(
     disturbance: FloatArray | None,
     period: float,
     measurement: FloatArray | None = None,
-) -> tuple[FloatArray, FloatArray] | None:
-    """``(box (n,), swing (m,))``: the largest ``H[k]`` and ``held_input`` over the intervals of
-    the law held every ``period`` s (``funnel.law`` (I6)), with the measurement's box
+) -> HeldLawBounds | None:
+    """The largest ``H[k]``, ``held_input`` and (R) over the intervals of the law held every
+    ``period`` s (``funnel.law`` (I6), ``funnel.sampled`` (I6')), with the measurement's box
     ``measurement (n,)`` when given (I7), on the first hull of ``SEGMENTS`` that can be built:
-    what a funnel designed for the additive bound ``disturbance + H`` leaves room for, and the
-    part of the input offset that does not shrink with the reference grid; None without a hull
-    or a held or measured law. A design aid (``stages.funnel``): nothing is certified by it."""
+    what a funnel designed for the additive bound ``disturbance + H`` (or ``disturbance + R``
+    with (I6')'s pairs) leaves room for, and the part of the input offset that does not shrink
+    with the reference grid; None without a hull or a held or measured law. A design aid
+    (``stages.funnel``): nothing is certified by it."""
     for _, law in _base_laws(
         scenario, trajectory, shipped, state_bounds, disturbance, period, measurement
     ):
         if law.hold is not None and law.held_input is not None:
-            return (
-                np.asarray(law.hold.max(axis=0), dtype=np.float64),
-                np.asarray(law.held_input.max(axis=0), dtype=np.float64),
+            return HeldLawBounds(
+                hold=np.asarray(law.hold.max(axis=0), dtype=np.float64),
+                held_input=np.asarray(law.held_input.max(axis=0), dtype=np.float64),
+                remainder=(
+                    None
+                    if law.remainder is None
+                    else np.asarray(law.remainder.max(axis=0), dtype=np.float64)
+                ),
             )
     return None
 
