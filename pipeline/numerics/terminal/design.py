@@ -62,7 +62,7 @@ sharing ``Bbar`` with the loop is covered). ``b_h`` grows with the level (``ext`
 held rate (``pipeline.numerics.tube.sampled``), for files without a disturbance.
 
 (T4') The hold's push to first order. ``b_h`` is ``h |B K_T| Edot`` over the whole ellipsoid,
-about ``e`` itself; on a stiff hover loop (quadrotor_hill_robust at 5 ms) it is far above what
+about ``e`` itself; on a stiff hover loop (quadrotor_hill at 5 ms) it is far above what
 the decay leaves. ``funnel.sampled`` (I6') splits it for a funnel's interval; ``E_c`` is that
 argument's case with ``Q = P_T^-1`` constant (``Q' = 0``, rate 0, no interval end: every ``t``
 gives the same rows), the offset at ``t_j`` the measurement's ``c = eta(t_j)`` (``|c| <= E``,
