@@ -422,7 +422,7 @@ def synthesize_funnel(
         containment level as a limit on rho (``terminal``; sound whatever the solver returned)
         and re-checked after ``check_funnel``. A nominal ending outside it has no funnel.
       period: ``h`` (s) of a held law to design for (0: continuous): with ``disturbance``, the
-        program imposes (F3) also on every vertex pair's first-order push (``funnel.sampled``
+        program imposes (F3) also on each vertex's first-order push (``funnel.sampled``
         (I6') at ``tau = h``, ``paired_vertices``), so the disturbance need only hold (I6')'s
         remainder box (R) on top of the declared one. A design heuristic: the funnel returned
         is checked for the continuous law under ``disturbance`` here, and the held law's check
