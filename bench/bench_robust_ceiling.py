@@ -27,9 +27,8 @@ import pipeline
 from pipeline.numerics.hull import jacobian_hull
 from pipeline.numerics.terminal.design import equilibrium, lqr_terminal
 
-ISSUE_BOUND = np.array(
-    [0.0, 0.0, 0.0, 1.0922, 1.0755, 0.0]
-)  # m/s^2, quadrotor_hill_flythrough's states
+# m/s^2, on the quadrotor's states
+ISSUE_BOUND = np.array([0.0, 0.0, 0.0, 1.0922, 1.0755, 0.0])
 BOXES = ((0.3, 2.5), (0.3, 4.0), (0.45, 4.0), (0.6, 4.8))  # (pitch +-rad, thrust +-N)
 ALPHAS = (0.5, 1.0, 2.0, 3.0)
 STEPS = 8

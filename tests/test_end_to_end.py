@@ -33,9 +33,8 @@ from stages.montecarlo import falsify, validate_closed_loop
 from tests.helpers.controller_files import scale_gains
 
 ROOT = Path(__file__).resolve().parents[1]
-CI_SAMPLES = {
-    "quadrotor_hill_flythrough": 1000
-}  # closed-loop runs per scenario; others: CI_SAMPLES_OTHER
+FLYTHROUGH = "quadrotor_hill_flythrough"  # the paper's problem: the other end-to-end properties
+CI_SAMPLES = {FLYTHROUGH: 1000}  # closed-loop runs per scenario; others: CI_SAMPLES_OTHER
 CI_SAMPLES_OTHER = 300
 CI_SEED = 987654321  # not the pipeline's Monte Carlo seed
 # quadrotor_hill_gusty_flythrough's synthesis takes minutes (its coverage of a 5-dimensional
@@ -122,7 +121,7 @@ def _write_modified(out, tmp_path, change):
 
 def test_a_destabilising_gain_is_caught(synthesized, tmp_path):
     _, out = synthesized
-    scenario = load_scenario("quadrotor_hill_flythrough", check_demos=False)
+    scenario = load_scenario(FLYTHROUGH, check_demos=False)
     broken = _write_modified(out, tmp_path, lambda document: scale_gains(document, -3.0))
     result = validate_closed_loop(scenario, broken, samples=200, seed=1)
     assert not result.success and sum(result.failures.values()) > 0
@@ -145,7 +144,7 @@ def _ball_boundary(controller, trajectory, scale, count, seed):
 
 def test_the_claimed_tubes_hold_on_their_whole_initial_balls(synthesized):
     _, out = synthesized
-    scenario = load_scenario("quadrotor_hill_flythrough", check_demos=False)
+    scenario = load_scenario(FLYTHROUGH, check_demos=False)
     controller = load(out / "controller.json")
     for trajectory in range(len(controller.trajectories)):
         x0 = _ball_boundary(controller, trajectory, 0.99, 40, seed=trajectory)
@@ -155,7 +154,7 @@ def test_the_claimed_tubes_hold_on_their_whole_initial_balls(synthesized):
 
 def test_an_inflated_radius_is_caught(synthesized, tmp_path):
     _, out = synthesized
-    scenario = load_scenario("quadrotor_hill_flythrough", check_demos=False)
+    scenario = load_scenario(FLYTHROUGH, check_demos=False)
 
     def inflate(document):
         for item in document["trajectories"]:
@@ -174,7 +173,7 @@ def test_a_rerun_reuses_every_stage(synthesized, capsys):
     from pipeline.runtime.cli import main
 
     _, out = synthesized
-    code = main(["synthesize", "quadrotor_hill_flythrough", "--out", str(out), "--samples", "1000"])
+    code = main(["synthesize", FLYTHROUGH, "--out", str(out), "--samples", "1000"])
     printed = capsys.readouterr().out
     assert code == 0
     for stage in ("feedback", "optimize", "montecarlo"):
@@ -201,7 +200,7 @@ def test_a_hand_edited_controller_is_rewritten_and_never_certified(synthesized, 
     for item in document["trajectories"]:  # every state now looks covered
         item["radius"] = -abs(item["radius"])
     (out / "controller.json").write_text(json.dumps(document))
-    result = synthesize("quadrotor_hill_flythrough", out=out, samples=1000)
+    result = synthesize(FLYTHROUGH, out=out, samples=1000)
     assert result.exit_code == 0, result.message
     assert (out / "controller.json").read_bytes() == emitted  # rewritten from the results
 
@@ -234,7 +233,7 @@ def test_the_verdict_comes_from_the_file_as_written(synthesized, tmp_path, monke
         "emit_funnel_controller",
         inflated(stages.controller.emit_funnel_controller),
     )
-    result = synthesize("quadrotor_hill_flythrough", out=out, samples=1000)
+    result = synthesize(FLYTHROUGH, out=out, samples=1000)
     summary = json.loads((out / "summary.json").read_text())
     assert result.exit_code == 1 and result.verdict is Verdict.NOT_CERTIFIED
     assert result.controller is None and result.outputs.controller is None
@@ -251,7 +250,7 @@ def _start(out, *extra):
             "-m",
             "pipeline",
             "synthesize",
-            "quadrotor_hill_flythrough",
+            FLYTHROUGH,
             "--out",
             str(out),
             "--samples",
@@ -303,15 +302,7 @@ def test_a_killed_run_keeps_the_last_good_output_and_resumes(
     # the resumed run reads what the killed process left: in this process (the kill is the
     # process boundary under test, not the resume)
     capsys.readouterr()
-    argv = [
-        "synthesize",
-        "quadrotor_hill_flythrough",
-        "--out",
-        str(out),
-        "--samples",
-        "1000",
-        *constant,
-    ]
+    argv = ["synthesize", FLYTHROUGH, "--out", str(out), "--samples", "1000", *constant]
     code = main(argv)
     resumed = capsys.readouterr()
     assert code == 0, resumed.out + resumed.err
@@ -339,7 +330,7 @@ def test_the_smallest_margin_names_its_kind():
 
 
 def test_the_demo_table_lists_each_unsafe_set_and_the_goal_check():
-    scenario = load_scenario("quadrotor_hill_flythrough", check_demos=False)
+    scenario = load_scenario(FLYTHROUGH, check_demos=False)
     trajectories = [simulate(scenario.dynamics, d.x0, d.us, scenario.Ts, 8) for d in scenario.demos]
     lines = demo_table(scenario, trajectories).splitlines()
     assert "to hill" in lines[0] and "to ceiling" in lines[0] and "ends in Goal" in lines[0]

@@ -16,26 +16,18 @@ import math
 
 import numpy as np
 import pytest
-from scipy.linalg import solve_continuous_lyapunov
 
 from pipeline.numerics.funnel.law import law_offset
 from pipeline.numerics.funnel.robust import RobustCheck
 from pipeline.numerics.funnel.sampled import pushed_rows
-from tests.helpers.robust import rk4_step
+from tests.helpers.robust import rk4_step, stiff_hull
 
 
-def _stiff_funnel(rng, n, m, V):
-    """One interval of a random hull about two stiff double integrators (``n = 4``, ``m = 2``,
-    poles at -3): ``vertices`` (1 array (V, n, n+m)), ``K (1, m, n)``, ``P (2, n, n)`` from the
-    nominal loop's Lyapunov equation, shrinking slightly over the interval."""
-    eye = np.eye(2)
-    A0 = np.block([[0 * eye, eye], [0 * eye, -0.1 * eye]])
-    B0 = np.vstack([0 * eye, eye])
-    K = -np.hstack([9 * eye, 6 * eye])
-    A = A0 + 0.05 * rng.standard_normal((V, n, n))
-    B = B0 + 0.05 * rng.standard_normal((V, n, m))
-    Q = solve_continuous_lyapunov(A0 + B0 @ K, -np.eye(n))
-    Q = Q / np.linalg.eigvalsh(Q).max()
+def _stiff_funnel(rng, V):
+    """One interval of ``stiff_hull``'s random hull: ``vertices`` (1 array (V, n, n+m)), ``K (1,
+    m, n)``, ``P (2, n, n)`` from the nominal loop's metric, shrinking slightly over the
+    interval."""
+    A, B, K, Q = stiff_hull(rng, V)
     P = np.linalg.inv(np.stack([Q, 0.99 * Q]))
     return (np.concatenate([A, B], axis=2),), K[None], P
 
@@ -45,8 +37,8 @@ def _flown(period, seed, steps=40, batch=3000):
     its box, the rate's excess over the prediction, in ``rho^2``), the share still inside at the
     end and ``r_k``."""
     rng = np.random.default_rng(seed)
-    n, m, V, Ts, rho, rate = 4, 2, 4, 0.1, 1.0, 0.2
-    vertices, K, P = _stiff_funnel(rng, n, m, V)
+    n, V, Ts, rho, rate = 4, 4, 0.1, 1.0, 0.2
+    vertices, K, P = _stiff_funnel(rng, V)
     d = np.array([0.0, 0.05, 0.0, 0.05])
     substeps = np.array([4])
     law = law_offset(
@@ -129,8 +121,8 @@ def test_as_the_period_vanishes_the_check_is_the_continuous_laws():
     (I6')'s eigenvalue converges to (I5)'s of the continuous law (first order in ``h``), and at
     ``h = 0`` ``law_offset`` carries no remainder."""
     rng = np.random.default_rng(4)
-    n, m, V, Ts, rho, rate = 4, 2, 4, 0.1, 1.0, 0.2
-    vertices, K, P = _stiff_funnel(rng, n, m, V)
+    n, V, Ts, rho, rate = 4, 4, 0.1, 1.0, 0.2
+    vertices, K, P = _stiff_funnel(rng, V)
     Q = np.linalg.inv(P)
     d = np.array([0.0, 0.05, 0.0, 0.05])
     args = (vertices, np.ones((1, n)), K, P, rho, rate, Ts, np.array([4]), 0.0)

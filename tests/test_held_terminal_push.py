@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from scipy.linalg import solve_continuous_lyapunov
 
 from pipeline.model.scenario import load_scenario
 from pipeline.numerics.funnel.law import LMI_MARGIN, corners
@@ -29,20 +28,7 @@ from pipeline.numerics.terminal.design import (
     largest_level,
     lqr_terminal,
 )
-from tests.helpers.robust import GUST, rk4_step
-
-
-def _terminal(rng, n=4, m=2, V=4):
-    """A random hull about two stiff double integrators (poles at -3), its gain and the metric
-    of the nominal loop's Lyapunov equation: ``A (V, n, n)``, ``B (V, n, m)``, ``K``, ``P``."""
-    eye = np.eye(2)
-    A0 = np.block([[0 * eye, eye], [0 * eye, -0.1 * eye]])
-    B0 = np.vstack([0 * eye, eye])
-    K = -np.hstack([9 * eye, 6 * eye])
-    A = A0 + 0.05 * rng.standard_normal((V, n, n))
-    B = B0 + 0.05 * rng.standard_normal((V, n, m))
-    Q = solve_continuous_lyapunov(A0 + B0 @ K, -np.eye(n))
-    return A, B, K, np.linalg.inv(Q / np.linalg.eigvalsh(Q).max())
+from tests.helpers.robust import GUST, rk4_step, stiff_hull
 
 
 def _flown(period, seed, steps=40, batch=3000):
@@ -50,8 +36,8 @@ def _flown(period, seed, steps=40, batch=3000):
     rate's excess over the prediction in ``c``) and the share still inside at the end."""
     rng = np.random.default_rng(seed)
     n, radius = 4, 1.0
-    A, B, K, P = _terminal(rng)
-    Q = np.linalg.inv(P)
+    A, B, K, Q = stiff_hull(rng)
+    P = np.linalg.inv(Q)
     residual = np.array([0.002, -0.001, 0.0, 0.003])
     b = np.array([0.0, 0.05, 0.0, 0.05])
     E = np.array([0.003, 0.003, 0.0, 0.0])

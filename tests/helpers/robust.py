@@ -8,6 +8,7 @@ import shutil
 from pathlib import Path
 
 import numpy as np
+from scipy.linalg import solve_continuous_lyapunov
 from shapely.geometry import box
 
 from pipeline.model.scenario import Scenario, load_scenario
@@ -27,6 +28,22 @@ def rk4_step(field, x: np.ndarray, dt: float) -> np.ndarray:
     k3 = field(x + dt / 2 * k2)
     k4 = field(x + dt * k3)
     return x + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+
+
+def stiff_hull(
+    rng: np.random.Generator, V: int = 4
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A random hull about two stiff double integrators (``n = 4``, ``m = 2``, poles at -3), the
+    tests of a held law's push: ``A (V, n, n)``, ``B (V, n, m)``, the gain ``K (m, n)`` and ``Q
+    (n, n)`` of the nominal loop's Lyapunov equation, scaled to largest eigenvalue 1."""
+    eye = np.eye(2)
+    A0 = np.block([[0 * eye, eye], [0 * eye, -0.1 * eye]])
+    B0 = np.vstack([0 * eye, eye])
+    K = -np.hstack([9 * eye, 6 * eye])
+    A = A0 + 0.05 * rng.standard_normal((V, 4, 4))
+    B = B0 + 0.05 * rng.standard_normal((V, 4, 2))
+    Q = solve_continuous_lyapunov(A0 + B0 @ K, -np.eye(4))
+    return A, B, K, Q / np.linalg.eigvalsh(Q).max()
 
 
 def double_integrator_case() -> tuple[Scenario, Trajectory, np.ndarray]:

@@ -349,10 +349,8 @@ def test_cli_report_writes_into_out_and_reads_from_from(
         return {p: p.stat().st_mtime_ns for p in source.rglob("*") if p.name != ".lock"}
 
     before = files()
-    assert (
-        main(["report", "quadrotor_hill_flythrough", "--from", str(source), "--out", str(target)])
-        == 0
-    )
+    name = "quadrotor_hill_flythrough"
+    assert main(["report", name, "--from", str(source), "--out", str(target)]) == 0
     assert str(target / "report.html") in capsys.readouterr().out
     assert {p.name for p in target.iterdir()} == {"report.html", "scenario.png", "report.pdf"}
     assert files() == before
@@ -364,13 +362,9 @@ def test_cli_report_reads_reports_name_under_the_current_directory(
     capsys: pytest.CaptureFixture[str],
 ) -> None:  # fmt: skip
     monkeypatch.chdir(tmp_path)
-    assert (
-        main(["report", "quadrotor_hill_flythrough"]) == 2
-    )  # no ./reports/quadrotor_hill_flythrough here
-    assert (
-        str(tmp_path / "reports" / "quadrotor_hill_flythrough" / "summary.json")
-        in capsys.readouterr().err
-    )
+    name = "quadrotor_hill_flythrough"
+    assert main(["report", name]) == 2  # no ./reports/quadrotor_hill_flythrough here
+    assert str(tmp_path / "reports" / name / "summary.json") in capsys.readouterr().err
 
 
 def test_cli_report_of_a_missing_run_is_one_clear_line(
