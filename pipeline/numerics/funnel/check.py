@@ -124,7 +124,21 @@ def check_funnel(
     state_bounds: Mapping[str, tuple[float, float]],
     law: LawOffset | None = None,
 ) -> str | None:
-    """Re-verify ``funnel`` with numpy alone; ``None`` if it holds, else what fails.
+    """Re-verify ``funnel`` with numpy alone; ``None`` if it holds, else what fails
+    (``checked_margins`` below, without its margins)."""
+    return checked_margins(scenario, trajectory, funnel, state_bounds, law)[0]
+
+
+def checked_margins(
+    scenario: Scenario,
+    trajectory: Trajectory,
+    funnel: Funnel,
+    state_bounds: Mapping[str, tuple[float, float]],
+    law: LawOffset | None = None,
+) -> tuple[str | None, FloatArray | None]:
+    """``(failure, margins)``: ``None`` if ``funnel`` holds, else what fails, and the (N,)
+    ``effective_margins`` the check computed (None when it stopped before them: a ``P`` that is
+    not a metric), so that a caller reporting them does not evaluate (I5) twice.
 
     Checks: every ``P[k]`` symmetric positive definite; (F3) at every vertex and both ends of
     every interval, plus the law's term (I2) when ``law`` is given, below ``-LMI_MARGIN``; the a
@@ -136,14 +150,17 @@ def check_funnel(
     N, n = len(K), scenario.n
     law = LawOffset.none(N, n, scenario.m, Ts) if law is None else law
     if P.shape != (N + 1, n, n) or K.shape != (N, scenario.m, n):
-        return f"shapes P {P.shape}, K {K.shape} do not fit N = {N}, n = {n}, m = {scenario.m}"
+        return (
+            f"shapes P {P.shape}, K {K.shape} do not fit N = {N}, n = {n}, m = {scenario.m}",
+            None,
+        )
     if not (np.all(np.isfinite(P)) and np.all(np.isfinite(K)) and np.isfinite(rho)):
-        return "non-finite P, K or rho"
+        return "non-finite P, K or rho", None
     if np.abs(P - np.swapaxes(P, 1, 2)).max() > 1e-9 * np.abs(P).max():
-        return "P is not symmetric"
+        return "P is not symmetric", None
     lowest = np.linalg.eigvalsh(P)[:, 0]
     if lowest.min() <= 0:
-        return f"P[{int(np.argmin(lowest))}] is not positive definite ({lowest.min():.3g})"
+        return f"P[{int(np.argmin(lowest))}] is not positive definite ({lowest.min():.3g})", None
     Q = np.linalg.inv(P)
     Q = (Q + np.swapaxes(Q, 1, 2)) / 2
     effective = effective_margins(Q, K, funnel, Ts, law)  # funnel.law (I2), funnel.robust (I5)
@@ -191,11 +208,11 @@ def check_funnel(
                     f"measurement error |eta| <= {np.round(law.measurement, 4).tolist()}, on "
                     "any reference grid"
                 )
-        return failure
+        return failure, effective
     h = Ts / substeps(trajectory)
     enclosure = funnel.enclosure
     if enclosure is None:
-        return "no enclosure of the nominal (the funnel's hulls failed)"
+        return "no enclosure of the nominal (the funnel's hulls failed)", effective
     s_ext = np.sqrt(
         np.maximum(np.diagonal(Q, axis1=1, axis2=2)[:-1], np.diagonal(Q, axis1=1, axis2=2)[1:])
     )
@@ -204,7 +221,7 @@ def check_funnel(
         pad = np.minimum(enclosure.grid_range[k, 0] - box[0], box[1] - enclosure.grid_range[k, 1])
         F = rate_bound(scenario.dynamics, trajectory, k, box, funnel.vertices[k][:, :, :n])
         if not (np.all(F * h < pad) and np.all(F <= enclosure.rate_bound[k])):
-            return f"the nominal's enclosure (E1) fails on interval {k}"
+            return f"the nominal's enclosure (E1) fails on interval {k}", effective
         for d, name in enumerate(funnel.variables):
             lo, hi = funnel.boxes[k, :, d]
             if name in scenario.input_names:
@@ -219,14 +236,17 @@ def check_funnel(
                     enclosure.range[k, 1, i] + rho * s_ext[k, i],
                 )
                 if not (lo <= box[0, i] and box[1, i] <= hi):
-                    return f"the enclosure leaves the hull box of '{name}' on interval {k}"
+                    return (
+                        f"the enclosure leaves the hull box of '{name}' on interval {k}",
+                        effective,
+                    )
             if not (lo <= inner[0] and inner[1] <= hi):
-                return f"the tube leaves the hull box of '{name}' on interval {k}"
+                return f"the tube leaves the hull box of '{name}' on interval {k}", effective
     limits = funnel_limits(scenario, trajectory, Q, K, enclosure, state_bounds, law.input_offset)
     name = min(limits, key=lambda key: limits[key][0])
     if rho > (1 - LEVEL_MARGIN) * limits[name][0]:
         return (
             f"rho {rho:.6g} exceeds the limit {limits[name][0]:.6g} of {name} less its margin "
             f"({LEVEL_MARGIN:g}, relative)"
-        )
-    return None
+        ), effective
+    return None, effective

@@ -59,7 +59,7 @@ from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import Trajectory, simulate, simulate_graded
 from pipeline.numerics.funnel.bounds import funnel_limits, tube_extents
-from pipeline.numerics.funnel.check import Funnel, check_funnel, effective_margins
+from pipeline.numerics.funnel.check import Funnel, checked_margins, effective_margins
 from pipeline.numerics.funnel.law import (
     BASE_SUBSTEPS,
     LEVEL_MARGIN,
@@ -296,7 +296,9 @@ def recheck_funnel(
         except (HullError, np.linalg.LinAlgError) as error:
             failures.append(f"{segments} segment(s): {error}")
             continue
-        failure = check_funnel(scenario, trajectory, funnel, state_bounds, law)
+        failure, margins = checked_margins(scenario, trajectory, funnel, state_bounds, law)
+        if margins is None:  # P is no metric: (F2)'s margins as effective_margins gives them
+            margins = effective_margins(Q, K, funnel, scenario.Ts, law)
         enclosure = funnel.enclosure
         if enclosure is None:  # _under_law raises first; narrows the type
             raise HullError("no a priori enclosure of the nominal")
@@ -310,7 +312,7 @@ def recheck_funnel(
         )  # fmt: skip
         last = FunnelRecheck(
             failure=failure,
-            margin=float(effective_margins(Q, K, funnel, scenario.Ts, law).max()),
+            margin=float(margins.max()),
             vertices=sum(len(v) for v in funnel.vertices),
             radius=limits[binding][0],
             binding=binding,
@@ -389,9 +391,9 @@ def reference_substeps(
     ):
         # (I5) with the disturbance and a held law's box, without the interpolation's term
         robust = law.robust_part()
-        if check_funnel(scenario, trajectory, funnel, state_bounds, robust) is not None:
+        failure, margins = checked_margins(scenario, trajectory, funnel, state_bounds, robust)
+        if failure is not None or margins is None:
             continue
-        margins = effective_margins(Q, K, funnel, scenario.Ts, robust)
         _, g, _ = tube_extents(Q, K, scenario.position_index)
         room = (
             np.minimum(trajectory.us - scenario.input_lower, scenario.input_upper - trajectory.us)
