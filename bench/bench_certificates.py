@@ -8,8 +8,9 @@ temporary folder) and, from each demo's start, IPOPT's minimum time with no tube
 hover, ``bench.uncertified`` ``at_rest``), which a certificate ending in a hover is measured
 against; per certificate: verdict, Init coverage and the run's wall time; and the issue's
 targets (funnel within 1.10 of ``T_unc`` on quadrotor_hill_flythrough, 1.25 on
-quadrotor_hill_gusty_flythrough). Run: ``python -m bench certificates`` (needs the ``bench`` extra:
-casadi).
+quadrotor_hill_gusty_flythrough; within 1.15 of ``T_rest`` on quadrotor_hill and
+quadrotor_hill_hold, 1.30 on quadrotor_hill_gusty). Run: ``python -m bench certificates`` (needs
+the ``bench`` extra: casadi).
 """
 
 from __future__ import annotations
@@ -25,9 +26,9 @@ from bench.bench_optimize import ipopt_minimum_time
 from bench.uncertified import uncertified_constraints
 
 TARGETS = {"quadrotor_hill_flythrough": 1.10, "quadrotor_hill_gusty_flythrough": 1.25}
-# against T_rest: the flight ends in a hover (quadrotor_hill: issue 29's 1.15, asked under a
-# larger declared uncertainty than the one it ships)
-REST_TARGETS = {"quadrotor_hill_hold": 1.15, "quadrotor_hill": 1.15}
+# against T_rest: the flight ends in a hover (issue 29's 1.15 and, with the wider Init, 1.30;
+# asked under a larger declared uncertainty than the one they ship)
+REST_TARGETS = {"quadrotor_hill_hold": 1.15, "quadrotor_hill": 1.15, "quadrotor_hill_gusty": 1.30}
 CERTIFICATES = ("constant", "funnel")
 SAMPLES = 1000
 
