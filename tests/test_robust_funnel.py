@@ -19,7 +19,7 @@ from pipeline.controller import inverse_linear
 from pipeline.model.scenario import load_scenario
 from pipeline.model.simulate import simulate
 from pipeline.numerics.funnel import synthesis
-from pipeline.numerics.funnel.check import check_funnel
+from pipeline.numerics.funnel.check import check_funnel, checked_margins, effective_margins
 from pipeline.numerics.funnel.law import LMI_MARGIN, LawOffset, corners
 from pipeline.numerics.funnel.lmi import FunnelProgram, codesign_gains, solve_clarabel, solve_cvxpy
 from pipeline.numerics.funnel.robust import MULTIPLE_STEPS, RobustCheck, invariant_ellipsoid
@@ -335,6 +335,28 @@ def test_a_robust_funnel_holds_under_the_worst_disturbance_from_its_boundary():
         e = x - fine.dense_xs[j + 1]
         worst = max(worst, np.sqrt(np.einsum("bi,ij,bj->b", e, P_t[j + 1], e)).max() / funnel.rho)
     assert worst <= 1 + 1e-6, worst
+
+
+def test_the_check_hands_back_the_margins_it_judged_by():
+    """``checked_margins`` returns the failure ``check_funnel`` gives and the (N,) margins that
+    ``effective_margins`` computes for the same funnel and law (the recheck reports them instead
+    of searching (I5) again): for a funnel that holds and one that fails under the
+    disturbance."""
+    scenario, trajectory, initial = double_integrator_case()
+    robust = synthesize_funnel(scenario, trajectory, initial=initial, disturbance=DISTURBANCE)
+    nominal = synthesize_funnel(scenario, trajectory, initial=initial)
+    failures = []
+    for funnel in (robust, nominal):
+        law = _robust(funnel, scenario, DISTURBANCE)
+        failure, margins = checked_margins(scenario, trajectory, funnel, {}, law)
+        assert failure == check_funnel(scenario, trajectory, funnel, {}, law)
+        failures.append(failure)
+        Q = np.linalg.inv(funnel.P)
+        expected = effective_margins(
+            (Q + np.swapaxes(Q, 1, 2)) / 2, funnel.K, funnel, scenario.Ts, law
+        )
+        assert margins is not None and np.array_equal(margins, expected)
+    assert failures[0] is None and "under the disturbance" in failures[1]
 
 
 def test_no_disturbance_is_exactly_the_nominal_funnel():
