@@ -43,6 +43,25 @@ def test_the_hulls_hold_init_and_a_fixed_state_stays_fixed():
     assert inside.all()
 
 
+def test_a_grid_of_starts_is_asked_for_its_voronoi_boxes():
+    """Three by three starts at the centres of a box's thirds (Init 2 x 1): by default each is
+    asked for its own third of every side to within one cell, the middle ones too; with
+    g = 4 the middle column owns two of the four cells, half of the 2 m side (1.5x a third)."""
+    lower, upper = np.array([1.0, 2.0]), np.array([3.0, 3.0])
+    centres = [
+        lower + (np.array([i, j]) + 0.5) * (upper - lower) / 3 for j in range(3) for i in range(3)
+    ]
+    starts = np.array(centres)
+    side = upper - lower
+    for offsets in init_cells(lower, upper, starts, np.eye(2)):
+        span = offsets.max(axis=0) - offsets.min(axis=0)
+        assert np.all(span / (1 + PAD) <= side / 3 + side / 64 + 1e-12)
+        assert np.all(span / (1 + PAD) >= side / 3 - side / 64 - 1e-12)
+    coarse = init_cells(lower, upper, starts, np.eye(2), divisions=4)
+    middle = coarse[1]  # the bottom row's middle start
+    np.testing.assert_allclose((middle.max(axis=0) - middle.min(axis=0))[0] / (1 + PAD), 1.0)
+
+
 def test_a_start_far_away_owns_nothing():
     starts = np.array([[0.5, 0.5], [10.0, 10.0]])
     near, far = init_cells(np.zeros(2), np.ones(2), starts, np.eye(2))

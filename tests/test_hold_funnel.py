@@ -73,3 +73,24 @@ def test_the_reserve_keeps_the_nominal_off_its_bounds():
     assert kept.input_margin.tolist() == [1.0, 0.2]
     assert kept.region_margin == {"theta": 0.1, "u1": 1.0}  # X: not in the operating region
     assert kept.state_extent == {"theta": 0.1}  # X: not in state_bounds
+
+
+def test_the_end_box_fills_the_terminal_ellipsoid():
+    """A hold run's nominals end in Goal's bounds replaced by a box about ``x_eq`` whose worst
+    corner lies on the terminal ellipsoid (``CORE`` 1: the whole level, not half), every other
+    corner inside (quadrotor_hill: Goal's own bounds cut no side of it)."""
+    import itertools
+
+    from stages.certificates.funnel import hold_targets, target_of
+
+    scenario = load_scenario("quadrotor_hill", check_demos=False)
+    targets = hold_targets(scenario)
+    assert targets.terminal is not None
+    target = target_of(targets.terminal)
+    lower = np.array([targets.scenario.goal_bounds[k][0] for k in scenario.state_names])
+    upper = np.array([targets.scenario.goal_bounds[k][1] for k in scenario.state_names])
+    half = target.core_box(CORE)
+    np.testing.assert_allclose(upper - lower, 2 * half, rtol=1e-12)  # Goal's bounds cut nothing
+    signs = np.array(list(itertools.product((-1.0, 1.0), repeat=len(half))))
+    shares = np.einsum("ki,ij,kj->k", signs * half, target.P, signs * half) / target.level
+    assert shares.max() == pytest.approx(1.0, rel=1e-9)

@@ -18,6 +18,13 @@ This is only a request: the coverage stage certifies Init against the funnels' i
 ellipsoids at their levels by its own sound subdivision. With ``g`` a power of two the cells are
 boxes of that subdivision, each inside one funnel when every level reaches 1.
 
+The finest ``g`` (``DIVISIONS``, halved while ``g^D > MAX_CELLS``): (C1) on the cells is the
+nearest-start (Voronoi) split of Init up to one cell, and ``H_i`` reaches at most one cell beyond
+start ``i``'s Voronoi region. Coarse cells that do not line up with the starts hand whole cells
+to a middle start: with three starts per side and ``g = 4`` the middle one owns two of the four
+cells, a side 1.5x its Voronoi region's (half of Init's side against a third), and its funnel,
+wider by as much, keeps more of the input bounds from its nominal.
+
 Why (measured on quadrotor_hill_gusty_flythrough, Init with velocity and pitch spread): the constant
 certificate's ball slice that the funnels were asked to hold before reached +-0.30 rad in pitch
 and +-0.95 m/s in horizontal speed from every start, 4-6x what Init spans; a cell stays inside
@@ -34,7 +41,7 @@ from scipy.spatial import ConvexHull, QhullError
 from pipeline.model.dynamics import FloatArray
 
 PAD = 1e-3  # relative push of each corner away from its start: > LEVEL_SLACK / (1 - LEVEL_SLACK)
-DIVISIONS = 4  # g, cells per free side, halved while g^D exceeds MAX_CELLS
+DIVISIONS = 64  # g, cells per free side, halved while g^D exceeds MAX_CELLS
 MAX_CELLS = 4096
 MAX_CORNERS = 64  # hull vertices per start; beyond, the bounding box's 2^D corners
 
