@@ -167,9 +167,11 @@ def _designed(task: _Task) -> tuple[Funnel, str | None]:
         )
         return _ends_outside(scenario, task.trajectory, why), why
     bounds = held_state_bounds(scenario)
+    # a held law keeps the LQR gains: (F6)'s program cannot see its own gains' push (I6)
+    codesign = task.period <= 0
     funnel = synthesize_funnel(
         scenario, task.trajectory, state_bounds=bounds, initial=task.initial, rate=task.rate,
-        disturbance=task.disturbance, terminal=terminal,
+        disturbance=task.disturbance, terminal=terminal, codesign=codesign,
     )  # fmt: skip
     measurement = task.measurement
     failure = _accepted(
@@ -205,7 +207,7 @@ def _designed(task: _Task) -> tuple[Funnel, str | None]:
         again = synthesize_funnel(
             designed_for, task.trajectory, state_bounds=bounds, initial=task.initial,
             rate=task.rate, disturbance=declared + HOLD_DESIGN * box, terminal=terminal,
-            period=period,
+            period=period, codesign=codesign,
         )  # fmt: skip
         second = _accepted(
             scenario, task.trajectory, again, bounds, task.disturbance, task.period, measurement

@@ -393,6 +393,7 @@ def synthesize_funnel(
     disturbance: FloatArray | None = None,
     terminal: TerminalTarget | None = None,
     period: float = 0.0,
+    codesign: bool = True,
 ) -> Funnel:
     """Synthesize and check the funnel around ``trajectory`` (one: ``xs (N+1, n)``, ``us (N, m)``,
     its dense grid); see the module docstring.
@@ -427,6 +428,9 @@ def synthesize_funnel(
         remainder box (R) on top of the declared one. A design heuristic: the funnel returned
         is checked for the continuous law under ``disturbance`` here, and the held law's check
         is the caller's (``stages.funnel``).
+      codesign: with ``disturbance``, try gains co-designed with the metric (F6) after the LQR
+        gains' multipliers (False: the LQR gains only; ``stages.funnel`` for a held law, whose
+        push (I6) the (F6) program cannot see: it is bilinear in the gains).
     """
     start = time.perf_counter()
     state_bounds = dict(state_bounds or {})
@@ -514,18 +518,18 @@ def synthesize_funnel(
             [(margin, 0.0, False) for margin in MARGINS]
             if robust is None
             else [
-                (ROBUST_MARGIN * alpha, alpha, codesign)
-                for codesign in (False, True)
+                (ROBUST_MARGIN * alpha, alpha, family)
+                for family in ((False, True) if codesign else (False,))
                 for alpha in ROBUST_MULTIPLIERS
             ]
         )
         search = MultiplierSearch()
-        for margin, multiplier, codesign in tries:
-            if robust is not None and search.past_best(codesign):
+        for margin, multiplier, family in tries:
+            if robust is not None and search.past_best(family):
                 continue
             # a solution within the solver's tolerance may fail the check: the next margin
             gains, origin = K, ""
-            if codesign:  # (F6): gains designed with the metric, then held ((F3))
+            if family:  # (F6): gains designed with the metric, then held ((F3))
                 designed = codesign_gains(_program(
                     scenario, trajectory, K, vertices, boxes, variables, enclosure, Q_init,
                     Q_seed, 2 * rate + margin, bounds, robust, multiplier, margin, terminal,
@@ -533,7 +537,7 @@ def synthesize_funnel(
                 ))  # fmt: skip
                 if isinstance(designed, str):  # no gains to hold: nothing new to solve
                     failures.append(f"margin {margin:g}: (F6) {designed} over {N} intervals")
-                    search.record(codesign, 0.0)
+                    search.record(family, 0.0)
                     continue
                 gains, origin = designed[0][np.repeat(np.arange(S), np.diff(bounds))], "(F6) "
             program = _program(
@@ -552,10 +556,10 @@ def synthesize_funnel(
                 if robust is None:
                     return result(False, f"funnel: {failure}", **common)
                 failures.append(f"margin {margin:g}: {failure}")
-                search.record(codesign, 0.0)
+                search.record(family, 0.0)
                 continue
             Q_ends, tau = solution
-            search.record(codesign, tau)
+            search.record(family, tau)
             # eq. (P1) at every sample time; E(0) at level 1 holds the initial set, the caps
             # hold at level sqrt(tau)
             Q = interpolate(Q_ends, bounds) / tau

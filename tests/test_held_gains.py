@@ -1,0 +1,85 @@
+"""A held law's funnels keep the LQR gains (``stages.funnel``, ``synthesize_funnel(codesign=...)``).
+
+(F6) co-designs the gains with the metric for the continuous law; its program cannot see the push
+its own gains give a held law ((I6) is bilinear in them), so a co-designed funnel's push is what
+the design never saw. On quadrotor_hill at 5 ms (round 1's nominals) the co-designed funnels'
+push on the pitch rate was 10-30x the LQR gains' and none of them held the held law, after up to
+32 solves each. So a held law is designed with the LQR gains only, first design and redesigns;
+the continuous law keeps (F6).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+import stages.funnel as stage
+from pipeline.numerics.funnel import synthesis
+from pipeline.numerics.funnel.synthesis import synthesize_funnel
+from pipeline.numerics.verify.recertify import HeldLawBounds
+from tests.helpers.robust import DISTURBANCE, double_integrator_case
+
+
+def test_without_codesign_no_gains_are_codesigned():
+    """At eight times the tests' bound the LQR gains' funnel is rejected and (F6)'s passes
+    (``test_robust_funnel``); with ``codesign=False`` (F6)'s program is never solved and the
+    funnel returned is the LQR gains' (rejected, the (F6) family not named)."""
+    scenario, trajectory, initial = double_integrator_case()
+    bound = 8 * DISTURBANCE
+    calls = []
+    original = synthesis.codesign_gains
+
+    def counted(program):
+        calls.append(program.multiplier)
+        return original(program)
+
+    synthesis.codesign_gains = counted
+    try:
+        lqr = synthesize_funnel(
+            scenario, trajectory, initial=initial, disturbance=bound, codesign=False
+        )
+        assert calls == [] and "(F6)" not in lqr.message and not lqr.success, lqr.message
+        designed = synthesize_funnel(scenario, trajectory, initial=initial, disturbance=bound)
+    finally:
+        synthesis.codesign_gains = original
+    assert calls and designed.success and "(F6)" in designed.message, designed.message
+
+
+def _families(monkeypatch, period: float) -> list[bool]:
+    """The ``codesign`` of every ``synthesize_funnel`` call of the stage's design of one funnel,
+    the first design rejected for the held law and both redesigns too (scripted)."""
+    scenario, trajectory, initial = double_integrator_case()
+    seen: list[bool] = []
+    found = dataclasses.replace(
+        stage._ends_outside(scenario, trajectory, "scripted"), rho=0.5, success=True
+    )
+
+    def designed(*args, **kwargs):
+        seen.append(kwargs["codesign"])
+        return found
+
+    box = np.full(scenario.n, 0.01)
+    monkeypatch.setattr(stage, "synthesize_funnel", designed)
+    monkeypatch.setattr(stage, "_accepted", lambda *args, **kwargs: "scripted: not held")
+    monkeypatch.setattr(
+        stage,
+        "held_law_bounds",
+        lambda *args, **kwargs: HeldLawBounds(
+            hold=box, held_input=np.zeros(scenario.m), remainder=box
+        ),
+    )
+    task = stage._Task(
+        scenario=scenario, trajectory=trajectory, initial=initial[None], rate=0.0,
+        disturbance=DISTURBANCE, period=period,
+    )  # fmt: skip
+    _, failure = stage._designed(task)
+    assert failure is not None and "scripted" in failure
+    return seen
+
+
+def test_a_held_law_is_designed_with_the_lqr_gains_only(monkeypatch):
+    """Held every 5 ms: the first design and both redesigns ((I6')'s pushed rows with the
+    remainder box, then (I6)'s box) without (F6); the continuous law: one design, with it."""
+    assert _families(monkeypatch, 0.005) == [False, False, False]
+    assert _families(monkeypatch, 0.0) == [True]
