@@ -48,10 +48,10 @@ from pipeline.model.dynamics import FloatArray
 # Clarabel's settings. Stopping tolerances (defaults 1e-8): the solution is re-checked with numpy
 # eigenvalues against the LMI margin eps >= 1e-3 (pipeline.numerics.funnel.synthesis), three
 # orders above these or more, so a looser stop saves interior-point iterations without weakening
-# anything that is proven. The primal residual can floor above 1e-7 (a held law's pushed
-# program: 2.4e-7 from iteration ~60 on, then 'AlmostSolved' at the 200-iteration cap, 3x the
-# time). No chordal decomposition: the 6x6 and 7x7 LMIs are split into cliques of 3 joined by
-# consensus rows (1,920 PSD cones -> 3,776), each iteration 2.2-2.6x slower for the same count.
+# anything that is proven; tol_feas is 1e-6 because a held law's pushed program floors its primal
+# residual just above 1e-7 and would run to the iteration cap. No chordal decomposition: it splits
+# the small dense 6x6 and 7x7 LMIs into overlapping cliques joined by consensus rows, more cones
+# for the same iterations (measurements: commit cf2f459).
 SETTINGS = {
     "tol_gap_abs": 1e-7,
     "tol_gap_rel": 1e-7,
