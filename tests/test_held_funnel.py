@@ -40,6 +40,7 @@ from tests.helpers.robust import (
     DISTURBANCE,
     GUST,
     gusty_hold_scenario,
+    held_hover_flights,
     rk4_step,
     robust_double_integrator,
 )
@@ -305,25 +306,9 @@ def test_the_held_terminal_law_stays_in_its_box_and_ellipsoid():
     box = hold_bound(A, B, K, r * extent, reach, scenario.dynamics.f(x_eq, u_eq), b, h)
     continuous = check_level(scenario, x_eq, u_eq, K, P, check.level, disturbance=b)
     assert check.disturbance > continuous.disturbance  # the hold's box joins the gust's
-    rng = np.random.default_rng(2)
-    v = rng.standard_normal((64, 4))
-    x = x_eq + 0.999 * r * v / np.sqrt(np.einsum("bi,ij,bj->b", v, P, v))[:, None]
-    per_window, dt = 20, h / 20
-    outward = np.arange(64) % 2 == 0
-    signs = rng.choice([-1.0, 1.0], size=(64, 4))
     worst, level = 0.0, 0.0
-    for j in range(int(6.0 / dt)):
-        if j % per_window == 0:
-            e_j = x - x_eq
-            u = u_eq + e_j @ K.T
-        if rng.random() < 0.2:
-            signs = rng.choice([-1.0, 1.0], size=(64, 4))
-
-        def field(state, u=u, signs=signs):
-            w = b * np.where(outward[:, None], np.sign((state - x_eq) @ P), signs)
-            return scenario.dynamics.f(state, u) + w
-
-        x = rk4_step(field, x, dt)
+    flights = held_hover_flights(scenario, x_eq, u_eq, K, P, check.level, b, h, substeps=20, seed=2)
+    for e_j, x in flights:
         pushed = np.abs((e_j - (x - x_eq)) @ (B[0] @ K).T)
         assert np.all(pushed <= box * (1 + 1e-9) + 1e-12)
         worst = max(worst, float((pushed[:, 2:] / box[2:]).max()))

@@ -28,7 +28,7 @@ from pipeline.numerics.terminal.design import (
     largest_level,
     lqr_terminal,
 )
-from tests.helpers.robust import GUST, rk4_step, stiff_hull
+from tests.helpers.robust import GUST, held_hover_flights, rk4_step, stiff_hull
 
 
 def _flown(period, seed, steps=40, batch=3000):
@@ -117,24 +117,9 @@ def test_a_terminal_law_the_box_refuses_is_certified_by_the_push_and_stays_insid
     w_max = float(np.sqrt(np.einsum("ci,ij,cj->c", w, P, w).max()))
     assert not check.decay * r > 2 * w_max  # (T1') with (T4)'s box
     assert not joint_margin(P, K, A, B, r, boxed + np.abs(residual)) < -LMI_MARGIN  # (T1'')
-    rng = np.random.default_rng(5)
-    v = rng.standard_normal((64, 4))
-    x = x_eq + 0.999 * r * v / np.sqrt(np.einsum("bi,ij,bj->b", v, P, v))[:, None]
-    per_window, dt = 40, h / 40
-    outward = np.arange(64) % 2 == 0
-    signs = rng.choice([-1.0, 1.0], size=(64, 4))
     level = 0.0
-    for j in range(int(6.0 / dt)):
-        if j % per_window == 0:
-            u = u_eq + (x - x_eq) @ K.T
-        if rng.random() < 0.2:
-            signs = rng.choice([-1.0, 1.0], size=(64, 4))
-
-        def field(state, u=u, signs=signs):
-            gust = b * np.where(outward[:, None], np.sign((state - x_eq) @ P), signs)
-            return scenario.dynamics.f(state, u) + gust
-
-        x = rk4_step(field, x, dt)
+    flights = held_hover_flights(scenario, x_eq, u_eq, K, P, check.level, b, h, substeps=40, seed=5)
+    for _, x in flights:
         level = max(level, float(np.einsum("bi,ij,bj->b", x - x_eq, P, x - x_eq).max()))
     assert level <= check.level and level > 0.9 * check.level, (level, check.level)
     longer = check_level(scenario, x_eq, u_eq, K, P, check.level, disturbance=b, held_period=0.5)

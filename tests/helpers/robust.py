@@ -30,6 +30,48 @@ def rk4_step(field, x: np.ndarray, dt: float) -> np.ndarray:
     return x + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
 
 
+def held_hover_flights(
+    scenario: Scenario,
+    x_eq: np.ndarray,
+    u_eq: np.ndarray,
+    K: np.ndarray,
+    P: np.ndarray,
+    level: float,
+    bound: np.ndarray,
+    period: float,
+    *,
+    substeps: int,
+    seed: int,
+    seconds: float = 6.0,
+    flights: int = 64,
+):
+    """Yields ``(e_j, x)``, both ``(flights, n)``, after every RK4 step of ``flights`` flights of
+    the hover law ``u = u_eq + K e_j`` held every ``period`` s (``substeps`` RK4 steps each; ``e_j =
+    x(t_j) - x_eq`` at the last evaluation), from just inside ``{V = level}`` (``V = e^T P e``),
+    half under the gust ``bound (n,)`` pushing outward hardest, half under bang-bang gusts that
+    switch at random, for ``seconds``."""
+    rng = np.random.default_rng(seed)
+    v = rng.standard_normal((flights, scenario.n))
+    r = np.sqrt(level)
+    x = x_eq + 0.999 * r * v / np.sqrt(np.einsum("bi,ij,bj->b", v, P, v))[:, None]
+    dt = period / substeps
+    outward = np.arange(flights) % 2 == 0
+    signs = rng.choice([-1.0, 1.0], size=(flights, scenario.n))
+    for j in range(int(seconds / dt)):
+        if j % substeps == 0:
+            e_j = x - x_eq
+            u = u_eq + e_j @ K.T
+        if rng.random() < 0.2:
+            signs = rng.choice([-1.0, 1.0], size=(flights, scenario.n))
+
+        def field(state, u=u, signs=signs):
+            w = bound * np.where(outward[:, None], np.sign((state - x_eq) @ P), signs)
+            return scenario.dynamics.f(state, u) + w
+
+        x = rk4_step(field, x, dt)
+        yield e_j, x
+
+
 def stiff_hull(
     rng: np.random.Generator, V: int = 4
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

@@ -335,14 +335,14 @@ def check_level(
         decay, vertices = decay_rate(P, K, hull.A, hull.B), len(hull.vertices)
         if period > 0:
             decay = 2 * held_rate(P, K, hull.A, hull.B, decay / 2, period).held_rate
-        if held_period > 0:  # (T4'): the push to first order, its remainder (R) as a box
+        if held_period > 0:  # (T4'): the push to first order, its remainder (R) as a box;
+            # (T4): the hold as an additive term; both from one bound on |e'|
             E_0 = np.zeros(len(x_eq)) if E is None else E
             speed = held_speed(hull.A, hull.B, extent * r, reach, residual, b)
             pushed = b + np.abs(residual) + remainder_box(
                 hull.A, hull.B, K, speed, E_0, np.abs(residual) + b, E_0, held_period
             )  # fmt: skip
-        if held_period > 0:  # (T4): the hold as an additive term
-            b = b + hold_bound(hull.A, hull.B, K, r * extent, reach, residual, b, held_period)
+            b = b + _held_box(hull.B, K, speed, held_period)
         if measured:  # (T5): the measurement's push as an additive term
             b = b + (np.abs(hull.B @ K) @ E).max(axis=0)
     except HullError as error:
@@ -395,7 +395,12 @@ def hold_bound(
     law held every ``period`` s, with ``Edot`` of ``held_speed``; hull ``A (V, n, n)``, ``B (V,
     n, m)``, gain ``K (m, n)``, the ellipsoid's state and input extents ``extent (n,)``, ``reach
     (m,)``, the equilibrium's residual and the additive bound ``(n,)``."""
-    speed = held_speed(A, B, extent, reach, residual, bound)
+    return _held_box(B, K, held_speed(A, B, extent, reach, residual, bound), period)
+
+
+def _held_box(B: FloatArray, K: FloatArray, speed: FloatArray, period: float) -> FloatArray:
+    """(n,) ``h max_v |B_v K| Edot`` for ``B (V, n, m)``, ``K (m, n)``, ``speed`` = ``Edot
+    (n,)``."""
     return np.asarray(period * (np.abs(B @ K) @ speed).max(axis=0), dtype=np.float64)
 
 
