@@ -34,8 +34,11 @@ rho_t^2 >= rho^2`` the rate is still at most ``-2 mu rho_t^2``. The shipped law'
 ``lmi_term_k = 2 w_k / rho`` as in (I2) (and ``LMI_MARGIN`` below zero on top). ``r_k`` is convex
 in ``alpha`` (a maximum of largest eigenvalues of matrices affine in it); ``robust_margins``
 minimises it by golden-section search, but soundness does not depend on finding the minimum: the
-eigenvalues are evaluated, with numpy, at the ``alpha`` returned. Without a disturbance ``S`` is
-block diagonal and ``r_k = m_k / 2`` at ``alpha = -m_k / 2``: (I5) is (F2)'s own check.
+eigenvalues are evaluated, with numpy, at the ``alpha`` returned. The search's own evaluations
+skip each matrix whose eigenvalue a cheap bracket places below another's (``funnel.secular``):
+the maximum, numpy's eigenvalue of the same matrix, is the same bit for bit, so is the search.
+Without a disturbance ``S`` is block diagonal and ``r_k = m_k / 2`` at ``alpha = -m_k / 2``: (I5)
+is (F2)'s own check.
 """
 
 from __future__ import annotations
@@ -48,6 +51,7 @@ from scipy.linalg import solve_continuous_lyapunov
 from pipeline.model.dynamics import FloatArray
 from pipeline.numerics.funnel.law import LMI_MARGIN, corners
 from pipeline.numerics.funnel.sampled import pushed_rows
+from pipeline.numerics.funnel.secular import brackets
 
 GOLDEN_STEPS = 40  # golden-section steps on alpha: the bracket shrinks by 0.618^40 ~ 4e-9
 MULTIPLE_STEPS = 14  # bisection steps on the reported disturbance multiple (2^-14 of its bracket)
@@ -139,6 +143,7 @@ class RobustCheck:
             Q, K, vertices, rate, Ts, period
         )
         self.paired = period > 0
+        self._eigen: tuple[FloatArray, FloatArray, FloatArray] | None = None  # of M, once
         N, n = len(K), Q.shape[1]
         self.N, self.n = N, n
         self.rho_end = rho * np.exp(-rate * Ts * np.arange(1, N + 1))  # (N,)
@@ -161,6 +166,38 @@ class RobustCheck:
         out = np.full(self.N, -np.inf)
         np.maximum.at(out, owner, top)
         return out
+
+    def _evaluator(
+        self, a: FloatArray, rows: np.ndarray | None
+    ) -> Callable[[FloatArray], FloatArray]:
+        """``_largest(., a, rows)`` as a function of ``alpha (N,)``, the same values: each
+        (row, corner) whose eigenvalue is bracketed below another's (``funnel.secular`` (S2))
+        is skipped, and numpy's eigenvalues of the others' matrices (the same matrices,
+        element by element) give the maximum."""
+        if self._eigen is None:
+            w, U = np.linalg.eigh(self.M)
+            self._eigen = (w, U, np.sqrt((self.M * self.M).sum(axis=(1, 2))))
+        w, U, norm = self._eigen
+        M, owner = (self.M, self.owner) if rows is None else (self.M[rows], self.owner[rows])
+        if rows is not None:
+            a, w, U, norm = a[rows], w[rows], U[rows], norm[rows]
+        n = a.shape[2]
+
+        def largest(alpha: FloatArray) -> FloatArray:
+            al = alpha[owner]  # (R,)
+            lo, hi = brackets(w, U, norm, a, al)  # (R, C)
+            best = np.full(self.N, -np.inf)
+            np.maximum.at(best, owner, lo.max(axis=1, initial=-np.inf))
+            r, c = np.nonzero(hi >= best[owner][:, None])  # the others are below best's
+            S = np.zeros((len(r), n + 1, n + 1))
+            S[:, :n, :n] = M[r] + al[r][:, None, None] * np.eye(n)
+            S[:, :n, n] = S[:, n, :n] = a[r, c]
+            S[:, n, n] = -al[r]
+            out = np.full(self.N, -np.inf)
+            np.maximum.at(out, owner[r], np.linalg.eigvalsh(S)[:, -1])
+            return out
+
+        return largest
 
     def _scaled(self, bound: FloatArray) -> FloatArray:
         """(R, C, n) ``a = Lc^-1 w_c / rho_end`` for the corners ``w_c`` of ``|w| <= bound``:
@@ -223,12 +260,13 @@ class RobustCheck:
         top = 4 * (np.abs(self.M).max(initial=0.0) + np.abs(a).max(initial=0.0)) + 1.0
         low, high = np.zeros(self.N), np.full(self.N, top)
         c, d = high - ratio * (high - low), low + ratio * (high - low)
-        fc, fd = self._largest(c, a, rows), self._largest(d, a, rows)
+        largest = self._evaluator(a, rows)
+        fc, fd = largest(c), largest(d)
         for _ in range(GOLDEN_STEPS):  # golden section on each interval's convex r_k(alpha)
             left = fc <= fd  # the minimum lies in [low, d]: drop (d, high]; else drop [low, c)
             high, low = np.where(left, d, high), np.where(left, low, c)
             probe = np.where(left, high - ratio * (high - low), low + ratio * (high - low))
-            value = self._largest(probe, a, rows)
+            value = largest(probe)
             c, d, fc, fd = (
                 np.where(left, probe, d), np.where(left, c, probe),
                 np.where(left, value, fd), np.where(left, fc, value),
