@@ -94,8 +94,8 @@ def _brackets(
                         low, high = max(low, x), min(high, x - g)
                     else:
                         low, high = max(low, x - g), min(high, x)
-                    if not high - low > 4e-16 * abs(high):
-                        break
+                    if not high - low > rounding * (norm[r] + abs(al)):
+                        break  # narrower than the rounding allowance added below
                     x = x - g / slope
                     if not (low < x < high) or high - low > 0.5 * last:
                         x = 0.5 * (low + high)  # Newton left the bracket or is slow: bisect
