@@ -217,6 +217,34 @@ def rebuild_funnel(
     )  # fmt: skip
 
 
+class Rebuilt:
+    """``rebuild_funnel``'s results for one ``scenario``, nominal, shipped funnel and state
+    bounds, by ``(segments, input_offset)``: ``recheck_as_shipped`` rebuilds the same hulls for
+    ``reference_substeps`` and ``recheck_funnel`` (a deterministic function of these arguments;
+    a failure is not kept, it is raised again)."""
+
+    def __init__(self) -> None:
+        self._funnels: dict[tuple[int, bytes | None], Funnel] = {}
+
+    def get(self, rebuild: Callable[..., Funnel]) -> Callable[[int, FloatArray | None], Funnel]:
+        """``rebuild(segments, input_offset)`` (``rebuild_funnel`` with its first four arguments
+        bound), each once."""
+
+        def cached(segments: int, input_offset: FloatArray | None = None) -> Funnel:
+            key = (segments, None if input_offset is None else _key(input_offset))
+            if key not in self._funnels:
+                self._funnels[key] = rebuild(segments, input_offset)
+            return self._funnels[key]
+
+        return cached
+
+
+def _key(values: FloatArray) -> bytes:
+    """The exact value of ``values`` (shape and bits) as a dictionary key."""
+    values = np.ascontiguousarray(values, dtype=np.float64)
+    return repr(values.shape).encode() + values.tobytes()
+
+
 def _under_law(
     scenario: Scenario,
     trajectory: Trajectory,
@@ -228,17 +256,24 @@ def _under_law(
     disturbance: FloatArray | None = None,
     period: float = 0.0,
     measurement: FloatArray | None = None,
+    rebuilt: Rebuilt | None = None,
 ) -> tuple[Funnel, LawOffset]:
     """Steps 1-3: the funnel rebuilt with its input boxes widened by ``OFFSET_ALLOWANCE`` times the
     law's input offset (I3) found on hulls without it, and the law's offset on the hulls so built
     for a reference grid of ``substeps (N,)`` per sample, under the additive bound ``disturbance
     (n,)`` when given ((I5)), the law held every ``period`` s when it is > 0 ((I6), with the
     same bound in ``Edot``), the law seeing the state with an error in the box ``measurement
-    (n,)`` when given ((I7)).
+    (n,)`` when given ((I7)). ``rebuilt``: the funnels already rebuilt for the same
+    ``scenario``, ``trajectory``, ``shipped`` and ``state_bounds`` (``Rebuilt``).
 
     Raises:
       HullError: no hull or enclosure, or the offset outgrew the widening.
     """
+    rebuild: Callable[..., Funnel] = functools.partial(
+        rebuild_funnel, scenario, trajectory, shipped, state_bounds
+    )
+    if rebuilt is not None:
+        rebuild = rebuilt.get(rebuild)
 
     def offset(funnel: Funnel) -> LawOffset:
         if funnel.enclosure is None:
@@ -248,9 +283,9 @@ def _under_law(
             shipped.rate, scenario.Ts, substeps, centre_error, period, disturbance, measurement,
         )  # fmt: skip
 
-    plain = rebuild_funnel(scenario, trajectory, shipped, state_bounds, segments)
+    plain = rebuild(segments)
     allowance = OFFSET_ALLOWANCE * offset(plain).input_offset
-    funnel = rebuild_funnel(scenario, trajectory, shipped, state_bounds, segments, allowance)
+    funnel = rebuild(segments, allowance)
     law = offset(funnel)
     if np.any(law.input_offset > allowance):
         raise HullError(
@@ -274,6 +309,7 @@ def recheck_funnel(
     measurement: FloatArray | None = None,
     *,
     multiple: bool = True,
+    rebuilt: Rebuilt | None = None,
 ) -> FunnelRecheck:
     """Steps 1-4 of the module docstring for one ``shipped`` funnel around the nominal
     ``trajectory`` (a uniform RK4 grid), its law tracking the reference on a grid of ``substeps
@@ -283,7 +319,8 @@ def recheck_funnel(
     ((I7)). The margin reported is (F2)'s eigenvalue plus (I2),
     or under a disturbance twice (I5)'s plus (I2) (``funnel.check.effective_margins``).
     ``multiple``: also find the disturbance multiple it holds (a bisection of (I5) searches;
-    the design's acceptance (``stages.funnel``) does not need it)."""
+    the design's acceptance (``stages.funnel``) does not need it). ``rebuilt``: as
+    ``_under_law``'s."""
     K, Q = shipped.K, shipped.Q
     failures: list[str] = []
     last = FunnelRecheck(failure="", margin=float("nan"), vertices=0, radius=0.0, binding="")
@@ -291,7 +328,7 @@ def recheck_funnel(
         try:
             funnel, law = _under_law(
                 scenario, trajectory, shipped, state_bounds, segments, substeps, centre_error,
-                disturbance, period, measurement,
+                disturbance, period, measurement, rebuilt,
             )  # fmt: skip
         except (HullError, np.linalg.LinAlgError) as error:
             failures.append(f"{segments} segment(s): {error}")
@@ -376,6 +413,8 @@ def reference_substeps(
     disturbance: FloatArray | None = None,
     period: float = 0.0,
     measurement: FloatArray | None = None,
+    *,
+    rebuilt: Rebuilt | None = None,
 ) -> np.ndarray:
     """(N,) RK4 steps per sample on which to ship a funnel's reference so that the law's offset
     fits what (F2) and the inputs leave (``funnel.law.law_substeps``), from the first hull of
@@ -384,10 +423,10 @@ def reference_substeps(
     everywhere when none does (it will not be certified). ``trajectory``: the nominal on a
     uniform grid. ``period > 0``: the law held every ``period`` s, whose (I6) term takes its
     share first and does not shrink with the grid, as a measurement's (I7) (``measurement
-    (n,)``)."""
+    (n,)``). ``rebuilt``: as ``_under_law``'s."""
     K, Q = shipped.K, shipped.Q
     for funnel, law in _base_laws(
-        scenario, trajectory, shipped, state_bounds, disturbance, period, measurement
+        scenario, trajectory, shipped, state_bounds, disturbance, period, measurement, rebuilt
     ):
         # (I5) with the disturbance and a held law's box, without the interpolation's term
         robust = law.robust_part()
@@ -411,6 +450,7 @@ def _base_laws(
     disturbance: FloatArray | None,
     period: float,
     measurement: FloatArray | None,
+    rebuilt: Rebuilt | None = None,
 ) -> Iterator[tuple[Funnel, LawOffset]]:
     """``_under_law`` on a reference grid of ``BASE_SUBSTEPS``, for each of ``SEGMENTS`` whose
     hull can be built, in that order."""
@@ -419,7 +459,7 @@ def _base_laws(
         try:
             yield _under_law(
                 scenario, trajectory, shipped, state_bounds, segments, base, 0.0, disturbance,
-                period, measurement,
+                period, measurement, rebuilt,
             )  # fmt: skip
         except (HullError, np.linalg.LinAlgError):
             continue
@@ -484,16 +524,19 @@ def recheck_as_shipped(
     ``trajectory``'s start and inputs on a uniform grid of ``BASE_SUBSTEPS``, the law tracking the
     reference on the grid the controller stage ships (``reference_substeps``), under the additive
     bound ``disturbance (n,)`` when given, held every ``period`` s when it is > 0 (I6), seeing
-    the state within ``measurement (n,)`` when given (I7). ``multiple``: as ``recheck_funnel``'s."""
+    the state within ``measurement (n,)`` when given (I7). ``multiple``: as ``recheck_funnel``'s.
+    The two rebuild the same hulls (the nominal, funnel and bounds are the same): once each."""
     nominal = simulate(
         scenario.dynamics, trajectory.xs[0], trajectory.us, scenario.Ts, BASE_SUBSTEPS
     )
+    rebuilt = Rebuilt()
     substeps = reference_substeps(
-        scenario, nominal, shipped, state_bounds, disturbance, period, measurement
-    )
+        scenario, nominal, shipped, state_bounds, disturbance, period, measurement,
+        rebuilt=rebuilt,
+    )  # fmt: skip
     return recheck_funnel(
         scenario, nominal, shipped, state_bounds, substeps, disturbance=disturbance,
-        period=period, measurement=measurement, multiple=multiple,
+        period=period, measurement=measurement, multiple=multiple, rebuilt=rebuilt,
     )  # fmt: skip
 
 
