@@ -8,7 +8,9 @@ stages that certify the optimized nominals its way and the emission of ``control
 
 Before the shared optimize stage the orchestrator asks ``CERTIFICATES[name].targets(scenario)``
 where the nominals must end (``Targets``: the funnel certificate of a ``terminal: hold``
-scenario designs its terminal controller first and ends each nominal in its core).
+scenario designs its terminal controller first and ends each nominal in its core; it first lets
+them come to rest anywhere the controller fits, ``Targets.placing``, and places the controller
+where they did, ``placed``, before the optimization the run keeps).
 The orchestrator runs ``CERTIFICATES[name].ship(run)`` after the shared stages (feedback, radii,
 coverage, optimize) and gets a ``Shipped``: the controller stage's result (or why none could be
 certified) and what the summary and report read of the certificate. A new certificate (a robust
@@ -57,12 +59,15 @@ class Targets:
         not shrink it (the funnels, which certify the end, must end inside ``terminal``).
       reserve: state or input name -> the room the nominal keeps from its bounds (at least),
         under a declared disturbance: what the funnels' feedback needs to reject it.
+      placing: the position is left free where ``terminal`` would still fit: the orchestrator
+        optimizes once more, to ``Certificate.placed``'s targets for where the nominals ended.
     """
 
     scenario: Scenario
     terminal: TerminalDesign | None = None
     core: tuple[str, ...] = ()
     reserve: Mapping[str, float] = field(default_factory=dict)
+    placing: bool = False
 
     def margins(self, margins: ConstraintMargins) -> ConstraintMargins:
         """``margins`` without the tube's extent at ``T`` along the ``core`` states, and at least
@@ -158,6 +163,13 @@ class Certificate(Protocol):
         s, 0: continuous)."""
         ...
 
+    def placed(
+        self, scenario: Scenario, first: Targets, ends: Sequence[np.ndarray], period: float = 0.0
+    ) -> Targets:
+        """The targets of the second optimization when ``first.placing``: ``ends`` ((n,) each)
+        are where the first one's successful nominals ended."""
+        ...
+
     def ship(self, run: CertificateRun) -> Shipped:
         """Run this certificate's stages and emit ``controller.json``."""
         ...
@@ -183,6 +195,11 @@ class ConstantCertificate:
 
     def targets(self, scenario: Scenario, period: float = 0.0) -> Targets:
         return Targets(scenario=scenario)  # Goal as the scenario states it
+
+    def placed(
+        self, scenario: Scenario, first: Targets, ends: Sequence[np.ndarray], period: float = 0.0
+    ) -> Targets:
+        return first  # never placing
 
     def ship(self, run: CertificateRun) -> Shipped:
         usable = [i for i, r in enumerate(run.radii) if r.radius > 0]

@@ -32,7 +32,12 @@ from pipeline.io.progress import progress_bar
 from pipeline.model.scenario import CertificateName, Scenario
 from pipeline.model.simulate import Trajectory
 from pipeline.numerics.funnel.check import Funnel
-from pipeline.numerics.terminal.design import TerminalDesign, TerminalError, hold_design
+from pipeline.numerics.terminal.design import (
+    TerminalDesign,
+    TerminalError,
+    hold_design,
+    hover_box,
+)
 from pipeline.numerics.terminal.fit import TerminalTarget
 from pipeline.numerics.uncertainty import additive_bound
 from pipeline.results.coverage import CoverageResult
@@ -98,20 +103,32 @@ def target_of(design: TerminalDesign) -> TerminalTarget:
     return TerminalTarget(x_eq=design.x_eq, P=design.P, level=design.check.level)
 
 
-def hold_targets(scenario: Scenario, period: float = 0.0, core: float = CORE) -> Targets:
+def hold_targets(
+    scenario: Scenario,
+    period: float = 0.0,
+    core: float = CORE,
+    position: np.ndarray | None = None,
+) -> Targets:
     """Where a ``terminal: hold`` run ends its nominals: the terminal controller designed first
-    (``hold_design`` for the declared uncertainty's additive bound, zeros for the exact model),
-    and ``scenario`` with Goal's extra bounds, per state, the box inside ``core`` of its level
-    (``TerminalTarget.core_box``) intersected with the scenario's own. Another scenario, or one
-    whose terminal controller cannot be designed (logged), keeps its Goal (``Targets``)."""
+    (``hold_design`` for the declared uncertainty's additive bound, zeros for the exact model;
+    its equilibrium at ``position (2,)``, default Goal's centre), and ``scenario`` with Goal's
+    extra bounds, per state, the box inside ``core`` of its level (``TerminalTarget.core_box``)
+    intersected with the scenario's own. Another scenario, or one whose terminal controller
+    cannot be designed (logged), keeps its Goal (``Targets``)."""
     if scenario.terminal != "hold":
         return Targets(scenario=scenario)
     try:
         measurement = scenario.uncertainty.measurement_box  # (T5)
-        design = hold_design(scenario, additive_bound(scenario), period, measurement)
+        design = hold_design(scenario, additive_bound(scenario), period, measurement, position)
     except TerminalError as error:
         log.info(f"[terminal] no terminal controller designed before the funnels: {error}")
         return Targets(scenario=scenario)
+    return core_targets(scenario, design, core)
+
+
+def core_targets(scenario: Scenario, design: TerminalDesign, core: float = CORE) -> Targets:
+    """``hold_targets`` for the terminal controller ``design``: Goal's extra bounds, per state,
+    the box inside ``core`` of its level intersected with the scenario's own."""
     half = target_of(design).core_box(core)
     bounds = dict(scenario.goal_bounds)
     for name, centre, h in zip(scenario.state_names, design.x_eq, half, strict=True):
@@ -128,6 +145,53 @@ def hold_targets(scenario: Scenario, period: float = 0.0, core: float = CORE) ->
         core=tuple(scenario.state_names),
         reserve=MappingProxyType(reserve_of(scenario, design)),
     )
+
+
+def rest_targets(scenario: Scenario, period: float = 0.0) -> Targets:
+    """Where a hold run's first optimization ends its nominals: ``hold_targets``, but with the
+    position free over ``hover_box``, the positions where the terminal set designed at Goal's
+    centre still fits in Goal, so that each nominal comes to rest (the core box in the other
+    states) wherever its flight is fastest (``Targets.placing``); ``placed_targets`` then moves
+    the terminal controller to where they came to rest. Not a hold run: ``hold_targets``."""
+    targets = hold_targets(scenario, period)
+    box = None if targets.terminal is None else hover_box(scenario, targets.terminal)
+    if box is None:
+        return targets
+    bounds = dict(targets.scenario.goal_bounds)
+    for i, (lower, upper) in zip(scenario.position_index, box, strict=True):
+        name = scenario.state_names[i]
+        own = scenario.goal_bounds.get(name, (-np.inf, np.inf))
+        bounds[name] = (max(own[0], float(lower)), min(own[1], float(upper)))
+    moved = dataclasses.replace(targets.scenario, goal_bounds=bounds)
+    where = ", ".join(
+        f"{scenario.state_names[i]} in [{lower:.3g}, {upper:.3g}]"
+        for i, (lower, upper) in zip(scenario.position_index, box, strict=True)
+    )
+    log.info(f"[terminal] first, the nominals come to rest anywhere with {where}")
+    return dataclasses.replace(targets, scenario=moved, placing=True)
+
+
+def placed_targets(
+    scenario: Scenario, first: Targets, ends: Sequence[np.ndarray], period: float = 0.0
+) -> Targets:
+    """Where the nominals end after ``rest_targets``' optimization ended them at ``ends`` ((n,)
+    each, its successful nominals'): ``hold_targets`` with the terminal equilibrium at the mean
+    of their positions (where the fastest flights come to rest, as an uncertified minimum-time
+    flight to rest chooses its own point of Goal), when the terminal controller designed there
+    certifies a level no smaller than ``first``'s at Goal's centre (the room the funnels' ends
+    need); else ``first``'s controller at Goal's centre."""
+    if first.terminal is None:
+        return first
+    if ends:
+        position = np.mean([scenario.positions(end) for end in ends], axis=0)
+        moved = hold_targets(scenario, period, position=position)
+        if moved.terminal is not None and moved.terminal.check.level >= first.terminal.check.level:
+            return moved
+        log.info(
+            f"[terminal] kept at Goal's centre: at {np.round(position, 3).tolist()}, where the "
+            "nominals came to rest, the terminal set certifies a smaller level"
+        )
+    return core_targets(scenario, first.terminal)
 
 
 RESERVE = 2.0  # the reserve is this multiple of the terminal set's extents
@@ -155,7 +219,12 @@ class FunnelCertificate:
     name: CertificateName = "funnel"
 
     def targets(self, scenario: Scenario, period: float = 0.0) -> Targets:
-        return hold_targets(scenario, period)
+        return rest_targets(scenario, period)
+
+    def placed(
+        self, scenario: Scenario, first: Targets, ends: Sequence[np.ndarray], period: float = 0.0
+    ) -> Targets:
+        return placed_targets(scenario, first, ends, period)
 
     def ship(self, run: CertificateRun) -> Shipped:
         # Each funnel is asked to hold its start's cell of Init (stage funnel); a start that

@@ -581,20 +581,47 @@ def design_terminal(
     return best
 
 
+def hover_box(scenario: Scenario, design: TerminalDesign) -> FloatArray | None:
+    """(2, 2) ``[[lower_X, upper_X], [lower_Y, upper_Y]]``: the bounding box of the positions at
+    which ``design``'s terminal set, moved there unchanged (same ``K``, ``P``, level), still
+    lies inside Goal as ``check_level`` tests it: Goal eroded by the set's position ellipse (in
+    the whitened coordinates ``W p`` a disk of radius ``sqrt(level)``), and inside Goal's extra
+    bounds and ``state_bounds`` on the position states. The erosion is shapely's buffer (arcs
+    as segments), so the box is a guide, not a guarantee: a design at any of its points is
+    checked from scratch (``hold_design``). None when nothing is left."""
+    tube, r = _tube(scenario, design.K, design.P), float(np.sqrt(design.check.level))
+    W = tube.position_whitening
+    goal = affine_transform(scenario.goal, [W[0, 0], W[0, 1], W[1, 0], W[1, 1], 0.0, 0.0])
+    eroded = goal.buffer(-r)
+    if eroded.is_empty:
+        return None
+    V = np.linalg.inv(W)
+    region = affine_transform(eroded, [V[0, 0], V[0, 1], V[1, 0], V[1, 1], 0.0, 0.0])
+    box = np.array(region.bounds, dtype=np.float64).reshape(2, 2).T  # rows X, Y
+    extent = tube.state_extent_per_radius * r
+    for k, i in enumerate(scenario.position_index):
+        name = scenario.state_names[i]
+        for bound in (scenario.goal_bounds.get(name), scenario.state_bounds.get(name)):
+            if bound is not None:
+                box[k] = max(box[k, 0], bound[0] + extent[i]), min(box[k, 1], bound[1] - extent[i])
+    return None if np.any(box[:, 0] > box[:, 1]) else box
+
+
 def hold_design(
     scenario: Scenario,
     disturbance: FloatArray | None = None,
     period: float = 0.0,
     measurement: FloatArray | None = None,
+    position: FloatArray | None = None,
 ) -> TerminalDesign:
     """The terminal controller a funnel run designs BEFORE its funnels, for them to end in: the
     equilibrium at Goal's centre, its LQR gain and, under ``disturbance (n,)``, the metric shaped
     for it (T3) when that certifies, else the Riccati matrix; the largest level certified
     robustly (T1', T1''), for the law held every ``period`` s when it is > 0 (T4: the funnel
     file's law), seeing the state within ``measurement (n,)`` (T5); ``fit`` 0 (no end tube
-    yet). ``TerminalError`` when
-    there is no equilibrium, no stabilising gain or no certified level."""
-    x_eq, u_eq = equilibrium(scenario)
+    yet). ``position (2,)``: the equilibrium's position instead of Goal's centre.
+    ``TerminalError`` when there is no equilibrium, no stabilising gain or no certified level."""
+    x_eq, u_eq = equilibrium(scenario, position)
     K_T, P_T = lqr_terminal(scenario, x_eq, u_eq)
     if disturbance is not None and np.any(np.asarray(disturbance) > 0):
         metric = robust_metric(scenario, x_eq, u_eq, K_T, np.asarray(disturbance))  # (T3)

@@ -55,6 +55,7 @@ from pipeline.model.scenario import Scenario, load_scenario
 from pipeline.model.simulate import Trajectory
 from pipeline.numerics.prechecks import check_scenario
 from pipeline.reporting.summary import Verdict
+from pipeline.results.optimize import OptimizeResult
 from pipeline.results.stage import FileInput
 from pipeline.runtime import run_inputs
 from pipeline.runtime.options import RunOptions
@@ -82,7 +83,7 @@ from pipeline.runtime.terminal import (
     describe_radii,
     optimization_logs,
 )
-from stages.certificates import CERTIFICATES, CertificateRun, nominals
+from stages.certificates import CERTIFICATES, CertificateRun, Targets, nominals
 from stages.certify import certify_controller
 from stages.coverage import (
     COVERAGE,
@@ -281,18 +282,31 @@ def _synthesize(
     certificate = CERTIFICATES[run_inputs.certificate_of(scenario, options)]
     # where the nominals end: Goal, or a hold run's terminal core (stages.certificates)
     targets = certificate.targets(scenario, options.feedback_period)
-    with progress_bar(len(scenario.demos), "demos optimized", quiet) as advance:
-        optimized = runner.run(
-            OPTIMIZE,
-            OptimizeInputs(
-                scenario=targets.scenario,
-                margins=targets.margins(ConstraintMargins.of_tube(tube, r_required)),
-                options=optimize_options,
-            ),
-            describe=_message,
-            executor=executor,
-            progress=advance,
-        )
+
+    def optimize(targets: Targets, name: str, what: str) -> OptimizeResult:
+        with progress_bar(len(scenario.demos), what, quiet) as advance:
+            return runner.run(
+                OPTIMIZE,
+                OptimizeInputs(
+                    scenario=targets.scenario,
+                    margins=targets.margins(ConstraintMargins.of_tube(tube, r_required)),
+                    options=optimize_options,
+                ),
+                name=name,
+                describe=_message,
+                executor=executor,
+                progress=advance,
+            )
+
+    if targets.placing:  # first to rest wherever the terminal set fits, then to where they did
+        resting = optimize(targets, "optimize_rest", "demos optimized to rest")
+        ends = [
+            nominals(scenario, [start], [t.u])[0].xs[-1]
+            for t, start in zip(resting.trajectories, demo_starts, strict=True)
+            if t.success
+        ]
+        targets = certificate.placed(scenario, targets, ends, options.feedback_period)
+    optimized = optimize(targets, OPTIMIZE.name, "demos optimized")
     if log.isEnabledFor(logging.DEBUG):
         log.debug(optimization_logs(optimized))
     # a demo whose optimisation failed keeps its own (valid) nominal trajectory
