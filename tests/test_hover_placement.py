@@ -80,6 +80,7 @@ def test_the_hover_moves_to_where_the_nominals_rest_and_stays_where_the_set_does
     assert kept.scenario.goal_bounds["X"][0] < centre[0] < kept.scenario.goal_bounds["X"][1]
 
 
+@pytest.mark.xdist_group("synthesis-quadrotor_hill")  # with its session run (conftest)
 def test_a_hold_run_hovers_at_the_mean_of_where_its_first_optimization_came_to_rest(synthesis):
     code, out = synthesis(HOLD)
     assert code == 0
