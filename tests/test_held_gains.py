@@ -21,7 +21,7 @@ from pipeline.numerics.verify.recertify import HeldLawBounds
 from tests.helpers.robust import DISTURBANCE, double_integrator_case
 
 
-def test_without_codesign_no_gains_are_codesigned():
+def test_without_codesign_no_gains_are_codesigned(monkeypatch):
     """At eight times the tests' bound the LQR gains' funnel is rejected and (F6)'s passes
     (``test_robust_funnel``); with ``codesign=False`` (F6)'s program is never solved and the
     funnel returned is the LQR gains' (rejected, the (F6) family not named)."""
@@ -34,15 +34,12 @@ def test_without_codesign_no_gains_are_codesigned():
         calls.append(program.multiplier)
         return original(program)
 
-    synthesis.codesign_gains = counted
-    try:
-        lqr = synthesize_funnel(
-            scenario, trajectory, initial=initial, disturbance=bound, codesign=False
-        )
-        assert calls == [] and "(F6)" not in lqr.message and not lqr.success, lqr.message
-        designed = synthesize_funnel(scenario, trajectory, initial=initial, disturbance=bound)
-    finally:
-        synthesis.codesign_gains = original
+    monkeypatch.setattr(synthesis, "codesign_gains", counted)
+    lqr = synthesize_funnel(
+        scenario, trajectory, initial=initial, disturbance=bound, codesign=False
+    )
+    assert calls == [] and "(F6)" not in lqr.message and not lqr.success, lqr.message
+    designed = synthesize_funnel(scenario, trajectory, initial=initial, disturbance=bound)
     assert calls and designed.success and "(F6)" in designed.message, designed.message
 
 

@@ -157,15 +157,16 @@ def rest_targets(scenario: Scenario, period: float = 0.0) -> Targets:
     box = None if targets.terminal is None else hover_box(scenario, targets.terminal)
     if box is None:
         return targets
-    bounds = dict(targets.scenario.goal_bounds)
-    for i, (lower, upper) in zip(scenario.position_index, box, strict=True):
-        name = scenario.state_names[i]
-        own = scenario.goal_bounds.get(name, (-np.inf, np.inf))
-        bounds[name] = (max(own[0], float(lower)), min(own[1], float(upper)))
-    moved = dataclasses.replace(targets.scenario, goal_bounds=bounds)
-    where = ", ".join(
-        f"{scenario.state_names[i]} in [{lower:.3g}, {upper:.3g}]"
+    # the box lies inside the scenario's own Goal bounds on the position (hover_box)
+    free = {
+        scenario.state_names[i]: (float(lower), float(upper))
         for i, (lower, upper) in zip(scenario.position_index, box, strict=True)
+    }
+    moved = dataclasses.replace(
+        targets.scenario, goal_bounds={**targets.scenario.goal_bounds, **free}
+    )
+    where = ", ".join(
+        f"{name} in [{lower:.3g}, {upper:.3g}]" for name, (lower, upper) in free.items()
     )
     log.info(f"[terminal] first, the nominals come to rest anywhere with {where}")
     return dataclasses.replace(targets, scenario=moved, placing=True)

@@ -110,6 +110,7 @@ import numpy as np
 import shapely
 from scipy.optimize import least_squares
 from shapely.affinity import affine_transform
+from shapely.geometry.base import BaseGeometry
 from shapely.ops import polylabel
 
 from pipeline.model.dynamics import FloatArray
@@ -238,6 +239,11 @@ def lqr_terminal(
     return -np.asarray(K, dtype=np.float64), (S + S.T) / 2
 
 
+def _mapped(geometry: BaseGeometry, M: np.ndarray) -> BaseGeometry:
+    """``geometry`` under the linear map ``p -> M p``, ``M (2, 2)``."""
+    return affine_transform(geometry, [M[0, 0], M[0, 1], M[1, 0], M[1, 1], 0.0, 0.0])
+
+
 def _tube(scenario: Scenario, K: FloatArray, P: FloatArray) -> Tube:
     return Tube(
         K=K,
@@ -288,7 +294,7 @@ def check_level(
         failures.append(f"the terminal law clips its inputs on E_c (slack {slack:.3g})")
     # inside Goal: the position disk in the whitened coordinates, and the extra bounds
     W = tube.position_whitening
-    goal = affine_transform(scenario.goal, [W[0, 0], W[0, 1], W[1, 0], W[1, 1], 0.0, 0.0])
+    goal = _mapped(scenario.goal, W)
     centre = W @ x_eq[list(scenario.position_index)]
     inside = shapely.intersects_xy(goal, *centre)
     room = float(shapely.distance(shapely.points(centre), goal.boundary)) if inside else 0.0
@@ -591,12 +597,10 @@ def hover_box(scenario: Scenario, design: TerminalDesign) -> FloatArray | None:
     checked from scratch (``hold_design``). None when nothing is left."""
     tube, r = _tube(scenario, design.K, design.P), float(np.sqrt(design.check.level))
     W = tube.position_whitening
-    goal = affine_transform(scenario.goal, [W[0, 0], W[0, 1], W[1, 0], W[1, 1], 0.0, 0.0])
-    eroded = goal.buffer(-r)
+    eroded = _mapped(scenario.goal, W).buffer(-r)
     if eroded.is_empty:
         return None
-    V = np.linalg.inv(W)
-    region = affine_transform(eroded, [V[0, 0], V[0, 1], V[1, 0], V[1, 1], 0.0, 0.0])
+    region = _mapped(eroded, np.linalg.inv(W))
     box = np.array(region.bounds, dtype=np.float64).reshape(2, 2).T  # rows X, Y
     extent = tube.state_extent_per_radius * r
     for k, i in enumerate(scenario.position_index):

@@ -218,25 +218,28 @@ def rebuild_funnel(
 
 
 class Rebuilt:
-    """``rebuild_funnel``'s results for one ``scenario``, nominal, shipped funnel and state
-    bounds, by ``(segments, input_offset)``: ``recheck_as_shipped`` rebuilds the same hulls for
-    ``reference_substeps`` and ``recheck_funnel`` (a deterministic function of these arguments;
-    a failure is not kept, it is raised again)."""
+    """``rebuild_funnel(scenario, trajectory, shipped, state_bounds, segments, input_offset)``
+    for one funnel, each ``(segments, input_offset)`` once: ``recheck_as_shipped`` rebuilds the
+    same hulls for ``reference_substeps`` and ``recheck_funnel`` (a deterministic function of
+    these arguments; a failure is not kept, it is raised again)."""
 
-    def __init__(self) -> None:
+    def __init__(
+        self,
+        scenario: Scenario,
+        trajectory: Trajectory,
+        shipped: ShippedFunnel,
+        state_bounds: Mapping[str, tuple[float, float]],
+    ) -> None:
+        self._rebuild = functools.partial(
+            rebuild_funnel, scenario, trajectory, shipped, state_bounds
+        )
         self._funnels: dict[tuple[int, bytes | None], Funnel] = {}
 
-    def get(self, rebuild: Callable[..., Funnel]) -> Callable[[int, FloatArray | None], Funnel]:
-        """``rebuild(segments, input_offset)`` (``rebuild_funnel`` with its first four arguments
-        bound), each once."""
-
-        def cached(segments: int, input_offset: FloatArray | None = None) -> Funnel:
-            key = (segments, None if input_offset is None else _key(input_offset))
-            if key not in self._funnels:
-                self._funnels[key] = rebuild(segments, input_offset)
-            return self._funnels[key]
-
-        return cached
+    def __call__(self, segments: int, input_offset: FloatArray | None = None) -> Funnel:
+        key = (segments, None if input_offset is None else _key(input_offset))
+        if key not in self._funnels:
+            self._funnels[key] = self._rebuild(segments, input_offset)
+        return self._funnels[key]
 
 
 def _key(values: FloatArray) -> bytes:
@@ -269,11 +272,7 @@ def _under_law(
     Raises:
       HullError: no hull or enclosure, or the offset outgrew the widening.
     """
-    rebuild: Callable[..., Funnel] = functools.partial(
-        rebuild_funnel, scenario, trajectory, shipped, state_bounds
-    )
-    if rebuilt is not None:
-        rebuild = rebuilt.get(rebuild)
+    rebuild = Rebuilt(scenario, trajectory, shipped, state_bounds) if rebuilt is None else rebuilt
 
     def offset(funnel: Funnel) -> LawOffset:
         if funnel.enclosure is None:
@@ -529,7 +528,7 @@ def recheck_as_shipped(
     nominal = simulate(
         scenario.dynamics, trajectory.xs[0], trajectory.us, scenario.Ts, BASE_SUBSTEPS
     )
-    rebuilt = Rebuilt()
+    rebuilt = Rebuilt(scenario, nominal, shipped, state_bounds)
     substeps = reference_substeps(
         scenario, nominal, shipped, state_bounds, disturbance, period, measurement,
         rebuilt=rebuilt,

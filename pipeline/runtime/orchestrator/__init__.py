@@ -300,11 +300,11 @@ def _synthesize(
 
     if targets.placing:  # first to rest wherever the terminal set fits, then to where they did
         resting = optimize(targets, "optimize_rest", "demos optimized to rest")
-        ends = [
-            nominals(scenario, [start], [t.u])[0].xs[-1]
-            for t, start in zip(resting.trajectories, demo_starts, strict=True)
-            if t.success
-        ]
+        rested = [i for i, t in enumerate(resting.trajectories) if t.success]
+        flown = nominals(
+            scenario, [demo_starts[i] for i in rested], [resting.trajectories[i].u for i in rested]
+        )
+        ends = [trajectory.xs[-1] for trajectory in flown]
         targets = certificate.placed(scenario, targets, ends, options.feedback_period)
     optimized = optimize(targets, OPTIMIZE.name, "demos optimized")
     if log.isEnabledFor(logging.DEBUG):
