@@ -321,13 +321,15 @@ def test_the_held_terminal_law_stays_in_its_box_and_ellipsoid():
 @pytest.mark.slow
 @pytest.mark.xdist_group("hold-funnel-held")
 def test_a_gusty_hold_run_held_every_5_ms_is_certified_and_flown_held(tmp_path):
-    """double_integrator_hold with a gust and the funnel certificate at ``--feedback-period
-    0.005``: certified and validated, the claims say the law is held, the Monte Carlo flies
-    the held law (``held_steps``: windows of the file's period) with 0 failures; the same
-    file with its period edited to 0.05 s (still dividing Ts) or 0.03 s is refused."""
+    """double_integrator_hold with a gust, the funnel certificate and ``feedback_period: 0.005``
+    in the scenario (no option: the scenario's period is the run's): certified and validated,
+    the claims say the law is held, the Monte Carlo flies the held law (``held_steps``: windows
+    of the file's period) with 0 failures; the same file with its period edited to 0.05 s
+    (still dividing Ts) or 0.03 s is refused."""
     path = gusty_hold_scenario(tmp_path / "gusty", GUST)
+    path.write_text(path.read_text() + "feedback_period: 0.005  # the vehicle's control period\n")
     out = tmp_path / "out"
-    result = pipeline.synthesize(path, out=out, samples=300, feedback_period=0.005)
+    result = pipeline.synthesize(path, out=out, samples=300)
     assert result.success, result.message
     claims = [c.claim for c in result.claims]
     assert any("evaluated every 0.005 s and held in between: no flight" in c for c in claims)

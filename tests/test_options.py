@@ -238,10 +238,41 @@ def test_values_are_stored_normalized() -> None:
     integer 0 from the API must be the command line's ``0.0``; NumPy scalars become Python's."""
     seed, samples = np.int64(3), np.uint16(7)
     options = RunOptions(feedback_period=0, seed=seed, samples=samples)  # type: ignore[arg-type]
-    assert options == parse("--seed", "3", "--samples", "7")
+    assert options == parse("--seed", "3", "--samples", "7", "--feedback-period", "0")
     assert type(options.feedback_period) is float and type(options.seed) is int
     assert type(options.samples) is int
     assert RunOptions(feedback_period=np.float64(0.01)).feedback_period == 0.01
     assert parse("--feedback-period", "1e-4").feedback_period == 1e-4  # the stated minimum
     for spec in ("local", "", "dask-local", "dask://10.0.0.5:8786"):
         assert RunOptions(executor=spec).executor == spec
+
+
+def test_the_law_is_held_for_the_scenario_s_period_unless_the_command_line_sets_one(
+    tmp_path, capsys
+):
+    """A scenario's ``feedback_period`` (its vehicle's control period) is the run's period;
+    ``--feedback-period`` (also 0: continuous) overrides it; a period set by
+    ``dataclasses.replace`` is checked before any work, naming the scenario's field."""
+    from pipeline.io.errors import UserError
+    from pipeline.model.scenario import load_scenario
+    from pipeline.runtime.run_inputs import check_period, period_of
+    from tests.helpers.scenario_files import write_scenario, yaml_replace
+
+    path = yaml_replace("clearance: 0.25\n", "clearance: 0.25\nfeedback_period: 0.01\n")(
+        write_scenario(tmp_path / "scenario")
+    )
+    scenario = load_scenario(path)
+    assert scenario.feedback_period == 0.01
+    assert period_of(scenario, parse()) == 0.01
+    assert period_of(scenario, parse("--feedback-period", "0")) == 0.0
+    assert period_of(scenario, RunOptions(feedback_period=0.02)) == 0.02
+    assert load_scenario(write_scenario(tmp_path / "plain")).feedback_period == 0.0
+    replaced = dataclasses.replace(scenario, feedback_period=0.03)
+    source = f"{path}: feedback_period"
+    with pytest.raises(UserError, match=r"feedback_period: found 0.03 s; expected 0 \(continuous"):
+        check_period(replaced, period_of(replaced, parse()), "funnel", source)
+    code = main(
+        ["synthesize", str(path), "--feedback-period", "0.03", "--out", str(tmp_path / "o")]
+    )
+    assert code == 2 and not (tmp_path / "o").exists()
+    assert capsys.readouterr().err.startswith("error: --feedback-period: found 0.03 s; expected 0")

@@ -72,7 +72,8 @@ def test_feedback_period_is_an_option_and_refuses_negative_values():
 
     parser = argparse.ArgumentParser()
     add_arguments(parser, RunOptions)
-    assert from_arguments(RunOptions, parser.parse_args([])).feedback_period == 0.0
+    # unset on the command line: the scenario's feedback_period (run_inputs.period_of)
+    assert from_arguments(RunOptions, parser.parse_args([])).feedback_period is None
     assert from_arguments(RunOptions, parser.parse_args(["--feedback-period", "0.01"])) == (
         RunOptions(feedback_period=0.01)
     )

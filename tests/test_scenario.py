@@ -107,6 +107,28 @@ BAD_INPUTS: list[tuple[str, Mutation, str | None, list[str]]] = [
         ["optimizer", "'gd' or 'lbfgs'"],
     ),
     (
+        "feedback period that does not divide the sampling time",
+        yaml_replace("clearance: 0.25\n", "clearance: 0.25\nfeedback_period: 0.03\n"),
+        YAML,
+        [
+            "feedback_period: is not a control period this scenario can be certified for",
+            "found 0.03",
+            "a period of at least 0.0001 s that divides sampling_time 0.1 s (e.g. 0.005)",
+        ],
+    ),
+    (
+        "feedback period below the shortest",
+        yaml_replace("clearance: 0.25\n", "clearance: 0.25\nfeedback_period: 0.00001\n"),
+        YAML,
+        ["feedback_period", "found 1e-05", "at least 0.0001 s"],
+    ),
+    (
+        "negative feedback period",
+        yaml_replace("clearance: 0.25\n", "clearance: 0.25\nfeedback_period: -0.01\n"),
+        YAML,
+        ["feedback_period", "found -0.01", "greater than or equal to 0"],
+    ),
+    (
         "negative disturbance bound",
         yaml_replace(
             "clearance: 0.25\n", "clearance: 0.25\nuncertainty: {disturbance: {vX: -0.1}}\n"

@@ -37,6 +37,7 @@ from pipeline.model.expressions import (
 )
 from pipeline.model.feedback_defaults import resolve_feedback
 from pipeline.model.frozen import freeze_fields, reduce_fields
+from pipeline.model.limits import MIN_FEEDBACK_PERIOD
 from pipeline.model.scenario_file import LOCAL_SCENARIOS as LOCAL_SCENARIOS  # re-exported
 from pipeline.model.scenario_file import SCENARIOS_ROOT as SCENARIOS_ROOT
 from pipeline.model.scenario_file import available_scenarios as available_scenarios
@@ -69,6 +70,8 @@ class Scenario:
       certificate: "constant" (one P, K over operating_region) or "funnel" (K[k], P[k] per
         trajectory).
       optimizer: "gd" (the paper's gradient descent) or "lbfgs": how nominals are optimized.
+      feedback_period: ``h`` (s), the law is evaluated every ``h`` s and held in between (0:
+        continuous feedback); 0 or at least ``MIN_FEEDBACK_PERIOD``, dividing ``Ts``.
       state_bounds: state name -> (lower, upper), the physical envelope (not a certificate region).
       units, labels: state or input name -> unit / human name (optional; see ``label``).
       uncertainty: the declared disturbance and parameter bounds (``pipeline.model.uncertainty``;
@@ -100,6 +103,7 @@ class Scenario:
     terminal: str = "reach"
     certificate: CertificateName = "constant"
     optimizer: str = "gd"
+    feedback_period: float = 0.0
     state_bounds: Mapping[str, tuple[float, float]] = field(default_factory=dict)
     units: Mapping[str, str] = field(default_factory=dict)
     labels: Mapping[str, str] = field(default_factory=dict)
@@ -347,11 +351,32 @@ def _build(path: Path, spec: ScenarioSpec) -> Scenario:
         terminal=spec.terminal,
         certificate=spec.certificate,
         optimizer=spec.optimizer,
+        feedback_period=_feedback_period(path, spec),
         state_bounds=dict(spec.state_bounds),
         units=dict(spec.units),
         labels=dict(spec.labels),
         uncertainty=_uncertainty(path, spec),
     )
+
+
+def _feedback_period(path: Path, spec: ScenarioSpec) -> float:
+    """``feedback_period``: 0, or at least ``MIN_FEEDBACK_PERIOD`` and dividing the sampling
+    time (``u_ref`` switches at samples: a held window must not straddle one)."""
+    period = float(spec.feedback_period)
+    if period == 0:
+        return 0.0
+    steps = spec.sampling_time / period
+    if period < MIN_FEEDBACK_PERIOD or abs(steps - round(steps)) > 1e-9 * steps:
+        raise ScenarioError(
+            "is not a control period this scenario can be certified for",
+            file=path,
+            field="feedback_period",
+            found=period,
+            expected=f"0 (continuous feedback) or a period of at least {MIN_FEEDBACK_PERIOD:g} s "
+            f"that divides sampling_time {spec.sampling_time:g} s (e.g. "
+            f"{spec.sampling_time / 20:g})",
+        )
+    return period
 
 
 def _check_init_in_bounds(

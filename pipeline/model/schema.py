@@ -222,6 +222,14 @@ class ScenarioSpec(_Strict):
         description="'constant' (one metric P and gain K over operating_region, the paper's "
         "certificate) or 'funnel' (per-trajectory time-varying K[k], P[k] over each tube)",
     )
+    feedback_period: NonNegativeFloat = Field(
+        default=0.0,
+        description="h (s): the vehicle's control period, the feedback law is evaluated every h "
+        "seconds and held in between (zero-order hold), and every certificate, the controller "
+        "file and the Monte Carlo are for that law; 0 (the default): continuous feedback. h "
+        "must divide sampling_time and be at least 1e-4 s (MIN_FEEDBACK_PERIOD); "
+        "--feedback-period overrides it",
+    )
     optimizer: Literal["gd", "lbfgs"] = Field(
         default="gd",
         description="how the nominal trajectories are optimized: 'gd' (the paper's gradient "

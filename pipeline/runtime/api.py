@@ -35,7 +35,7 @@ def synthesize(
     search: str = RunOptions.search,
     stress: bool = RunOptions.stress,
     force: bool = RunOptions.force,
-    feedback_period: float = RunOptions.feedback_period,
+    feedback_period: float | None = RunOptions.feedback_period,
 ) -> Synthesis:
     """Synthesize and certify a safety controller for ``scenario``, then validate it.
 
@@ -59,7 +59,8 @@ def synthesize(
       stress: also run the stress test (wind, noise; reported, never certified).
       force: rerun every stage.
       feedback_period: the period ``h`` (s) of a zero-order-hold feedback to certify (0: the
-        feedback acts continuously); must divide the scenario's sampling time.
+        feedback acts continuously); must divide the scenario's sampling time; default: the
+        scenario's ``feedback_period``.
 
     Returns a ``Synthesis`` (verdict, claims, controller, per-demo table, files written). Bad
     input raises ``pipeline.UserError`` (``ScenarioError`` for the scenario) before any work;

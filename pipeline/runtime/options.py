@@ -16,6 +16,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Protocol, TypeVar
 
+from pipeline.model.limits import MIN_FEEDBACK_PERIOD
 from pipeline.numerics.settings import CERTIFICATES, DESCENT_METHODS, HORIZON_SEARCHES
 
 if TYPE_CHECKING:
@@ -69,15 +70,19 @@ class Whole:
 
 @dataclass(frozen=True)
 class Period:
-    """Seconds, a real number (not ``bool`` or text): 0 (off), or finite and >= ``minimum``."""
+    """Seconds, a real number (not ``bool`` or text): 0 (off), or finite and >= ``minimum``;
+    with ``unset``, also ``None`` (the scenario decides)."""
 
     minimum: float
+    unset: bool = False
 
     @property
     def expected(self) -> str:
         return f"0 or a finite number of seconds >= {self.minimum:g}"
 
-    def value(self, found: object) -> float:
+    def value(self, found: object) -> float | None:
+        if found is None and self.unset:
+            return None
         if isinstance(found, bool) or not isinstance(found, numbers.Real):
             raise ValueError(self.expected)
         try:
@@ -88,7 +93,7 @@ class Period:
             raise ValueError(self.expected)
         return seconds
 
-    def parse(self, text: str) -> float:
+    def parse(self, text: str) -> float | None:
         return self.value(float(text))
 
 
@@ -159,13 +164,6 @@ class ExecutorSpec:
 # memory.
 MAX_SAMPLES = 10**9
 MAX_JOBS = 1024  # worker processes: far beyond any machine's cores, below its process limits
-
-# The shortest --feedback-period (s). Monte Carlo flies the held law with at least one RK4 step
-# per period, Ts / h steps per sample (1000 for Ts = 0.1 s at 0.1 ms, 250 times the 4 steps of
-# continuous feedback; double_integrator, 1000 runs: certified and validated, 17 s of CPU), while
-# the held rate falls short of the continuous one by about (lambda^2 + C1) h / 2
-# (pipeline.numerics.tube.sampled): a shorter hold is continuous feedback in all but cost (use 0).
-MIN_FEEDBACK_PERIOD = 1e-4
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -245,11 +243,12 @@ class RunOptions:
     )
     stress: bool = option(False, "also run the stress test (wind, noise; not certified)", Flag())
     seed: int = option(MONTE_CARLO_SEED, "seed of the Monte Carlo and stress runs", Whole(0))
-    feedback_period: float = option(
-        0.0,
+    feedback_period: float | None = option(
+        None,
         "certify zero-order-hold feedback recomputed every h seconds (must divide the sampling "
-        f"time and be at least {MIN_FEEDBACK_PERIOD:g}; 0: continuous feedback)",
-        Period(MIN_FEEDBACK_PERIOD),
+        f"time and be at least {MIN_FEEDBACK_PERIOD:g}; 0: continuous feedback; default: the "
+        "scenario's `feedback_period`, else 0)",
+        Period(MIN_FEEDBACK_PERIOD, unset=True),
     )
 
     def __post_init__(self) -> None:

@@ -7,12 +7,14 @@ their fields.
 from __future__ import annotations
 
 import dataclasses
+import math
 import typing
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
 from pipeline.io.artifacts import inputs_key
 from pipeline.io.errors import UserError
+from pipeline.model.limits import MIN_FEEDBACK_PERIOD
 from pipeline.model.scenario import CertificateName, Scenario
 from pipeline.model.scenario_data import plain, scenario_data
 from pipeline.numerics.tube.sampled import HeldRate, held_rate
@@ -36,17 +38,28 @@ def held_feedback(
     return dataclasses.replace(feedback, rate=held.held_rate, tube=held_tube), held
 
 
-def check_period(scenario: Scenario, period: float, certificate: CertificateName) -> None:
-    """``--feedback-period`` must divide the sampling time (``u_ref`` switches at samples, and
-    a held law's windows must not straddle them), with either certificate (the constant one's
-    held rate, ``pipeline.numerics.tube.sampled``; the funnel's (I6), ``funnel.law``)."""
+def check_period(
+    scenario: Scenario,
+    period: float,
+    certificate: CertificateName,
+    source: str = "--feedback-period",
+) -> None:
+    """The law's period (``source``: ``--feedback-period``, or the scenario's field) must be 0
+    or at least ``MIN_FEEDBACK_PERIOD`` and divide the sampling time (``u_ref`` switches at
+    samples, and a held law's windows must not straddle them), with either certificate (the
+    constant one's held rate, ``pipeline.numerics.tube.sampled``; the funnel's (I6),
+    ``funnel.law``). A scenario file's value was checked on loading; this also catches one set
+    by ``dataclasses.replace``."""
     if period == 0:
         return
     steps = scenario.Ts / period
-    if steps < 1 - 1e-9 or abs(steps - round(steps)) > 1e-9 * steps:
+    if not MIN_FEEDBACK_PERIOD <= period < math.inf or (
+        steps < 1 - 1e-9 or abs(steps - round(steps)) > 1e-9 * steps
+    ):
         raise UserError(
-            f"--feedback-period: found {period:g} s; expected a period that divides the "
-            f"scenario's sampling_time {scenario.Ts:g} s (e.g. {scenario.Ts / 10:g})"
+            f"{source}: found {period:g} s; expected 0 (continuous feedback) or a period of at "
+            f"least {MIN_FEEDBACK_PERIOD:g} s that divides the scenario's sampling_time "
+            f"{scenario.Ts:g} s (e.g. {scenario.Ts / 10:g})"
         )
 
 
@@ -73,6 +86,14 @@ def certificate_of(scenario: Scenario, options: RunOptions) -> CertificateName:
             f"{', '.join(typing.get_args(CertificateName))}"
         )
     return typing.cast(CertificateName, name)
+
+
+def period_of(scenario: Scenario, options: RunOptions) -> float:
+    """The period ``h`` (s) the law is held for in this run (0: continuous feedback):
+    ``--feedback-period``, else the scenario's ``feedback_period``."""
+    if options.feedback_period is None:
+        return scenario.feedback_period
+    return options.feedback_period
 
 
 def method_of(scenario: Scenario, options: RunOptions) -> str:

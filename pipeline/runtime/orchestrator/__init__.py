@@ -172,7 +172,12 @@ def run_synthesis(
         )
     check_scenario(scenario)  # hull, demo inputs in the region, a controllable reference
     certificate = run_inputs.certificate_of(scenario, options)
-    run_inputs.check_period(scenario, options.feedback_period, certificate)
+    period = run_inputs.period_of(scenario, options)  # --feedback-period, else the scenario's
+    source = "--feedback-period"
+    if options.feedback_period is None:
+        source = f"{scenario.path}: feedback_period"
+    run_inputs.check_period(scenario, period, certificate, source)
+    options = dataclasses.replace(options, feedback_period=period)  # what the run certifies
     run_inputs.check_uncertainty(scenario, certificate)
     out = (Path(out) if out is not None else default_output_folder(scenario.name)).absolute()
     check_output_folder(out, scenario.name)
@@ -228,6 +233,7 @@ def _synthesize(
     runner: StageRunner,
     started: float,
 ) -> Synthesis:
+    period = run_inputs.period_of(scenario, options)  # resolved in run_synthesis
     demo_starts = [d.x0 for d in scenario.demos]
     demo_inputs = [d.us for d in scenario.demos]
     demo_trajectories = nominals(scenario, demo_starts, demo_inputs)
@@ -246,13 +252,13 @@ def _synthesize(
     # the constant tube at the held law's rate; the funnel certificate holds the held law in
     # its funnels (funnel.law (I6)), and uses the constant tube only to start from
     constant = run_inputs.certificate_of(scenario, options) == "constant"
-    if options.feedback_period > 0 and constant:
-        feedback, held = run_inputs.held_feedback(scenario, feedback, options.feedback_period)
+    if period > 0 and constant:
+        feedback, held = run_inputs.held_feedback(scenario, feedback, period)
         if not held.success:
             reason = (
                 f"zero-order-hold feedback every {held.period:g} s cannot be certified: the "
                 f"held tube's rate {held.held_rate:.3g}/s is not > 0 (continuous rate "
-                f"{held.rate:.3g}/s, C1 = {held.C1:.3g}); use a shorter --feedback-period"
+                f"{held.rate:.3g}/s, C1 = {held.C1:.3g}); use a shorter feedback period"
             )
             return _failed(out, scenario, "feedback", reason)
         log.info(
@@ -281,7 +287,7 @@ def _synthesize(
     )
     certificate = CERTIFICATES[run_inputs.certificate_of(scenario, options)]
     # where the nominals end: Goal, or a hold run's terminal core (stages.certificates)
-    targets = certificate.targets(scenario, options.feedback_period)
+    targets = certificate.targets(scenario, period)
 
     def optimize(targets: Targets, name: str, what: str) -> OptimizeResult:
         with progress_bar(len(scenario.demos), what, quiet) as advance:
@@ -305,7 +311,7 @@ def _synthesize(
             scenario, [demo_starts[i] for i in rested], [resting.trajectories[i].u for i in rested]
         )
         ends = [trajectory.xs[-1] for trajectory in flown]
-        targets = certificate.placed(scenario, targets, ends, options.feedback_period)
+        targets = certificate.placed(scenario, targets, ends, period)
     optimized = optimize(targets, OPTIMIZE.name, "demos optimized")
     if log.isEnabledFor(logging.DEBUG):
         log.debug(optimization_logs(optimized))
@@ -333,7 +339,7 @@ def _synthesize(
             radii=final_radii,
             r_required=r_required,
             options=optimize_options,
-            feedback_period=options.feedback_period,
+            feedback_period=period,
             controller_path=controller_path,
             quiet=quiet,
             publish=functools.partial(_published, out),
@@ -386,7 +392,7 @@ def _synthesize(
         funnels=certified.funnels,
         funnel_coverage=certified.funnel_coverage,
         constant_trajectories=certified.constant_trajectories,
-        feedback_period=options.feedback_period,
+        feedback_period=period,
     )
     summary = summarise(
         results,
