@@ -207,7 +207,7 @@ def _designed(task: _Task) -> tuple[Funnel, str | None]:
         again = synthesize_funnel(
             designed_for, task.trajectory, state_bounds=bounds, initial=task.initial,
             rate=task.rate, disturbance=declared + HOLD_DESIGN * box, terminal=terminal,
-            period=period, codesign=codesign,
+            period=period, codesign=codesign, widen=False, from_multiplier=funnel.multiplier,
         )  # fmt: skip
         second = _accepted(
             scenario, task.trajectory, again, bounds, task.disturbance, task.period, measurement

@@ -293,6 +293,67 @@ def test_a_family_past_its_best_multiplier_solves_no_more_programs():
     assert stopped.rho == full.rho and np.array_equal(stopped.K, full.K)
 
 
+
+def test_a_redesign_searches_from_the_first_design_s_multiplier_and_records_its_own():
+    """``from_multiplier``: the search solves no program below it (the held law's redesign,
+    ``stages.funnel``, starts where the first design's program was feasible), and a funnel
+    records the multiplier of the program that designed it (0 without a disturbance)."""
+    scenario, trajectory, initial = double_integrator_case()
+    original = synthesis.solve_clarabel
+    solved: list[float] = []
+
+    def recorded(program):
+        solved.append(program.multiplier)
+        return original(program)
+
+    synthesis.solve_clarabel = recorded
+    try:
+        first = synthesize_funnel(scenario, trajectory, initial=initial, disturbance=DISTURBANCE)
+        start = len(solved)
+        later = synthesis.ROBUST_MULTIPLIERS[1]
+        again = synthesize_funnel(
+            scenario, trajectory, initial=initial, disturbance=DISTURBANCE, from_multiplier=later
+        )
+    finally:
+        synthesis.solve_clarabel = original
+    assert first.success and again.success, (first.message, again.message)
+    assert solved[0] == synthesis.ROBUST_MULTIPLIERS[0] and first.multiplier in solved[:start]
+    assert min(solved[start:]) == later and again.multiplier >= later
+    assert synthesize_funnel(scenario, trajectory, initial=initial).multiplier == 0.0
+
+
+@pytest.mark.parametrize("widen", [True, False])
+def test_capped_boxes_short_of_the_initial_set_are_widened_unless_asked_not_to(widen):
+    """A quadrotor funnel (angle boxes capped first) whose program is scripted to hold half
+    the initial set: the seed's uncapped boxes are tried after the capped ones, and only then
+    (``widen=False``: the held law's redesign keeps the capped ones)."""
+    scenario = load_scenario("quadrotor_hill_flythrough", check_demos=False)
+    demo = scenario.demos[0]
+    trajectory = simulate(scenario.dynamics, demo.x0, demo.us[:12], scenario.Ts)
+    end = trajectory.xs[-1, :2]
+    scenario = dataclasses.replace(scenario, goal=box(*(end - 1.5), *(end + 1.5)))
+    hulls, solve = synthesis.piece_hulls, synthesis.solve_clarabel
+    tight: list[bool] = []
+
+    def recorded(*args):
+        tight.append(args[-1])
+        return hulls(*args)
+
+    def half(program):
+        solution = solve(program)
+        return solution if isinstance(solution, str) else (solution[0], 0.5 * solution[1])
+
+    synthesis.piece_hulls, synthesis.solve_clarabel = recorded, half
+    try:
+        funnel = synthesize_funnel(
+            scenario, trajectory, state_bounds={"theta": (-0.8, 0.8)}, widen=widen
+        )
+    finally:
+        synthesis.piece_hulls, synthesis.solve_clarabel = hulls, solve
+    assert funnel.success and funnel.limits["design"] < 1.0, funnel.message
+    assert tight == ([True, False] if widen else [True])
+
+
 def _robust(funnel, scenario, bound):
     law = LawOffset.none(len(funnel.K), scenario.n, scenario.m, scenario.Ts)
     return law.with_disturbance(bound)

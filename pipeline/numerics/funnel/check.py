@@ -51,6 +51,9 @@ class Funnel:
         unless the required initial set could not be held whole.
       binding: the constraint that sets rho; seconds: synthesis wall time (from the funnel
         stage: its whole task, the certify-style checks and any redesign included).
+      multiplier: the S-procedure multiplier ``alpha`` of the program that designed it
+        (``funnel.robust`` (I5)); 0 without a disturbance. The design's record only: the
+        checks search their own.
     """
 
     K: FloatArray
@@ -68,6 +71,7 @@ class Funnel:
     success: bool
     message: str
     interpolation: str = INTERPOLATION
+    multiplier: float = 0.0
 
     @property
     def Q(self) -> FloatArray:

@@ -143,6 +143,7 @@ class _Parts(TypedDict, total=False):
     enclosure: Enclosure | None
     limits: Mapping[str, float]
     binding: str
+    multiplier: float
 
 
 class _Hulls(TypedDict):
@@ -394,6 +395,8 @@ def synthesize_funnel(
     terminal: TerminalTarget | None = None,
     period: float = 0.0,
     codesign: bool = True,
+    widen: bool = True,
+    from_multiplier: float = 0.0,
 ) -> Funnel:
     """Synthesize and check the funnel around ``trajectory`` (one: ``xs (N+1, n)``, ``us (N, m)``,
     its dense grid); see the module docstring.
@@ -431,6 +434,15 @@ def synthesize_funnel(
       codesign: with ``disturbance``, try gains co-designed with the metric (F6) after the LQR
         gains' multipliers (False: the LQR gains only; ``stages.funnel`` for a held law, whose
         push (I6) the (F6) program cannot see: it is bilinear in the gains).
+      widen: where the capped angle boxes do not hold the whole initial set, solve again on the
+        seed's uncapped boxes and keep the better funnel (False: the capped boxes only, half the
+        programs of a search that falls short; ``stages.funnel``'s redesign for a held or
+        measured law, whose programs are the costliest). A design choice: nothing proven
+        depends on it.
+      from_multiplier: with ``disturbance``, the search starts at the first multiplier of
+        ``ROBUST_MULTIPLIERS`` at least this large (``stages.funnel``'s redesign starts where
+        the first design's program was feasible: the redesign's adds the held law's rows and
+        box to it). A design choice too.
     """
     start = time.perf_counter()
     state_bounds = dict(state_bounds or {})
@@ -492,7 +504,7 @@ def synthesize_funnel(
         defaults: _Parts = {
             "K": K, "P": P_lqr, "rho": 0.0, "margins": np.full((N, 2), np.nan),
             "boxes": np.zeros((N, 2, 0)), "variables": (), "vertices": (), "enclosure": None,
-            "limits": {}, "binding": "",
+            "limits": {}, "binding": "", "multiplier": 0.0,
         }  # fmt: skip
         defaults.update(values)
         return Funnel(
@@ -521,6 +533,7 @@ def synthesize_funnel(
                 (ROBUST_MARGIN * alpha, alpha, family)
                 for family in ((False, True) if codesign else (False,))
                 for alpha in ROBUST_MULTIPLIERS
+                if alpha >= min(from_multiplier, ROBUST_MULTIPLIERS[-1])
             ]
         )
         search = MultiplierSearch()
@@ -581,7 +594,7 @@ def synthesize_funnel(
             rho = level * (1 - LEVEL_SLACK)
             funnel = result(
                 True, "", K=gains, P=np.linalg.inv(Q).astype(np.float64, copy=False), rho=rho,
-                binding=binding,
+                binding=binding, multiplier=multiplier,
                 margins=certificate_margins(Q, gains, vertices, rate, scenario.Ts),
                 limits={key: value[0] for key, value in limits.items()}, **common,
             )  # fmt: skip
@@ -615,7 +628,7 @@ def synthesize_funnel(
 
     funnel = attempt(tight=True)
     capped = bool(arc_variables(scenario.dynamics))  # without angles both attempts are the same
-    if capped and (not funnel.success or funnel.limits["design"] < 1.0):
+    if widen and capped and (not funnel.success or funnel.limits["design"] < 1.0):
         # The capped boxes could not hold the whole initial set: the seed's boxes, keep the better.
         wide = attempt(tight=False)
         funnel = max(funnel, wide, key=lambda f: (f.success, f.rho))
