@@ -293,7 +293,6 @@ def test_a_family_past_its_best_multiplier_solves_no_more_programs():
     assert stopped.rho == full.rho and np.array_equal(stopped.K, full.K)
 
 
-
 def test_a_redesign_searches_from_the_first_design_s_multiplier_and_records_its_own():
     """``from_multiplier``: the search solves no program below it (the held law's redesign,
     ``stages.funnel``, starts where the first design's program was feasible), and a funnel
