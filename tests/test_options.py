@@ -4,7 +4,9 @@ come from ``pipeline.numerics.settings``."""
 from __future__ import annotations
 
 import dataclasses
+import decimal
 import inspect
+import math
 import re
 import typing
 
@@ -276,3 +278,44 @@ def test_the_law_is_held_for_the_scenario_s_period_unless_the_command_line_sets_
     )
     assert code == 2 and not (tmp_path / "o").exists()
     assert capsys.readouterr().err.startswith("error: --feedback-period: found 0.03 s; expected 0")
+
+
+@pytest.mark.parametrize(
+    ("period", "found"),
+    [
+        ("0.01", "'0.01'"),
+        (None, "None"),
+        (False, "False"),
+        (True, "True"),
+        (decimal.Decimal("0.01"), "Decimal('0.01')"),
+        (math.nan, "nan s"),
+        (0.03, "0.03 s"),
+        (10**400, "inf s"),
+    ],
+    ids=["text", "None", "False", "True", "Decimal", "nan", "not-dividing", "huge-int"],
+)
+def test_a_period_set_by_replace_is_refused_as_the_scenario_s_not_the_file_s(
+    period, found, tmp_path
+):
+    """``dataclasses.replace(scenario, feedback_period=...)`` is checked before any work: a
+    value of any type is a ``UserError`` (not a ``TypeError`` from dividing by it, nor the
+    ``ValueError`` of ``RunOptions`` for an option nobody set) that names the ``Scenario``'s
+    field, not the file (which says 0)."""
+    scenario = pipeline.load_scenario("double_integrator")
+    replaced = dataclasses.replace(scenario, feedback_period=period)
+    expected = (
+        f"the Scenario's feedback_period (set in Python; {scenario.path} says 0): "
+        f"found {found}; expected 0 (continuous feedback)"
+    )
+    with pytest.raises(pipeline.UserError) as raised:
+        pipeline.synthesize(replaced, out=tmp_path / "o")
+    assert str(raised.value).startswith(expected)
+    assert not (tmp_path / "o").exists()
+
+
+def test_negative_zero_is_stored_as_zero() -> None:
+    """``--feedback-period -0`` (or ``-0.0`` from the API) is continuous feedback, stored as the
+    ``0.0`` that is hashed into cache keys and written to ``controller.json``."""
+    for options in (parse("--feedback-period", "-0"), RunOptions(feedback_period=-0.0)):
+        assert math.copysign(1.0, typing.cast(float, options.feedback_period)) == 1.0
+    assert RunOptions(feedback_period=-0.0) == RunOptions(feedback_period=0.0)

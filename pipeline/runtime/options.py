@@ -91,7 +91,7 @@ class Period:
             raise ValueError(self.expected) from None
         if not (seconds == 0 or self.minimum <= seconds < math.inf):
             raise ValueError(self.expected)
-        return seconds
+        return seconds if seconds != 0 else 0.0  # -0.0 too: one key, one file
 
     def parse(self, text: str) -> float | None:
         return self.value(float(text))

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import numbers
 import typing
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
@@ -40,7 +41,7 @@ def held_feedback(
 
 def check_period(
     scenario: Scenario,
-    period: float,
+    period: object,
     certificate: CertificateName,
     source: str = "--feedback-period",
 ) -> None:
@@ -49,18 +50,36 @@ def check_period(
     samples, and a held law's windows must not straddle them), with either certificate (the
     constant one's held rate, ``pipeline.numerics.tube.sampled``; the funnel's (I6),
     ``funnel.law``). A scenario file's value was checked on loading; this also catches one set
-    by ``dataclasses.replace``."""
-    if period == 0:
+    by ``dataclasses.replace``, of any type (a ``bool`` or text is refused, as by
+    ``RunOptions``)."""
+    expected = (
+        f"expected 0 (continuous feedback) or a period of at least {MIN_FEEDBACK_PERIOD:g} s "
+        f"that divides the scenario's sampling_time {scenario.Ts:g} s (e.g. {scenario.Ts / 10:g})"
+    )
+    if isinstance(period, bool) or not isinstance(period, numbers.Real):
+        raise UserError(f"{source}: found {period!r}; {expected}")
+    try:
+        seconds = float(period)
+    except OverflowError:  # an int beyond float64
+        seconds = math.inf
+    if seconds == 0:
         return
-    steps = scenario.Ts / period
-    if not MIN_FEEDBACK_PERIOD <= period < math.inf or (
+    steps = scenario.Ts / seconds
+    if not MIN_FEEDBACK_PERIOD <= seconds < math.inf or (
         steps < 1 - 1e-9 or abs(steps - round(steps)) > 1e-9 * steps
     ):
-        raise UserError(
-            f"{source}: found {period:g} s; expected 0 (continuous feedback) or a period of at "
-            f"least {MIN_FEEDBACK_PERIOD:g} s that divides the scenario's sampling_time "
-            f"{scenario.Ts:g} s (e.g. {scenario.Ts / 10:g})"
-        )
+        raise UserError(f"{source}: found {seconds:g} s; {expected}")
+
+
+def period_source(scenario: Scenario, options: RunOptions) -> str:
+    """Where this run's period comes from, for ``check_period``'s message: the option, the
+    scenario file's field, or (a ``Scenario`` made by ``dataclasses.replace``) the object's."""
+    if options.feedback_period is not None:
+        return "--feedback-period"
+    period, written = scenario.feedback_period, scenario.spec.feedback_period
+    if isinstance(period, float) and period == written:
+        return f"{scenario.path}: feedback_period"
+    return f"the Scenario's feedback_period (set in Python; {scenario.path} says {written:g})"
 
 
 def check_uncertainty(scenario: Scenario, certificate: str) -> None:

@@ -173,9 +173,7 @@ def run_synthesis(
     check_scenario(scenario)  # hull, demo inputs in the region, a controllable reference
     certificate = run_inputs.certificate_of(scenario, options)
     period = run_inputs.period_of(scenario, options)  # --feedback-period, else the scenario's
-    source = "--feedback-period"
-    if options.feedback_period is None:
-        source = f"{scenario.path}: feedback_period"
+    source = run_inputs.period_source(scenario, options)
     run_inputs.check_period(scenario, period, certificate, source)
     options = dataclasses.replace(options, feedback_period=period)  # what the run certifies
     run_inputs.check_uncertainty(scenario, certificate)
