@@ -113,7 +113,7 @@ BAD_INPUTS: list[tuple[str, Mutation, str | None, list[str]]] = [
         [
             "feedback_period: is not a control period this scenario can be certified for",
             "found 0.03",
-            "a period of at least 0.0001 s that divides sampling_time 0.1 s (e.g. 0.005)",
+            "a period of at least 0.0001 s that divides sampling_time 0.1 s (e.g. 0.01)",
         ],
     ),
     (

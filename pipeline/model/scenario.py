@@ -374,7 +374,7 @@ def _feedback_period(path: Path, spec: ScenarioSpec) -> float:
             found=period,
             expected=f"0 (continuous feedback) or a period of at least {MIN_FEEDBACK_PERIOD:g} s "
             f"that divides sampling_time {spec.sampling_time:g} s (e.g. "
-            f"{spec.sampling_time / 20:g})",
+            f"{spec.sampling_time / 10:g})",
         )
     return period
 

@@ -71,7 +71,7 @@ YAML_GUIDE = """\
 #   feedback                  auto: the feedback stage designs it, searching the rate, the LQR
 #                             weights and the region; a field you set is kept as given (e.g.
 #                             feedback: {{rate: 0.2}}); feedback: {{tune: false}}: no search
-#   feedback_period           optional: your controller's period h (s), dividing sampling_time:
+#   feedback_period           optional: your controller's period h (s) >= 1e-4, dividing Ts:
 #                             the law is certified evaluated every h s and held in between
 #                             (default 0: continuous feedback)
 #   demos                     keep it last: `demos` rewrites it (or list your CSVs: file, x0)
