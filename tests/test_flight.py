@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -61,6 +63,21 @@ def test_a_held_feedback_holds_its_input_for_each_period(certified):
         held = flight.us[windows == k]
         assert len(held) == 5 and np.all(held == held[0])
     assert scenario.in_goal(flight.xs[-1])  # 20 Hz, close to the continuous law here
+
+
+@pytest.mark.xdist_group("synthesis-double_integrator")
+def test_fly_flies_the_law_the_file_certifies_unless_told_otherwise(certified):
+    """Without ``period``, a file certified for a held law is flown held at its period, one
+    for continuous feedback continuously."""
+    controller, scenario = certified
+    held = dataclasses.replace(controller, feedback_period=0.05)
+    x0 = scenario.init_lower
+    assert pipeline.fly(controller, scenario, x0, step=0.01).period == 0.0
+    flight = pipeline.fly(held, scenario, x0, step=0.01)
+    assert flight.period == 0.05
+    given = pipeline.fly(controller, scenario, x0, period=0.05, step=0.01)
+    np.testing.assert_array_equal(flight.us, given.us)
+    assert pipeline.fly(held, scenario, x0, period=0.0, step=0.01).period == 0.0
 
 
 @pytest.mark.xdist_group("synthesis-double_integrator")

@@ -2,9 +2,10 @@
 
 ``fly(controller, scenario, x0)`` selects the trajectory ``i`` for ``x0`` and integrates the
 scenario's dynamics (``load_scenario(name).dynamics.f``) by RK4 with steps of at most ``step``
-seconds, the law evaluated at every RK4 stage (``period = 0``: the continuous feedback the
-certificate assumes) or computed at ``t_k = k period`` and held on ``[t_k, t_k + period)`` (a
-flight computer; certified only when the file's ``feedback_period`` is that period). Each
+seconds, the law evaluated at every RK4 stage (``period = 0``: continuous feedback) or computed
+at ``t_k = k period`` and held on ``[t_k, t_k + period)`` (a flight computer); by default at the
+file's ``feedback_period``, the law its certificate is for (another period is flown without a
+guarantee). Each
 sample interval ``[k Ts, (k+1) Ts)`` (or each held window) is integrated on its own, the stage at
 its right end using the left limit of the piecewise-constant reference input, as the Monte Carlo
 validation does (``pipeline.numerics.closed_loop.simulate``).
@@ -56,14 +57,15 @@ def fly(
     scenario: str | Path | Scenario,
     x0: FloatArray,
     *,
-    period: float = 0.0,
+    period: float | None = None,
     until: float | None = None,
     step: float | None = None,
 ) -> Flight:
     """Fly ``controller`` from ``x0 (n,)`` in ``scenario``'s model (a name, path or Scenario).
 
     Args:
-      period: the feedback period (s): 0 evaluates the law continuously (at every RK4 stage).
+      period: the feedback period (s): 0 evaluates the law continuously (at every RK4 stage);
+        default the file's ``feedback_period`` (the law as certified).
       until: the end time (s); default the trajectory's ``T``, or ``T + 10`` s when the file has
         a terminal controller. Past ``T`` without one is a ``ValueError`` (nothing is
         certified there and the law refuses it).
@@ -91,6 +93,8 @@ def fly(
     index, ratio = controller.select(x)
     reference = controller.trajectories[int(index)]
     T = reference.T
+    if period is None:
+        period = controller.feedback_period
     if until is None:
         until = T + (TERMINAL_EXTRA if controller.terminal is not None else 0.0)
     for name, value in (("period", period), ("until", until), ("step", step)):
