@@ -95,7 +95,8 @@ class _Task:
     ``Q_init (p, n, n)`` (``v v^T`` per corner of its cell, or the ball slice (I1)) and the
     additive bound ``(n,)`` of the declared uncertainty (None: the exact model); the terminal
     ellipsoid it must end in (None: none); the period the law is held for (0: continuous); the
-    box ``(n,)`` of the error on the state the law sees (``funnel.law`` (I7); None: exact)."""
+    box ``(n,)`` of the error on the state the law sees (``funnel.law`` (I7); None: exact);
+    whether to search co-designed gains (F6) first (``synthesize_funnel``'s ``codesign_first``)."""
 
     scenario: Scenario
     trajectory: Trajectory
@@ -105,6 +106,7 @@ class _Task:
     terminal: TerminalTarget | None = None
     period: float = 0.0
     measurement: FloatArray | None = None
+    codesign_first: bool = False
 
 
 def _accepted(
@@ -172,6 +174,7 @@ def _designed(task: _Task) -> tuple[Funnel, str | None]:
     funnel = synthesize_funnel(
         scenario, task.trajectory, state_bounds=bounds, initial=task.initial, rate=task.rate,
         disturbance=task.disturbance, terminal=terminal, codesign=codesign,
+        codesign_first=task.codesign_first,
     )  # fmt: skip
     measurement = task.measurement
     failure = _accepted(
@@ -244,6 +247,7 @@ def synthesize_funnels(
     reuse: Sequence[tuple[Funnel, str | None] | None] | None = None,
     terminal: TerminalTarget | None = None,
     period: float = 0.0,
+    codesign_first: Sequence[bool] = (),
 ) -> FunnelStageResult:
     """The funnel of every trajectory on ``executor`` (default: here, in order; the result does
     not depend on it), each asked to hold its start's cell of Init (``required_sets``).
@@ -263,6 +267,8 @@ def synthesize_funnels(
         it is dropped, saying so.
       period: the law is held every ``period`` s (0: continuous): a funnel is kept only when
         it holds that law (``funnel.law`` (I6)) as certify will rebuild it.
+      codesign_first: per trajectory, whether its search tries gains co-designed with the
+        metric (F6) before the LQR gains (empty: none does); only the order of the search.
     """
     if not (len(names) == len(trajectories) == len(radii)):
         raise ValueError(
@@ -272,6 +278,12 @@ def synthesize_funnels(
     radii = np.asarray(radii, dtype=np.float64).reshape(-1)
     initial = required_sets(scenario, [t.xs[0] for t in trajectories], P, radii)
     reuse = [None] * len(trajectories) if reuse is None else list(reuse)
+    first = list(codesign_first) or [False] * len(trajectories)
+    if len(first) != len(trajectories):
+        raise ValueError(
+            f"funnel: {len(first)} search orders for {len(trajectories)} trajectories; "
+            "expected one per trajectory (or none)"
+        )
     if len(reuse) != len(trajectories):
         raise ValueError(
             f"funnel: {len(reuse)} funnels to reuse for {len(trajectories)} trajectories; "
@@ -289,6 +301,7 @@ def synthesize_funnels(
             terminal=terminal,
             period=period,
             measurement=measurement,
+            codesign_first=first[i],
         )
         for i, (trajectory, Q_init) in enumerate(zip(trajectories, initial, strict=True))
         if reuse[i] is None
@@ -345,8 +358,9 @@ def _describe(funnels: Sequence[Funnel], usable: Sequence[int], rejected: Sequen
 class FunnelInputs(StageInputs):
     """What stage ``funnel`` reads: the trajectories' names and final nominals, the constant
     certificate's metric ``P (n, n)`` and ball radius per trajectory ``radii (k,)``, the
-    terminal ellipsoid the funnels must end in (None: none) and the period the law is held for
-    (0: continuous feedback)."""
+    terminal ellipsoid the funnels must end in (None: none), the period the law is held for
+    (0: continuous feedback) and per trajectory whether its search tries co-designed gains
+    first (empty: none does)."""
 
     scenario_fields: ClassVar = (
         "Ts",
@@ -372,6 +386,7 @@ class FunnelInputs(StageInputs):
     radii: FloatArray
     terminal: TerminalTarget | None = None
     feedback_period: float = 0.0
+    codesign_first: tuple[bool, ...] = ()
 
 
 def _funnel_stage(
@@ -392,6 +407,7 @@ def _funnel_stage(
         reuse=reuse,
         terminal=inputs.terminal,
         period=inputs.feedback_period,
+        codesign_first=inputs.codesign_first,
     )
 
 

@@ -321,6 +321,39 @@ def test_a_redesign_searches_from_the_first_design_s_multiplier_and_records_its_
     assert synthesize_funnel(scenario, trajectory, initial=initial).multiplier == 0.0
 
 
+@pytest.mark.parametrize("first", [False, True])
+def test_a_nominal_whose_funnel_needed_codesigned_gains_searches_them_first(first):
+    """``codesign_first``: the (F6) gains' multipliers are solved before the LQR gains' (a
+    re-optimize round's nominal whose kept funnel was co-designed); the funnel records which
+    family designed it (``codesigned``). At eight times the tests' bound only (F6) holds."""
+    scenario, trajectory, initial = double_integrator_case()
+    original, designer = synthesis.solve_clarabel, synthesis.codesign_gains
+    solved: list[str] = []
+    family = ["LQR"]
+
+    def designed(program):
+        family[0] = "F6"
+        return designer(program)
+
+    def recorded(program):
+        solved.append(family[0])
+        family[0] = "LQR"
+        return original(program)
+
+    synthesis.solve_clarabel, synthesis.codesign_gains = recorded, designed
+    try:
+        funnel = synthesize_funnel(
+            scenario, trajectory, initial=initial, disturbance=8 * DISTURBANCE,
+            codesign_first=first,
+        )  # fmt: skip
+    finally:
+        synthesis.solve_clarabel, synthesis.codesign_gains = original, designer
+    assert funnel.success and funnel.codesigned, funnel.message
+    assert solved[0] == ("F6" if first else "LQR"), solved
+    if first:  # the first whole funnel ends the search: no LQR program solved
+        assert "LQR" not in solved, solved
+
+
 @pytest.mark.parametrize("widen", [True, False])
 def test_capped_boxes_short_of_the_initial_set_are_widened_unless_asked_not_to(widen):
     """A quadrotor funnel (angle boxes capped first) whose program is scripted to hold half

@@ -285,10 +285,12 @@ def funnel_stages(
     trajectories: Sequence[Trajectory],
     stage: str = "funnel",
     reuse: Sequence[tuple[Funnel, str | None] | None] | None = None,
+    codesign_first: tuple[bool, ...] = (),
 ) -> tuple[FunnelStageResult, CoverageResult]:
     """Stages ``stage`` (``funnel`` or ``funnel_k`` in re-optimize round k: one funnel per
     trajectory, on ``executor``; ``reuse[i]``, when given, is trajectory i's funnel from an
-    earlier round around the same nominal, with its verdict then) and ``coverage_<stage>``
+    earlier round around the same nominal, with its verdict then; ``codesign_first[i]``: its
+    search tries co-designed gains first) and ``coverage_<stage>``
     (Init by the usable funnels' initial ellipsoids ``E_i(0)``, each in its own metric
     ``P_i[0]``)."""
     scenario = run.scenario
@@ -303,6 +305,7 @@ def funnel_stages(
                 radii=np.asarray(run.initial_radii),
                 terminal=run.terminal,
                 feedback_period=run.feedback_period,
+                codesign_first=codesign_first,
             ),
             name=stage,
             describe=lambda result: result.message,
@@ -343,7 +346,8 @@ def reoptimize_rounds(
     Round k optimizes each nominal again against its current funnel's time-varying extents
     (stage ``reoptimize_k``), but to no fewer than ``ceil((1 - step_i) N_i)`` samples, and
     synthesizes and checks new funnels around the new nominals (``funnel_k``,
-    ``coverage_funnel_k``); a trajectory that did not move keeps its funnel.
+    ``coverage_funnel_k``; one whose kept funnel has co-designed gains (F6) is searched with
+    them first); a trajectory that did not move keeps its funnel.
     Trajectory i's new nominal and funnel are kept when that funnel is certified and its
     level holds at least what the kept one held (``_accepted``: both levels are fractions of
     the same required set, the start's cell of Init), or, at any certified level, when the
@@ -430,6 +434,8 @@ def reoptimize_rounds(
                 None if i in moved else (funnels.funnels[i], funnels.failure(i))
                 for i in range(len(inputs))
             ],
+            # a nominal whose kept funnel needed (F6) gains is searched with them first
+            codesign_first=tuple(f.codesigned for f in funnels.funnels),
         )  # fmt: skip
         lower = functools.partial(_funnel_coverage, run, f"coverage_{_round_stage(k)}_lower")
         kept, lowered = _kept(funnels, new_funnels, moved, lower)

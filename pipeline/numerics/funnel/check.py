@@ -54,6 +54,8 @@ class Funnel:
       multiplier: the S-procedure multiplier ``alpha`` of the program that designed it
         (``funnel.robust`` (I5)); 0 without a disturbance. The design's record only: the
         checks search their own.
+      codesigned: its gains were designed with its metric (``funnel.synthesis`` (F6)), not the
+        LQR gains; the design's record too.
     """
 
     K: FloatArray
@@ -72,6 +74,7 @@ class Funnel:
     message: str
     interpolation: str = INTERPOLATION
     multiplier: float = 0.0
+    codesigned: bool = False
 
     @property
     def Q(self) -> FloatArray:

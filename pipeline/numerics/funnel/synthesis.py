@@ -144,6 +144,7 @@ class _Parts(TypedDict, total=False):
     limits: Mapping[str, float]
     binding: str
     multiplier: float
+    codesigned: bool
 
 
 class _Hulls(TypedDict):
@@ -397,6 +398,7 @@ def synthesize_funnel(
     codesign: bool = True,
     widen: bool = True,
     from_multiplier: float = 0.0,
+    codesign_first: bool = False,
 ) -> Funnel:
     """Synthesize and check the funnel around ``trajectory`` (one: ``xs (N+1, n)``, ``us (N, m)``,
     its dense grid); see the module docstring.
@@ -443,6 +445,10 @@ def synthesize_funnel(
         ``ROBUST_MULTIPLIERS`` at least this large (``stages.funnel``'s redesign starts where
         the first design's program was feasible: the redesign's adds the held law's rows and
         box to it). A design choice too.
+      codesign_first: with ``disturbance`` and ``codesign``, search the (F6) gains' multipliers
+        before the LQR gains' (a re-optimize round's funnel around a nominal whose last funnel
+        needed (F6) gains, ``stages.certificates.funnel``): the first funnel holding the whole
+        design level is kept, whichever family designed it. A design choice too.
     """
     start = time.perf_counter()
     state_bounds = dict(state_bounds or {})
@@ -504,13 +510,15 @@ def synthesize_funnel(
         defaults: _Parts = {
             "K": K, "P": P_lqr, "rho": 0.0, "margins": np.full((N, 2), np.nan),
             "boxes": np.zeros((N, 2, 0)), "variables": (), "vertices": (), "enclosure": None,
-            "limits": {}, "binding": "", "multiplier": 0.0,
+            "limits": {}, "binding": "", "multiplier": 0.0, "codesigned": False,
         }  # fmt: skip
         defaults.update(values)
         return Funnel(
             rate=rate, **defaults, seconds=time.perf_counter() - start, success=success,
             message=message,
         )  # fmt: skip
+
+    families = ((True, False) if codesign_first else (False, True)) if codesign else (False,)
 
     def attempt(tight: bool) -> Funnel:
         """Hulls (capped angle boxes if ``tight``), the program, its check (``MARGINS``)."""
@@ -525,19 +533,20 @@ def synthesize_funnel(
         }  # fmt: skip
         failures: list[str] = []
         best: tuple[Funnel, float, str, float, str] | None = None
-        # robust: every multiplier with the LQR gains, then with co-designed gains (F6)
+        # robust: every multiplier with the LQR gains, then with co-designed gains (F6) (the
+        # other way round with codesign_first)
         tries = (
             [(margin, 0.0, False) for margin in MARGINS]
             if robust is None
             else [
                 (ROBUST_MARGIN * alpha, alpha, family)
-                for family in ((False, True) if codesign else (False,))
+                for family in families
                 for alpha in ROBUST_MULTIPLIERS
                 if alpha >= min(from_multiplier, ROBUST_MULTIPLIERS[-1])
             ]
         )
         search = MultiplierSearch()
-        for margin, multiplier, family in tries:
+        for margin, multiplier, family in tries:  # family: (F6) gains (True), or the LQR gains
             if robust is not None and search.past_best(family):
                 continue
             # a solution within the solver's tolerance may fail the check: the next margin
@@ -594,7 +603,7 @@ def synthesize_funnel(
             rho = level * (1 - LEVEL_SLACK)
             funnel = result(
                 True, "", K=gains, P=np.linalg.inv(Q).astype(np.float64, copy=False), rho=rho,
-                binding=binding, multiplier=multiplier,
+                binding=binding, multiplier=multiplier, codesigned=family,
                 margins=certificate_margins(Q, gains, vertices, rate, scenario.Ts),
                 limits={key: value[0] for key, value in limits.items()}, **common,
             )  # fmt: skip
