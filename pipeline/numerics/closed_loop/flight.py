@@ -5,10 +5,9 @@ scenario's dynamics (``load_scenario(name).dynamics.f``) by RK4 with steps of at
 seconds, the law evaluated at every RK4 stage (``period = 0``: continuous feedback) or computed
 at ``t_k = k period`` and held on ``[t_k, t_k + period)`` (a flight computer); by default at the
 file's ``feedback_period``, the law its certificate is for (another period is flown without a
-guarantee). Each
-sample interval ``[k Ts, (k+1) Ts)`` (or each held window) is integrated on its own, the stage at
-its right end using the left limit of the piecewise-constant reference input, as the Monte Carlo
-validation does (``pipeline.numerics.closed_loop.simulate``).
+guarantee). Each sample interval ``[k Ts, (k+1) Ts)`` (or each held window) is integrated on its
+own, the stage at its right end using the left limit of the piecewise-constant reference input,
+as the Monte Carlo validation does (``pipeline.numerics.closed_loop.simulate``).
 """
 
 from __future__ import annotations

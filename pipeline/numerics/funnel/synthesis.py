@@ -443,8 +443,8 @@ def synthesize_funnel(
         depends on it.
       from_multiplier: with ``disturbance``, the search starts at the first multiplier of
         ``ROBUST_MULTIPLIERS`` at least this large (``stages.funnel``'s redesign starts where
-        the first design's program was feasible: the redesign's adds the held law's rows and
-        box to it). A design choice too.
+        the first design's program was feasible: the redesign's program adds the held law's
+        rows and box to it). A design choice too.
       codesign_first: with ``disturbance`` and ``codesign``, search the (F6) gains' multipliers
         before the LQR gains' (a re-optimize round's funnel around a nominal whose last funnel
         needed (F6) gains, ``stages.certificates.funnel``): the first funnel holding the whole
