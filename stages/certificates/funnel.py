@@ -439,6 +439,11 @@ def reoptimize_rounds(
         )  # fmt: skip
         lower = functools.partial(_funnel_coverage, run, f"coverage_{_round_stage(k)}_lower")
         kept, lowered = _kept(funnels, new_funnels, moved, lower)
+        short = [  # the new funnels not kept, with their levels (fractions of their cells)
+            f"{new_funnels.names[i]} {new_funnels.funnels[i].rho:.3g}"
+            for i in moved
+            if i not in kept
+        ]
         if kept != moved:  # unmoved trajectories already carry their kept funnels
             new_inputs = [new_inputs[i] if i in kept else u for i, u in enumerate(inputs)]
             new_trajectories = [
@@ -454,11 +459,14 @@ def reoptimize_rounds(
         after = sum(new_trajectories[i].duration for i in new_funnels.usable)
         shorter = after < before and len(new_funnels.usable) >= len(funnels.usable)
         if not (shorter and _covers_as_well(new_coverage, coverage)):
-            log.info(
-                f"[round {k}] not kept: total T {after:.2f} s against {before:.2f} s, Init "
+            why = (
+                f"total T {after:.2f} s against {before:.2f} s, Init "
                 f"{100 * new_coverage.covered_fraction:.1f}% covered against "
-                f"{100 * coverage.covered_fraction:.1f}%; the previous funnels are kept"
+                f"{100 * coverage.covered_fraction:.1f}%"
             )
+            if not kept:  # every new funnel fell short of its cell with Init left uncovered
+                why = f"no new funnel holds what the kept one did ({', '.join(short)})"
+            log.info(f"[round {k}] not kept: {why}; the previous funnels are kept")
             kept = []
         for i in active:
             step[i] = 0.0 if i in stopped else _next_step(step[i], i in kept)
