@@ -173,7 +173,8 @@ def test_the_funnel_certificate_refuses_a_period_that_does_not_divide_ts(tmp_pat
     argv = ["synthesize", "double_integrator", "--out", str(out), "--certificate", "funnel"]
     assert main([*argv, "--feedback-period", "0.03"]) == 2
     err = capsys.readouterr().err
-    assert "--feedback-period: found 0.03 s; expected a period that divides" in err
+    assert "--feedback-period: found 0.03 s; expected 0 (continuous feedback) or a period" in err
+    assert "that divides the scenario's sampling_time 0.1 s" in err
     assert "Traceback" not in err and not out.exists()
     with pytest.raises(pipeline.UserError, match="divides the scenario's sampling_time"):
         run_synthesis(

@@ -113,7 +113,7 @@ def test_a_value_without_an_exact_encoding_is_refused(value, named):
 def _other(value: Any, name: str) -> Any:
     """Another value of a scenario field, of the same type."""
     if isinstance(value, float):
-        return value * (1 + 1e-12)
+        return value * (1 + 1e-12) if value else 1e-12  # 0.0 (a continuous feedback_period)
     if isinstance(value, str):
         return value + "x"
     if isinstance(value, np.ndarray):

@@ -256,6 +256,7 @@ def test_the_law_is_held_for_the_scenario_s_period_unless_the_command_line_sets_
     ``--feedback-period`` (also 0: continuous) overrides it; a period set by
     ``dataclasses.replace`` is checked before any work, naming the scenario's field."""
     from pipeline.io.errors import UserError
+    from pipeline.model.limits import MIN_FEEDBACK_PERIOD
     from pipeline.model.scenario import load_scenario
     from pipeline.runtime.run_inputs import check_period, period_of
     from tests.helpers.scenario_files import write_scenario, yaml_replace
@@ -277,7 +278,9 @@ def test_the_law_is_held_for_the_scenario_s_period_unless_the_command_line_sets_
         ["synthesize", str(path), "--feedback-period", "0.03", "--out", str(tmp_path / "o")]
     )
     assert code == 2 and not (tmp_path / "o").exists()
-    assert capsys.readouterr().err.startswith("error: --feedback-period: found 0.03 s; expected 0")
+    error = capsys.readouterr().err
+    assert error.startswith("error: --feedback-period: found 0.03 s; expected 0")
+    assert f"a period of at least {MIN_FEEDBACK_PERIOD:g} s that divides" in error
 
 
 @pytest.mark.parametrize(
