@@ -129,6 +129,24 @@ BAD_INPUTS: list[tuple[str, Mutation, str | None, list[str]]] = [
         ["feedback_period", "found -0.01", "greater than or equal to 0"],
     ),
     (
+        "boolean where a number belongs",
+        yaml_replace("clearance: 0.25\n", "clearance: true\n"),
+        YAML,
+        ["clearance", "found True", "a valid number"],
+    ),
+    (
+        "quoted number",
+        yaml_replace("clearance: 0.25\n", "clearance: 0.25\nfeedback_period: '0.01'\n"),
+        YAML,
+        ["feedback_period", "found '0.01'", "a valid number"],
+    ),
+    (
+        "boolean in an interval",
+        yaml_replace("clearance: 0.25\n", "clearance: 0.25\nstate_bounds: {vX: [false, 3]}\n"),
+        YAML,
+        ["state_bounds.vX.0", "found False", "a valid number"],
+    ),
+    (
         "negative disturbance bound",
         yaml_replace(
             "clearance: 0.25\n", "clearance: 0.25\nuncertainty: {disturbance: {vX: -0.1}}\n"

@@ -17,10 +17,15 @@ from pydantic import (
     BeforeValidator,
     ConfigDict,
     Field,
-    NonNegativeFloat,
-    PositiveFloat,
+    Strict,
     WithJsonSchema,
 )
+
+# A number as YAML writes one: an int or a float, never a boolean or quoted text (pydantic's lax
+# mode would read `clearance: true` as 1.0 and `rate: "0.5"` as 0.5).
+Number = Annotated[float, Strict()]
+PositiveNumber = Annotated[float, Strict(), Field(gt=0)]
+NonNegativeNumber = Annotated[float, Strict(), Field(ge=0)]
 
 
 def _ordered(interval: tuple[float, float]) -> tuple[float, float]:
@@ -48,10 +53,10 @@ def _auto_or_mapping(schema: dict[str, Any]) -> None:
     schema["anyOf"] = [{"const": "auto"}, {"$ref": schema.pop("$ref")}]
 
 
-Interval = Annotated[tuple[float, float], AfterValidator(_ordered)]
+Interval = Annotated[tuple[Number, Number], AfterValidator(_ordered)]
 # A bound on a physical quantity: a proper interval, with room inside (lower < upper).
-ProperInterval = Annotated[tuple[float, float], AfterValidator(_proper)]
-Vertex = tuple[float, float]
+ProperInterval = Annotated[tuple[Number, Number], AfterValidator(_proper)]
+Vertex = tuple[Number, Number]
 Name = Annotated[str, Field(pattern=r"^[A-Za-z_][A-Za-z0-9_]*$")]
 # A dynamics expression: text in the grammar of ``pipeline.model.expressions``; a bare number is
 # accepted.
@@ -91,11 +96,11 @@ class FeedbackSpec(_Strict):
     operating region (narrowed inside the file's, around what the demos use) and over the
     fields not in ``given``; ``given``: the fields the file sets, used as given."""
 
-    reference_state: list[float] = Field(description="operating point x* for the LQR design (n)")
-    reference_input: list[float] = Field(description="operating point u* for the LQR design (m)")
-    state_weights: list[PositiveFloat] = Field(description="diagonal of the LQR Q (n)")
-    input_weights: list[PositiveFloat] = Field(description="diagonal of the LQR R (m)")
-    rate: PositiveFloat = Field(description="contraction rate lambda to certify (1/s)")
+    reference_state: list[Number] = Field(description="operating point x* for the LQR design (n)")
+    reference_input: list[Number] = Field(description="operating point u* for the LQR design (m)")
+    state_weights: list[PositiveNumber] = Field(description="diagonal of the LQR Q (n)")
+    input_weights: list[PositiveNumber] = Field(description="diagonal of the LQR R (m)")
+    rate: PositiveNumber = Field(description="contraction rate lambda to certify (1/s)")
     tune: bool = False
     given: tuple[str, ...] = FEEDBACK_DESIGN
 
@@ -106,23 +111,23 @@ class FeedbackFileSpec(_Strict):
     left out and narrows the operating region around the demos; ``feedback: auto`` (or no
     ``feedback``) sets none."""
 
-    reference_state: list[float] | None = Field(
+    reference_state: list[Number] | None = Field(
         default=None,
         description="operating point x* for the LQR design (n); default: the centre of Init, "
         "the operating region's centre for the states it bounds",
     )
-    reference_input: list[float] | None = Field(
+    reference_input: list[Number] | None = Field(
         default=None,
         description="operating point u* for the LQR design (m); default: the centre of the "
         "input bounds within the operating region",
     )
-    state_weights: list[PositiveFloat] | None = Field(
+    state_weights: list[PositiveNumber] | None = Field(
         default=None, description="diagonal of the LQR Q (n); default: all 1 (tuned)"
     )
-    input_weights: list[PositiveFloat] | None = Field(
+    input_weights: list[PositiveNumber] | None = Field(
         default=None, description="diagonal of the LQR R (m); default: all 1 (tuned)"
     )
-    rate: PositiveFloat | None = Field(
+    rate: PositiveNumber | None = Field(
         default=None,
         description="contraction rate lambda to certify (1/s); default: tuned (from "
         f"{DEFAULT_RATE:g} 1/s down)",
@@ -146,12 +151,12 @@ def _feedback_auto(value: object) -> object:
 class StressSpec(_Strict):
     """Perturbations for the stress test (``--stress``), never part of the certificate."""
 
-    disturbance: dict[str, PositiveFloat] = Field(
+    disturbance: dict[str, PositiveNumber] = Field(
         default_factory=dict,
         description="bound on a constant term added to the named state's derivative, drawn "
         "uniformly per run (e.g. wind)",
     )
-    measurement_noise: dict[str, PositiveFloat] = Field(
+    measurement_noise: dict[str, PositiveNumber] = Field(
         default_factory=dict, description="standard deviation of noise on the measured state"
     )
 
@@ -159,7 +164,7 @@ class StressSpec(_Strict):
 class UncertaintySpec(_Strict):
     """What every certificate must hold against (``pipeline.model.uncertainty``)."""
 
-    disturbance: dict[str, NonNegativeFloat] = Field(
+    disturbance: dict[str, NonNegativeNumber] = Field(
         default_factory=dict,
         description="bound on an additive term in the named state's derivative, |w| <= bound, "
         "at every instant (any signal inside the box, e.g. gusts, in the state's unit per s)",
@@ -169,7 +174,7 @@ class UncertaintySpec(_Strict):
         description="interval [lower, upper] of a parameter whose true value is unknown (held "
         "constant during a flight); it must contain the value under parameters:",
     )
-    measurement: dict[str, NonNegativeFloat] = Field(
+    measurement: dict[str, NonNegativeNumber] = Field(
         default_factory=dict,
         description="bound on the error of the named state as the feedback measures it, "
         "|x_meas - x| <= bound, at every instant (any signal inside the box, in the state's unit)",
@@ -180,7 +185,7 @@ class DemoSpec(_Strict):
     """One demonstration: a CSV of held inputs and the initial state it was flown from."""
 
     file: str = Field(description="CSV path relative to the scenario folder")
-    x0: list[float] = Field(description="initial state (n), inside Init")
+    x0: list[Number] = Field(description="initial state (n), inside Init")
 
 
 class ScenarioSpec(_Strict):
@@ -190,17 +195,17 @@ class ScenarioSpec(_Strict):
     description: str = ""
     states: list[Name] = Field(min_length=1, description="state names, in order")
     inputs: list[Name] = Field(min_length=1, description="input names, in order")
-    parameters: dict[Name, float] = Field(default_factory=dict)
+    parameters: dict[Name, Number] = Field(default_factory=dict)
     dynamics: dict[str, Expression] = Field(description="time derivative of every state, as text")
     position: tuple[str, str] = Field(description="the two states that Unsafe and Goal are over")
-    sampling_time: PositiveFloat = Field(description="Ts: inputs are held for Ts seconds")
+    sampling_time: PositiveNumber = Field(description="Ts: inputs are held for Ts seconds")
     input_bounds: dict[str, Interval]
     unsafe: dict[str, Annotated[list[Vertex], Field(min_length=3)]] = Field(
         description="named Unsafe polygons over position"
     )
     goal: GoalSpec
     init: dict[str, Interval] = Field(description="Init box over every state")
-    clearance: PositiveFloat = Field(description="required distance d from Unsafe (m)")
+    clearance: PositiveNumber = Field(description="required distance d from Unsafe (m)")
     operating_region: dict[str, Interval] = Field(
         description="box over the states and inputs the Jacobian depends on"
     )
@@ -222,7 +227,7 @@ class ScenarioSpec(_Strict):
         description="'constant' (one metric P and gain K over operating_region, the paper's "
         "certificate) or 'funnel' (per-trajectory time-varying K[k], P[k] over each tube)",
     )
-    feedback_period: NonNegativeFloat = Field(
+    feedback_period: NonNegativeNumber = Field(
         default=0.0,
         description="h (s): the vehicle's control period, the feedback law is evaluated every h "
         "seconds and held in between (zero-order hold), and every certificate, the controller "
