@@ -566,6 +566,27 @@ def _apply(case: Mutation, tmp_path: Path) -> str:
     return case(write_scenario(tmp_path / "scenario"))
 
 
+@pytest.mark.parametrize("fast", [True, False], ids=["libyaml", "pure Python"])
+def test_a_number_in_exponent_form_is_a_number_and_yaml_s_own_loader_is_untouched(
+    tmp_path: Path, fast: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``25e-2`` is 0.25 (YAML 1.2; PyYAML's YAML 1.1 reads text, which the schema refuses where
+    a number belongs), with either of the scenario loader's parsers; ``yaml.safe_load`` still
+    reads text."""
+    import yaml
+
+    from pipeline.model import safe_yaml
+
+    if not fast:
+        monkeypatch.setattr(safe_yaml, "_FAST_LOADER", None)
+    path = yaml_replace("clearance: 0.25\n", "clearance: 25e-2\nfeedback_period: 1E-2\n")(
+        write_scenario(tmp_path / "scenario")
+    )
+    scenario = load_scenario(path)
+    assert scenario.clearance == 0.25 and scenario.feedback_period == 0.01
+    assert yaml.safe_load("a: 1e6") == {"a": "1e6"}
+
+
 def test_fixture_is_valid(tmp_path: Path) -> None:
     scenario = load_scenario(write_scenario(tmp_path / "scenario"))
     assert scenario.n == 4 and scenario.m == 2 and scenario.demos[0].N == 40

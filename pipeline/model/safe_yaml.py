@@ -10,6 +10,7 @@ Every refusal is one ``ScenarioError`` naming the file, the place and the limit.
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Any
 
@@ -64,6 +65,13 @@ class _ScenarioLoader(_UniqueKeys, yaml.SafeLoader):
 _LIBYAML = getattr(yaml, "CSafeLoader", None)  # PyYAML built with libyaml (the wheels are)
 # libyaml's parser, the same constructor with the duplicate-key check
 _FAST_LOADER: Any = None if _LIBYAML is None else type("_FastLoader", (_UniqueKeys, _LIBYAML), {})
+
+# A number in exponent form without a dot (1e6, 5E-3) is a float, as in YAML 1.2; YAML 1.1, which
+# PyYAML reads, makes it text, which the schema refuses where a number belongs.
+EXPONENT = re.compile(r"^[-+]?[0-9][0-9_]*(?:\.[0-9_]*)?[eE][-+]?[0-9]+$")
+for _loader in (_ScenarioLoader, _FAST_LOADER):
+    if _loader is not None:  # a copy of the resolvers per class: yaml.SafeLoader is left alone
+        _loader.add_implicit_resolver("tag:yaml.org,2002:float", EXPONENT, list("-+0123456789"))
 
 
 def _compose_with_libyaml(text: str) -> tuple[yaml.Node | None, Any] | None:
