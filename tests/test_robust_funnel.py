@@ -354,6 +354,49 @@ def test_a_nominal_whose_funnel_needed_codesigned_gains_searches_them_first(firs
         assert "LQR" not in solved, solved
 
 
+@pytest.mark.parametrize("co_designed", ["short", "none"])
+def test_with_codesigned_gains_first_the_lqr_gains_are_searched_only_where_they_certify_nothing(
+    co_designed,
+):
+    """``codesign_first``: where the (F6) family certifies a funnel short of the whole level
+    (its programs scripted to hold half the initial set), no LQR program is solved and that
+    funnel is kept; where (F6) designs no gains at all, the LQR gains are searched."""
+    scenario, trajectory, initial = double_integrator_case()
+    original, designer = synthesis.solve_clarabel, synthesis.codesign_gains
+    solved: list[str] = []
+    family = ["LQR"]
+
+    def designed(program):
+        if co_designed == "none":
+            return "no gains (scripted)"
+        family[0] = "F6"
+        return designer(program)
+
+    def recorded(program):
+        solved.append(family[0])
+        solution = original(program)
+        if family[0] == "F6" and not isinstance(solution, str):
+            solution = (solution[0], 0.5 * min(solution[1], 1.0))
+        family[0] = "LQR"
+        return solution
+
+    synthesis.solve_clarabel, synthesis.codesign_gains = recorded, designed
+    try:
+        funnel = synthesize_funnel(
+            scenario, trajectory, initial=initial, disturbance=2 * DISTURBANCE,
+            codesign_first=True,
+        )  # fmt: skip
+    finally:
+        synthesis.solve_clarabel, synthesis.codesign_gains = original, designer
+    assert funnel.success, funnel.message
+    if co_designed == "short":
+        assert solved and set(solved) == {"F6"}, solved
+        assert funnel.codesigned and funnel.limits["design"] < 1.0
+    else:
+        assert solved and set(solved) == {"LQR"}, solved
+        assert not funnel.codesigned
+
+
 @pytest.mark.parametrize("widen", [True, False])
 def test_capped_boxes_short_of_the_initial_set_are_widened_unless_asked_not_to(widen):
     """A quadrotor funnel (angle boxes capped first) whose program is scripted to hold half

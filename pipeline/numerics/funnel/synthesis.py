@@ -447,8 +447,9 @@ def synthesize_funnel(
         rows and box to it). A design choice too.
       codesign_first: with ``disturbance`` and ``codesign``, search the (F6) gains' multipliers
         before the LQR gains' (a re-optimize round's funnel around a nominal whose last funnel
-        needed (F6) gains, ``stages.certificates.funnel``): the first funnel holding the whole
-        design level is kept, whichever family designed it. A design choice too.
+        needed (F6) gains, ``stages.certificates.funnel``), and the LQR gains' only where (F6)
+        certified no funnel at all: the first funnel holding the whole design level is kept,
+        else the highest. A design choice too.
     """
     start = time.perf_counter()
     state_bounds = dict(state_bounds or {})
@@ -549,6 +550,8 @@ def synthesize_funnel(
         for margin, multiplier, family in tries:  # family: (F6) gains (True), or the LQR gains
             if robust is not None and search.past_best(family):
                 continue
+            if codesign_first and not family and best is not None:
+                continue  # (F6) certified a funnel short of the whole level: not the LQR gains
             # a solution within the solver's tolerance may fail the check: the next margin
             gains, origin = K, ""
             if family:  # (F6): gains designed with the metric, then held ((F3))
