@@ -79,6 +79,7 @@ import numpy as np
 
 from pipeline.controller import Controller, ControllerFormatError, load
 from pipeline.io.artifacts import file_hash
+from pipeline.model.limits import divides
 from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import simulate
 from pipeline.numerics.funnel.law import LEVEL_MARGIN, LMI_MARGIN
@@ -123,8 +124,7 @@ def _divides(controller: Controller) -> list[str]:
     """The file's ``feedback_period`` divides ``Ts`` (a held law's windows start at every
     sample), or why not."""
     h = controller.feedback_period
-    steps = controller.Ts / h
-    if abs(steps - round(steps)) > 1e-9 * steps or steps < 1 - 1e-9:
+    if not divides(h, controller.Ts):
         return [f"feedback_period {h:g} s does not divide Ts {controller.Ts:g} s"]
     return []
 

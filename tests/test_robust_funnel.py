@@ -321,33 +321,44 @@ def test_a_redesign_searches_from_the_first_design_s_multiplier_and_records_its_
     assert synthesize_funnel(scenario, trajectory, initial=initial).multiplier == 0.0
 
 
-@pytest.mark.parametrize("first", [False, True])
-def test_a_nominal_whose_funnel_needed_codesigned_gains_searches_them_first(first):
-    """``codesign_first``: the (F6) gains' multipliers are solved before the LQR gains' (a
-    re-optimize round's nominal whose kept funnel was co-designed); the funnel records which
-    family designed it (``codesigned``). At eight times the tests' bound only (F6) holds."""
-    scenario, trajectory, initial = double_integrator_case()
-    original, designer = synthesis.solve_clarabel, synthesis.codesign_gains
+def _solves_by_family(monkeypatch, f6_share: float = 1.0, f6_gains: bool = True) -> list[str]:
+    """Record each Clarabel solve of ``synthesize_funnel`` as ``"F6"`` (the program holding
+    gains just co-designed) or ``"LQR"``, in order, into the list returned. ``f6_share``
+    scales the (F6) programs' ``tau`` (capped at the whole level 1); with ``f6_gains`` False
+    the (F6) program designs no gains."""
+    solve, designer = synthesis.solve_clarabel, synthesis.codesign_gains
     solved: list[str] = []
     family = ["LQR"]
 
     def designed(program):
+        if not f6_gains:
+            return "no gains (scripted)"
         family[0] = "F6"
         return designer(program)
 
     def recorded(program):
         solved.append(family[0])
+        solution = solve(program)
+        if family[0] == "F6" and f6_share != 1.0 and not isinstance(solution, str):
+            solution = (solution[0], f6_share * min(solution[1], 1.0))
         family[0] = "LQR"
-        return original(program)
+        return solution
 
-    synthesis.solve_clarabel, synthesis.codesign_gains = recorded, designed
-    try:
-        funnel = synthesize_funnel(
-            scenario, trajectory, initial=initial, disturbance=8 * DISTURBANCE,
-            codesign_first=first,
-        )  # fmt: skip
-    finally:
-        synthesis.solve_clarabel, synthesis.codesign_gains = original, designer
+    monkeypatch.setattr(synthesis, "solve_clarabel", recorded)
+    monkeypatch.setattr(synthesis, "codesign_gains", designed)
+    return solved
+
+
+@pytest.mark.parametrize("first", [False, True])
+def test_a_nominal_whose_funnel_needed_codesigned_gains_searches_them_first(first, monkeypatch):
+    """``codesign_first``: the (F6) gains' multipliers are solved before the LQR gains' (a
+    re-optimize round's nominal whose kept funnel was co-designed); the funnel records which
+    family designed it (``codesigned``). At eight times the tests' bound only (F6) holds."""
+    scenario, trajectory, initial = double_integrator_case()
+    solved = _solves_by_family(monkeypatch)
+    funnel = synthesize_funnel(
+        scenario, trajectory, initial=initial, disturbance=8 * DISTURBANCE, codesign_first=first
+    )
     assert funnel.success and funnel.codesigned, funnel.message
     assert solved[0] == ("F6" if first else "LQR"), solved
     if first:  # the first whole funnel ends the search: no LQR program solved
@@ -356,38 +367,16 @@ def test_a_nominal_whose_funnel_needed_codesigned_gains_searches_them_first(firs
 
 @pytest.mark.parametrize("co_designed", ["short", "none"])
 def test_with_codesigned_gains_first_the_lqr_gains_are_searched_only_where_they_certify_nothing(
-    co_designed,
+    co_designed, monkeypatch
 ):
     """``codesign_first``: where the (F6) family certifies a funnel short of the whole level
     (its programs scripted to hold half the initial set), no LQR program is solved and that
     funnel is kept; where (F6) designs no gains at all, the LQR gains are searched."""
     scenario, trajectory, initial = double_integrator_case()
-    original, designer = synthesis.solve_clarabel, synthesis.codesign_gains
-    solved: list[str] = []
-    family = ["LQR"]
-
-    def designed(program):
-        if co_designed == "none":
-            return "no gains (scripted)"
-        family[0] = "F6"
-        return designer(program)
-
-    def recorded(program):
-        solved.append(family[0])
-        solution = original(program)
-        if family[0] == "F6" and not isinstance(solution, str):
-            solution = (solution[0], 0.5 * min(solution[1], 1.0))
-        family[0] = "LQR"
-        return solution
-
-    synthesis.solve_clarabel, synthesis.codesign_gains = recorded, designed
-    try:
-        funnel = synthesize_funnel(
-            scenario, trajectory, initial=initial, disturbance=2 * DISTURBANCE,
-            codesign_first=True,
-        )  # fmt: skip
-    finally:
-        synthesis.solve_clarabel, synthesis.codesign_gains = original, designer
+    solved = _solves_by_family(monkeypatch, f6_share=0.5, f6_gains=co_designed == "short")
+    funnel = synthesize_funnel(
+        scenario, trajectory, initial=initial, disturbance=2 * DISTURBANCE, codesign_first=True
+    )
     assert funnel.success, funnel.message
     if co_designed == "short":
         assert solved and set(solved) == {"F6"}, solved

@@ -13,3 +13,11 @@ from __future__ import annotations
 # (lambda^2 + C1) h / 2 (pipeline.numerics.tube.sampled): a shorter hold is continuous feedback in
 # all but cost (use 0).
 MIN_FEEDBACK_PERIOD = 1e-4
+
+
+def divides(period: float, sampling_time: float) -> bool:
+    """Whether a held law's ``period`` (s, > 0) divides ``sampling_time``: ``Ts / h`` a whole
+    number (to 1e-9 relative), at least 1, so that the law's windows start at every sample,
+    where ``u_ref`` switches."""
+    steps = sampling_time / period
+    return steps >= 1 - 1e-9 and abs(steps - round(steps)) <= 1e-9 * steps

@@ -37,7 +37,7 @@ from pipeline.model.expressions import (
 )
 from pipeline.model.feedback_defaults import resolve_feedback
 from pipeline.model.frozen import freeze_fields, reduce_fields
-from pipeline.model.limits import MIN_FEEDBACK_PERIOD
+from pipeline.model.limits import MIN_FEEDBACK_PERIOD, divides
 from pipeline.model.scenario_file import LOCAL_SCENARIOS as LOCAL_SCENARIOS  # re-exported
 from pipeline.model.scenario_file import SCENARIOS_ROOT as SCENARIOS_ROOT
 from pipeline.model.scenario_file import available_scenarios as available_scenarios
@@ -365,8 +365,7 @@ def _feedback_period(path: Path, spec: ScenarioSpec) -> float:
     period = float(spec.feedback_period)
     if period == 0:
         return 0.0
-    steps = spec.sampling_time / period
-    if period < MIN_FEEDBACK_PERIOD or abs(steps - round(steps)) > 1e-9 * steps:
+    if period < MIN_FEEDBACK_PERIOD or not divides(period, spec.sampling_time):
         raise ScenarioError(
             "is not a control period this scenario can be certified for",
             file=path,

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 from pipeline.io.artifacts import inputs_key
 from pipeline.io.errors import UserError
-from pipeline.model.limits import MIN_FEEDBACK_PERIOD
+from pipeline.model.limits import MIN_FEEDBACK_PERIOD, divides
 from pipeline.model.scenario import CertificateName, Scenario
 from pipeline.model.scenario_data import plain, scenario_data
 from pipeline.numerics.tube.sampled import HeldRate, held_rate
@@ -64,10 +64,7 @@ def check_period(
         seconds = math.inf
     if seconds == 0:
         return
-    steps = scenario.Ts / seconds
-    if not MIN_FEEDBACK_PERIOD <= seconds < math.inf or (
-        steps < 1 - 1e-9 or abs(steps - round(steps)) > 1e-9 * steps
-    ):
+    if not MIN_FEEDBACK_PERIOD <= seconds < math.inf or not divides(seconds, scenario.Ts):
         raise UserError(f"{source}: found {seconds:g} s; {expected}")
 
 

@@ -439,11 +439,7 @@ def reoptimize_rounds(
         )  # fmt: skip
         lower = functools.partial(_funnel_coverage, run, f"coverage_{_round_stage(k)}_lower")
         kept, lowered = _kept(funnels, new_funnels, moved, lower)
-        short = [  # the new funnels not kept, with their levels (fractions of their cells)
-            f"{new_funnels.names[i]} {new_funnels.funnels[i].rho:.3g}"
-            for i in moved
-            if i not in kept
-        ]
+        tried = new_funnels  # the round's own funnels (new_funnels may become the mixed set)
         if kept != moved:  # unmoved trajectories already carry their kept funnels
             new_inputs = [new_inputs[i] if i in kept else u for i, u in enumerate(inputs)]
             new_trajectories = [
@@ -465,7 +461,8 @@ def reoptimize_rounds(
                 f"{100 * coverage.covered_fraction:.1f}%"
             )
             if not kept:  # every new funnel fell short of its cell with Init left uncovered
-                why = f"no new funnel holds what the kept one did ({', '.join(short)})"
+                levels = ", ".join(f"{tried.names[i]} {tried.funnels[i].rho:.3g}" for i in moved)
+                why = f"no new funnel holds what the kept one did ({levels})"
             log.info(f"[round {k}] not kept: {why}; the previous funnels are kept")
             kept = []
         for i in active:
