@@ -235,6 +235,7 @@ def _run_chunk(
             x0[covered],
             HOLD_SECONDS,
             draws=None if draws is None else draws.rows(covered),
+            ends=checks.final_state[covered],
         )
         failures = np.zeros(size, dtype=bool)
         ellipsoid = draws is None or claims_invariance(scenario, controller)

@@ -62,7 +62,12 @@ def _beyond_campaign(
     if controller.terminal is not None:
         covered = checks.covered
         after = hold_runs_compiled(
-            stressed, controller, x0[covered], HOLD_SECONDS, draws=draws.rows(covered)
+            stressed,
+            controller,
+            x0[covered],
+            HOLD_SECONDS,
+            draws=draws.rows(covered),
+            ends=checks.final_state[covered],
         )
         masks["after_T"] = np.zeros(samples, dtype=bool)
         # beyond the declared bound the terminal ellipsoid is not certified: Goal is the test

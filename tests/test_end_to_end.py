@@ -318,6 +318,7 @@ def test_the_smallest_margin_names_its_kind():
         tube_final=np.full(4, 0.5),
         finite=np.array([True, True, True, True]),
         covered=np.array([True, True, True, False]),
+        final_state=np.zeros((4, 2)),
     )
     np.testing.assert_array_equal(checks.margin(), [0.5, 0.3, -0.2, -np.inf])
     assert checks.binding() == [

@@ -89,7 +89,8 @@ def test_held_feedback_matches_the_numpy_oracle(synthesized, tmp_path):
 @pytest.mark.parametrize("period", [0.0, 0.02])
 def test_runs_continued_past_T_match_the_numpy_oracle(synthesized, tmp_path, period):
     """A terminal law at hover added to the quadrotor's file: the continuation 10 s past T on
-    the kernel agrees with the oracle's (final state, V / level, slack, clearance, Goal)."""
+    the kernel agrees with the oracle's (final state, V / level, slack, clearance, Goal), also
+    when continued from the states at T the checks kept."""
     from pipeline.numerics.closed_loop.rollouts import hold_runs_compiled
     from pipeline.numerics.closed_loop.simulate import hold_runs
     from pipeline.numerics.terminal.design import design_terminal, equilibrium
@@ -109,11 +110,24 @@ def test_runs_continued_past_T_match_the_numpy_oracle(synthesized, tmp_path, per
     x0 = _starts(scenario, 24, seed=5)
     oracle = hold_runs(scenario, controller, x0, duration=10.0)
     compiled = hold_runs_compiled(scenario, controller, x0, duration=10.0)
+    at_T = check_runs(scenario, controller, x0)[0].final_state
+    np.testing.assert_allclose(
+        check_runs_compiled(scenario, controller, x0).final_state, at_T, rtol=0, atol=1e-9
+    )
+    continued = hold_runs_compiled(scenario, controller, x0, duration=10.0, ends=at_T)
     np.testing.assert_allclose(compiled.final_state, oracle.final_state, rtol=0, atol=1e-9)
-    for name in ("level_ratio", "input_slack", "clearance", "final_goal_margin"):
-        np.testing.assert_allclose(
-            getattr(compiled, name), getattr(oracle, name), rtol=1e-9, atol=1e-9, err_msg=name
-        )
+    for name in (
+        "level_ratio",
+        "input_slack",
+        "clearance",
+        "final_goal_margin",
+        "path_goal_margin",
+        "bounds_margin",
+    ):
+        for kernel in (compiled, continued):
+            np.testing.assert_allclose(
+                getattr(kernel, name), getattr(oracle, name), rtol=1e-9, atol=1e-9, err_msg=name
+            )
     assert np.isfinite(oracle.final_state).all()
 
 

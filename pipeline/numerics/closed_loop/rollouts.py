@@ -124,17 +124,24 @@ def hold_runs_compiled(
     duration: float = 10.0,
     substeps: int = 4,
     draws: Draws | None = None,
+    ends: FloatArray | None = None,
 ) -> HoldChecks:
     """``hold_runs`` on the kernel: fly ``x0 (B, n)`` to their ``T``, then ``duration`` s more
     under the terminal law ``u_eq + K_T (x - x_eq)``, which is the kernel's law around the
     constant reference ``x_eq`` with inputs ``u_eq`` (metric ``P_T / level``, rate 0: the tube
     ratio times the start's norm is ``max_t sqrt(V / level)``); the Goal margin is the smallest
-    over the continuation (``every_goal``); ``draws`` continue from each run's ``T_i``."""
+    over the continuation (``every_goal``); ``draws`` continue from each run's ``T_i``.
+
+    ``ends (B, n)``: the runs' states at their ``T`` when they were flown there already
+    (``RunChecks.final_state`` of ``check_runs_compiled`` with the same ``substeps`` and
+    ``draws``); the flight to ``T`` is then not repeated."""
     terminal = controller.terminal
     if terminal is None:
         raise ValueError("hold_runs_compiled: the controller has no terminal law")
-    kernels, out, _ = _rollouts(scenario, controller, x0, substeps, draws=draws)
-    x_end = np.ascontiguousarray(out[:, kernels.CHECKS :])
+    kernels = load_kernels(flown_dynamics(scenario, draws))
+    if ends is None:
+        ends = _rollouts(scenario, controller, x0, substeps, draws=draws)[1][:, kernels.CHECKS :]
+    x_end = np.ascontiguousarray(ends, dtype=np.float64)
     T = controller.horizons(controller.select(x0)[0])
     later = Draws.none(len(x0), x_end.shape[1]) if draws is None else draws
 
@@ -148,7 +155,7 @@ def hold_runs_compiled(
     )
     steps, hold = held_steps(controller, substeps)
     metric = np.broadcast_to(terminal.P / terminal.level, (N * steps + 1, *terminal.P.shape))
-    after = np.empty_like(out)
+    after = np.empty((len(x_end), kernels.CHECKS + x_end.shape[1]))
     kernels.rollout_kernel(
         x_end,
         steps,
@@ -288,4 +295,5 @@ def _checks(kernels: Any, out: FloatArray, covered: np.ndarray) -> RunChecks:
         finite=out[:, kernels.FINITE] > 0.5,
         covered=covered,
         bounds_margin=out[:, kernels.BOUNDS],
+        final_state=out[:, kernels.CHECKS :],
     )

@@ -139,6 +139,7 @@ class RunChecks:
     finite: np.ndarray
     covered: np.ndarray
     bounds_margin: FloatArray | None = None  # to the state bounds (inf without them)
+    final_state: FloatArray  # (B, n): each run's state at its T
 
     def margin(self) -> FloatArray:
         """The smallest safety margin of each run (negative: unsafe, misses Goal or clips the
@@ -195,6 +196,7 @@ def check_runs(
     substeps, hold = held_steps(controller, substeps)
     names = ("clearance", "goal_margin", "input_slack", "tube", "tube_final", "bounds")
     checks = {name: np.empty(B) for name in names}
+    final_state = np.empty((B, len(x0[0])))
     finite = np.ones(B, dtype=bool)
     index, ratio = controller.select(x0)
     covered = ratio < 1.0
@@ -218,6 +220,7 @@ def check_runs(
             draws=None if draws is None else draws.rows(rows),
         )
         xs = run.xs
+        final_state[rows] = xs[:, -1]
         checks["bounds"][rows] = _bounds_margin(scenario, xs)
         finite[rows] = np.all(np.isfinite(xs), axis=(1, 2))
         positions = scenario.positions(np.nan_to_num(xs, nan=1e9, posinf=1e9, neginf=-1e9))
@@ -253,6 +256,7 @@ def check_runs(
         finite=finite,
         covered=covered,
         bounds_margin=checks["bounds"],
+        final_state=final_state,
     )
     return result, paths
 

@@ -74,7 +74,9 @@ def margins(
         "state-bounds margin": np.broadcast_to(bounds, checks.clearance.shape),
     }
     if controller.terminal is not None:
-        after = hold_runs_compiled(scenario, controller, x0, hold_seconds, draws=draws)
+        after = hold_runs_compiled(
+            scenario, controller, x0, hold_seconds, draws=draws, ends=checks.final_state
+        )
         parts["after T: clearance to Unsafe, m"] = after.clearance
         parts["after T: Goal margin, m"] = after.path_goal_margin
         parts["after T: input slack, input units"] = after.input_slack

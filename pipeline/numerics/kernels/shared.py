@@ -232,6 +232,7 @@ def metric_norm(x, xr, M, g):
     """``|x - xr|_M[g]`` for ``x, xr (n,)``, ``M (G, n, n)`` metrics on the RK4 grid."""
     q = 0.0
     for i in range(x.size):
+        e_i = x[i] - xr[i]
         for j in range(x.size):
-            q += (x[i] - xr[i]) * M[g, i, j] * (x[j] - xr[j])
+            q += e_i * M[g, i, j] * (x[j] - xr[j])
     return math.sqrt(max(q, 0.0))
