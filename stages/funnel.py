@@ -60,6 +60,7 @@ preload_in_workers(__name__)  # its chunks run in worker processes
 # hold's box (funnel.law (I6)) added to the declared disturbance: the box is found on the first
 # funnel, and the second funnel's own box is what certify checks (the multiple is its room)
 HOLD_DESIGN = 1.25
+PUSH_ATTEMPTS = 2  # designs with (I6')'s rows on the failing intervals only, before every piece
 
 
 def initial_sets(scenario: Scenario, P: FloatArray, radii: FloatArray) -> FloatArray:
@@ -117,20 +118,22 @@ def _accepted(
     disturbance: FloatArray | None = None,
     period: float = 0.0,
     measurement: FloatArray | None = None,
-) -> str | None:
-    """None if ``funnel`` certifies its trajectory (for ``x' = f(x, u) + w``, ``|w| <=
+) -> tuple[str | None, tuple[int, ...]]:
+    """``(None, ())`` if ``funnel`` certifies its trajectory (for ``x' = f(x, u) + w``, ``|w| <=
     disturbance (n,)`` when given, the law held every ``period`` s when it is > 0 and seeing the
-    state within ``measurement (n,)`` when given), else why it is dropped."""
+    state within ``measurement (n,)`` when given), else why it is dropped and the sample
+    intervals where the certify-style rebuild found (F2) failing (none when something else
+    failed first)."""
     if not funnel.success:
-        return funnel.message
+        return funnel.message, ()
     if not funnel.rho > 0:
-        return f"funnel level {funnel.rho:.3g} is not positive"
+        return f"funnel level {funnel.rho:.3g} is not positive", ()
     law = LawOffset.none(len(funnel.K), scenario.n, scenario.m, scenario.Ts)
     if disturbance is not None:
         law = law.with_disturbance(disturbance)
     failure = check_funnel(scenario, trajectory, funnel, state_bounds, law)
     if failure is not None:
-        return f"rejected by the independent check: {failure}"
+        return f"rejected by the independent check: {failure}", ()
     # as the certify stage will see it: rebuilt from K, P and rho alone (its own enclosure), the
     # law tracking the reference interpolated on the grid the controller stage ships
     shipped = ShippedFunnel(K=funnel.K, P=funnel.P, rho=funnel.rho, rate=funnel.rate)
@@ -138,7 +141,9 @@ def _accepted(
         scenario, trajectory, shipped, state_bounds, disturbance, period, measurement,
         multiple=False,
     )  # fmt: skip
-    return None if not again.failure else f"rejected when rebuilt as certify does: {again.failure}"
+    if not again.failure:
+        return None, ()
+    return f"rejected when rebuilt as certify does: {again.failure}", again.failing
 
 
 def _ends_outside(scenario: Scenario, trajectory: Trajectory, why: str) -> Funnel:
@@ -177,7 +182,7 @@ def _designed(task: _Task) -> tuple[Funnel, str | None]:
         codesign_first=task.codesign_first,
     )  # fmt: skip
     measurement = task.measurement
-    failure = _accepted(
+    failure, failing = _accepted(
         scenario, task.trajectory, funnel, bounds, task.disturbance, task.period, measurement
     )
     boxed = task.period > 0 or measurement is not None
@@ -201,22 +206,39 @@ def _designed(task: _Task) -> tuple[Funnel, str | None]:
     if np.all(lower < upper):
         designed_for = replace(scenario, input_lower=lower, input_upper=upper)
     whose = "the hold's" if measurement is None else "the law's (hold and measurement)"
-    designs = [(f"{whose} box |w_h| <= ", held.hold, 0.0)]
+    designs: list[tuple[str, FloatArray, float, frozenset[int] | None]] = [
+        (f"{whose} box |w_h| <= ", held.hold, 0.0, None)
+    ]
+    # (I6')'s rows first on the intervals where the held law's check failed, adding those each
+    # such design fails on, while they are fewer than half; then on every piece (a piece's rows
+    # double its LMIs, and the solve time grows faster)
+    few = len(task.trajectory.us) / 2
     if held.remainder is not None:
-        designs.insert(0, (f"{whose} push to first order, remainder |w_r| <= ",
-                           held.remainder, task.period))  # fmt: skip
+        push = f"{whose} push to first order, remainder |w_r| <= "
+        designs.insert(0, (push, held.remainder, task.period, None))
+        if len(failing) < few:
+            designs.insert(0, (push, held.remainder, task.period, frozenset(failing)))
     reasons = []
-    for what, box, period in designs:
+    attempts = 0
+    while designs:
+        what, box, period, pushed = designs.pop(0)
         again = synthesize_funnel(
             designed_for, task.trajectory, state_bounds=bounds, initial=task.initial,
             rate=task.rate, disturbance=declared + HOLD_DESIGN * box, terminal=terminal,
             period=period, codesign=codesign, widen=False, from_multiplier=funnel.multiplier,
+            pushed=pushed,
         )  # fmt: skip
-        second = _accepted(
+        second, failing = _accepted(
             scenario, task.trajectory, again, bounds, task.disturbance, task.period, measurement
         )
         if second is None:
             return again, None
+        if pushed is not None:
+            attempts += 1
+            more = pushed | set(failing)
+            if attempts < PUSH_ATTEMPTS and pushed < more and len(more) < few:
+                designs.insert(0, (what, box, period, frozenset(more)))
+            continue  # only the last design of each kind is reported
         reasons.append(
             f"designed again for {what}{np.round(HOLD_DESIGN * box, 4).tolist()} on top of the "
             f"disturbance: {second}"

@@ -63,3 +63,30 @@ def test_the_program_with_the_period_holds_the_pushed_rows_the_plain_one_does_no
         paired = RobustCheck(Q, funnel.K, funnel.vertices, funnel.rate, scenario.Ts, 1.0, period)
         worst[designed] = float(paired.margins(d)[0].max())
     assert worst[period] < -1e-3 and worst[0.0] > 0, worst
+
+
+def test_pushed_names_the_intervals_whose_pieces_get_the_pairs(monkeypatch):
+    """``pushed``: (I6')'s pairs on the pieces holding those sample intervals only (each such
+    piece twice the plain vertices), on every piece without it, on none without a period."""
+    from pipeline.numerics.funnel import synthesis
+
+    scenario, trajectory, initial = double_integrator_case()
+    counts: list[list[int]] = []
+    original = synthesis.solve_clarabel
+
+    def recorded(program):
+        counts.append([len(v) for v in program.vertices])
+        return original(program)
+
+    monkeypatch.setattr(synthesis, "solve_clarabel", recorded)
+    plain, every, first = [], [], []
+    for period, pushed, into in ((0.0, None, plain), (0.05, None, every), (0.05, {0}, first)):
+        counts.clear()
+        synthesize_funnel(
+            scenario, trajectory, initial=initial, disturbance=DISTURBANCE, period=period,
+            pushed=None if pushed is None else frozenset(pushed),
+        )  # fmt: skip
+        into.extend(counts[0])
+    assert len(plain) > 2 and len(plain) == len(every) == len(first)
+    assert every == [2 * v for v in plain]
+    assert first == [2 * plain[0], *plain[1:]]

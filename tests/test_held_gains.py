@@ -43,22 +43,28 @@ def test_without_codesign_no_gains_are_codesigned(monkeypatch):
     assert calls and designed.success and "(F6)" in designed.message, designed.message
 
 
-def _families(monkeypatch, period: float) -> list[bool]:
-    """The ``codesign`` of every ``synthesize_funnel`` call of the stage's design of one funnel,
-    the first design rejected for the held law and both redesigns too (scripted)."""
+def _designs(
+    monkeypatch, period: float, verdicts: list[tuple[str | None, tuple[int, ...]]]
+) -> list[dict]:
+    """The keyword arguments of every ``synthesize_funnel`` call of the stage's design of one
+    funnel, each design's held-law check scripted by ``verdicts`` in order (then rejected with
+    no failing interval); the first design is rejected for the held law."""
     scenario, trajectory, initial = double_integrator_case()
-    seen: list[bool] = []
+    seen: list[dict] = []
     found = dataclasses.replace(
         stage._ends_outside(scenario, trajectory, "scripted"), rho=0.5, success=True
     )
 
     def designed(*args, **kwargs):
-        seen.append(kwargs["codesign"])
+        seen.append(kwargs)
         return found
 
+    script = iter(verdicts)
     box = np.full(scenario.n, 0.01)
     monkeypatch.setattr(stage, "synthesize_funnel", designed)
-    monkeypatch.setattr(stage, "_accepted", lambda *args, **kwargs: "scripted: not held")
+    monkeypatch.setattr(
+        stage, "_accepted", lambda *args, **kwargs: next(script, ("scripted: not held", ()))
+    )
     monkeypatch.setattr(
         stage,
         "held_law_bounds",
@@ -70,13 +76,27 @@ def _families(monkeypatch, period: float) -> list[bool]:
         scenario=scenario, trajectory=trajectory, initial=initial[None], rate=0.0,
         disturbance=DISTURBANCE, period=period,
     )  # fmt: skip
-    _, failure = stage._designed(task)
-    assert failure is not None and "scripted" in failure
+    stage._designed(task)
     return seen
 
 
 def test_a_held_law_is_designed_with_the_lqr_gains_only(monkeypatch):
-    """Held every 5 ms: the first design and both redesigns ((I6')'s pushed rows with the
-    remainder box, then (I6)'s box) without (F6); the continuous law: one design, with it."""
-    assert _families(monkeypatch, 0.005) == [False, False, False]
-    assert _families(monkeypatch, 0.0) == [True]
+    """Held every 5 ms: the first design and every redesign ((I6')'s pushed rows with the
+    remainder box, on the failing intervals and then on every piece, then (I6)'s box) without
+    (F6); the continuous law: one design, with it."""
+    held = _designs(monkeypatch, 0.005, [])
+    assert [kwargs["codesign"] for kwargs in held] == [False] * 4
+    assert [kwargs["codesign"] for kwargs in _designs(monkeypatch, 0.0, [])] == [True]
+
+
+def test_the_pushed_rows_go_first_where_the_held_check_failed(monkeypatch):
+    """The held law's check fails on interval 3: the first redesign pushes interval 3 only; it
+    fails on interval 5 too: the next pushes both; after ``PUSH_ATTEMPTS`` such designs, every
+    piece, then (I6)'s box (no period); a design that passes ends the search."""
+    failing = [("scripted: (F2) fails", (3,)), ("scripted: (F2) fails", (3, 5))]
+    tried = [(kwargs.get("period", 0.0), kwargs.get("pushed")) for kwargs in
+             _designs(monkeypatch, 0.005, failing)]  # fmt: skip
+    assert stage.PUSH_ATTEMPTS == 2
+    assert tried == [(0.0, None), (0.005, {3}), (0.005, {3, 5}), (0.005, None), (0.0, None)]
+    passed = _designs(monkeypatch, 0.005, [("scripted: (F2) fails", (3,)), (None, ())])
+    assert [kwargs.get("pushed") for kwargs in passed] == [None, {3}]

@@ -187,7 +187,7 @@ def test_a_funnels_time_counts_its_whole_task(inputs, result, monkeypatch):
 
     def slow_check(*_args, **_kwargs):
         time.sleep(0.05)
-        return None
+        return None, ()
 
     monkeypatch.setattr(
         funnel_stage, "synthesize_funnel",

@@ -273,7 +273,7 @@ def disturbance_seed(
 def _program(
     scenario, trajectory, K, vertices, boxes, variables, enclosure, Q_init, Q_seed, c, bounds,
     disturbance=None, multiplier=0.0, margin=0.0, terminal=None, state_bounds=None,
-    codesign=False, period=0.0,
+    codesign=False, period=0.0, pushed=None,
 ):  # fmt: skip
     """(F3) on the LMI pieces ``bounds`` (unknowns: ``Q`` at the piece ends), with the initial set
     and the tube at level 1 inside every hull box, clear of Unsafe (a disk bound) and inside Goal
@@ -283,7 +283,8 @@ def _program(
     robust funnel cannot shrink below the design's to fit a bound the program did not see
     ((I5)'s disturbance term grows as the level shrinks). ``period > 0``: (F3) on the pairs of
     ``funnel.sampled.paired_vertices`` too (a held law's push to first order, (I6'), at the
-    piece's first gain ``K``; with ``codesign`` the seed's)."""
+    piece's first gain ``K``; with ``codesign`` the seed's), on the pieces holding an interval of
+    ``pushed`` (None: every piece)."""
     n, us, final_state = scenario.n, trajectory.us, trajectory.dense_xs[-1]
     S = len(bounds) - 1
     clearance = interval_clearance(scenario, trajectory, enclosure)
@@ -353,8 +354,10 @@ def _program(
         Ts=scenario.Ts * np.diff(bounds).astype(np.float64),
         K=K[bounds[:-1]],
         vertices=tuple(
-            vertices[a] if period <= 0 else paired_vertices(vertices[a], K[a], period)
-            for a in bounds[:-1]
+            paired_vertices(vertices[a], K[a], period)
+            if period > 0 and (pushed is None or any(a <= k < b for k in pushed))
+            else vertices[a]
+            for a, b in itertools.pairwise(bounds)
         ),
         c=c,
         Q_init=Q_init,
@@ -399,6 +402,7 @@ def synthesize_funnel(
     widen: bool = True,
     from_multiplier: float = 0.0,
     codesign_first: bool = False,
+    pushed: frozenset[int] | None = None,
 ) -> Funnel:
     """Synthesize and check the funnel around ``trajectory`` (one: ``xs (N+1, n)``, ``us (N, m)``,
     its dense grid); see the module docstring.
@@ -433,6 +437,9 @@ def synthesize_funnel(
         remainder box (R) on top of the declared one. A design heuristic: the funnel returned
         is checked for the continuous law under ``disturbance`` here, and the held law's check
         is the caller's (``stages.funnel``).
+      pushed: with ``period``, the sample intervals whose pieces get (I6')'s rows (None: every
+        piece; ``stages.funnel`` first names those where the held law's check failed: a piece's
+        rows double its LMIs, and the solve time grows faster). A design choice too.
       codesign: with ``disturbance``, try gains co-designed with the metric (F6) after the LQR
         gains' multipliers (False: the LQR gains only; ``stages.funnel`` for a held law, whose
         push (I6) the (F6) program cannot see: it is bilinear in the gains).
@@ -558,7 +565,7 @@ def synthesize_funnel(
                 designed = codesign_gains(_program(
                     scenario, trajectory, K, vertices, boxes, variables, enclosure, Q_init,
                     Q_seed, 2 * rate + margin, bounds, robust, multiplier, margin, terminal,
-                    state_bounds, codesign=True, period=period,
+                    state_bounds, codesign=True, period=period, pushed=pushed,
                 ))  # fmt: skip
                 if isinstance(designed, str):  # no gains to hold: nothing new to solve
                     failures.append(f"margin {margin:g}: (F6) {designed} over {N} intervals")
@@ -568,7 +575,7 @@ def synthesize_funnel(
             program = _program(
                 scenario, trajectory, gains, vertices, boxes, variables, enclosure, Q_init,
                 Q_seed, 2 * rate + margin, bounds, robust, multiplier, margin, terminal,
-                state_bounds, period=period,
+                state_bounds, period=period, pushed=pushed,
             )  # fmt: skip
             solution = solve_clarabel(program)
             failure: str | None

@@ -63,6 +63,7 @@ from pipeline.numerics.funnel.check import Funnel, checked_margins, effective_ma
 from pipeline.numerics.funnel.law import (
     BASE_SUBSTEPS,
     LEVEL_MARGIN,
+    LMI_MARGIN,
     LawOffset,
     grid_substeps,
     law_offset,
@@ -176,7 +177,9 @@ class FunnelRecheck:
         binding: the constraint that sets it; disturbance_multiple: the largest ``s`` for which
         (I5) still holds with ``s`` times the disturbance checked (``funnel.robust``: found by
         bisection, nothing else depends on it; ``inf`` without a disturbance; below 1 when the
-        funnel does not hold the one checked; NaN when not asked for).
+        funnel does not hold the one checked; NaN when not asked for); failing: the sample
+        intervals where that margin is not below ``-LMI_MARGIN`` (where a redesign must do
+        better, ``stages.funnel``).
     """
 
     failure: str | None
@@ -185,6 +188,7 @@ class FunnelRecheck:
     radius: float
     binding: str
     disturbance_multiple: float = float("inf")
+    failing: tuple[int, ...] = ()
 
 
 def rebuild_funnel(
@@ -357,6 +361,7 @@ def recheck_funnel(
                 if multiple
                 else float("nan")
             ),
+            failing=tuple(int(k) for k in np.flatnonzero(margins >= -LMI_MARGIN)),
         )
         if failure is None:
             return last
