@@ -17,7 +17,11 @@ distance of the final position to Goal's boundary, the smallest input slack befo
 tube ratio ``max_t max(|e(t)|_P(t) - slack, 0) e^(rate t) / |e(0)|_P(0)`` and its value at ``T``
 (``P(t)`` given on the RK4 grid: one metric repeated for a ``/1`` file, a funnel's time-varying
 metric for ``/2``), whether every state stayed finite, the smallest margin to the state bounds
-less half the longest step of a bounded state, and the final state.
+less half the longest step of a bounded state, and the final state. The running minima of
+Unsafe's distance and Goal's signed distance skip the grid points where the position is still
+closer to the last measured point than that measurement was above the minimum: both distances
+are 1-Lipschitz in the position, so the skipped points cannot lower the minimum (the oracle,
+which measures every point, gives the same numbers).
 
 Under a declared uncertainty (``pipeline.numerics.closed_loop.gusts``) each run flies ``f(x, (u,
 p_b))`` (the parametric dynamics, its parameters ``p_b`` appended to the input) plus the gust
@@ -170,9 +174,9 @@ def rollout_kernel(
             if b < path.shape[0]:
                 path[b, j, 0] = x[p0]
                 path[b, j, 1] = x[p1]
-            # Unsafe's distance and Goal's signed distance are 1-Lipschitz in the position:
-            # within ``below`` of the point where one was last found at least ``floor`` above
-            # its running minimum, it cannot lower that minimum (the skip changes no result)
+            # Unsafe's distance and Goal's signed distance are 1-Lipschitz in the position: one
+            # measured ``floor`` above its running minimum cannot lower that minimum while the
+            # position stays within ``floor`` of where it was measured (no result changes)
             if math.hypot(x[p0] - unsafe_at[0], x[p1] - unsafe_at[1]) >= unsafe_floor:
                 found = unsafe_distance(x[p0], x[p1], nearest + LOOKAHEAD, scene)
                 nearest = min(nearest, found)
@@ -182,7 +186,7 @@ def rollout_kernel(
                 value = x[bound_index[c]]
                 bound_margin = min(bound_margin, value - bound_lower[c], bound_upper[c] - value)
             if every_goal and (
-                lipschitz_goal is False
+                not lipschitz_goal
                 or math.hypot(x[p0] - goal_at[0], x[p1] - goal_at[1]) >= goal_floor
             ):
                 found = _goal_margin(x, p0, p1, goal, rings)
