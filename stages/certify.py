@@ -268,7 +268,7 @@ def _funnels(
         check = recheck_funnel(
             scenario, reference.nominal, shipped, held_state_bounds(scenario), reference.substeps,
             centre_error=reference.integration * tr.radius, disturbance=disturbance,
-            period=period, measurement=measurement,
+            period=period, measurement=measurement, enough=multiple,
         )  # fmt: skip
         margin, vertices = max(margin, check.margin), vertices + check.vertices
         multiple = min(multiple, check.disturbance_multiple)

@@ -68,7 +68,8 @@ def _multiple_by_full_searches(check: RobustCheck, bound: np.ndarray, lmi: np.nd
 def test_the_multiple_searches_only_where_the_last_multiplier_fails_and_finds_the_same():
     """``multiple`` tries the last certifying multipliers first and searches again only on the
     intervals they do not certify: on random stable funnels it reports what a full search at
-    every bisection probe reports."""
+    every bisection probe reports; ``enough`` is returned where it holds (certify needs no
+    more), and does not change the multiple where it does not."""
     rng = np.random.default_rng(5)
     found = []
     for _ in range(6):
@@ -91,6 +92,12 @@ def test_the_multiple_searches_only_where_the_last_multiplier_fails_and_finds_th
         lmi = -np.abs(rng.normal(size=N)) * 0.1
         reference = _multiple_by_full_searches(check, bound, lmi)
         assert check.multiple(bound, lmi) == pytest.approx(reference, rel=1e-9)
+        if 0 < reference < 1e6:  # enough: returned where it holds, else the search's own
+            assert check.holds_at(reference, bound, lmi)
+            assert not check.holds_at(reference * 1.01, bound, lmi)
+            assert check.multiple(bound, lmi, enough=reference / 2) == reference / 2
+            more = check.multiple(bound, lmi, enough=2 * reference)
+            assert more == pytest.approx(reference, rel=1e-9)
         found.append(reference)
     assert sum(0 < multiple < 1e6 for multiple in found) >= 4, found  # most hold some multiple
 

@@ -102,3 +102,24 @@ def test_certify_reports_the_largest_multiple_of_the_declared_bound(robust):
         "funnel is not certified" in f for f in certify_controller(inside, path).failures
     )
     assert any("funnel is not certified" in f for f in certify_controller(outside, path).failures)
+
+
+def test_the_multiple_is_the_smallest_over_the_funnels_in_either_order(robust, tmp_path: Path):
+    """Certify searches each funnel's multiple no higher than the smallest found so far
+    (``enough``): a file with the funnel and a copy at 90% of its level (a smaller multiple:
+    (I5)'s term grows as the level shrinks) reports the copy's, in either order, as the copy
+    alone does."""
+    gusty, path, _ = robust
+    document = json.loads(path.read_text())
+    funnel = document["trajectories"][0]
+    lower = {**funnel, "name": "lower", "radius": 0.9 * funnel["radius"]}
+    found = {}
+    for name, trajectories in (
+        ("alone", [funnel]), ("lower", [lower]), ("first", [funnel, lower]),
+        ("second", [lower, funnel]),
+    ):  # fmt: skip
+        variant = tmp_path / f"{name}.json"
+        variant.write_text(json.dumps({**document, "trajectories": trajectories}))
+        found[name] = certify_controller(gusty, variant).disturbance_multiple
+    assert 0.5 < found["lower"] < found["alone"], found
+    assert found["first"] == found["lower"] and found["second"] == found["lower"], found

@@ -43,6 +43,7 @@ is (F2)'s own check.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 import numpy as np
@@ -273,21 +274,38 @@ class RobustCheck:
             )  # fmt: skip
         return np.where(fc <= fd, c, d), np.minimum(fc, fd)
 
+    def holds_at(
+        self,
+        s: float,
+        bound: FloatArray,
+        lmi_term: FloatArray,
+        hold: Callable[[float], FloatArray] | None = None,
+    ) -> bool:
+        """Whether ``2 r_k(s bound) + lmi_term_k < -LMI_MARGIN`` on every interval (with a held
+        law's box ``hold(s)`` added, as ``multiple``): ``multiple`` is below ``s`` when not."""
+        box = s * np.asarray(bound, dtype=np.float64)
+        margins, _ = self.margins(box if hold is None else box + hold(s))
+        return bool(np.all(2 * margins + lmi_term < -LMI_MARGIN))
+
     def multiple(
         self,
         bound: FloatArray,
         lmi_term: FloatArray,
         hold: Callable[[float], FloatArray] | None = None,
+        enough: float = math.inf,
     ) -> float:
         """The largest ``s`` with ``2 r_k(s bound) + lmi_term_k < -LMI_MARGIN`` on every interval,
         by bisection (``r_k`` is convex in ``s``: the set where it holds is an interval from 0),
         shrunk so that the bound itself is not on the edge; ``inf`` without a disturbance, or
         once ``2^19`` times it holds (not checked further). ``hold(s)``: a held law's box ``(N,
         n)`` (``funnel.law`` (I6)) under ``s`` times the disturbance, added to it (it grows with
-        ``s``: the set is still an interval from 0)."""
+        ``s``: the set is still an interval from 0). ``enough``: a caller that needs no more
+        (certify, the smallest over its funnels): where it holds, it is returned unsearched."""
         bound = np.asarray(bound, dtype=np.float64)
         if not np.any(bound > 0):
             return float("inf")
+        if math.isfinite(enough) and self.holds_at(enough, bound, lmi_term, hold):
+            return enough
 
         last: FloatArray | None = None  # the multipliers of the last box that held
 

@@ -49,6 +49,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 
@@ -177,7 +178,8 @@ class FunnelRecheck:
         binding: the constraint that sets it; disturbance_multiple: the largest ``s`` for which
         (I5) still holds with ``s`` times the disturbance checked (``funnel.robust``: found by
         bisection, nothing else depends on it; ``inf`` without a disturbance; below 1 when the
-        funnel does not hold the one checked; NaN when not asked for); failing: the sample
+        funnel does not hold the one checked; NaN when not asked for; at most the ``enough``
+        asked for); failing: the sample
         intervals where that margin is not below ``-LMI_MARGIN`` (where a redesign must do
         better, ``stages.funnel``).
     """
@@ -312,6 +314,7 @@ def recheck_funnel(
     measurement: FloatArray | None = None,
     *,
     multiple: bool = True,
+    enough: float = math.inf,
     rebuilt: Rebuilt | None = None,
 ) -> FunnelRecheck:
     """Steps 1-4 of the module docstring for one ``shipped`` funnel around the nominal
@@ -322,8 +325,9 @@ def recheck_funnel(
     ((I7)). The margin reported is (F2)'s eigenvalue plus (I2),
     or under a disturbance twice (I5)'s plus (I2) (``funnel.check.effective_margins``).
     ``multiple``: also find the disturbance multiple it holds (a bisection of (I5) searches;
-    the design's acceptance (``stages.funnel``) does not need it). ``rebuilt``: as
-    ``_under_law``'s."""
+    the design's acceptance (``stages.funnel``) does not need it), searched no higher than
+    ``enough`` (``RobustCheck.multiple``; certify reports the smallest over its funnels).
+    ``rebuilt``: as ``_under_law``'s."""
     K, Q = shipped.K, shipped.Q
     failures: list[str] = []
     last = FunnelRecheck(failure="", margin=float("nan"), vertices=0, radius=0.0, binding="")
@@ -357,7 +361,7 @@ def recheck_funnel(
             radius=limits[binding][0],
             binding=binding,
             disturbance_multiple=(
-                disturbance_multiple(Q, K, funnel, scenario.Ts, law, held)
+                disturbance_multiple(Q, K, funnel, scenario.Ts, law, held, enough)
                 if multiple
                 else float("nan")
             ),
@@ -376,6 +380,7 @@ def disturbance_multiple(
     Ts: float,
     law: LawOffset,
     held: Callable[[FloatArray], LawOffset] | None = None,
+    enough: float = math.inf,
 ) -> float:
     """The largest ``s`` for which ``funnel`` (``Q (N+1, n, n)``) still holds under ``s`` times
     the law's disturbance box with its (I2) term (``funnel.robust`` (I5)); ``inf`` without one.
@@ -386,10 +391,10 @@ def disturbance_multiple(
     additive bound. A held law: the larger of (I6)'s multiple and (I6')'s (``funnel.sampled``,
     its remainder's box grown likewise): each holds on every interval at its own ``s``, so the
     per-interval smaller margin of ``effective_margins`` does too (a lower bound on its
-    multiple)."""
+    multiple). ``enough``: as ``RobustCheck.multiple``'s."""
     check = RobustCheck(Q, K, funnel.vertices, funnel.rate, Ts, funnel.rho)
     if law.hold is None or held is None:
-        return check.multiple(law.disturbance, law.lmi_term)
+        return check.multiple(law.disturbance, law.lmi_term, enough=enough)
     offset, zeros = held, np.zeros_like(law.hold)
 
     def grown(box: Callable[[LawOffset], FloatArray | None]) -> Callable[[float], FloatArray]:
@@ -401,12 +406,17 @@ def disturbance_multiple(
 
         return at
 
-    boxed = check.multiple(law.disturbance, law.lmi_term, grown(lambda grow: grow.hold))
+    box = grown(lambda grow: grow.hold)
     if law.remainder is None:
-        return boxed
+        return check.multiple(law.disturbance, law.lmi_term, box, enough)
     sampled = RobustCheck(Q, K, funnel.vertices, funnel.rate, Ts, funnel.rho, law.period)
     remainder = grown(lambda grow: grow.remainder)
-    return max(boxed, sampled.multiple(law.disturbance, law.lmi_term, remainder))
+    pushed = sampled.multiple(law.disturbance, law.lmi_term, remainder, enough)
+    # (I6)'s set of multiples is an interval from 0 too: where it fails at (I6')'s multiple, its
+    # own is below it and the larger of the two is (I6')'s (its bisection is not needed)
+    if pushed >= enough or not check.holds_at(pushed, law.disturbance, law.lmi_term, box):
+        return pushed
+    return max(check.multiple(law.disturbance, law.lmi_term, box, enough), pushed)
 
 
 def reference_substeps(
