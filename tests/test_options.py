@@ -9,6 +9,7 @@ import inspect
 import math
 import re
 import typing
+from fractions import Fraction
 
 import numpy as np
 import pytest
@@ -322,3 +323,21 @@ def test_negative_zero_is_stored_as_zero() -> None:
     for options in (parse("--feedback-period", "-0"), RunOptions(feedback_period=-0.0)):
         assert math.copysign(1.0, typing.cast(float, options.feedback_period)) == 1.0
     assert RunOptions(feedback_period=-0.0) == RunOptions(feedback_period=0.0)
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [("clearance", Fraction(1, 2)), ("Ts", decimal.Decimal("0.1")), ("units", {"x": object()})],
+    ids=["Fraction", "Decimal", "object"],
+)
+def test_a_field_replaced_by_a_value_without_an_exact_key_is_refused_before_any_work(
+    field, value, tmp_path
+):
+    """A ``Scenario`` field set by ``dataclasses.replace`` to a type the cache keys cannot
+    encode exactly is a ``UserError`` naming the field, before any work (it failed the first
+    stage with a traceback)."""
+    scenario = pipeline.load_scenario("double_integrator")
+    replaced = dataclasses.replace(scenario, **{field: value})
+    with pytest.raises(pipeline.UserError, match=rf"^scenario field {field}[.\w]*: found a "):
+        pipeline.synthesize(replaced, out=tmp_path / "o")
+    assert not (tmp_path / "o").exists()

@@ -69,7 +69,7 @@ def scenario_data(scenario: Scenario, exclude: Collection[str] = ()) -> dict[str
 
 def plain(value: Any, where: str = "value") -> Any:
     """``value`` as data that ``inputs_key`` encodes exactly (module docstring); ``where`` names
-    it in the ``TypeError`` for a value of another type."""
+    it in the ``Unkeyable`` (a ``TypeError``) raised for a value of another type."""
     if isinstance(value, (np.ndarray, np.generic, str, int, float, Path)) or value is None:
         return value  # bool is an int
     if isinstance(value, Dynamics):
@@ -96,11 +96,19 @@ def plain(value: Any, where: str = "value") -> Any:
         return tuple(items) if isinstance(value, tuple) else items
     if isinstance(value, Mapping):
         return {plain(k, where): plain(v, f"{where}.{k}") for k, v in value.items()}
-    raise TypeError(
-        f"scenario field {where}: cannot key a {type(value).__qualname__} (expected arrays, "
-        "numbers, strings, geometries, Dynamics, pydantic models, dataclasses or containers "
-        "of them; teach pipeline.model.scenario_data its exact encoding)"
-    )
+    raise Unkeyable(where, value)
+
+
+class Unkeyable(TypeError):
+    """A value ``plain`` has no exact encoding for, at ``where`` (a field name and path)."""
+
+    def __init__(self, where: str, value: Any) -> None:
+        self.where, self.type_name = where, type(value).__qualname__
+        super().__init__(
+            f"scenario field {where}: cannot key a {self.type_name} (expected arrays, numbers, "
+            "strings, geometries, Dynamics, pydantic models, dataclasses or containers of "
+            "them; teach pipeline.model.scenario_data its exact encoding)"
+        )
 
 
 def _model(model: pydantic.BaseModel, exclude: Collection[str], where: str) -> Any:

@@ -17,7 +17,7 @@ from pipeline.io.artifacts import inputs_key
 from pipeline.io.errors import UserError
 from pipeline.model.limits import MIN_FEEDBACK_PERIOD, divides
 from pipeline.model.scenario import CertificateName, Scenario
-from pipeline.model.scenario_data import plain, scenario_data
+from pipeline.model.scenario_data import Unkeyable, plain, scenario_data
 from pipeline.numerics.tube.sampled import HeldRate, held_rate
 from pipeline.runtime.options import RunOptions
 
@@ -123,6 +123,20 @@ def method_of(scenario: Scenario, options: RunOptions) -> str:
 # demos (the stages get their starts and inputs as arguments, which their keys carry; optimize,
 # the one stage that reads scenario.demos, keys their names, starts and inputs too).
 NOT_NUMERICAL = ("description", "stress", "optimizer", "demos")
+
+
+def check_keyable(scenario: Scenario) -> None:
+    """Every field of ``scenario`` has an exact encoding for the stages' cache keys
+    (``scenario_data``): a value set by ``dataclasses.replace`` of another type (a
+    ``fractions.Fraction``, a ``decimal.Decimal``) is refused before any work, naming the
+    field, instead of failing the first stage."""
+    try:
+        scenario_key(scenario)
+    except Unkeyable as error:
+        raise UserError(
+            f"scenario field {error.where}: found a {error.type_name}; expected a float, an "
+            "int, a string, an array or the type the loaded scenario holds there"
+        ) from None
 
 
 def scenario_key(scenario: Scenario, *exclude: str) -> str:

@@ -177,6 +177,7 @@ def run_synthesis(
     run_inputs.check_period(scenario, period, certificate, source)
     options = dataclasses.replace(options, feedback_period=period)  # what the run certifies
     run_inputs.check_uncertainty(scenario, certificate)
+    run_inputs.check_keyable(scenario)  # a field replaced by a value of another type
     out = (Path(out) if out is not None else default_output_folder(scenario.name)).absolute()
     check_output_folder(out, scenario.name)
     log.info(f"outputs: {out}")
