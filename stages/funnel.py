@@ -46,7 +46,7 @@ from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import Trajectory
 from pipeline.numerics.funnel.cells import init_cells
-from pipeline.numerics.funnel.check import Funnel, check_funnel
+from pipeline.numerics.funnel.check import Funnel, HeldDesign, check_funnel
 from pipeline.numerics.funnel.law import LawOffset
 from pipeline.numerics.funnel.synthesis import synthesize_funnel
 from pipeline.numerics.terminal.fit import TerminalTarget
@@ -97,7 +97,9 @@ class _Task:
     additive bound ``(n,)`` of the declared uncertainty (None: the exact model); the terminal
     ellipsoid it must end in (None: none); the period the law is held for (0: continuous); the
     box ``(n,)`` of the error on the state the law sees (``funnel.law`` (I7); None: exact);
-    whether to search co-designed gains (F6) first (``synthesize_funnel``'s ``codesign_first``)."""
+    whether to search co-designed gains (F6) first (``synthesize_funnel``'s ``codesign_first``);
+    a held law's redesign to try first (an earlier round's, around a nearby nominal; None:
+    none)."""
 
     scenario: Scenario
     trajectory: Trajectory
@@ -108,6 +110,7 @@ class _Task:
     period: float = 0.0
     measurement: FloatArray | None = None
     codesign_first: bool = False
+    held_first: HeldDesign | None = None
 
 
 def _accepted(
@@ -174,6 +177,16 @@ def _designed(task: _Task) -> tuple[Funnel, str | None]:
         )
         return _ends_outside(scenario, task.trajectory, why), why
     bounds = held_state_bounds(scenario)
+    measurement = task.measurement
+    if task.held_first is not None and task.period > 0:
+        # an earlier round's redesign, around a nearby nominal of this trajectory, first: kept
+        # when it holds the held law, else the search below as for any nominal
+        again = _redesign(task, task.held_first)
+        verdict, _ = _accepted(
+            scenario, task.trajectory, again, bounds, task.disturbance, task.period, measurement
+        )
+        if verdict is None:
+            return again, None
     # a held law keeps the LQR gains: (F6)'s program cannot see its own gains' push (I6)
     codesign = task.period <= 0
     funnel = synthesize_funnel(
@@ -181,7 +194,6 @@ def _designed(task: _Task) -> tuple[Funnel, str | None]:
         disturbance=task.disturbance, terminal=terminal, codesign=codesign,
         codesign_first=task.codesign_first,
     )  # fmt: skip
-    measurement = task.measurement
     failure, failing = _accepted(
         scenario, task.trajectory, funnel, bounds, task.disturbance, task.period, measurement
     )
@@ -200,12 +212,19 @@ def _designed(task: _Task) -> tuple[Funnel, str | None]:
     declared = np.zeros(scenario.n) if task.disturbance is None else task.disturbance
     # the hold's input offset does not shrink with the grid: the design keeps room for it (its
     # input bounds narrowed by HOLD_DESIGN times the first funnel's; certify uses the true ones)
-    designed_for = scenario
     lower = scenario.input_lower + HOLD_DESIGN * held.held_input
     upper = scenario.input_upper - HOLD_DESIGN * held.held_input
-    if np.all(lower < upper):
-        designed_for = replace(scenario, input_lower=lower, input_upper=upper)
+    if not np.all(lower < upper):
+        lower, upper = scenario.input_lower, scenario.input_upper
     whose = "the hold's" if measurement is None else "the law's (hold and measurement)"
+
+    def design(box: FloatArray, period: float, pushed: frozenset[int] | None) -> HeldDesign:
+        return HeldDesign(
+            disturbance=declared + HOLD_DESIGN * box, input_lower=lower, input_upper=upper,
+            period=period, pushed=None if pushed is None else tuple(sorted(pushed)),
+            from_multiplier=funnel.multiplier,
+        )  # fmt: skip
+
     designs: list[tuple[str, FloatArray, float, frozenset[int] | None]] = [
         (f"{whose} box |w_h| <= ", held.hold, 0.0, None)
     ]
@@ -222,12 +241,8 @@ def _designed(task: _Task) -> tuple[Funnel, str | None]:
     attempts = 0
     while designs:
         what, box, period, pushed = designs.pop(0)
-        again = synthesize_funnel(
-            designed_for, task.trajectory, state_bounds=bounds, initial=task.initial,
-            rate=task.rate, disturbance=declared + HOLD_DESIGN * box, terminal=terminal,
-            period=period, codesign=codesign, widen=False, from_multiplier=funnel.multiplier,
-            pushed=pushed,
-        )  # fmt: skip
+        asked = design(box, period, pushed)
+        again = _redesign(task, asked)
         second, failing = _accepted(
             scenario, task.trajectory, again, bounds, task.disturbance, task.period, measurement
         )
@@ -244,6 +259,26 @@ def _designed(task: _Task) -> tuple[Funnel, str | None]:
             f"disturbance: {second}"
         )
     return funnel, "; ".join([failure, *reasons])
+
+
+def _redesign(task: _Task, asked: HeldDesign) -> Funnel:
+    """The funnel of ``task`` designed for a held or measured law as ``asked`` (its bound, input
+    bounds, period, pushed intervals and first multiplier), on the capped boxes, with the LQR
+    gains for a held law, recording ``asked`` (``Funnel.held``)."""
+    scenario = task.scenario
+    if not (
+        np.array_equal(asked.input_lower, scenario.input_lower)
+        and np.array_equal(asked.input_upper, scenario.input_upper)
+    ):
+        scenario = replace(scenario, input_lower=asked.input_lower, input_upper=asked.input_upper)
+    funnel = synthesize_funnel(
+        scenario, task.trajectory, state_bounds=held_state_bounds(task.scenario),
+        initial=task.initial, rate=task.rate, disturbance=asked.disturbance,
+        terminal=task.terminal, period=asked.period, codesign=task.period <= 0, widen=False,
+        from_multiplier=asked.from_multiplier,
+        pushed=None if asked.pushed is None else frozenset(asked.pushed),
+    )  # fmt: skip
+    return replace(funnel, held=asked)
 
 
 def _reused(earlier: tuple[Funnel, str | None]) -> tuple[Funnel, str | None]:
@@ -270,6 +305,7 @@ def synthesize_funnels(
     terminal: TerminalTarget | None = None,
     period: float = 0.0,
     codesign_first: Sequence[bool] = (),
+    held_first: Sequence[HeldDesign | None] = (),
 ) -> FunnelStageResult:
     """The funnel of every trajectory on ``executor`` (default: here, in order; the result does
     not depend on it), each asked to hold its start's cell of Init (``required_sets``).
@@ -291,6 +327,8 @@ def synthesize_funnels(
         it holds that law (``funnel.law`` (I6)) as certify will rebuild it.
       codesign_first: per trajectory, whether its search tries gains co-designed with the
         metric (F6) before the LQR gains (empty: none does); only the order of the search.
+      held_first: per trajectory, a held law's redesign to try first (an earlier round's funnel
+        around a nearby nominal, ``Funnel.held``; empty or None: none); only the order too.
     """
     if not (len(names) == len(trajectories) == len(radii)):
         raise ValueError(
@@ -301,10 +339,11 @@ def synthesize_funnels(
     initial = required_sets(scenario, [t.xs[0] for t in trajectories], P, radii)
     reuse = [None] * len(trajectories) if reuse is None else list(reuse)
     first = list(codesign_first) or [False] * len(trajectories)
-    if len(first) != len(trajectories):
+    redesigns = list(held_first) or [None] * len(trajectories)
+    if not len(first) == len(redesigns) == len(trajectories):
         raise ValueError(
-            f"funnel: {len(first)} search orders for {len(trajectories)} trajectories; "
-            "expected one per trajectory (or none)"
+            f"funnel: {len(first)} search orders and {len(redesigns)} redesigns for "
+            f"{len(trajectories)} trajectories; expected one per trajectory (or none)"
         )
     if len(reuse) != len(trajectories):
         raise ValueError(
@@ -324,6 +363,7 @@ def synthesize_funnels(
             period=period,
             measurement=measurement,
             codesign_first=first[i],
+            held_first=redesigns[i],
         )
         for i, (trajectory, Q_init) in enumerate(zip(trajectories, initial, strict=True))
         if reuse[i] is None
@@ -409,6 +449,7 @@ class FunnelInputs(StageInputs):
     terminal: TerminalTarget | None = None
     feedback_period: float = 0.0
     codesign_first: tuple[bool, ...] = ()
+    held_first: tuple[HeldDesign | None, ...] = ()
 
 
 def _funnel_stage(
@@ -430,6 +471,7 @@ def _funnel_stage(
         terminal=inputs.terminal,
         period=inputs.feedback_period,
         codesign_first=inputs.codesign_first,
+        held_first=inputs.held_first,
     )
 
 

@@ -16,6 +16,7 @@ import numpy as np
 
 import stages.funnel as stage
 from pipeline.numerics.funnel import synthesis
+from pipeline.numerics.funnel.check import HeldDesign
 from pipeline.numerics.funnel.synthesis import synthesize_funnel
 from pipeline.numerics.verify.recertify import HeldLawBounds
 from tests.helpers.robust import DISTURBANCE, double_integrator_case
@@ -44,19 +45,24 @@ def test_without_codesign_no_gains_are_codesigned(monkeypatch):
 
 
 def _designs(
-    monkeypatch, period: float, verdicts: list[tuple[str | None, tuple[int, ...]]]
+    monkeypatch,
+    period: float,
+    verdicts: list[tuple[str | None, tuple[int, ...]]],
+    held_first: HeldDesign | None = None,
+    returned: list | None = None,
 ) -> list[dict]:
     """The keyword arguments of every ``synthesize_funnel`` call of the stage's design of one
-    funnel, each design's held-law check scripted by ``verdicts`` in order (then rejected with
-    no failing interval); the first design is rejected for the held law."""
+    funnel (``held_first``: the task's earlier redesign), each design's held-law check scripted
+    by ``verdicts`` in order (then rejected with no failing interval); ``returned`` gets the
+    funnel and verdict the stage returns."""
     scenario, trajectory, initial = double_integrator_case()
     seen: list[dict] = []
     found = dataclasses.replace(
         stage._ends_outside(scenario, trajectory, "scripted"), rho=0.5, success=True
     )
 
-    def designed(*args, **kwargs):
-        seen.append(kwargs)
+    def designed(designed_for, *args, **kwargs):
+        seen.append({**kwargs, "scenario": designed_for})
         return found
 
     script = iter(verdicts)
@@ -74,9 +80,11 @@ def _designs(
     )
     task = stage._Task(
         scenario=scenario, trajectory=trajectory, initial=initial[None], rate=0.0,
-        disturbance=DISTURBANCE, period=period,
+        disturbance=DISTURBANCE, period=period, held_first=held_first,
     )  # fmt: skip
-    stage._designed(task)
+    result = stage._designed(task)
+    if returned is not None:
+        returned.append(result)
     return seen
 
 
@@ -100,3 +108,31 @@ def test_the_pushed_rows_go_first_where_the_held_check_failed(monkeypatch):
     assert tried == [(0.0, None), (0.005, {3}), (0.005, {3, 5}), (0.005, None), (0.0, None)]
     passed = _designs(monkeypatch, 0.005, [("scripted: (F2) fails", (3,)), (None, ())])
     assert [kwargs.get("pushed") for kwargs in passed] == [None, {3}]
+
+
+def test_an_earlier_rounds_redesign_is_tried_first_and_recorded(monkeypatch):
+    """A task with an earlier round's redesign (``held_first``) designs with it first (its
+    bound, input bounds, period, pushed intervals and first multiplier) and keeps that funnel
+    when it holds the held law, recording what it was designed for; when it does not, the
+    search runs as for any nominal. A redesign found that way is recorded too."""
+    earlier = HeldDesign(
+        disturbance=np.full(4, 0.07), input_lower=np.full(2, -0.9), input_upper=np.full(2, 0.9),
+        period=0.005, pushed=(0, 2), from_multiplier=0.5,
+    )  # fmt: skip
+    returned: list = []
+    kept = _designs(monkeypatch, 0.005, [(None, ())], held_first=earlier, returned=returned)
+    assert len(kept) == 1 and kept[0]["pushed"] == {0, 2} and kept[0]["period"] == 0.005
+    assert kept[0]["from_multiplier"] == 0.5 and kept[0]["codesign"] is False
+    assert np.array_equal(kept[0]["disturbance"], earlier.disturbance)
+    assert np.array_equal(kept[0]["scenario"].input_upper, earlier.input_upper)
+    funnel, failure = returned[-1]
+    assert failure is None and funnel.held == earlier
+    failing = [("scripted: not held", ()), ("scripted: (F2) fails", (3,)), (None, ())]
+    tried = _designs(monkeypatch, 0.005, failing, held_first=earlier, returned=returned)
+    assert [(kwargs.get("period", 0.0), kwargs.get("pushed")) for kwargs in tried] == [
+        (0.005, {0, 2}), (0.0, None), (0.005, {3}),
+    ]  # fmt: skip
+    funnel, failure = returned[-1]
+    assert failure is None and funnel.held is not None and funnel.held.pushed == (3,)
+    continuous = _designs(monkeypatch, 0.0, [], held_first=earlier)
+    assert len(continuous) == 1 and continuous[0].get("period", 0.0) == 0.0  # not held: unused

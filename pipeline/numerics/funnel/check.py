@@ -32,6 +32,24 @@ INTERPOLATION = "Q = P^-1 linear in t on each sample interval"
 
 
 @dataclass(frozen=True, kw_only=True)
+class HeldDesign:
+    """What a held law's funnel was designed again for (``stages.funnel``): the additive bound
+    ``disturbance (n,)`` (the declared one plus the hold's box), the input bounds ``(m,)`` kept
+    clear of the hold's input offset, the period ``h`` (0: (I6)'s box alone), the sample
+    intervals whose pieces got (I6')'s rows (``synthesize_funnel``'s ``pushed``; None: every
+    piece) and the multiplier its search started at. A re-optimize round designs the funnel
+    around the next, nearby nominal of the same trajectory with it first (a design choice: the
+    funnel is checked as any other)."""
+
+    disturbance: FloatArray
+    input_lower: FloatArray
+    input_upper: FloatArray
+    period: float
+    pushed: tuple[int, ...] | None
+    from_multiplier: float
+
+
+@dataclass(frozen=True, kw_only=True)
 class Funnel:
     """A certified (or rejected) funnel around one trajectory of N sample intervals.
 
@@ -56,6 +74,8 @@ class Funnel:
         checks search their own.
       codesigned: its gains were designed with its metric (``funnel.synthesis`` (F6)), not the
         LQR gains; the design's record too.
+      held: for a held law's funnel designed again for its hold (``stages.funnel``), what that
+        design was asked (None: the first design was kept); the design's record too.
     """
 
     K: FloatArray
@@ -75,6 +95,7 @@ class Funnel:
     interpolation: str = INTERPOLATION
     multiplier: float = 0.0
     codesigned: bool = False
+    held: HeldDesign | None = None
 
     @property
     def Q(self) -> FloatArray:
