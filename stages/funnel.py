@@ -178,14 +178,18 @@ def _designed(task: _Task) -> tuple[Funnel, str | None]:
         return _ends_outside(scenario, task.trajectory, why), why
     bounds = held_state_bounds(scenario)
     measurement = task.measurement
+
+    def verdict(funnel: Funnel) -> tuple[str | None, tuple[int, ...]]:
+        """``_accepted`` for the task's own law and declaration (the scenario's bounds)."""
+        return _accepted(
+            scenario, task.trajectory, funnel, bounds, task.disturbance, task.period, measurement
+        )
+
     if task.held_first is not None and task.period > 0:
         # an earlier round's redesign, around a nearby nominal of this trajectory, first: kept
         # when it holds the held law, else the search below as for any nominal
         again = _redesign(task, task.held_first)
-        verdict, _ = _accepted(
-            scenario, task.trajectory, again, bounds, task.disturbance, task.period, measurement
-        )
-        if verdict is None:
+        if verdict(again)[0] is None:
             return again, None
     # a held law keeps the LQR gains: (F6)'s program cannot see its own gains' push (I6)
     codesign = task.period <= 0
@@ -194,9 +198,7 @@ def _designed(task: _Task) -> tuple[Funnel, str | None]:
         disturbance=task.disturbance, terminal=terminal, codesign=codesign,
         codesign_first=task.codesign_first,
     )  # fmt: skip
-    failure, failing = _accepted(
-        scenario, task.trajectory, funnel, bounds, task.disturbance, task.period, measurement
-    )
+    failure, failing = verdict(funnel)
     boxed = task.period > 0 or measurement is not None
     if failure is None or not (boxed and funnel.success and funnel.rho > 0):
         return funnel, failure
@@ -228,9 +230,10 @@ def _designed(task: _Task) -> tuple[Funnel, str | None]:
     designs: list[tuple[str, FloatArray, float, frozenset[int] | None]] = [
         (f"{whose} box |w_h| <= ", held.hold, 0.0, None)
     ]
-    # (I6')'s rows first on the intervals where the held law's check failed, adding those each
-    # such design fails on, while they are fewer than half; then on every piece (a piece's rows
-    # double its LMIs, and the solve time grows faster)
+    # (I6')'s rows first on the intervals where the held law's check failed (none when another
+    # check did: the narrowed inputs and the remainder box may be all it needs), adding those
+    # each such design fails on, while they are fewer than half; then on every piece (a piece's
+    # rows double its LMIs, and the solve time grows faster)
     few = len(task.trajectory.us) / 2
     if held.remainder is not None:
         push = f"{whose} push to first order, remainder |w_r| <= "
@@ -243,9 +246,7 @@ def _designed(task: _Task) -> tuple[Funnel, str | None]:
         what, box, period, pushed = designs.pop(0)
         asked = design(box, period, pushed)
         again = _redesign(task, asked)
-        second, failing = _accepted(
-            scenario, task.trajectory, again, bounds, task.disturbance, task.period, measurement
-        )
+        second, failing = verdict(again)
         if second is None:
             return again, None
         if pushed is not None:
@@ -253,7 +254,7 @@ def _designed(task: _Task) -> tuple[Funnel, str | None]:
             more = pushed | set(failing)
             if attempts < PUSH_ATTEMPTS and pushed < more and len(more) < few:
                 designs.insert(0, (what, box, period, frozenset(more)))
-            continue  # only the last design of each kind is reported
+            continue  # not reported: the design on every piece follows
         reasons.append(
             f"designed again for {what}{np.round(HOLD_DESIGN * box, 4).tolist()} on top of the "
             f"disturbance: {second}"

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import decimal
+import enum
 import inspect
 import math
 import re
@@ -325,19 +326,32 @@ def test_negative_zero_is_stored_as_zero() -> None:
     assert RunOptions(feedback_period=-0.0) == RunOptions(feedback_period=0.0)
 
 
+class _Level(float, enum.Enum):
+    """A float ``Enum``: a ``float`` to ``isinstance``, not to the exact key encoding."""
+
+    HALF = 0.5
+
+
 @pytest.mark.parametrize(
     ("field", "value"),
-    [("clearance", Fraction(1, 2)), ("Ts", decimal.Decimal("0.1")), ("units", {"x": object()})],
-    ids=["Fraction", "Decimal", "object"],
+    [
+        ("clearance", Fraction(1, 2)),
+        ("Ts", decimal.Decimal("0.1")),
+        ("units", {"x": object()}),
+        ("clearance", _Level.HALF),
+        ("init_lower", np.array([1.0, 1.0, 0.0, 0.0], dtype=object)),
+    ],
+    ids=["Fraction", "Decimal", "object", "float-Enum", "object-array"],
 )
 def test_a_field_replaced_by_a_value_without_an_exact_key_is_refused_before_any_work(
     field, value, tmp_path
 ):
     """A ``Scenario`` field set by ``dataclasses.replace`` to a type the cache keys cannot
     encode exactly is a ``UserError`` naming the field, before any work (it failed the first
-    stage with a traceback)."""
+    stage with a traceback, or for the last two raised a ``TypeError`` out of the run)."""
     scenario = pipeline.load_scenario("double_integrator")
     replaced = dataclasses.replace(scenario, **{field: value})
-    with pytest.raises(pipeline.UserError, match=rf"^scenario field {field}[.\w]*: found a "):
+    with pytest.raises(pipeline.UserError, match=rf"^scenario field {field}[.\w]*: ") as raised:
         pipeline.synthesize(replaced, out=tmp_path / "o")
+    assert "expected a float, an int, a string" in str(raised.value)
     assert not (tmp_path / "o").exists()

@@ -115,6 +115,8 @@ def test_runs_continued_past_T_match_the_numpy_oracle(synthesized, tmp_path, per
         check_runs_compiled(scenario, controller, x0).final_state, at_T, rtol=0, atol=1e-9
     )
     continued = hold_runs_compiled(scenario, controller, x0, duration=10.0, ends=at_T)
+    with pytest.raises(ValueError, match=r"ends \(23, 6\) for x0 \(24, 6\)"):
+        hold_runs_compiled(scenario, controller, x0, duration=10.0, ends=at_T[1:])
     np.testing.assert_allclose(compiled.final_state, oracle.final_state, rtol=0, atol=1e-9)
     for name in (
         "level_ratio",

@@ -127,16 +127,22 @@ NOT_NUMERICAL = ("description", "stress", "optimizer", "demos")
 
 def check_keyable(scenario: Scenario) -> None:
     """Every field of ``scenario`` has an exact encoding for the stages' cache keys
-    (``scenario_data``): a value set by ``dataclasses.replace`` of another type (a
-    ``fractions.Fraction``, a ``decimal.Decimal``) is refused before any work, naming the
-    field, instead of failing the first stage."""
+    (``scenario_data``, then ``inputs_key``): a value set by ``dataclasses.replace`` of another
+    type (a ``fractions.Fraction``, a ``decimal.Decimal``, an array of objects, a float
+    ``Enum``) is refused before any work, naming the field, instead of failing the first
+    stage."""
+    expected = "expected a float, an int, a string, an array of numbers or what load_scenario gives"
     try:
-        scenario_key(scenario)
+        data = scenario_data(scenario)
     except Unkeyable as error:
         raise UserError(
-            f"scenario field {error.where}: found a {error.type_name}; expected a float, an "
-            "int, a string, an array or the type the loaded scenario holds there"
+            f"scenario field {error.where}: found a {error.type_name}; {expected}"
         ) from None
+    for name, value in data.items():
+        try:
+            inputs_key(value)
+        except TypeError as error:  # plain data the exact encoding still refuses
+            raise UserError(f"scenario field {name}: {error}; {expected}") from None
 
 
 def scenario_key(scenario: Scenario, *exclude: str) -> str:

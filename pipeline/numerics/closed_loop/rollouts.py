@@ -141,6 +141,8 @@ def hold_runs_compiled(
     kernels = load_kernels(flown_dynamics(scenario, draws))
     if ends is None:
         ends = _rollouts(scenario, controller, x0, substeps, draws=draws)[1][:, kernels.CHECKS :]
+    if np.shape(ends) != np.shape(x0):
+        raise ValueError(f"hold_runs_compiled: ends {np.shape(ends)} for x0 {np.shape(x0)}")
     x_end = np.ascontiguousarray(ends, dtype=np.float64)
     T = controller.horizons(controller.select(x0)[0])
     later = Draws.none(len(x0), x_end.shape[1]) if draws is None else draws

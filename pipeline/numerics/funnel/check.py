@@ -33,13 +33,14 @@ INTERPOLATION = "Q = P^-1 linear in t on each sample interval"
 
 @dataclass(frozen=True, kw_only=True)
 class HeldDesign:
-    """What a held law's funnel was designed again for (``stages.funnel``): the additive bound
-    ``disturbance (n,)`` (the declared one plus the hold's box), the input bounds ``(m,)`` kept
-    clear of the hold's input offset, the period ``h`` (0: (I6)'s box alone), the sample
-    intervals whose pieces got (I6')'s rows (``synthesize_funnel``'s ``pushed``; None: every
-    piece) and the multiplier its search started at. A re-optimize round designs the funnel
-    around the next, nearby nominal of the same trajectory with it first (a design choice: the
-    funnel is checked as any other)."""
+    """What a held (or measured) law's funnel was designed again for (``stages.funnel``): the
+    additive bound ``disturbance (n,)`` (the declared one plus the law's box), the input bounds
+    ``(m,)`` kept clear of the law's input offset, the period ``h`` (0: (I6)'s box alone), the
+    sample intervals whose pieces got (I6')'s rows (``synthesize_funnel``'s ``pushed``; None:
+    every piece) and the multiplier its search started at. A re-optimize round designs a held
+    law's funnel around the next, nearby nominal of the same trajectory with it first (a design
+    choice: the funnel is checked as any other, and may differ from the one the search would
+    find)."""
 
     disturbance: FloatArray
     input_lower: FloatArray
@@ -74,8 +75,9 @@ class Funnel:
         checks search their own.
       codesigned: its gains were designed with its metric (``funnel.synthesis`` (F6)), not the
         LQR gains; the design's record too.
-      held: for a held law's funnel designed again for its hold (``stages.funnel``), what that
-        design was asked (None: the first design was kept); the design's record too.
+      held: for a held or measured law's funnel designed again for the law's box
+        (``stages.funnel``), what that design was asked (None: the first design was kept); the
+        design's record too.
     """
 
     K: FloatArray

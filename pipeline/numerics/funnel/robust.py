@@ -283,8 +283,7 @@ class RobustCheck:
     ) -> bool:
         """Whether ``2 r_k(s bound) + lmi_term_k < -LMI_MARGIN`` on every interval (with a held
         law's box ``hold(s)`` added, as ``multiple``): ``multiple`` is below ``s`` when not."""
-        box = s * np.asarray(bound, dtype=np.float64)
-        margins, _ = self.margins(box if hold is None else box + hold(s))
+        margins, _ = self.margins(_grown(s, np.asarray(bound, dtype=np.float64), hold))
         return bool(np.all(2 * margins + lmi_term < -LMI_MARGIN))
 
     def multiple(
@@ -311,7 +310,7 @@ class RobustCheck:
 
         def holds(s: float) -> bool:
             nonlocal last
-            box = s * bound if hold is None else s * bound + hold(s)
+            box = _grown(s, bound, hold)
             failing = np.ones(self.N, dtype=bool)
             if last is not None:  # any alpha >= 0 is a certificate (I5): the last ones first,
                 # searching again only on the intervals they do not certify
@@ -335,3 +334,9 @@ class RobustCheck:
             middle = (low + high) / 2
             low, high = (middle, high) if holds(middle) else (low, middle)
         return low * (1 - 1e-9)
+
+
+def _grown(s: float, bound: FloatArray, hold: Callable[[float], FloatArray] | None) -> FloatArray:
+    """``s`` times the disturbance box ``bound (n,)``, plus a held law's box ``hold(s) (N, n)``
+    under it (``RobustCheck.multiple``)."""
+    return s * bound if hold is None else s * bound + hold(s)

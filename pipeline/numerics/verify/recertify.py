@@ -178,10 +178,10 @@ class FunnelRecheck:
         binding: the constraint that sets it; disturbance_multiple: the largest ``s`` for which
         (I5) still holds with ``s`` times the disturbance checked (``funnel.robust``: found by
         bisection, nothing else depends on it; ``inf`` without a disturbance; below 1 when the
-        funnel does not hold the one checked; NaN when not asked for; at most the ``enough``
-        asked for); failing: the sample
-        intervals where that margin is not below ``-LMI_MARGIN`` (where a redesign must do
-        better, ``stages.funnel``).
+        funnel does not hold the one checked; NaN when not asked for; ``enough`` itself where
+        the funnel holds it, certify asking no more); failing: the sample intervals where that
+        margin is not below ``-LMI_MARGIN`` (where a redesign must do better,
+        ``stages.funnel``).
     """
 
     failure: str | None
