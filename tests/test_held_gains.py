@@ -5,7 +5,9 @@ its own gains give a held law ((I6) is bilinear in them), so a co-designed funne
 the design never saw. On quadrotor_hill at 5 ms (round 1's nominals) the co-designed funnels'
 push on the pitch rate was 10-30x the LQR gains' and none of them held the held law, after up to
 32 solves each. So a held law is designed with the LQR gains only, first design and redesigns;
-the continuous law keeps (F6).
+the continuous law keeps (F6). The order of the redesigns (``stages.funnel._designed``): an
+earlier round's redesign first, then (I6')'s rows where the held check failed, on every piece,
+and (I6)'s box.
 """
 
 from __future__ import annotations
