@@ -188,7 +188,7 @@ def _designed(task: _Task) -> tuple[Funnel, str | None]:
     if task.held_first is not None and task.period > 0:
         # an earlier round's redesign, around a nearby nominal of this trajectory, first: kept
         # when it holds the held law, else the search below as for any nominal
-        again = _redesign(task, task.held_first)
+        again = _redesign(task, task.held_first, bounds)
         if verdict(again)[0] is None:
             return again, None
     # a held law keeps the LQR gains: (F6)'s program cannot see its own gains' push (I6)
@@ -220,40 +220,37 @@ def _designed(task: _Task) -> tuple[Funnel, str | None]:
         lower, upper = scenario.input_lower, scenario.input_upper
     whose = "the hold's" if measurement is None else "the law's (hold and measurement)"
 
-    def design(box: FloatArray, period: float, pushed: frozenset[int] | None) -> HeldDesign:
+    def design(box: FloatArray, period: float, pushed: tuple[int, ...] | None) -> HeldDesign:
         return HeldDesign(
             disturbance=declared + HOLD_DESIGN * box, input_lower=lower, input_upper=upper,
-            period=period, pushed=None if pushed is None else tuple(sorted(pushed)),
-            from_multiplier=funnel.multiplier,
+            period=period, pushed=pushed, from_multiplier=funnel.multiplier,
         )  # fmt: skip
 
-    designs: list[tuple[str, FloatArray, float, frozenset[int] | None]] = [
-        (f"{whose} box |w_h| <= ", held.hold, 0.0, None)
-    ]
     # (I6')'s rows first on the intervals where the held law's check failed (none when another
     # check did: the narrowed inputs and the remainder box may be all it needs), adding those
     # each such design fails on, while they are fewer than half; then on every piece (a piece's
-    # rows double its LMIs, and the solve time grows faster)
+    # rows double its LMIs, and the solve time grows faster); then (I6)'s box
     few = len(task.trajectory.us) / 2
+    designs: list[tuple[str, FloatArray, HeldDesign]] = []
     if held.remainder is not None:
         push = f"{whose} push to first order, remainder |w_r| <= "
-        designs.insert(0, (push, held.remainder, task.period, None))
         if len(failing) < few:
-            designs.insert(0, (push, held.remainder, task.period, frozenset(failing)))
+            designs.append((push, held.remainder, design(held.remainder, task.period, failing)))
+        designs.append((push, held.remainder, design(held.remainder, task.period, None)))
+    designs.append((f"{whose} box |w_h| <= ", held.hold, design(held.hold, 0.0, None)))
     reasons = []
     attempts = 0
     while designs:
-        what, box, period, pushed = designs.pop(0)
-        asked = design(box, period, pushed)
-        again = _redesign(task, asked)
+        what, box, asked = designs.pop(0)
+        again = _redesign(task, asked, bounds)
         second, failing = verdict(again)
         if second is None:
             return again, None
-        if pushed is not None:
+        if asked.pushed is not None:
             attempts += 1
-            more = pushed | set(failing)
-            if attempts < PUSH_ATTEMPTS and pushed < more and len(more) < few:
-                designs.insert(0, (what, box, period, frozenset(more)))
+            more = tuple(sorted({*asked.pushed, *failing}))
+            if attempts < PUSH_ATTEMPTS and len(asked.pushed) < len(more) < few:
+                designs.insert(0, (what, box, replace(asked, pushed=more)))
             continue  # not reported: the design on every piece follows
         reasons.append(
             f"designed again for {what}{np.round(HOLD_DESIGN * box, 4).tolist()} on top of the "
@@ -262,7 +259,9 @@ def _designed(task: _Task) -> tuple[Funnel, str | None]:
     return funnel, "; ".join([failure, *reasons])
 
 
-def _redesign(task: _Task, asked: HeldDesign) -> Funnel:
+def _redesign(
+    task: _Task, asked: HeldDesign, state_bounds: Mapping[str, tuple[float, float]]
+) -> Funnel:
     """The funnel of ``task`` designed for a held or measured law as ``asked`` (its bound, input
     bounds, period, pushed intervals and first multiplier), on the capped boxes, with the LQR
     gains for a held law, recording ``asked`` (``Funnel.held``)."""
@@ -273,7 +272,7 @@ def _redesign(task: _Task, asked: HeldDesign) -> Funnel:
     ):
         scenario = replace(scenario, input_lower=asked.input_lower, input_upper=asked.input_upper)
     funnel = synthesize_funnel(
-        scenario, task.trajectory, state_bounds=held_state_bounds(task.scenario),
+        scenario, task.trajectory, state_bounds=state_bounds,
         initial=task.initial, rate=task.rate, disturbance=asked.disturbance,
         terminal=task.terminal, period=asked.period, codesign=task.period <= 0, widen=False,
         from_multiplier=asked.from_multiplier,
@@ -423,7 +422,7 @@ class FunnelInputs(StageInputs):
     certificate's metric ``P (n, n)`` and ball radius per trajectory ``radii (k,)``, the
     terminal ellipsoid the funnels must end in (None: none), the period the law is held for
     (0: continuous feedback) and per trajectory whether its search tries co-designed gains
-    first (empty: none does)."""
+    first and a held law's redesign to try first (empty: none does)."""
 
     scenario_fields: ClassVar = (
         "Ts",

@@ -350,7 +350,8 @@ def reoptimize_rounds(
     (stage ``reoptimize_k``), but to no fewer than ``ceil((1 - step_i) N_i)`` samples, and
     synthesizes and checks new funnels around the new nominals (``funnel_k``,
     ``coverage_funnel_k``; one whose kept funnel has co-designed gains (F6) is searched with
-    them first); a trajectory that did not move keeps its funnel.
+    them first, one whose kept funnel was designed again for a held law with that design
+    first); a trajectory that did not move keeps its funnel.
     Trajectory i's new nominal and funnel are kept when that funnel is certified and its
     level holds at least what the kept one held (``_accepted``: both levels are fractions of
     the same required set, the start's cell of Init), or, at any certified level, when the
