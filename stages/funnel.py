@@ -264,7 +264,8 @@ def _redesign(
 ) -> Funnel:
     """The funnel of ``task`` designed for a held or measured law as ``asked`` (its bound, input
     bounds, period, pushed intervals and first multiplier), on the capped boxes, with the LQR
-    gains for a held law, recording ``asked`` (``Funnel.held``)."""
+    gains for a held law, recording ``asked`` (``Funnel.held``) with the multiplier that
+    designed it as the first (where a round's next search for the trajectory starts)."""
     scenario = task.scenario
     if not (
         np.array_equal(asked.input_lower, scenario.input_lower)
@@ -278,7 +279,9 @@ def _redesign(
         from_multiplier=asked.from_multiplier,
         pushed=None if asked.pushed is None else frozenset(asked.pushed),
     )  # fmt: skip
-    return replace(funnel, held=asked)
+    # a round's next try for this trajectory starts at the multiplier that designed this one
+    start = funnel.multiplier if funnel.success and funnel.rho > 0 else asked.from_multiplier
+    return replace(funnel, held=replace(asked, from_multiplier=start))
 
 
 def _reused(earlier: tuple[Funnel, str | None]) -> tuple[Funnel, str | None]:

@@ -60,7 +60,10 @@ def _designs(
     scenario, trajectory, initial = double_integrator_case()
     seen: list[dict] = []
     found = dataclasses.replace(
-        stage._ends_outside(scenario, trajectory, "scripted"), rho=0.5, success=True
+        stage._ends_outside(scenario, trajectory, "scripted"),
+        rho=0.5,
+        success=True,
+        multiplier=3.0,
     )
 
     def designed(designed_for, *args, **kwargs):
@@ -115,8 +118,9 @@ def test_the_pushed_rows_go_first_where_the_held_check_failed(monkeypatch):
 def test_an_earlier_rounds_redesign_is_tried_first_and_recorded(monkeypatch):
     """A task with an earlier round's redesign (``held_first``) designs with it first (its
     bound, input bounds, period, pushed intervals and first multiplier) and keeps that funnel
-    when it holds the held law, recording what it was designed for; when it does not, the
-    search runs as for any nominal. A redesign found that way is recorded too."""
+    when it holds the held law, recording what it was designed for with the multiplier that
+    designed it as the next search's first; when it does not, the search runs as for any
+    nominal. A redesign found that way is recorded too."""
     earlier = HeldDesign(
         disturbance=np.full(4, 0.07), input_lower=np.full(2, -0.9), input_upper=np.full(2, 0.9),
         period=0.005, pushed=(0, 2), from_multiplier=0.5,
@@ -128,7 +132,7 @@ def test_an_earlier_rounds_redesign_is_tried_first_and_recorded(monkeypatch):
     assert np.array_equal(kept[0]["disturbance"], earlier.disturbance)
     assert np.array_equal(kept[0]["scenario"].input_upper, earlier.input_upper)
     funnel, failure = returned[-1]
-    assert failure is None and funnel.held == earlier
+    assert failure is None and funnel.held == dataclasses.replace(earlier, from_multiplier=3.0)
     failing = [("scripted: not held", ()), ("scripted: (F2) fails", (3,)), (None, ())]
     tried = _designs(monkeypatch, 0.005, failing, held_first=earlier, returned=returned)
     assert [(kwargs.get("period", 0.0), kwargs.get("pushed")) for kwargs in tried] == [

@@ -328,6 +328,27 @@ def test_a_redesign_searches_from_the_first_design_s_multiplier_and_records_its_
     assert synthesize_funnel(scenario, trajectory, initial=initial).multiplier == 0.0
 
 
+@pytest.mark.parametrize(("short", "stops"), [(1e-7, True), (1e-5, False)])
+def test_a_level_short_of_the_whole_by_rounding_ends_the_search(short, stops, monkeypatch):
+    """Every program scripted to hold the design level ``1 - short``: within
+    ``WHOLE_ROUNDING`` of the whole level the first funnel certified ends the search (one
+    program solved); further below, the search goes on to the next multiplier."""
+    scenario, trajectory, initial = double_integrator_case()
+    solve = synthesis.solve_clarabel
+    solved: list[float] = []
+
+    def scripted(program):
+        solved.append(program.multiplier)
+        solution = solve(program)
+        return solution if isinstance(solution, str) else (solution[0], (1 - short) ** 2)
+
+    monkeypatch.setattr(synthesis, "solve_clarabel", scripted)
+    funnel = synthesize_funnel(scenario, trajectory, initial=initial, disturbance=DISTURBANCE)
+    assert funnel.success and funnel.limits["design"] == pytest.approx(1 - short, abs=1e-12)
+    assert short < synthesis.WHOLE_ROUNDING if stops else short > synthesis.WHOLE_ROUNDING
+    assert (len(solved) == 1) == stops, solved
+
+
 def _solves_by_family(monkeypatch, f6_share: float = 1.0, f6_gains: bool = True) -> list[str]:
     """Record each Clarabel solve of ``synthesize_funnel`` as ``"F6"`` (the program holding
     gains just co-designed) or ``"LQR"``, in order, into the list returned. ``f6_share``

@@ -165,6 +165,7 @@ MARGINS = (1e-3, 1e-2)
 ROBUST_MULTIPLIERS = (0.3, 1.0, 3.0, 10.0)
 ROBUST_MARGIN = 0.05
 ROBUST_SEED = 2.0  # the hull boxes hold this multiple of the seed's disturbance extent (F5)
+WHOLE_ROUNDING = 1e-6  # a level this close below the whole design level stops the search
 # Sample intervals per LMI piece: K is held and Q = P^-1 linear in t over each piece (see HOLD in
 # the module docstring).
 HOLD = 2
@@ -626,7 +627,8 @@ def synthesize_funnel(
             if rho <= 0:
                 failure = failure or f"the nominal itself violates {binding} at t = {when:.2f} s"
             # robust: the highest checked level is kept; none beats the design's whole level
-            if not failure and (robust is None or rho >= 1 - LEVEL_SLACK):
+            # (reached to the last bits: a cap at 1 - 1e-7 stopped no search before)
+            if not failure and (robust is None or rho >= (1 - LEVEL_SLACK) * (1 - WHOLE_ROUNDING)):
                 break
             if not failure and (best is None or rho > best[0].rho):
                 best = (funnel, margin, binding, when, origin)

@@ -163,7 +163,7 @@ def rollout_kernel(
         finite = True
         input_slack = np.inf
         nearest = np.inf
-        longest = 0.0
+        longest_squared = 0.0
         denominator = 1.0
         tube = 0.0
         ratio = 0.0
@@ -177,7 +177,8 @@ def rollout_kernel(
             # Unsafe's distance and Goal's signed distance are 1-Lipschitz in the position: one
             # measured ``floor`` above its running minimum cannot lower that minimum while the
             # position stays within ``floor`` of where it was measured (no result changes)
-            if math.hypot(x[p0] - unsafe_at[0], x[p1] - unsafe_at[1]) >= unsafe_floor:
+            # (squared: math.hypot cost ~10% of a held law's rollout; the floor is >= 0 or -1)
+            if _moved_beyond(x[p0] - unsafe_at[0], x[p1] - unsafe_at[1], unsafe_floor):
                 found = unsafe_distance(x[p0], x[p1], nearest + LOOKAHEAD, scene)
                 nearest = min(nearest, found)
                 unsafe_floor = found - nearest - LIPSCHITZ_ROUNDING
@@ -187,7 +188,7 @@ def rollout_kernel(
                 bound_margin = min(bound_margin, value - bound_lower[c], bound_upper[c] - value)
             if every_goal and (
                 not lipschitz_goal
-                or math.hypot(x[p0] - goal_at[0], x[p1] - goal_at[1]) >= goal_floor
+                or _moved_beyond(x[p0] - goal_at[0], x[p1] - goal_at[1], goal_floor)
             ):
                 found = _goal_margin(x, p0, p1, goal, rings)
                 goal_margin = min(goal_margin, found)
@@ -233,9 +234,10 @@ def rollout_kernel(
                 x[i] = x[i] + (h / 6.0) * (K[0, i] + 2.0 * K[1, i] + 2.0 * K[2, i] + K[3, i])
                 if not math.isfinite(x[i]):
                     finite = False
-            longest = max(longest, math.hypot(x[p0] - px, x[p1] - py))
+            longest_squared = max(longest_squared, (x[p0] - px) ** 2 + (x[p1] - py) ** 2)
             for c in range(bound_index.size):
                 bound_step = max(bound_step, abs(x[bound_index[c]] - y[c]))
+        longest = math.sqrt(longest_squared)
         out[b, CLEARANCE] = nearest - longest / 2
         if every_goal:
             out[b, GOAL] = goal_margin - longest / 2
@@ -248,6 +250,12 @@ def rollout_kernel(
         out[b, FINITE] = 1.0 if finite else 0.0
         for i in range(n):
             out[b, CHECKS + i] = x[i]
+
+
+@njit(cache=True, inline="always")
+def _moved_beyond(dx, dy, floor):
+    """Whether the move ``(dx, dy)`` is at least ``floor`` long (always when ``floor < 0``)."""
+    return floor < 0.0 or dx * dx + dy * dy >= floor * floor
 
 
 @njit(cache=True)
