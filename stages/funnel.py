@@ -46,7 +46,7 @@ from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import Trajectory
 from pipeline.numerics.funnel.cells import init_cells
-from pipeline.numerics.funnel.check import Funnel, HeldDesign, check_funnel
+from pipeline.numerics.funnel.check import EarlierDesign, Funnel, HeldDesign, check_funnel
 from pipeline.numerics.funnel.law import LawOffset
 from pipeline.numerics.funnel.synthesis import synthesize_funnel
 from pipeline.numerics.terminal.fit import TerminalTarget
@@ -97,9 +97,8 @@ class _Task:
     additive bound ``(n,)`` of the declared uncertainty (None: the exact model); the terminal
     ellipsoid it must end in (None: none); the period the law is held for (0: continuous); the
     box ``(n,)`` of the error on the state the law sees (``funnel.law`` (I7); None: exact);
-    whether to search co-designed gains (F6) first (``synthesize_funnel``'s ``codesign_first``);
-    a held law's redesign to try first (an earlier round's, around a nearby nominal; None:
-    none)."""
+    how an earlier round designed the trajectory's kept funnel, tried first (the default:
+    nothing earlier)."""
 
     scenario: Scenario
     trajectory: Trajectory
@@ -109,8 +108,7 @@ class _Task:
     terminal: TerminalTarget | None = None
     period: float = 0.0
     measurement: FloatArray | None = None
-    codesign_first: bool = False
-    held_first: HeldDesign | None = None
+    earlier: EarlierDesign = EarlierDesign()
 
 
 def _accepted(
@@ -185,10 +183,10 @@ def _designed(task: _Task) -> tuple[Funnel, str | None]:
             scenario, task.trajectory, funnel, bounds, task.disturbance, task.period, measurement
         )
 
-    if task.held_first is not None and task.period > 0:
+    if task.earlier.held is not None and task.period > 0:
         # an earlier round's redesign, around a nearby nominal of this trajectory, first: kept
         # when it holds the held law, else the search below as for any nominal
-        again = _redesign(task, task.held_first, bounds)
+        again = _redesign(task, task.earlier.held, bounds)
         if verdict(again)[0] is None:
             return again, None
     # a held law keeps the LQR gains: (F6)'s program cannot see its own gains' push (I6)
@@ -196,7 +194,7 @@ def _designed(task: _Task) -> tuple[Funnel, str | None]:
     funnel = synthesize_funnel(
         scenario, task.trajectory, state_bounds=bounds, initial=task.initial, rate=task.rate,
         disturbance=task.disturbance, terminal=terminal, codesign=codesign,
-        codesign_first=task.codesign_first,
+        codesign_first=task.earlier.codesigned,
     )  # fmt: skip
     failure, failing = verdict(funnel)
     boxed = task.period > 0 or measurement is not None
@@ -307,8 +305,7 @@ def synthesize_funnels(
     reuse: Sequence[tuple[Funnel, str | None] | None] | None = None,
     terminal: TerminalTarget | None = None,
     period: float = 0.0,
-    codesign_first: Sequence[bool] = (),
-    held_first: Sequence[HeldDesign | None] = (),
+    earlier: Sequence[EarlierDesign] = (),
 ) -> FunnelStageResult:
     """The funnel of every trajectory on ``executor`` (default: here, in order; the result does
     not depend on it), each asked to hold its start's cell of Init (``required_sets``).
@@ -328,10 +325,9 @@ def synthesize_funnels(
         it is dropped, saying so.
       period: the law is held every ``period`` s (0: continuous): a funnel is kept only when
         it holds that law (``funnel.law`` (I6)) as certify will rebuild it.
-      codesign_first: per trajectory, whether its search tries gains co-designed with the
-        metric (F6) before the LQR gains (empty: none does); only the order of the search.
-      held_first: per trajectory, a held law's redesign to try first (an earlier round's funnel
-        around a nearby nominal, ``Funnel.held``; empty or None: none); only the order too.
+      earlier: per trajectory, how an earlier round designed its kept funnel (``EarlierDesign``:
+        co-designed gains (F6) searched before the LQR gains, a held law's redesign tried
+        first; empty: nothing earlier); only the order of the search.
     """
     if not (len(names) == len(trajectories) == len(radii)):
         raise ValueError(
@@ -341,12 +337,11 @@ def synthesize_funnels(
     radii = np.asarray(radii, dtype=np.float64).reshape(-1)
     initial = required_sets(scenario, [t.xs[0] for t in trajectories], P, radii)
     reuse = [None] * len(trajectories) if reuse is None else list(reuse)
-    first = list(codesign_first) or [False] * len(trajectories)
-    redesigns = list(held_first) or [None] * len(trajectories)
-    if not len(first) == len(redesigns) == len(trajectories):
+    earlier = list(earlier) or [EarlierDesign()] * len(trajectories)
+    if len(earlier) != len(trajectories):
         raise ValueError(
-            f"funnel: {len(first)} search orders and {len(redesigns)} redesigns for "
-            f"{len(trajectories)} trajectories; expected one per trajectory (or none)"
+            f"funnel: {len(earlier)} earlier designs for {len(trajectories)} trajectories; "
+            "expected one per trajectory (or none)"
         )
     if len(reuse) != len(trajectories):
         raise ValueError(
@@ -365,8 +360,7 @@ def synthesize_funnels(
             terminal=terminal,
             period=period,
             measurement=measurement,
-            codesign_first=first[i],
-            held_first=redesigns[i],
+            earlier=earlier[i],
         )
         for i, (trajectory, Q_init) in enumerate(zip(trajectories, initial, strict=True))
         if reuse[i] is None
@@ -424,8 +418,8 @@ class FunnelInputs(StageInputs):
     """What stage ``funnel`` reads: the trajectories' names and final nominals, the constant
     certificate's metric ``P (n, n)`` and ball radius per trajectory ``radii (k,)``, the
     terminal ellipsoid the funnels must end in (None: none), the period the law is held for
-    (0: continuous feedback) and per trajectory whether its search tries co-designed gains
-    first and a held law's redesign to try first (empty: none does)."""
+    (0: continuous feedback) and per trajectory how an earlier round designed its kept funnel
+    (``EarlierDesign``, tried first; empty: nothing earlier)."""
 
     scenario_fields: ClassVar = (
         "Ts",
@@ -451,8 +445,7 @@ class FunnelInputs(StageInputs):
     radii: FloatArray
     terminal: TerminalTarget | None = None
     feedback_period: float = 0.0
-    codesign_first: tuple[bool, ...] = ()
-    held_first: tuple[HeldDesign | None, ...] = ()
+    earlier: tuple[EarlierDesign, ...] = ()
 
 
 def _funnel_stage(
@@ -473,8 +466,7 @@ def _funnel_stage(
         reuse=reuse,
         terminal=inputs.terminal,
         period=inputs.feedback_period,
-        codesign_first=inputs.codesign_first,
-        held_first=inputs.held_first,
+        earlier=inputs.earlier,
     )
 
 

@@ -18,7 +18,7 @@ import numpy as np
 
 import stages.funnel as stage
 from pipeline.numerics.funnel import synthesis
-from pipeline.numerics.funnel.check import HeldDesign
+from pipeline.numerics.funnel.check import EarlierDesign, HeldDesign
 from pipeline.numerics.funnel.synthesis import synthesize_funnel
 from pipeline.numerics.verify.recertify import HeldLawBounds
 from tests.helpers.robust import DISTURBANCE, double_integrator_case
@@ -50,13 +50,13 @@ def _designs(
     monkeypatch,
     period: float,
     verdicts: list[tuple[str | None, tuple[int, ...]]],
-    held_first: HeldDesign | None = None,
+    earlier_held: HeldDesign | None = None,
     returned: list | None = None,
 ) -> list[dict]:
     """The keyword arguments of every ``synthesize_funnel`` call of the stage's design of one
-    funnel (``held_first``: the task's earlier redesign), each design's held-law check scripted
-    by ``verdicts`` in order (then rejected with no failing interval); ``returned`` gets the
-    funnel and verdict the stage returns."""
+    funnel (``earlier_held``: the task's ``EarlierDesign.held``), each design's held-law check
+    scripted by ``verdicts`` in order (then rejected with no failing interval); ``returned``
+    gets the funnel and verdict the stage returns."""
     scenario, trajectory, initial = double_integrator_case()
     seen: list[dict] = []
     found = dataclasses.replace(
@@ -85,7 +85,7 @@ def _designs(
     )
     task = stage._Task(
         scenario=scenario, trajectory=trajectory, initial=initial[None], rate=0.0,
-        disturbance=DISTURBANCE, period=period, held_first=held_first,
+        disturbance=DISTURBANCE, period=period, earlier=EarlierDesign(held=earlier_held),
     )  # fmt: skip
     result = stage._designed(task)
     if returned is not None:
@@ -116,9 +116,9 @@ def test_the_pushed_rows_go_first_where_the_held_check_failed(monkeypatch):
 
 
 def test_an_earlier_rounds_redesign_is_tried_first_and_recorded(monkeypatch):
-    """A task with an earlier round's redesign (``held_first``) designs with it first (its
-    bound, input bounds, period, pushed intervals and first multiplier) and keeps that funnel
-    when it holds the held law, recording what it was designed for with the multiplier that
+    """A task with an earlier round's redesign (``EarlierDesign.held``) designs with it first
+    (its bound, input bounds, period, pushed intervals and first multiplier) and keeps that
+    funnel when it holds the held law, recording what it was designed for with the multiplier that
     designed it as the next search's first; when it does not, the search runs as for any
     nominal. A redesign found that way is recorded too."""
     earlier = HeldDesign(
@@ -126,7 +126,7 @@ def test_an_earlier_rounds_redesign_is_tried_first_and_recorded(monkeypatch):
         period=0.005, pushed=(0, 2), from_multiplier=0.5,
     )  # fmt: skip
     returned: list = []
-    kept = _designs(monkeypatch, 0.005, [(None, ())], held_first=earlier, returned=returned)
+    kept = _designs(monkeypatch, 0.005, [(None, ())], earlier_held=earlier, returned=returned)
     assert len(kept) == 1 and kept[0]["pushed"] == {0, 2} and kept[0]["period"] == 0.005
     assert kept[0]["from_multiplier"] == 0.5 and kept[0]["codesign"] is False
     assert np.array_equal(kept[0]["disturbance"], earlier.disturbance)
@@ -134,11 +134,11 @@ def test_an_earlier_rounds_redesign_is_tried_first_and_recorded(monkeypatch):
     funnel, failure = returned[-1]
     assert failure is None and funnel.held == dataclasses.replace(earlier, from_multiplier=3.0)
     failing = [("scripted: not held", ()), ("scripted: (F2) fails", (3,)), (None, ())]
-    tried = _designs(monkeypatch, 0.005, failing, held_first=earlier, returned=returned)
+    tried = _designs(monkeypatch, 0.005, failing, earlier_held=earlier, returned=returned)
     assert [(kwargs.get("period", 0.0), kwargs.get("pushed")) for kwargs in tried] == [
         (0.005, {0, 2}), (0.0, None), (0.005, {3}),
     ]  # fmt: skip
     funnel, failure = returned[-1]
     assert failure is None and funnel.held is not None and funnel.held.pushed == (3,)
-    continuous = _designs(monkeypatch, 0.0, [], held_first=earlier)
+    continuous = _designs(monkeypatch, 0.0, [], earlier_held=earlier)
     assert len(continuous) == 1 and continuous[0].get("period", 0.0) == 0.0  # not held: unused

@@ -31,7 +31,7 @@ from pipeline.io.executor import Executor
 from pipeline.io.progress import progress_bar
 from pipeline.model.scenario import CertificateName, Scenario
 from pipeline.model.simulate import Trajectory
-from pipeline.numerics.funnel.check import Funnel, HeldDesign
+from pipeline.numerics.funnel.check import EarlierDesign, Funnel
 from pipeline.numerics.terminal.design import (
     TerminalDesign,
     TerminalError,
@@ -285,14 +285,12 @@ def funnel_stages(
     trajectories: Sequence[Trajectory],
     stage: str = "funnel",
     reuse: Sequence[tuple[Funnel, str | None] | None] | None = None,
-    codesign_first: tuple[bool, ...] = (),
-    held_first: tuple[HeldDesign | None, ...] = (),
+    earlier: tuple[EarlierDesign, ...] = (),
 ) -> tuple[FunnelStageResult, CoverageResult]:
     """Stages ``stage`` (``funnel`` or ``funnel_k`` in re-optimize round k: one funnel per
     trajectory, on ``executor``; ``reuse[i]``, when given, is trajectory i's funnel from an
-    earlier round around the same nominal, with its verdict then; ``codesign_first[i]``: its
-    search tries co-designed gains first; ``held_first[i]``: a held law's redesign it tries
-    first) and ``coverage_<stage>``
+    earlier round around the same nominal, with its verdict then; ``earlier[i]``: how an
+    earlier round designed its kept funnel, tried first) and ``coverage_<stage>``
     (Init by the usable funnels' initial ellipsoids ``E_i(0)``, each in its own metric
     ``P_i[0]``)."""
     scenario = run.scenario
@@ -307,8 +305,7 @@ def funnel_stages(
                 radii=np.asarray(run.initial_radii),
                 terminal=run.terminal,
                 feedback_period=run.feedback_period,
-                codesign_first=codesign_first,
-                held_first=held_first,
+                earlier=earlier,
             ),
             name=stage,
             describe=lambda result: result.message,
@@ -440,8 +437,7 @@ def reoptimize_rounds(
             ],
             # a nominal whose kept funnel needed (F6) gains is searched with them first, and
             # one whose kept funnel was designed again for a held law with that design first
-            codesign_first=tuple(f.codesigned for f in funnels.funnels),
-            held_first=tuple(f.held for f in funnels.funnels),
+            earlier=tuple(EarlierDesign.of(f) for f in funnels.funnels),
         )  # fmt: skip
         lower = functools.partial(_funnel_coverage, run, f"coverage_{_round_stage(k)}_lower")
         kept, lowered = _kept(funnels, new_funnels, moved, lower)

@@ -51,6 +51,23 @@ class HeldDesign:
 
 
 @dataclass(frozen=True, kw_only=True)
+class EarlierDesign:
+    """How an earlier re-optimize round designed a trajectory's kept funnel, tried first around
+    its next, nearby nominal (``stages.funnel``; only the order of the search: every funnel is
+    checked as any other): ``codesigned``, its gains were co-designed with the metric (F6)
+    (``synthesize_funnel``'s ``codesign_first``); ``held``, a held law's redesign
+    (``Funnel.held``; None: none)."""
+
+    codesigned: bool = False
+    held: HeldDesign | None = None
+
+    @classmethod
+    def of(cls, funnel: Funnel) -> EarlierDesign:
+        """The record of ``funnel``'s design."""
+        return cls(codesigned=funnel.codesigned, held=funnel.held)
+
+
+@dataclass(frozen=True, kw_only=True)
 class Funnel:
     """A certified (or rejected) funnel around one trajectory of N sample intervals.
 
