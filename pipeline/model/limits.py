@@ -21,3 +21,12 @@ def divides(period: float, sampling_time: float) -> bool:
     where ``u_ref`` switches."""
     steps = sampling_time / period
     return steps >= 1 - 1e-9 and abs(steps - round(steps)) <= 1e-9 * steps
+
+
+def periods_allowed(sampling_time: float, whose: str = "") -> str:
+    """What a feedback period must be, in words, for a sampling time (``whose``: the owner
+    named before ``sampling_time``, e.g. ``"the scenario's "``)."""
+    return (
+        f"0 (continuous feedback) or a period of at least {MIN_FEEDBACK_PERIOD:g} s that divides "
+        f"{whose}sampling_time {sampling_time:g} s (e.g. {sampling_time / 10:g})"
+    )

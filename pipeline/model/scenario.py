@@ -37,7 +37,7 @@ from pipeline.model.expressions import (
 )
 from pipeline.model.feedback_defaults import resolve_feedback
 from pipeline.model.frozen import freeze_fields, reduce_fields
-from pipeline.model.limits import MIN_FEEDBACK_PERIOD, divides
+from pipeline.model.limits import MIN_FEEDBACK_PERIOD, divides, periods_allowed
 from pipeline.model.scenario_file import LOCAL_SCENARIOS as LOCAL_SCENARIOS  # re-exported
 from pipeline.model.scenario_file import SCENARIOS_ROOT as SCENARIOS_ROOT
 from pipeline.model.scenario_file import available_scenarios as available_scenarios
@@ -371,9 +371,7 @@ def _feedback_period(path: Path, spec: ScenarioSpec) -> float:
             file=path,
             field="feedback_period",
             found=period,
-            expected=f"0 (continuous feedback) or a period of at least {MIN_FEEDBACK_PERIOD:g} s "
-            f"that divides sampling_time {spec.sampling_time:g} s (e.g. "
-            f"{spec.sampling_time / 10:g})",
+            expected=periods_allowed(spec.sampling_time),
         )
     return period
 

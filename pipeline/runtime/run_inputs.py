@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 from pipeline.io.artifacts import inputs_key
 from pipeline.io.errors import UserError
-from pipeline.model.limits import MIN_FEEDBACK_PERIOD, divides
+from pipeline.model.limits import MIN_FEEDBACK_PERIOD, divides, periods_allowed
 from pipeline.model.scenario import CertificateName, Scenario
 from pipeline.model.scenario_data import Unkeyable, plain, scenario_data
 from pipeline.numerics.tube.sampled import HeldRate, held_rate
@@ -52,10 +52,7 @@ def check_period(
     ``funnel.law``). A scenario file's value was checked on loading; this also catches one set
     by ``dataclasses.replace``, of any type (a ``bool`` or text is refused, as by
     ``RunOptions``)."""
-    expected = (
-        f"expected 0 (continuous feedback) or a period of at least {MIN_FEEDBACK_PERIOD:g} s "
-        f"that divides the scenario's sampling_time {scenario.Ts:g} s (e.g. {scenario.Ts / 10:g})"
-    )
+    expected = "expected " + periods_allowed(scenario.Ts, whose="the scenario's ")
     if isinstance(period, bool) or not isinstance(period, numbers.Real):
         raise UserError(f"{source}: found {period!r}; {expected}")
     try:
