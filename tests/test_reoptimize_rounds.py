@@ -147,6 +147,16 @@ def test_a_step_grows_after_a_kept_move_and_halves_after_one_that_was_not():
     assert len(failing) <= 4
 
 
+def test_a_stopped_search_settles_a_trajectory_only_when_its_new_nominal_was_not_kept():
+    """An optimizer that stopped above its floor settles its trajectory (step 0) unless the
+    round kept its new nominal: then it is optimized again, against its new funnel."""
+    step = rounds.FIRST_STEP
+    assert rounds._stepped(step, stopped=True, kept=False) == 0.0
+    assert rounds._stepped(step, stopped=True, kept=True) == rounds._next_step(step, True)
+    assert rounds._stepped(step, stopped=False, kept=False) == rounds._next_step(step, False)
+    assert rounds._stepped(step, stopped=False, kept=True) > step >= rounds.SETTLED
+
+
 def test_covering_as_well_reads_the_covered_flag_not_the_last_bits_of_the_volume():
     def coverage(covered: bool, fraction: float) -> SimpleNamespace:
         return SimpleNamespace(covered=covered, covered_fraction=fraction)

@@ -359,8 +359,9 @@ def reoptimize_rounds(
     A trust region on each step (``_next_step``): ``FIRST_STEP`` in round 1, ``GROW`` times
     longer after a kept move (at most ``MAX_STEP``), half as long after one not kept (or for
     every trajectory, when the round is not kept); a trajectory whose step falls below
-    ``SETTLED``, or whose optimizer stopped above its floor (no shorter horizon is feasible
-    against its current funnel), is not optimized again. Stop when every trajectory is settled,
+    ``SETTLED``, or whose optimizer stopped above its floor while its new nominal was not kept
+    (no shorter horizon is feasible against the funnel it keeps; ``_stepped``), is not
+    optimized again. Stop when every trajectory is settled,
     when no trajectory could be optimized again, or after ``FUNNEL_ROUNDS``. Returns the kept
     inputs, trajectories, funnels and coverage (a round is never kept unverified: its funnels passed
     ``check_funnel`` and the certify-style rebuild in their stage).
@@ -379,7 +380,9 @@ def reoptimize_rounds(
     (``--certificate funnel --method lbfgs --samples 10000``) T 2.6-2.8 s, certified, 23 s wall
     at load ~1 (the previous schedule: 53 s); settling a trajectory whose optimizer stopped
     above its floor took that run from 232 s to 131 s wall at load ~6: three rounds in which
-    no nominal could be shortened cost 36-46 s each.
+    no nominal could be shortened cost 36-46 s each. One whose new nominal was kept is not
+    settled: its next search runs against the new funnel, which may allow a shorter horizon
+    (on quadrotor_hill_gusty the four slowest demos' T then fell 0.1-0.4 s more).
     """
     scenario, runner, starts = run.scenario, run.runner, run.starts
     step = [FIRST_STEP] * len(trajectories)
@@ -468,7 +471,7 @@ def reoptimize_rounds(
             log.info(f"[round {k}] not kept: {why}; the previous funnels are kept")
             kept = []
         for i in active:
-            step[i] = 0.0 if i in stopped else _next_step(step[i], i in kept)
+            step[i] = _stepped(step[i], stopped=i in stopped, kept=i in kept)
         if not kept:
             continue
         log.info(
@@ -507,6 +510,13 @@ def _covers_as_well(new: CoverageResult, old: CoverageResult) -> bool:
     """``new`` covers Init whenever ``old`` does (the covered flag, not the volume fraction,
     whose sum of box volumes may differ in the last bits), else at least as large a part."""
     return new.covered or (not old.covered and new.covered_fraction >= old.covered_fraction)
+
+
+def _stepped(step: float, *, stopped: bool, kept: bool) -> float:
+    """A trajectory's step after a round: 0 (settled) when its optimizer stopped above its floor
+    and its new nominal was not kept (no shorter horizon is feasible against the funnel it
+    keeps), else ``_next_step`` (a kept nominal is optimized next against its new funnel)."""
+    return 0.0 if stopped and not kept else _next_step(step, kept)
 
 
 def _next_step(step: float, kept: bool) -> float:
