@@ -263,7 +263,8 @@ def _redesign(
     """The funnel of ``task`` designed for a held or measured law as ``asked`` (its bound, input
     bounds, period, pushed intervals and first multiplier), on the capped boxes, with the LQR
     gains for a held law, recording ``asked`` (``Funnel.held``) with the multiplier that
-    designed it as the first (where a round's next search for the trajectory starts)."""
+    designed it as the first (where a round's next search for the trajectory starts: upwards
+    from there, so a later round tries no smaller multiplier unless that first try fails)."""
     scenario = task.scenario
     if not (
         np.array_equal(asked.input_lower, scenario.input_lower)
@@ -327,7 +328,8 @@ def synthesize_funnels(
         it holds that law (``funnel.law`` (I6)) as certify will rebuild it.
       earlier: per trajectory, how an earlier round designed its kept funnel (``EarlierDesign``:
         co-designed gains (F6) searched before the LQR gains, a held law's redesign tried
-        first; empty: nothing earlier); only the order of the search.
+        first; empty: nothing earlier): tried first, kept when it passes (checked as any other
+        funnel; it may differ from the one the full search would find).
     """
     if not (len(names) == len(trajectories) == len(radii)):
         raise ValueError(

@@ -53,8 +53,9 @@ class HeldDesign:
 @dataclass(frozen=True, kw_only=True)
 class EarlierDesign:
     """How an earlier re-optimize round designed a trajectory's kept funnel, tried first around
-    its next, nearby nominal (``stages.funnel``; only the order of the search: every funnel is
-    checked as any other): ``codesigned``, its gains were co-designed with the metric (F6)
+    its next, nearby nominal (``stages.funnel``; every funnel is checked as any other, but the
+    first try is kept when it passes, and may differ from the funnel a full search would find):
+    ``codesigned``, its gains were co-designed with the metric (F6)
     (``synthesize_funnel``'s ``codesign_first``); ``held``, a held law's redesign
     (``Funnel.held``; None: none)."""
 

@@ -627,7 +627,8 @@ def synthesize_funnel(
             if rho <= 0:
                 failure = failure or f"the nominal itself violates {binding} at t = {when:.2f} s"
             # robust: the highest checked level is kept; none beats the design's whole level
-            # (reached to the last bits: a cap at 1 - 1e-7 stopped no search before)
+            # (to the solver's tolerance: a funnel whose caps held to it, level ~1 - 1.1e-7,
+            # never stopped the search at rho >= 1 - LEVEL_SLACK)
             if not failure and (robust is None or rho >= (1 - LEVEL_SLACK) * (1 - WHOLE_ROUNDING)):
                 break
             if not failure and (best is None or rho > best[0].rho):

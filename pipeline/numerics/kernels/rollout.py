@@ -177,7 +177,7 @@ def rollout_kernel(
             # Unsafe's distance and Goal's signed distance are 1-Lipschitz in the position: one
             # measured ``floor`` above its running minimum cannot lower that minimum while the
             # position stays within ``floor`` of where it was measured (no result changes)
-            # (squared: math.hypot cost ~10% of a held law's rollout; the floor is >= 0 or -1)
+            # (squared: math.hypot cost ~10% of a held law's rollout)
             if _moved_beyond(x[p0] - unsafe_at[0], x[p1] - unsafe_at[1], unsafe_floor):
                 found = unsafe_distance(x[p0], x[p1], nearest + LOOKAHEAD, scene)
                 nearest = min(nearest, found)
@@ -254,7 +254,9 @@ def rollout_kernel(
 
 @njit(cache=True, inline="always")
 def _moved_beyond(dx, dy, floor):
-    """Whether the move ``(dx, dy)`` is at least ``floor`` long (always when ``floor < 0``)."""
+    """Whether the move ``(dx, dy)`` is at least ``floor`` long: always when ``floor < 0`` (-1
+    at the first point, down to ``-LIPSCHITZ_ROUNDING`` after a new minimum), never when it is
+    NaN (no Unsafe set within reach: ``inf - inf``), as ``math.hypot(dx, dy) >= floor`` was."""
     return floor < 0.0 or dx * dx + dy * dy >= floor * floor
 
 
