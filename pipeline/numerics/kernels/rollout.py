@@ -21,7 +21,9 @@ less half the longest step of a bounded state, and the final state. The running 
 Unsafe's distance and Goal's signed distance skip the grid points where the position is still
 closer to the last measured point than that measurement was above the minimum: both distances
 are 1-Lipschitz in the position, so the skipped points cannot lower the minimum (the oracle,
-which measures every point, gives the same numbers).
+which measures every point, gives the same numbers). A point measured near the last full
+measurement of Unsafe is measured against that measurement's nearest edge alone where the
+other edges cannot have come nearer (``shared.cached_distance``: the same float).
 
 Under a declared uncertainty (``pipeline.numerics.closed_loop.gusts``) each run flies ``f(x, (u,
 p_b))`` (the parametric dynamics, its parameters ``p_b`` appended to the input) plus the gust
@@ -40,6 +42,7 @@ import numpy as np
 from numba import njit
 
 from pipeline.numerics.kernels.shared import (
+    cached_distance,
     copy_vector,
     metric_norm,
     polygon_query,
@@ -152,6 +155,8 @@ def rollout_kernel(
     rings = goal[1].size - 1
     lipschitz_goal = goal[2].size == 0  # Goal's extra state bounds are not distances
     unsafe_at = np.zeros(2)
+    edge = np.empty(5)  # unsafe_distance's nearest edge, measured at edge_at
+    edge_at = np.zeros(2)
     goal_at = np.zeros(2)
     for b in range(B):
         x = x0[b].copy()
@@ -168,6 +173,7 @@ def rollout_kernel(
         tube = 0.0
         ratio = 0.0
         unsafe_floor = -1.0  # evaluate at the first grid point
+        edge_measured = -1.0  # no nearest edge yet
         goal_floor = -1.0
         for j in range(N * s + 1):
             # the checks at grid point j (its state x(j h)), then the step to j + 1
@@ -179,7 +185,14 @@ def rollout_kernel(
             # position stays within ``floor`` of where it was measured (no result changes)
             # (squared: math.hypot cost ~10% of a held law's rollout)
             if _moved_beyond(x[p0] - unsafe_at[0], x[p1] - unsafe_at[1], unsafe_floor):
-                found = unsafe_distance(x[p0], x[p1], nearest + LOOKAHEAD, scene)
+                # near the last full measurement its nearest edge alone may decide (exact)
+                found = cached_distance(
+                    x[p0], x[p1], edge, edge_at, edge_measured, LIPSCHITZ_ROUNDING
+                )
+                if found < 0.0:
+                    found = unsafe_distance(x[p0], x[p1], nearest + LOOKAHEAD, scene, edge)
+                    edge_at[0], edge_at[1] = x[p0], x[p1]
+                    edge_measured = found
                 nearest = min(nearest, found)
                 unsafe_floor = found - nearest - LIPSCHITZ_ROUNDING
                 unsafe_at[0], unsafe_at[1] = x[p0], x[p1]

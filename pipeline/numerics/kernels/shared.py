@@ -39,13 +39,33 @@ def copy_vector(source, target):
         target[i] = source[i]
 
 
+@njit(cache=True, inline="always")
+def segment_distance_squared(px, py, x1, y1, x2, y2):
+    """Squared distance from ``(px, py)`` to the segment ``(x1, y1)-(x2, y2)``, and the
+    segment's nearest point."""
+    dx = x2 - x1
+    dy = y2 - y1
+    L = dx * dx + dy * dy
+    t = 0.0
+    if L > 0.0:
+        t = min(max(((px - x1) * dx + (py - y1) * dy) / L, 0.0), 1.0)
+    qx = x1 + t * dx
+    qy = y1 + t * dy
+    return (px - qx) * (px - qx) + (py - qy) * (py - qy), qx, qy
+
+
 @njit(cache=True)
-def polygon_query(px, py, V, ring_start, r0, r1):
-    """Inside (even-odd rule), distance and nearest point of rings ``r0..r1-1``."""
+def polygon_scan(px, py, V, ring_start, r0, r1):
+    """Rings ``r0..r1-1`` seen from ``(px, py)``: inside (even-odd rule), the squared distance
+    to the nearest edge and to the next nearest (inf: no other edge), the nearest point, and
+    the nearest edge's end vertices ``V[j] -> V[i]``."""
     inside = False
     best = np.inf
+    second = np.inf
     cx = px
     cy = py
+    j_best = -1
+    i_best = -1
     for r in range(r0, r1):
         a = ring_start[r]
         b = ring_start[r + 1]
@@ -58,20 +78,24 @@ def polygon_query(px, py, V, ring_start, r0, r1):
             if (y2 > py) != (y1 > py):
                 if px < x2 + (py - y2) * (x1 - x2) / (y1 - y2):
                     inside = not inside
-            dx = x2 - x1
-            dy = y2 - y1
-            L = dx * dx + dy * dy
-            t = 0.0
-            if L > 0.0:
-                t = min(max(((px - x1) * dx + (py - y1) * dy) / L, 0.0), 1.0)
-            qx = x1 + t * dx
-            qy = y1 + t * dy
-            dd = (px - qx) * (px - qx) + (py - qy) * (py - qy)
+            dd, qx, qy = segment_distance_squared(px, py, x1, y1, x2, y2)
             if dd < best:
+                second = best
                 best = dd
                 cx = qx
                 cy = qy
+                j_best = j
+                i_best = i
+            elif dd < second:
+                second = dd
             j = i
+    return inside, best, second, cx, cy, j_best, i_best
+
+
+@njit(cache=True)
+def polygon_query(px, py, V, ring_start, r0, r1):
+    """Inside (even-odd rule), distance and nearest point of rings ``r0..r1-1``."""
+    inside, best, _, cx, cy, _, _ = polygon_scan(px, py, V, ring_start, r0, r1)
     return inside, math.sqrt(best), cx, cy
 
 
@@ -210,21 +234,66 @@ def reference_state(t, t_ref, x_ref, out):
 
 
 @njit(cache=True)
-def unsafe_distance(px, py, nearest, scene):
+def unsafe_distance(px, py, nearest, scene, edge):
     """``min(nearest, distance from (px, py) to the nearest Unsafe set)`` (0 inside one).
 
     A set whose bounding box is at least ``nearest`` away cannot lower the minimum: skipped.
-    ``scene = (V, ring_start, set_rings, boxes (sets, 4) as xmin, ymin, xmax, ymax)``.
+    ``scene = (V, ring_start, set_rings, boxes (sets, 4) as xmin, ymin, xmax, ymax)``. Into
+    ``edge (5,)``: the nearest edge ``(x1, y1, x2, y2)`` and a lower bound on the distance to
+    every other edge of every set (``cached_distance``), or ``edge[4] = -1`` when the result is
+    not an edge's distance (inside a set, or ``nearest`` itself).
     """
     V, ring_start, set_rings, boxes = scene
+    cap = nearest
+    best = np.inf  # squared, over the sets measured
+    others = np.inf  # a lower bound on the distance to every edge but the nearest
+    j_best = -1
+    i_best = -1
+    inside_any = False
     for S in range(set_rings.size - 1):
         dx = max(boxes[S, 0] - px, 0.0, px - boxes[S, 2])
         dy = max(boxes[S, 1] - py, 0.0, py - boxes[S, 3])
-        if math.sqrt(dx * dx + dy * dy) >= nearest:
+        box = math.sqrt(dx * dx + dy * dy)
+        if box >= nearest:
+            others = min(others, box)  # its edges are at least that far
             continue
-        inside, d, _, _ = polygon_query(px, py, V, ring_start, set_rings[S], set_rings[S + 1])
-        nearest = min(nearest, 0.0 if inside else d)
+        inside, dd, second, _, _, j, i = polygon_scan(
+            px, py, V, ring_start, set_rings[S], set_rings[S + 1]
+        )
+        inside_any = inside_any or inside
+        if dd < best:
+            others = min(others, math.sqrt(best), math.sqrt(second))
+            best, j_best, i_best = dd, j, i
+        else:
+            others = min(others, math.sqrt(dd))
+        nearest = min(nearest, 0.0 if inside else math.sqrt(dd))
+    edge[4] = -1.0
+    if not inside_any and j_best >= 0 and math.sqrt(best) < cap:
+        edge[0], edge[1] = V[j_best, 0], V[j_best, 1]
+        edge[2], edge[3] = V[i_best, 0], V[i_best, 1]
+        edge[4] = others
     return nearest
+
+
+@njit(cache=True, inline="always")
+def cached_distance(px, py, edge, anchor, measured, rounding):
+    """The distance from ``(px, py)`` to Unsafe from the nearest edge ``edge`` that
+    ``unsafe_distance`` found at ``anchor (2,)``, ``measured`` away from Unsafe there; -1 when
+    that does not decide it. Exact when returned: the move ``m`` from ``anchor`` is shorter
+    than ``measured`` (the point is outside every set, as ``anchor`` was), and every other edge
+    is at least ``edge[4] - m`` away (the distance is 1-Lipschitz), not nearer than this edge's
+    own distance, the same float as ``polygon_scan`` gives (``rounding``: the allowance for the
+    rounding of ``m`` and the bound)."""
+    if not (measured > 0.0 and edge[4] >= 0.0):
+        return -1.0
+    m = math.sqrt((px - anchor[0]) ** 2 + (py - anchor[1]) ** 2)
+    if m + rounding >= measured:
+        return -1.0
+    dd, _, _ = segment_distance_squared(px, py, edge[0], edge[1], edge[2], edge[3])
+    d = math.sqrt(dd)
+    if d + m + rounding > edge[4]:
+        return -1.0
+    return d
 
 
 @njit(cache=True)
