@@ -15,8 +15,8 @@ from pipeline.numerics.kernels.shared import cached_distance, unsafe_distance
 ROUNDING = 1e-12  # as the kernel's LIPSCHITZ_ROUNDING
 
 
-def _scene(name: str) -> tuple:
-    scene = SceneArrays.of(load_scenario(name, check_demos=False))
+def _scene(scenario) -> tuple:
+    scene = SceneArrays.of(scenario)
     return (
         scene.unsafe_vertices,
         scene.unsafe_ring_start,
@@ -31,10 +31,10 @@ def test_the_nearest_edge_alone_gives_the_full_measurement_where_it_answers(name
     anchor's distance: where ``cached_distance`` answers, it is the full measurement bit for
     bit and the point is outside every set; it answers for some of the moves (the shortcut is
     used) and declines others (those near another edge, or as far as the anchor's distance)."""
-    scene = _scene(name)
+    scene = _scene(load_scenario(name, check_demos=False))
     rng = np.random.default_rng(7)
     lo, hi = scene[0].min(axis=0) - 2.0, scene[0].max(axis=0) + 2.0
-    edge, full_edge, anchor = np.empty(5), np.empty(5), np.empty(2)
+    edge, full_edge, anchor = np.empty(8), np.empty(8), np.empty(2)
     answered = asked = 0
     for _ in range(400):
         anchor[:] = rng.uniform(lo, hi)
@@ -42,7 +42,7 @@ def test_the_nearest_edge_alone_gives_the_full_measurement_where_it_answers(name
         for _ in range(20):
             step = rng.normal(size=2)
             point = anchor + step / np.linalg.norm(step) * rng.uniform(0, 1.5) * measured
-            found = cached_distance(point[0], point[1], edge, anchor, measured, ROUNDING)
+            found = cached_distance(point[0], point[1], edge, ROUNDING)
             full = unsafe_distance(point[0], point[1], np.inf, scene, full_edge)
             asked += 1
             if found >= 0.0:
@@ -57,11 +57,11 @@ def test_the_full_measurement_is_shapely_s_distance_and_says_when_it_is_an_edge_
     one); its edge record is valid exactly when the point is outside, and then bounds every
     other edge from below by no more than their true distances (at least the nearest's)."""
     scenario = load_scenario(name, check_demos=False)
-    scene = _scene(name)
+    scene = _scene(scenario)
     regions = list(scenario.unsafe.values())
     rng = np.random.default_rng(3)
     lo, hi = scene[0].min(axis=0) - 2.0, scene[0].max(axis=0) + 2.0
-    edge = np.empty(5)
+    edge = np.empty(8)
     for point in rng.uniform(lo, hi, size=(300, 2)):
         found = unsafe_distance(point[0], point[1], np.inf, scene, edge)
         expected = min(float(geometry.distance(point[None], region)[0]) for region in regions)

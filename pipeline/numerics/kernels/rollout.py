@@ -155,8 +155,7 @@ def rollout_kernel(
     rings = goal[1].size - 1
     lipschitz_goal = goal[2].size == 0  # Goal's extra state bounds are not distances
     unsafe_at = np.zeros(2)
-    edge = np.empty(5)  # unsafe_distance's nearest edge, measured at edge_at
-    edge_at = np.zeros(2)
+    edge = np.empty(8)  # unsafe_distance's record of its nearest edge (cached_distance)
     goal_at = np.zeros(2)
     for b in range(B):
         x = x0[b].copy()
@@ -173,7 +172,7 @@ def rollout_kernel(
         tube = 0.0
         ratio = 0.0
         unsafe_floor = -1.0  # evaluate at the first grid point
-        edge_measured = -1.0  # no nearest edge yet
+        edge[4] = -1.0  # no nearest edge yet
         goal_floor = -1.0
         for j in range(N * s + 1):
             # the checks at grid point j (its state x(j h)), then the step to j + 1
@@ -186,13 +185,9 @@ def rollout_kernel(
             # (squared: math.hypot cost ~10% of a held law's rollout)
             if _moved_beyond(x[p0] - unsafe_at[0], x[p1] - unsafe_at[1], unsafe_floor):
                 # near the last full measurement its nearest edge alone may decide (exact)
-                found = cached_distance(
-                    x[p0], x[p1], edge, edge_at, edge_measured, LIPSCHITZ_ROUNDING
-                )
+                found = cached_distance(x[p0], x[p1], edge, LIPSCHITZ_ROUNDING)
                 if found < 0.0:
                     found = unsafe_distance(x[p0], x[p1], nearest + LOOKAHEAD, scene, edge)
-                    edge_at[0], edge_at[1] = x[p0], x[p1]
-                    edge_measured = found
                 nearest = min(nearest, found)
                 unsafe_floor = found - nearest - LIPSCHITZ_ROUNDING
                 unsafe_at[0], unsafe_at[1] = x[p0], x[p1]

@@ -239,9 +239,10 @@ def unsafe_distance(px, py, nearest, scene, edge):
 
     A set whose bounding box is at least ``nearest`` away cannot lower the minimum: skipped.
     ``scene = (V, ring_start, set_rings, boxes (sets, 4) as xmin, ymin, xmax, ymax)``. Into
-    ``edge (5,)``: the nearest edge ``(x1, y1, x2, y2)`` and a lower bound on the distance to
-    every other edge of every set (``cached_distance``), or ``edge[4] = -1`` when the result is
-    not an edge's distance (inside a set, or ``nearest`` itself).
+    ``edge (8,)``, for ``cached_distance``: the nearest edge ``(x1, y1, x2, y2)``, a lower bound
+    on the distance to every other edge of every set, the point ``(px, py)`` and its distance;
+    ``edge[4] = -1`` when the result is not an edge's distance (inside a set, or ``nearest``
+    itself).
     """
     V, ring_start, set_rings, boxes = scene
     cap = nearest
@@ -272,22 +273,23 @@ def unsafe_distance(px, py, nearest, scene, edge):
         edge[0], edge[1] = V[j_best, 0], V[j_best, 1]
         edge[2], edge[3] = V[i_best, 0], V[i_best, 1]
         edge[4] = others
+        edge[5], edge[6], edge[7] = px, py, nearest
     return nearest
 
 
 @njit(cache=True, inline="always")
-def cached_distance(px, py, edge, anchor, measured, rounding):
-    """The distance from ``(px, py)`` to Unsafe from the nearest edge ``edge`` that
-    ``unsafe_distance`` found at ``anchor (2,)``, ``measured`` away from Unsafe there; -1 when
-    that does not decide it. Exact when returned: the move ``m`` from ``anchor`` is shorter
-    than ``measured`` (the point is outside every set, as ``anchor`` was), and every other edge
-    is at least ``edge[4] - m`` away (the distance is 1-Lipschitz), not nearer than this edge's
-    own distance, the same float as ``polygon_scan`` gives (``rounding``: the allowance for the
-    rounding of ``m`` and the bound)."""
-    if not (measured > 0.0 and edge[4] >= 0.0):
+def cached_distance(px, py, edge, rounding):
+    """The distance from ``(px, py)`` to Unsafe from the nearest edge that ``unsafe_distance``
+    recorded in ``edge`` at the point ``edge[5:7]``, ``edge[7]`` away from Unsafe; -1 when that
+    does not decide it (or nothing was recorded: ``edge[4] < 0``). Exact when returned: the move
+    ``m`` from that point is shorter than its distance (this point is outside every set, as that
+    one was), and every other edge is at least ``edge[4] - m`` away (the distance is
+    1-Lipschitz), not nearer than this edge's own distance, the same float as ``polygon_scan``
+    gives (``rounding``: the allowance for the rounding of ``m`` and the bound)."""
+    if not edge[4] >= 0.0:
         return -1.0
-    m = math.sqrt((px - anchor[0]) ** 2 + (py - anchor[1]) ** 2)
-    if m + rounding >= measured:
+    m = math.sqrt((px - edge[5]) ** 2 + (py - edge[6]) ** 2)
+    if m + rounding >= edge[7]:
         return -1.0
     dd, _, _ = segment_distance_squared(px, py, edge[0], edge[1], edge[2], edge[3])
     d = math.sqrt(dd)
