@@ -19,6 +19,7 @@ import pytest
 
 from pipeline.model.scenario import load_scenario
 from pipeline.numerics.terminal.design import (
+    ROOM,
     check_level,
     design_terminal,
     equilibrium,
@@ -27,7 +28,7 @@ from pipeline.numerics.terminal.design import (
     lqr_terminal,
 )
 from pipeline.numerics.terminal.fit import TerminalTarget, containing_level
-from pipeline.numerics.terminal.robust import robust_metric
+from pipeline.numerics.terminal.robust import SHARES, largest_metric, robust_metric
 from pipeline.numerics.uncertainty import additive_bound
 
 BETA = 0.05
@@ -163,6 +164,7 @@ def test_the_robust_design_keeps_a_level_above_its_floor(scenario):
     assert robust.success and robust.level <= exact.level
     design = hold_design(scenario, b)
     assert design.shaped and design.check.success and design.check.level >= 1.0
+    assert design.check.level >= ROOM**2 and design.arrival is None  # (T6) not needed
     with pytest.raises(ValueError, match="disturbance"):
         hold_design(scenario, 40 * b)
 
@@ -347,3 +349,39 @@ def test_the_shaped_metric_is_the_smaller_certified_set(scenario):
     design = hold_design(scenario, b)
     assert design.shaped and np.array_equal(design.P, P)
     assert not hold_design(scenario).shaped  # the exact model keeps the Riccati metric
+
+
+def test_a_tight_shaped_set_gives_way_to_the_largest_certified_one(tmp_path):
+    """(T6) under a gust six times BETA: the shaped set (T3) certifies less than ``ROOM^2`` its
+    design level, so the terminal is the largest set of the same gain, certified from scratch at
+    its level, of a larger volume, with the shaped set as the one the nominals arrive in. A
+    nominal flown to rest at the centre: its robust funnel holds only part of its required set
+    when it must end in the shaped set, all of it in the larger one."""
+    from pipeline.model.simulate import simulate
+    from pipeline.numerics.funnel.synthesis import synthesize_funnel
+
+    scenario = gusty(tmp_path, 6 * BETA)
+    b = additive_bound(scenario)
+    design = hold_design(scenario, b)
+    shaped = design.arrival
+    assert shaped is not None and shaped.shaped and shaped.check.level < ROOM**2
+    assert design.arrives_in is shaped and not design.shaped
+    np.testing.assert_array_equal(design.K, shaped.K)
+    assert design.log_volume > shaped.log_volume + 0.1
+    x_eq, u_eq = design.x_eq, design.u_eq
+    again = check_level(scenario, x_eq, u_eq, design.K, design.P, design.check.level, disturbance=b)
+    assert again.success and again == design.check
+    # the (T6) metric itself is one of largest_metric's, for one of the boxes
+    candidates = [largest_metric(scenario, x_eq, u_eq, design.K, b, share) for share in SHARES]
+    assert any(P is not None and np.array_equal(P, design.P) for P in candidates)
+    us = np.vstack([np.tile([1.0, 0.5], (10, 1)), np.tile([-1.0, -0.5], (10, 1))])
+    nominal = simulate(scenario.dynamics, np.array([9.0, 0.0, 0.0, 0.0]), us, scenario.Ts)
+    levels = []
+    for terminal in (shaped, design):
+        target = TerminalTarget(x_eq=x_eq, P=terminal.P, level=terminal.check.level)
+        funnel = synthesize_funnel(scenario, nominal, disturbance=b, terminal=target)
+        assert funnel.success, funnel.message
+        needed = containing_level(target.P, nominal.xs[-1] - x_eq, funnel.P[-1], funnel.rho)
+        assert needed <= target.level * (1 + 1e-9)
+        levels.append(funnel.rho)
+    assert levels[0] < 0.95 and levels[1] > 0.999, levels

@@ -128,22 +128,30 @@ def hold_targets(
 
 def core_targets(scenario: Scenario, design: TerminalDesign, core: float = CORE) -> Targets:
     """``hold_targets`` for the terminal controller ``design``: Goal's extra bounds, per state,
-    the box inside ``core`` of its level intersected with the scenario's own."""
-    half = target_of(design).core_box(core)
+    the box inside ``core`` of the level of the set the nominals arrive in
+    (``TerminalDesign.arrives_in``) intersected with the scenario's own."""
+    arrival = design.arrives_in
+    half = target_of(arrival).core_box(core)
     bounds = dict(scenario.goal_bounds)
     for name, centre, h in zip(scenario.state_names, design.x_eq, half, strict=True):
         lower, upper = bounds.get(name, (-np.inf, np.inf))
         bounds[name] = (max(lower, float(centre - h)), min(upper, float(centre + h)))
+    larger = (
+        ""
+        if design.arrival is None
+        else " (the funnels end in a larger set, (T6): volume x"
+        f"{np.exp((design.log_volume - arrival.log_volume) / 2):.3g})"
+    )
     log.info(
         f"[terminal] lqr gain at {np.round(design.x_eq, 3).tolist()}: invariant ellipsoid "
-        f"certified (level {design.check.level:.4g}, decay {design.check.decay:.3g}/s); the "
-        f"nominals end within +-{np.round(half, 3).tolist()} of it"
+        f"certified (level {arrival.check.level:.4g}, decay {arrival.check.decay:.3g}/s); the "
+        f"nominals end within +-{np.round(half, 3).tolist()} of it{larger}"
     )
     return Targets(
         scenario=dataclasses.replace(scenario, goal_bounds=bounds),
         terminal=design,
         core=tuple(scenario.state_names),
-        reserve=MappingProxyType(reserve_of(scenario, design)),
+        reserve=MappingProxyType(reserve_of(scenario, arrival)),
     )
 
 
@@ -154,7 +162,7 @@ def rest_targets(scenario: Scenario, period: float = 0.0) -> Targets:
     states) wherever its flight is fastest (``Targets.placing``); ``placed_targets`` then moves
     the terminal controller to where they came to rest. Not a hold run: ``hold_targets``."""
     targets = hold_targets(scenario, period)
-    box = None if targets.terminal is None else hover_box(scenario, targets.terminal)
+    box = None if targets.terminal is None else hover_box(scenario, targets.terminal.arrives_in)
     if box is None:
         return targets
     # the box lies inside the scenario's own Goal bounds on the position (hover_box)
@@ -186,7 +194,8 @@ def placed_targets(
     if ends:
         position = np.mean([scenario.positions(end) for end in ends], axis=0)
         moved = hold_targets(scenario, period, position=position)
-        if moved.terminal is not None and moved.terminal.check.level >= first.terminal.check.level:
+        level = first.terminal.arrives_in.check.level
+        if moved.terminal is not None and moved.terminal.arrives_in.check.level >= level:
             return moved
         log.info(
             f"[terminal] kept at Goal's centre: at {np.round(position, 3).tolist()}, where the "

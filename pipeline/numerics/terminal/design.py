@@ -97,13 +97,21 @@ eta)_i| <= max_v sum_l |(B_v K_T)[i, l]| E_l =: b_e,i``: one more additive term 
 hold for every hull point and every signal in the box). ``b_e`` does not depend on the level:
 it raises (T1')'s floor, as the disturbance does. With ``E = 0`` every number is (T1)-(T4)'s.
 
+(T6) A larger set under a large bound (``hold_design``). The (T3) metric, certified at level ``c``,
+holds ``sqrt(c)`` times the smallest set the disturbance leaves. Below ``ROOM`` times, the funnels'
+ends (each at least its own smallest set, about the same size) find no room in it but at its
+centre, so the largest set of ``terminal.robust`` (T6) is tried for the same gain and kept when
+``largest_level`` certifies it with a larger volume. Soundness is (T1')-(T5)'s: the set is checked
+from scratch like any other; (T6) only chose its metric. The nominals still end in the (T3) set
+(``TerminalDesign.arrival``), and the funnels must end in the larger one (T2).
+
 End tubes: ``pipeline.numerics.terminal.fit`` (the exact containment level, and the funnel's LMI).
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import control
 import numpy as np
@@ -121,7 +129,7 @@ from pipeline.numerics.funnel.sampled import remainder_box
 from pipeline.numerics.hull import DEFAULT_SEGMENTS, HullError, jacobian_hull
 from pipeline.numerics.terminal.fit import containing_level as containing_level
 from pipeline.numerics.terminal.fit import end_levels
-from pipeline.numerics.terminal.robust import robust_metric
+from pipeline.numerics.terminal.robust import SHARES, largest_metric, robust_metric
 from pipeline.numerics.tube.contraction import contraction_rate
 from pipeline.numerics.tube.geometry import Tube
 from pipeline.numerics.tube.sampled import held_rate
@@ -129,6 +137,7 @@ from pipeline.numerics.tube.sampled import held_rate
 EQUILIBRIUM_TOLERANCE = 1e-9  # ||f(x_eq, u_eq)|| accepted as an equilibrium
 LEVEL_BISECTIONS = 24
 DECAY_FRACTION = 0.5  # the level kept leaves V' <= -alpha V with half the linearisation's alpha
+ROOM = 2.0  # a shaped terminal set this many times (T3)'s smallest one holds the funnels' ends
 
 
 class TerminalError(ValueError):
@@ -514,6 +523,8 @@ class TerminalDesign:
       fit: ``sqrt(max_i c_i / level)``: the largest end tube's share of the ellipsoid (<= 1).
       shaped: ``P`` is (T3)'s metric for a declared disturbance (``terminal.robust``), designed
         at level 1: ``{e^T P e <= 1}`` is about the smallest set the disturbance leaves.
+      arrival: the (T3)-shaped design the nominals end in and the funnels' room is sized from,
+        when this one is (T6)'s larger set (``hold_design``); None: this one itself.
     """
 
     x_eq: FloatArray
@@ -524,6 +535,17 @@ class TerminalDesign:
     gain: str
     fit: float
     shaped: bool = False
+    arrival: TerminalDesign | None = None
+
+    @property
+    def arrives_in(self) -> TerminalDesign:
+        """The design whose set the nominals end in: ``arrival``, else this one."""
+        return self if self.arrival is None else self.arrival
+
+    @property
+    def log_volume(self) -> float:
+        """``log det(level P^-1)``: twice the log of the set's volume, up to a constant."""
+        return float(np.linalg.slogdet(self.check.level * np.linalg.inv(self.P))[1])
 
 
 def design_terminal(
@@ -620,7 +642,8 @@ def hold_design(
 ) -> TerminalDesign:
     """The terminal controller a funnel run designs BEFORE its funnels, for them to end in: the
     equilibrium at Goal's centre, its LQR gain and, under ``disturbance (n,)``, the metric shaped
-    for it (T3) when that certifies, else the Riccati matrix; the largest level certified
+    for it (T3) when that certifies (the larger set (T6) in its place, ``_larger``, when it holds
+    less than ``ROOM`` times its smallest set), else the Riccati matrix; the largest level certified
     robustly (T1', T1''), for the law held every ``period`` s when it is > 0 (T4: the funnel
     file's law), seeing the state within ``measurement (n,)`` (T5); ``fit`` 0 (no end tube
     yet). ``position (2,)``: the equilibrium's position instead of Goal's centre.
@@ -635,10 +658,13 @@ def hold_design(
                 measurement=measurement,
             )  # fmt: skip
             if robust.success:
-                return TerminalDesign(
+                shaped = TerminalDesign(
                     x_eq=x_eq, u_eq=u_eq, K=K_T, P=metric, check=robust, gain="lqr", fit=0.0,
                     shaped=True,
                 )  # fmt: skip
+                if robust.level >= ROOM**2:
+                    return shaped
+                return _larger(scenario, shaped, np.asarray(disturbance), period, measurement)
     check = largest_level(
         scenario, x_eq, u_eq, K_T, P_T, disturbance=disturbance, held_period=period,
         measurement=measurement,
@@ -647,3 +673,29 @@ def hold_design(
         where = np.round(x_eq, 3).tolist()
         raise TerminalError(f"lqr gain at {where}: " + "; ".join(check.failures))
     return TerminalDesign(x_eq=x_eq, u_eq=u_eq, K=K_T, P=P_T, check=check, gain="lqr", fit=0.0)
+
+
+def _larger(
+    scenario: Scenario,
+    shaped: TerminalDesign,
+    disturbance: FloatArray,
+    period: float,
+    measurement: FloatArray | None,
+) -> TerminalDesign:
+    """``shaped`` holds less than ``ROOM`` times (T3)'s smallest set: the (T6) set of the same
+    gain with the largest volume that certifies (``largest_level``, every check from scratch),
+    over the boxes of ``robust.SHARES``, the nominals still ending in ``shaped``'s set
+    (``arrival``); ``shaped`` itself when none certifies a larger volume."""
+    best = shaped
+    for share in SHARES:
+        metric = largest_metric(scenario, shaped.x_eq, shaped.u_eq, shaped.K, disturbance, share)
+        if metric is None:
+            continue
+        check = largest_level(
+            scenario, shaped.x_eq, shaped.u_eq, shaped.K, metric, disturbance=disturbance,
+            held_period=period, measurement=measurement,
+        )  # fmt: skip
+        larger = replace(shaped, P=metric, check=check, shaped=False, arrival=shaped)
+        if check.success and larger.log_volume > best.log_volume:
+            best = larger
+    return best

@@ -16,6 +16,18 @@ position extent is kept over ``ALPHAS``. ``Z`` is guessed first (the frozen loop
 ellipsoid at ``SEED`` times its extents, as ``funnel.synthesis`` (F5)). Nothing here is trusted:
 the metric returned is certified, or not, by ``terminal.design.check_level`` ((T1'') among the
 checks), at the level it finds.
+
+(T6) The largest set instead. (T3) at level 1 is about the smallest set the disturbance leaves, and
+the terminal level then scales it up to what the inputs, Goal and the hull allow. Under a large
+bound that is little: a funnel ends in its own smallest set around its nominal's end, and a
+terminal set only ``sqrt(level)`` times (T3)'s holds no such end but at its centre (on
+quadrotor_hill at three times its declared uncertainty, 1.3 times, and none of the nine funnels
+ended in it). ``largest_metric`` keeps (T3)'s invariance rows and maximises ``log det Q`` instead,
+over a fixed box: each variable the Jacobian depends on within ``share`` of its room about the
+equilibrium (``Q_ii <= half_i^2``, ``K_j Q K_j^T <= half_j^2``), the position disk in Goal and
+the states in Goal's extra bounds. The largest set is not shaped for the ends' offsets (its
+inscribed box is no larger than (T3)'s scaled one), so the nominals still end in (T3)'s set
+(``terminal.design.hold_design``).
 """
 
 from __future__ import annotations
@@ -35,6 +47,7 @@ from pipeline.numerics.hull import DEFAULT_SEGMENTS, HullError, jacobian_hull
 ALPHAS = (0.3, 0.6, 1.0, 1.5, 2.5, 4.0)  # the multipliers tried (1/s)
 MARGIN = 0.05  # eps, as a share of alpha
 SEED = 2.0  # the hull's box holds this multiple of the guessed ellipsoid's extents
+SHARES = (1 / 3, 2 / 3)  # (T6)'s boxes: these shares of each variable's room about the equilibrium
 
 
 def robust_metric(
@@ -54,7 +67,6 @@ def robust_metric(
     )
     if guess is None:
         return None
-    n = scenario.n
     state_half = SEED * np.sqrt(np.diag(guess))
     input_half = SEED * np.sqrt(np.diag(K @ guess @ K.T))
     region = {}
@@ -65,8 +77,65 @@ def robust_metric(
     for j, name in enumerate(scenario.input_names):
         lower, upper = scenario.input_lower[j], scenario.input_upper[j]
         region[name] = (max(u_eq[j] - input_half[j], lower), min(u_eq[j] + input_half[j], upper))
+    caps = {name: min(x_eq[i] - region[name][0], region[name][1] - x_eq[i])
+            for i, name in enumerate(scenario.state_names)}  # fmt: skip
+    return _solved(scenario, x_eq, u_eq, K, bound, region, caps, largest=False, segments=segments)
+
+
+def largest_metric(
+    scenario: Scenario,
+    x_eq: FloatArray,
+    u_eq: FloatArray,
+    K: FloatArray,
+    bound: FloatArray,
+    share: float,
+    segments: int = DEFAULT_SEGMENTS,
+) -> FloatArray | None:
+    """``P_T (n, n)`` of (T6): the largest ``{e^T P_T e <= 1}`` (``log det``) that (T3) holds
+    for the gain ``K (m, n)`` and the additive bound ``bound (n,)``, within ``share`` (in (0,
+    1)) of each bounded variable's room about ``(x_eq (n,), u_eq (m,))``; None when no
+    multiplier gives one or the Jacobian depends on a state without bounds."""
+    limits = {**scenario.operating_region, **scenario.state_bounds}
+    region: dict[str, tuple[float, float]] = {}
+    caps: dict[str, float] = {}
+    for i, name in enumerate(scenario.state_names):
+        if name in limits:
+            lower, upper = limits[name]
+            caps[name] = share * min(x_eq[i] - lower, upper - x_eq[i])
+            region[name] = (x_eq[i] - caps[name], x_eq[i] + caps[name])
+        if name in scenario.goal_bounds:  # the terminal set lies in Goal's extra bounds
+            lower, upper = scenario.goal_bounds[name]
+            caps[name] = min(caps.get(name, np.inf), x_eq[i] - lower, upper - x_eq[i])
+    for j, name in enumerate(scenario.input_names):
+        lower, upper = limits.get(name, (-np.inf, np.inf))
+        lower, upper = max(lower, scenario.input_lower[j]), min(upper, scenario.input_upper[j])
+        half = share * min(u_eq[j] - lower, upper - u_eq[j])
+        region[name] = (u_eq[j] - half, u_eq[j] + half)
+    if any(name not in region for name in scenario.dynamics.depends_on()):
+        return None
+    return _solved(scenario, x_eq, u_eq, K, bound, region, caps, largest=True, segments=segments)
+
+
+def _solved(
+    scenario: Scenario,
+    x_eq: FloatArray,
+    u_eq: FloatArray,
+    K: FloatArray,
+    bound: FloatArray,
+    region: dict[str, tuple[float, float]],
+    caps: dict[str, float],
+    *,
+    largest: bool,
+    segments: int = DEFAULT_SEGMENTS,
+) -> FloatArray | None:
+    """(T3)'s rows at every vertex of the hull over ``region`` (variable name -> interval) and
+    every corner of the box ``bound (n,)``, with ``Q_ii <= caps[name]^2``, the inputs ``K_j Q
+    K_j^T`` inside the region's input intervals and the position disk in Goal: ``P = Q^-1`` of
+    the smallest position extent (``tr C Q C^T``) or, ``largest``, the largest ``log det Q``,
+    over ``ALPHAS``; None when no multiplier gives one."""
+    n = scenario.n
     try:
-        hull = jacobian_hull(dynamics, region, segments)
+        hull = jacobian_hull(scenario.dynamics, region, segments)
     except HullError:
         return None
     w = corners(np.asarray(bound, dtype=np.float64))
@@ -82,8 +151,8 @@ def robust_metric(
         eps = MARGIN * alpha
         constraints = [Q >> 1e-9 * np.eye(n), C @ Q @ C.T << goal_room**2 * np.eye(2)]
         for i, name in enumerate(scenario.state_names):
-            room = min(x_eq[i] - region[name][0], region[name][1] - x_eq[i])
-            constraints.append(Q[i, i] <= room**2)
+            if name in caps:
+                constraints.append(Q[i, i] <= caps[name] ** 2)
         for j, name in enumerate(scenario.input_names):
             room = min(u_eq[j] - region[name][0], region[name][1] - u_eq[j])
             constraints.append(K[j] @ Q @ K[j] <= room**2)
@@ -95,7 +164,8 @@ def robust_metric(
                 constraints.append(
                     cp.bmat([[(M + M.T) / 2, column], [column.T, np.array([[eps - alpha]])]]) << 0
                 )  # (T3)
-        problem = cp.Problem(cp.Minimize(cp.trace(C @ Q @ C.T)), constraints)
+        objective = cp.Maximize(cp.log_det(Q)) if largest else cp.Minimize(cp.trace(C @ Q @ C.T))
+        problem = cp.Problem(objective, constraints)
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
@@ -107,8 +177,9 @@ def robust_metric(
         value = (Q.value + Q.value.T) / 2
         if np.linalg.eigvalsh(value)[0] <= 0:
             continue
-        if best is None or float(problem.value) < best[0]:
-            best = (float(problem.value), value)
+        score = -float(problem.value) if largest else float(problem.value)
+        if best is None or score < best[0]:
+            best = (score, value)
     if best is None:
         return None
     P = np.linalg.inv(best[1])
