@@ -385,3 +385,23 @@ def test_a_tight_shaped_set_gives_way_to_the_largest_certified_one(tmp_path):
         assert needed <= target.level * (1 + 1e-9)
         levels.append(funnel.rho)
     assert levels[0] < 0.95 and levels[1] > 0.999, levels
+
+
+def test_the_nominals_end_in_the_shaped_set_and_keep_its_reserve(tmp_path):
+    """``core_targets`` of a (T6) design: Goal's bounds are the core box of the shaped set the
+    nominals arrive in, and the reserve is sized from it (the larger set's would starve them),
+    while the funnels' target is the larger set."""
+    from stages.certificates.funnel import core_targets, reserve_of, target_of
+
+    scenario = gusty(tmp_path, 6 * BETA)
+    design = hold_design(scenario, additive_bound(scenario))
+    shaped = design.arrival
+    assert shaped is not None
+    targets = core_targets(scenario, design)
+    assert targets.terminal is design
+    half = target_of(shaped).core_box(1.0)
+    for name, centre, h in zip(scenario.state_names, design.x_eq, half, strict=True):
+        lower, upper = targets.scenario.goal_bounds[name]
+        assert lower >= centre - h - 1e-12 and upper <= centre + h + 1e-12
+    assert dict(targets.reserve) == reserve_of(scenario, shaped) != {}
+    assert np.all(target_of(design).core_box(1.0) > 0)

@@ -23,9 +23,9 @@ bound that is little: a funnel ends in its own smallest set around its nominal's
 terminal set only ``sqrt(level)`` times (T3)'s holds no such end but at its centre (on
 quadrotor_hill at three times its declared uncertainty, 1.3 times, and none of the nine funnels
 ended in it). ``largest_metric`` keeps (T3)'s invariance rows and maximises ``log det Q`` instead,
-over a fixed box: each variable the Jacobian depends on within ``share`` of its room about the
-equilibrium (``Q_ii <= half_i^2``, ``K_j Q K_j^T <= half_j^2``), the position disk in Goal and
-the states in Goal's extra bounds. The largest set is not shaped for the ends' offsets (its
+over a fixed box: each bounded variable within a share of its room about the equilibrium
+(``Q_ii <= half_i^2``, ``K_j Q K_j^T <= half_j^2``), the position disk in Goal and the states in
+Goal's extra bounds. The largest set is not shaped for the ends' offsets (its
 inscribed box is no larger than (T3)'s scaled one), so the nominals still end in (T3)'s set
 (``terminal.design.hold_design``).
 """
@@ -47,7 +47,8 @@ from pipeline.numerics.hull import DEFAULT_SEGMENTS, HullError, jacobian_hull
 ALPHAS = (0.3, 0.6, 1.0, 1.5, 2.5, 4.0)  # the multipliers tried (1/s)
 MARGIN = 0.05  # eps, as a share of alpha
 SEED = 2.0  # the hull's box holds this multiple of the guessed ellipsoid's extents
-SHARES = (1 / 3, 2 / 3)  # (T6)'s boxes: these shares of each variable's room about the equilibrium
+# (T6)'s boxes: (states', inputs') shares of each variable's room about the equilibrium
+SHARES = ((1 / 3, 2 / 3), (1 / 3, 1 / 3), (1 / 4, 2 / 3))
 
 
 def robust_metric(
@@ -88,20 +89,21 @@ def largest_metric(
     u_eq: FloatArray,
     K: FloatArray,
     bound: FloatArray,
-    share: float,
+    share: tuple[float, float],
     segments: int = DEFAULT_SEGMENTS,
 ) -> FloatArray | None:
     """``P_T (n, n)`` of (T6): the largest ``{e^T P_T e <= 1}`` (``log det``) that (T3) holds
-    for the gain ``K (m, n)`` and the additive bound ``bound (n,)``, within ``share`` (in (0,
-    1)) of each bounded variable's room about ``(x_eq (n,), u_eq (m,))``; None when no
-    multiplier gives one or the Jacobian depends on a state without bounds."""
+    for the gain ``K (m, n)`` and the additive bound ``bound (n,)``, within ``share`` (the
+    states', the inputs', each in (0, 1)) of each bounded variable's room about ``(x_eq (n,),
+    u_eq (m,))``; None when no multiplier gives one or the Jacobian depends on a state without
+    bounds."""
     limits = {**scenario.operating_region, **scenario.state_bounds}
     region: dict[str, tuple[float, float]] = {}
     caps: dict[str, float] = {}
     for i, name in enumerate(scenario.state_names):
         if name in limits:
             lower, upper = limits[name]
-            caps[name] = share * min(x_eq[i] - lower, upper - x_eq[i])
+            caps[name] = share[0] * min(x_eq[i] - lower, upper - x_eq[i])
             region[name] = (x_eq[i] - caps[name], x_eq[i] + caps[name])
         if name in scenario.goal_bounds:  # the terminal set lies in Goal's extra bounds
             lower, upper = scenario.goal_bounds[name]
@@ -109,7 +111,7 @@ def largest_metric(
     for j, name in enumerate(scenario.input_names):
         lower, upper = limits.get(name, (-np.inf, np.inf))
         lower, upper = max(lower, scenario.input_lower[j]), min(upper, scenario.input_upper[j])
-        half = share * min(u_eq[j] - lower, upper - u_eq[j])
+        half = share[1] * min(u_eq[j] - lower, upper - u_eq[j])
         region[name] = (u_eq[j] - half, u_eq[j] + half)
     if any(name not in region for name in scenario.dynamics.depends_on()):
         return None
