@@ -157,10 +157,11 @@ def core_targets(scenario: Scenario, design: TerminalDesign, core: float = CORE)
 
 def rest_targets(scenario: Scenario, period: float = 0.0) -> Targets:
     """Where a hold run's first optimization ends its nominals: ``hold_targets``, but with the
-    position free over ``hover_box``, the positions where the terminal set designed at Goal's
-    centre still fits in Goal, so that each nominal comes to rest (the core box in the other
-    states) wherever its flight is fastest (``Targets.placing``); ``placed_targets`` then moves
-    the terminal controller to where they came to rest. Not a hold run: ``hold_targets``."""
+    position free over ``hover_box``, the positions where the set the nominals arrive in
+    (``TerminalDesign.arrives_in``), designed at Goal's centre, still fits in Goal, so that each
+    nominal comes to rest (the core box in the other states) wherever its flight is fastest
+    (``Targets.placing``); ``placed_targets`` then moves the terminal controller to where they
+    came to rest. Not a hold run: ``hold_targets``."""
     targets = hold_targets(scenario, period)
     box = None if targets.terminal is None else hover_box(scenario, targets.terminal.arrives_in)
     if box is None:
@@ -188,7 +189,8 @@ def placed_targets(
     of their positions (where the fastest flights come to rest, as an uncertified minimum-time
     flight to rest chooses its own point of Goal), when the terminal controller designed there
     certifies a level no smaller than ``first``'s at Goal's centre (the room the funnels' ends
-    need); else ``first``'s controller at Goal's centre."""
+    need; the levels of the sets the nominals arrive in, ``TerminalDesign.arrives_in``); else
+    ``first``'s controller at Goal's centre."""
     if first.terminal is None:
         return first
     if ends:
