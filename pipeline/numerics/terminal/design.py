@@ -111,7 +111,7 @@ End tubes: ``pipeline.numerics.terminal.fit`` (the exact containment level, and 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import control
 import numpy as np
@@ -519,7 +519,8 @@ class TerminalDesign:
 
     Attributes:
       x_eq: (n,); u_eq: (m,); K: (m, n); P: (n, n); check: its certified level and decay.
-      gain: "lqr" (``control.lqr`` at the equilibrium) or "tube" (the tube's ``K`` and ``P``).
+      gain: "lqr" (``control.lqr`` at the equilibrium), "tube" (the tube's ``K`` and ``P``) or
+        "codesigned" (designed with its metric, (T6)).
       fit: ``sqrt(max_i c_i / level)``: the largest end tube's share of the ellipsoid (<= 1).
       shaped: ``P`` is (T3)'s metric for a declared disturbance (``terminal.robust``), designed
         at level 1: ``{e^T P e <= 1}`` is about the smallest set the disturbance leaves.
@@ -643,59 +644,99 @@ def hold_design(
     """The terminal controller a funnel run designs BEFORE its funnels, for them to end in: the
     equilibrium at Goal's centre, its LQR gain and, under ``disturbance (n,)``, the metric shaped
     for it (T3) when that certifies (the larger set (T6) in its place, ``_larger``, when it holds
-    less than ``ROOM`` times its smallest set), else the Riccati matrix; the largest level certified
-    robustly (T1', T1''), for the law held every ``period`` s when it is > 0 (T4: the funnel
-    file's law), seeing the state within ``measurement (n,)`` (T5); ``fit`` 0 (no end tube
-    yet). ``position (2,)``: the equilibrium's position instead of Goal's centre.
+    less than ``ROOM`` times its smallest set), else the Riccati matrix, else (T6) with a gain
+    designed with its metric; the largest level certified robustly (T1', T1''), for the law
+    held every ``period`` s when it is > 0 (T4: the funnel file's law), seeing the state within
+    ``measurement (n,)`` (T5); ``fit`` 0 (no end tube yet). ``position (2,)``: the
+    equilibrium's position instead of Goal's centre.
     ``TerminalError`` when there is no equilibrium, no stabilising gain or no certified level."""
     x_eq, u_eq = equilibrium(scenario, position)
     K_T, P_T = lqr_terminal(scenario, x_eq, u_eq)
-    if disturbance is not None and np.any(np.asarray(disturbance) > 0):
-        metric = robust_metric(scenario, x_eq, u_eq, K_T, np.asarray(disturbance))  # (T3)
-        if metric is not None:  # shaped for the disturbance: kept whenever it certifies
-            robust = largest_level(
-                scenario, x_eq, u_eq, K_T, metric, disturbance=disturbance, held_period=period,
-                measurement=measurement,
-            )  # fmt: skip
-            if robust.success:
-                shaped = TerminalDesign(
-                    x_eq=x_eq, u_eq=u_eq, K=K_T, P=metric, check=robust, gain="lqr", fit=0.0,
-                    shaped=True,
-                )  # fmt: skip
-                if robust.level >= ROOM**2:
-                    return shaped
-                return _larger(scenario, shaped, np.asarray(disturbance), period, measurement)
+    bound = None if disturbance is None else np.asarray(disturbance, dtype=np.float64)
+    robust = bound is not None and bool(np.any(bound > 0))
+    if robust:
+        shaped = _shaped(scenario, x_eq, u_eq, K_T, bound, period, measurement, "lqr")  # (T3)
+        if shaped is not None:  # shaped for the disturbance: kept whenever it certifies
+            if shaped.check.level >= ROOM**2:
+                return shaped
+            larger = _larger(scenario, x_eq, u_eq, K_T, bound, period, measurement, shaped)
+            return shaped if larger is None else larger
     check = largest_level(
         scenario, x_eq, u_eq, K_T, P_T, disturbance=disturbance, held_period=period,
         measurement=measurement,
     )  # fmt: skip
+    if check.success:
+        return TerminalDesign(x_eq=x_eq, u_eq=u_eq, K=K_T, P=P_T, check=check, gain="lqr", fit=0.0)
+    if robust:  # no metric of the LQR gain holds: one designed with its metric (T6)
+        codesigned = _larger(scenario, x_eq, u_eq, None, bound, period, measurement, None)
+        if codesigned is not None:
+            return codesigned
+    where = np.round(x_eq, 3).tolist()
+    raise TerminalError(f"lqr gain at {where}: " + "; ".join(check.failures))
+
+
+def _shaped(
+    scenario: Scenario,
+    x_eq: FloatArray,
+    u_eq: FloatArray,
+    K: FloatArray,
+    disturbance: FloatArray,
+    period: float,
+    measurement: FloatArray | None,
+    gain: str,
+) -> TerminalDesign | None:
+    """The design of the gain ``K (m, n)`` on (T3)'s metric at its largest certified level
+    (``largest_level``), None when there is no such metric or no level certifies."""
+    metric = robust_metric(scenario, x_eq, u_eq, K, disturbance)
+    if metric is None:
+        return None
+    check = largest_level(
+        scenario, x_eq, u_eq, K, metric, disturbance=disturbance, held_period=period,
+        measurement=measurement,
+    )  # fmt: skip
     if not check.success:
-        where = np.round(x_eq, 3).tolist()
-        raise TerminalError(f"lqr gain at {where}: " + "; ".join(check.failures))
-    return TerminalDesign(x_eq=x_eq, u_eq=u_eq, K=K_T, P=P_T, check=check, gain="lqr", fit=0.0)
+        return None
+    return TerminalDesign(
+        x_eq=x_eq, u_eq=u_eq, K=K, P=metric, check=check, gain=gain, fit=0.0, shaped=True
+    )
 
 
 def _larger(
     scenario: Scenario,
-    shaped: TerminalDesign,
+    x_eq: FloatArray,
+    u_eq: FloatArray,
+    K: FloatArray | None,
     disturbance: FloatArray,
     period: float,
     measurement: FloatArray | None,
-) -> TerminalDesign:
-    """``shaped`` holds less than ``ROOM`` times (T3)'s smallest set: the (T6) set of the same
-    gain with the largest volume that certifies (``largest_level``, every check from scratch),
-    over the boxes of ``robust.SHARES``, the nominals still ending in ``shaped``'s set
-    (``arrival``); ``shaped`` itself when none certifies a larger volume."""
+    shaped: TerminalDesign | None,
+) -> TerminalDesign | None:
+    """(T6): the largest set that ``largest_level`` certifies (every check from scratch), of the
+    gain ``K (m, n)`` or, None, of a gain designed with it, over the boxes of ``robust.SHARES``,
+    with the largest volume above ``shaped``'s (the same gain's (T3) design, the set the
+    nominals arrive in; for a designed gain, its own (T3) design, which must certify too); None
+    when none does."""
     best = shaped
     for share in SHARES:
-        metric = largest_metric(scenario, shaped.x_eq, shaped.u_eq, shaped.K, disturbance, share)
-        if metric is None:
+        found = largest_metric(scenario, x_eq, u_eq, K, disturbance, share)
+        if found is None:
+            continue
+        gain, metric = found
+        arrival = shaped
+        if K is None:
+            arrival = _shaped(
+                scenario, x_eq, u_eq, gain, disturbance, period, measurement, "codesigned"
+            )  # fmt: skip
+        if arrival is None:
             continue
         check = largest_level(
-            scenario, shaped.x_eq, shaped.u_eq, shaped.K, metric, disturbance=disturbance,
-            held_period=period, measurement=measurement,
+            scenario, x_eq, u_eq, gain, metric, disturbance=disturbance, held_period=period,
+            measurement=measurement,
         )  # fmt: skip
-        larger = replace(shaped, P=metric, check=check, shaped=False, arrival=shaped)
-        if check.success and larger.log_volume > best.log_volume:
+        larger = TerminalDesign(
+            x_eq=x_eq, u_eq=u_eq, K=gain, P=metric, check=check, gain=arrival.gain, fit=0.0,
+            arrival=arrival,
+        )  # fmt: skip
+        if check.success and (best is None or larger.log_volume > best.log_volume):
             best = larger
-    return best
+    return None if best is shaped else best

@@ -80,23 +80,24 @@ def robust_metric(
         region[name] = (max(u_eq[j] - input_half[j], lower), min(u_eq[j] + input_half[j], upper))
     caps = {name: min(x_eq[i] - region[name][0], region[name][1] - x_eq[i])
             for i, name in enumerate(scenario.state_names)}  # fmt: skip
-    return _solved(scenario, x_eq, u_eq, K, bound, region, caps, largest=False, segments=segments)
+    solved = _solved(scenario, x_eq, u_eq, K, bound, region, caps, largest=False, segments=segments)
+    return None if solved is None else solved[1]
 
 
 def largest_metric(
     scenario: Scenario,
     x_eq: FloatArray,
     u_eq: FloatArray,
-    K: FloatArray,
+    K: FloatArray | None,
     bound: FloatArray,
     share: tuple[float, float],
     segments: int = DEFAULT_SEGMENTS,
-) -> FloatArray | None:
-    """``P_T (n, n)`` of (T6): the largest ``{e^T P_T e <= 1}`` (``log det``) that (T3) holds
-    for the gain ``K (m, n)`` and the additive bound ``bound (n,)``, within ``share`` (the
-    states', the inputs', each in (0, 1)) of each bounded variable's room about ``(x_eq (n,),
-    u_eq (m,))``; None when no multiplier gives one or the Jacobian depends on a state without
-    bounds."""
+) -> tuple[FloatArray, FloatArray] | None:
+    """``(K_T (m, n), P_T (n, n))`` of (T6): the largest ``{e^T P_T e <= 1}`` (``log det``) that
+    (T3) holds for the gain ``K (m, n)`` (None: designed with it, ``Y = K Q``) and the additive
+    bound ``bound (n,)``, within ``share`` (the states', the inputs', each in (0, 1)) of each
+    bounded variable's room about ``(x_eq (n,), u_eq (m,))``; None when no multiplier gives one
+    or the Jacobian depends on a state without bounds."""
     limits = {**scenario.operating_region, **scenario.state_bounds}
     region: dict[str, tuple[float, float]] = {}
     caps: dict[str, float] = {}
@@ -122,20 +123,21 @@ def _solved(
     scenario: Scenario,
     x_eq: FloatArray,
     u_eq: FloatArray,
-    K: FloatArray,
+    K: FloatArray | None,
     bound: FloatArray,
     region: dict[str, tuple[float, float]],
     caps: dict[str, float],
     *,
     largest: bool,
     segments: int = DEFAULT_SEGMENTS,
-) -> FloatArray | None:
+) -> tuple[FloatArray, FloatArray] | None:
     """(T3)'s rows at every vertex of the hull over ``region`` (variable name -> interval) and
     every corner of the box ``bound (n,)``, with ``Q_ii <= caps[name]^2``, the inputs ``K_j Q
-    K_j^T`` inside the region's input intervals and the position disk in Goal: ``P = Q^-1`` of
-    the smallest position extent (``tr C Q C^T``) or, ``largest``, the largest ``log det Q``,
-    over ``ALPHAS``; None when no multiplier gives one."""
-    n = scenario.n
+    K_j^T`` inside the region's input intervals and the position disk in Goal: ``(K, P =
+    Q^-1)`` of the smallest position extent (``tr C Q C^T``) or, ``largest``, the largest ``log
+    det Q``, over ``ALPHAS``; ``K`` None: ``Y = K Q`` an unknown too (Boyd et al. section 7.2.1;
+    the input rows in Schur form) and ``K = Y Q^-1``. None when no multiplier gives one."""
+    n, m = scenario.n, scenario.m
     try:
         hull = jacobian_hull(scenario.dynamics, region, segments)
     except HullError:
@@ -147,9 +149,10 @@ def _solved(
     goal_room = float(shapely.distance(shapely.Point(x_eq[position]), scenario.goal.boundary))
     if not inside or not len(w):
         return None
-    best: tuple[float, FloatArray] | None = None
+    best: tuple[float, FloatArray, FloatArray] | None = None
     for alpha in ALPHAS:
         Q = cp.Variable((n, n), symmetric=True)
+        Y = cp.Variable((m, n)) if K is None else None
         eps = MARGIN * alpha
         constraints = [Q >> 1e-9 * np.eye(n), C @ Q @ C.T << goal_room**2 * np.eye(2)]
         for i, name in enumerate(scenario.state_names):
@@ -157,10 +160,15 @@ def _solved(
                 constraints.append(Q[i, i] <= caps[name] ** 2)
         for j, name in enumerate(scenario.input_names):
             room = min(u_eq[j] - region[name][0], region[name][1] - u_eq[j])
-            constraints.append(K[j] @ Q @ K[j] <= room**2)
+            if Y is None:
+                constraints.append(K[j] @ Q @ K[j] <= room**2)
+            else:  # K_j Q K_j^T = Y_j Q^-1 Y_j^T <= room^2 (Schur)
+                row = Y[j : j + 1]
+                constraints.append(cp.bmat([[Q, row.T], [row, np.array([[room**2]])]]) >> 0)
         for J in hull.vertices:
-            Acl = J[:, :n] + J[:, n:] @ K
-            M = Acl @ Q + Q @ Acl.T + (alpha + eps) * Q
+            A, B = J[:, :n], J[:, n:]
+            AQ = (A + B @ K) @ Q if Y is None else A @ Q + B @ Y
+            M = AQ + AQ.T + (alpha + eps) * Q
             for corner in w:
                 column = corner[:, None]
                 constraints.append(
@@ -179,10 +187,11 @@ def _solved(
         value = (Q.value + Q.value.T) / 2
         if np.linalg.eigvalsh(value)[0] <= 0:
             continue
+        gain = K if Y is None else np.linalg.solve(value, np.asarray(Y.value).T).T
         score = -float(problem.value) if largest else float(problem.value)
         if best is None or score < best[0]:
-            best = (score, value)
+            best = (score, value, np.asarray(gain, dtype=np.float64))
     if best is None:
         return None
     P = np.linalg.inv(best[1])
-    return ((P + P.T) / 2).astype(np.float64)
+    return best[2], ((P + P.T) / 2).astype(np.float64)
