@@ -652,8 +652,8 @@ def hold_design(
     ``TerminalError`` when there is no equilibrium, no stabilising gain or no certified level."""
     x_eq, u_eq = equilibrium(scenario, position)
     K_T, P_T = lqr_terminal(scenario, x_eq, u_eq)
-    bound = None if disturbance is None else np.asarray(disturbance, dtype=np.float64)
-    robust = bound is not None and bool(np.any(bound > 0))
+    bound = np.zeros(scenario.n) if disturbance is None else np.asarray(disturbance, float)
+    robust = bool(np.any(bound > 0))
     if robust:
         shaped = _shaped(scenario, x_eq, u_eq, K_T, bound, period, measurement, "lqr")  # (T3)
         if shaped is not None:  # shaped for the disturbance: kept whenever it certifies

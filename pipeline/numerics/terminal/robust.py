@@ -152,7 +152,7 @@ def _solved(
     best: tuple[float, FloatArray, FloatArray] | None = None
     for alpha in ALPHAS:
         Q = cp.Variable((n, n), symmetric=True)
-        Y = cp.Variable((m, n)) if K is None else None
+        KQ = K @ Q if K is not None else cp.Variable((m, n))  # Y = K Q, an unknown without K
         eps = MARGIN * alpha
         constraints = [Q >> 1e-9 * np.eye(n), C @ Q @ C.T << goal_room**2 * np.eye(2)]
         for i, name in enumerate(scenario.state_names):
@@ -160,14 +160,14 @@ def _solved(
                 constraints.append(Q[i, i] <= caps[name] ** 2)
         for j, name in enumerate(scenario.input_names):
             room = min(u_eq[j] - region[name][0], region[name][1] - u_eq[j])
-            if Y is None:
+            if K is not None:
                 constraints.append(K[j] @ Q @ K[j] <= room**2)
             else:  # K_j Q K_j^T = Y_j Q^-1 Y_j^T <= room^2 (Schur)
-                row = Y[j : j + 1]
+                row = KQ[j : j + 1]
                 constraints.append(cp.bmat([[Q, row.T], [row, np.array([[room**2]])]]) >> 0)
         for J in hull.vertices:
             A, B = J[:, :n], J[:, n:]
-            AQ = (A + B @ K) @ Q if Y is None else A @ Q + B @ Y
+            AQ = (A + B @ K) @ Q if K is not None else A @ Q + B @ KQ
             M = AQ + AQ.T + (alpha + eps) * Q
             for corner in w:
                 column = corner[:, None]
@@ -187,7 +187,7 @@ def _solved(
         value = (Q.value + Q.value.T) / 2
         if np.linalg.eigvalsh(value)[0] <= 0:
             continue
-        gain = K if Y is None else np.linalg.solve(value, np.asarray(Y.value).T).T
+        gain = K if K is not None else np.linalg.solve(value, np.asarray(KQ.value).T).T
         score = -float(problem.value) if largest else float(problem.value)
         if best is None or score < best[0]:
             best = (score, value, np.asarray(gain, dtype=np.float64))
