@@ -37,6 +37,7 @@ from pipeline.numerics.terminal.design import (
     TerminalError,
     hold_design,
     hover_box,
+    lqr_terminal,
 )
 from pipeline.numerics.terminal.fit import TerminalTarget
 from pipeline.numerics.uncertainty import additive_bound
@@ -143,9 +144,10 @@ def core_targets(scenario: Scenario, design: TerminalDesign, core: float = CORE)
         f"{np.exp((design.log_volume - arrival.log_volume) / 2):.3g})"
     )
     log.info(
-        f"[terminal] lqr gain at {np.round(design.x_eq, 3).tolist()}: invariant ellipsoid "
-        f"certified (level {arrival.check.level:.4g}, decay {arrival.check.decay:.3g}/s); the "
-        f"nominals end within +-{np.round(half, 3).tolist()} of it{larger}"
+        f"[terminal] {design.gain} gain at {np.round(design.x_eq, 3).tolist()}: invariant "
+        f"ellipsoid certified (level {arrival.check.level:.4g}, decay "
+        f"{arrival.check.decay:.3g}/s); the nominals end within +-{np.round(half, 3).tolist()} "
+        f"of it{larger}"
     )
     return Targets(
         scenario=dataclasses.replace(scenario, goal_bounds=bounds),
@@ -210,15 +212,17 @@ RESERVE = 2.0  # the reserve is this multiple of the terminal set's extents
 
 
 def reserve_of(scenario: Scenario, design: TerminalDesign) -> dict[str, float]:
-    """Name -> the half-width of the terminal law's states and inputs over ``{e^T P_T e <= 1}``
-    when ``P_T`` is shaped for a declared disturbance (``TerminalDesign.shaped``): about the
+    """Name -> the half-width of the states and of the LQR law's inputs over ``{e^T P_T e <=
+    1}`` when ``P_T`` is shaped for a declared disturbance (``TerminalDesign.shaped``): about the
     smallest set the disturbance leaves, so the room the funnels' feedback needs about any
-    nominal (their gains are of the same LQR weights). Empty otherwise."""
+    nominal (their gains are first of the same LQR weights, so a terminal gain designed with its
+    metric, (T6), is replaced by the LQR gain here: it is the stiffer one). Empty otherwise."""
     if not design.shaped:
         return {}
     Q = RESERVE**2 * np.linalg.inv(design.P)
+    K = design.K if design.gain == "lqr" else lqr_terminal(scenario, design.x_eq, design.u_eq)[0]
     states = np.sqrt(np.diag(Q))
-    inputs = np.sqrt(np.einsum("ji,il,jl->j", design.K, Q, design.K))
+    inputs = np.sqrt(np.einsum("ji,il,jl->j", K, Q, K))
     names = (*scenario.state_names, *scenario.input_names)
     return dict(zip(names, map(float, np.concatenate([states, inputs])), strict=True))
 
