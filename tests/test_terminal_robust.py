@@ -400,11 +400,12 @@ def test_the_nominals_end_in_the_shaped_set_and_keep_its_reserve(tmp_path):
     targets = core_targets(scenario, design)
     assert targets.terminal is design
     half = target_of(shaped).core_box(1.0)
+    assert not np.allclose(half, target_of(design).core_box(1.0))  # the two boxes differ
     for name, centre, h in zip(scenario.state_names, design.x_eq, half, strict=True):
-        lower, upper = targets.scenario.goal_bounds[name]
-        assert lower >= centre - h - 1e-12 and upper <= centre + h + 1e-12
+        lower, upper = scenario.goal_bounds.get(name, (-np.inf, np.inf))
+        expected = (max(lower, float(centre - h)), min(upper, float(centre + h)))
+        assert targets.scenario.goal_bounds[name] == expected
     assert dict(targets.reserve) == reserve_of(scenario, shaped) != {}
-    assert np.all(target_of(design).core_box(1.0) > 0)
 
 
 def test_where_no_metric_of_the_lqr_gain_holds_a_gain_designed_with_its_metric_does(tmp_path):
@@ -431,3 +432,11 @@ def test_where_no_metric_of_the_lqr_gain_holds_a_gain_designed_with_its_metric_d
         )
         assert again.success and again == terminal.check
     assert design.log_volume > arrival.log_volume
+    # the first nominals' reserve is the LQR gain's over the arrival set, not the designed gain's
+    from stages.certificates.funnel import RESERVE, reserve_of
+
+    Q = RESERVE**2 * np.linalg.inv(arrival.P)
+    reserve = reserve_of(scenario, arrival)
+    for j, name in enumerate(scenario.input_names):
+        assert reserve[name] == pytest.approx(np.sqrt(K_lqr[j] @ Q @ K_lqr[j]), rel=1e-12)
+        assert reserve[name] < np.sqrt(design.K[j] @ Q @ design.K[j])

@@ -140,7 +140,8 @@ def core_targets(scenario: Scenario, design: TerminalDesign, core: float = CORE)
     larger = (
         ""
         if design.arrival is None
-        else " (the funnels end in a larger set, (T6): volume x"
+        else f" (the funnels end in a larger set, (T6): level {design.check.level:.4g}, decay "
+        f"{design.check.decay:.3g}/s, volume x"
         f"{np.exp((design.log_volume - arrival.log_volume) / 2):.3g})"
     )
     log.info(
@@ -216,11 +217,12 @@ def reserve_of(scenario: Scenario, design: TerminalDesign) -> dict[str, float]:
     1}`` when ``P_T`` is shaped for a declared disturbance (``TerminalDesign.shaped``): about the
     smallest set the disturbance leaves, so the room the funnels' feedback needs about any
     nominal (their gains are first of the same LQR weights, so a terminal gain designed with its
-    metric, (T6), is replaced by the LQR gain here: it is the stiffer one). Empty otherwise."""
+    metric, (T6), is replaced by the LQR gain here). Empty otherwise."""
     if not design.shaped:
         return {}
     Q = RESERVE**2 * np.linalg.inv(design.P)
-    K = design.K if design.gain == "lqr" else lqr_terminal(scenario, design.x_eq, design.u_eq)[0]
+    designed = design.gain == "codesigned"
+    K = lqr_terminal(scenario, design.x_eq, design.u_eq)[0] if designed else design.K
     states = np.sqrt(np.diag(Q))
     inputs = np.sqrt(np.einsum("ji,il,jl->j", K, Q, K))
     names = (*scenario.state_names, *scenario.input_names)

@@ -101,8 +101,10 @@ it raises (T1')'s floor, as the disturbance does. With ``E = 0`` every number is
 holds ``sqrt(c)`` times the smallest set the disturbance leaves. Below ``ROOM`` times, the funnels'
 ends (each at least its own smallest set, about the same size) find no room in it but at its
 centre, so the largest set of ``terminal.robust`` (T6) is tried for the same gain and kept when
-``largest_level`` certifies it with a larger volume. Soundness is (T1')-(T5)'s: the set is checked
-from scratch like any other; (T6) only chose its metric. The nominals still end in the (T3) set
+``largest_level`` certifies it with a larger volume. Where no metric of the LQR gain certifies
+any level, (T6) designs the gain with its metric (``Y = K Q``) and the (T3) set of that gain
+must certify too. Soundness is (T1')-(T5)'s: every set is checked from scratch like any other;
+(T6) only chose its metric and gain. The nominals still end in the (T3) set
 (``TerminalDesign.arrival``), and the funnels must end in the larger one (T2).
 
 End tubes: ``pipeline.numerics.terminal.fit`` (the exact containment level, and the funnel's LMI).
@@ -712,10 +714,11 @@ def _larger(
     shaped: TerminalDesign | None,
 ) -> TerminalDesign | None:
     """(T6): the largest set that ``largest_level`` certifies (every check from scratch), of the
-    gain ``K (m, n)`` or, None, of a gain designed with it, over the boxes of ``robust.SHARES``,
-    with the largest volume above ``shaped``'s (the same gain's (T3) design, the set the
-    nominals arrive in; for a designed gain, its own (T3) design, which must certify too); None
-    when none does."""
+    gain ``K (m, n)`` with ``shaped`` (its (T3) design) as the set the nominals arrive in, or,
+    ``K`` None, of a gain designed with it, whose own (T3) design must certify and arrive; over
+    the boxes of ``robust.SHARES``, the one of the largest volume above its arrival set's (a
+    designed gain's (T3) design alone where none is larger). None when nothing beats ``shaped``
+    (for a designed gain: when nothing certifies)."""
     best = shaped
     for share in SHARES:
         found = largest_metric(scenario, x_eq, u_eq, K, disturbance, share)
@@ -737,6 +740,7 @@ def _larger(
             x_eq=x_eq, u_eq=u_eq, K=gain, P=metric, check=check, gain=arrival.gain, fit=0.0,
             arrival=arrival,
         )  # fmt: skip
-        if check.success and (best is None or larger.log_volume > best.log_volume):
-            best = larger
+        candidate = larger if check.success and larger.log_volume > arrival.log_volume else arrival
+        if best is None or candidate.log_volume > best.log_volume:
+            best = candidate
     return None if best is shaped else best

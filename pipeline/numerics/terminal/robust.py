@@ -20,14 +20,15 @@ checks), at the level it finds.
 (T6) The largest set instead. (T3) at level 1 is about the smallest set the disturbance leaves, and
 the terminal level then scales it up to what the inputs, Goal and the hull allow. Under a large
 bound that is little: a funnel ends in its own smallest set around its nominal's end, and a
-terminal set only ``sqrt(level)`` times (T3)'s holds no such end but at its centre (on
-quadrotor_hill at three times its declared uncertainty, 1.3 times, and none of the nine funnels
-ended in it). ``largest_metric`` keeps (T3)'s invariance rows and maximises ``log det Q`` instead,
-over a fixed box: each bounded variable within a share of its room about the equilibrium
-(``Q_ii <= half_i^2``, ``K_j Q K_j^T <= half_j^2``), the position disk in Goal and the states in
-Goal's extra bounds. The largest set is not shaped for the ends' offsets (its
-inscribed box is no larger than (T3)'s scaled one), so the nominals still end in (T3)'s set
-(``terminal.design.hold_design``).
+terminal set only ``sqrt(level)`` times (T3)'s holds no such end but near its centre
+(docs/certificates.md). ``largest_metric`` keeps (T3)'s invariance rows and maximises ``log det
+Q`` instead, over a fixed box: each bounded variable within a share of its room about the
+equilibrium (``Q_ii <= half_i^2``, ``K_j Q K_j^T <= half_j^2``), the position disk in Goal and
+the states in Goal's extra bounds. Without a gain, ``Y = K Q`` is an unknown too (Boyd et al.
+section 7.2.1: ``A_v Q + B_v Y`` in the rows, the input caps ``[[Q, Y_j^T], [Y_j, half_j^2]] >=
+0`` by the Schur complement) and ``K = Y Q^-1``. The largest set is not shaped for the ends'
+offsets (its inscribed box is no larger than (T3)'s scaled one), so the nominals still end in a
+(T3) set (``terminal.design.hold_design``).
 """
 
 from __future__ import annotations
@@ -80,7 +81,9 @@ def robust_metric(
         region[name] = (max(u_eq[j] - input_half[j], lower), min(u_eq[j] + input_half[j], upper))
     caps = {name: min(x_eq[i] - region[name][0], region[name][1] - x_eq[i])
             for i, name in enumerate(scenario.state_names)}  # fmt: skip
-    solved = _solved(scenario, x_eq, u_eq, K, bound, region, caps, largest=False, segments=segments)
+    solved = _invariant_metric(
+        scenario, x_eq, u_eq, K, bound, region, caps, largest=False, segments=segments
+    )
     return None if solved is None else solved[1]
 
 
@@ -96,15 +99,15 @@ def largest_metric(
     """``(K_T (m, n), P_T (n, n))`` of (T6): the largest ``{e^T P_T e <= 1}`` (``log det``) that
     (T3) holds for the gain ``K (m, n)`` (None: designed with it, ``Y = K Q``) and the additive
     bound ``bound (n,)``, within ``share`` (the states', the inputs', each in (0, 1)) of each
-    bounded variable's room about ``(x_eq (n,), u_eq (m,))``; None when no multiplier gives one
-    or the Jacobian depends on a state without bounds."""
+    bounded variable's room about ``(x_eq (n,), u_eq (m,))``; None when no multiplier gives one,
+    the Jacobian depends on a state without bounds or the equilibrium lies on a bound."""
     limits = {**scenario.operating_region, **scenario.state_bounds}
     region: dict[str, tuple[float, float]] = {}
     caps: dict[str, float] = {}
     for i, name in enumerate(scenario.state_names):
         if name in limits:
             lower, upper = limits[name]
-            caps[name] = share[0] * min(x_eq[i] - lower, upper - x_eq[i])
+            caps[name] = share[0] * max(min(x_eq[i] - lower, upper - x_eq[i]), 0.0)
             region[name] = (x_eq[i] - caps[name], x_eq[i] + caps[name])
         if name in scenario.goal_bounds:  # the terminal set lies in Goal's extra bounds
             lower, upper = scenario.goal_bounds[name]
@@ -112,14 +115,16 @@ def largest_metric(
     for j, name in enumerate(scenario.input_names):
         lower, upper = limits.get(name, (-np.inf, np.inf))
         lower, upper = max(lower, scenario.input_lower[j]), min(upper, scenario.input_upper[j])
-        half = share[1] * min(u_eq[j] - lower, upper - u_eq[j])
+        half = share[1] * max(min(u_eq[j] - lower, upper - u_eq[j]), 0.0)
         region[name] = (u_eq[j] - half, u_eq[j] + half)
-    if any(name not in region for name in scenario.dynamics.depends_on()):
+    if not all(h > 0 for h in caps.values()):  # an equilibrium on a bound: no room
         return None
-    return _solved(scenario, x_eq, u_eq, K, bound, region, caps, largest=True, segments=segments)
+    return _invariant_metric(
+        scenario, x_eq, u_eq, K, bound, region, caps, largest=True, segments=segments
+    )
 
 
-def _solved(
+def _invariant_metric(
     scenario: Scenario,
     x_eq: FloatArray,
     u_eq: FloatArray,
@@ -152,7 +157,7 @@ def _solved(
     best: tuple[float, FloatArray, FloatArray] | None = None
     for alpha in ALPHAS:
         Q = cp.Variable((n, n), symmetric=True)
-        KQ = K @ Q if K is not None else cp.Variable((m, n))  # Y = K Q, an unknown without K
+        Y = K @ Q if K is not None else cp.Variable((m, n))  # Y = K Q, an unknown without K
         eps = MARGIN * alpha
         constraints = [Q >> 1e-9 * np.eye(n), C @ Q @ C.T << goal_room**2 * np.eye(2)]
         for i, name in enumerate(scenario.state_names):
@@ -163,11 +168,11 @@ def _solved(
             if K is not None:
                 constraints.append(K[j] @ Q @ K[j] <= room**2)
             else:  # K_j Q K_j^T = Y_j Q^-1 Y_j^T <= room^2 (Schur)
-                row = KQ[j : j + 1]
+                row = Y[j : j + 1]
                 constraints.append(cp.bmat([[Q, row.T], [row, np.array([[room**2]])]]) >> 0)
         for J in hull.vertices:
             A, B = J[:, :n], J[:, n:]
-            AQ = (A + B @ K) @ Q if K is not None else A @ Q + B @ KQ
+            AQ = (A + B @ K) @ Q if K is not None else A @ Q + B @ Y
             M = AQ + AQ.T + (alpha + eps) * Q
             for corner in w:
                 column = corner[:, None]
@@ -187,7 +192,7 @@ def _solved(
         value = (Q.value + Q.value.T) / 2
         if np.linalg.eigvalsh(value)[0] <= 0:
             continue
-        gain = K if K is not None else np.linalg.solve(value, np.asarray(KQ.value).T).T
+        gain = K if K is not None else np.linalg.solve(value, np.asarray(Y.value).T).T
         score = -float(problem.value) if largest else float(problem.value)
         if best is None or score < best[0]:
             best = (score, value, np.asarray(gain, dtype=np.float64))
