@@ -35,9 +35,6 @@ COVERED_THROUGH_CALLER = {
     "pipeline.numerics.kernels.loops": (
         "tests/test_kernel_cache.py::test_two_dynamics_compile_their_loops_but_share_the_dynamics_free_functions"
     ),
-    "pipeline.numerics.kernels.rollout": (
-        "tests/test_kernel_cache.py::test_two_dynamics_compile_their_loops_but_share_the_dynamics_free_functions"
-    ),
     # the report's parts, written by stages.report for the session's runs
     "pipeline.reporting.certificates": (
         "tests/stages/test_report.py::test_html_holds_the_headline_numbers_of_summary_json"

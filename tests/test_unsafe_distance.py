@@ -10,19 +10,8 @@ import pytest
 from pipeline.model import geometry
 from pipeline.model.scenario import load_scenario
 from pipeline.numerics.closed_loop.rollouts import SceneArrays
+from pipeline.numerics.kernels.rollout import LIPSCHITZ_ROUNDING
 from pipeline.numerics.kernels.shared import cached_distance, unsafe_distance
-
-ROUNDING = 1e-12  # as the kernel's LIPSCHITZ_ROUNDING
-
-
-def _scene(scenario) -> tuple:
-    scene = SceneArrays.of(scenario)
-    return (
-        scene.unsafe_vertices,
-        scene.unsafe_ring_start,
-        scene.unsafe_set_rings,
-        scene.unsafe_boxes,
-    )
 
 
 @pytest.mark.parametrize("name", ["quadrotor_hill", "unicycle_slalom"])
@@ -31,7 +20,7 @@ def test_the_nearest_edge_alone_gives_the_full_measurement_where_it_answers(name
     anchor's distance: where ``cached_distance`` answers, it is the full measurement bit for
     bit and the point is outside every set; it answers for some of the moves (the shortcut is
     used) and declines others (those near another edge, or as far as the anchor's distance)."""
-    scene = _scene(load_scenario(name, check_demos=False))
+    scene = SceneArrays.of(load_scenario(name, check_demos=False)).unsafe
     rng = np.random.default_rng(7)
     lo, hi = scene[0].min(axis=0) - 2.0, scene[0].max(axis=0) + 2.0
     edge, full_edge, anchor = np.empty(8), np.empty(8), np.empty(2)
@@ -42,7 +31,7 @@ def test_the_nearest_edge_alone_gives_the_full_measurement_where_it_answers(name
         for _ in range(20):
             step = rng.normal(size=2)
             point = anchor + step / np.linalg.norm(step) * rng.uniform(0, 1.5) * measured
-            found = cached_distance(point[0], point[1], edge, ROUNDING)
+            found = cached_distance(point[0], point[1], edge, LIPSCHITZ_ROUNDING)
             full = unsafe_distance(point[0], point[1], np.inf, scene, full_edge)
             asked += 1
             if found >= 0.0:
@@ -57,7 +46,7 @@ def test_the_full_measurement_is_shapely_s_distance_and_says_when_it_is_an_edge_
     one); its edge record is valid exactly when the point is outside, and then bounds every
     other edge from below by no more than their true distances (at least the nearest's)."""
     scenario = load_scenario(name, check_demos=False)
-    scene = _scene(scenario)
+    scene = SceneArrays.of(scenario).unsafe
     regions = list(scenario.unsafe.values())
     rng = np.random.default_rng(3)
     lo, hi = scene[0].min(axis=0) - 2.0, scene[0].max(axis=0) + 2.0

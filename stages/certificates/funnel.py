@@ -213,16 +213,15 @@ RESERVE = 2.0  # the reserve is this multiple of the terminal set's extents
 
 
 def reserve_of(scenario: Scenario, design: TerminalDesign) -> dict[str, float]:
-    """Name -> the half-width of the states and of the LQR law's inputs over ``{e^T P_T e <=
-    1}`` when ``P_T`` is shaped for a declared disturbance (``TerminalDesign.shaped``): about the
-    smallest set the disturbance leaves, so the room the funnels' feedback needs about any
-    nominal (their gains are first of the same LQR weights, so a terminal gain designed with its
-    metric, (T6), is replaced by the LQR gain here). Empty otherwise."""
+    """Name -> the half-width of the states and of the LQR law's inputs (at the equilibrium:
+    the funnels' gains are first of the same weights, whichever gain the terminal law has) over
+    ``{e^T P_T e <= 1}`` when ``P_T`` is shaped for a declared disturbance
+    (``TerminalDesign.shaped``): about the smallest set the disturbance leaves, so the room the
+    funnels' feedback needs about any nominal. Empty otherwise."""
     if not design.shaped:
         return {}
     Q = RESERVE**2 * np.linalg.inv(design.P)
-    designed = design.gain == "codesigned"
-    K = lqr_terminal(scenario, design.x_eq, design.u_eq)[0] if designed else design.K
+    K = lqr_terminal(scenario, design.x_eq, design.u_eq)[0]
     states = np.sqrt(np.diag(Q))
     inputs = np.sqrt(np.einsum("ji,il,jl->j", K, Q, K))
     names = (*scenario.state_names, *scenario.input_names)

@@ -90,6 +90,17 @@ class SceneArrays:
             bound_upper=np.array([hi for _, hi in scenario.state_bounds.values()], dtype=float),
         )
 
+    @property
+    def unsafe(self) -> tuple[FloatArray, IntArray, IntArray, FloatArray]:
+        """``(vertices, ring_start, set_rings, boxes)``: the kernels' ``scene`` of Unsafe
+        (``pipeline.numerics.kernels.shared.unsafe_distance``)."""
+        return (
+            self.unsafe_vertices,
+            self.unsafe_ring_start,
+            self.unsafe_set_rings,
+            self.unsafe_boxes,
+        )
+
 
 def check_runs_compiled(
     scenario: Scenario,
@@ -218,12 +229,7 @@ def _scene(scenario: Scenario) -> tuple:
     scene = SceneArrays.of(scenario)
     return (
         scene.position,
-        (
-            scene.unsafe_vertices,
-            scene.unsafe_ring_start,
-            scene.unsafe_set_rings,
-            scene.unsafe_boxes,
-        ),
+        scene.unsafe,
         (
             scene.goal_vertices,
             scene.goal_ring_start,
