@@ -205,7 +205,10 @@ class TerminalController:
       K: (m, n) gain (sign of ``u = u_eq + K e``); P: (n, n) Lyapunov matrix.
       level: the certified invariant set is ``(x - x_eq)^T P (x - x_eq) <= level``.
       disturbance: (n,) the additive bound ``|w_i| <= disturbance_i`` on ``x'`` the set was
-        certified invariant for (None: the file states none, the exact model).
+        certified invariant for (None: the file states none, the exact model); below the
+        file's ``uncertainty.additive_bound``, the declared disturbance plus the parameters'
+        term at ``(x_eq, u_eq)``, the parameter intervals held in the certificate's Jacobian
+        hull ((T7) of ``pipeline.numerics.terminal.design``).
     """
 
     x_eq: np.ndarray

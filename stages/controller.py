@@ -19,7 +19,8 @@ LQR gain and the largest certified invariant ellipsoid. The ``terminal`` block i
 that ellipsoid holds every trajectory's end tube ``||x - x_ref(T)||_P <= radius e^{-lambda T}``;
 otherwise the file has none, the law refuses ``t > T``, and the message says why. In a ``/2``
 file the block also states ``disturbance``, the additive bound ``b (n,)`` its ellipsoid was
-certified robustly invariant for (T1'; zeros: the exact model); a funnel run that designed its
+certified robustly invariant for (T1'; zeros: the exact model; (T7)'s box at the equilibrium when
+the design held the parameter intervals in its hull); a funnel run that designed its
 terminal controller before its funnels (``terminal.hold_design``, the funnels ending inside by
 ``synthesize_funnel(terminal=...)``) passes that design, else one is designed for the ends here.
 """
@@ -109,7 +110,9 @@ def terminal_block(
         "P": design.P.tolist(),
         "level": design.check.level,
     }
-    if disturbance is not None:
+    if design.disturbance is not None:  # the box (T7) held, the parameters in the hull
+        block["disturbance"] = design.disturbance.tolist()
+    elif disturbance is not None:
         block["disturbance"] = np.asarray(disturbance, dtype=np.float64).tolist()
     return (
         block,

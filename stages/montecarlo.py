@@ -66,7 +66,7 @@ from pipeline.numerics.closed_loop.rollouts import (
     run_paths_compiled,
 )
 from pipeline.numerics.closed_loop.simulate import RunChecks, check_runs
-from pipeline.numerics.uncertainty import additive_bound
+from pipeline.numerics.verify.recertify import terminal_claim
 from pipeline.results.montecarlo import Falsification as Falsification
 from pipeline.results.montecarlo import MonteCarloResult as MonteCarloResult
 from pipeline.results.stage import FileInput, Stage, StageInputs
@@ -207,13 +207,14 @@ def _counted(scenario: Scenario, checks: RunChecks) -> dict[str, np.ndarray]:
 
 def claims_invariance(scenario: Scenario, controller: Controller) -> bool:
     """The file's terminal block states its ellipsoid invariant for the scenario's declared
-    uncertainty (its ``disturbance`` at least the additive bound in every state, which certify
-    verifies): a run that leaves the ellipsoid after ``T`` then contradicts the certificate and
-    is counted failed. A block for less (the exact model's) claims nothing under the draws."""
+    uncertainty (its ``disturbance`` what certify re-checks it under, ``terminal_claim``: the
+    additive bound, or (T7)'s at its equilibrium): a run that leaves the ellipsoid after ``T``
+    then contradicts the certificate and is counted failed. A block for less (the exact
+    model's) claims nothing under the draws."""
     terminal = controller.terminal
     if terminal is None or terminal.disturbance is None:
         return False
-    return bool(np.all(terminal.disturbance >= additive_bound(scenario)))
+    return not terminal_claim(scenario, terminal)[2]
 
 
 def _run_chunk(

@@ -283,11 +283,13 @@ class _Structure:
 
 
 @functools.lru_cache(maxsize=16)
-def _structure(dynamics: Dynamics) -> _Structure:
-    """The symbolic decomposition of ``[f_x f_u]`` (``Dynamics`` is frozen and hashed by
-    identity, so the cache holds one entry per loaded scenario)."""
-    n, m = dynamics.n, dynamics.m
-    entries = sympy.Matrix.hstack(dynamics.jacobian_x, dynamics.jacobian_u)
+def _structure(dynamics: Dynamics, inputs: int | None = None) -> _Structure:
+    """The symbolic decomposition of ``[f_x f_u]``, of its first ``inputs`` input columns when
+    given (``Dynamics`` is frozen and hashed by identity, so the cache holds one entry per
+    loaded scenario and column count)."""
+    n, m = dynamics.n, dynamics.m if inputs is None else inputs
+    entries = sympy.Matrix.hstack(dynamics.jacobian_x, dynamics.jacobian_u[:, :m])
+    variables = entries.free_symbols
 
     # 1. J(z) = J_0 + sum_k phi_k(z) M_k.
     J0 = np.zeros((n, n + m))
@@ -326,7 +328,9 @@ def _structure(dynamics: Dynamics) -> _Structure:
     for M in features.values():
         M.flags.writeable = False
     return _Structure(
-        depends_on=dynamics.depends_on(),
+        depends_on=tuple(
+            z.name for z in (*dynamics.state_symbols, *dynamics.input_symbols) if z in variables
+        ),
         J0=J0,
         features=tuple(
             (feature, M, keys)
@@ -352,16 +356,21 @@ def jacobian_hull(
     region: Mapping[str, tuple[float, float]],
     segments: int = DEFAULT_SEGMENTS,
     compact: bool = False,
+    inputs: int | None = None,
 ) -> JacobianHull:
     """A sound polytope of ``[f_x f_u]`` over the box ``region`` (name -> (lower, upper)).
 
     Every variable the Jacobian depends on must be bounded by ``region``, by an interval
     (``lower <= upper``, else ``HullError``: an empty box has no hull); ``segments`` is the
     number of pieces per angle-like block (the arc polygon's tangents, or interval boxes);
-    ``compact`` asks for the arc polygon with fewer vertices (``arc_polygon``).
+    ``compact`` asks for the arc polygon with fewer vertices (``arc_polygon``). ``inputs``: only
+    the first ``inputs`` columns of ``f_u`` (the rest, e.g. uncertain parameters appended as
+    inputs, ``pipeline.model.uncertainty``, are then variables of the box alone): vertices
+    ``(V, n, n + inputs)``; the projection of a hull of the whole Jacobian would hold the same
+    matrices, at the cost of the dropped columns' features.
     """
-    n, m = dynamics.n, dynamics.m
-    structure = _structure(dynamics)
+    n, m = dynamics.n, dynamics.m if inputs is None else inputs
+    structure = _structure(dynamics, inputs)
     symbols = {s.name: s for s in (*dynamics.state_symbols, *dynamics.input_symbols)}
     missing = [name for name in structure.depends_on if name not in region]
     if missing:

@@ -20,6 +20,16 @@ dependency problem on the difference itself (on quadrotor_hill_flythrough, a thr
 of the pitch over an uncertain mass, bounded term by term: 21.9 m/s^2 against 0.59 in the mean-value
 form).
 
+(T7) Parameters in the hull. Near one point ``(x_eq, u_eq)`` (a terminal set) the bound (U1) over
+a box is wasteful: most of the parameters' term is the shift of ``f`` at the point itself, the
+rest varies with ``(x, u)``. Split ``f(x, u, p) - f(x_eq, u_eq, p0)`` as ``[f(x, u, p) - f(x_eq,
+u_eq, p)] + [f(x_eq, u_eq, p) - f(x_eq, u_eq, p0)] + r``: the first is ``J(xi, p) (x - x_eq, u -
+u_eq)`` by the mean value theorem at fixed ``p`` (per component), with ``J(xi, p)`` in the hull of
+``[f_x f_u]`` over the box and the parameter intervals (``parametric_hull``); the second is (U1)
+at the point alone (``equilibrium_bound``), added to the declared disturbance. The certificates
+that use it (``terminal.design`` (T7)) hold every hull point and every additive term in that box,
+so they hold for every parameter in its interval, constant or not.
+
 Which box ``Z``. Every certificate that holds uncertainty keeps its tube inside ``state_bounds``
 and its inputs inside ``input_bounds`` (a funnel's caps, ``pipeline.numerics.funnel.synthesis``), so
 ``Z`` is the state bounds (else the operating region) for each state ``df/dp`` depends on, and the
@@ -36,7 +46,7 @@ import sympy
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
 from pipeline.model.uncertainty import Uncertainty
-from pipeline.numerics.hull import HullError, interval_of
+from pipeline.numerics.hull import HullError, JacobianHull, interval_of, jacobian_hull
 
 
 def certified_box(scenario: Scenario) -> dict[str, tuple[float, float]]:
@@ -80,6 +90,31 @@ def declared_bound(scenario: Scenario) -> FloatArray | None:
     """``additive_bound(scenario)``, or None when the scenario declares no uncertainty (the
     exact model: every certificate then takes its exact-model form)."""
     return None if scenario.uncertainty.empty else additive_bound(scenario)
+
+
+def equilibrium_bound(
+    uncertainty: Uncertainty, scenario: Scenario, x_eq: FloatArray, u_eq: FloatArray
+) -> FloatArray:
+    """(n,) (T7)'s additive box at the point ``(x_eq (n,), u_eq (m,))``: the declared disturbance
+    plus the parameters' term (U1) there alone, rounded up."""
+    names = (*scenario.state_names, *scenario.input_names)
+    point = {k: (float(v), float(v)) for k, v in zip(names, [*x_eq, *u_eq], strict=True)}
+    return _bound(uncertainty, point, with_disturbance=True)
+
+
+def parametric_hull(
+    scenario: Scenario,
+    region: Mapping[str, tuple[float, float]],
+    segments: int,
+    parameters: Uncertainty | None = None,
+) -> JacobianHull:
+    """``jacobian_hull`` of ``[f_x f_u]`` (``(V, n, n + m)`` vertices) over ``region`` and, when
+    ``parameters`` declares any, over their intervals too (T7): the parametric dynamics'
+    Jacobian in the states and the ``m`` inputs. ``HullError`` as ``jacobian_hull``'s."""
+    if parameters is None or parameters.parametric is None:
+        return jacobian_hull(scenario.dynamics, region, segments)
+    box = {**region, **parameters.parameters}
+    return jacobian_hull(parameters.parametric, box, segments, inputs=scenario.m)
 
 
 def _bound(

@@ -120,7 +120,9 @@ def hold_targets(
         return Targets(scenario=scenario)
     try:
         measurement = scenario.uncertainty.measurement_box  # (T5)
-        design = hold_design(scenario, additive_bound(scenario), period, measurement, position)
+        design = hold_design(
+            scenario, additive_bound(scenario), period, measurement, position, scenario.uncertainty
+        )
     except TerminalError as error:
         log.info(f"[terminal] no terminal controller designed before the funnels: {error}")
         return Targets(scenario=scenario)

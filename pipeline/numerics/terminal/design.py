@@ -107,6 +107,15 @@ must certify too. Soundness is (T1')-(T5)'s: every set is checked from scratch l
 (T6) only chose its metric and gain. The nominals still end in the (T3) set
 (``TerminalDesign.arrival``), and the funnels must end in the larger one (T2).
 
+(T7) Parameters in the hull. Under declared parameter intervals, (T1')'s ``b`` from (U1) over the
+whole certified box (``pipeline.numerics.uncertainty``) takes the parameters' term at the largest
+thrust the box allows. ``hold_design`` with ``parameters`` instead holds them as (U1)'s (T7) split:
+the hull over ``Z_c`` and the parameter intervals (``uncertainty.parametric_hull``), and ``b`` the
+declared disturbance plus the parameters' term at ``(x_eq, u_eq)`` alone
+(``uncertainty.equilibrium_bound``). Then ``e' = (A + B K_T) e + r + w`` holds with ``[A B]`` in
+that hull and ``|w| <= b`` for every parameter in its interval, so (T1')-(T6) go through word for
+word (``check_level(parameters=...)``), the residual ``r`` still the nominal model's.
+
 End tubes: ``pipeline.numerics.terminal.fit`` (the exact containment level, and the funnel's LMI).
 """
 
@@ -125,16 +134,18 @@ from shapely.ops import polylabel
 
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
+from pipeline.model.uncertainty import Uncertainty
 from pipeline.numerics.funnel.law import LMI_MARGIN, corners
 from pipeline.numerics.funnel.robust import RobustCheck
 from pipeline.numerics.funnel.sampled import remainder_box
-from pipeline.numerics.hull import DEFAULT_SEGMENTS, HullError, jacobian_hull
+from pipeline.numerics.hull import DEFAULT_SEGMENTS, HullError
 from pipeline.numerics.terminal.fit import containing_level as containing_level
 from pipeline.numerics.terminal.fit import end_levels
 from pipeline.numerics.terminal.robust import SHARES, largest_metric, robust_metric
 from pipeline.numerics.tube.contraction import contraction_rate
 from pipeline.numerics.tube.geometry import Tube
 from pipeline.numerics.tube.sampled import held_rate
+from pipeline.numerics.uncertainty import equilibrium_bound, parametric_hull
 
 EQUILIBRIUM_TOLERANCE = 1e-9  # ||f(x_eq, u_eq)|| accepted as an equilibrium
 LEVEL_BISECTIONS = 24
@@ -280,6 +291,7 @@ def check_level(
     disturbance: FloatArray | None = None,
     held_period: float = 0.0,
     measurement: FloatArray | None = None,
+    parameters: Uncertainty | None = None,
 ) -> TerminalCheck:
     """Check (T1') and the bounds for ``E_c``, ``c = level`` (module docstring), from scratch:
     hull over ``Z_c``, decay by ``numpy.linalg.eigvalsh``, no clipping, inside Goal. With a
@@ -288,7 +300,9 @@ def check_level(
     the additive bound ``b`` of (T1') (None or zeros: the exact model, (T1)). ``held_period >
     0``: the law held every ``held_period`` s, its hold an additive term (T4) joined to ``b``,
     or its push to first order (T4') (a funnel file's terminal law). ``measurement (n,)``: the
-    box ``E`` of the error on the state the law sees (T5) (None or zeros: the exact state)."""
+    box ``E`` of the error on the state the law sees (T5) (None or zeros: the exact state).
+    ``parameters``: its parameter intervals join the hull's box (T7); ``disturbance`` must then
+    hold its term at the equilibrium (``uncertainty.equilibrium_bound``)."""
     tube, r = _tube(scenario, K, P), float(np.sqrt(level))
     b = np.zeros(len(x_eq)) if disturbance is None else np.asarray(disturbance, dtype=np.float64)
     E = None if measurement is None else np.asarray(measurement, dtype=np.float64)
@@ -348,7 +362,7 @@ def check_level(
     residual_norm = float(np.sqrt(residual @ P @ residual))
     pushed = b  # (T4')'s box, set with the hull
     try:
-        hull = jacobian_hull(scenario.dynamics, box, segments)
+        hull = parametric_hull(scenario, box, segments, parameters)
         decay, vertices = decay_rate(P, K, hull.A, hull.B), len(hull.vertices)
         if period > 0:
             decay = 2 * held_rate(P, K, hull.A, hull.B, decay / 2, period).held_rate
@@ -473,12 +487,14 @@ def largest_level(
     disturbance: FloatArray | None = None,
     held_period: float = 0.0,
     measurement: FloatArray | None = None,
+    parameters: Uncertainty | None = None,
 ) -> TerminalCheck:
     """The largest level ``c`` certified with at least ``DECAY_FRACTION`` of the linearisation's
     decay (bisection on ``sqrt(c)``; the input and Goal bounds give the top), robust to the
     additive bound ``disturbance (n,)`` (T1'), for the law held every ``held_period`` s when it
-    is > 0 (T4). Every check but (T1')'s floor only gets harder as ``c`` grows, so the
-    bisection finds the largest level passing those, and (T1') is checked there (it is the best
+    is > 0 (T4), the parameter intervals of ``parameters`` in the hull (T7). Every check but
+    (T1')'s floor only gets harder as ``c`` grows, so the bisection finds the largest level
+    passing those, and (T1') is checked there (it is the best
     chance: the floor is a lower bound, (T4)'s term growing with ``sqrt(c)`` too); the returned
     check fails when that level is below the floor."""
     robust = disturbance is not None and bool(np.any(np.asarray(disturbance) > 0))
@@ -499,6 +515,7 @@ def largest_level(
         return check_level(
             scenario, x_eq, u_eq, K, P, radius**2, min_decay=need, period=period,
             disturbance=disturbance, held_period=held_period, measurement=measurement,
+            parameters=parameters,
         )  # fmt: skip
 
     best = at(hi)
@@ -528,6 +545,8 @@ class TerminalDesign:
         at level 1: ``{e^T P e <= 1}`` is about the smallest set the disturbance leaves.
       arrival: the (T3)-shaped design the nominals end in and the funnels' room is sized from,
         when this one is (T6)'s larger set (``hold_design``); None: this one itself.
+      disturbance: (n,) the additive box ``check`` held, with the parameter intervals in the
+        hull (T7); None: the box the design was asked for, without them.
     """
 
     x_eq: FloatArray
@@ -539,6 +558,7 @@ class TerminalDesign:
     fit: float
     shaped: bool = False
     arrival: TerminalDesign | None = None
+    disturbance: FloatArray | None = None
 
     @property
     def arrives_in(self) -> TerminalDesign:
@@ -636,12 +656,52 @@ def hover_box(scenario: Scenario, design: TerminalDesign) -> FloatArray | None:
     return None if np.any(box[:, 0] > box[:, 1]) else box
 
 
+@dataclass(frozen=True, kw_only=True)
+class _Demands:
+    """What ``hold_design``'s sets must hold: the additive box ``bound (n,)``, the law held
+    every ``period`` s (T4; 0: continuous), the measurement box (T5; None: exact) and the
+    parameter intervals in the hull (T7; None: none)."""
+
+    bound: FloatArray
+    period: float
+    measurement: FloatArray | None
+    parameters: Uncertainty | None
+
+    def largest_level(
+        self, scenario: Scenario, x_eq: FloatArray, u_eq: FloatArray, K: FloatArray, P: FloatArray
+    ) -> TerminalCheck:
+        """``largest_level`` of ``(K (m, n), P (n, n))`` under what is held."""
+        return largest_level(
+            scenario, x_eq, u_eq, K, P, disturbance=self.bound, held_period=self.period,
+            measurement=self.measurement, parameters=self.parameters,
+        )  # fmt: skip
+
+    def design(
+        self,
+        x_eq: FloatArray,
+        u_eq: FloatArray,
+        K: FloatArray,
+        P: FloatArray,
+        check: TerminalCheck,
+        gain: str,
+        *,
+        shaped: bool = False,
+        arrival: TerminalDesign | None = None,
+    ) -> TerminalDesign:
+        """The ``TerminalDesign`` (fit 0), stating the box it held under (T7)."""
+        return TerminalDesign(
+            x_eq=x_eq, u_eq=u_eq, K=K, P=P, check=check, gain=gain, fit=0.0, shaped=shaped,
+            arrival=arrival, disturbance=None if self.parameters is None else self.bound,
+        )  # fmt: skip
+
+
 def hold_design(
     scenario: Scenario,
     disturbance: FloatArray | None = None,
     period: float = 0.0,
     measurement: FloatArray | None = None,
     position: FloatArray | None = None,
+    parameters: Uncertainty | None = None,
 ) -> TerminalDesign:
     """The terminal controller a funnel run designs BEFORE its funnels, for them to end in: the
     equilibrium at Goal's centre, its LQR gain and, under ``disturbance (n,)``, the metric shaped
@@ -650,27 +710,31 @@ def hold_design(
     designed with its metric; the largest level certified robustly (T1', T1''), for the law
     held every ``period`` s when it is > 0 (T4: the funnel file's law), seeing the state within
     ``measurement (n,)`` (T5); ``fit`` 0 (no end tube yet). ``position (2,)``: the
-    equilibrium's position instead of Goal's centre.
+    equilibrium's position instead of Goal's centre. ``parameters``: a declared uncertainty
+    with parameter intervals, held as (T7) (in the hull, the box ``equilibrium_bound`` in place
+    of ``disturbance``; the design's ``disturbance``); without any, ``disturbance`` alone.
     ``TerminalError`` when there is no equilibrium, no stabilising gain or no certified level."""
     x_eq, u_eq = equilibrium(scenario, position)
     K_T, P_T = lqr_terminal(scenario, x_eq, u_eq)
     bound = np.zeros(scenario.n) if disturbance is None else np.asarray(disturbance, float)
+    if parameters is not None and parameters.parametric is not None:  # (T7)
+        bound = equilibrium_bound(parameters, scenario, x_eq, u_eq)
+    else:
+        parameters = None
+    demands = _Demands(bound=bound, period=period, measurement=measurement, parameters=parameters)
     robust = bool(np.any(bound > 0))
     if robust:
-        shaped = _shaped(scenario, x_eq, u_eq, K_T, bound, period, measurement, "lqr")  # (T3)
+        shaped = _shaped(scenario, x_eq, u_eq, K_T, demands, "lqr")  # (T3)
         if shaped is not None:  # shaped for the disturbance: kept whenever it certifies
             if shaped.check.level >= ROOM**2:
                 return shaped
-            larger = _larger(scenario, x_eq, u_eq, K_T, bound, period, measurement, shaped)
+            larger = _larger(scenario, x_eq, u_eq, K_T, demands, shaped)
             return shaped if larger is None else larger
-    check = largest_level(
-        scenario, x_eq, u_eq, K_T, P_T, disturbance=disturbance, held_period=period,
-        measurement=measurement,
-    )  # fmt: skip
+    check = demands.largest_level(scenario, x_eq, u_eq, K_T, P_T)
     if check.success:
-        return TerminalDesign(x_eq=x_eq, u_eq=u_eq, K=K_T, P=P_T, check=check, gain="lqr", fit=0.0)
+        return demands.design(x_eq, u_eq, K_T, P_T, check, "lqr")
     if robust:  # no metric of the LQR gain holds: one designed with its metric (T6)
-        codesigned = _larger(scenario, x_eq, u_eq, None, bound, period, measurement, None)
+        codesigned = _larger(scenario, x_eq, u_eq, None, demands, None)
         if codesigned is not None:
             return codesigned
     where = np.round(x_eq, 3).tolist()
@@ -682,25 +746,18 @@ def _shaped(
     x_eq: FloatArray,
     u_eq: FloatArray,
     K: FloatArray,
-    disturbance: FloatArray,
-    period: float,
-    measurement: FloatArray | None,
+    demands: _Demands,
     gain: str,
 ) -> TerminalDesign | None:
     """The design of the gain ``K (m, n)`` on (T3)'s metric at its largest certified level
     (``largest_level``), None when there is no such metric or no level certifies."""
-    metric = robust_metric(scenario, x_eq, u_eq, K, disturbance)
+    metric = robust_metric(scenario, x_eq, u_eq, K, demands.bound, parameters=demands.parameters)
     if metric is None:
         return None
-    check = largest_level(
-        scenario, x_eq, u_eq, K, metric, disturbance=disturbance, held_period=period,
-        measurement=measurement,
-    )  # fmt: skip
+    check = demands.largest_level(scenario, x_eq, u_eq, K, metric)
     if not check.success:
         return None
-    return TerminalDesign(
-        x_eq=x_eq, u_eq=u_eq, K=K, P=metric, check=check, gain=gain, fit=0.0, shaped=True
-    )
+    return demands.design(x_eq, u_eq, K, metric, check, gain, shaped=True)
 
 
 def _larger(
@@ -708,9 +765,7 @@ def _larger(
     x_eq: FloatArray,
     u_eq: FloatArray,
     K: FloatArray | None,
-    disturbance: FloatArray,
-    period: float,
-    measurement: FloatArray | None,
+    demands: _Demands,
     shaped: TerminalDesign | None,
 ) -> TerminalDesign | None:
     """(T6): the largest set that ``largest_level`` certifies (every check from scratch), of the
@@ -721,25 +776,19 @@ def _larger(
     (for a designed gain: when nothing certifies)."""
     best = shaped
     for share in SHARES:
-        found = largest_metric(scenario, x_eq, u_eq, K, disturbance, share)
+        found = largest_metric(
+            scenario, x_eq, u_eq, K, demands.bound, share, parameters=demands.parameters
+        )
         if found is None:
             continue
         gain, metric = found
         arrival = shaped
         if K is None:
-            arrival = _shaped(
-                scenario, x_eq, u_eq, gain, disturbance, period, measurement, "codesigned"
-            )  # fmt: skip
+            arrival = _shaped(scenario, x_eq, u_eq, gain, demands, "codesigned")
         if arrival is None:
             continue
-        check = largest_level(
-            scenario, x_eq, u_eq, gain, metric, disturbance=disturbance, held_period=period,
-            measurement=measurement,
-        )  # fmt: skip
-        larger = TerminalDesign(
-            x_eq=x_eq, u_eq=u_eq, K=gain, P=metric, check=check, gain=arrival.gain, fit=0.0,
-            arrival=arrival,
-        )  # fmt: skip
+        check = demands.largest_level(scenario, x_eq, u_eq, gain, metric)
+        larger = demands.design(x_eq, u_eq, gain, metric, check, arrival.gain, arrival=arrival)
         candidate = larger if check.success and larger.log_volume > arrival.log_volume else arrival
         if best is None or candidate.log_volume > best.log_volume:
             best = candidate

@@ -41,9 +41,11 @@ import shapely
 
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
+from pipeline.model.uncertainty import Uncertainty
 from pipeline.numerics.funnel.law import corners
 from pipeline.numerics.funnel.robust import invariant_ellipsoid
-from pipeline.numerics.hull import DEFAULT_SEGMENTS, HullError, jacobian_hull
+from pipeline.numerics.hull import DEFAULT_SEGMENTS, HullError
+from pipeline.numerics.uncertainty import parametric_hull
 
 ALPHAS = (0.3, 0.6, 1.0, 1.5, 2.5, 4.0)  # the multipliers tried (1/s)
 MARGIN = 0.05  # eps, as a share of alpha
@@ -59,9 +61,11 @@ def robust_metric(
     K: FloatArray,
     bound: FloatArray,
     segments: int = DEFAULT_SEGMENTS,
+    parameters: Uncertainty | None = None,
 ) -> FloatArray | None:
     """``P_T (n, n)`` from (T3) for the gain ``K (m, n)`` at the equilibrium ``(x_eq (n,), u_eq
-    (m,))`` and the additive bound ``bound (n,)``; None when no multiplier gives one."""
+    (m,))`` and the additive bound ``bound (n,)``, the parameter intervals of ``parameters`` in
+    the hull (``terminal.design`` (T7)); None when no multiplier gives one."""
     dynamics = scenario.dynamics
     A0, B0 = dynamics.f_x(x_eq, u_eq), dynamics.f_u(x_eq, u_eq)
     guess = invariant_ellipsoid(
@@ -82,8 +86,9 @@ def robust_metric(
     caps = {name: min(x_eq[i] - region[name][0], region[name][1] - x_eq[i])
             for i, name in enumerate(scenario.state_names)}  # fmt: skip
     solved = _invariant_metric(
-        scenario, x_eq, u_eq, K, bound, region, caps, largest=False, segments=segments
-    )
+        scenario, x_eq, u_eq, K, bound, region, caps, largest=False, segments=segments,
+        parameters=parameters,
+    )  # fmt: skip
     return None if solved is None else solved[1]
 
 
@@ -95,12 +100,14 @@ def largest_metric(
     bound: FloatArray,
     share: tuple[float, float],
     segments: int = DEFAULT_SEGMENTS,
+    parameters: Uncertainty | None = None,
 ) -> tuple[FloatArray, FloatArray] | None:
     """``(K_T (m, n), P_T (n, n))`` of (T6): the largest ``{e^T P_T e <= 1}`` (``log det``) that
     (T3) holds for the gain ``K (m, n)`` (None: designed with it, ``Y = K Q``) and the additive
     bound ``bound (n,)``, within ``share`` (the states', the inputs', each in (0, 1)) of each
     bounded variable's room about ``(x_eq (n,), u_eq (m,))``; None when no multiplier gives one,
-    the Jacobian depends on a state without bounds or the equilibrium lies on a bound."""
+    the Jacobian depends on a state without bounds or the equilibrium lies on a bound.
+    ``parameters``: as ``robust_metric``'s."""
     limits = {**scenario.operating_region, **scenario.state_bounds}
     region: dict[str, tuple[float, float]] = {}
     caps: dict[str, float] = {}
@@ -120,8 +127,9 @@ def largest_metric(
     if not all(h > 0 for h in caps.values()):  # an equilibrium on a bound: no room
         return None
     return _invariant_metric(
-        scenario, x_eq, u_eq, K, bound, region, caps, largest=True, segments=segments
-    )
+        scenario, x_eq, u_eq, K, bound, region, caps, largest=True, segments=segments,
+        parameters=parameters,
+    )  # fmt: skip
 
 
 def _invariant_metric(
@@ -135,16 +143,18 @@ def _invariant_metric(
     *,
     largest: bool,
     segments: int = DEFAULT_SEGMENTS,
+    parameters: Uncertainty | None = None,
 ) -> tuple[FloatArray, FloatArray] | None:
     """(T3)'s rows at every vertex of the hull over ``region`` (variable name -> interval) and
     every corner of the box ``bound (n,)``, with ``Q_ii <= caps[name]^2``, the inputs ``K_j Q
     K_j^T`` inside the region's input intervals and the position disk in Goal: ``(K, P =
     Q^-1)`` of the smallest position extent (``tr C Q C^T``) or, ``largest``, the largest ``log
     det Q``, over ``ALPHAS``; ``K`` None: ``Y = K Q`` an unknown too (Boyd et al. section 7.2.1;
-    the input rows in Schur form) and ``K = Y Q^-1``. None when no multiplier gives one."""
+    the input rows in Schur form) and ``K = Y Q^-1``; the hull over ``parameters``' intervals too
+    (T7). None when no multiplier gives one."""
     n, m = scenario.n, scenario.m
     try:
-        hull = jacobian_hull(scenario.dynamics, region, segments)
+        hull = parametric_hull(scenario, region, segments, parameters)
     except HullError:
         return None
     w = corners(np.asarray(bound, dtype=np.float64))

@@ -36,7 +36,9 @@ whatever grid the file carries its reference on).
 
 ``recheck_terminal`` (either format): the ``terminal`` block by (T1') of
 ``pipeline.numerics.terminal.design`` under the scenario's declared additive bound (``uncertainty.
-additive_bound``; the block's own ``disturbance`` only where it is larger), for a held law ((T4)
+additive_bound``; the block's own ``disturbance`` only where it is larger) or, for a block that
+states less under declared parameter intervals, by (T7) (the intervals in the hull, the bound at
+the block's equilibrium: ``terminal_claim``), for a held law ((T4)
 in a ``/2`` file, the held rate in a ``/1`` file), the law seeing the state within the declared
 measurement box ((T5); the file's ``uncertainty.measurement_bound`` where larger; a file stating
 less fails in the funnels' check), and every end tube inside its ellipsoid (``terminal.fit``).
@@ -55,10 +57,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.controller import Controller, ReferenceTrajectory
+from pipeline.controller import Controller, ReferenceTrajectory, TerminalController
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import Trajectory, simulate, simulate_graded
+from pipeline.model.uncertainty import Uncertainty
 from pipeline.numerics.funnel.bounds import funnel_limits, tube_extents
 from pipeline.numerics.funnel.check import Funnel, checked_margins, effective_margins
 from pipeline.numerics.funnel.law import (
@@ -75,7 +78,7 @@ from pipeline.numerics.funnel.robust import RobustCheck
 from pipeline.numerics.hull import HullError
 from pipeline.numerics.terminal.design import check_level
 from pipeline.numerics.terminal.fit import end_levels
-from pipeline.numerics.uncertainty import declared_bound
+from pipeline.numerics.uncertainty import declared_bound, equilibrium_bound
 
 SEGMENTS = (1, 4)
 WIDEN = 1e-9  # relative widening of the tube's extent in the hull boxes (rounding of E3)
@@ -611,6 +614,36 @@ def checked_measurement(
     return (declared if stated is None else np.maximum(stated, declared)), failures
 
 
+def terminal_claim(
+    scenario: Scenario, terminal: TerminalController
+) -> tuple[FloatArray | None, Uncertainty | None, list[str]]:
+    """``(b (n,), parameters, failures)``: what the file's ``terminal`` block is re-checked
+    under. A block stating at least the declared additive bound, or under no declared parameter
+    intervals: ``checked_bound`` (T1'), no parameters in the hull. Otherwise (T7) of
+    ``terminal.design``: the scenario's parameter intervals in the hull and ``b`` the declared
+    disturbance plus their term at the block's own ``(x_eq, u_eq)`` (``uncertainty.
+    equilibrium_bound``, derived here), raised to the block's box where that is larger; a block
+    stating less than that is a failure (re-checked with it). Either way a block without
+    failures holds the declared uncertainty."""
+    stated, parameters = terminal.disturbance, scenario.uncertainty
+    if stated is None or parameters.parametric is None:
+        bound, failures = checked_bound(scenario, stated, "terminal")
+        return bound, None, failures
+    try:
+        whole = declared_bound(scenario)
+    except HullError:
+        whole = None  # no bound over the whole box: (T7) alone
+    if whole is not None and bool(np.all(stated >= whole)):
+        bound, failures = checked_bound(scenario, stated, "terminal")
+        return bound, None, failures
+    local = equilibrium_bound(parameters, scenario, terminal.x_eq, terminal.u_eq)
+    failures = _short_of(
+        scenario, local, stated, "terminal: the file holds |w_",
+        "uncertainty: at the terminal equilibrium, (T7)",
+    )  # fmt: skip
+    return np.maximum(stated, local), parameters, failures
+
+
 def recheck_terminal(scenario: Scenario, controller: Controller) -> tuple[float, float, list[str]]:
     """``(decay, fit, failures)`` of the file's terminal block (certify's step 6): (T1') of
     ``pipeline.numerics.terminal.design`` under ``checked_bound``, no clipping, inside Goal and the
@@ -620,7 +653,7 @@ def recheck_terminal(scenario: Scenario, controller: Controller) -> tuple[float,
     terminal = controller.terminal
     if terminal is None:
         raise TypeError(f"{controller.source}: no terminal block to verify")
-    bound, failures = checked_bound(scenario, terminal.disturbance, "terminal")
+    bound, parameters, failures = terminal_claim(scenario, terminal)
     bound = np.zeros(scenario.n) if bound is None else bound
     measurement, _ = checked_measurement(scenario, controller.measurement_bound)  # (T5)
     if not np.all(np.isfinite(bound)):
@@ -638,6 +671,7 @@ def recheck_terminal(scenario: Scenario, controller: Controller) -> tuple[float,
         disturbance=bound,
         held_period=controller.feedback_period if controller.funnel else 0.0,
         measurement=measurement,
+        parameters=parameters,
     )
     widen = 1 + LEVEL_MARGIN if controller.funnel else 1.0
     ends = [tr.x_ref[-1] for tr in controller.trajectories]
