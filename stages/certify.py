@@ -99,6 +99,7 @@ from pipeline.numerics.verify.recertify import (
     checked_measurement,
     recheck_funnel,
     recheck_terminal,
+    terminal_claim,
 )
 from pipeline.results.certify import CertificationResult as CertificationResult
 
@@ -399,9 +400,13 @@ def certify_controller(
 
     # 6. The terminal controller, when the file has one.
     decay = fit = float("nan")
+    terminal_box: tuple[float, ...] = ()
     if controller.terminal is not None:
         decay, fit, problems = verify_terminal(scenario, controller)
         failures += problems
+        box, parameters, _ = terminal_claim(scenario, controller.terminal)
+        if parameters is not None and box is not None:  # re-checked by (T7)
+            terminal_box = tuple(map(float, box))
     elif scenario.terminal == "hold":
         failures.append(
             "the scenario asks terminal: hold but controller.json has no terminal controller "
@@ -455,6 +460,7 @@ def certify_controller(
         terminal=controller.terminal is not None,
         terminal_decay=decay,
         terminal_fit=fit,
+        terminal_box=terminal_box,
         contraction_bound=contraction_bound(controller),
         disturbance_multiple=multiple,
     )

@@ -28,6 +28,9 @@ class CertificationResult(Result):
       covered_fraction: the part of Init certified covered by the file's balls (volume).
       terminal: the file has a terminal block; terminal_decay: its certified ``alpha`` (1/s);
         terminal_fit: the largest end tube's share of the ellipsoid's radius (<= 1 to fit).
+      terminal_box: (n,) the additive box the terminal block was re-checked under with the
+        declared parameter intervals in its hull ((T7) of ``pipeline.numerics.terminal.design``);
+        empty: under the whole box's additive bound (T1'), or no block.
       contraction_bound: what ``contraction_margin`` must be below (``contraction_bound``).
       disturbance_multiple: under a declared uncertainty, the largest multiple of its additive
         bound that every funnel still holds ((I5) of ``funnel.robust``; the terminal block
@@ -50,5 +53,6 @@ class CertificationResult(Result):
     terminal: bool = False
     terminal_decay: float = float("nan")
     terminal_fit: float = float("nan")
+    terminal_box: tuple[float, ...] = ()
     contraction_bound: float = 0.0
     disturbance_multiple: float = float("nan")

@@ -236,18 +236,20 @@ def declared_bound_text(scenario: Scenario) -> str:
     "" when the scenario declares none."""
     if scenario.uncertainty.empty:
         return ""
-    bound = additive_bound(scenario)
-    parts = [
-        f"|w_{name}| <= {b:.3g}"
-        for name, b in zip(scenario.state_names, bound, strict=True)
-        if b > 0
-    ]
+    parts = [box_text(scenario, additive_bound(scenario))]
     parts += [  # the error on the state the law sees (funnel.law (I7), terminal.design (T5))
         f"|eta_{name}| <= {e:.3g}"
         for name, e in zip(scenario.state_names, scenario.uncertainty.measurement, strict=True)
         if e > 0
     ]
-    return ", ".join(parts)
+    return ", ".join(part for part in parts if part)
+
+
+def box_text(scenario: Scenario, box: Sequence[float] | np.ndarray) -> str:
+    """``|w_vx| <= 0.02, |w_vy| <= 0.02`` for the nonzero entries of ``box (n,)``."""
+    return ", ".join(
+        f"|w_{name}| <= {b:.3g}" for name, b in zip(scenario.state_names, box, strict=True) if b > 0
+    )
 
 
 def after_horizon(evidence: Evidence, certified: bool) -> Claim:
@@ -257,6 +259,15 @@ def after_horizon(evidence: Evidence, certified: bool) -> Claim:
     if check.terminal and certified:
         bound = declared_bound_text(evidence.scenario)
         under = f" under the declared uncertainty ({bound})" if bound else ""
+        robust = ", robustly for every x' = f(x, u) + w with w in that bound" if bound else ""
+        if check.terminal_box:  # (T7)
+            local = box_text(evidence.scenario, check.terminal_box)
+            under = " under the declared uncertainty"
+            robust = (
+                ", robustly for every declared parameter value, its interval in the hull, and "
+                f"every additive w with {local} (the gust and the parameters' shift at the "
+                "equilibrium, (T7))"
+            )
         h = evidence.feedback_period
         held = f", evaluated every {h:g} s and held in between" if h > 0 else ""
         return Claim(
@@ -266,7 +277,7 @@ def after_horizon(evidence: Evidence, certified: bool) -> Claim:
             how=f"invariant ellipsoid of the terminal law re-verified on controller.json "
             f"(decay {check.terminal_decay:.3g}/s at every hull vertex over its bounding box, "
             f"inside Goal, no clipping"
-            + (", robustly for every x' = f(x, u) + w with w in that bound" if bound else "")
+            + robust
             + f") holding every end tube (at most {check.terminal_fit:.0%} "
             "of its radius, exact S-procedure test)",
         )
