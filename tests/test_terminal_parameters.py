@@ -19,7 +19,16 @@ import pytest
 from scipy.optimize import linprog
 
 from pipeline.controller import TerminalController
-from pipeline.numerics.terminal.design import TerminalError, check_level, hold_design
+from pipeline.numerics.terminal.design import (
+    TerminalDesign,
+    TerminalError,
+    check_level,
+    equilibrium,
+    hold_design,
+    largest_level,
+    lqr_terminal,
+)
+from pipeline.numerics.terminal.robust import robust_metric
 from pipeline.numerics.uncertainty import additive_bound, equilibrium_bound, parametric_hull
 from pipeline.numerics.verify.recertify import terminal_claim
 from tests.test_uncertainty import quadrotor
@@ -38,7 +47,19 @@ def scenario(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def design(scenario):
-    return hold_design(scenario, additive_bound(scenario), parameters=scenario.uncertainty)
+    """A (T7) hover at Goal's centre: the LQR gain, (T3)'s metric and the largest level, each
+    with the parameters in the hull and the box at the equilibrium."""
+    u = scenario.uncertainty
+    x_eq, u_eq = equilibrium(scenario)
+    K = lqr_terminal(scenario, x_eq, u_eq)[0]
+    box = equilibrium_bound(u, scenario, x_eq, u_eq)
+    P = robust_metric(scenario, x_eq, u_eq, K, box, parameters=u)
+    assert P is not None
+    check = largest_level(scenario, x_eq, u_eq, K, P, disturbance=box, parameters=u)
+    assert check.success
+    return TerminalDesign(
+        x_eq=x_eq, u_eq=u_eq, K=K, P=P, check=check, gain="lqr", fit=0.0, disturbance=box
+    )
 
 
 def parameter_samples(scenario, count: int, rng: np.random.Generator) -> np.ndarray:
@@ -85,7 +106,6 @@ def test_the_box_at_the_equilibrium_holds_the_parameters_shift_there(scenario, d
     u = scenario.uncertainty
     x_eq, u_eq = design.x_eq, design.u_eq
     bound = equilibrium_bound(u, scenario, x_eq, u_eq)
-    assert design.disturbance is not None and np.array_equal(design.disturbance, bound)
     p = parameter_samples(scenario, 2000, np.random.default_rng(2))
     v = np.column_stack([np.broadcast_to(u_eq, (len(p), scenario.m)), p])
     v0 = np.concatenate([u_eq, u.parameter_nominal])
@@ -146,6 +166,13 @@ def test_certify_rechecks_by_t7_only_a_block_stating_less_than_the_whole_box(sce
 
 
 @pytest.mark.slow
+def test_hold_design_keeps_the_whole_box_where_it_leaves_a_hover(scenario):
+    """(T7) is the fallback: where the whole box's bound certifies a set, that design stands."""
+    whole = hold_design(scenario, additive_bound(scenario), parameters=scenario.uncertainty)
+    assert whole.disturbance is None and whole.check.success
+
+
+@pytest.mark.slow
 def test_at_the_issues_bound_only_t7_holds_a_hover(tmp_path: Path):
     """Wind [-1, 0], mass +-5%, gust 0.25 (issue 29): the whole box's bound (vY 1.075) leaves
     no hover; (T7)'s (0.79 at the equilibrium) leaves one, certified from scratch."""
@@ -153,9 +180,9 @@ def test_at_the_issues_bound_only_t7_holds_a_hover(tmp_path: Path):
     with pytest.raises(TerminalError, match="does not decrease"):
         hold_design(scenario, additive_bound(scenario))
     design = hold_design(scenario, additive_bound(scenario), parameters=scenario.uncertainty)
-    assert (
-        design.disturbance is not None and design.disturbance[4] < 0.8 < additive_bound(scenario)[4]
-    )
+    local = equilibrium_bound(scenario.uncertainty, scenario, design.x_eq, design.u_eq)
+    assert design.disturbance is not None and np.array_equal(design.disturbance, local)
+    assert design.disturbance[4] < 0.8 < additive_bound(scenario)[4]
     assert check_level(
         scenario, design.x_eq, design.u_eq, design.K, design.P, design.check.level,
         disturbance=design.disturbance, parameters=scenario.uncertainty,

@@ -109,7 +109,7 @@ must certify too. Soundness is (T1')-(T5)'s: every set is checked from scratch l
 
 (T7) Parameters in the hull. Under declared parameter intervals, (T1')'s ``b`` from (U1) over the
 whole certified box (``pipeline.numerics.uncertainty``) takes the parameters' term at the largest
-thrust the box allows. ``hold_design`` with ``parameters`` instead holds them as (U1)'s (T7) split:
+thrust the box allows. Where that leaves no set, ``hold_design`` holds them as (U1)'s (T7) split:
 the hull over ``Z_c`` and the parameter intervals (``uncertainty.parametric_hull``), and ``b`` the
 declared disturbance plus the parameters' term at ``(x_eq, u_eq)`` alone
 (``uncertainty.equilibrium_bound``). Then ``e' = (A + B K_T) e + r + w`` holds with ``[A B]`` in
@@ -711,18 +711,30 @@ def hold_design(
     held every ``period`` s when it is > 0 (T4: the funnel file's law), seeing the state within
     ``measurement (n,)`` (T5); ``fit`` 0 (no end tube yet). ``position (2,)``: the
     equilibrium's position instead of Goal's centre. ``parameters``: a declared uncertainty
-    with parameter intervals, held as (T7) (in the hull, the box ``equilibrium_bound`` in place
-    of ``disturbance``; the design's ``disturbance``); without any, ``disturbance`` alone.
+    with parameter intervals, held as (T7) when ``disturbance`` leaves no set (in the hull, the
+    box ``equilibrium_bound`` in its place; the design's ``disturbance``). (T7) is the fallback,
+    not the rule: its hull has twice the vertices, and on quadrotor_hill its larger set made the
+    funnels' rounds four times slower for no shorter ``T``.
     ``TerminalError`` when there is no equilibrium, no stabilising gain or no certified level."""
     x_eq, u_eq = equilibrium(scenario, position)
-    K_T, P_T = lqr_terminal(scenario, x_eq, u_eq)
     bound = np.zeros(scenario.n) if disturbance is None else np.asarray(disturbance, float)
-    if parameters is not None and parameters.parametric is not None:  # (T7)
-        bound = equilibrium_bound(parameters, scenario, x_eq, u_eq)
-    else:
-        parameters = None
-    demands = _Demands(bound=bound, period=period, measurement=measurement, parameters=parameters)
-    robust = bool(np.any(bound > 0))
+    whole = _Demands(bound=bound, period=period, measurement=measurement, parameters=None)
+    try:
+        return _hold(scenario, x_eq, u_eq, whole)
+    except TerminalError:
+        if parameters is None or parameters.parametric is None:
+            raise
+    local = equilibrium_bound(parameters, scenario, x_eq, u_eq)  # (T7)
+    held = _Demands(bound=local, period=period, measurement=measurement, parameters=parameters)
+    return _hold(scenario, x_eq, u_eq, held)
+
+
+def _hold(
+    scenario: Scenario, x_eq: FloatArray, u_eq: FloatArray, demands: _Demands
+) -> TerminalDesign:
+    """``hold_design`` at the equilibrium ``(x_eq (n,), u_eq (m,))`` under ``demands``."""
+    K_T, P_T = lqr_terminal(scenario, x_eq, u_eq)
+    robust = bool(np.any(demands.bound > 0))
     if robust:
         shaped = _shaped(scenario, x_eq, u_eq, K_T, demands, "lqr")  # (T3)
         if shaped is not None:  # shaped for the disturbance: kept whenever it certifies
@@ -738,7 +750,8 @@ def hold_design(
         if codesigned is not None:
             return codesigned
     where = np.round(x_eq, 3).tolist()
-    raise TerminalError(f"lqr gain at {where}: " + "; ".join(check.failures))
+    kind = " with the parameters in the hull (T7)" if demands.parameters is not None else ""
+    raise TerminalError(f"lqr gain at {where}{kind}: " + "; ".join(check.failures))
 
 
 def _shaped(
