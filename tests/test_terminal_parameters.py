@@ -11,8 +11,11 @@ one holds (T7)'s.
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 from pathlib import Path
+from types import SimpleNamespace
+from typing import cast
 
 import numpy as np
 import pytest
@@ -31,6 +34,9 @@ from pipeline.numerics.terminal.design import (
 from pipeline.numerics.terminal.robust import robust_metric
 from pipeline.numerics.uncertainty import additive_bound, equilibrium_bound, parametric_hull
 from pipeline.numerics.verify.recertify import terminal_claim
+from pipeline.results.certify import CertificationResult
+from pipeline.runtime.verdict import Evidence, after_horizon
+from stages.controller import terminal_block
 from tests.test_uncertainty import quadrotor
 
 MODERATE = """
@@ -163,6 +169,35 @@ def test_certify_rechecks_by_t7_only_a_block_stating_less_than_the_whole_box(sce
     bound, parameters, failures = terminal_claim(scenario, tampered)
     assert parameters is scenario.uncertainty and np.array_equal(bound, design.disturbance)
     assert failures and "|w_vY| <=" in failures[0] and "(T7)" in failures[0]
+
+
+def test_the_file_and_the_claim_state_the_box_t7_held(scenario, design):
+    """The terminal block states the (T7) box, not the whole box's bound it was handed, and the
+    after-T claim says what was proved: the parameters in the hull and that box."""
+    block, fit, _ = terminal_block(
+        scenario, design.K, design.P, [design.x_eq], [0.0], disturbance=additive_bound(scenario),
+        design=design,
+    )  # fmt: skip
+    assert block is not None and fit == 0.0
+    assert block["disturbance"] == design.disturbance.tolist()
+    check = CertificationResult(
+        path=Path("controller.json"), sha256="", metric_eigenvalue=1.0, contraction_margin=-1.0,
+        vertices=1, radii=(), verified_radii=(), reference_error=0.0, covered_fraction=1.0,
+        success=True, message="", terminal=True, terminal_decay=0.5, terminal_fit=0.5,
+        terminal_box=tuple(design.disturbance),
+    )  # fmt: skip
+
+    def claim(certification: CertificationResult) -> str:
+        evidence = SimpleNamespace(
+            scenario=scenario, certification=certification, feedback_period=0
+        )
+        return after_horizon(cast(Evidence, evidence), certified=True).how
+
+    local = claim(check)
+    assert "(T7)" in local and "declared parameter value" in local
+    assert f"|w_vY| <= {design.disturbance[4]:.3g}" in local
+    whole = claim(dataclasses.replace(check, terminal_box=()))
+    assert "(T7)" not in whole and "with w in that bound" in whole
 
 
 @pytest.mark.slow
