@@ -123,6 +123,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Literal
 
 import control
 import numpy as np
@@ -151,6 +152,11 @@ EQUILIBRIUM_TOLERANCE = 1e-9  # ||f(x_eq, u_eq)|| accepted as an equilibrium
 LEVEL_BISECTIONS = 24
 DECAY_FRACTION = 0.5  # the level kept leaves V' <= -alpha V with half the linearisation's alpha
 ROOM = 2.0  # a shaped terminal set this many times (T3)'s smallest one holds the funnels' ends
+
+
+# where a terminal law's gain comes from: control.lqr at the equilibrium, the tube's (or first
+# funnel's end) K, or designed with its metric (Y = K Q, (T6))
+TerminalGain = Literal["lqr", "tube", "codesigned"]
 
 
 class TerminalError(ValueError):
@@ -538,8 +544,9 @@ class TerminalDesign:
 
     Attributes:
       x_eq: (n,); u_eq: (m,); K: (m, n); P: (n, n); check: its certified level and decay.
-      gain: "lqr" (``control.lqr`` at the equilibrium), "tube" (the tube's ``K`` and ``P``) or
-        "codesigned" (designed with its metric, (T6)).
+      gain: where ``K`` comes from (``TerminalGain``): "lqr" (``control.lqr`` at the
+        equilibrium), "tube" (the tube's ``K`` and ``P``) or "codesigned" (designed with its
+        metric, (T6)).
       fit: ``sqrt(max_i c_i / level)``: the largest end tube's share of the ellipsoid (<= 1).
       shaped: ``P`` is (T3)'s metric for a declared disturbance (``terminal.robust``), designed
         at level 1: ``{e^T P e <= 1}`` is about the smallest set the disturbance leaves.
@@ -554,7 +561,7 @@ class TerminalDesign:
     K: FloatArray
     P: FloatArray
     check: TerminalCheck
-    gain: str
+    gain: TerminalGain
     fit: float
     shaped: bool = False
     arrival: TerminalDesign | None = None
@@ -606,7 +613,9 @@ def design_terminal(
         except TerminalError as error:
             reasons.append(str(error))
             continue
-        gains = [("tube", np.asarray(K), np.asarray(P))]
+        gains: list[tuple[TerminalGain, FloatArray, FloatArray]] = [
+            ("tube", np.asarray(K), np.asarray(P))
+        ]
         try:
             gains.insert(0, ("lqr", *lqr_terminal(scenario, x_eq, u_eq)))
         except TerminalError as error:
@@ -683,7 +692,7 @@ class _Demands:
         K: FloatArray,
         P: FloatArray,
         check: TerminalCheck,
-        gain: str,
+        gain: TerminalGain,
         *,
         shaped: bool = False,
         arrival: TerminalDesign | None = None,
@@ -760,7 +769,7 @@ def _shaped(
     u_eq: FloatArray,
     K: FloatArray,
     demands: _Demands,
-    gain: str,
+    gain: TerminalGain,
 ) -> TerminalDesign | None:
     """The design of the gain ``K (m, n)`` on (T3)'s metric at its largest certified level
     (``largest_level``), None when there is no such metric or no level certifies."""
