@@ -146,6 +146,21 @@ def test_a_larger_declaration_changes_the_numbers_and_is_not_called_certified(gu
     assert "not certified (controller.json is not certified)" in larger
 
 
+@pytest.mark.slow
+def test_a_terminal_rechecked_by_t7_is_described_with_its_box(gusty) -> None:
+    """Where certify re-checked the terminal block by (T7), the section says how it holds the
+    parameters and with which box; otherwise it says nothing of (T7)."""
+    _, _, data = gusty
+    t7 = dataclasses.replace(
+        data,
+        certification=dataclasses.replace(data.certification, terminal_box=(0, 0, 0.03, 0.04)),
+    )
+    text = _text(uncertainty.section(t7))
+    assert "holds the parameters another way (T7)" in text
+    assert "their shift at the hover, |w_vx| <= 0.03 m/s^2, |w_vy| <= 0.04 m/s^2" in text
+    assert "(T7)" not in _text(uncertainty.section(data))
+
+
 def test_the_derived_bound_by_source_on_quadrotor_hill() -> None:
     """wX in [-0.6, -0.4] enters vX' as mu (wX - vX), mu = 0.5: alone 0.5 * 0.1 = 0.05 on vX;
     m in [0.995, 1.005] enters as u1/m (-sin theta, cos theta): alone u1/m^2 * 0.005 with u1 <=
