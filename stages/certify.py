@@ -405,7 +405,7 @@ def certify_controller(
         decay, fit, problems = verify_terminal(scenario, controller)
         failures += problems
         box, parameters, _ = terminal_claim(scenario, controller.terminal)
-        if parameters is not None and box is not None:  # re-checked by (T7)
+        if not problems and parameters is not None and box is not None:  # certified by (T7)
             terminal_box = tuple(map(float, box))
     elif scenario.terminal == "hold":
         failures.append(

@@ -214,7 +214,8 @@ def claims_invariance(scenario: Scenario, controller: Controller) -> bool:
     terminal = controller.terminal
     if terminal is None or terminal.disturbance is None:
         return False
-    return not terminal_claim(scenario, terminal)[2]
+    bound, _, failures = terminal_claim(scenario, terminal)
+    return not failures and bound is not None and bool(np.all(np.isfinite(bound)))
 
 
 def _run_chunk(

@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 from scipy.optimize import linprog
 
-from pipeline.controller import TerminalController
+from pipeline.controller import Controller, TerminalController
 from pipeline.numerics.terminal.design import (
     TerminalDesign,
     TerminalError,
@@ -33,10 +33,11 @@ from pipeline.numerics.terminal.design import (
 )
 from pipeline.numerics.terminal.robust import robust_metric
 from pipeline.numerics.uncertainty import additive_bound, equilibrium_bound, parametric_hull
-from pipeline.numerics.verify.recertify import terminal_claim
+from pipeline.numerics.verify.recertify import recheck_terminal, terminal_claim
 from pipeline.results.certify import CertificationResult
 from pipeline.runtime.verdict import Evidence, after_horizon
 from stages.controller import terminal_block
+from stages.montecarlo import claims_invariance
 from tests.test_uncertainty import quadrotor
 
 MODERATE = """
@@ -84,7 +85,6 @@ def test_the_hull_of_the_state_and_input_columns_holds_the_parametric_jacobian(s
     hull = parametric_hull(scenario, region, 4, scenario.uncertainty)
     n, m = scenario.n, scenario.m
     assert hull.vertices.shape[1:] == (n, n + m)
-    assert set(hull.region) >= {"m", "wX"}
     dynamics = scenario.uncertainty.parametric
     rng = np.random.default_rng(1)
     p = parameter_samples(scenario, 300, rng)
@@ -205,6 +205,9 @@ def test_hold_design_keeps_the_whole_box_where_it_leaves_a_hover(scenario):
     """(T7) is the fallback: where the whole box's bound certifies a set, that design stands."""
     whole = hold_design(scenario, additive_bound(scenario), parameters=scenario.uncertainty)
     assert whole.disturbance is None and whole.check.success
+    alone = hold_design(scenario, additive_bound(scenario))
+    assert whole.check == alone.check and np.array_equal(whole.P, alone.P)
+    assert np.array_equal(whole.K, alone.K)
 
 
 @pytest.mark.slow
@@ -222,3 +225,34 @@ def test_at_the_issues_bound_only_t7_holds_a_hover(tmp_path: Path):
         scenario, design.x_eq, design.u_eq, design.K, design.P, design.check.level,
         disturbance=design.disturbance, parameters=scenario.uncertainty,
     ).success  # fmt: skip
+
+
+def holding(block: TerminalController) -> Controller:
+    """A funnel file with ``block`` as its terminal and one end tube of radius 0 at its
+    equilibrium: what ``recheck_terminal`` and ``claims_invariance`` read of a file."""
+    end = SimpleNamespace(x_ref=block.x_eq[None], radius=0.0, rate=0.0, T=1.0, P=np.eye(6)[None])
+    file = SimpleNamespace(
+        terminal=block, funnel=True, feedback_period=0.0, measurement_bound=None,
+        trajectories=[end], source="controller.json",
+    )  # fmt: skip
+    return cast(Controller, file)
+
+
+def test_certify_and_the_monte_carlo_read_a_t7_block_as_t7(scenario, design):
+    """certify's re-check of a (T7) block passes and fails at four times its level; the Monte
+    Carlo counts its exits, and those of a whole-box block, not those of a short one."""
+    block = TerminalController(
+        x_eq=design.x_eq, u_eq=design.u_eq, K=design.K, P=design.P, level=design.check.level,
+        disturbance=design.disturbance,
+    )  # fmt: skip
+    decay, fit, failures = recheck_terminal(scenario, holding(block))
+    assert not failures and decay > 0 and fit == 0.0
+    raised = dataclasses.replace(block, level=4 * block.level)
+    assert recheck_terminal(scenario, holding(raised))[2]
+    assert claims_invariance(scenario, holding(block))
+    whole = dataclasses.replace(block, disturbance=additive_bound(scenario))
+    assert claims_invariance(scenario, holding(whole))
+    short = block.disturbance.copy()
+    short[3] *= 0.5
+    assert not claims_invariance(scenario, holding(dataclasses.replace(block, disturbance=short)))
+    assert not claims_invariance(scenario, holding(dataclasses.replace(block, disturbance=None)))

@@ -346,7 +346,7 @@ def arc_variables(dynamics: Dynamics) -> tuple[str, ...]:
     ``ceil(width / MAX_SEGMENT_ANGLE)`` segments at least, so a wider box costs vertices)."""
     return tuple(
         z.name
-        for z, functions in _structure(dynamics).parts.items()
+        for z, functions in _structure(dynamics, None).parts.items()
         if set(functions) == {sympy.cos(z), sympy.sin(z)}
     )
 

@@ -298,13 +298,13 @@ def section(data: ReportData) -> tuple:
                 f" controller.json states {_per_state(s, np.asarray(stated), 'w')}; certify "
                 "checks the larger of the two in each state."
             )
-        if check.terminal_box:  # (T7) of pipeline.numerics.terminal.design
-            box = _per_state(s, np.asarray(check.terminal_box), "w")
-            note += (
-                " The terminal ellipsoid holds the parameters another way (T7): their intervals "
-                "as variables of its Jacobian hull, and in its additive box only the gust and "
-                f"their shift at the hover, {box}; certify re-checked it so."
-            )
+    if check.terminal_box:  # (T7) of pipeline.numerics.terminal.design: set only when it held
+        box = _per_state(s, np.asarray(check.terminal_box), "w")
+        note += (
+            " The terminal ellipsoid holds the parameters another way (T7): their intervals "
+            "as variables of its Jacobian hull, and in its additive box only the gust and "
+            f"their shift at the hover, {box}; certify re-checked it so."
+        )
     return (
         Paragraph(
             "What the certificates are held to besides the nominal model: the true system is "

@@ -146,7 +146,7 @@ from pipeline.numerics.terminal.robust import SHARES, largest_metric, robust_met
 from pipeline.numerics.tube.contraction import contraction_rate
 from pipeline.numerics.tube.geometry import Tube
 from pipeline.numerics.tube.sampled import held_rate
-from pipeline.numerics.uncertainty import equilibrium_bound, parametric_hull
+from pipeline.numerics.uncertainty import additive_bound, equilibrium_bound, parametric_hull
 
 EQUILIBRIUM_TOLERANCE = 1e-9  # ||f(x_eq, u_eq)|| accepted as an equilibrium
 LEVEL_BISECTIONS = 24
@@ -733,7 +733,12 @@ def hold_design(
     except TerminalError:
         if parameters is None or parameters.parametric is None:
             raise
-    local = equilibrium_bound(parameters, scenario, x_eq, u_eq)  # (T7)
+    # (T7): the box at the equilibrium, plus whatever ``disturbance`` asks beyond the declaration
+    try:
+        beyond = np.maximum(bound - additive_bound(scenario, parameters), 0.0)
+    except HullError:
+        beyond = np.zeros(scenario.n)
+    local = equilibrium_bound(parameters, scenario, x_eq, u_eq) + beyond
     held = _Demands(bound=local, period=period, measurement=measurement, parameters=parameters)
     return _hold(scenario, x_eq, u_eq, held)
 

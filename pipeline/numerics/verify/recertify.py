@@ -636,7 +636,10 @@ def terminal_claim(
     if whole is not None and bool(np.all(stated >= whole)):
         bound, failures = checked_bound(scenario, stated, "terminal")
         return bound, None, failures
-    local = equilibrium_bound(parameters, scenario, terminal.x_eq, terminal.u_eq)
+    try:
+        local = equilibrium_bound(parameters, scenario, terminal.x_eq, terminal.u_eq)
+    except HullError as error:
+        return np.full(scenario.n, np.inf), None, [f"terminal: the declared uncertainty: {error}"]
     failures = _short_of(
         scenario, local, stated, "terminal: the file holds |w_",
         "uncertainty: at the terminal equilibrium, (T7)",
