@@ -78,7 +78,7 @@ from pipeline.numerics.funnel.robust import RobustCheck
 from pipeline.numerics.hull import HullError
 from pipeline.numerics.terminal.design import check_level
 from pipeline.numerics.terminal.fit import end_levels
-from pipeline.numerics.uncertainty import declared_bound, equilibrium_bound
+from pipeline.numerics.uncertainty import additive_bound, declared_bound, equilibrium_bound
 
 SEGMENTS = (1, 4)
 WIDEN = 1e-9  # relative widening of the tube's extent in the hull boxes (rounding of E3)
@@ -626,14 +626,7 @@ def terminal_claim(
     stating less than that is a failure (re-checked with it). Either way a block without
     failures holds the declared uncertainty."""
     stated, parameters = terminal.disturbance, scenario.uncertainty
-    if stated is None or parameters.parametric is None:
-        bound, failures = checked_bound(scenario, stated, "terminal")
-        return bound, None, failures
-    try:
-        whole = declared_bound(scenario)
-    except HullError:
-        whole = None  # no bound over the whole box: (T7) alone
-    if whole is not None and bool(np.all(stated >= whole)):
+    if stated is None or parameters.parametric is None or _holds_whole_box(scenario, stated):
         bound, failures = checked_bound(scenario, stated, "terminal")
         return bound, None, failures
     try:
@@ -645,6 +638,15 @@ def terminal_claim(
         "uncertainty: at the terminal equilibrium, (T7)",
     )  # fmt: skip
     return np.maximum(stated, local), parameters, failures
+
+
+def _holds_whole_box(scenario: Scenario, stated: FloatArray) -> bool:
+    """``stated (n,)`` is at least the declared additive bound over the whole box in every
+    state (False where that bound cannot be derived: (T7) alone can hold the block)."""
+    try:
+        return bool(np.all(stated >= additive_bound(scenario)))
+    except HullError:
+        return False
 
 
 def recheck_terminal(scenario: Scenario, controller: Controller) -> tuple[float, float, list[str]]:
