@@ -22,6 +22,7 @@ import pytest
 from scipy.optimize import linprog
 
 from pipeline.controller import Controller, TerminalController
+from pipeline.numerics.terminal import design as terminal_design
 from pipeline.numerics.terminal.design import (
     TerminalDesign,
     TerminalError,
@@ -200,24 +201,59 @@ def test_the_file_and_the_claim_state_the_box_t7_held(scenario, design):
     assert "(T7)" not in whole and "with w in that bound" in whole
 
 
+def tried_holds(monkeypatch) -> list[tuple[bool, str | None]]:
+    """Each ``_hold`` that ``hold_design`` tries from now on, in order: whether with (T7)'s
+    parameters, and its ``TerminalError`` (None: it designed a set)."""
+    tried: list[tuple[bool, str | None]] = []
+    hold = terminal_design._hold
+
+    def recorded(scenario, x_eq, u_eq, demands):
+        try:
+            design = hold(scenario, x_eq, u_eq, demands)
+        except TerminalError as error:
+            tried.append((demands.parameters is not None, str(error)))
+            raise
+        tried.append((demands.parameters is not None, None))
+        return design
+
+    monkeypatch.setattr(terminal_design, "_hold", recorded)
+    return tried
+
+
 @pytest.mark.slow
-def test_hold_design_keeps_the_whole_box_where_it_leaves_a_hover(scenario):
-    """(T7) is the fallback: where the whole box's bound certifies a set, that design stands."""
+def test_hold_design_keeps_the_whole_box_where_it_leaves_a_hover(scenario, monkeypatch):
+    """(T7) is the fallback: where the whole box's bound certifies a set, that design stands
+    and (T7) is not tried."""
+    tried = tried_holds(monkeypatch)
     whole = hold_design(scenario, additive_bound(scenario), parameters=scenario.uncertainty)
     assert whole.disturbance is None and whole.check.success
-    alone = hold_design(scenario, additive_bound(scenario))
-    assert whole.check == alone.check and np.array_equal(whole.P, alone.P)
-    assert np.array_equal(whole.K, alone.K)
+    assert tried == [(False, None)]
+
+
+def test_where_neither_box_leaves_a_hover_the_error_says_why_each_failed(scenario, monkeypatch):
+    """The whole box's bound first, then (T7): when both fail, the one-line error names both."""
+    tried: list[bool] = []
+
+    def fails(scenario, x_eq, u_eq, demands):
+        tried.append(demands.parameters is not None)
+        raise TerminalError("(T7) failed" if tried[-1] else "the whole box failed")
+
+    monkeypatch.setattr(terminal_design, "_hold", fails)
+    with pytest.raises(TerminalError, match=r"^the whole box failed; then \(T7\) failed$"):
+        hold_design(scenario, additive_bound(scenario), parameters=scenario.uncertainty)
+    assert tried == [False, True]
 
 
 @pytest.mark.slow
-def test_at_the_issues_bound_only_t7_holds_a_hover(tmp_path: Path):
+def test_at_the_issues_bound_only_t7_holds_a_hover(tmp_path: Path, monkeypatch):
     """Wind [-1, 0], mass +-5%, gust 0.25 (issue 29): the whole box's bound (vY 1.075) leaves
     no hover; (T7)'s (0.79 at the equilibrium) leaves one, certified from scratch."""
     scenario = quadrotor(tmp_path)
-    with pytest.raises(TerminalError, match="does not decrease"):
-        hold_design(scenario, additive_bound(scenario))
+    tried = tried_holds(monkeypatch)
     design = hold_design(scenario, additive_bound(scenario), parameters=scenario.uncertainty)
+    (whole, without), (local_box, failure) = tried
+    assert not whole and without is not None and "does not decrease" in without
+    assert local_box and failure is None
     local = equilibrium_bound(scenario.uncertainty, scenario, design.x_eq, design.u_eq)
     assert design.disturbance is not None and np.array_equal(design.disturbance, local)
     assert design.disturbance[4] < 0.8 < additive_bound(scenario)[4]

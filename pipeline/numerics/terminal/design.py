@@ -724,15 +724,17 @@ def hold_design(
     box ``equilibrium_bound`` in its place; the design's ``disturbance``). (T7) is the fallback,
     not the rule: its hull has twice the vertices, and on quadrotor_hill its larger set made the
     funnels' rounds four times slower for no shorter ``T``.
-    ``TerminalError`` when there is no equilibrium, no stabilising gain or no certified level."""
+    ``TerminalError`` when there is no equilibrium, no stabilising gain or no certified level
+    (after a failed (T7), with the whole box's failures first)."""
     x_eq, u_eq = equilibrium(scenario, position)
     bound = np.zeros(scenario.n) if disturbance is None else np.asarray(disturbance, float)
     whole = _Demands(bound=bound, period=period, measurement=measurement, parameters=None)
     try:
         return _hold(scenario, x_eq, u_eq, whole)
-    except TerminalError:
+    except TerminalError as error:
         if parameters is None or parameters.parametric is None:
             raise
+        without = str(error)
     # (T7): the box at the equilibrium, plus whatever ``disturbance`` asks beyond the declaration
     try:
         beyond = np.maximum(bound - additive_bound(scenario, parameters), 0.0)
@@ -740,7 +742,10 @@ def hold_design(
         beyond = np.zeros(scenario.n)
     local = equilibrium_bound(parameters, scenario, x_eq, u_eq) + beyond
     held = _Demands(bound=local, period=period, measurement=measurement, parameters=parameters)
-    return _hold(scenario, x_eq, u_eq, held)
+    try:
+        return _hold(scenario, x_eq, u_eq, held)
+    except TerminalError as error:  # both failed: say why each did
+        raise TerminalError(f"{without}; then {error}") from None
 
 
 def _hold(
