@@ -171,13 +171,20 @@ def _document(scenario: Scenario, version: str, trajectories: list[dict], **fiel
 
 def uncertainty_block(scenario: Scenario, bound: FloatArray) -> dict:
     """The ``/2`` file's ``uncertainty``: the additive bound ``(n,)`` its funnels hold (what
-    certify checks against the scenario's declaration) and, for people, what it came from."""
+    certify checks against the scenario's declaration) and, for people, what it came from (the
+    declared box, the ellipsoid's semi-axes when one is declared, the parameter intervals)."""
     declared = scenario.uncertainty
     block = {
         "additive_bound": bound.tolist(),
-        "disturbance": dict(zip(scenario.state_names, declared.disturbance.tolist(), strict=True)),
+        "disturbance": {  # as declared, to 12 digits (the ellipsoid's axes subtracted)
+            name: float(f"{d:.12g}")
+            for name, d in zip(scenario.state_names, declared.declared_box.tolist(), strict=True)
+        },
         "parameters": {name: list(interval) for name, interval in declared.parameters.items()},
     }
+    if np.any(declared.ellipsoid > 0):  # held by its bounding box, inside additive_bound
+        axes = zip(scenario.state_names, declared.ellipsoid.tolist(), strict=True)
+        block["disturbance_ellipsoid"] = {name: a for name, a in axes if a > 0}
     if declared.measured:  # the law sees x + eta, |eta| <= E (funnel.law (I7)); certify checks
         block["measurement_bound"] = declared.measurement.tolist()
     return block

@@ -163,6 +163,28 @@ BAD_INPUTS: list[tuple[str, Mutation, str | None, list[str]]] = [
         ["uncertainty.disturbance", "unknown name 'vZ'", "names from ['X', 'Y', 'vX', 'vY']"],
     ),
     (
+        "zero ellipsoid semi-axis",
+        yaml_replace(
+            "clearance: 0.25\n",
+            "clearance: 0.25\nuncertainty: {disturbance_ellipsoid: {vX: 0.1, vY: 0}}\n",
+        ),
+        YAML,
+        ["uncertainty.disturbance_ellipsoid.vY", "greater than 0"],
+    ),
+    (
+        "ellipsoid on an unknown state",
+        yaml_replace(
+            "clearance: 0.25\n",
+            "clearance: 0.25\nuncertainty: {disturbance_ellipsoid: {vZ: 0.1}}\n",
+        ),
+        YAML,
+        [
+            "uncertainty.disturbance_ellipsoid",
+            "unknown name 'vZ'",
+            "names from ['X', 'Y', 'vX', 'vY']",
+        ],
+    ),
+    (
         "negative measurement bound",
         yaml_replace(
             "clearance: 0.25\n", "clearance: 0.25\nuncertainty: {measurement: {X: -0.02}}\n"

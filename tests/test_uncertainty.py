@@ -15,7 +15,9 @@ from pipeline.io.errors import UserError
 from pipeline.model.scenario import Scenario
 from pipeline.numerics.hull import HullError
 from pipeline.numerics.uncertainty import additive_bound, certified_box, parameter_bound
+from pipeline.reporting.uncertainty import declared_table
 from pipeline.runtime.run_inputs import scenario_key
+from stages.controller import uncertainty_block
 from tests.helpers.scenario_files import write_scenario, yaml_replace
 
 REPO = Path(__file__).resolve().parents[1]
@@ -90,6 +92,50 @@ def test_additive_bound_adds_the_disturbance(tmp_path: Path) -> None:
     total = additive_bound(scenario)
     assert np.all(total >= parameters + scenario.uncertainty.disturbance)
     assert np.allclose(total, parameters + scenario.uncertainty.disturbance, rtol=1e-15)
+
+
+ELLIPSOID = """
+uncertainty:
+  disturbance: {vX: 0.05}
+  disturbance_ellipsoid: {vX: 0.2, vY: 0.1}
+  parameters: {wX: [-1.0, 0.0], m: [0.95, 1.05]}
+"""
+BOUNDING_BOX = """
+uncertainty:
+  disturbance: {vX: 0.25, vY: 0.1}
+  parameters: {wX: [-1.0, 0.0], m: [0.95, 1.05]}
+"""
+
+
+def test_a_declared_ellipsoid_is_held_by_its_bounding_box(tmp_path: Path) -> None:
+    """The ellipsoid's semi-axes join the declared box: the additive bound is the bounding box
+    file's, every point of box plus ellipsoid lies in it, and the file, the report and
+    ``--stress`` keep what was declared."""
+    ellipsoid = quadrotor(tmp_path / "ellipsoid", ELLIPSOID)
+    box = quadrotor(tmp_path / "box", BOUNDING_BOX)
+    u = ellipsoid.uncertainty
+    assert u.disturbance.tolist() == [0, 0, 0, 0.25, 0.1, 0]
+    assert u.ellipsoid.tolist() == [0, 0, 0, 0.2, 0.1, 0]
+    assert np.allclose(u.declared_box, [0, 0, 0, 0.05, 0, 0], rtol=0, atol=1e-15)
+    assert np.array_equal(additive_bound(ellipsoid), additive_bound(box))
+    rng = np.random.default_rng(3)
+    v = rng.normal(size=(10_000, 2))
+    v *= rng.random((10_000, 1)) ** 0.5 / np.linalg.norm(v, axis=1, keepdims=True)  # in the disk
+    w = np.zeros((10_000, 6))
+    w[:, 3:5] = v * [0.2, 0.1]
+    w[:, 3] += rng.choice([-0.05, 0.05], size=10_000)
+    assert np.all(np.abs(w) <= u.disturbance)
+    block = uncertainty_block(ellipsoid, additive_bound(ellipsoid))
+    assert block["disturbance"]["vX"] == 0.05 and block["disturbance"]["vY"] == 0.0
+    assert block["disturbance_ellipsoid"] == {"vX": 0.2, "vY": 0.1}
+    assert "disturbance_ellipsoid" not in uncertainty_block(box, additive_bound(box))
+    declared = [row[1] for row in declared_table(ellipsoid, None).rows]
+    assert "(d_vX / 0.2 m/s^2)^2 + (d_vY / 0.1 m/s^2)^2 <= 1" in declared
+    assert "|d_vX| <= 0.05 m/s^2" in declared and not any("|d_vY|" in row for row in declared)
+    wider = u.scaled(2.0)
+    assert wider.ellipsoid.tolist() == [0, 0, 0, 0.4, 0.2, 0]
+    assert wider.disturbance.tolist() == [0, 0, 0, 0.5, 0.2, 0]
+    assert np.allclose(wider.declared_box, [0, 0, 0, 0.1, 0, 0], rtol=0, atol=1e-15)
 
 
 def test_a_sensitivity_over_an_unbounded_state_names_it(tmp_path: Path) -> None:

@@ -430,6 +430,13 @@ def _uncertainty(path: Path, spec: ScenarioSpec) -> Uncertainty:
     declared = spec.uncertainty
     states = list(spec.states)
     _require_names(path, "uncertainty.disturbance", list(declared.disturbance), states, exact=False)
+    _require_names(
+        path,
+        "uncertainty.disturbance_ellipsoid",
+        list(declared.disturbance_ellipsoid),
+        states,
+        exact=False,
+    )
     _require_names(path, "uncertainty.measurement", list(declared.measurement), states, exact=False)
     _require_names(
         path,
@@ -449,8 +456,11 @@ def _uncertainty(path: Path, spec: ScenarioSpec) -> Uncertainty:
                 found=[lower, upper],
                 expected=f"an interval holding {nominal:g}: the nominals are flown with it",
             )
+    box = np.array([float(declared.disturbance.get(s, 0.0)) for s in states])
+    axes = np.array([float(declared.disturbance_ellipsoid.get(s, 0.0)) for s in states])
     return Uncertainty(
-        disturbance=np.array([float(declared.disturbance.get(s, 0.0)) for s in states]),
+        disturbance=box + axes,  # the ellipsoid held by its bounding box
+        ellipsoid=axes,
         measurement=np.array([float(declared.measurement.get(s, 0.0)) for s in states]),
         parameter_names=names,
         parameter_lower=np.array([declared.parameters[k][0] for k in names], dtype=float),

@@ -169,6 +169,12 @@ class UncertaintySpec(_Strict):
         description="bound on an additive term in the named state's derivative, |w| <= bound, "
         "at every instant (any signal inside the box, e.g. gusts, in the state's unit per s)",
     )
+    disturbance_ellipsoid: dict[str, PositiveNumber] = Field(
+        default_factory=dict,
+        description="semi-axes a of an ellipsoid bounding an additive term in the named states' "
+        "derivatives, sum (w_i / a_i)^2 <= 1, at every instant (e.g. a gust of any direction), "
+        "added to disturbance's box; the certificates hold its bounding box |w_i| <= a_i",
+    )
     parameters: dict[str, Interval] = Field(
         default_factory=dict,
         description="interval [lower, upper] of a parameter whose true value is unknown (held "

@@ -5,6 +5,12 @@ The scenario file's ``uncertainty:`` block (``pipeline.model.schema.UncertaintyS
 - ``disturbance``: a box ``|w_i| <= disturbance_i`` on an additive term in the named states'
   derivatives, ``x' = f(x, u) + w(t)``, acting at every instant: ``w`` is any measurable signal
   inside the box (a gust; states not named get 0);
+- ``disturbance_ellipsoid``: semi-axes ``a_i > 0`` of an axis-aligned ellipsoid ``sum (w_i /
+  a_i)^2 <= 1`` over the named states, a further additive term (a gust of any direction),
+  added to the box's. Every certificate holds its bounding box joined to the box, ``|w_i| <=
+  d_i + a_i`` (``disturbance`` below): each term of the sum ``(w_i / a_i)^2 <= 1`` is, so
+  ``|w_i| <= a_i``, and box plus ellipsoid lies in the sum of the boxes (sound; up to
+  ``sqrt(k)`` wider along a diagonal of ``k`` states). The Monte Carlo flies that box too;
 - ``parameters``: an interval for any of the scenario's parameters. The true value is unknown
   and constant during a flight (or varying, the bound below does not use its rate). The nominals
   are flown with the file's (nominal) values ``p0``; a certificate holds the difference
@@ -37,7 +43,10 @@ class Uncertainty:
 
     Attributes:
       disturbance: (n,) ``>= 0``, the box half-width of the additive term in each state's
-        derivative (0 for states not named).
+        derivative (0 for states not named): the declared box plus ``ellipsoid``'s bounding box,
+        what every certificate holds.
+      ellipsoid: (n,) ``>= 0``, the declared ellipsoid's semi-axes (0 for states outside it;
+        omitted: zeros), already inside ``disturbance``.
       measurement: (n,) ``>= 0``, the box half-width of the error on each state as the feedback
         measures it (0 for states not named; omitted: zeros).
       parameter_names: (q,) the uncertain parameters, in the file's order.
@@ -55,10 +64,16 @@ class Uncertainty:
     parameter_nominal: FloatArray = field(default_factory=lambda: np.zeros(0))
     parametric: Dynamics | None = field(default=None, repr=False)
     measurement: FloatArray = field(default_factory=lambda: np.zeros(0))
+    ellipsoid: FloatArray = field(default_factory=lambda: np.zeros(0))
 
     def __post_init__(self) -> None:
+        n = len(self.disturbance)
         if len(self.measurement) == 0:  # omitted: every state measured exactly
-            object.__setattr__(self, "measurement", np.zeros(len(self.disturbance)))
+            object.__setattr__(self, "measurement", np.zeros(n))
+        if len(self.ellipsoid) == 0:  # omitted: the box alone
+            object.__setattr__(self, "ellipsoid", np.zeros(n))
+        if np.any(self.ellipsoid > self.disturbance):
+            raise ValueError("Uncertainty: the ellipsoid's bounding box must lie in disturbance")
         freeze_fields(self)
 
     def __reduce__(self) -> tuple[object, ...]:
@@ -77,6 +92,12 @@ class Uncertainty:
             and not np.any(self.disturbance > 0)
             and not np.any(self.measurement > 0)
         )
+
+    @property
+    def declared_box(self) -> FloatArray:
+        """(n,) the box as declared, ``disturbance`` less the ellipsoid's semi-axes (to the last
+        bit of the subtraction), for people: no certificate reads it."""
+        return np.maximum(self.disturbance - self.ellipsoid, 0.0)
 
     @property
     def measured(self) -> bool:
@@ -110,4 +131,5 @@ class Uncertainty:
             parameter_nominal=nominal,
             parametric=self.parametric,
             measurement=factor * self.measurement,
+            ellipsoid=factor * self.ellipsoid,
         )

@@ -46,7 +46,8 @@ class DerivedBound:
     interval (``pipeline.numerics.uncertainty``).
 
     Attributes:
-      gust: (n,) ``D``, the declared disturbance box.
+      gust: (n,) ``D``, the declared disturbance box joined to the bounding box of the
+        declared ellipsoid (``Uncertainty.disturbance``).
       each: (q, n) each parameter's term alone, the others at their nominal values.
       parameters: (n,) all the parameters' term together, as it enters ``total``.
       total: (n,) ``b``, the bound the certificates hold (``additive_bound``, what certify
@@ -111,17 +112,32 @@ def declared_table(s: Scenario, bound: DerivedBound | None) -> Table:
     not be derived)."""
     u = s.uncertainty
     rows: list[tuple[str, str, str, str]] = []
+    box = u.declared_box
     for i, name in enumerate(s.state_names):
-        if u.disturbance[i] > 0:
+        if box[i] > 0:
             unit = rate_unit(s.unit(name))
             rows.append(
                 (
                     f"gust on {name}'",
-                    f"|d_{name}| <= {_with(float(u.disturbance[i]), unit)}",
+                    f"|d_{name}| <= {_with(float(box[i]), unit)}",
                     "0",
-                    f"{_with(float(u.disturbance[i]), unit)} to b_{name}, as declared",
+                    f"{_with(float(box[i]), unit)} to b_{name}, as declared",
                 )
             )
+    axes = [
+        (name, _with(float(a), rate_unit(s.unit(name))))
+        for name, a in zip(s.state_names, u.ellipsoid, strict=True)
+        if a > 0
+    ]
+    if axes:  # sum (d_i / a_i)^2 <= 1, held by its bounding box |d_i| <= a_i
+        rows.append(
+            (
+                "gust ellipsoid on " + ", ".join(f"{name}'" for name, _ in axes),
+                " + ".join(f"(d_{name} / {a})^2" for name, a in axes) + " <= 1",
+                "0",
+                "held by its bounding box: " + ", ".join(f"{a} to b_{name}" for name, a in axes),
+            )
+        )
     for j, name in enumerate(u.parameter_names):
         unit = f" {s.unit(name)}" if s.unit(name) else ""
         lo, hi = float(u.parameter_lower[j]), float(u.parameter_upper[j])
@@ -154,11 +170,11 @@ def declared_table(s: Scenario, bound: DerivedBound | None) -> Table:
         ("declared", "bound", "nominal", "what it contributes"),
         tuple(rows),
         "Declared in the scenario file's uncertainty block. A gust d is any signal inside its "
-        "box, in the unit of the state's derivative; a parameter's true value is any in its "
-        "interval (the nominal trajectories are flown with the nominal value); a measurement "
-        "error is in the state's unit. Contributions are upper bounds derived by the pipeline "
-        "(Δf: the change of the derivative f(x, u, p) - f(x, u, p0) over the box the "
-        "certificates keep their tubes in)",
+        "box (or ellipsoid), in the unit of the state's derivative; a parameter's true value "
+        "is any in its interval (the nominal trajectories are flown with the nominal value); a "
+        "measurement error is in the state's unit. Contributions are upper bounds derived by "
+        "the pipeline (Δf: the change of the derivative f(x, u, p) - f(x, u, p0) over the box "
+        "the certificates keep their tubes in)",
         stack=True,
     )
 
@@ -180,10 +196,11 @@ def bound_table(s: Scenario, bound: DerivedBound) -> Table:
         ("state", "gust D_i", "parameters' term", "additive bound b_i"),
         rows,
         "The additive bound the certificates hold, |w_i| <= b_i in x' = f(x, u, p0) + w: "
-        "derived by the pipeline, not declared, as b_i = D_i + max |Σ_j ∂f_i/∂p_j (p_j - "
-        "p0_j)| over the parameter box and the box the tubes are kept in (state bounds, the "
-        "operating region, the input bounds), in outward-rounded interval arithmetic ((U1), "
-        "mean value theorem)" + (f"; b = 0 for {', '.join(zero)}" if zero else ""),
+        "derived by the pipeline, not declared, as b_i = D_i (the declared box plus a declared "
+        "ellipsoid's semi-axis) + max |Σ_j ∂f_i/∂p_j (p_j - p0_j)| over the parameter box and "
+        "the box the tubes are kept in (state bounds, the operating region, the input bounds), "
+        "in outward-rounded interval arithmetic ((U1), mean value theorem)"
+        + (f"; b = 0 for {', '.join(zero)}" if zero else ""),
         numeric=(False, True, True, True),
     )
 
@@ -253,8 +270,9 @@ def _sampling(data: ReportData) -> Paragraph:
     pushed = [name for name, d in zip(s.state_names, u.disturbance, strict=True) if d > 0]
     if pushed:
         derivatives = ", ".join(f"{name}'" for name in pushed)
+        inside = "its box" if not np.any(u.ellipsoid > 0) else "the box holding the ellipsoid"
         drawn.append(
-            f"a gust on {derivatives} uniform in its box, piecewise constant with a "
+            f"a gust on {derivatives} uniform in {inside}, piecewise constant with a "
             f"new value every {period:g} s"
         )
     if u.measured:
