@@ -6,8 +6,9 @@ from the demonstration's start alone (``bench.bench_certificates``). The largest
 cell's corners is printed beside the start's (a corner, not a proof that no interior start is
 slower: the minimum time is not convex in ``x0``).
 
-Run: ``python -m bench.cell_rest SCENARIO RUN_FOLDER [DEMO_INDICES]`` on a finished funnel run
-of ``SCENARIO`` (its ``feedback`` artifact assigns the cells, its ``summary.json`` gives ``T``),
+Run: ``python -m bench.cell_rest SCENARIO RUN_FOLDER [DEMO_INDICES]`` (0-based, comma-separated)
+on a finished funnel run of ``SCENARIO`` (its ``feedback`` artifact assigns the cells among all
+the scenario's demos, as the funnel stage does; its ``summary.json`` gives each demo's ``T``),
 e.g. ``python -m bench.cell_rest quadrotor_hill_gusty reports/quadrotor_hill_gusty 1,3``. Each
 corner is one IPOPT minimum-time solve (``bench.bench_optimize``): 32 corners took 182 s for
 quadrotor_hill_gusty's demo_02. Needs the ``bench`` extra (casadi).
@@ -52,18 +53,25 @@ def compare(name: str, run: Path, only: list[int] | None = None) -> None:
     starts = np.array([demo.x0 for demo in scenario.demos])
     cells = init_cells(scenario.init_lower, scenario.init_upper, starts, stored.result.P)
     summary = json.loads((run / "summary.json").read_text())
+    T_of = {row["demo"]: row["T_optimized"] for row in summary["demos"]}
     for i, demo in enumerate(scenario.demos):
         if only is not None and i not in only:
             continue
+        if not len(cells[i]):
+            print(f"{demo.name}: owns no cell of Init", flush=True)
+            continue
         start = time.perf_counter()
-        T = summary["demos"][i]["T_optimized"]
+        T = T_of[demo.name]
         from_start = _rest_time(scenario, i, starts[i])
         corners = starts[i] + cells[i] / (1 + PAD)  # the cell's own corners, unpadded
         times = np.array([_rest_time(scenario, i, corner) for corner in corners])
         solved = np.isfinite(times)
-        slowest = int(np.nanargmax(times)) if solved.any() else 0
         worst = max(from_start, float(np.nanmax(times, initial=from_start)))
-        offset = np.round(corners[slowest] - starts[i], 3).tolist()
+        offset = (
+            np.round(corners[int(np.nanargmax(times))] - starts[i], 3).tolist()
+            if solved.any() and np.nanmax(times) > from_start
+            else "none slower than the start"
+        )
         print(
             f"{demo.name}: T {T:.2f} s, T_rest from the start {from_start:.2f} s (ratio "
             f"{T / from_start:.3f}), largest over the {solved.sum()} of the cell's "

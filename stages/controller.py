@@ -176,10 +176,7 @@ def uncertainty_block(scenario: Scenario, bound: FloatArray) -> dict:
     declared = scenario.uncertainty
     block = {
         "additive_bound": bound.tolist(),
-        "disturbance": {  # as declared, to 12 digits (the ellipsoid's axes subtracted)
-            name: float(f"{d:.12g}")
-            for name, d in zip(scenario.state_names, declared.declared_box.tolist(), strict=True)
-        },
+        "disturbance": dict(zip(scenario.state_names, declared.declared_box.tolist(), strict=True)),
         "parameters": {name: list(interval) for name, interval in declared.parameters.items()},
     }
     if np.any(declared.ellipsoid > 0):  # held by its bounding box, inside additive_bound

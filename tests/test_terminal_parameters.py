@@ -201,7 +201,7 @@ def test_the_file_and_the_claim_state_the_box_t7_held(scenario, design):
     assert "(T7)" not in whole and "with w in that bound" in whole
 
 
-def tried_holds(monkeypatch) -> list[tuple[bool, str | None]]:
+def tried_holds(monkeypatch: pytest.MonkeyPatch) -> list[tuple[bool, str | None]]:
     """Each ``_hold`` that ``hold_design`` tries from now on, in order: whether with (T7)'s
     parameters, and its ``TerminalError`` (None: it designed a set)."""
     tried: list[tuple[bool, str | None]] = []
@@ -239,7 +239,8 @@ def test_where_neither_box_leaves_a_hover_the_error_says_why_each_failed(scenari
         raise TerminalError("(T7) failed" if tried[-1] else "the whole box failed")
 
     monkeypatch.setattr(terminal_design, "_hold", fails)
-    with pytest.raises(TerminalError, match=r"^the whole box failed; then \(T7\) failed$"):
+    message = r"^under the whole box's bound: the whole box failed; then \(T7\) failed$"
+    with pytest.raises(TerminalError, match=message):
         hold_design(scenario, additive_bound(scenario), parameters=scenario.uncertainty)
     assert tried == [False, True]
 

@@ -47,7 +47,7 @@ from pipeline.model.schema import DEFAULT_RATE as DEFAULT_RATE
 from pipeline.model.schema import CertificateName as CertificateName
 from pipeline.model.schema import FeedbackSpec, ScenarioSpec
 from pipeline.model.simulate import simulate
-from pipeline.model.uncertainty import Uncertainty
+from pipeline.model.uncertainty import Uncertainty, held_box
 
 # The largest lambda T of a demo: e^{lambda T} stays far below float64's limit e^709.78 (room for
 # the factors it multiplies).
@@ -459,8 +459,9 @@ def _uncertainty(path: Path, spec: ScenarioSpec) -> Uncertainty:
     box = np.array([float(declared.disturbance.get(s, 0.0)) for s in states])
     axes = np.array([float(declared.disturbance_ellipsoid.get(s, 0.0)) for s in states])
     return Uncertainty(
-        disturbance=box + axes,  # the ellipsoid held by its bounding box
+        disturbance=held_box(box, axes),  # the ellipsoid held by its bounding box
         ellipsoid=axes,
+        declared_box=box,
         measurement=np.array([float(declared.measurement.get(s, 0.0)) for s in states]),
         parameter_names=names,
         parameter_lower=np.array([declared.parameters[k][0] for k in names], dtype=float),

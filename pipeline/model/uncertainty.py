@@ -6,11 +6,11 @@ The scenario file's ``uncertainty:`` block (``pipeline.model.schema.UncertaintyS
   derivatives, ``x' = f(x, u) + w(t)``, acting at every instant: ``w`` is any measurable signal
   inside the box (a gust; states not named get 0);
 - ``disturbance_ellipsoid``: semi-axes ``a_i > 0`` of an axis-aligned ellipsoid ``sum (w_i /
-  a_i)^2 <= 1`` over the named states, a further additive term (a gust of any direction),
-  added to the box's. Every certificate holds its bounding box joined to the box, ``|w_i| <=
-  d_i + a_i`` (``disturbance`` below): each term of the sum ``(w_i / a_i)^2 <= 1`` is, so
-  ``|w_i| <= a_i``, and box plus ellipsoid lies in the sum of the boxes (sound; up to
-  ``sqrt(k)`` wider along a diagonal of ``k`` states). The Monte Carlo flies that box too;
+  a_i)^2 <= 1`` over the named states, a further additive term ``g`` (a gust of any
+  direction) added to the box's ``d``. Every certificate holds the box ``|w_i| <= d_i + a_i``
+  (``disturbance`` below, rounded up): each term ``(g_i / a_i)^2`` of the sum is at most 1, so
+  ``|g_i| <= a_i`` and ``d + g`` lies in that box (sound; up to ``sqrt(k)`` wider than the
+  ellipsoid along a diagonal of ``k`` states). The Monte Carlo draws from that box too;
 - ``parameters``: an interval for any of the scenario's parameters. The true value is unknown
   and constant during a flight (or varying, the bound below does not use its rate). The nominals
   are flown with the file's (nominal) values ``p0``; a certificate holds the difference
@@ -43,10 +43,13 @@ class Uncertainty:
 
     Attributes:
       disturbance: (n,) ``>= 0``, the box half-width of the additive term in each state's
-        derivative (0 for states not named): the declared box plus ``ellipsoid``'s bounding box,
-        what every certificate holds.
+        derivative (0 for states not named) that every certificate holds: the declared box
+        plus ``ellipsoid``'s semi-axes (``held_box``).
       ellipsoid: (n,) ``>= 0``, the declared ellipsoid's semi-axes (0 for states outside it;
         omitted: zeros), already inside ``disturbance``.
+      declared_box: (n,) ``>= 0``, the box as declared, for people (no certificate reads it):
+        ``disturbance`` itself without an ellipsoid; given by the loader with one (omitted:
+        ``disturbance - ellipsoid``, to the last bit of the subtraction).
       measurement: (n,) ``>= 0``, the box half-width of the error on each state as the feedback
         measures it (0 for states not named; omitted: zeros).
       parameter_names: (q,) the uncertain parameters, in the file's order.
@@ -65,15 +68,27 @@ class Uncertainty:
     parametric: Dynamics | None = field(default=None, repr=False)
     measurement: FloatArray = field(default_factory=lambda: np.zeros(0))
     ellipsoid: FloatArray = field(default_factory=lambda: np.zeros(0))
+    declared_box: FloatArray = field(default_factory=lambda: np.zeros(0))
 
     def __post_init__(self) -> None:
-        n = len(self.disturbance)
+        disturbance = np.asarray(self.disturbance, dtype=np.float64)
+        n = len(disturbance)
         if len(self.measurement) == 0:  # omitted: every state measured exactly
             object.__setattr__(self, "measurement", np.zeros(n))
-        if len(self.ellipsoid) == 0:  # omitted: the box alone
-            object.__setattr__(self, "ellipsoid", np.zeros(n))
-        if np.any(self.ellipsoid > self.disturbance):
-            raise ValueError("Uncertainty: the ellipsoid's bounding box must lie in disturbance")
+        axes = np.zeros(n) if len(self.ellipsoid) == 0 else np.asarray(self.ellipsoid, float)
+        object.__setattr__(self, "ellipsoid", axes)
+        if not np.any(axes > 0):  # the box alone: as declared
+            object.__setattr__(self, "declared_box", disturbance)
+        elif len(self.declared_box) == 0:
+            object.__setattr__(self, "declared_box", np.maximum(disturbance - axes, 0.0))
+        box = np.asarray(self.declared_box, dtype=np.float64)
+        if axes.shape != disturbance.shape or box.shape != disturbance.shape:
+            raise ValueError(
+                f"Uncertainty: ellipsoid {axes.shape} and declared_box {box.shape} against "
+                f"disturbance {disturbance.shape}; expected the same shape"
+            )
+        if np.any(axes > disturbance) or np.any(box > disturbance):
+            raise ValueError("Uncertainty: disturbance must hold the declared box and ellipsoid")
         freeze_fields(self)
 
     def __reduce__(self) -> tuple[object, ...]:
@@ -92,12 +107,6 @@ class Uncertainty:
             and not np.any(self.disturbance > 0)
             and not np.any(self.measurement > 0)
         )
-
-    @property
-    def declared_box(self) -> FloatArray:
-        """(n,) the box as declared, ``disturbance`` less the ellipsoid's semi-axes (to the last
-        bit of the subtraction), for people: no certificate reads it."""
-        return np.maximum(self.disturbance - self.ellipsoid, 0.0)
 
     @property
     def measured(self) -> bool:
@@ -124,7 +133,7 @@ class Uncertainty:
         """The same declaration ``factor`` times as wide about the nominal (``--stress``)."""
         nominal = self.parameter_nominal
         return Uncertainty(
-            disturbance=factor * self.disturbance,
+            disturbance=held_box(factor * self.declared_box, factor * self.ellipsoid),
             parameter_names=self.parameter_names,
             parameter_lower=nominal + factor * (self.parameter_lower - nominal),
             parameter_upper=nominal + factor * (self.parameter_upper - nominal),
@@ -132,4 +141,13 @@ class Uncertainty:
             parametric=self.parametric,
             measurement=factor * self.measurement,
             ellipsoid=factor * self.ellipsoid,
+            declared_box=factor * self.declared_box,
         )
+
+
+def held_box(box: FloatArray, axes: FloatArray) -> FloatArray:
+    """(n,) the box every certificate holds for the declared ``box (n,)`` plus an ellipsoid of
+    semi-axes ``axes (n,)``: ``box + axes``, rounded up where both are positive (elsewhere the
+    sum is one of them, exact: a declaration without an ellipsoid is held as written)."""
+    total = box + axes
+    return np.where((box > 0) & (axes > 0), np.nextafter(total, np.inf), total)

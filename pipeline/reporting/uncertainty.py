@@ -1,9 +1,11 @@
 """The report's section "Declared uncertainty" (only when the scenario declares one).
 
 A scenario's ``uncertainty:`` block (``pipeline.model.uncertainty``) declares a gust box
-``|d_i| <= D_i`` on the state derivatives, intervals ``[p_lo_j, p_hi_j]`` for parameters around
-the nominal values ``p0_j`` the nominals are flown with, and a box ``|eta_i| <= E_i`` on the
-error of the state the law measures. The certificates hold the first two as one additive term,
+``|d_i| <= D_i`` on the state derivatives (``D_i``: the declared box plus the semi-axis of a
+declared gust ellipsoid ``sum (g_i / a_i)^2 <= 1``, whose term ``g`` is added), intervals
+``[p_lo_j, p_hi_j]`` for parameters around the nominal values ``p0_j`` the nominals are flown
+with, and a box ``|eta_i| <= E_i`` on the error of the state the law measures. The
+certificates hold the first two as one additive term,
 
     x' = f(x, u, p0) + w,   |w_i| <= b_i = D_i + max |sum_j df_i/dp_j (p_j - p0_j)|     (U1)
 
@@ -46,8 +48,8 @@ class DerivedBound:
     interval (``pipeline.numerics.uncertainty``).
 
     Attributes:
-      gust: (n,) ``D``, the declared disturbance box joined to the bounding box of the
-        declared ellipsoid (``Uncertainty.disturbance``).
+      gust: (n,) ``D``, the declared disturbance box plus the declared ellipsoid's semi-axes
+        (``Uncertainty.disturbance``).
       each: (q, n) each parameter's term alone, the others at their nominal values.
       parameters: (n,) all the parameters' term together, as it enters ``total``.
       total: (n,) ``b``, the bound the certificates hold (``additive_bound``, what certify
@@ -129,11 +131,11 @@ def declared_table(s: Scenario, bound: DerivedBound | None) -> Table:
         for name, a in zip(s.state_names, u.ellipsoid, strict=True)
         if a > 0
     ]
-    if axes:  # sum (d_i / a_i)^2 <= 1, held by its bounding box |d_i| <= a_i
+    if axes:  # sum (g_i / a_i)^2 <= 1, held by its bounding box |g_i| <= a_i
         rows.append(
             (
                 "gust ellipsoid on " + ", ".join(f"{name}'" for name, _ in axes),
-                " + ".join(f"(d_{name} / {a})^2" for name, a in axes) + " <= 1",
+                " + ".join(f"(g_{name} / {a})^2" for name, a in axes) + " <= 1",
                 "0",
                 "held by its bounding box: " + ", ".join(f"{a} to b_{name}" for name, a in axes),
             )
@@ -170,7 +172,8 @@ def declared_table(s: Scenario, bound: DerivedBound | None) -> Table:
         ("declared", "bound", "nominal", "what it contributes"),
         tuple(rows),
         "Declared in the scenario file's uncertainty block. A gust d is any signal inside its "
-        "box (or ellipsoid), in the unit of the state's derivative; a parameter's true value "
+        "box (and g inside its ellipsoid, added to d), in the unit of the state's derivative; "
+        "a parameter's true value "
         "is any in its interval (the nominal trajectories are flown with the nominal value); a "
         "measurement error is in the state's unit. Contributions are upper bounds derived by "
         "the pipeline (Δf: the change of the derivative f(x, u, p) - f(x, u, p0) over the box "
@@ -270,7 +273,11 @@ def _sampling(data: ReportData) -> Paragraph:
     pushed = [name for name, d in zip(s.state_names, u.disturbance, strict=True) if d > 0]
     if pushed:
         derivatives = ", ".join(f"{name}'" for name in pushed)
-        inside = "its box" if not np.any(u.ellipsoid > 0) else "the box holding the ellipsoid"
+        inside = (
+            "its box"
+            if not np.any(u.ellipsoid > 0)
+            else "the declared box plus the ellipsoid's bounding box"
+        )
         drawn.append(
             f"a gust on {derivatives} uniform in {inside}, piecewise constant with a "
             f"new value every {period:g} s"
@@ -328,6 +335,11 @@ def section(data: ReportData) -> tuple:
             "What the certificates are held to besides the nominal model: the true system is "
             "x' = f(x, u, p) + d with the law measuring x + eta, for every gust d, parameter "
             "value p and measurement error eta declared below"
+            + (
+                " (d: the box's gust plus the ellipsoid's g)"
+                if np.any(s.uncertainty.ellipsoid > 0)
+                else ""
+            )
             + ("" if s.uncertainty.measured else " (no measurement error declared: eta = 0)")
             + f". {note}"
         ),

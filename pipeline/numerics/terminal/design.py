@@ -745,7 +745,7 @@ def hold_design(
     try:
         return _hold(scenario, x_eq, u_eq, held)
     except TerminalError as error:  # both failed: say why each did
-        raise TerminalError(f"{without}; then {error}") from None
+        raise TerminalError(f"under the whole box's bound: {without}; then {error}") from None
 
 
 def _hold(
