@@ -35,6 +35,7 @@ from pipeline.numerics.terminal.design import (
 )
 from pipeline.numerics.verify.recertify import rebuild_funnel, recheck_as_shipped
 from stages.certify import certify_controller
+from stages.funnel import HOLD_DESIGN, design_disturbance
 from tests.helpers.held import per_state_hold
 from tests.helpers.robust import (
     DISTURBANCE,
@@ -227,6 +228,24 @@ def test_the_support_bound_is_never_above_the_per_state_box(seed):
     swing = held.held_input - measured  # the hold's part, h times the bound on |K e'|
     assert np.allclose(held.input_offset, plain.input_offset + swing, rtol=1e-14, atol=0)
     assert np.array_equal(held.lmi_term, plain.lmi_term)
+
+
+def test_a_pushed_redesign_asks_for_the_remainder_only_where_the_declaration_pushes():
+    """``stages.funnel.design_disturbance``: with the push to first order the remainder on a
+    state the declaration does not push (omega') is left to the check; the box design (period
+    0), a measured law and an exact model ask for the whole box."""
+    declared = np.array([0.0, 0.0, 0.0, 0.15, 0.13, 0.0])
+    remainder = np.array([0.0, 0.0, 0.0, 0.002, 0.004, 0.006])
+    whole = declared + HOLD_DESIGN * remainder
+    pushed = design_disturbance(declared, remainder, 0.005, measured=False)
+    assert pushed[5] == 0.0 and np.array_equal(pushed[:5], whole[:5])
+    for period, measured, bound in (
+        (0.0, False, declared),
+        (0.005, True, declared),
+        (0.005, False, np.zeros(6)),
+    ):
+        asked = design_disturbance(bound, remainder, period, measured)
+        assert np.array_equal(asked, bound + HOLD_DESIGN * remainder)
 
 
 def test_the_push_of_random_hulls_stays_in_its_box():
