@@ -29,16 +29,16 @@ from bench.uncertified import uncertified_constraints
 from pipeline.io.artifacts import read_stored
 from pipeline.model.scenario import Scenario, load_scenario
 from pipeline.numerics.funnel.cells import PAD, init_cells
+from pipeline.numerics.optimize.penalties import Constraints
 from pipeline.runtime.registry import RESULT_TYPES
 
 
-def _rest_time(scenario: Scenario, demo: int, x0: np.ndarray) -> float:
-    """IPOPT's minimum time to rest in Goal from ``x0 (n,)`` (demo ``demo``'s flight as the
-    initial guess); NaN where it finds none."""
+def _rest_time(scenario: Scenario, rest: Constraints, demo: int, x0: np.ndarray) -> float:
+    """IPOPT's minimum time to rest in Goal (``rest``: ``uncertified_constraints`` at rest) from
+    ``x0 (n,)`` (demo ``demo``'s flight as the initial guess); NaN where it finds none."""
     moved = dataclasses.replace(scenario.demos[demo], x0=x0)
     demos = tuple(moved if j == demo else d for j, d in enumerate(scenario.demos))
-    constraints = uncertified_constraints(scenario, at_rest=True)
-    found = ipopt_minimum_time(dataclasses.replace(scenario, demos=demos), demo, constraints)
+    found = ipopt_minimum_time(dataclasses.replace(scenario, demos=demos), demo, rest)
     return found.N * scenario.Ts if found.U is not None else float("nan")
 
 
@@ -54,6 +54,7 @@ def compare(name: str, run: Path, only: list[int] | None = None) -> None:
     cells = init_cells(scenario.init_lower, scenario.init_upper, starts, stored.result.P)
     summary = json.loads((run / "summary.json").read_text())
     T_of = {row["demo"]: row["T_optimized"] for row in summary["demos"]}
+    rest = uncertified_constraints(scenario, at_rest=True)
     for i, demo in enumerate(scenario.demos):
         if only is not None and i not in only:
             continue
@@ -62,9 +63,9 @@ def compare(name: str, run: Path, only: list[int] | None = None) -> None:
             continue
         start = time.perf_counter()
         T = T_of[demo.name]
-        from_start = _rest_time(scenario, i, starts[i])
+        from_start = _rest_time(scenario, rest, i, starts[i])
         corners = starts[i] + cells[i] / (1 + PAD)  # the cell's own corners, unpadded
-        times = np.array([_rest_time(scenario, i, corner) for corner in corners])
+        times = np.array([_rest_time(scenario, rest, i, corner) for corner in corners])
         solved = np.isfinite(times)
         worst = max(from_start, float(np.nanmax(times, initial=from_start)))
         offset = (

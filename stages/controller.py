@@ -179,7 +179,7 @@ def uncertainty_block(scenario: Scenario, bound: FloatArray) -> dict:
         "disturbance": dict(zip(scenario.state_names, declared.declared_box.tolist(), strict=True)),
         "parameters": {name: list(interval) for name, interval in declared.parameters.items()},
     }
-    if np.any(declared.ellipsoid > 0):  # held by its bounding box, inside additive_bound
+    if declared.ellipsoidal:  # held by its bounding box, inside additive_bound
         axes = zip(scenario.state_names, declared.ellipsoid.tolist(), strict=True)
         block["disturbance_ellipsoid"] = {name: a for name, a in axes if a > 0}
     if declared.measured:  # the law sees x + eta, |eta| <= E (funnel.law (I7)); certify checks

@@ -77,7 +77,7 @@ class Uncertainty:
             object.__setattr__(self, "measurement", np.zeros(n))
         axes = np.zeros(n) if len(self.ellipsoid) == 0 else np.asarray(self.ellipsoid, float)
         object.__setattr__(self, "ellipsoid", axes)
-        if not np.any(axes > 0):  # the box alone: as declared
+        if not np.any(axes > 0):  # the box alone: as declared (``ellipsoidal`` False)
             object.__setattr__(self, "declared_box", disturbance)
         elif len(self.declared_box) == 0:
             object.__setattr__(self, "declared_box", np.maximum(disturbance - axes, 0.0))
@@ -107,6 +107,11 @@ class Uncertainty:
             and not np.any(self.disturbance > 0)
             and not np.any(self.measurement > 0)
         )
+
+    @property
+    def ellipsoidal(self) -> bool:
+        """An ellipsoid is declared (some ``ellipsoid_i > 0``)."""
+        return bool(np.any(self.ellipsoid > 0))
 
     @property
     def measured(self) -> bool:

@@ -274,9 +274,7 @@ def _sampling(data: ReportData) -> Paragraph:
     if pushed:
         derivatives = ", ".join(f"{name}'" for name in pushed)
         inside = (
-            "its box"
-            if not np.any(u.ellipsoid > 0)
-            else "the declared box plus the ellipsoid's bounding box"
+            "its box" if not u.ellipsoidal else "the declared box plus the ellipsoid's bounding box"
         )
         drawn.append(
             f"a gust on {derivatives} uniform in {inside}, piecewise constant with a "
@@ -335,11 +333,7 @@ def section(data: ReportData) -> tuple:
             "What the certificates are held to besides the nominal model: the true system is "
             "x' = f(x, u, p) + d with the law measuring x + eta, for every gust d, parameter "
             "value p and measurement error eta declared below"
-            + (
-                " (d: the box's gust plus the ellipsoid's g)"
-                if np.any(s.uncertainty.ellipsoid > 0)
-                else ""
-            )
+            + (" (d: the box's gust plus the ellipsoid's g)" if s.uncertainty.ellipsoidal else "")
             + ("" if s.uncertainty.measured else " (no measurement error declared: eta = 0)")
             + f". {note}"
         ),
