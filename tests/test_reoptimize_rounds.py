@@ -165,3 +165,87 @@ def test_covering_as_well_reads_the_covered_flag_not_the_last_bits_of_the_volume
     assert not rounds._covers_as_well(coverage(False, 0.999), coverage(True, 1.0))
     assert rounds._covers_as_well(coverage(False, 0.9), coverage(False, 0.8))
     assert not rounds._covers_as_well(coverage(False, 0.7), coverage(False, 0.8))
+
+
+class _HeldStages:
+    """``funnel_stages`` and ``reoptimize_rounds`` of ``stages.certificates.funnel`` replaced:
+    each held funnel stage returns the next of ``results`` ((levels, usable, covered) per
+    call) and records what it was asked; the rounds return their start, recording it."""
+
+    def __init__(self, monkeypatch: pytest.MonkeyPatch, results: list[tuple]) -> None:
+        self.results = list(results)
+        self.stages: list[tuple[str, list, list | None]] = []
+        self.rounds: list[tuple[str, tuple | None, list[float] | None]] = []
+        monkeypatch.setattr(rounds, "funnel_stages", self.funnel_stages)
+        monkeypatch.setattr(rounds, "reoptimize_rounds", self.reoptimize_rounds)
+
+    def funnel_stages(self, run, trajectories, stage="funnel", reuse=None, earlier=()):
+        self.stages.append((stage, list(trajectories), None if reuse is None else list(reuse)))
+        levels, usable, covered = self.results.pop(0)
+        coverage = SimpleNamespace(covered=covered, covered_fraction=1.0 if covered else 0.99)
+        return _stage(levels, usable, scale=1.0), coverage
+
+    def reoptimize_rounds(self, run, start, steps=None, label=""):
+        self.rounds.append((label, start.trajectories, None if steps is None else list(steps)))
+        return start
+
+
+def _searched(earlier: tuple) -> rounds.Rounds:
+    """Where the continuous law's rounds left three trajectories (levels 1, Init covered)."""
+    return rounds.Rounds(
+        inputs=tuple(np.zeros((k, 1)) for k in (4, 4, 4)), trajectories=("a2", "b2", "c2"),
+        optimized=("A2", "B2", "C2"), funnels=_stage([1.0, 1.0, 1.0], [0, 1, 2], scale=1.0),
+        coverage=SimpleNamespace(covered=True, covered_fraction=1.0), earlier=earlier,
+    )  # fmt: skip
+
+
+_CERTIFICATE = SimpleNamespace(
+    trajectories=("a0", "b0", "c0"), inputs=(np.zeros((6, 1)),) * 3,
+    optimized=SimpleNamespace(trajectories=("A0", "B0", "C0")),
+)  # fmt: skip
+
+
+def test_the_held_laws_funnels_are_kept_around_the_searched_nominals_when_they_cover_as_well(
+    monkeypatch,
+):
+    """``held_funnels``: one held stage around the nominals the continuous rounds chose, kept
+    when Init is covered as well (a lower level included: coverage is the funnels' own)."""
+    stages = _HeldStages(monkeypatch, [([1.0, 0.95, 1.0], [0, 1, 2], True)])
+    held = rounds.held_funnels(SimpleNamespace(), _searched(((), (), ())), _CERTIFICATE)
+    assert [stage for stage, _, _ in stages.stages] == ["funnel_held"]
+    assert stages.stages[0][1] == ["a2", "b2", "c2"] and not stages.rounds
+    assert held.trajectories == ("a2", "b2", "c2") and held.funnels.levels[1] == 0.95
+
+
+def test_a_trajectory_whose_held_funnel_falls_short_steps_back_and_is_optimized_again(
+    monkeypatch,
+):
+    """Init left uncovered: only the trajectory whose held funnel holds less than its
+    continuous one steps back to the nominal it kept before (the others' funnels reused), and
+    it alone is optimized again against its held funnel (the others settled: step 0)."""
+    earlier = (((np.zeros((5, 1)), "a1", "A1"),), ((np.zeros((5, 1)), "b1", "B1"),), ())
+    stages = _HeldStages(
+        monkeypatch, [([1.0, 0.9, 1.0], [0, 1, 2], False), ([1.0, 1.0, 1.0], [0, 1, 2], True)]
+    )
+    held = rounds.held_funnels(SimpleNamespace(), _searched(earlier), _CERTIFICATE)
+    (first, _, _), (back, trajectories, reuse) = stages.stages
+    assert (first, back) == ("funnel_held", "funnel_held_back_1")
+    assert trajectories == ["a2", "b1", "c2"]
+    assert reuse is not None and reuse[1] is None and reuse[0] is not None and reuse[2] is not None
+    assert stages.rounds == [("_held", ("a2", "b1", "c2"), [0.0, rounds.FIRST_STEP, 0.0])]
+    assert held.optimized == ("A2", "B1", "C2") and held.inputs[1].shape == (5, 1)
+    assert held.earlier[1] == ()  # the nominal it stepped back to is its current one
+
+
+def test_with_no_earlier_nominal_to_step_back_to_the_rounds_run_again_with_the_held_law(
+    monkeypatch,
+):
+    """A short trajectory with no earlier nominal and Init uncovered: the rounds again from the
+    optimize stage's nominals, with the held law's funnels in every round (label ``_h``)."""
+    stages = _HeldStages(
+        monkeypatch, [([1.0, 1.0, 0.8], [0, 1, 2], False), ([1.0, 1.0, 1.0], [0, 1, 2], True)]
+    )
+    rounds.held_funnels(SimpleNamespace(), _searched(((), (), ())), _CERTIFICATE)
+    assert [stage for stage, _, _ in stages.stages] == ["funnel_held", "funnel_h"]
+    assert stages.stages[1][1] == ["a0", "b0", "c0"]
+    assert stages.rounds == [("_h", ("a0", "b0", "c0"), None)]

@@ -252,12 +252,14 @@ def test_each_gains_family_stops_searching_past_its_best_multiplier():
 
 def test_a_family_past_its_best_multiplier_solves_no_more_programs():
     """The double integrator at twice the tests' bound, its LQR gains' programs scripted to
-    hold half the design level at alpha = 0.3 and less at 1.0: the LQR family stops there
-    (3.0 and 10.0 not solved), the (F6) family is searched next and the funnel it certifies
-    (whole level) is kept; searching every multiplier solves both LQR programs skipped."""
+    hold half the design level at the first multiplier and less at the second: the LQR family
+    stops there (the larger ones not solved), the (F6) family is searched next and the funnel it
+    certifies (whole level) is kept; searching every multiplier solves the LQR programs
+    skipped."""
     scenario, trajectory, initial = double_integrator_case()
     original, search = synthesis.solve_clarabel, synthesis.MultiplierSearch
-    shrink = {0.3: 0.5, 1.0: 0.3}  # tau of the LQR gains' programs, scaled to these (else 0.2)
+    M = synthesis.ROBUST_MULTIPLIERS
+    shrink = {M[0]: 0.5, M[1]: 0.3}  # tau of the LQR gains' programs, scaled to these (else 0.2)
 
     class Exhaustive(synthesis.MultiplierSearch):
         def past_best(self, codesign: bool) -> bool:
@@ -294,8 +296,9 @@ def test_a_family_past_its_best_multiplier_solves_no_more_programs():
     finally:
         synthesis.solve_clarabel, synthesis.MultiplierSearch = original, search
         synthesis.codesign_gains = codesign
-    assert stopped_solves == [("LQR", 0.3), ("LQR", 1.0), ("F6", 0.3)], stopped_solves
-    assert full_solves[:5] == [*stopped_solves[:2], ("LQR", 3.0), ("LQR", 10.0), ("F6", 0.3)]
+    assert stopped_solves == [("LQR", M[0]), ("LQR", M[1]), ("F6", M[0])], stopped_solves
+    lqr = [("LQR", alpha) for alpha in M]
+    assert full_solves[: len(M) + 1] == [*lqr, ("F6", M[0])]
     assert stopped.success and "(F6)" in stopped.message and stopped.rho > 0.99
     assert stopped.rho == full.rho and np.array_equal(stopped.K, full.K)
 

@@ -192,9 +192,16 @@ def _summary(data: ReportData) -> tuple:
     ]
     timings.append(("total (incl. loading and summary)", fixed(summary.total_seconds, 2), ""))
     seed = 1 + titles(True, not s.uncertainty.empty).index(SEED)
+    period = data.law.feedback_period if data.funnel else 0.0
+    against = (
+        f"re-optimized against the continuous law's funnels, then the funnels of the law held "
+        f"every {period:g} s certified around the nominals chosen"
+        if period > 0
+        else "re-optimized against their funnels"
+    )
     ships = (
         "then a funnel E_i(t) is certified around each (the funnel certificate, "
-        "controller.json), with the nominals re-optimized against their funnels, and validated "
+        f"controller.json), with the nominals {against}, and validated "
         "by simulation. The constant certificate that seeds it is not shipped (section "
         f"{seed}, {shipped.SEED_TITLE})."
         if data.funnel

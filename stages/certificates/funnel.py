@@ -44,7 +44,7 @@ from pipeline.numerics.uncertainty import additive_bound
 from pipeline.results.coverage import CoverageResult
 from pipeline.results.feedback import FeedbackResult
 from pipeline.results.funnel import FunnelStageResult
-from pipeline.results.optimize import OptimizeOptions, OptimizeResult
+from pipeline.results.optimize import OptimizeOptions, OptimizeResult, TrajectoryOptimization
 from pipeline.results.stage import Runner
 from stages.certificates import CertificateRun, Shipped, Targets, nominals
 from stages.controller import FUNNEL_CONTROLLER, FunnelControllerInputs
@@ -263,15 +263,34 @@ class FunnelCertificate:
             feedback_period=run.feedback_period,
         )
         trajectories = list(run.trajectories)
-        funnels, coverage = funnel_stages(funnel_run, trajectories)
+        # a held law's funnels cost 2-3x the continuous law's (a held check that fails, then a
+        # design with (I6')'s push): the rounds choose the nominals with the continuous law's
+        # funnels, and the held law's are designed around the nominals chosen (``held_funnels``)
+        held = funnel_run.feedback_period > 0
+        search = dataclasses.replace(funnel_run, feedback_period=0.0) if held else funnel_run
+        if held:
+            log.info(
+                f"[funnel] the law is held every {funnel_run.feedback_period:g} s: the rounds "
+                "choose the nominals with the continuous law's funnels, the held law's are then "
+                "designed around them (funnel_held)"
+            )
+        funnels, coverage = funnel_stages(search, trajectories)
         if not funnels.usable:
             failure = f"no funnel certified: {funnels.message}"
             return Shipped(
                 controller=None, trajectories=trajectories, failed_stage="funnel", failure=failure
             )
-        _, final, funnels, coverage = reoptimize_rounds(
-            funnel_run, run.optimized, list(run.inputs), trajectories, funnels, coverage
+        rounds = reoptimize_rounds(
+            search, Rounds.first(run.optimized, run.inputs, trajectories, funnels, coverage)
         )
+        if held:
+            rounds = held_funnels(funnel_run, rounds, run)
+        final, funnels, coverage = list(rounds.trajectories), rounds.funnels, rounds.coverage
+        if not funnels.usable:
+            failure = f"no funnel certified for the held law: {funnels.message}"
+            return Shipped(
+                controller=None, trajectories=final, failed_stage="funnel_held", failure=failure
+            )
         usable = funnels.usable
         controller = run.runner.run(
             FUNNEL_CONTROLLER,
@@ -351,14 +370,44 @@ def _funnel_coverage(run: FunnelRun, stage: str, funnels: FunnelStageResult) -> 
     )
 
 
+# a kept nominal: its inputs (N, m), its simulation, the optimizer's result it came from
+Nominal = tuple[np.ndarray, Trajectory, TrajectoryOptimization]
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class Rounds:
+    """Where the re-optimize rounds stand: per trajectory the kept nominal's inputs ``(N_i,
+    m)``, its simulation and the optimizer's result it came from (the next round starts
+    there), the kept funnels and their coverage of Init, and ``earlier[i]``, trajectory i's
+    nominals kept before its current one (``Nominal``s, latest first)."""
+
+    inputs: tuple[np.ndarray, ...]
+    trajectories: tuple[Trajectory, ...]
+    optimized: tuple[TrajectoryOptimization, ...]
+    funnels: FunnelStageResult
+    coverage: CoverageResult
+    earlier: tuple[tuple[Nominal, ...], ...]
+
+    @classmethod
+    def first(
+        cls,
+        optimized: OptimizeResult,
+        inputs: Sequence[np.ndarray],
+        trajectories: Sequence[Trajectory],
+        funnels: FunnelStageResult,
+        coverage: CoverageResult,
+    ) -> Rounds:
+        """Before round 1: the optimize stage's nominals and the first funnels."""
+        return cls(
+            inputs=tuple(inputs), trajectories=tuple(trajectories),
+            optimized=tuple(optimized.trajectories), funnels=funnels, coverage=coverage,
+            earlier=((),) * len(inputs),
+        )  # fmt: skip
+
+
 def reoptimize_rounds(
-    run: FunnelRun,
-    optimized: OptimizeResult,
-    inputs: list[np.ndarray],
-    trajectories: list[Trajectory],
-    funnels: FunnelStageResult,
-    coverage: CoverageResult,
-) -> tuple[list[np.ndarray], list[Trajectory], FunnelStageResult, CoverageResult]:
+    run: FunnelRun, start: Rounds, steps: Sequence[float] | None = None, label: str = ""
+) -> Rounds:
     """The alternation of issue 16 part 4, as a continuation that keeps Init covered.
 
     Round k optimizes each nominal again against its current funnel's time-varying extents
@@ -380,9 +429,11 @@ def reoptimize_rounds(
     ``SETTLED``, or whose optimizer stopped above its floor while its new nominal was not kept
     (no shorter horizon is feasible against the funnel it keeps; ``_stepped``), is not
     optimized again. Stop when every trajectory is settled,
-    when no trajectory could be optimized again, or after ``FUNNEL_ROUNDS``. Returns the kept
-    inputs, trajectories, funnels and coverage (a round is never kept unverified: its funnels passed
-    ``check_funnel`` and the certify-style rebuild in their stage).
+    when no trajectory could be optimized again, or after ``FUNNEL_ROUNDS``. Returns where the
+    rounds left ``start`` (a round is never kept unverified: its funnels passed ``check_funnel``
+    and the certify-style rebuild in their stage). ``steps``: each trajectory's first step
+    (default ``FIRST_STEP``; 0: not optimized again); ``label``: in the stages' names
+    (``reoptimize<label>_k``, ``funnel<label>_k``) and the log's.
 
     Why (measured on quadrotor_hill_gusty_flythrough, ``--samples 2000``): one unbounded round
     shortened T from 11.8 s to ~3 s, but the new funnels, bound by their own LMI caps ('design': the
@@ -403,12 +454,15 @@ def reoptimize_rounds(
     (on quadrotor_hill_gusty the four slowest demos' T then fell 0.1-0.4 s more).
     """
     scenario, runner, starts = run.scenario, run.runner, run.starts
-    step = [FIRST_STEP] * len(trajectories)
-    previous = list(optimized.trajectories)
+    inputs, trajectories = list(start.inputs), list(start.trajectories)
+    funnels, coverage, previous = start.funnels, start.coverage, list(start.optimized)
+    superseded = list(start.earlier)
+    step = [FIRST_STEP] * len(trajectories) if steps is None else list(steps)
     for k in range(1, FUNNEL_ROUNDS + 1):
+        stage = _round_stage(k, label)
         active = [i for i in funnels.usable if step[i] >= SETTLED]
         if not active:
-            log.info(f"[round {k}] every trajectory settled: the previous funnels are kept")
+            log.info(f"[round{label} {k}] every trajectory settled: the previous funnels are kept")
             break
         previous = [
             dataclasses.replace(t, u=u, N=len(u)) for t, u in zip(previous, inputs, strict=True)
@@ -428,7 +482,7 @@ def reoptimize_rounds(
                     shortest=tuple(shortest),
                     core=() if run.targets is None else run.targets.core,
                 ),
-                name=f"reoptimize_{k}",
+                name=f"reoptimize{label}_{k}",
                 describe=_describe_round,
                 executor=run.executor,
                 progress=advance,
@@ -441,7 +495,9 @@ def reoptimize_rounds(
         # The optimizer's search stopped above the floor: the limit against this funnel.
         stopped = [i for i in active if i not in moved or again.trajectories[i].N > shortest[i]]
         if not moved:
-            log.info(f"[round {k}] no trajectory optimized again: the previous funnels are kept")
+            log.info(
+                f"[round{label} {k}] no trajectory optimized again: the previous funnels are kept"
+            )
             break
         new_inputs = [again.trajectories[i].u if i in moved else u for i, u in enumerate(inputs)]
         simulated = nominals(
@@ -451,7 +507,7 @@ def reoptimize_rounds(
         for i, trajectory in zip(moved, simulated, strict=True):
             new_trajectories[i] = trajectory
         new_funnels, new_coverage = funnel_stages(
-            run, new_trajectories, stage=_round_stage(k),
+            run, new_trajectories, stage=stage,
             reuse=[
                 None if i in moved else (funnels.funnels[i], funnels.failure(i))
                 for i in range(len(inputs))
@@ -460,7 +516,7 @@ def reoptimize_rounds(
             # one whose kept funnel was designed again for a held law with that design first
             earlier=tuple(EarlierDesign.of(f) for f in funnels.funnels),
         )  # fmt: skip
-        lower = functools.partial(_funnel_coverage, run, f"coverage_{_round_stage(k)}_lower")
+        lower = functools.partial(_funnel_coverage, run, f"coverage_{stage}_lower")
         kept, lowered = _kept(funnels, new_funnels, moved, lower)
         tried = new_funnels  # the round's own funnels (new_funnels may become the mixed set)
         if kept != moved:  # unmoved trajectories already carry their kept funnels
@@ -472,8 +528,7 @@ def reoptimize_rounds(
                 new_funnels, new_coverage = lowered
             else:
                 new_funnels = _mixed(funnels, new_funnels, kept)
-                stage = f"coverage_{_round_stage(k)}_kept"
-                new_coverage = _funnel_coverage(run, stage, new_funnels)
+                new_coverage = _funnel_coverage(run, f"coverage_{stage}_kept", new_funnels)
         before = sum(trajectories[i].duration for i in funnels.usable)
         after = sum(new_trajectories[i].duration for i in new_funnels.usable)
         shorter = after < before and len(new_funnels.usable) >= len(funnels.usable)
@@ -486,21 +541,92 @@ def reoptimize_rounds(
             if not kept:  # every new funnel fell short of its cell with Init left uncovered
                 levels = ", ".join(f"{tried.names[i]} {tried.funnels[i].rho:.3g}" for i in moved)
                 why = f"no new funnel holds what the kept one did ({levels})"
-            log.info(f"[round {k}] not kept: {why}; the previous funnels are kept")
+            log.info(f"[round{label} {k}] not kept: {why}; the previous funnels are kept")
             kept = []
         for i in active:
             step[i] = _stepped(step[i], stopped=i in stopped, kept=i in kept)
         if not kept:
             continue
         log.info(
-            f"[round {k}] kept: total T {before:.2f} s -> {after:.2f} s, new nominals kept for "
-            f"{len(kept)} of {len(active)} trajectories optimized again"
+            f"[round{label} {k}] kept: total T {before:.2f} s -> {after:.2f} s, new nominals "
+            f"kept for {len(kept)} of {len(active)} trajectories optimized again"
         )
+        for i in kept:
+            superseded[i] = ((inputs[i], trajectories[i], previous[i]), *superseded[i])
         inputs, trajectories, funnels, coverage = (
             new_inputs, new_trajectories, new_funnels, new_coverage
         )  # fmt: skip
         previous = [again.trajectories[i] if i in kept else t for i, t in enumerate(previous)]
-    return inputs, trajectories, funnels, coverage
+    return Rounds(
+        inputs=tuple(inputs), trajectories=tuple(trajectories), optimized=tuple(previous),
+        funnels=funnels, coverage=coverage, earlier=tuple(superseded),
+    )  # fmt: skip
+
+
+def held_funnels(run: FunnelRun, searched: Rounds, certificate: CertificateRun) -> Rounds:
+    """The funnels of the law held every ``run.feedback_period`` s around the nominals that
+    the continuous law's rounds chose (``searched``; stage ``funnel_held``).
+
+    Where they hold less than ``searched``'s and Init is not covered as well, each trajectory
+    whose held funnel holds less than its continuous one did steps back to the nominal it kept
+    before (``Rounds.earlier``, stages ``funnel_held_back_j``) until Init is covered as well or
+    none has an earlier nominal; those that stepped back are then optimized again against
+    their held funnels (``reoptimize_rounds``, label ``_held``, the others settled). Where Init
+    is still covered less, the rounds again from the optimize stage's nominals with the held
+    law's funnels in every round (label ``_h``). A design choice, nothing proven depends on it:
+    the continuous law's funnels only choose the nominals, and every funnel shipped is one of
+    the held law's, checked for it (``stages.funnel``) and by certify. It saves the held law's
+    costlier funnels in every round: quadrotor_hill at 5 ms, the same nominals as the
+    continuous law's (T 3.5-3.7 s), funnel stages 64 -> 40 s."""
+    funnels, coverage = funnel_stages(run, searched.trajectories, stage="funnel_held")
+    inputs, trajectories = list(searched.inputs), list(searched.trajectories)
+    optimized, earlier = list(searched.optimized), [list(e) for e in searched.earlier]
+    stepped: set[int] = set()
+    back = 0
+
+    def as_well() -> bool:
+        return set(searched.funnels.usable) <= set(funnels.usable) and _covers_as_well(
+            coverage, searched.coverage
+        )
+
+    while not as_well():
+        held = _accepted(searched.funnels, funnels)
+        short = [i for i in searched.funnels.usable if i not in held and earlier[i]]
+        if not short:
+            break
+        back += 1
+        for i in short:
+            inputs[i], trajectories[i], optimized[i] = earlier[i].pop(0)
+        stepped.update(short)
+        log.info(
+            f"[funnel_held] {', '.join(searched.funnels.names[i] for i in short)} back to the "
+            "nominal kept before: its held law's funnel holds less than the continuous law's"
+        )
+        funnels, coverage = funnel_stages(
+            run, trajectories, stage=f"funnel_held_back_{back}",
+            reuse=[None if i in short else (funnels.funnels[i], funnels.failure(i))
+                   for i in range(len(trajectories))],
+        )  # fmt: skip
+    if not as_well():
+        log.info(
+            f"[funnel_held] Init {100 * coverage.covered_fraction:.1f}% covered against "
+            f"{100 * searched.coverage.covered_fraction:.1f}%: the rounds again with the held "
+            "law's funnels in every round"
+        )
+        first = list(certificate.trajectories)
+        funnels, coverage = funnel_stages(run, first, stage="funnel_h")
+        return reoptimize_rounds(
+            run, Rounds.first(certificate.optimized, certificate.inputs, first, funnels, coverage),
+            label="_h",
+        )  # fmt: skip
+    held_rounds = Rounds(
+        inputs=tuple(inputs), trajectories=tuple(trajectories), optimized=tuple(optimized),
+        funnels=funnels, coverage=coverage, earlier=tuple(map(tuple, earlier)),
+    )  # fmt: skip
+    if not stepped:
+        return held_rounds
+    steps = [FIRST_STEP if i in stepped else 0.0 for i in range(len(trajectories))]
+    return reoptimize_rounds(run, held_rounds, steps, label="_held")
 
 
 def _kept(
@@ -578,9 +704,10 @@ def _mixed(
     )
 
 
-def _round_stage(k: int) -> str:
-    """The funnel stage of re-optimize round ``k`` (0: the first funnels)."""
-    return "funnel" if k == 0 else f"funnel_{k}"
+def _round_stage(k: int, label: str = "") -> str:
+    """The funnel stage of re-optimize round ``k`` (0: the first funnels) of the rounds
+    ``label`` names (``reoptimize_rounds``)."""
+    return f"funnel{label}" if k == 0 else f"funnel{label}_{k}"
 
 
 def _describe_round(result: OptimizeResult) -> str:

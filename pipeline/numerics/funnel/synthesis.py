@@ -161,8 +161,10 @@ class _Hulls(TypedDict):
 # larger margin.
 MARGINS = (1e-3, 1e-2)
 # With a disturbance (funnel.robust (I5)): the S-procedure multipliers alpha tried (1/s), and the
-# margin eps of each, as a share of alpha (room for the interpolated reference's term (I2)).
-ROBUST_MULTIPLIERS = (0.3, 1.0, 3.0, 10.0)
+# margin eps of each, as a share of alpha (room for the interpolated reference's term (I2)). Steps
+# of at most 1.7x up to 3: a held law's funnels hold their cells whole at 0.5 or 0.7 where 0.3 and
+# 1.0 held 76-96% of them.
+ROBUST_MULTIPLIERS = (0.3, 0.5, 0.7, 1.0, 1.5, 2.0, 3.0, 5.0, 10.0)
 ROBUST_MARGIN = 0.05
 ROBUST_SEED = 2.0  # the hull boxes hold this multiple of the seed's disturbance extent (F5)
 WHOLE_ROUNDING = 1e-6  # a level this close below the whole design level stops the search
