@@ -352,22 +352,23 @@ def test_the_shaped_metric_is_the_smaller_certified_set(scenario):
 
 
 def test_a_tight_shaped_set_gives_way_to_the_largest_certified_one(tmp_path):
-    """(T6) under a gust six times BETA: the shaped set (T3) certifies less than ``ROOM^2`` its
-    design level, so the terminal is the largest set of the same gain, certified from scratch at
-    its level, of a larger volume, with the shaped set as the one the nominals arrive in. A
+    """(T6) under a gust seven times BETA: the shaped set (T3) certifies less than ``ROOM^2``
+    its design level, so the terminal is the largest set of the same gain, certified from scratch
+    at its level, of a larger volume, with the shaped set as the one the nominals arrive in. A
     nominal flown to rest at the centre: its robust funnel holds only part of its required set
-    when it must end in the shaped set, all of it in the larger one."""
+    when it must end in the shaped set, all of it in the larger one (at six times BETA both
+    hold all of it since ``ROBUST_MULTIPLIERS`` is searched in finer steps)."""
     from pipeline.model.simulate import simulate
     from pipeline.numerics.funnel.synthesis import synthesize_funnel
 
-    scenario = gusty(tmp_path, 6 * BETA)
+    scenario = gusty(tmp_path, 7 * BETA)
     b = additive_bound(scenario)
     design = hold_design(scenario, b)
     shaped = design.arrival
     assert shaped is not None and shaped.shaped and shaped.check.level < ROOM**2
     assert design.arrives_in is shaped and not design.shaped
     np.testing.assert_array_equal(design.K, shaped.K)
-    assert design.log_volume > shaped.log_volume + 0.1
+    assert design.log_volume > shaped.log_volume + 0.05
     x_eq, u_eq = design.x_eq, design.u_eq
     again = check_level(scenario, x_eq, u_eq, design.K, design.P, design.check.level, disturbance=b)
     assert again.success and again == design.check
@@ -384,7 +385,7 @@ def test_a_tight_shaped_set_gives_way_to_the_largest_certified_one(tmp_path):
         needed = containing_level(target.P, nominal.xs[-1] - x_eq, funnel.P[-1], funnel.rho)
         assert needed <= target.level * (1 + 1e-9)
         levels.append(funnel.rho)
-    assert levels[0] < 0.95 and levels[1] > 0.999, levels
+    assert levels[0] < levels[1] - 0.03 and levels[1] > 0.999, levels
 
 
 def test_the_nominals_end_in_the_shaped_set_and_keep_its_reserve(tmp_path):
