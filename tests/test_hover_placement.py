@@ -16,6 +16,7 @@ from pipeline.controller import load
 from pipeline.model.scenario import load_scenario
 from pipeline.numerics.terminal.design import check_level, equilibrium, hover_box
 from pipeline.numerics.uncertainty import additive_bound
+from pipeline.reporting.summary import ClaimKind
 from pipeline.runtime.runner import read_checked
 from stages.certificates import nominals
 from stages.certificates.funnel import placed_targets, rest_targets
@@ -93,3 +94,25 @@ def test_a_hold_run_hovers_at_the_mean_of_where_its_first_optimization_came_to_r
     terminal = load(out / "controller.json").terminal
     assert terminal is not None
     assert terminal.x_eq[:2] == pytest.approx(np.mean(ends, axis=0)[:2], abs=1e-9)
+
+
+@pytest.mark.xdist_group("synthesis-quadrotor_hill")  # with its session run (conftest)
+def test_the_shipped_run_certifies_the_law_a_flight_computer_runs(synthesis_run):
+    """Issue 29: ``make synthesize``'s claims cover the law evaluated every 5 ms and held in
+    between, the funnels' and the hover's after T; the funnels shipped are the held law's
+    (stage ``funnel_held``, around the nominals the continuous law's rounds chose)."""
+    session = synthesis_run(HOLD)
+    assert session.result.exit_code == 0
+    controller = load(session.out / "controller.json")
+    assert controller.feedback_period == 0.005
+    summary = session.result.summary
+    assert summary is not None
+    claims = [claim.claim for claim in summary.claims if claim.kind is ClaimKind.CERTIFIED]
+    held = "evaluated every 0.005 s and held in between"
+    assert any(held in claim and "before T_i" in claim for claim in claims), claims
+    assert any(held in claim and "stays in Goal for all time" in claim for claim in claims)
+    assert any(record.getMessage().startswith("[funnel_held]") for record in session.records)
+    stored = read_checked(session.out / "artifacts" / "funnel_held")
+    assert stored is not None and len(stored.result.usable) == len(controller.trajectories)
+    for shipped, funnel in zip(controller.trajectories, stored.result.funnels, strict=True):
+        np.testing.assert_array_equal(shipped.K, funnel.K)
