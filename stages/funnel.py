@@ -268,8 +268,8 @@ def design_disturbance(
     check, certify's, holds the whole remainder): a remainder on another state (quadrotor_hill:
     ~0.006 rad/s^2 on the pitch rate's derivative against 0.15 and 0.13 m/s^2 declared on the
     speeds') puts a third state under the S-procedure's corners and doubles the program
-    (quadrotor_hill at 5 ms: the funnel stages 104 -> 87 s, the rounds' levels as high or
-    higher)."""
+    (quadrotor_hill at 5 ms, when its rounds designed held funnels: the funnel stages 104 -> 87
+    s, the rounds' levels as high or higher)."""
     if period > 0 and not measured and np.any(declared > 0):
         box = np.where(declared > 0, box, 0.0)
     return np.asarray(declared + HOLD_DESIGN * box, dtype=np.float64)

@@ -112,6 +112,7 @@ def test_the_shipped_run_certifies_the_law_a_flight_computer_runs(synthesis_run)
     assert any(held in claim and "before T_i" in claim for claim in claims), claims
     assert any(held in claim and "stays in Goal for all time" in claim for claim in claims)
     assert any(record.getMessage().startswith("[funnel_held]") for record in session.records)
+    # this run's held funnels cover Init at once: no step back, no held rounds, so they ship
     stored = read_checked(session.out / "artifacts" / "funnel_held")
     assert stored is not None and len(stored.result.usable) == len(controller.trajectories)
     for shipped, funnel in zip(controller.trajectories, stored.result.funnels, strict=True):

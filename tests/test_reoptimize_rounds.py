@@ -175,7 +175,7 @@ class _HeldStages:
     def __init__(self, monkeypatch: pytest.MonkeyPatch, results: list[tuple]) -> None:
         self.results = list(results)
         self.stages: list[tuple[str, list, list | None]] = []
-        self.rounds: list[tuple[str, tuple | None, list[float] | None]] = []
+        self.rounds: list[tuple[str, tuple, tuple, list[float] | None]] = []
         monkeypatch.setattr(rounds, "funnel_stages", self.funnel_stages)
         monkeypatch.setattr(rounds, "reoptimize_rounds", self.reoptimize_rounds)
 
@@ -186,21 +186,32 @@ class _HeldStages:
         return _stage(levels, usable, scale=1.0), coverage
 
     def reoptimize_rounds(self, run, start, steps=None, label=""):
-        self.rounds.append((label, start.trajectories, None if steps is None else list(steps)))
+        steps = None if steps is None else list(steps)
+        self.rounds.append((label, start.trajectories, start.optimized, steps))
         return start
+
+
+class _Path(str):
+    """A nominal trajectory named by a string, of one second (``Trajectory.duration``)."""
+
+    duration = 1.0
+
+
+def _paths(*names: str) -> tuple[_Path, ...]:
+    return tuple(map(_Path, names))
 
 
 def _searched(earlier: tuple) -> rounds.Rounds:
     """Where the continuous law's rounds left three trajectories (levels 1, Init covered)."""
     return rounds.Rounds(
-        inputs=tuple(np.zeros((k, 1)) for k in (4, 4, 4)), trajectories=("a2", "b2", "c2"),
+        inputs=tuple(np.zeros((k, 1)) for k in (4, 4, 4)), trajectories=_paths("a2", "b2", "c2"),
         optimized=("A2", "B2", "C2"), funnels=_stage([1.0, 1.0, 1.0], [0, 1, 2], scale=1.0),
         coverage=SimpleNamespace(covered=True, covered_fraction=1.0), earlier=earlier,
     )  # fmt: skip
 
 
 _CERTIFICATE = SimpleNamespace(
-    trajectories=("a0", "b0", "c0"), inputs=(np.zeros((6, 1)),) * 3,
+    trajectories=_paths("a0", "b0", "c0"), inputs=(np.zeros((6, 1)),) * 3,
     optimized=SimpleNamespace(trajectories=("A0", "B0", "C0")),
 )  # fmt: skip
 
@@ -223,7 +234,11 @@ def test_a_trajectory_whose_held_funnel_falls_short_steps_back_and_is_optimized_
     """Init left uncovered: only the trajectory whose held funnel holds less than its
     continuous one steps back to the nominal it kept before (the others' funnels reused), and
     it alone is optimized again against its held funnel (the others settled: step 0)."""
-    earlier = (((np.zeros((5, 1)), "a1", "A1"),), ((np.zeros((5, 1)), "b1", "B1"),), ())
+    earlier = (
+        ((np.zeros((5, 1)), _Path("a1"), "A1"),),
+        ((np.zeros((5, 1)), _Path("b1"), "B1"),),
+        (),
+    )
     stages = _HeldStages(
         monkeypatch, [([1.0, 0.9, 1.0], [0, 1, 2], False), ([1.0, 1.0, 1.0], [0, 1, 2], True)]
     )
@@ -232,7 +247,9 @@ def test_a_trajectory_whose_held_funnel_falls_short_steps_back_and_is_optimized_
     assert (first, back) == ("funnel_held", "funnel_held_back_1")
     assert trajectories == ["a2", "b1", "c2"]
     assert reuse is not None and reuse[1] is None and reuse[0] is not None and reuse[2] is not None
-    assert stages.rounds == [("_held", ("a2", "b1", "c2"), [0.0, rounds.FIRST_STEP, 0.0])]
+    assert stages.rounds == [
+        ("_held", ("a2", "b1", "c2"), ("A2", "B1", "C2"), [0.0, rounds.FIRST_STEP, 0.0])
+    ]
     assert held.optimized == ("A2", "B1", "C2") and held.inputs[1].shape == (5, 1)
     assert held.earlier[1] == ()  # the nominal it stepped back to is its current one
 
@@ -245,7 +262,36 @@ def test_with_no_earlier_nominal_to_step_back_to_the_rounds_run_again_with_the_h
     stages = _HeldStages(
         monkeypatch, [([1.0, 1.0, 0.8], [0, 1, 2], False), ([1.0, 1.0, 1.0], [0, 1, 2], True)]
     )
-    rounds.held_funnels(SimpleNamespace(), _searched(((), (), ())), _CERTIFICATE)
+    held = rounds.held_funnels(SimpleNamespace(), _searched(((), (), ())), _CERTIFICATE)
     assert [stage for stage, _, _ in stages.stages] == ["funnel_held", "funnel_h"]
     assert stages.stages[1][1] == ["a0", "b0", "c0"]
-    assert stages.rounds == [("_h", ("a0", "b0", "c0"), None)]
+    assert stages.rounds == [("_h", ("a0", "b0", "c0"), ("A0", "B0", "C0"), None)]
+    assert held.trajectories == ("a0", "b0", "c0")  # covers Init, the held stage did not
+
+
+def test_a_trajectory_steps_back_one_kept_nominal_at_a_time_latest_first(monkeypatch):
+    """Two step backs (``funnel_held_back_1``, ``_2``), each to the nominal kept just before;
+    still uncovered after both, the ``_h`` rounds run, and the better end is kept: here the
+    step backs' (neither covers Init; the ``_h`` rounds dropped a funnel)."""
+    earlier = (
+        (),
+        ((np.zeros((5, 1)), _Path("b1"), "B1"), (np.zeros((6, 1)), _Path("b0"), "B0")),
+        (),
+    )
+    stages = _HeldStages(
+        monkeypatch,
+        [
+            ([1.0, 0.5, 1.0], [0, 1, 2], False),
+            ([1.0, 0.7, 1.0], [0, 1, 2], False),
+            ([1.0, 0.9, 1.0], [0, 1, 2], False),
+            ([1.0, 0.2, 1.0], [0, 2], False),
+        ],
+    )
+    searched = _searched(earlier)
+    held = rounds.held_funnels(SimpleNamespace(), searched, _CERTIFICATE)
+    names = [stage for stage, _, _ in stages.stages]
+    assert names == ["funnel_held", "funnel_held_back_1", "funnel_held_back_2", "funnel_h"]
+    assert [trajectories[1] for _, trajectories, _ in stages.stages[1:3]] == ["b1", "b0"]
+    assert held.trajectories == ("a2", "b0", "c2") and held.optimized[1] == "B0"
+    assert held.funnels.levels[1] == 0.9 and held.earlier[1] == ()
+    assert [label for label, *_ in stages.rounds] == ["_h"]  # no _held rounds: still uncovered

@@ -194,8 +194,8 @@ def _summary(data: ReportData) -> tuple:
     seed = 1 + titles(True, not s.uncertainty.empty).index(SEED)
     period = data.law.feedback_period if data.funnel else 0.0
     against = (
-        f"re-optimized against the continuous law's funnels, then the funnels of the law held "
-        f"every {period:g} s certified around the nominals chosen"
+        f"re-optimized against funnels and the funnels of the law held every {period:g} s "
+        "certified around the final ones"
         if period > 0
         else "re-optimized against their funnels"
     )
