@@ -611,6 +611,10 @@ def held_funnels(run: FunnelRun, searched: Rounds, certificate: CertificateRun) 
             reuse=[None if i in short else (funnels.funnels[i], funnels.failure(i))
                    for i in range(len(trajectories))],
         )  # fmt: skip
+    held_rounds = Rounds(
+        inputs=tuple(inputs), trajectories=tuple(trajectories), optimized=tuple(optimized),
+        funnels=funnels, coverage=coverage, earlier=tuple(map(tuple, earlier)),
+    )  # fmt: skip
     if not as_well():
         log.info(
             f"[funnel_held] {len(funnels.usable)} funnels certified against "
@@ -618,11 +622,6 @@ def held_funnels(run: FunnelRun, searched: Rounds, certificate: CertificateRun) 
             f"covered against {100 * searched.coverage.covered_fraction:.1f}%: the rounds again "
             "with the held law's funnels in every round"
         )
-    held_rounds = Rounds(
-        inputs=tuple(inputs), trajectories=tuple(trajectories), optimized=tuple(optimized),
-        funnels=funnels, coverage=coverage, earlier=tuple(map(tuple, earlier)),
-    )  # fmt: skip
-    if not as_well():
         first = list(certificate.trajectories)
         funnels, coverage = funnel_stages(run, first, stage="funnel_h")
         again = reoptimize_rounds(
