@@ -270,9 +270,11 @@ def test_with_no_earlier_nominal_to_step_back_to_the_rounds_run_again_with_the_h
 
 
 def test_a_trajectory_steps_back_one_kept_nominal_at_a_time_latest_first(monkeypatch):
-    """Two step backs (``funnel_held_back_1``, ``_2``), each to the nominal kept just before;
-    still uncovered after both, the ``_h`` rounds run, and the better end is kept: here the
-    step backs' (neither covers Init; the ``_h`` rounds dropped a funnel)."""
+    """With two step backs allowed (``STEP_BACKS``; ``funnel_held_back_1``, ``_2``), each to the
+    nominal kept just before; still uncovered after both, the ``_h`` rounds run, and the better
+    end is kept: here the step backs' (neither covers Init; the ``_h`` rounds dropped a
+    funnel)."""
+    monkeypatch.setattr(rounds, "STEP_BACKS", 2)
     earlier = (
         (),
         ((np.zeros((5, 1)), _Path("b1"), "B1"), (np.zeros((6, 1)), _Path("b0"), "B0")),
@@ -295,3 +297,16 @@ def test_a_trajectory_steps_back_one_kept_nominal_at_a_time_latest_first(monkeyp
     assert held.trajectories == ("a2", "b0", "c2") and held.optimized[1] == "B0"
     assert held.funnels.levels[1] == 0.9 and held.earlier[1] == ()
     assert [label for label, *_ in stages.rounds] == ["_h"]  # no _held rounds: still uncovered
+
+
+def test_when_many_held_funnels_fall_short_the_rounds_run_again_without_stepping_back(
+    monkeypatch,
+):
+    """More than ``SHORT_SHARE`` of the trajectories short: no step back, the ``_h`` rounds."""
+    earlier = tuple(((np.zeros((5, 1)), _Path(f"{name}1"), name.upper()),) for name in "abc")
+    stages = _HeldStages(
+        monkeypatch, [([0.5, 0.5, 1.0], [0, 1, 2], False), ([1.0, 1.0, 1.0], [0, 1, 2], True)]
+    )
+    held = rounds.held_funnels(SimpleNamespace(), _searched(earlier), _CERTIFICATE)
+    assert [stage for stage, _, _ in stages.stages] == ["funnel_held", "funnel_h"]
+    assert held.trajectories == ("a0", "b0", "c0")

@@ -61,6 +61,10 @@ GROW, MAX_STEP = 1.5, 0.4  # a kept trajectory's next step grows by GROW, up to 
 SETTLED = 0.025  # a trajectory whose step falls below this is not optimized again
 LEVEL_TOLERANCE = 1e-3  # a new funnel's level may fall this far below the kept one's
 CORE = 1.0  # a hold run's nominals end in a box inside this fraction of the terminal level
+# held_funnels steps back at most this often, and only while at most this share of the
+# trajectories falls short; beyond, the rounds again with the held law's funnels
+# (quadrotor_hill_gusty at 5 ms: 4 of 9 held funnels certified, then 7 step backs took 515 s)
+STEP_BACKS, SHORT_SHARE = 1, 1 / 3
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
@@ -572,16 +576,16 @@ def held_funnels(run: FunnelRun, searched: Rounds, certificate: CertificateRun) 
     Where a funnel the search certified is dropped or Init is covered less than the search
     covered it, each trajectory whose held funnel holds less than its continuous one did steps
     back to the nominal it kept before (``Rounds.earlier``, stages ``funnel_held_back_j``) until
-    neither happens or none has an earlier nominal; those that stepped back are then optimized
-    again against their held funnels (``reoptimize_rounds``, label ``_held``, the others
-    settled). Where one still happens, the rounds again from the optimize stage's nominals with
-    the held law's funnels in every round (label ``_h``), and the better of the two is kept: the
-    one covering Init as well as the other, then with fewer funnels dropped, then shorter. A
-    design choice, nothing proven depends on it: the continuous law's funnels only choose the
-    nominals, and every funnel shipped is one of the held law's, checked for it
-    (``stages.funnel``) and by certify. It saves the held law's costlier funnels in every round:
-    quadrotor_hill at 5 ms, the same nominals as the continuous law's (T 3.5-3.7 s), funnel
-    stages 64 -> 40 s."""
+    neither happens, none has an earlier nominal, more than ``SHORT_SHARE`` of them fall short
+    or after ``STEP_BACKS`` steps; those that stepped back are then optimized again against
+    their held funnels (``reoptimize_rounds``, label ``_held``, the others settled). Where one
+    still happens, the rounds again from the optimize stage's nominals with the held law's
+    funnels in every round (label ``_h``), and the better of the two is kept: the one covering
+    Init as well as the other, then with fewer funnels dropped, then shorter. A design choice,
+    nothing proven depends on it: the continuous law's funnels only choose the nominals, and
+    every funnel shipped is one of the held law's, checked for it (``stages.funnel``) and by
+    certify. It saves the held law's costlier funnels in every round: quadrotor_hill at 5 ms,
+    the same nominals as the continuous law's (T 3.5-3.7 s), funnel stages 64 -> 40 s."""
     funnels, coverage = funnel_stages(run, searched.trajectories, stage="funnel_held")
     inputs, trajectories = list(searched.inputs), list(searched.trajectories)
     optimized, earlier = list(searched.optimized), [list(e) for e in searched.earlier]
@@ -593,10 +597,10 @@ def held_funnels(run: FunnelRun, searched: Rounds, certificate: CertificateRun) 
             coverage, searched.coverage
         )
 
-    while not as_well():
+    while not as_well() and back < STEP_BACKS:
         held = _accepted(searched.funnels, funnels)
         short = [i for i in searched.funnels.usable if i not in held and earlier[i]]
-        if not short:
+        if not short or len(short) > SHORT_SHARE * len(trajectories):
             break
         back += 1
         for i in short:
