@@ -57,7 +57,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bench.uncertified import uncertified_constraints
+from bench.uncertified import KnownUncertainty, uncertified_constraints
 from pipeline.model.scenario import Scenario, load_scenario
 from pipeline.model.simulate import simulate
 from pipeline.numerics.optimize.penalties import Constraints
@@ -109,14 +109,21 @@ class MinimumTimeNLP:
     """Direct multiple shooting of the problem above with CasADi; ``solve(N, guess, free)``."""
 
     def __init__(
-        self, scenario: Scenario, x0: np.ndarray, constraints: Constraints, T_max: float
+        self,
+        scenario: Scenario,
+        x0: np.ndarray,
+        constraints: Constraints,
+        T_max: float,
+        known: KnownUncertainty | None = None,
     ) -> None:
+        """``known``: fly the scenario under these parameters and constant push instead of its
+        nominal model (``bench.uncertified.known_uncertainty_floor``)."""
         import casadi as ca
 
         self.ca, self.scenario, self.x0, self.c, self.T_max = ca, scenario, x0, constraints, T_max
         n, m = scenario.n, scenario.m
         x, u = ca.SX.sym("x", n), ca.SX.sym("u", m)
-        self.f = ca.Function("f", [x, u], [_casadi_field(scenario, x, u)])
+        self.f = ca.Function("f", [x, u], [_casadi_field(scenario, x, u, known)])
         self.edges = _edges(constraints.unsafe.values())  # (E, 2, 2)
         self.goal_A, self.goal_b = _halfspaces(constraints.goal_region)
         lower = np.array(constraints.input_lower, dtype=np.float64)
@@ -210,12 +217,13 @@ class MinimumTimeNLP:
         )
 
 
-def _casadi_field(scenario: Scenario, x, u):
-    """The scenario's ``f(x, u)`` (its sympy expressions) as a CasADi SX (n,)."""
+def _casadi_field(scenario: Scenario, x, u, known: KnownUncertainty | None = None):
+    """The scenario's ``f(x, u)`` (its sympy expressions) as a CasADi SX (n,); with ``known``,
+    its parametric dynamics at ``known.parameters`` plus ``known.push``."""
     import casadi as ca
     import sympy
 
-    D = scenario.dynamics
+    D = scenario.dynamics if known is None else scenario.uncertainty.parametric
     functions = {
         "sin": ca.sin,
         "cos": ca.cos,
@@ -229,7 +237,10 @@ def _casadi_field(scenario: Scenario, x, u):
         "Abs": ca.fabs,
     }
     f = sympy.lambdify([*D.state_symbols, *D.input_symbols], list(D.expressions), [functions])
-    return ca.vertcat(*f(*ca.vertsplit(x), *ca.vertsplit(u)))
+    if known is None:
+        return ca.vertcat(*f(*ca.vertsplit(x), *ca.vertsplit(u)))
+    field = ca.vertcat(*f(*ca.vertsplit(x), *ca.vertsplit(u), *known.parameters.tolist()))
+    return field + ca.DM(known.push)
 
 
 def _edges(polygons) -> np.ndarray:

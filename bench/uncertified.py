@@ -16,9 +16,17 @@ reserved for a certificate:
 ``feedback.reference_state`` (the design equilibrium, ``f(x*, u*) = 0``; quadrotor_hill_flythrough:
 hover, speeds and pitch rate 0, pitch at trim 0). That is the uncertified time a certificate that
 ends in a hover (issue 29, ``terminal: hold``) is measured against.
+
+``KnownUncertainty``: one corner of a declared uncertainty (parameters at an end of their
+intervals, a constant push at a corner of the disturbance box), flown as if the pilot knew it
+(``bench.known_floor``).
 """
 
 from __future__ import annotations
+
+import itertools
+from collections.abc import Mapping
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -60,3 +68,46 @@ def uncertified_constraints(scenario: Scenario, *, at_rest: bool = False) -> Con
         position_index=tuple(scenario.position_index),
         profile=MarginProfile.zero(scenario.n, scenario.m),
     )
+
+
+@dataclass(frozen=True, kw_only=True)
+class KnownUncertainty:
+    """One admissible model: ``parameters (q,)`` in ``uncertainty.parameter_names``' order (the
+    scenario's parametric dynamics' trailing inputs) and a constant ``push (n,)`` added to the
+    state derivatives."""
+
+    parameters: np.ndarray
+    push: np.ndarray
+
+    def describe(self, scenario: Scenario) -> str:
+        """``"wX=-1, m=1.05, vX'+=-0.25"``: the corner in the scenario's names."""
+        names = scenario.uncertainty.parameter_names
+        parts = [f"{name}={value:g}" for name, value in zip(names, self.parameters, strict=True)]
+        parts += [
+            f"{scenario.state_names[i]}'+={self.push[i]:+g}" for i in np.flatnonzero(self.push)
+        ]
+        return ", ".join(parts)
+
+
+def uncertainty_corners(
+    scenario: Scenario,
+    parameters: Mapping[str, tuple[float, float]],
+    disturbance: Mapping[str, float],
+) -> list[KnownUncertainty]:
+    """Every corner of ``parameters`` (intervals, by name; the scenario's uncertain parameters,
+    each named once) times the box ``disturbance`` (half-widths by state name): ``2^(q + k)``
+    models, k the states with a nonzero half-width."""
+    names = scenario.uncertainty.parameter_names
+    if set(parameters) != set(names):
+        raise ValueError(
+            f"corners need intervals for exactly {list(names)}, got {list(parameters)}"
+        )
+    pushed = [(scenario.state_names.index(name), h) for name, h in disturbance.items() if h > 0]
+    corners = []
+    for ends in itertools.product(*(parameters[name] for name in names)):
+        for signs in itertools.product((-1.0, 1.0), repeat=len(pushed)):
+            push = np.zeros(scenario.n)
+            for (i, h), sign in zip(pushed, signs, strict=True):
+                push[i] = sign * h
+            corners.append(KnownUncertainty(parameters=np.array(ends, dtype=float), push=push))
+    return corners
