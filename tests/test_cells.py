@@ -4,6 +4,8 @@ only."""
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 from scipy.spatial import Delaunay
@@ -107,3 +109,55 @@ def test_the_padding_covers_the_level_slack():
     from pipeline.numerics.funnel.check import LEVEL_SLACK
 
     assert 1 / (1 + PAD) <= 1 - LEVEL_SLACK
+
+
+def test_the_bisector_polytope_of_a_circle_is_the_octagon_around_it():
+    """(C2) on points of the unit circle with the eight normals ``(cos, sin)(k pi / 4)``: each
+    cut touches the circle, so the polytope is the regular octagon around it, vertices at radius
+    ``1 / cos(pi / 8)`` half-way between the normals."""
+    from pipeline.numerics.funnel.cells import MAX_CORNERS, _hull_corners
+
+    angles = np.linspace(0, 2 * np.pi, 4 * MAX_CORNERS, endpoint=False)
+    circle = np.c_[np.cos(angles), np.sin(angles)]
+    k = np.arange(8) * np.pi / 4
+    corners = _hull_corners(circle, np.c_[np.cos(k), np.sin(k)])
+    assert len(corners) == 8
+    np.testing.assert_allclose(np.hypot(*corners.T), 1 / np.cos(np.pi / 8), rtol=1e-12)
+    phase = np.sort(np.mod(np.arctan2(corners[:, 1], corners[:, 0]), 2 * np.pi))
+    np.testing.assert_allclose(phase, np.pi / 8 + k, atol=1e-12)
+
+
+def test_five_free_states_ask_for_polytopes_that_hold_init_and_reach_less_than_boxes():
+    """Nine starts in a five-dimensional Init (the centre and eight corners with pitch and
+    speeds coupled, as quadrotor_hill_gusty's demos): the fine cells' hulls have more than
+    ``MAX_CORNERS`` vertices, so the starts are asked for (C2)'s polytopes. Every random point of
+    Init lies in a request, and each request reaches less far in ``M`` than its
+    bounding box, by 20% or more for the eight corner starts."""
+    from pipeline.numerics.funnel.cells import MAX_CORNERS
+
+    lower = np.array([1.0, 2.0, -0.05, -0.2, -0.2, 0.0])
+    upper = np.array([3.0, 3.0, 0.05, 0.2, 0.2, 0.0])
+    middle, half = (lower + upper) / 2, (upper - lower) / 2
+    signs = [(sx, sy, st, sx, sy, 0) for sx in (-1, 1) for sy in (-1, 1) for st in (-1, 1)]
+    starts = np.array([middle] + [middle + np.array(s) * half * 2 / 3 for s in signs])
+    starts[1:, 2:5] = middle[2:5] + np.array(signs)[:, 2:5] * half[2:5]  # pitch, speeds at ends
+    M = np.diag([1.0, 2.0, 400.0, 10.0, 10.0, 1.0])
+    requests = init_cells(lower, upper, starts, M)
+    assert all(len(v) <= MAX_CORNERS for v in requests)
+    assert any(len(v) != 2**5 for v in requests)  # some polytopes, not only boxes
+    free = [0, 1, 2, 3, 4]
+    rng = np.random.default_rng(5)
+    points = rng.uniform(lower, upper, size=(3000, 6))
+    inside = np.zeros(len(points), dtype=bool)
+    reach, box_reach = [], []
+    for i, v in enumerate(requests):
+        corners = starts[i] + v / (1 + PAD)
+        inside |= Delaunay(corners[:, free]).find_simplex(points[:, free], tol=1e-9) >= 0
+        reach.append(np.sqrt(np.einsum("pi,ij,pj->p", v, M, v)).max())
+        low, high = v.min(axis=0), v.max(axis=0)
+        box = low + np.array(list(itertools.product((0, 1), repeat=6))) * (high - low)
+        box_reach.append(np.sqrt(np.einsum("pi,ij,pj->p", box, M, box)).max())
+    assert inside.all()
+    ratio = np.array(reach) / np.array(box_reach)
+    assert np.all(ratio <= 1 + 1e-12)
+    assert np.all(ratio[1:] <= 0.8)  # each corner start: 0.71 of its box

@@ -14,9 +14,24 @@ x0_i)^T`` with ``tau`` the fraction held, ``sqrt(tau)`` the level). Only the cor
 itself are kept (``scipy.spatial.ConvexHull``), and each is pushed ``PAD`` (relative) away from
 ``x0_i``, so that a funnel at its level ``1 - LEVEL_SLACK`` still holds the unpadded corner.
 
+Where the hull of ``H_i``'s corners has more vertices than the program takes (``MAX_CORNERS``;
+fine cells in five dimensions give it hundreds), start ``i`` is asked for the polytope cut from
+its cells' bounding box by the bisectors of (C1) (normals ``a_ij``), each moved out just far
+enough to keep every owned cell:
+
+    G_i = {z in box_i : a_ij^T z <= max_{v in H_i} a_ij^T v, j != i},  a_ij = M (x0_j - x0_i),  (C2)
+
+``box_i`` the bounding box of ``H_i``.
+
+``G_i`` is convex and holds every owned cell, so it holds ``H_i``; as the cells shrink it tends
+to start ``i``'s Voronoi region, whose reach in ``M`` is the covering radius. Only when ``G_i``
+too has more vertices than ``MAX_CORNERS`` is the bounding box asked for.
+
 This is only a request: the coverage stage certifies Init against the funnels' initial
 ellipsoids at their levels by its own sound subdivision. With ``g`` a power of two the cells are
-boxes of that subdivision, each inside one funnel when every level reaches 1.
+boxes of that subdivision, each inside one funnel when every level reaches 1; ``g^D <=
+MAX_CELLS`` keeps that depth within the subdivision's budget
+(``pipeline.numerics.verify.cover.MAX_BOXES``: at most ``(g/2)^D`` boxes split into ``2^D``).
 
 The finest ``g`` (``DIVISIONS``, halved while ``g^D > MAX_CELLS``): (C1) on the cells is the
 nearest-start (Voronoi) split of Init up to one cell, and ``H_i`` reaches at most one cell beyond
@@ -36,14 +51,14 @@ from __future__ import annotations
 import itertools
 
 import numpy as np
-from scipy.spatial import ConvexHull, QhullError
+from scipy.spatial import ConvexHull, HalfspaceIntersection, QhullError
 
 from pipeline.model.dynamics import FloatArray
 
 PAD = 1e-3  # relative push of each corner away from its start: > LEVEL_SLACK / (1 - LEVEL_SLACK)
 DIVISIONS = 64  # g, cells per free side, halved while g^D exceeds MAX_CELLS
-MAX_CELLS = 4096
-MAX_CORNERS = 64  # hull vertices per start; beyond, the bounding box's 2^D corners
+MAX_CELLS = 32_768  # g = 8 in five free states, 32 in three, 64 in two
+MAX_CORNERS = 96  # corners per start: the hull's, else (C2)'s, else the bounding box's 2^D
 
 
 def init_cells(
@@ -100,31 +115,67 @@ def init_cells(
         if len(mine) == 0:
             result.append(np.zeros((0, n)))
             continue
-        grid = np.unique((mine[:, None, :] + corners[None]).reshape(-1, D), axis=0)
-        points = _hull_corners(lower[free] + grid * steps)  # of the owned cells' corners
+        base = (g + 1) ** np.arange(D)  # a grid point's digits in base g + 1: one integer each
+        codes, shared = np.unique(
+            ((mine[:, None, :] + corners[None]) @ base).reshape(-1), return_counts=True
+        )
+        codes = codes[shared < len(corners)]  # a corner of 2^D owned cells is inside their union
+        grid = codes[:, None] // base % (g + 1)  # (q, D) grid indices
+        bisectors = ((starts - x0) @ M)[:, free]  # (k, D) normals of (C2), row i is zero
+        points = _hull_corners(lower[free] + grid * steps, bisectors)  # of the owned corners
         V = np.repeat(lower[None], len(points), axis=0)
         V[:, free] = points
         result.append((V - x0) * (1 + PAD))
     return tuple(result)
 
 
-def _hull_corners(points: FloatArray) -> FloatArray:
-    """Points ``(r, D)`` whose convex hull holds that of ``points (q, D)``: the hull's vertices
-    (all points when they do not span ``D`` dimensions), or the corners of their bounding box
-    when Qhull fails or the hull has more than ``max(MAX_CORNERS, 2^D)`` vertices (each corner is
-    one matrix inequality of the funnel program; the box holds the hull, so the request only
-    grows)."""
+def _hull_corners(points: FloatArray, normals: FloatArray | None = None) -> FloatArray:
+    """Points ``(r, D)`` whose convex hull holds that of ``points (q, D)``, at most
+    ``max(MAX_CORNERS, 2^D)`` of them (each is one matrix inequality of the funnel program): the
+    hull's vertices (all points when they do not span ``D`` dimensions); failing that, the
+    vertices of the polytope (C2) cut from the points' bounding box by ``normals (m, D)`` (zero
+    rows ignored); failing that, the bounding box's ``2^D`` corners. Each fallback holds the
+    hull, so the request only grows."""
     D = points.shape[1]
     if D == 1:
         return np.array([points.min(axis=0), points.max(axis=0)])
     if len(points) <= D + 1:
         return points
+    most = max(MAX_CORNERS, 2**D)
     try:
         vertices = points[ConvexHull(points).vertices]
     except (QhullError, ValueError):  # e.g. points in a flat slab: the box below holds them
         vertices = None
-    if vertices is not None and len(vertices) <= max(MAX_CORNERS, 2**D):
+    if vertices is not None and len(vertices) <= most:
         return vertices
-    box = np.array(list(itertools.product((0, 1), repeat=D)))  # (2^D, D)
     low, high = points.min(axis=0), points.max(axis=0)
+    if vertices is not None and normals is not None:
+        polytope = _polytope_vertices(points, normals, low, high)
+        if polytope is not None and len(polytope) <= most:
+            return polytope
+    box = np.array(list(itertools.product((0, 1), repeat=D)))  # (2^D, D)
     return low + box * (high - low)
+
+
+def _polytope_vertices(
+    points: FloatArray, normals: FloatArray, low: FloatArray, high: FloatArray
+) -> FloatArray | None:
+    """The vertices ``(r, D)`` of (C2): the box ``[low, high] (D,)`` cut by ``a^T z <= max_p a^T
+    p`` for each row ``a`` of ``normals (m, D)`` (rows of norm below 1e-12 of the largest
+    dropped), over ``points (q, D)``, which span ``D`` dimensions; None when Qhull fails.
+
+    The mean of the points is strictly inside every cut (a cut it touched would hold every point
+    on its plane, but they span ``D`` dimensions) and strictly inside the box for the same
+    reason, so it is the interior point ``HalfspaceIntersection`` needs."""
+    D = points.shape[1]
+    scale = np.abs(normals).max(initial=0.0)
+    normals = normals[np.linalg.norm(normals, axis=1) > 1e-12 * scale] if scale > 0 else normals[:0]
+    eye = np.eye(D)
+    A = np.vstack([normals, eye, -eye])  # (m + 2D, D): rows of A z <= b
+    b = np.concatenate([(points @ normals.T).max(axis=0), high, -low])
+    try:
+        cut = HalfspaceIntersection(np.c_[A, -b], points.mean(axis=0))
+        corners = np.unique(cut.intersections, axis=0)
+        return corners[ConvexHull(corners).vertices]
+    except (QhullError, ValueError):
+        return None
