@@ -157,6 +157,16 @@ def test_a_stopped_search_settles_a_trajectory_only_when_its_new_nominal_was_not
     assert rounds._stepped(step, stopped=False, kept=True) > step >= rounds.SETTLED
 
 
+def test_a_search_is_stopped_only_where_the_halved_steps_floor_would_find_it_again():
+    """From 40 samples with a step of 0.1 the floor is 36 and the halved step's 38: a search
+    that reached 36 is not stopped; one at 37 is not either (a floor of 38 asks for a longer
+    nominal); one at 38 or 39 would stop there again, so it is."""
+    assert [rounds._stopped(found, 40, 0.1) for found in (36, 37, 38, 39)] == [
+        False, False, True, True
+    ]  # fmt: skip
+    assert not rounds._stopped(40, 40, 0.0)  # no step: at its floor
+
+
 def test_covering_as_well_reads_the_covered_flag_not_the_last_bits_of_the_volume():
     def coverage(covered: bool, fraction: float) -> SimpleNamespace:
         return SimpleNamespace(covered=covered, covered_fraction=fraction)

@@ -435,7 +435,8 @@ def reoptimize_rounds(
     longer after a kept move (at most ``MAX_STEP``), half as long after one not kept (or for
     every trajectory, when the round is not kept); a trajectory whose step falls below
     ``SETTLED``, or whose optimizer stopped above its floor while its new nominal was not kept
-    (no shorter horizon is feasible against the funnel it keeps; ``_stepped``), is not
+    (no shorter horizon is feasible against the funnel it keeps; ``_stepped``) and at or above
+    the floor the halved step would set (the same search would stop there again), is not
     optimized again. Stop when every trajectory is settled,
     when no trajectory could be optimized again, or after ``FUNNEL_ROUNDS``. Returns where the
     rounds left ``start`` (a round is never kept unverified: its funnels passed ``check_funnel``
@@ -500,8 +501,11 @@ def reoptimize_rounds(
             for i in active
             if again.trajectories[i].success and again.trajectories[i].N < len(inputs[i])
         ]
-        # The optimizer's search stopped above the floor: the limit against this funnel.
-        stopped = [i for i in active if i not in moved or again.trajectories[i].N > shortest[i]]
+        stopped = [
+            i
+            for i in active
+            if i not in moved or _stopped(again.trajectories[i].N, len(inputs[i]), step[i])
+        ]
         if not moved:
             log.info(
                 f"[round{label} {k}] no trajectory optimized again: the previous funnels are kept"
@@ -683,6 +687,15 @@ def _covers_as_well(new: CoverageResult, old: CoverageResult) -> bool:
     """``new`` covers Init whenever ``old`` does (the covered flag, not the volume fraction,
     whose sum of box volumes may differ in the last bits), else at least as large a part."""
     return new.covered or (not old.covered and new.covered_fraction >= old.covered_fraction)
+
+
+def _stopped(found: int, samples: int, step: float) -> bool:
+    """Whether the search from ``samples`` with ``step`` stopped at ``found`` samples above its
+    floor ``ceil((1 - step) samples)``, the limit against the funnel it ran against, and at or
+    above the floor the halved step sets: searched again, it would stop there again, while a
+    floor above ``found`` asks for a longer nominal, whose funnel may hold what it must."""
+    floor = math.ceil((1 - step) * samples)
+    return found > floor and found >= math.ceil((1 - step / 2) * samples)
 
 
 def _stepped(step: float, *, stopped: bool, kept: bool) -> float:
