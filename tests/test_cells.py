@@ -8,7 +8,7 @@ import itertools
 
 import numpy as np
 import pytest
-from scipy.spatial import Delaunay
+from scipy.spatial import ConvexHull, Delaunay
 
 from pipeline.numerics.funnel.cells import PAD, init_cells
 
@@ -127,12 +127,12 @@ def test_the_bisector_polytope_of_a_circle_is_the_octagon_around_it():
     np.testing.assert_allclose(phase, np.pi / 8 + k, atol=1e-12)
 
 
-def test_five_free_states_ask_for_polytopes_that_hold_init_and_reach_less_than_boxes():
+def test_five_free_states_ask_for_polytopes_that_hold_their_cells_and_reach_less_than_boxes():
     """Nine starts in a five-dimensional Init (the centre and eight corners with pitch and
     speeds coupled, as quadrotor_hill_gusty's demos): the fine cells' hulls have more than
-    ``MAX_CORNERS`` vertices, so the starts are asked for (C2)'s polytopes. Every random point of
-    Init lies in a request, and each request reaches less far in ``M`` than its
-    bounding box, by 20% or more for the eight corner starts."""
+    ``MAX_CORNERS`` vertices, so the starts are asked for (C2)'s polytopes. Every corner of every
+    cell (C1) gives a start lies in that start's own request, and the eight corner starts'
+    requests reach at most 0.8 as far in ``M`` as their bounding boxes."""
     from pipeline.numerics.funnel.cells import MAX_CORNERS
 
     lower = np.array([1.0, 2.0, -0.05, -0.2, -0.2, 0.0])
@@ -142,22 +142,33 @@ def test_five_free_states_ask_for_polytopes_that_hold_init_and_reach_less_than_b
     starts = np.array([middle] + [middle + np.array(s) * half * 2 / 3 for s in signs])
     starts[1:, 2:5] = middle[2:5] + np.array(signs)[:, 2:5] * half[2:5]  # pitch, speeds at ends
     M = np.diag([1.0, 2.0, 400.0, 10.0, 10.0, 1.0])
+    g = 8  # the default for five free states: 8^5 = MAX_CELLS
     requests = init_cells(lower, upper, starts, M)
+    np.testing.assert_array_equal(
+        [len(v) for v in init_cells(lower, upper, starts, M, divisions=g)],
+        [len(v) for v in requests],
+    )
     assert all(len(v) <= MAX_CORNERS for v in requests)
     assert any(len(v) != 2**5 for v in requests)  # some polytopes, not only boxes
     free = [0, 1, 2, 3, 4]
-    rng = np.random.default_rng(5)
-    points = rng.uniform(lower, upper, size=(3000, 6))
-    inside = np.zeros(len(points), dtype=bool)
-    reach, box_reach = [], []
+    index = np.array(list(itertools.product(range(g), repeat=5)))  # (C1) on the cells again
+    steps = (upper - lower)[free] / g
+    centres = np.repeat(lower[None], len(index), axis=0)
+    centres[:, free] = lower[free] + (index + 0.5) * steps
+    e = centres[:, None, :] - starts[None]
+    owner = np.argmin(np.einsum("cki,ij,ckj->ck", e, M, e), axis=1)
+    unit = np.array(list(itertools.product((0, 1), repeat=5)))
+    ratio = []
     for i, v in enumerate(requests):
-        corners = starts[i] + v / (1 + PAD)
-        inside |= Delaunay(corners[:, free]).find_simplex(points[:, free], tol=1e-9) >= 0
-        reach.append(np.sqrt(np.einsum("pi,ij,pj->p", v, M, v)).max())
+        hull = ConvexHull(v[:, free] / (1 + PAD))  # facets a^T z + b <= 0 inside
+        owned = ((index[owner == i][:, None, :] + unit[None]) * steps).reshape(-1, 5)
+        offsets = owned + lower[free] - starts[i, free]
+        assert (
+            len(offsets)
+            and np.max(offsets @ hull.equations[:, :-1].T + hull.equations[:, -1]) <= 1e-9
+        )
         low, high = v.min(axis=0), v.max(axis=0)
         box = low + np.array(list(itertools.product((0, 1), repeat=6))) * (high - low)
-        box_reach.append(np.sqrt(np.einsum("pi,ij,pj->p", box, M, box)).max())
-    assert inside.all()
-    ratio = np.array(reach) / np.array(box_reach)
-    assert np.all(ratio <= 1 + 1e-12)
-    assert np.all(ratio[1:] <= 0.8)  # each corner start: 0.71 of its box
+        reach = np.sqrt(np.einsum("pi,ij,pj->p", v, M, v)).max()
+        ratio.append(reach / np.sqrt(np.einsum("pi,ij,pj->p", box, M, box)).max())
+    assert np.all(np.array(ratio[1:]) <= 0.8)  # each corner start: 0.71 of its box

@@ -699,9 +699,10 @@ def _stopped(found: int, samples: int, step: float) -> bool:
 
 
 def _stepped(step: float, *, stopped: bool, kept: bool) -> float:
-    """A trajectory's step after a round: 0 (settled) when its optimizer stopped above its floor
-    and its new nominal was not kept (no shorter horizon is feasible against the funnel it
-    keeps), else ``_next_step`` (a kept nominal is optimized next against its new funnel)."""
+    """A trajectory's step after a round: 0 (settled) when its search ``stopped`` (``_stopped``:
+    above its floor, and at or above the halved step's) and its new nominal was not kept (no
+    shorter horizon is feasible against the funnel it keeps), else ``_next_step`` (a kept
+    nominal is optimized next against its new funnel)."""
     return 0.0 if stopped and not kept else _next_step(step, kept)
 
 

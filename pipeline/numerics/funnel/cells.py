@@ -109,13 +109,13 @@ def init_cells(
     e = centres[:, None, :] - starts[None]  # (cells, k, n)
     owner = np.argmin(np.einsum("cki,ij,ckj->ck", e, M, e), axis=1)  # eq. (C1)
     corners = np.array(list(itertools.product((0, 1), repeat=D)))  # (2^D, D)
+    base = (g + 1) ** np.arange(D)  # a grid point's digits in base g + 1: one integer each
     result = []
     for i, x0 in enumerate(starts):
         mine = index[owner == i]
         if len(mine) == 0:
             result.append(np.zeros((0, n)))
             continue
-        base = (g + 1) ** np.arange(D)  # a grid point's digits in base g + 1: one integer each
         codes, shared = np.unique(
             ((mine[:, None, :] + corners[None]) @ base).reshape(-1), return_counts=True
         )
@@ -168,8 +168,8 @@ def _polytope_vertices(
     on its plane, but they span ``D`` dimensions) and strictly inside the box for the same
     reason, so it is the interior point ``HalfspaceIntersection`` needs."""
     D = points.shape[1]
-    scale = np.abs(normals).max(initial=0.0)
-    normals = normals[np.linalg.norm(normals, axis=1) > 1e-12 * scale] if scale > 0 else normals[:0]
+    norms = np.linalg.norm(normals, axis=1)
+    normals = normals[norms > 1e-12 * norms.max(initial=0.0)] if np.any(norms > 0) else normals[:0]
     eye = np.eye(D)
     A = np.vstack([normals, eye, -eye])  # (m + 2D, D): rows of A z <= b
     b = np.concatenate([(points @ normals.T).max(axis=0), high, -low])
