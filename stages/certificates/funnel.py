@@ -477,8 +477,7 @@ def reoptimize_rounds(
             dataclasses.replace(t, u=u, N=len(u)) for t, u in zip(previous, inputs, strict=True)
         ]
         shortest = [
-            math.ceil((1 - step[i]) * len(u)) if i in active else len(u)
-            for i, u in enumerate(inputs)
+            _floor(len(u), step[i]) if i in active else len(u) for i, u in enumerate(inputs)
         ]
         with progress_bar(len(previous), f"round {k}: optimized again", run.quiet) as advance:
             again: OptimizeResult = runner.run(
@@ -689,13 +688,17 @@ def _covers_as_well(new: CoverageResult, old: CoverageResult) -> bool:
     return new.covered or (not old.covered and new.covered_fraction >= old.covered_fraction)
 
 
+def _floor(samples: int, step: float) -> int:
+    """The fewest samples a round's search from ``samples`` may reach with ``step``."""
+    return math.ceil((1 - step) * samples)
+
+
 def _stopped(found: int, samples: int, step: float) -> bool:
     """Whether the search from ``samples`` with ``step`` stopped at ``found`` samples above its
-    floor ``ceil((1 - step) samples)``, the limit against the funnel it ran against, and at or
-    above the floor the halved step sets: searched again, it would stop there again, while a
-    floor above ``found`` asks for a longer nominal, whose funnel may hold what it must."""
-    floor = math.ceil((1 - step) * samples)
-    return found > floor and found >= math.ceil((1 - step / 2) * samples)
+    ``_floor``, the limit against the funnel it ran against, and at or above the floor the
+    halved step sets: searched again, it would stop there again, while a floor above ``found``
+    asks for a longer nominal, whose funnel may hold what it must."""
+    return found > _floor(samples, step) and found >= _floor(samples, step / 2)
 
 
 def _stepped(step: float, *, stopped: bool, kept: bool) -> float:

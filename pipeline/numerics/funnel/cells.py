@@ -69,7 +69,8 @@ def init_cells(
     divisions: int | None = None,
 ) -> tuple[FloatArray, ...]:
     """Per start, the offsets ``v - x0_i (p_i, n)`` of the corners of ``H_i`` (module
-    docstring, (C1)), padded by ``PAD``; ``(0, n)`` for a start that owns no cell.
+    docstring, (C1)), or of ``G_i`` (C2) where ``H_i`` has more than ``MAX_CORNERS``, padded by
+    ``PAD``; ``(0, n)`` for a start that owns no cell.
 
     Args:
       lower, upper: (n,) Init; starts: (k, n) ``x0_i``; metric: (n, n) ``M`` of (C1),
@@ -110,6 +111,7 @@ def init_cells(
     owner = np.argmin(np.einsum("cki,ij,ckj->ck", e, M, e), axis=1)  # eq. (C1)
     corners = np.array(list(itertools.product((0, 1), repeat=D)))  # (2^D, D)
     base = (g + 1) ** np.arange(D)  # a grid point's digits in base g + 1: one integer each
+    weighted = (starts @ M)[:, free]  # (k, D): the normals of (C2) are differences of rows
     result = []
     for i, x0 in enumerate(starts):
         mine = index[owner == i]
@@ -121,7 +123,7 @@ def init_cells(
         )
         codes = codes[shared < len(corners)]  # a corner of 2^D owned cells is inside their union
         grid = codes[:, None] // base % (g + 1)  # (q, D) grid indices
-        bisectors = ((starts - x0) @ M)[:, free]  # (k, D) normals of (C2), row i is zero
+        bisectors = weighted - weighted[i]  # (k, D) a_ij of (C2), row i zero
         points = _hull_corners(lower[free] + grid * steps, bisectors)  # of the owned corners
         V = np.repeat(lower[None], len(points), axis=0)
         V[:, free] = points
