@@ -25,7 +25,7 @@ import shapely
 
 import pipeline
 from pipeline.numerics.hull import jacobian_hull
-from pipeline.numerics.terminal.design import equilibrium, lqr_terminal
+from pipeline.numerics.terminal.equilibrium import equilibrium, lqr_terminal
 
 # m/s^2, on the quadrotor's states
 ISSUE_BOUND = np.array([0.0, 0.0, 0.0, 1.0922, 1.0755, 0.0])

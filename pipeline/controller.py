@@ -208,7 +208,7 @@ class TerminalController:
         certified invariant for (None: the file states none, the exact model); below the
         file's ``uncertainty.additive_bound``, the declared disturbance plus the parameters'
         term at ``(x_eq, u_eq)``, the parameter intervals held in the certificate's Jacobian
-        hull ((T7) of ``pipeline.numerics.terminal.design``).
+        hull ((T7) of ``pipeline.numerics.terminal.check``).
     """
 
     x_eq: np.ndarray

@@ -29,7 +29,7 @@ nothing but the file and the scenario (no stage result). A ``safety-controller/1
 5. Init is covered by the initial balls ``||x - x0_i||_P <= radius_i`` (sound box subdivision,
    ``pipeline.numerics.verify.cover``), each box's corners within ``1 - COVER_MARGIN`` of a ball's
    squared radius;
-6. the optional ``terminal`` block (``pipeline.numerics.terminal.design``): ``V = e^T P_T e``
+6. the optional ``terminal`` block (``pipeline.numerics.terminal.check``): ``V = e^T P_T e``
 decreases
    on ``V <= level`` at every vertex of a sound hull over its bounding box (numpy eigenvalues,
    (T1') with the equilibrium's residual and the scenario's declared additive bound, or the
@@ -58,7 +58,7 @@ covers Init by the balls ``||x - x0_i||_{P_i[0]} <= radius_i``; step 6's end tub
 law held for ``h`` seconds) ``h`` must divide ``Ts``, each funnel is re-checked for the held law
 (its offset (I6) of ``pipeline.numerics.funnel.law`` in the inequality and the inputs, with the
 checked additive bound in ``Edot``), and the terminal block for the held terminal law (its hold
-an additive term, (T4) of ``pipeline.numerics.terminal.design``).
+an additive term, (T4) of ``pipeline.numerics.terminal.check``).
 
 Declared uncertainty (the scenario's ``uncertainty:``). The funnels are re-checked for ``x' =
 f(x, u) + w``, ``|w| <= b``, with ``b`` derived here from the scenario's declaration

@@ -42,7 +42,8 @@ from pipeline.model.scenario import Scenario
 from pipeline.model.simulate import Trajectory, simulate, simulate_graded
 from pipeline.numerics.funnel.check import Funnel
 from pipeline.numerics.funnel.law import BASE_SUBSTEPS
-from pipeline.numerics.terminal.design import TerminalDesign, TerminalError, design_terminal
+from pipeline.numerics.terminal.design import TerminalDesign, design_terminal
+from pipeline.numerics.terminal.equilibrium import TerminalError
 from pipeline.numerics.terminal.fit import end_levels
 from pipeline.numerics.uncertainty import declared_bound, held_state_bounds
 from pipeline.numerics.verify.recertify import ShippedFunnel, reference_substeps
@@ -75,7 +76,7 @@ def terminal_block(
         in the block (None: the exact model and no ``disturbance`` key, as in ``/1``).
       design: a terminal controller designed already (for that bound); only its fit is found.
       period: the constant certificate's held law (its held rate); held_period: a funnel
-        file's, its hold an additive term ((T4) of ``pipeline.numerics.terminal.design``).
+        file's, its hold an additive term ((T4) of ``pipeline.numerics.terminal.check``).
       measurement: (n,) the box of the error on the state the law sees ((T5); None: exact).
     """
     if design is None:
@@ -292,7 +293,7 @@ def emit_funnel_controller(
         ``rho``, ``rate``), in the same order.
       feedback_period: the law is held every ``h`` s (0: continuous), recorded in the file: the
         reference grid is chosen for its (I6) term (``pipeline.numerics.funnel.law``), the
-        terminal ellipsoid certified for it ((T4) of ``terminal.design``).
+        terminal ellipsoid certified for it ((T4) of ``terminal.check``).
       names: each trajectory's demo (``"demo_01"``), written as its ``name``; None: no names.
       disturbance: (n,) the additive bound the funnels hold (default: the scenario's declared
         uncertainty's, ``pipeline.numerics.uncertainty.additive_bound``);

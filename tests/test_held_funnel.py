@@ -1,5 +1,5 @@
 """A funnel's law evaluated every h seconds and held in between (``funnel.law`` (I6), the
-terminal law's (T4) of ``terminal.design``).
+terminal law's (T4) of ``terminal.check``).
 
 The bound ``|x(t_j) - xhat(t_j) - e(t)| <= Delta + h Edot`` is checked against brute force (the
 held law flown from the funnel's boundary under bang-bang and outward-pushing disturbances);
@@ -26,13 +26,8 @@ from pipeline.model.simulate import simulate, simulate_graded
 from pipeline.numerics.closed_loop.simulate import held_steps
 from pipeline.numerics.funnel.held import held_rates
 from pipeline.numerics.funnel.law import BASE_SUBSTEPS, LawOffset, law_offset, law_substeps
-from pipeline.numerics.terminal.design import (
-    check_level,
-    equilibrium,
-    hold_bound,
-    largest_level,
-    lqr_terminal,
-)
+from pipeline.numerics.terminal.check import check_level, hold_bound, largest_level
+from pipeline.numerics.terminal.equilibrium import equilibrium, lqr_terminal
 from pipeline.numerics.verify.recertify import rebuild_funnel, recheck_as_shipped
 from stages.certify import certify_controller
 from stages.funnel import HOLD_DESIGN, design_disturbance

@@ -1,6 +1,6 @@
 """The terminal hover's law held every h seconds, its push taken to first order (T4').
 
-``terminal.design`` (T4') is ``funnel.sampled`` (I6') on the terminal ellipsoid: one interval
+``terminal.check`` (T4') is ``funnel.sampled`` (I6') on the terminal ellipsoid: one interval
 with a constant metric, the equilibrium's residual joined to the disturbance, the measurement's
 offset at ``t_j``. Brute force on random stiff loops: the held error equation flown from points
 of ``E_c`` with the Jacobian switched among random hull points, the residual, the disturbance
@@ -19,15 +19,14 @@ from pipeline.model.scenario import load_scenario
 from pipeline.numerics.funnel.law import LMI_MARGIN, corners
 from pipeline.numerics.funnel.robust import RobustCheck
 from pipeline.numerics.funnel.sampled import remainder_box
-from pipeline.numerics.terminal.design import (
+from pipeline.numerics.terminal.check import (
     check_level,
-    equilibrium,
     held_speed,
     hold_bound,
     joint_margin,
     largest_level,
-    lqr_terminal,
 )
+from pipeline.numerics.terminal.equilibrium import equilibrium, lqr_terminal
 from tests.helpers.robust import GUST, held_hover_flights, rk4_step, stiff_hull
 
 

@@ -18,7 +18,7 @@ import pytest
 import pipeline
 from pipeline.controller import load
 from pipeline.model.scenario import load_scenario
-from stages.certificates.funnel import CORE
+from stages.certificates.targets import CORE
 from stages.certify import certify_controller
 from tests.helpers.robust import GUST, gusty_hold_scenario
 
@@ -81,7 +81,7 @@ def test_the_end_box_fills_the_terminal_ellipsoid():
     corner inside (quadrotor_hill: Goal's own bounds cut no side of it)."""
     import itertools
 
-    from stages.certificates.funnel import hold_targets, target_of
+    from stages.certificates.targets import hold_targets, target_of
 
     scenario = load_scenario("quadrotor_hill", check_demos=False)
     targets = hold_targets(scenario)

@@ -1,4 +1,4 @@
-"""Where a hold run hovers: where its fastest nominals come to rest (stages.certificates.funnel).
+"""Where a hold run hovers: where its fastest nominals come to rest (stages.certificates.targets).
 
 A ``terminal: hold`` run of the funnel certificate first optimizes its nominals to rest anywhere
 the terminal set designed at Goal's centre still fits (``hover_box``), then designs the terminal
@@ -14,12 +14,14 @@ import pytest
 
 from pipeline.controller import load
 from pipeline.model.scenario import load_scenario
-from pipeline.numerics.terminal.design import check_level, equilibrium, hover_box
+from pipeline.numerics.terminal.check import check_level
+from pipeline.numerics.terminal.design import hover_box
+from pipeline.numerics.terminal.equilibrium import equilibrium
 from pipeline.numerics.uncertainty import additive_bound
 from pipeline.reporting.summary import ClaimKind
 from pipeline.runtime.runner import read_checked
 from stages.certificates import nominals
-from stages.certificates.funnel import placed_targets, rest_targets
+from stages.certificates.targets import placed_targets, rest_targets
 
 HOLD = "quadrotor_hill"  # robust funnels ending in the hover; its session synthesis is in make test
 

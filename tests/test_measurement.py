@@ -1,5 +1,5 @@
 """A declared measurement error (``uncertainty.measurement``): the law sees ``x + eta``,
-``|eta| <= E`` (``funnel.law`` (I7), ``terminal.design`` (T5)).
+``|eta| <= E`` (``funnel.law`` (I7), ``terminal.check`` (T5)).
 
 Checked: without ``E`` every number of the law's offset is as before; with it the offset gains
 ``E``, its push ``max_v |B_v K| E`` joins (I5)'s box; a robust double-integrator funnel holds a
@@ -26,7 +26,8 @@ from pipeline.model.scenario import load_scenario
 from pipeline.model.simulate import simulate, simulate_graded
 from pipeline.model.uncertainty import Uncertainty
 from pipeline.numerics.funnel.law import BASE_SUBSTEPS, law_offset
-from pipeline.numerics.terminal.design import check_level, equilibrium, lqr_terminal
+from pipeline.numerics.terminal.check import check_level
+from pipeline.numerics.terminal.equilibrium import equilibrium, lqr_terminal
 from pipeline.numerics.verify.recertify import (
     rebuild_funnel,
     recheck_as_shipped,

@@ -12,7 +12,7 @@ import pytest
 
 from pipeline import load_scenario
 from pipeline.numerics.optimize.footprint import ConstraintMargins
-from stages.certificates import funnel as rounds
+from stages.certificates import rounds
 from stages.coverage import cover_balls
 from stages.feedback import design_feedback
 from stages.funnel import FunnelStageResult
@@ -178,7 +178,7 @@ def test_covering_as_well_reads_the_covered_flag_not_the_last_bits_of_the_volume
 
 
 class _HeldStages:
-    """``funnel_stages`` and ``reoptimize_rounds`` of ``stages.certificates.funnel`` replaced:
+    """``funnel_stages`` and ``reoptimize_rounds`` of ``stages.certificates.rounds`` replaced:
     each held funnel stage returns the next of ``results`` ((levels, usable, covered) per
     call) and records what it was asked; the rounds return their start, recording it."""
 

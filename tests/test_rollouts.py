@@ -93,7 +93,8 @@ def test_runs_continued_past_T_match_the_numpy_oracle(synthesized, tmp_path, per
     when continued from the states at T the checks kept."""
     from pipeline.numerics.closed_loop.rollouts import hold_runs_compiled
     from pipeline.numerics.closed_loop.simulate import hold_runs
-    from pipeline.numerics.terminal.design import design_terminal, equilibrium
+    from pipeline.numerics.terminal.design import design_terminal
+    from pipeline.numerics.terminal.equilibrium import equilibrium
 
     _, out = synthesized
     scenario = load_scenario("quadrotor_hill_flythrough", check_demos=False)

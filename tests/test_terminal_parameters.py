@@ -23,15 +23,9 @@ from scipy.optimize import linprog
 
 from pipeline.controller import Controller, TerminalController
 from pipeline.numerics.terminal import design as terminal_design
-from pipeline.numerics.terminal.design import (
-    TerminalDesign,
-    TerminalError,
-    check_level,
-    equilibrium,
-    hold_design,
-    largest_level,
-    lqr_terminal,
-)
+from pipeline.numerics.terminal.check import check_level, largest_level
+from pipeline.numerics.terminal.design import TerminalDesign, hold_design
+from pipeline.numerics.terminal.equilibrium import TerminalError, equilibrium, lqr_terminal
 from pipeline.numerics.terminal.robust import robust_metric
 from pipeline.numerics.uncertainty import additive_bound, equilibrium_bound, parametric_hull
 from pipeline.numerics.verify.recertify import recheck_terminal, terminal_claim

@@ -18,15 +18,9 @@ import numpy as np
 import pytest
 
 from pipeline.model.scenario import load_scenario
-from pipeline.numerics.terminal.design import (
-    ROOM,
-    check_level,
-    design_terminal,
-    equilibrium,
-    hold_design,
-    largest_level,
-    lqr_terminal,
-)
+from pipeline.numerics.terminal.check import check_level, largest_level
+from pipeline.numerics.terminal.design import ROOM, design_terminal, hold_design
+from pipeline.numerics.terminal.equilibrium import equilibrium, lqr_terminal
 from pipeline.numerics.terminal.fit import TerminalTarget, containing_level
 from pipeline.numerics.terminal.robust import SHARES, largest_metric, robust_metric
 from pipeline.numerics.uncertainty import additive_bound
@@ -392,7 +386,7 @@ def test_the_nominals_end_in_the_shaped_set_and_keep_its_reserve(tmp_path):
     """``core_targets`` of a (T6) design: Goal's bounds are the core box of the shaped set the
     nominals arrive in, and the reserve is sized from it (the larger set's would starve them),
     while the funnels' target is the larger set."""
-    from stages.certificates.funnel import core_targets, reserve_of, target_of
+    from stages.certificates.targets import core_targets, reserve_of, target_of
 
     scenario = gusty(tmp_path, 6 * BETA)
     design = hold_design(scenario, additive_bound(scenario))
@@ -434,7 +428,7 @@ def test_where_no_metric_of_the_lqr_gain_holds_a_gain_designed_with_its_metric_d
         assert again.success and again == terminal.check
     assert design.log_volume > arrival.log_volume
     # the first nominals' reserve is the LQR gain's over the arrival set, not the designed gain's
-    from stages.certificates.funnel import RESERVE, reserve_of
+    from stages.certificates.targets import RESERVE, reserve_of
 
     Q = RESERVE**2 * np.linalg.inv(arrival.P)
     reserve = reserve_of(scenario, arrival)

@@ -27,7 +27,7 @@ u_eq, p)] + [f(x_eq, u_eq, p) - f(x_eq, u_eq, p0)] + r``: the first is ``J(xi, p
 u_eq)`` by the mean value theorem at fixed ``p`` (per component), with ``J(xi, p)`` in the hull of
 ``[f_x f_u]`` over the box and the parameter intervals (``parametric_hull``); the second is (U1)
 at the point alone (``equilibrium_bound``), added to the declared disturbance. The certificates
-that use it (``terminal.design`` (T7)) hold every hull point and every additive term in that box,
+that use it (``terminal.check`` (T7)) hold every hull point and every additive term in that box,
 so they hold for every parameter in its interval, constant or not.
 
 Which box ``Z``. Every certificate that holds uncertainty keeps its tube inside ``state_bounds``

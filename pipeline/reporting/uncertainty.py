@@ -11,7 +11,7 @@ certificates hold the first two as one additive term,
 
 derived by the pipeline (``pipeline.numerics.uncertainty``: outward-rounded interval arithmetic
 over the parameter box and the box the tubes are kept in), not declared; the measurement error
-enters the law's offset ((I7) of ``funnel.law``, (T5) of ``terminal.design``) instead.
+enters the law's offset ((I7) of ``funnel.law``, (T5) of ``terminal.check``) instead.
 
 Every number shown comes from the scenario as loaded (the declaration, and (U1) derived from it
 by the function certify uses) or from this run's results: certify's check of ``controller.json``
@@ -321,7 +321,7 @@ def section(data: ReportData) -> tuple:
                 f" controller.json states {_per_state(s, np.asarray(stated), 'w')}; certify "
                 "checks the larger of the two in each state."
             )
-    if check.terminal_box:  # (T7) of pipeline.numerics.terminal.design: set only when it held
+    if check.terminal_box:  # (T7) of pipeline.numerics.terminal.check: set only when it held
         box = _per_state(s, np.asarray(check.terminal_box), "w")
         note += (
             " The terminal ellipsoid holds the parameters another way (T7): their intervals "

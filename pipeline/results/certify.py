@@ -29,7 +29,7 @@ class CertificationResult(Result):
       terminal: the file has a terminal block; terminal_decay: its certified ``alpha`` (1/s);
         terminal_fit: the largest end tube's share of the ellipsoid's radius (<= 1 to fit).
       terminal_box: (n,) the additive box the terminal block was re-checked under with the
-        declared parameter intervals in its hull ((T7) of ``pipeline.numerics.terminal.design``);
+        declared parameter intervals in its hull ((T7) of ``pipeline.numerics.terminal.check``);
         empty: under the whole box's additive bound (T1'), or no block.
       contraction_bound: what ``contraction_margin`` must be below (``contraction_bound``).
       disturbance_multiple: under a declared uncertainty, the largest multiple of its additive

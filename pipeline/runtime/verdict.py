@@ -237,7 +237,7 @@ def declared_bound_text(scenario: Scenario) -> str:
     if scenario.uncertainty.empty:
         return ""
     parts = [box_text(scenario, additive_bound(scenario))]
-    parts += [  # the error on the state the law sees (funnel.law (I7), terminal.design (T5))
+    parts += [  # the error on the state the law sees (funnel.law (I7), terminal.check (T5))
         f"|eta_{name}| <= {e:.3g}"
         for name, e in zip(scenario.state_names, scenario.uncertainty.measurement, strict=True)
         if e > 0

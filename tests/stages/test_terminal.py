@@ -18,7 +18,9 @@ import pytest
 from pipeline.controller import BeyondHorizonError, load
 from pipeline.model.scenario import load_scenario
 from pipeline.numerics.closed_loop.simulate import hold_runs
-from pipeline.numerics.terminal.design import containing_level, design_terminal, equilibrium
+from pipeline.numerics.terminal.design import design_terminal
+from pipeline.numerics.terminal.equilibrium import equilibrium
+from pipeline.numerics.terminal.fit import containing_level
 from stages.certify import certify_controller, verify_terminal
 from tests.helpers.double_integrator import AT_REST_STARTS, DOUBLE_INTEGRATOR, emit_at_rest
 

@@ -39,7 +39,7 @@ class HeldDesign:
     sample intervals whose pieces got (I6')'s rows (``synthesize_funnel``'s ``pushed``; None:
     every piece) and the multiplier its search starts at (in ``Funnel.held``: the one that
     designed that funnel). A re-optimize round with the held law's funnels (``stages.
-    certificates.funnel.held_funnels``' own rounds) designs the funnel around the next, nearby
+    certificates.rounds.held_funnels``' own rounds) designs the funnel around the next, nearby
     nominal of the same trajectory with it first (a design choice: the funnel is checked as
     any other, and may differ from the one the search would find)."""
 

@@ -457,7 +457,7 @@ def synthesize_funnel(
         rows and box to it). A design choice too.
       codesign_first: with ``disturbance`` and ``codesign``, search the (F6) gains' multipliers
         before the LQR gains' (a re-optimize round's funnel around a nominal whose last funnel
-        needed (F6) gains, ``stages.certificates.funnel``), and the LQR gains' only where (F6)
+        needed (F6) gains, ``stages.certificates.rounds``), and the LQR gains' only where (F6)
         certified no funnel at all: the first funnel holding the whole design level is kept,
         else the highest. A design choice too.
     """

@@ -1,11 +1,11 @@
 """A terminal metric shaped for a declared disturbance (T3): the invariant ellipsoid by an LMI.
 
-The Riccati matrix of the LQR gain (``terminal.design.lqr_terminal``) is a Lyapunov function for
-the exact model, but its ellipsoids are not shaped for a disturbance: on quadrotor_hill_flythrough
-the slow horizontal mode makes the disturbance's push dominate the decay on part of every level set.
-Here the gain ``K_T`` is kept and the metric is chosen for it (Boyd et al., LMIs in System and
-Control Theory, section 6.1.3, with the S-procedure of ``funnel.robust`` (I5)): for a multiplier
-``alpha > 0``,
+The Riccati matrix of the LQR gain (``terminal.equilibrium.lqr_terminal``) is a Lyapunov function
+for the exact model, but its ellipsoids are not shaped for a disturbance: on
+quadrotor_hill_flythrough the slow horizontal mode makes the disturbance's push dominate the decay
+on part of every level set. Here the gain ``K_T`` is kept and the metric is chosen for it (Boyd et
+al., LMIs in System and Control Theory, section 6.1.3, with the S-procedure of ``funnel.robust``
+(I5)): for a multiplier ``alpha > 0``,
 
     [[Acl_v Q + Q Acl_v^T + (alpha + eps) Q, w_c], [w_c^T, -(alpha - eps)]] <= 0     (T3)
 
@@ -14,7 +14,7 @@ corner ``w_c`` of the disturbance box, with ``E = {e^T Q^-1 e <= 1}`` inside ``Z
 half_i^2``, ``K_j Q K_j^T <= input room^2``) and its position disk inside Goal; the smallest
 position extent is kept over ``ALPHAS``. ``Z`` is guessed first (the frozen loop's invariant
 ellipsoid at ``SEED`` times its extents, as ``funnel.synthesis`` (F5)). Nothing here is trusted:
-the metric returned is certified, or not, by ``terminal.design.check_level`` ((T1'') among the
+the metric returned is certified, or not, by ``terminal.check.check_level`` ((T1'') among the
 checks), at the level it finds.
 
 (T6) The largest set instead. (T3) at level 1 is about the smallest set the disturbance leaves, and
@@ -65,7 +65,7 @@ def robust_metric(
 ) -> FloatArray | None:
     """``P_T (n, n)`` from (T3) for the gain ``K (m, n)`` at the equilibrium ``(x_eq (n,), u_eq
     (m,))`` and the additive bound ``bound (n,)``, the parameter intervals of ``parameters`` in
-    the hull (``terminal.design`` (T7)); None when no multiplier gives one."""
+    the hull (``terminal.check`` (T7)); None when no multiplier gives one."""
     dynamics = scenario.dynamics
     A0, B0 = dynamics.f_x(x_eq, u_eq), dynamics.f_u(x_eq, u_eq)
     guess = invariant_ellipsoid(

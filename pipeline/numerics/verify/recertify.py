@@ -35,7 +35,7 @@ Steps 1-2 run on a uniform RK4 grid of ``BASE_SUBSTEPS`` per sample (the nominal
 whatever grid the file carries its reference on).
 
 ``recheck_terminal`` (either format): the ``terminal`` block by (T1') of
-``pipeline.numerics.terminal.design`` under the scenario's declared additive bound (``uncertainty.
+``pipeline.numerics.terminal.check`` under the scenario's declared additive bound (``uncertainty.
 additive_bound``; the block's own ``disturbance`` only where it is larger) or, for a block that
 states less under declared parameter intervals, by (T7) (the intervals in the hull, the bound at
 the block's equilibrium: ``terminal_claim``), for a held law ((T4)
@@ -76,7 +76,7 @@ from pipeline.numerics.funnel.law import (
 from pipeline.numerics.funnel.pieces import piece_hulls
 from pipeline.numerics.funnel.robust import RobustCheck
 from pipeline.numerics.hull import HullError
-from pipeline.numerics.terminal.design import check_level
+from pipeline.numerics.terminal.check import check_level
 from pipeline.numerics.terminal.fit import end_levels
 from pipeline.numerics.uncertainty import additive_bound, declared_bound, equilibrium_bound
 
@@ -620,7 +620,7 @@ def terminal_claim(
     """``(b (n,), parameters, failures)``: what the file's ``terminal`` block is re-checked
     under. A block stating at least the declared additive bound, or under no declared parameter
     intervals: ``checked_bound`` (T1'), no parameters in the hull. Otherwise (T7) of
-    ``terminal.design``: the scenario's parameter intervals in the hull and ``b`` the declared
+    ``terminal.check``: the scenario's parameter intervals in the hull and ``b`` the declared
     disturbance plus their term at the block's own ``(x_eq, u_eq)`` (``uncertainty.
     equilibrium_bound``, derived here), raised to the block's box where that is larger; a block
     stating less than that is a failure (re-checked with it). Either way a block without
@@ -651,7 +651,7 @@ def _holds_whole_box(scenario: Scenario, stated: FloatArray) -> bool:
 
 def recheck_terminal(scenario: Scenario, controller: Controller) -> tuple[float, float, list[str]]:
     """``(decay, fit, failures)`` of the file's terminal block (certify's step 6): (T1') of
-    ``pipeline.numerics.terminal.design`` under ``checked_bound``, no clipping, inside Goal and the
+    ``pipeline.numerics.terminal.check`` under ``checked_bound``, no clipping, inside Goal and the
     state bounds, and every end tube inside (``terminal.fit.end_levels``). A funnel file's end
     tubes are widened by ``LEVEL_MARGIN``: ``x_ref(T)`` is the RK4 value, within that share of
     the radius of the exact nominal's (certify's step 4)."""
