@@ -31,13 +31,8 @@ from pipeline.model.simulate import simulate
 from pipeline.numerics.funnel.law import BASE_SUBSTEPS, LMI_MARGIN, grid_substeps
 from pipeline.numerics.funnel.robust import RobustCheck
 from pipeline.numerics.uncertainty import held_state_bounds
-from pipeline.numerics.verify.recertify import (
-    SEGMENTS,
-    ShippedFunnel,
-    _under_law,
-    checked_bound,
-    checked_measurement,
-)
+from pipeline.numerics.verify.declared import checked_bound, checked_measurement
+from pipeline.numerics.verify.recertify import SEGMENTS, ShippedFunnel, _under_law
 
 PERIODS = (0.001, 0.002, 0.005, 0.01)
 

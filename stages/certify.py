@@ -90,17 +90,11 @@ from pipeline.numerics.tube.radius import radius_limits
 from pipeline.numerics.tube.sampled import held_rate
 from pipeline.numerics.uncertainty import held_state_bounds
 from pipeline.numerics.verify.cover import DEFAULT_DEPTH, subdivide
+from pipeline.numerics.verify.declared import checked_bound, checked_measurement, terminal_claim
 from pipeline.numerics.verify.nominal import VERIFY_SUBSTEPS
-from pipeline.numerics.verify.recertify import (
-    ReferenceCheck,
-    ShippedFunnel,
-    check_reference,
-    checked_bound,
-    checked_measurement,
-    recheck_funnel,
-    recheck_terminal,
-    terminal_claim,
-)
+from pipeline.numerics.verify.recertify import ShippedFunnel, recheck_funnel
+from pipeline.numerics.verify.reference import ReferenceCheck, check_reference
+from pipeline.numerics.verify.terminal import recheck_terminal
 from pipeline.results.certify import CertificationResult as CertificationResult
 
 REFERENCE_TOLERANCE = 1e-9  # ||x_ref - simulated||_P / radius
@@ -150,7 +144,7 @@ def _held(controller: Controller, A: np.ndarray, B: np.ndarray) -> list[str]:
 
 def verify_terminal(scenario: Scenario, controller: Controller) -> tuple[float, float, list[str]]:
     """Step 6: ``(decay, fit, failures)`` of the file's terminal block
-    (``recertify.recheck_terminal``: (T1') under the declared bound, the end tubes inside)."""
+    (``verify.terminal.recheck_terminal``: (T1') under the declared bound, the end tubes inside)."""
     return recheck_terminal(scenario, controller)
 
 
@@ -287,7 +281,7 @@ def _reference(
     errors: tuple[float, float],
 ) -> tuple[tuple[float, float], ReferenceCheck]:
     """Step 4's reference checks of trajectory ``i`` in its tube metric ``P_i(t)``
-    (``recertify.check_reference``). Returns ``(largest (reference error, interpolation error)
+    (``verify.reference.check_reference``). Returns ``(largest (reference error, interpolation error)
     so far, the check: the file grid's RK4 steps on each sample interval (None: not an RK4
     grid) and the estimated RK4 error)``."""
     tr = controller.trajectories[i]

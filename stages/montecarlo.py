@@ -66,7 +66,7 @@ from pipeline.numerics.closed_loop.rollouts import (
     run_paths_compiled,
 )
 from pipeline.numerics.closed_loop.simulate import RunChecks, check_runs
-from pipeline.numerics.verify.recertify import terminal_claim
+from pipeline.numerics.verify.declared import terminal_claim
 from pipeline.results.montecarlo import Falsification as Falsification
 from pipeline.results.montecarlo import MonteCarloResult as MonteCarloResult
 from pipeline.results.stage import FileInput, Stage, StageInputs

@@ -28,7 +28,8 @@ from pipeline.numerics.terminal.design import TerminalDesign, hold_design
 from pipeline.numerics.terminal.equilibrium import TerminalError, equilibrium, lqr_terminal
 from pipeline.numerics.terminal.robust import robust_metric
 from pipeline.numerics.uncertainty import additive_bound, equilibrium_bound, parametric_hull
-from pipeline.numerics.verify.recertify import recheck_terminal, terminal_claim
+from pipeline.numerics.verify.declared import terminal_claim
+from pipeline.numerics.verify.terminal import recheck_terminal
 from pipeline.results.certify import CertificationResult
 from pipeline.runtime.verdict import Evidence, after_horizon
 from stages.controller import terminal_block

@@ -1,9 +1,7 @@
-"""Re-verify a ``safety-controller`` file's trajectories from the file's data alone.
+"""Re-verify a ``safety-controller/2`` file's funnels from the file's data alone.
 
-``check_reference`` (either format): ``x_ref`` is the dynamics from ``x0`` under ``u_ref`` on the
-file's RK4 grid (equal steps on each sample interval, their number may differ between intervals),
-and its linear interpolation (what the law tracks) is measured against a finer simulation, both
-in the tube's metric at the time, ``P(t)``.
+The references: ``verify.reference``; the terminal block: ``verify.terminal``; the bounds each
+block is re-checked under: ``verify.declared``.
 
 ``recheck_funnel`` (``/2``). The file carries, per trajectory, ``x_ref`` (re-simulated by
 ``check_reference`` from ``x0`` and ``u_ref``), ``K (N, m, n)``, ``P (N+1, n, n)`` (``Q =
@@ -34,15 +32,6 @@ the synthesis's boxes and its solver:
 Steps 1-2 run on a uniform RK4 grid of ``BASE_SUBSTEPS`` per sample (the nominal is the same
 whatever grid the file carries its reference on).
 
-``recheck_terminal`` (either format): the ``terminal`` block by (T1') of
-``pipeline.numerics.terminal.check`` under the scenario's declared additive bound (``uncertainty.
-additive_bound``; the block's own ``disturbance`` only where it is larger) or, for a block that
-states less under declared parameter intervals, by (T7) (the intervals in the hull, the bound at
-the block's equilibrium: ``terminal_claim``), for a held law ((T4)
-in a ``/2`` file, the held rate in a ``/1`` file), the law seeing the state within the declared
-measurement box ((T5); the file's ``uncertainty.measurement_bound`` where larger; a file stating
-less fails in the funnels' check), and every end tube inside its ellipsoid (``terminal.fit``).
-
 A hull over a box is sound for any number of segments, so ``SEGMENTS`` are tried in turn and the
 funnel is accepted when one of them certifies it (a finer hull is tighter, not always a subset).
 """
@@ -57,99 +46,26 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.controller import Controller, ReferenceTrajectory, TerminalController
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
-from pipeline.model.simulate import Trajectory, simulate, simulate_graded
-from pipeline.model.uncertainty import Uncertainty
+from pipeline.model.simulate import Trajectory, simulate
 from pipeline.numerics.funnel.bounds import funnel_limits, tube_extents
 from pipeline.numerics.funnel.check import Funnel, checked_margins, effective_margins
 from pipeline.numerics.funnel.law import (
     BASE_SUBSTEPS,
-    LEVEL_MARGIN,
     LMI_MARGIN,
     LawOffset,
-    grid_substeps,
     law_offset,
     law_substeps,
 )
 from pipeline.numerics.funnel.pieces import piece_hulls
 from pipeline.numerics.funnel.robust import RobustCheck
 from pipeline.numerics.hull import HullError
-from pipeline.numerics.terminal.check import check_level
-from pipeline.numerics.terminal.fit import end_levels
-from pipeline.numerics.uncertainty import additive_bound, declared_bound, equilibrium_bound
 
 SEGMENTS = (1, 4)
 WIDEN = 1e-9  # relative widening of the tube's extent in the hull boxes (rounding of E3)
 PAD_ROUNDS = 8
 OFFSET_ALLOWANCE = 2.0  # the input boxes hold this multiple of the law's input offset (step 3)
-
-
-@dataclass(frozen=True, kw_only=True)
-class ReferenceCheck:
-    """One trajectory's reference as the file states it.
-
-    Attributes:
-      trajectory: ``x0``, ``u_ref`` simulated on the file's grid (None: ``t`` is not an RK4
-        grid of the samples, and nothing else was measured).
-      substeps: (N,) the grid's steps on each sample interval (None with ``trajectory``).
-      error: ``max ||x_ref - simulated||_P(t) / radius`` on that grid.
-      interpolation: ``max ||x_ref interpolated - the dynamics||_P(t)`` on the finer grid.
-      integration: the RK4 error at the sample times, estimated against a grid twice as fine
-        (Richardson, order 4: ``16/15 |x_s - x_2s|``), in ``P(t_k)`` per unit radius: the larger
-        of the file's grid and the proof's (``BASE_SUBSTEPS``).
-      nominal: the proof's nominal, ``x0`` and ``u_ref`` on a uniform grid of ``BASE_SUBSTEPS``
-        (None with ``trajectory``).
-    """
-
-    trajectory: Trajectory | None
-    substeps: np.ndarray | None = None
-    nominal: Trajectory | None = None
-    error: float
-    interpolation: float
-    integration: float = np.inf
-
-
-def check_reference(
-    scenario: Scenario, reference: ReferenceTrajectory, Ts: float, least_substeps: int
-) -> ReferenceCheck:
-    """``reference``'s ``x_ref`` against the dynamics, in ``P(t)``; the interpolation measured
-    on a grid of ``2 max(file's substeps, least_substeps)`` RK4 steps on each sample interval
-    (finer than the file's, midpoints included)."""
-    tr, N = reference, len(reference.u_ref)
-    substeps = grid_substeps(tr.t, N, Ts)
-    if substeps is None:
-        return ReferenceCheck(trajectory=None, error=np.inf, interpolation=np.inf)
-    fine = simulate_graded(scenario.dynamics, tr.x0, tr.u_ref, Ts, substeps)
-    e = tr.x_ref - fine.dense_xs
-    metric = tr.metric(tr.t, Ts)  # (r, n, n)
-    error = float(np.sqrt(np.einsum("ki,kij,kj->k", e, metric, e)).max()) / tr.radius
-    finer = simulate_graded(
-        scenario.dynamics, tr.x0, tr.u_ref, Ts, 2 * np.maximum(substeps, least_substeps)
-    )
-    tracked = np.stack(
-        [np.interp(finer.dense_ts, tr.t, tr.x_ref[:, j]) for j in range(tr.x_ref.shape[1])], -1
-    )
-    gap = tracked - finer.dense_xs
-    metric = tr.metric(finer.dense_ts, Ts)
-    interpolation = float(np.sqrt(np.einsum("ki,kij,kj->k", gap, metric, gap)).max())
-    metric = tr.metric(fine.ts, Ts)  # (N+1, n, n)
-    proof = simulate(scenario.dynamics, tr.x0, tr.u_ref, Ts, BASE_SUBSTEPS)  # the proof's nominal
-    twice = simulate(scenario.dynamics, tr.x0, tr.u_ref, Ts, 2 * BASE_SUBSTEPS)
-    richardson = [  # order 4: the error of the coarser grid is 16/15 of the difference
-        16 / 15 * np.sqrt(np.einsum("ki,kij,kj->k", d, metric, d)).max()
-        for d in (fine.xs - finer.xs, proof.xs - twice.xs)
-    ]
-    integration = max(richardson)
-    return ReferenceCheck(
-        trajectory=fine,
-        substeps=substeps,
-        nominal=proof,
-        error=error,
-        interpolation=interpolation,
-        integration=float(integration) / tr.radius,
-    )
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -555,140 +471,3 @@ def recheck_as_shipped(
         scenario, nominal, shipped, state_bounds, substeps, disturbance=disturbance,
         period=period, measurement=measurement, multiple=multiple, rebuilt=rebuilt,
     )  # fmt: skip
-
-
-def checked_bound(
-    scenario: Scenario, stated: FloatArray | None, what: str
-) -> tuple[FloatArray | None, list[str]]:
-    """``(b (n,), failures)``: the additive bound a block of the file is re-checked under: the
-    scenario's declaration (``pipeline.numerics.uncertainty``, derived here, never read from
-    the file) raised to the bound the block ``stated`` where that is larger (both claims are
-    then verified); None when neither declares any. A block stating less than the scenario
-    declares is a failure named by ``what`` (it is still re-checked, with the declaration)."""
-    try:
-        declared = declared_bound(scenario)
-    except HullError as error:
-        return np.full(scenario.n, np.inf), [f"{what}: the declared uncertainty: {error}"]
-    failures = _short_of(scenario, declared, stated, f"{what}: the file holds |w_", "uncertainty:")
-    if declared is None:
-        return (None if stated is None else np.asarray(stated)), failures
-    return (declared if stated is None else np.maximum(stated, declared)), failures
-
-
-def _short_of(
-    scenario: Scenario,
-    declared: FloatArray | None,
-    stated: FloatArray | None,
-    holds: str,
-    where: str,
-) -> list[str]:
-    """The failure of a file whose ``stated (n,)`` box (None: zeros) is below the scenario's
-    ``declared`` one in some state (the first such), worded ``holds`` + ``name| <= ...``; none
-    when nothing is declared."""
-    if declared is None:
-        return []
-    held = np.zeros(scenario.n) if stated is None else np.asarray(stated)
-    short = np.flatnonzero(held < declared)
-    if not len(short):
-        return []
-    i = int(short[0])
-    return [
-        f"{holds}{scenario.state_names[i]}| <= {held[i]:.4g}, the scenario declares "
-        f"{declared[i]:.4g} ({where} block); synthesize again"
-    ]
-
-
-def checked_measurement(
-    scenario: Scenario, stated: FloatArray | None
-) -> tuple[FloatArray | None, list[str]]:
-    """``(E (n,), failures)``: the measurement box the file is re-checked under: the scenario's
-    ``uncertainty.measurement`` (never read from the file) raised to the file's stated
-    ``uncertainty.measurement_bound`` where that is larger; None when neither declares any. A
-    file stating less than the scenario declares is a failure (re-checked with the declaration)."""
-    declared = scenario.uncertainty.measurement_box
-    failures = _short_of(
-        scenario, declared, stated, "uncertainty: the file holds |eta_", "uncertainty.measurement"
-    )
-    if declared is None:
-        return (None if stated is None or not np.any(stated) else np.asarray(stated)), failures
-    return (declared if stated is None else np.maximum(stated, declared)), failures
-
-
-def terminal_claim(
-    scenario: Scenario, terminal: TerminalController
-) -> tuple[FloatArray | None, Uncertainty | None, list[str]]:
-    """``(b (n,), parameters, failures)``: what the file's ``terminal`` block is re-checked
-    under. A block stating at least the declared additive bound, or under no declared parameter
-    intervals: ``checked_bound`` (T1'), no parameters in the hull. Otherwise (T7) of
-    ``terminal.check``: the scenario's parameter intervals in the hull and ``b`` the declared
-    disturbance plus their term at the block's own ``(x_eq, u_eq)`` (``uncertainty.
-    equilibrium_bound``, derived here), raised to the block's box where that is larger; a block
-    stating less than that is a failure (re-checked with it). Either way a block without
-    failures holds the declared uncertainty."""
-    stated, parameters = terminal.disturbance, scenario.uncertainty
-    if stated is None or parameters.parametric is None or _holds_whole_box(scenario, stated):
-        bound, failures = checked_bound(scenario, stated, "terminal")
-        return bound, None, failures
-    try:
-        local = equilibrium_bound(parameters, scenario, terminal.x_eq, terminal.u_eq)
-    except HullError as error:
-        return np.full(scenario.n, np.inf), None, [f"terminal: the declared uncertainty: {error}"]
-    failures = _short_of(
-        scenario, local, stated, "terminal: the file holds |w_",
-        "uncertainty: at the terminal equilibrium, (T7)",
-    )  # fmt: skip
-    return np.maximum(stated, local), parameters, failures
-
-
-def _holds_whole_box(scenario: Scenario, stated: FloatArray) -> bool:
-    """``stated (n,)`` is at least the declared additive bound over the whole box in every
-    state (False where that bound cannot be derived: (T7) alone can hold the block)."""
-    try:
-        return bool(np.all(stated >= additive_bound(scenario)))
-    except HullError:
-        return False
-
-
-def recheck_terminal(scenario: Scenario, controller: Controller) -> tuple[float, float, list[str]]:
-    """``(decay, fit, failures)`` of the file's terminal block (certify's step 6): (T1') of
-    ``pipeline.numerics.terminal.check`` under ``checked_bound``, no clipping, inside Goal and the
-    state bounds, and every end tube inside (``terminal.fit.end_levels``). A funnel file's end
-    tubes are widened by ``LEVEL_MARGIN``: ``x_ref(T)`` is the RK4 value, within that share of
-    the radius of the exact nominal's (certify's step 4)."""
-    terminal = controller.terminal
-    if terminal is None:
-        raise TypeError(f"{controller.source}: no terminal block to verify")
-    bound, parameters, failures = terminal_claim(scenario, terminal)
-    bound = np.zeros(scenario.n) if bound is None else bound
-    measurement, _ = checked_measurement(scenario, controller.measurement_bound)  # (T5)
-    if not np.all(np.isfinite(bound)):
-        return float("nan"), float("nan"), failures
-    check = check_level(
-        scenario,
-        terminal.x_eq,
-        terminal.u_eq,
-        terminal.K,
-        terminal.P,
-        terminal.level,
-        # a funnel file's held law: its hold joins the disturbance (T4); a /1 file's: the
-        # constant certificate's held rate
-        period=0.0 if controller.funnel else controller.feedback_period,
-        disturbance=bound,
-        held_period=controller.feedback_period if controller.funnel else 0.0,
-        measurement=measurement,
-        parameters=parameters,
-    )
-    widen = 1 + LEVEL_MARGIN if controller.funnel else 1.0
-    ends = [tr.x_ref[-1] for tr in controller.trajectories]
-    radii = [widen * tr.radius * float(np.exp(-tr.rate * tr.T)) for tr in controller.trajectories]
-    metrics = np.stack([tr.P[-1] for tr in controller.trajectories])  # each end tube's metric
-    needed = end_levels(terminal.P, terminal.x_eq, metrics, ends, radii)
-    fit = float(np.sqrt(needed.max() / terminal.level))
-    failures += [f"terminal: {failure}" for failure in check.failures]
-    if not fit <= 1:
-        i = int(np.argmax(needed))
-        failures.append(
-            f"terminal: trajectories[{i}]'s end tube is not inside the terminal ellipsoid (it "
-            f"needs level {needed[i]:.4g} > {terminal.level:.4g})"
-        )
-    return check.decay, fit, failures
