@@ -43,8 +43,8 @@ record: $(STAMP)
 	$(PY) -m pipeline record $(SCENARIO)
 
 lint: $(STAMP)
-	$(PY) -m ruff check pipeline stages tests bench examples
-	$(PY) -m ruff format --check pipeline stages tests bench examples
+	$(PY) -m ruff check pipeline stages tests bench examples scenarios
+	$(PY) -m ruff format --check pipeline stages tests bench examples scenarios
 	$(VENV)/bin/lint-imports
 	$(VENV)/bin/mypy
 

@@ -281,9 +281,9 @@ def _reference(
     errors: tuple[float, float],
 ) -> tuple[tuple[float, float], ReferenceCheck]:
     """Step 4's reference checks of trajectory ``i`` in its tube metric ``P_i(t)``
-    (``verify.reference.check_reference``). Returns ``(largest (reference error, interpolation error)
-    so far, the check: the file grid's RK4 steps on each sample interval (None: not an RK4
-    grid) and the estimated RK4 error)``."""
+    (``verify.reference.check_reference``). Returns ``(largest (reference error, interpolation
+    error) so far, the check: the file grid's RK4 steps on each sample interval (None: not an
+    RK4 grid) and the estimated RK4 error)``."""
     tr = controller.trajectories[i]
     check = check_reference(scenario, tr, controller.Ts, VERIFY_SUBSTEPS)
     if check.substeps is None:

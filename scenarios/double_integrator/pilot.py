@@ -1,4 +1,4 @@
-"""How the synthetic pilot (``pipeline/pilot.py``) flies double_integrator.
+"""How the synthetic pilot (``pipeline/demonstrations/pilot.py``) flies double_integrator.
 
 Route: up and over the block, across, and down into Goal; flights 2 and 6 cross 0.6 m lower,
 closer to the block. Steering law for a point mass whose inputs are its accelerations: push the

@@ -1,5 +1,5 @@
-"""How the synthetic pilot (``pipeline/pilot.py``) flies quadrotor_hill: quadrotor_hill_flythrough's
-pilot, the same demos.
+"""How the synthetic pilot (``pipeline/demonstrations/pilot.py``) flies quadrotor_hill:
+quadrotor_hill_flythrough's pilot, the same demos.
 
 Route: climb, cross high above the hill, fly past Goal, come back down into it; flights 4 and 8
 cross the hill 1.7 m lower, the way a hurried pilot does.

@@ -1,4 +1,4 @@
-"""How the synthetic pilot (``pipeline/pilot.py``) flies quadrotor_hill_flythrough.
+"""How the synthetic pilot (``pipeline/demonstrations/pilot.py``) flies quadrotor_hill_flythrough.
 
 Route: climb, cross high above the hill, fly past Goal, come back down into it; flights 4 and 8
 cross the hill 1.7 m lower, the way a hurried pilot does.

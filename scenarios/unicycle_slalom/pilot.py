@@ -1,4 +1,4 @@
-"""How the synthetic pilot (``pipeline/pilot.py``) drives unicycle_slalom.
+"""How the synthetic pilot (``pipeline/demonstrations/pilot.py``) drives unicycle_slalom.
 
 Route: over bar 1, under bar 2, over bar 3, into Goal; flights 3 and 7 take bar 2 tighter.
 Steering law for a car-like vehicle, on the registered state: aim the heading along the wanted
