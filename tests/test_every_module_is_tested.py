@@ -51,6 +51,18 @@ COVERED_THROUGH_CALLER = {
     "pipeline.reporting.stage_sections": (
         "tests/stages/test_report.py::test_html_holds_the_headline_numbers_of_summary_json"
     ),
+    # the funnel certificate's entry and its stages, run by every funnel scenario's synthesis
+    # (quadrotor_hill's among them); their parts are tested directly (targets, rounds)
+    "stages.certificates.funnel": (
+        "tests/test_end_to_end.py::test_synthesis_certifies_and_validates"
+    ),
+    "stages.certificates.funnel_run": (
+        "tests/test_end_to_end.py::test_synthesis_certifies_and_validates"
+    ),
+    # a file's references re-simulated and their interpolation measured, by certify
+    "pipeline.numerics.verify.reference": (
+        "tests/stages/test_certify.py::test_the_tracked_reference_is_measured_not_trusted"
+    ),
 }
 
 DOTTED = re.compile(r"[A-Za-z_]\w*(\.[A-Za-z_]\w*)+")
