@@ -25,9 +25,11 @@ from shapely.geometry import box as shapely_box
 
 from pipeline.model.scenario import load_scenario
 from pipeline.model.simulate import simulate
+from pipeline.numerics.funnel.check import check_funnel
 from pipeline.numerics.funnel.lmi import FunnelProgram, basis, solve_clarabel, solve_cvxpy, svec
 from pipeline.numerics.funnel.pieces import pieces
-from pipeline.numerics.funnel.synthesis import check_funnel, lqr_seed, synthesize_funnel
+from pipeline.numerics.funnel.seed import lqr_seed
+from pipeline.numerics.funnel.synthesis import synthesize_funnel
 
 THETA_BOUNDS = {"theta": (-0.8, 0.8)}
 

@@ -77,7 +77,8 @@ half-ranges; Clarabel, the program assembled by ``funnel.lmi`` (cvxpy states the
 for the tests). ``Q / tau`` holds the whole initial set at level 1 and meets every cap at level
 ``sqrt(tau)``. 4. Level: ``rho = min(sqrt(tau), funnel_limits)`` (``funnel.bounds``; Goal there
 is the exact ellipse).
-5. ``funnel.check.check_funnel``: numpy only; a funnel that fails it is rejected.
+5. ``funnel.check.check_funnel``: numpy only; a funnel that fails it is rejected. Step 1 and (F5)
+are ``funnel.seed``, step 3's program ``funnel.program``.
 
 Co-designed gains (F6), under a disturbance. The LQR gains are designed for the nominal's
 linearisation, not for the disturbance, and a funnel around them holds little of it. With
@@ -97,15 +98,12 @@ re-optimization has more room in them).
 from __future__ import annotations
 
 import dataclasses
-import itertools
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import TypedDict, Unpack
 
 import numpy as np
-import shapely
-from scipy.linalg import expm, solve_discrete_are
 
 from pipeline.model.dynamics import FloatArray
 from pipeline.model.scenario import Scenario
@@ -113,7 +111,6 @@ from pipeline.model.simulate import Trajectory
 from pipeline.numerics.funnel.bounds import (
     Enclosure,
     funnel_limits,
-    interval_clearance,
 )
 from pipeline.numerics.funnel.check import (
     LEVEL_SLACK,
@@ -121,11 +118,11 @@ from pipeline.numerics.funnel.check import (
     certificate_margins,
     check_funnel,
 )
-from pipeline.numerics.funnel.law import LawOffset, corners
-from pipeline.numerics.funnel.lmi import FunnelProgram, codesign_gains, solve_clarabel
+from pipeline.numerics.funnel.law import LawOffset
+from pipeline.numerics.funnel.lmi import codesign_gains, solve_clarabel
 from pipeline.numerics.funnel.pieces import interpolate, piece_hulls, pieces
-from pipeline.numerics.funnel.robust import invariant_ellipsoid
-from pipeline.numerics.funnel.sampled import paired_vertices
+from pipeline.numerics.funnel.program import funnel_program
+from pipeline.numerics.funnel.seed import disturbance_seed, lqr_seed
 from pipeline.numerics.hull import HullError, arc_variables
 from pipeline.numerics.terminal.fit import TerminalTarget, containing_level
 
@@ -166,7 +163,6 @@ MARGINS = (1e-3, 1e-2)
 # 1.0 held 76-96% of them.
 ROBUST_MULTIPLIERS = (0.3, 0.5, 0.7, 1.0, 1.5, 2.0, 3.0, 5.0, 10.0)
 ROBUST_MARGIN = 0.05
-ROBUST_SEED = 2.0  # the hull boxes hold this multiple of the seed's disturbance extent (F5)
 WHOLE_ROUNDING = 1e-6  # a level this close below the whole design level stops the search
 # Sample intervals per LMI piece: K is held and Q = P^-1 linear in t over each piece (see HOLD in
 # the module docstring).
@@ -197,184 +193,6 @@ class MultiplierSearch:
     def past_best(self, codesign: bool) -> bool:
         """Whether ``codesign``'s family has stopped."""
         return codesign in self.stopped
-
-
-def lqr_seed(
-    scenario: Scenario, trajectory: Trajectory, stationary_end: bool = False
-) -> tuple[FloatArray, FloatArray]:
-    """Time-varying LQR along the nominal: ``K (N, m, n)`` (sign of ``u = u_ref + K e``) and the
-    cost-to-go ``P (N+1, n, n)``, terminal ``P[N] = Ts diag(state_weights)``; with
-    ``stationary_end`` the stationary cost-to-go at the end (the discrete Riccati equation of the
-    last sample's linearisation: a nominal ending at rest hands over to the terminal LQR law, and
-    its gains do not fade towards T as they do with the small terminal cost, which under a
-    disturbance left the end too wide for the terminal ellipsoid)."""
-    dynamics, Ts = scenario.dynamics, scenario.Ts
-    xs, us = trajectory.xs, trajectory.us
-    n, m, N = scenario.n, scenario.m, us.shape[0]
-    M = np.zeros((N, n + m, n + m))
-    M[:, :n, :n] = dynamics.f_x(xs[:-1], us)
-    M[:, :n, n:] = dynamics.f_u(xs[:-1], us)
-    E = expm(M * Ts)  # zero-order hold: [Ad Bd; 0 I] = expm([A B; 0 0] Ts)
-    Ad, Bd = E[:, :n, :n], E[:, :n, n:]
-    Qw = Ts * np.diag(scenario.feedback.state_weights)
-    Rw = Ts * np.diag(scenario.feedback.input_weights)
-    P = np.empty((N + 1, n, n))
-    K = np.empty((N, m, n))
-    P[N] = Qw
-    if stationary_end:
-        try:
-            P[N] = solve_discrete_are(Ad[-1], Bd[-1], Qw, Rw)
-        except (ValueError, np.linalg.LinAlgError):
-            pass  # not stabilisable at the end: the plain terminal cost
-    for k in range(N - 1, -1, -1):  # eq. (F4): discrete Riccati recursion
-        A, B, S = Ad[k], Bd[k], P[k + 1]
-        K[k] = -np.linalg.solve(Rw + B.T @ S @ B, B.T @ S @ A)
-        Pk = Qw + A.T @ S @ (A + B @ K[k])
-        P[k] = (Pk + Pk.T) / 2
-    return K, P
-
-
-def _weights(scenario: Scenario, state_bounds: Mapping[str, tuple[float, float]], K):
-    """(N, n, n) ``W[k]`` of the objective ``sum_k tr(W[k] Q[k])``."""
-    n = scenario.n
-    C = np.zeros((2, n))
-    C[0, scenario.position_index[0]] = C[1, scenario.position_index[1]] = 1.0
-    W = np.broadcast_to(C.T @ C / scenario.clearance**2, (len(K), n, n)).copy()
-    for j in range(scenario.m):
-        half = (scenario.input_upper[j] - scenario.input_lower[j]) / 2
-        W += np.einsum("ki,kl->kil", K[:, j], K[:, j]) / half**2
-    for name, (lower, upper) in state_bounds.items():
-        i = scenario.state_names.index(name)
-        W[:, i, i] += 4 / (upper - lower) ** 2
-    return W
-
-
-def disturbance_seed(
-    scenario: Scenario, trajectory: Trajectory, K: FloatArray, bound: FloatArray
-) -> FloatArray | None:
-    """A guess ``(N+1, n, n)`` of the funnel that holds the disturbance ``|w| <= bound (n,)``
-    (F5): per sample ``k`` the invariant ellipsoid of the frozen closed loop ``Acl = f_x + f_u
-    K[k]`` at the nominal (``funnel.robust.invariant_ellipsoid``, least position extent), times
-    ``ROBUST_SEED^2``. Only the hull boxes are sized by it, so nothing here needs to be sound:
-    the LMIs and ``check_funnel`` decide. None where a frozen loop is not stable. ``K (N, m,
-    n)``."""
-    n, N = scenario.n, len(K)
-    A = scenario.dynamics.f_x(trajectory.xs[:-1], trajectory.us)
-    B = scenario.dynamics.f_u(trajectory.xs[:-1], trajectory.us)
-    position = np.zeros((n, n))
-    position[scenario.position_index, scenario.position_index] = 1.0
-    Q = np.empty((N + 1, n, n))
-    for k in range(N):
-        guess = invariant_ellipsoid(A[k] + B[k] @ K[k], bound, position)
-        if guess is None:
-            return None
-        Q[k] = guess
-    Q[N] = Q[N - 1]
-    return ROBUST_SEED**2 * Q
-
-
-def _program(
-    scenario, trajectory, K, vertices, boxes, variables, enclosure, Q_init, Q_seed, c, bounds,
-    disturbance=None, multiplier=0.0, margin=0.0, terminal=None, state_bounds=None,
-    codesign=False, period=0.0, pushed=None,
-):  # fmt: skip
-    """(F3) on the LMI pieces ``bounds`` (unknowns: ``Q`` at the piece ends), with the initial set
-    and the tube at level 1 inside every hull box, clear of Unsafe (a disk bound) and inside Goal
-    (``funnel.lmi``). On a piece ``Q`` is linear and ``K`` held, so the tube's extents are largest
-    at its ends (E3): the caps there hold on every sample interval of the piece. Under a
-    ``disturbance`` every input bound and ``state_bounds`` entry is capped too: the level of a
-    robust funnel cannot shrink below the design's to fit a bound the program did not see
-    ((I5)'s disturbance term grows as the level shrinks). ``period > 0``: (F3) on the pairs of
-    ``funnel.sampled.paired_vertices`` too (a held law's push to first order, (I6'), at the
-    piece's first gain ``K``; with ``codesign`` the seed's), on the pieces holding an interval of
-    ``pushed`` (None: every piece)."""
-    n, us, final_state = scenario.n, trajectory.us, trajectory.dense_xs[-1]
-    S = len(bounds) - 1
-    clearance = interval_clearance(scenario, trajectory, enclosure)
-    C_pos = np.eye(n)[list(scenario.position_index)]
-    caps: list[tuple[int, FloatArray, FloatArray]] = []
-    gain_caps: list[tuple[int, int, int, float]] = []
-
-    def cap_input(j: int, a: int, i: int, room: float) -> None:
-        """Input ``i``'s tube at level 1 within ``room`` of u_ref on piece ``j`` (from ``a``),
-        at both ends: ``K_i Q K_i^T <= room^2``, or with ``codesign`` its Schur form in ``Y``."""
-        for e in (j, j + 1):
-            if codesign:
-                gain_caps.append((e, j, i, max(room, 0.0) ** 2))
-            else:
-                caps.append((e, K[a, i : i + 1], np.full((1, 1), max(room, 0.0) ** 2)))
-
-    for j, (a, b) in enumerate(itertools.pairwise(bounds)):
-        for d, name in enumerate(variables):
-            lo, hi = boxes[a, :, d]
-            if name in scenario.input_names:  # K_j Q K_j^T <= room^2 at both ends
-                i = scenario.input_names.index(name)
-                cap_input(j, a, i, min((us[a:b, i] - lo).min(), (hi - us[a:b, i]).min()))
-                continue
-            i = scenario.state_names.index(name)  # Q_ii <= room^2 at both ends
-            room = min(
-                (enclosure.range[a:b, 0, i] - lo).min(), (hi - enclosure.range[a:b, 1, i]).min()
-            )
-            caps += [
-                (e, np.eye(n)[i : i + 1], np.full((1, 1), max(room, 0.0) ** 2)) for e in (j, j + 1)
-            ]
-        if disturbance is not None:  # under a disturbance the level cannot shrink to fit
-            for i, name in enumerate(scenario.input_names):  # the input bounds, every input
-                if name in variables:
-                    continue  # capped by its hull box above
-                lower, upper = scenario.input_lower[i], scenario.input_upper[i]
-                room = min((us[a:b, i] - lower).min(), (upper - us[a:b, i]).min())
-                cap_input(j, a, i, room)
-            for name, (lower, upper) in (state_bounds or {}).items():  # and the state bounds
-                if name in variables:
-                    continue
-                i = scenario.state_names.index(name)
-                room = min(
-                    (enclosure.range[a:b, 0, i] - lower).min(),
-                    (upper - enclosure.range[a:b, 1, i]).min(),
-                )
-                C = np.eye(n)[i : i + 1]
-                caps += [(e, C, np.full((1, 1), max(room, 0.0) ** 2)) for e in (j, j + 1)]
-        # The position disk of the tube at level 1 clear of Unsafe (funnel.bounds (a)).
-        d = clearance[a:b].min()
-        if np.isfinite(d):
-            caps += [(e, C_pos, max(d, 0.0) ** 2 * np.eye(2)) for e in (j, j + 1)]
-    final = scenario.positions(trajectory.dense_xs[-1])
-    inside = shapely.intersects_xy(scenario.goal, *final)
-    g = float(shapely.distance(shapely.Point(final), scenario.goal.boundary)) * inside
-    caps.append((S, C_pos, g**2 * np.eye(2)))
-    for name, (lower, upper) in scenario.goal_bounds.items():
-        i = scenario.state_names.index(name)
-        room = max(min(final_state[i] - lower, upper - final_state[i]), 0.0)
-        caps.append((S, np.eye(n)[i : i + 1], np.full((1, 1), room**2)))
-    if terminal is not None:  # E(T) inside the terminal ellipsoid (terminal.fit (T2))
-        caps.append((S, *terminal.end_cap(final_state)))
-    # with codesign the inputs' spread is weighted through Z >= K Q K^T (funnel.lmi's gain_weight)
-    W = _weights(scenario, {}, np.zeros_like(K) if codesign else K)
-    W = np.concatenate([W, W[-1:]])[bounds]  # (S+1, n, n) at the piece ends
-    halves = (scenario.input_upper - scenario.input_lower) / 2
-    return FunnelProgram(
-        Ts=scenario.Ts * np.diff(bounds).astype(np.float64),
-        K=K[bounds[:-1]],
-        vertices=tuple(
-            paired_vertices(vertices[a], K[a], period)
-            if period > 0 and (pushed is None or any(a <= k < b for k in pushed))
-            else vertices[a]
-            for a, b in itertools.pairwise(bounds)
-        ),
-        c=c,
-        Q_init=Q_init,
-        floor=1e-4 * float(np.linalg.eigvalsh(Q_init)[:, -1].max()),
-        caps=tuple(caps),
-        W=W,
-        initial_weight=100 * float(np.einsum("kij,kji->", W, Q_seed[bounds])),
-        disturbance=None if disturbance is None else corners(disturbance),
-        multiplier=multiplier,
-        margin=margin,
-        codesign=codesign,
-        gain_caps=tuple(gain_caps),
-        gain_weight=np.diag(1 / halves**2) if codesign else None,
-    )
 
 
 def _outside(terminal: TerminalTarget, end: FloatArray, funnel: Funnel, T: float) -> str | None:
@@ -565,7 +383,7 @@ def synthesize_funnel(
             # a solution within the solver's tolerance may fail the check: the next margin
             gains, origin = K, ""
             if family:  # (F6): gains designed with the metric, then held ((F3))
-                designed = codesign_gains(_program(
+                designed = codesign_gains(funnel_program(
                     scenario, trajectory, K, vertices, boxes, variables, enclosure, Q_init,
                     Q_seed, 2 * rate + margin, bounds, robust, multiplier, margin, terminal,
                     state_bounds, codesign=True, period=period, pushed=pushed,
@@ -575,7 +393,7 @@ def synthesize_funnel(
                     search.record(family, 0.0)
                     continue
                 gains, origin = designed[0][np.repeat(np.arange(S), np.diff(bounds))], "(F6) "
-            program = _program(
+            program = funnel_program(
                 scenario, trajectory, gains, vertices, boxes, variables, enclosure, Q_init,
                 Q_seed, 2 * rate + margin, bounds, robust, multiplier, margin, terminal,
                 state_bounds, period=period, pushed=pushed,
