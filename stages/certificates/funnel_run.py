@@ -72,7 +72,7 @@ def funnel_stages(
     earlier: tuple[EarlierDesign, ...] = (),
 ) -> tuple[FunnelStageResult, CoverageResult]:
     """Stages ``stage`` (``funnel``, ``funnel_k`` in re-optimize round k, the held law's
-    ``funnel_held...``, ``held_funnels``: one funnel per trajectory, on ``executor``;
+    ``funnel_held...``, ``rounds.held_funnels``: one funnel per trajectory, on ``executor``;
     ``reuse[i]``, when given, is trajectory i's funnel from an earlier round around the same
     nominal, with its verdict then; ``earlier[i]``: how an earlier round designed its kept
     funnel, tried first) and ``coverage_<stage>`` (Init by the usable funnels' initial

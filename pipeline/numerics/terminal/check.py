@@ -105,7 +105,7 @@ thrust the box allows. Where that leaves no set, ``terminal.design.hold_design``
 at ``(x_eq, u_eq)`` alone (``uncertainty.equilibrium_bound``). Then ``e' = (A + B K_T) e + r +
 w`` holds with ``[A B]`` in that hull and ``|w| <= b`` for every parameter in its interval, so
 (T1')-(T5) go through word for word (``check_level(parameters=...)``), the residual ``r`` still
-the nominal model's.
+the nominal model's, and so does (T6)'s choice of a set (``terminal.design``).
 
 ``terminal.design`` chooses the equilibrium, the gain, the metric and the level; everything it
 ships is checked here from scratch.

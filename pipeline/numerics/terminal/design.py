@@ -1,11 +1,11 @@
 """The terminal controller: an equilibrium in Goal, its LQR law and a certified invariant ellipsoid.
 
 After the horizon ``T`` the law becomes ``u = u_eq + K_T e``, ``e = x - x_eq``
-(``terminal.equilibrium``), and ``E_c = {e^T P_T e <= c}`` is certified invariant, inside Goal
-and the input bounds, robust to the declared uncertainty, for the held law and a measurement
-error: ``terminal.check`` (T1)-(T5), (T7). This module chooses what is checked: the equilibrium,
-the gain, the metric (the Riccati matrix, the disturbance-shaped (T3) metric of
-``terminal.robust``) and the largest level that certifies.
+(``terminal.equilibrium``), and ``E_c = {e^T P_T e <= c}`` is certified invariant, inside Goal and
+the input bounds, robust to the declared uncertainty, for the held law and a measurement error:
+``terminal.check`` (T1), (T1'), (T1''), (T4), (T4'), (T5), (T7). This module chooses what is
+checked: the equilibrium, the gain, the metric (the Riccati matrix, the disturbance-shaped (T3)
+metric of ``terminal.robust``) and the largest level that certifies.
 
 (T6) A larger set under a large bound (``hold_design``). The (T3) metric, certified at level ``c``,
 holds ``sqrt(c)`` times the smallest set the disturbance leaves. Below ``ROOM`` times, the funnels'
@@ -157,11 +157,11 @@ def design_terminal(
 
 def hover_box(scenario: Scenario, design: TerminalDesign) -> FloatArray | None:
     """(2, 2) ``[[lower_X, upper_X], [lower_Y, upper_Y]]``: the bounding box of the positions at
-    which ``design``'s terminal set, moved there unchanged (same ``K``, ``P``, level), still
-    lies inside Goal as ``check_level`` tests it: Goal eroded by the set's position ellipse (in
-    the whitened coordinates ``W p`` a disk of radius ``sqrt(level)``), and inside Goal's extra
-    bounds and ``state_bounds`` on the position states. The erosion is shapely's buffer (arcs
-    as segments), so the box is a guide, not a guarantee: a design at any of its points is
+    which ``design``'s terminal set, moved there unchanged (same ``K``, ``P``, level), still lies
+    inside Goal as ``terminal.check.check_level`` tests it: Goal eroded by the set's position
+    ellipse (in the whitened coordinates ``W p`` a disk of radius ``sqrt(level)``), and inside
+    Goal's extra bounds and ``state_bounds`` on the position states. The erosion is shapely's buffer
+    (arcs as segments), so the box is a guide, not a guarantee: a design at any of its points is
     checked from scratch (``hold_design``). None when nothing is left."""
     tube, r = level_tube(scenario, design.K, design.P), float(np.sqrt(design.check.level))
     W = tube.position_whitening

@@ -19,17 +19,16 @@ checks), at the level it finds.
 
 (T6) The largest set instead. (T3) at level 1 is about the smallest set the disturbance leaves, and
 the terminal level then scales it up to what the inputs, Goal and the hull allow. Under a large
-bound that is little: a funnel ends in its own smallest set around its nominal's end, and a
-terminal set only ``sqrt(level)`` times (T3)'s holds no such end but near its centre
-(docs/certificates.md). ``largest_metric`` keeps (T3)'s invariance rows and maximises ``log det
-Q`` instead, over a fixed box: each bounded variable within a share of its room about the
-equilibrium (``Q_ii <= half_i^2``, ``K_j Q K_j^T <= half_j^2``), the position disk in Goal and
-the states in Goal's extra bounds. Without a gain, ``Y = K Q`` is an unknown too (Boyd et al.
-section 7.2.1: ``A_v Q + B_v Y`` in the rows, the input caps ``[[Q, Y_j^T], [Y_j, half_j^2]] >=
-0`` by the Schur complement) and ``K = Y Q^-1``. The largest set is not shaped for the ends'
-offsets (its inscribed box is no larger than (T3)'s scaled one), so the nominals still end in a
-(T3) set (``terminal.design.hold_design``).
-"""
+bound that is little: a funnel ends in its own smallest set around its nominal's end, and a terminal
+set only ``sqrt(level)`` times (T3)'s holds no such end but near its centre
+(bench/notes/arrive-and-stay.md). ``largest_metric`` keeps (T3)'s invariance rows and maximises
+``log det Q`` instead, over a fixed box: each bounded variable within a share of its room about the
+equilibrium (``Q_ii <= half_i^2``, ``K_j Q K_j^T <= half_j^2``), the position disk in Goal and the
+states in Goal's extra bounds. Without a gain, ``Y = K Q`` is an unknown too (Boyd et al. section
+7.2.1: ``A_v Q + B_v Y`` in the rows, the input caps ``[[Q, Y_j^T], [Y_j, half_j^2]] >= 0`` by the
+Schur complement) and ``K = Y Q^-1``. The largest set is not shaped for the ends' offsets (its
+inscribed box is no larger than (T3)'s scaled one), so the nominals still end in a (T3) set
+(``terminal.design.hold_design``)."""
 
 from __future__ import annotations
 

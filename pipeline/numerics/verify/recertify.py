@@ -4,10 +4,10 @@ The references: ``verify.reference``; the terminal block: ``verify.terminal``; t
 block is re-checked under: ``verify.declared``.
 
 ``recheck_funnel`` (``/2``). The file carries, per trajectory, ``x_ref`` (re-simulated by
-``check_reference`` from ``x0`` and ``u_ref``), ``K (N, m, n)``, ``P (N+1, n, n)`` (``Q =
-P^-1`` linear in t between samples, eq. (F1) of ``pipeline.numerics.funnel.synthesis``), the level
-``rho`` and the rate ``lambda``; not the hulls the synthesis used. Rebuilt here, independently of
-the synthesis's boxes and its solver:
+``verify.reference.check_reference`` from ``x0`` and ``u_ref``), ``K (N, m, n)``, ``P (N+1, n, n)``
+(``Q = P^-1`` linear in t between samples, eq. (F1) of ``pipeline.numerics.funnel.synthesis``), the
+level ``rho`` and the rate ``lambda``; not the hulls the synthesis used. Rebuilt here, independently
+of the synthesis's boxes and its solver:
 
 1. per sample interval ``k``, the nominal's a priori box ``B_k = grid_k +- pad`` (E1 of
    ``funnel.bounds``: ``F h < pad`` with ``F`` from the hull below, ``pad`` grown until it holds);

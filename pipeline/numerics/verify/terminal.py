@@ -24,10 +24,10 @@ from pipeline.numerics.verify.declared import checked_measurement, terminal_clai
 
 def recheck_terminal(scenario: Scenario, controller: Controller) -> tuple[float, float, list[str]]:
     """``(decay, fit, failures)`` of the file's terminal block (certify's step 6): (T1') of
-    ``pipeline.numerics.terminal.check`` under ``checked_bound``, no clipping, inside Goal and the
-    state bounds, and every end tube inside (``terminal.fit.end_levels``). A funnel file's end
-    tubes are widened by ``LEVEL_MARGIN``: ``x_ref(T)`` is the RK4 value, within that share of
-    the radius of the exact nominal's (certify's step 4)."""
+    ``pipeline.numerics.terminal.check`` under ``verify.declared.checked_bound``, no clipping,
+    inside Goal and the state bounds, and every end tube inside (``terminal.fit.end_levels``). A
+    funnel file's end tubes are widened by ``LEVEL_MARGIN``: ``x_ref(T)`` is the RK4 value, within
+    that share of the radius of the exact nominal's (certify's step 4)."""
     terminal = controller.terminal
     if terminal is None:
         raise TypeError(f"{controller.source}: no terminal block to verify")
