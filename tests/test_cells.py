@@ -172,3 +172,18 @@ def test_five_free_states_ask_for_polytopes_that_hold_their_cells_and_reach_less
         reach = np.sqrt(np.einsum("pi,ij,pj->p", v, M, v)).max()
         ratio.append(reach / np.sqrt(np.einsum("pi,ij,pj->p", box, M, box)).max())
     assert np.all(np.array(ratio[1:]) <= 0.8)  # each corner start: 0.71 of its box
+
+
+def test_the_same_question_is_answered_once_and_the_answer_cannot_be_changed():
+    """The funnel stages of a run ask for the same cells every round: the answer is kept, read
+    only, and any change of Init, the starts or the metric asks again."""
+    lower, upper = np.zeros(2), np.ones(2)
+    starts = np.array([[0.25, 0.5], [0.75, 0.5]])
+    first = init_cells(lower, upper, starts, np.eye(2))
+    assert init_cells(lower.copy(), upper.copy(), starts.copy(), np.eye(2)) is first
+    with pytest.raises(ValueError, match="read-only"):
+        first[0][0, 0] = 1.0
+    skewed = init_cells(lower, upper, starts, np.diag([1.0, 1e-3]))
+    assert skewed is not first
+    moved = init_cells(lower, upper, starts + [[0.1, 0.0], [0.0, 0.0]], np.eye(2))
+    assert not np.array_equal(moved[0], first[0])

@@ -48,6 +48,7 @@ Init.
 
 from __future__ import annotations
 
+import functools
 import itertools
 
 import numpy as np
@@ -76,11 +77,38 @@ def init_cells(
       lower, upper: (n,) Init; starts: (k, n) ``x0_i``; metric: (n, n) ``M`` of (C1),
       positive semidefinite; divisions: ``g``, cells per free side (default ``DIVISIONS``,
       halved while ``g^D > MAX_CELLS``).
+
+    The offsets are read-only; the last few answers are kept (the funnel stages of one run ask
+    the same question each round: about 0.6 s in five dimensions).
     """
     lower = np.asarray(lower, dtype=np.float64)
     upper = np.asarray(upper, dtype=np.float64)
     starts = np.atleast_2d(np.asarray(starts, dtype=np.float64))
     M = np.asarray(metric, dtype=np.float64)
+    key = tuple((a.shape, a.tobytes()) for a in (lower, upper, starts, M))
+    return _kept_cells(key, divisions)
+
+
+@functools.lru_cache(maxsize=8)
+def _kept_cells(
+    key: tuple[tuple[tuple[int, ...], bytes], ...], divisions: int | None
+) -> tuple[FloatArray, ...]:
+    """``init_cells`` of the arrays ``key`` holds (shape and bytes of each), frozen."""
+    lower, upper, starts, M = (np.frombuffer(b).reshape(shape) for shape, b in key)
+    cells = _init_cells(lower, upper, starts, M, divisions)
+    for offsets in cells:
+        offsets.flags.writeable = False
+    return cells
+
+
+def _init_cells(
+    lower: FloatArray,
+    upper: FloatArray,
+    starts: FloatArray,
+    M: FloatArray,
+    divisions: int | None,
+) -> tuple[FloatArray, ...]:
+    """``init_cells`` computed (arguments as its own, as float64 arrays)."""
     n = lower.shape[0]
     if starts.shape[1] != n or M.shape != (n, n):
         raise ValueError(
