@@ -243,29 +243,29 @@ def check_level(
         room = min(room, (x_eq[i] - lo) / extent[i], (hi - x_eq[i]) / extent[i])
     if not room - r >= 0:
         failures.append(f"E_c leaves Goal (radius {r:.3g} > room {room:.3g} in P_T-norm)")
+
     # inside the physical envelope (state_bounds), which holds after T too
+    def room_in(field: str, name: str, lo: float, hi: float, where: str = "") -> float:
+        """The room (P_T-norm radius) between ``x_eq`` and ``[lo, hi]`` in state ``name``; a
+        failure named ``field.name`` when ``E_c`` leaves it."""
+        i = scenario.state_names.index(name)
+        room_i = min((x_eq[i] - lo) / extent[i], (hi - x_eq[i]) / extent[i])
+        if not room_i - r >= 0:
+            failures.append(
+                f"E_c leaves {field}.{name} = [{lo:g}, {hi:g}]{where} (radius {r:.3g} > room "
+                f"{room_i:.3g} in P_T-norm)"
+            )
+        return room_i
+
     envelope = np.inf
     for name, (lo, hi) in scenario.state_bounds.items():
-        i = scenario.state_names.index(name)
-        inside = min((x_eq[i] - lo) / extent[i], (hi - x_eq[i]) / extent[i])
-        if not inside - r >= 0:
-            failures.append(
-                f"E_c leaves state_bounds.{name} = [{lo:g}, {hi:g}] (radius {r:.3g} > room "
-                f"{inside:.3g} in P_T-norm)"
-            )
-        envelope = min(envelope, inside)
+        envelope = min(envelope, room_in("state_bounds", name, lo, hi))
     if np.any(b > 0):  # the additive bound holds over uncertainty.certified_box only
         for name, (lo, hi) in scenario.operating_region.items():
             if name not in scenario.state_names or name in scenario.state_bounds:
                 continue
-            i = scenario.state_names.index(name)
-            inside = min((x_eq[i] - lo) / extent[i], (hi - x_eq[i]) / extent[i])
-            if not inside - r >= 0:
-                failures.append(
-                    f"E_c leaves operating_region.{name} = [{lo:g}, {hi:g}], where the "
-                    f"disturbance bound holds (radius {r:.3g} > room {inside:.3g} in P_T-norm)"
-                )
-            envelope = min(envelope, inside)
+            where = ", where the disturbance bound holds"
+            envelope = min(envelope, room_in("operating_region", name, lo, hi, where))
     margin = min(room, envelope) - r
     # decay (T1) at every vertex of a sound hull over the bounding box Z_c
     centre_z = np.concatenate([x_eq, u_eq])  # (n + m,)
