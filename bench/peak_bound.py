@@ -50,7 +50,7 @@ def _linearised(
     step: the shipped gains about the reference interpolated, at the nominal parameters."""
     uncertainty = scenario.uncertainty
     if uncertainty.parametric is None:
-        raise SystemExit(f"{scenario.name} declares no uncertain parameters")
+        raise ValueError(f"{scenario.name} declares no uncertain parameters")
     N, h = len(reference.K), scenario.Ts / SUBSTEPS
     t = np.arange(N * SUBSTEPS) * h
     x = np.stack([np.interp(t, reference.t, reference.x_ref[:, j]) for j in range(scenario.n)], -1)
@@ -138,6 +138,8 @@ def run_for(name: str, path: str, bounds: dict[str, tuple[FloatArray, FloatArray
 
 
 def _declared(scenario: Scenario, scale: float) -> tuple[FloatArray, FloatArray]:
+    """``scale`` times the declaration: the parameters' half-widths about their nominal values
+    ``(q,)`` (the larger side) and the disturbance box ``(n,)``."""
     u = scenario.uncertainty
     half = np.maximum(
         u.parameter_upper - u.parameter_nominal, u.parameter_nominal - u.parameter_lower
@@ -151,7 +153,15 @@ def main(argv: list[str]) -> int:
         return 2
     name, path, *scales = argv
     scenario = load_scenario(name, check_demos=False)
-    bounds = {f"{float(s):g}x": _declared(scenario, float(s)) for s in scales or ["1"]}
+    if scenario.uncertainty.parametric is None:
+        print(f"{name} declares no uncertain parameters: nothing to compare", file=sys.stderr)
+        return 2
+    try:
+        multiples = [float(s) for s in scales or ["1"]]
+    except ValueError:
+        print(f"SCALE must be numbers, got {scales}", file=sys.stderr)
+        return 2
+    bounds = {f"{s:g}x": _declared(scenario, s) for s in multiples}
     if not scales and name in ASKED:
         parameters, disturbance = ASKED[name]
         u = scenario.uncertainty
