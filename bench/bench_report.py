@@ -4,7 +4,10 @@ Issue 15's report row (``bench_speed`` (a)) measures this tree alone; this one r
 stage of quadrotor_hill_flythrough with an empty figure cache alternately with ``BASELINE``
 (exported by ``git archive`` into a temporary folder; ``REPORT_BASELINE=REV`` picks another
 revision), each in a fresh interpreter on its own copy of one finished run, so that both see the
-same machine load. Prints every round and the medians; skipped outside a git checkout.
+same machine load. The baseline knew quadrotor_hill_flythrough as ``quadrotor_hill`` (renamed
+2026-11-27): each tree loads it by the name its own ``scenarios/`` has. Prints every round and the
+medians; skipped outside a git checkout, or (with the baseline's error) where the baseline cannot
+write this tree's run.
 """
 
 from __future__ import annotations
@@ -28,7 +31,7 @@ from pipeline.model.scenario import load_scenario
 from pipeline.runtime.stored import load_report_data
 from stages.report import write_reports
 out = Path(sys.argv[1])
-scenario = load_scenario("quadrotor_hill_flythrough")
+scenario = load_scenario(sys.argv[2])
 shutil.rmtree(out / "artifacts" / "figures", ignore_errors=True)
 start = time.perf_counter()
 result = write_reports(load_report_data(scenario, out))
@@ -36,11 +39,20 @@ print(f"{time.perf_counter() - start:.3f}|{result.message}")
 """
 
 
+SCENARIO = "quadrotor_hill_flythrough"
+FORMER_NAME = "quadrotor_hill"  # the same scenario's name before 2026-11-27
+
+
+def _scenario_in(tree: Path) -> str:
+    """The name ``tree``'s own ``scenarios/`` gives quadrotor_hill_flythrough."""
+    return SCENARIO if (tree / "scenarios" / SCENARIO).is_dir() else FORMER_NAME
+
+
 def _once(tree: Path, run: Path, copy: Path) -> tuple[float, str]:
     shutil.rmtree(copy, ignore_errors=True)
     shutil.copytree(run, copy)
     done = subprocess.run(
-        [sys.executable, "-c", PROGRAM, str(copy)],
+        [sys.executable, "-c", PROGRAM, str(copy), _scenario_in(tree)],
         cwd=tree,
         env={**os.environ, "PYTHONPATH": str(tree)},
         capture_output=True,
@@ -70,6 +82,12 @@ def run() -> None:
         print(f"report stage of quadrotor_hill_flythrough, empty figure cache, run {source}")
         trees = {f"baseline {baseline}": old, "this tree": ROOT}
         times: dict[str, list[float]] = {name: [] for name in trees}
+        try:
+            _once(old, run_folder, folder / "probe")
+        except RuntimeError as error:
+            last = str(error).strip().splitlines()[-1]
+            print(f"skipped: the baseline {baseline} cannot write this tree's run ({last})")
+            return
         for k in range(ROUNDS):
             for name, tree in trees.items():
                 seconds, message = _once(tree, run_folder, folder / f"copy-{k}")
