@@ -38,6 +38,7 @@ from pipeline.runtime.api import synthesize
 from pipeline.runtime.options import RunOptions
 from pipeline.runtime.orchestrator import rebuild_reports
 from pipeline.runtime.stored import staged_report_data
+from stages.certify import certify_controller
 from stages.montecarlo import validate_closed_loop
 from stages.report import write_reports
 
@@ -82,11 +83,14 @@ def run() -> None:
         staging = out / ".staging"  # where a run writes its controller.json and reports
         staging.mkdir(exist_ok=True)
         shutil.copy(out / "controller.json", staging / "controller.json")
+        # certify's check of the file, as the run hands it to the report (not timed; no stress)
+        certification = certify_controller(scenario, staging / "controller.json")
         for case in ("empty figure cache", "nothing changed (figures and PDF reused)"):
             if case.startswith("empty"):
                 shutil.rmtree(out / "artifacts" / "figures", ignore_errors=True)
             start = time.perf_counter()
-            result = write_reports(staged_report_data(scenario, out, staging, summary))
+            data = staged_report_data(scenario, out, staging, summary, certification, None)
+            result = write_reports(data)
             _row(case, time.perf_counter() - start, REPORT_LIMIT)
             print(f"      {result.message}")
 
