@@ -137,13 +137,16 @@ def run_for(name: str, path: str, bounds: dict[str, tuple[FloatArray, FloatArray
             print(f"{label:<10} {reference.name or '':<8} {cells}", flush=True)
 
 
+def _half_widths(lower: FloatArray, upper: FloatArray, nominal: FloatArray) -> FloatArray:
+    """``(q,)`` each interval's half-width about its nominal value (the larger side)."""
+    return np.maximum(np.asarray(upper) - nominal, nominal - np.asarray(lower))
+
+
 def _declared(scenario: Scenario, scale: float) -> tuple[FloatArray, FloatArray]:
-    """``scale`` times the declaration: the parameters' half-widths about their nominal values
-    ``(q,)`` (the larger side) and the disturbance box ``(n,)``."""
+    """``scale`` times the declaration: the parameters' half-widths ``(q,)`` and the
+    disturbance box ``(n,)``."""
     u = scenario.uncertainty
-    half = np.maximum(
-        u.parameter_upper - u.parameter_nominal, u.parameter_nominal - u.parameter_lower
-    )
+    half = _half_widths(u.parameter_lower, u.parameter_upper, u.parameter_nominal)
     return scale * half, scale * np.asarray(u.disturbance)
 
 
@@ -164,13 +167,9 @@ def main(argv: list[str]) -> int:
     bounds = {f"{s:g}x": _declared(scenario, s) for s in multiples}
     if not scales and name in ASKED:
         parameters, disturbance = ASKED[name]
-        u = scenario.uncertainty
-        half = np.array(
-            [
-                max(parameters[p][1] - p0, p0 - parameters[p][0])
-                for p, p0 in zip(u.parameter_names, u.parameter_nominal, strict=True)
-            ]
-        )
+        names = scenario.uncertainty.parameter_names
+        lower, upper = np.array([parameters[p] for p in names]).T
+        half = _half_widths(lower, upper, scenario.uncertainty.parameter_nominal)
         gust = np.array([disturbance.get(s, 0.0) for s in scenario.state_names])
         bounds["issue 29"] = (half, gust)
     run_for(name, path, bounds)

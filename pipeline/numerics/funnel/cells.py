@@ -79,7 +79,7 @@ def init_cells(
       halved while ``g^D > MAX_CELLS``).
 
     The offsets are read-only; the last few answers are kept (the funnel stages of one run ask
-    the same question each round: about 0.6 s in five dimensions).
+    the same question each round).
     """
     lower = np.asarray(lower, dtype=np.float64)
     upper = np.asarray(upper, dtype=np.float64)
