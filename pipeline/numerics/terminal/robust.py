@@ -163,33 +163,37 @@ def _invariant_metric(
     goal_room = float(shapely.distance(shapely.Point(x_eq[position]), scenario.goal.boundary))
     if not inside or not len(w):
         return None
+    # one program for every multiplier: alpha a parameter (cvxpy's DPP), so the program is
+    # compiled once and re-solved for each value of ALPHAS
+    alpha = cp.Parameter(nonneg=True)
+    Q = cp.Variable((n, n), symmetric=True)
+    Y = K @ Q if K is not None else cp.Variable((m, n))  # Y = K Q, an unknown without K
+    constraints = [Q >> 1e-9 * np.eye(n), C @ Q @ C.T << goal_room**2 * np.eye(2)]
+    for i, name in enumerate(scenario.state_names):
+        if name in caps:
+            constraints.append(Q[i, i] <= caps[name] ** 2)
+    for j, name in enumerate(scenario.input_names):
+        room = min(u_eq[j] - region[name][0], region[name][1] - u_eq[j])
+        if K is not None:
+            constraints.append(K[j] @ Q @ K[j] <= room**2)
+        else:  # K_j Q K_j^T = Y_j Q^-1 Y_j^T <= room^2 (Schur)
+            row = Y[j : j + 1]
+            constraints.append(cp.bmat([[Q, row.T], [row, np.array([[room**2]])]]) >> 0)
+    corner_entry = cp.reshape((MARGIN - 1) * alpha, (1, 1), order="C")  # eps - alpha
+    for J in hull.vertices:
+        A, B = J[:, :n], J[:, n:]
+        AQ = (A + B @ K) @ Q if K is not None else A @ Q + B @ Y
+        M = AQ + AQ.T + (1 + MARGIN) * alpha * Q  # ... + (alpha + eps) Q
+        for corner in w:
+            column = corner[:, None]
+            constraints.append(
+                cp.bmat([[(M + M.T) / 2, column], [column.T, corner_entry]]) << 0
+            )  # (T3)
+    objective = cp.Maximize(cp.log_det(Q)) if largest else cp.Minimize(cp.trace(C @ Q @ C.T))
+    problem = cp.Problem(objective, constraints)
     best: tuple[float, FloatArray, FloatArray] | None = None
-    for alpha in ALPHAS:
-        Q = cp.Variable((n, n), symmetric=True)
-        Y = K @ Q if K is not None else cp.Variable((m, n))  # Y = K Q, an unknown without K
-        eps = MARGIN * alpha
-        constraints = [Q >> 1e-9 * np.eye(n), C @ Q @ C.T << goal_room**2 * np.eye(2)]
-        for i, name in enumerate(scenario.state_names):
-            if name in caps:
-                constraints.append(Q[i, i] <= caps[name] ** 2)
-        for j, name in enumerate(scenario.input_names):
-            room = min(u_eq[j] - region[name][0], region[name][1] - u_eq[j])
-            if K is not None:
-                constraints.append(K[j] @ Q @ K[j] <= room**2)
-            else:  # K_j Q K_j^T = Y_j Q^-1 Y_j^T <= room^2 (Schur)
-                row = Y[j : j + 1]
-                constraints.append(cp.bmat([[Q, row.T], [row, np.array([[room**2]])]]) >> 0)
-        for J in hull.vertices:
-            A, B = J[:, :n], J[:, n:]
-            AQ = (A + B @ K) @ Q if K is not None else A @ Q + B @ Y
-            M = AQ + AQ.T + (alpha + eps) * Q
-            for corner in w:
-                column = corner[:, None]
-                constraints.append(
-                    cp.bmat([[(M + M.T) / 2, column], [column.T, np.array([[eps - alpha]])]]) << 0
-                )  # (T3)
-        objective = cp.Maximize(cp.log_det(Q)) if largest else cp.Minimize(cp.trace(C @ Q @ C.T))
-        problem = cp.Problem(objective, constraints)
+    for value_of_alpha in ALPHAS:
+        alpha.value = value_of_alpha
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
