@@ -119,7 +119,7 @@ from pipeline.numerics.funnel.check import (
     check_funnel,
 )
 from pipeline.numerics.funnel.law import LawOffset
-from pipeline.numerics.funnel.lmi import codesign_gains, solve_clarabel
+from pipeline.numerics.funnel.lmi import FunnelProgram, codesign_gains, solve_clarabel
 from pipeline.numerics.funnel.pieces import interpolate, piece_hulls, pieces
 from pipeline.numerics.funnel.program import funnel_program
 from pipeline.numerics.funnel.seed import disturbance_seed, lqr_seed
@@ -128,7 +128,7 @@ from pipeline.numerics.terminal.fit import TerminalTarget, containing_level
 
 
 class _Parts(TypedDict, total=False):
-    """The ``Funnel`` fields that ``funnel`` has found so far (``result`` defaults the rest)."""
+    """The ``Funnel`` fields a search has found so far (``_Search.result`` defaults the rest)."""
 
     K: FloatArray
     P: FloatArray
@@ -145,12 +145,12 @@ class _Parts(TypedDict, total=False):
 
 
 class _Hulls(TypedDict):
-    """The ``Funnel`` fields fixed once the hulls are built (``_hulls``)."""
+    """The ``Funnel`` fields fixed once the hulls are built (``_Search.hulls``)."""
 
     boxes: FloatArray
     variables: tuple[str, ...]
     vertices: tuple[FloatArray, ...]
-    enclosure: Enclosure | None
+    enclosure: Enclosure
 
 
 # The LMIs' margin eps in (2 lambda + eps) Q: a solution that fails the numpy check (the solver
@@ -280,13 +280,115 @@ def synthesize_funnel(
         else the highest. A design choice too.
     """
     start = time.perf_counter()
+    setup = _search_setup(
+        scenario, trajectory, state_bounds=state_bounds, initial=initial, rate=rate,
+        disturbance=disturbance, terminal=terminal,
+    )  # fmt: skip
+    search = _Search(
+        scenario=scenario, trajectory=trajectory, setup=setup, allowance=allowance,
+        segments=segments, terminal=terminal, period=period, pushed=pushed, codesign=codesign,
+        codesign_first=codesign_first, from_multiplier=from_multiplier, start=start,
+    )  # fmt: skip
+    funnel = search.attempt(tight=True)
+    capped = bool(arc_variables(scenario.dynamics))  # without angles both attempts are the same
+    if widen and capped and (not funnel.success or funnel.limits["design"] < 1.0):
+        # The capped boxes could not hold the whole initial set: the seed's boxes, keep the better.
+        wide = search.attempt(tight=False)
+        funnel = max(funnel, wide, key=lambda f: (f.success, f.rho))
+    return dataclasses.replace(funnel, seconds=time.perf_counter() - start)
+
+
+@dataclass(frozen=True, kw_only=True)
+class _Setup:
+    """What every attempt of one ``synthesize_funnel`` call shares: its checked arguments and the
+    seed (steps 1-2 of the module docstring); N sample intervals in S pieces of ``HOLD``.
+
+    Attributes:
+      state_bounds: state name -> (lower, upper), every name a state's.
+      robust: (n,) the disturbance bound ``d``; None: the exact model (none, or every bound 0).
+      rate: lambda of (F2).
+      K: (N, m, n) the LQR gains (F4), each piece's first held over the piece.
+      P_lqr: (N+1, n, n) the LQR cost-to-go (a rejected funnel's ``P``).
+      bounds: (S+1,) each piece's first sample interval, then N (``funnel.pieces.pieces``).
+      Q_seed: (N+1, n, n) ``P_lqr^-1`` scaled to hold every ``Q_init[j]`` at t = 0, plus the
+        disturbance's extent (F5): the tube that sizes the hull boxes.
+      Q_init: (p, n, n) the initial set's matrices (``synthesize_funnel``'s ``initial``).
+    """
+
+    state_bounds: dict[str, tuple[float, float]]
+    robust: FloatArray | None
+    rate: float
+    K: FloatArray
+    P_lqr: FloatArray
+    bounds: np.ndarray
+    Q_seed: FloatArray
+    Q_init: FloatArray
+
+    @property
+    def N(self) -> int:
+        """Sample intervals."""
+        return len(self.K)
+
+    @property
+    def S(self) -> int:
+        """Pieces."""
+        return len(self.bounds) - 1
+
+
+def _search_setup(
+    scenario: Scenario,
+    trajectory: Trajectory,
+    *,
+    state_bounds: Mapping[str, tuple[float, float]] | None,
+    initial: FloatArray | None,
+    rate: float,
+    disturbance: FloatArray | None,
+    terminal: TerminalTarget | None,
+) -> _Setup:
+    """``synthesize_funnel``'s arguments of these names checked (a ValueError names the first
+    wrong one) and the search's seed: LQR gains held on pieces, ``Q_seed``, ``Q_init``."""
     state_bounds = dict(state_bounds or {})
-    robust = None if disturbance is None else np.asarray(disturbance, dtype=np.float64)
-    if robust is not None and (robust.shape != (scenario.n,) or not np.all(robust >= 0)):
-        raise ValueError(f"funnel: disturbance {disturbance!r}; expected {scenario.n} bounds >= 0")
-    if robust is not None and not np.any(robust > 0):
-        robust = None  # no disturbance: exactly the nominal design
+    robust = _disturbance_bound(scenario, disturbance)
     rate = float(rate)
+    _check_nominal(scenario, trajectory, state_bounds, terminal)
+    K, P_lqr = lqr_seed(
+        scenario, trajectory, stationary_end=robust is not None and terminal is not None
+    )
+    bounds = pieces(len(K), HOLD)
+    K = K[np.repeat(bounds[:-1], np.diff(bounds))]  # each piece holds its first gain
+    Q_seed = np.linalg.inv(P_lqr)
+    Q_init = _initial_sets(scenario, initial, Q_seed[0])
+    L_inv = np.linalg.inv(np.linalg.cholesky(Q_seed[0]))
+    # Q_seed[0] >= every Q_init[j]; under a disturbance, plus the extent that holds it (F5)
+    seed_level = np.linalg.eigvalsh(L_inv @ Q_init @ L_inv.T)[:, -1].max()
+    Q_seed = Q_seed * seed_level
+    guess = None if robust is None else disturbance_seed(scenario, trajectory, K, robust)
+    if guess is not None:
+        Q_seed = Q_seed + guess  # holds both the initial set and the disturbance's extent
+    return _Setup(
+        state_bounds=state_bounds, robust=robust, rate=rate, K=K, P_lqr=P_lqr, bounds=bounds,
+        Q_seed=Q_seed, Q_init=Q_init,
+    )  # fmt: skip
+
+
+def _disturbance_bound(scenario: Scenario, disturbance: FloatArray | None) -> FloatArray | None:
+    """``disturbance`` (n,) checked (every bound >= 0); None if it is None or every bound is 0."""
+    if disturbance is None:
+        return None
+    robust = np.asarray(disturbance, dtype=np.float64)
+    if robust.shape != (scenario.n,) or not np.all(robust >= 0):
+        raise ValueError(f"funnel: disturbance {disturbance!r}; expected {scenario.n} bounds >= 0")
+    return robust if np.any(robust > 0) else None  # none: exactly the nominal design
+
+
+def _check_nominal(
+    scenario: Scenario,
+    trajectory: Trajectory,
+    state_bounds: Mapping[str, tuple[float, float]],
+    terminal: TerminalTarget | None,
+) -> None:
+    """Raises a ValueError unless ``trajectory`` is one finite trajectory, ``state_bounds``
+    names states only and the nominal ends inside ``terminal`` (if any)."""
     xs = trajectory.dense_xs
     if xs.ndim != 2 or trajectory.us.ndim != 2:
         raise ValueError(f"funnel: expected one trajectory, got dense_xs of shape {xs.shape}")
@@ -307,18 +409,15 @@ def synthesize_funnel(
             f"funnel: the nominal ends at {np.round(xs[-1], 3).tolist()}, outside the terminal "
             f"ellipsoid ({terminal.share(xs[-1]):.3g} of its radius from its centre)"
         )
-    K, P_lqr = lqr_seed(
-        scenario, trajectory, stationary_end=robust is not None and terminal is not None
-    )
-    N = len(K)
-    bounds = pieces(N, HOLD)
-    S = len(bounds) - 1
-    K = K[np.repeat(bounds[:-1], np.diff(bounds))]  # each piece holds its first gain
-    Q_seed = np.linalg.inv(P_lqr)
-    c = list(scenario.position_index)
+
+
+def _initial_sets(scenario: Scenario, initial: FloatArray | None, seed: FloatArray) -> FloatArray:
+    """(p, n, n) ``Q_init`` of ``synthesize_funnel``'s ``initial`` (checked); None: the seed's
+    ``Q_seed[0]`` shape ``seed (n, n)`` with position extent ``scenario.clearance``."""
     if initial is None:
-        extent = np.linalg.eigvalsh(Q_seed[0][np.ix_(c, c)])[-1]
-        initial = Q_seed[0] * scenario.clearance**2 / extent
+        c = list(scenario.position_index)
+        extent = np.linalg.eigvalsh(seed[np.ix_(c, c)])[-1]
+        initial = seed * scenario.clearance**2 / extent
     Q_init = np.asarray(initial, dtype=np.float64)
     if Q_init.ndim == 2:
         Q_init = Q_init[None]
@@ -327,154 +426,241 @@ def synthesize_funnel(
             f"funnel: initial of shape {np.shape(initial)}; expected ({scenario.n}, "
             f"{scenario.n}) or (p, {scenario.n}, {scenario.n}) with p >= 1"
         )
-    L_inv = np.linalg.inv(np.linalg.cholesky(Q_seed[0]))
-    # Q_seed[0] >= every Q_init[j]; under a disturbance, plus the extent that holds it (F5)
-    seed_level = np.linalg.eigvalsh(L_inv @ Q_init @ L_inv.T)[:, -1].max()
-    Q_seed = Q_seed * seed_level
-    guess = None if robust is None else disturbance_seed(scenario, trajectory, K, robust)
-    if guess is not None:
-        Q_seed = Q_seed + guess  # holds both the initial set and the disturbance's extent
+    return Q_init
 
-    def result(success: bool, message: str, **values: Unpack[_Parts]) -> Funnel:
-        defaults: _Parts = {
-            "K": K, "P": P_lqr, "rho": 0.0, "margins": np.full((N, 2), np.nan),
-            "boxes": np.zeros((N, 2, 0)), "variables": (), "vertices": (), "enclosure": None,
-            "limits": {}, "binding": "", "multiplier": 0.0, "codesigned": False,
-        }  # fmt: skip
-        defaults.update(values)
-        return Funnel(
-            rate=rate, **defaults, seconds=time.perf_counter() - start, success=success,
-            message=message,
-        )  # fmt: skip
 
-    families = ((True, False) if codesign_first else (False, True)) if codesign else (False,)
+@dataclass(frozen=True, kw_only=True)
+class _Try:
+    """One program of an attempt: the LMI margin ``eps``, the S-procedure ``multiplier``
+    ``alpha`` (0: no disturbance) and the gains: ``codesigned`` with the metric (F6), or the LQR
+    gains."""
 
-    def attempt(tight: bool) -> Funnel:
+    margin: float
+    multiplier: float
+    codesigned: bool
+
+
+@dataclass(frozen=True, kw_only=True)
+class _Candidate:
+    """A funnel one try certified (its message not yet written): ``margin`` the try's LMI
+    margin, ``when`` (s) the time its binding limit binds."""
+
+    funnel: Funnel
+    margin: float
+    when: float
+
+
+@dataclass(frozen=True, kw_only=True)
+class _Failed:
+    """Why one try certified no funnel; ``final``: the exact model's program had no solution
+    holding any of the initial set, which ends the attempt."""
+
+    reason: str
+    final: bool = False
+
+
+@dataclass(frozen=True, kw_only=True)
+class _Search:
+    """One ``synthesize_funnel`` call's search for a funnel (steps 3-5 of the module docstring)
+    from its ``setup``; ``start``, the call's ``time.perf_counter()``. The other fields are
+    ``synthesize_funnel``'s arguments of the same names."""
+
+    scenario: Scenario
+    trajectory: Trajectory
+    setup: _Setup
+    allowance: float
+    segments: int
+    terminal: TerminalTarget | None
+    period: float
+    pushed: frozenset[int] | None
+    codesign: bool
+    codesign_first: bool
+    from_multiplier: float
+    start: float
+
+    def attempt(self, tight: bool) -> Funnel:
         """Hulls (capped angle boxes if ``tight``), the program, its check (``MARGINS``)."""
-        try:
-            variables, boxes, vertices, enclosure = piece_hulls(
-                scenario, trajectory, Q_seed, K, state_bounds, allowance, segments, bounds, tight
-            )
-        except HullError as error:
-            return result(False, f"funnel: {error}")
-        common: _Hulls = {
-            "boxes": boxes, "variables": variables, "vertices": vertices, "enclosure": enclosure
-        }  # fmt: skip
+        hulls = self.hulls(tight)
+        if isinstance(hulls, str):
+            return self.result(False, f"funnel: {hulls}")
         failures: list[str] = []
-        best: tuple[Funnel, float, str, float, str] | None = None
-        # robust: every multiplier with the LQR gains, then with co-designed gains (F6) (the
-        # other way round with codesign_first)
-        tries = (
-            [(margin, 0.0, False) for margin in MARGINS]
-            if robust is None
-            else [
-                (ROBUST_MARGIN * alpha, alpha, family)
-                for family in families
-                for alpha in ROBUST_MULTIPLIERS
-                if alpha >= min(from_multiplier, ROBUST_MULTIPLIERS[-1])
-            ]
-        )
-        search = MultiplierSearch()
-        for margin, multiplier, family in tries:  # family: (F6) gains (True), or the LQR gains
-            if robust is not None and search.past_best(family):
+        best: _Candidate | None = None
+        multipliers = MultiplierSearch()
+        for one in self.tries():
+            if self.setup.robust is not None and multipliers.past_best(one.codesigned):
                 continue
-            if codesign_first and not family and best is not None:
+            if self.codesign_first and not one.codesigned and best is not None:
                 continue  # (F6) certified a funnel short of the whole level: not the LQR gains
             # a solution within the solver's tolerance may fail the check: the next margin
-            gains, origin = K, ""
-            if family:  # (F6): gains designed with the metric, then held ((F3))
-                designed = codesign_gains(funnel_program(
-                    scenario, trajectory, K, vertices, boxes, variables, enclosure, Q_init,
-                    Q_seed, 2 * rate + margin, bounds, robust, multiplier, margin, terminal,
-                    state_bounds, codesign=True, period=period, pushed=pushed,
-                ))  # fmt: skip
-                if isinstance(designed, str):  # no gains to hold: nothing new to solve
-                    failures.append(f"margin {margin:g}: (F6) {designed} over {N} intervals")
-                    search.record(family, 0.0)
-                    continue
-                gains, origin = designed[0][np.repeat(np.arange(S), np.diff(bounds))], "(F6) "
-            program = funnel_program(
-                scenario, trajectory, gains, vertices, boxes, variables, enclosure, Q_init,
-                Q_seed, 2 * rate + margin, bounds, robust, multiplier, margin, terminal,
-                state_bounds, period=period, pushed=pushed,
-            )  # fmt: skip
-            solution = solve_clarabel(program)
-            failure: str | None
-            if isinstance(solution, str) or solution[1] <= 1e-6:
-                failure = (
-                    f"{solution} over {N} intervals"
-                    if isinstance(solution, str)
-                    else f"no funnel holds any of the initial set (tau {solution[1]:.2g})"
-                )
-                if robust is None:
-                    return result(False, f"funnel: {failure}", **common)
-                failures.append(f"margin {margin:g}: {failure}")
-                search.record(family, 0.0)
+            tried = self.one_try(hulls, multipliers, one)
+            if isinstance(tried, _Failed):
+                if tried.final:
+                    return self.result(False, f"funnel: {tried.reason}", **hulls)
+                failures.append(f"margin {one.margin:g}: {tried.reason}")
                 continue
-            Q_ends, tau = solution
-            search.record(family, tau)
-            # eq. (P1) at every sample time; E(0) at level 1 holds the initial set, the caps
-            # hold at level sqrt(tau)
-            Q = interpolate(Q_ends, bounds) / tau
-            lowest = np.linalg.eigvalsh(Q)[:, 0]
-            if not lowest.min() > 1e-12 * np.abs(Q).max():  # the solver's rounding: no metric
-                failures.append(
-                    f"margin {margin:g}: Q[{int(np.argmin(lowest))}] is not positive definite "
-                    f"({lowest.min():.3g})"
-                )
-                continue
-            limits = funnel_limits(scenario, trajectory, Q, gains, enclosure, state_bounds)
-            limits["design"] = (float(np.sqrt(min(tau, 1.0))), 0.0)
-            if terminal is not None:  # E(T) = {||x - x_ref(T)||_P[N] <= rho e^{-lambda T}}
-                T = trajectory.dense_ts[-1]
-                reach = terminal.end_radius(xs[-1], np.linalg.inv(Q[-1]))
-                limits["terminal"] = (reach * float(np.exp(rate * T)), float(T))
-            binding = min(limits, key=lambda key: limits[key][0])
-            level, when = limits[binding]
-            rho = level * (1 - LEVEL_SLACK)
-            funnel = result(
-                True, "", K=gains, P=np.linalg.inv(Q).astype(np.float64, copy=False), rho=rho,
-                binding=binding, multiplier=multiplier, codesigned=family,
-                margins=certificate_margins(Q, gains, vertices, rate, scenario.Ts),
-                limits={key: value[0] for key, value in limits.items()}, **common,
-            )  # fmt: skip
-            law = LawOffset.none(N, scenario.n, scenario.m, scenario.Ts)
-            if robust is not None:
-                law = law.with_disturbance(robust)
-            failure = check_funnel(scenario, trajectory, funnel, state_bounds, law)
-            if terminal is not None and not failure:
-                failure = _outside(terminal, xs[-1], funnel, trajectory.dense_ts[-1])
-            if rho <= 0:
-                failure = failure or f"the nominal itself violates {binding} at t = {when:.2f} s"
             # robust: the highest checked level is kept; none beats the design's whole level
             # (to the solver's tolerance: a funnel whose caps held to it, level ~1 - 1.1e-7,
             # never stopped the search at rho >= 1 - LEVEL_SLACK)
-            if not failure and (robust is None or rho >= (1 - LEVEL_SLACK) * (1 - WHOLE_ROUNDING)):
+            rho = tried.funnel.rho
+            if self.setup.robust is None or rho >= (1 - LEVEL_SLACK) * (1 - WHOLE_ROUNDING):
+                chosen = tried
                 break
-            if not failure and (best is None or rho > best[0].rho):
-                best = (funnel, margin, binding, when, origin)
-            if failure:
-                failures.append(f"margin {margin:g}: {failure}")
+            if best is None or rho > best.funnel.rho:
+                best = tried
         else:
             if best is None:
-                return result(False, f"funnel rejected: {_grouped(failures)}", **common)
-            funnel, margin, binding, when, origin = best
-            rho = funnel.rho
+                return self.result(False, f"funnel rejected: {_grouped(failures)}", **hulls)
+            chosen = best
+        return self.described(chosen, tight)
+
+    def tries(self) -> list[_Try]:
+        """An attempt's programs in order: each of ``MARGINS``; with a disturbance each
+        multiplier of ``ROBUST_MULTIPLIERS`` from ``from_multiplier`` up, per gains family."""
+        if self.setup.robust is None:
+            return [_Try(margin=margin, multiplier=0.0, codesigned=False) for margin in MARGINS]
+        # robust: every multiplier with the LQR gains, then with co-designed gains (F6) (the
+        # other way round with codesign_first)
+        families = (
+            ((True, False) if self.codesign_first else (False, True)) if self.codesign else (False,)
+        )
+        return [
+            _Try(margin=ROBUST_MARGIN * alpha, multiplier=alpha, codesigned=family)
+            for family in families
+            for alpha in ROBUST_MULTIPLIERS
+            if alpha >= min(self.from_multiplier, ROBUST_MULTIPLIERS[-1])
+        ]
+
+    def hulls(self, tight: bool) -> _Hulls | str:
+        """The pieces' hulls and boxes (``funnel.pieces``; angle boxes capped if ``tight``), or
+        why there are none."""
+        setup = self.setup
+        try:
+            variables, boxes, vertices, enclosure = piece_hulls(
+                self.scenario, self.trajectory, setup.Q_seed, setup.K, setup.state_bounds,
+                self.allowance, self.segments, setup.bounds, tight,
+            )  # fmt: skip
+        except HullError as error:
+            return str(error)
+        return {
+            "boxes": boxes, "variables": variables, "vertices": vertices, "enclosure": enclosure
+        }  # fmt: skip
+
+    def one_try(
+        self, hulls: _Hulls, multipliers: MultiplierSearch, one: _Try
+    ) -> _Candidate | _Failed:
+        """The program of ``one`` (its gains designed first if ``codesigned``), solved and its
+        funnel checked; the program's ``tau`` recorded in ``multipliers``."""
+        setup = self.setup
+        gains = setup.K
+        if one.codesigned:  # (F6): gains designed with the metric, then held ((F3))
+            designed = codesign_gains(self.program(hulls, setup.K, one, codesign=True))
+            if isinstance(designed, str):  # no gains to hold: nothing new to solve
+                multipliers.record(one.codesigned, 0.0)
+                return _Failed(reason=f"(F6) {designed} over {setup.N} intervals")
+            gains = designed[0][np.repeat(np.arange(setup.S), np.diff(setup.bounds))]
+        solution = solve_clarabel(self.program(hulls, gains, one))
+        if isinstance(solution, str) or solution[1] <= 1e-6:
+            failure = (
+                f"{solution} over {setup.N} intervals"
+                if isinstance(solution, str)
+                else f"no funnel holds any of the initial set (tau {solution[1]:.2g})"
+            )
+            if setup.robust is None:
+                return _Failed(reason=failure, final=True)
+            multipliers.record(one.codesigned, 0.0)
+            return _Failed(reason=failure)
+        Q_ends, tau = solution
+        multipliers.record(one.codesigned, tau)
+        # eq. (P1) at every sample time; E(0) at level 1 holds the initial set, the caps
+        # hold at level sqrt(tau)
+        Q = interpolate(Q_ends, setup.bounds) / tau
+        lowest = np.linalg.eigvalsh(Q)[:, 0]
+        if not lowest.min() > 1e-12 * np.abs(Q).max():  # the solver's rounding: no metric
+            return _Failed(
+                reason=f"Q[{int(np.argmin(lowest))}] is not positive definite ({lowest.min():.3g})"
+            )
+        return self.checked(hulls, one, gains, Q, tau)
+
+    def program(
+        self, hulls: _Hulls, gains: FloatArray, one: _Try, codesign: bool = False
+    ) -> FunnelProgram:
+        """(F3)'s program (``funnel.program``) for ``gains (N, m, n)`` held on the pieces; with
+        ``codesign`` the (F6) program, which the gains only seed."""
+        setup = self.setup
+        return funnel_program(
+            self.scenario, self.trajectory, gains, hulls["vertices"], hulls["boxes"],
+            hulls["variables"], hulls["enclosure"], setup.Q_init, setup.Q_seed,
+            2 * setup.rate + one.margin, setup.bounds, setup.robust, one.multiplier, one.margin,
+            self.terminal, setup.state_bounds, codesign=codesign, period=self.period,
+            pushed=self.pushed,
+        )  # fmt: skip
+
+    def checked(
+        self, hulls: _Hulls, one: _Try, gains: FloatArray, Q: FloatArray, tau: float
+    ) -> _Candidate | _Failed:
+        """The funnel of ``gains (N, m, n)`` and ``Q (N+1, n, n)`` (at level 1 its E(0) holds the
+        initial set; the program's ``tau``): its level (step 4), then ``check_funnel`` and the
+        terminal containment."""
+        scenario, trajectory, setup = self.scenario, self.trajectory, self.setup
+        end = trajectory.dense_xs[-1]
+        limits = funnel_limits(
+            scenario, trajectory, Q, gains, hulls["enclosure"], setup.state_bounds
+        )
+        limits["design"] = (float(np.sqrt(min(tau, 1.0))), 0.0)
+        if self.terminal is not None:  # E(T) = {||x - x_ref(T)||_P[N] <= rho e^{-lambda T}}
+            T = trajectory.dense_ts[-1]
+            reach = self.terminal.end_radius(end, np.linalg.inv(Q[-1]))
+            limits["terminal"] = (reach * float(np.exp(setup.rate * T)), float(T))
+        binding = min(limits, key=lambda key: limits[key][0])
+        level, when = limits[binding]
+        rho = level * (1 - LEVEL_SLACK)
+        funnel = self.result(
+            True, "", K=gains, P=np.linalg.inv(Q).astype(np.float64, copy=False), rho=rho,
+            binding=binding, multiplier=one.multiplier, codesigned=one.codesigned,
+            margins=certificate_margins(Q, gains, hulls["vertices"], setup.rate, scenario.Ts),
+            limits={key: value[0] for key, value in limits.items()}, **hulls,
+        )  # fmt: skip
+        law = LawOffset.none(setup.N, scenario.n, scenario.m, scenario.Ts)
+        if setup.robust is not None:
+            law = law.with_disturbance(setup.robust)
+        failure = check_funnel(scenario, trajectory, funnel, setup.state_bounds, law)
+        if self.terminal is not None and not failure:
+            failure = _outside(self.terminal, end, funnel, trajectory.dense_ts[-1])
+        if rho <= 0:
+            failure = failure or f"the nominal itself violates {binding} at t = {when:.2f} s"
+        if failure:
+            return _Failed(reason=failure)
+        return _Candidate(funnel=funnel, margin=one.margin, when=when)
+
+    def described(self, chosen: _Candidate, tight: bool) -> Funnel:
+        """``chosen``'s funnel with its message (level, the share of the initial set it holds,
+        what binds it, how it was designed)."""
+        funnel, setup = chosen.funnel, self.setup
+        rho, origin = funnel.rho, "(F6) " if funnel.codesigned else ""
         message = (
             f"funnel level {rho:.4g} (E(0) holds {min(rho, 1.0):.3g} x the required initial "
-            f"set) over {N} intervals ({S} pieces, {origin}K held over {HOLD}), bound by "
-            f"{binding} at t = {when:.2f} s (largest eigenvalue {funnel.margins.max():.2e}, LMI "
-            f"margin {margin:g}, {'capped' if tight else 'uncapped'} angle boxes)"
+            f"set) over {setup.N} intervals ({setup.S} pieces, {origin}K held over {HOLD}), "
+            f"bound by {funnel.binding} at t = {chosen.when:.2f} s (largest eigenvalue "
+            f"{funnel.margins.max():.2e}, LMI margin {chosen.margin:g}, "
+            f"{'capped' if tight else 'uncapped'} angle boxes)"
         )
         return dataclasses.replace(funnel, message=message)
 
-    funnel = attempt(tight=True)
-    capped = bool(arc_variables(scenario.dynamics))  # without angles both attempts are the same
-    if widen and capped and (not funnel.success or funnel.limits["design"] < 1.0):
-        # The capped boxes could not hold the whole initial set: the seed's boxes, keep the better.
-        wide = attempt(tight=False)
-        funnel = max(funnel, wide, key=lambda f: (f.success, f.rho))
-    return dataclasses.replace(funnel, seconds=time.perf_counter() - start)
+    def result(self, success: bool, message: str, **values: Unpack[_Parts]) -> Funnel:
+        """A ``Funnel`` of ``values``; the fields not given: the seed's gains and metric, no
+        level, no hulls."""
+        setup = self.setup
+        defaults: _Parts = {
+            "K": setup.K, "P": setup.P_lqr, "rho": 0.0, "margins": np.full((setup.N, 2), np.nan),
+            "boxes": np.zeros((setup.N, 2, 0)), "variables": (), "vertices": (),
+            "enclosure": None, "limits": {}, "binding": "", "multiplier": 0.0,
+            "codesigned": False,
+        }  # fmt: skip
+        defaults.update(values)
+        return Funnel(
+            rate=setup.rate, **defaults, seconds=time.perf_counter() - self.start,
+            success=success, message=message,
+        )  # fmt: skip
 
 
 def _grouped(failures: list[str]) -> str:
