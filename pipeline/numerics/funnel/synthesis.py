@@ -345,8 +345,8 @@ def _search_setup(
     disturbance: FloatArray | None,
     terminal: TerminalTarget | None,
 ) -> _Setup:
-    """``synthesize_funnel``'s arguments of these names checked (a ValueError names the first
-    wrong one) and the search's seed: LQR gains held on pieces, ``Q_seed``, ``Q_init``."""
+    """``synthesize_funnel``'s arguments of these names checked (a ValueError names what is
+    wrong) and the search's seed: LQR gains held on pieces, ``Q_seed``, ``Q_init``."""
     state_bounds = dict(state_bounds or {})
     robust = _disturbance_bound(scenario, disturbance)
     rate = float(rate)
@@ -549,7 +549,7 @@ class _Search:
         self, hulls: _Hulls, multipliers: MultiplierSearch, one: _Try
     ) -> _Candidate | _Failed:
         """The program of ``one`` (its gains designed first if ``codesigned``), solved and its
-        funnel checked; the program's ``tau`` recorded in ``multipliers``."""
+        funnel checked; under a disturbance, the program's ``tau`` recorded in ``multipliers``."""
         setup = self.setup
         gains = setup.K
         if one.codesigned:  # (F6): gains designed with the metric, then held ((F3))
