@@ -101,6 +101,7 @@ import dataclasses
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from types import MappingProxyType
 from typing import TypedDict, Unpack
 
 import numpy as np
@@ -315,7 +316,7 @@ class _Setup:
       Q_init: (p, n, n) the initial set's matrices (``synthesize_funnel``'s ``initial``).
     """
 
-    state_bounds: dict[str, tuple[float, float]]
+    state_bounds: Mapping[str, tuple[float, float]]
     robust: FloatArray | None
     rate: float
     K: FloatArray
@@ -347,7 +348,7 @@ def _search_setup(
 ) -> _Setup:
     """``synthesize_funnel``'s arguments of these names checked (a ValueError names what is
     wrong) and the search's seed: LQR gains held on pieces, ``Q_seed``, ``Q_init``."""
-    state_bounds = dict(state_bounds or {})
+    state_bounds = MappingProxyType(dict(state_bounds or {}))  # read-only, as _Setup is frozen
     robust = _disturbance_bound(scenario, disturbance)
     rate = float(rate)
     _check_nominal(scenario, trajectory, state_bounds, terminal)
